@@ -1,0 +1,46 @@
+# btmission: `make demo` and `make test` do everything on a fresh machine.
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+
+.PHONY: demo test test-all install system-deps bench lint clean
+
+$(STAMP): pyproject.toml
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e ".[test]"
+	@touch $(STAMP)
+
+install: $(STAMP) system-deps
+
+# graphviz renders svg/png trees. Installed when missing and possible (root + apt-get);
+# otherwise a note, and every other feature keeps working (export to dot/xml/json/ascii).
+system-deps:
+	@command -v dot >/dev/null 2>&1 || { \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+	    echo "installing graphviz (svg/png export)..."; \
+	    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq graphviz >/dev/null) \
+	      || echo "note: could not install graphviz; svg/png export is unavailable"; \
+	  else echo "note: graphviz 'dot' not found; svg/png export is unavailable (install graphviz)"; fi; }
+
+demo: install
+	$(VENV)/bin/btmission validate missions/mine_inspection.yaml
+	$(VENV)/bin/btmission mission tree missions/mine_inspection.yaml --agent R1
+	$(VENV)/bin/btmission synth aerial --goal 'at_goal(goal)' --dry-run
+
+test: install
+	$(VENV)/bin/pytest -q
+
+test-all: install
+	$(VENV)/bin/pytest -q -m ""
+
+bench: install
+	$(VENV)/bin/btmission bench synth
+
+lint: install
+	$(VENV)/bin/ruff check btmission cli library tests benchmarks
+	$(VENV)/bin/mypy btmission cli library
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -1,0 +1,229 @@
+"""Finding capability libraries and their implementations (DESIGN.md §4.1).
+
+A library is found either
+
+* by **name**, through the ``btmission.libraries`` entry-point group: the entry point's object is
+  the library YAML (a path or ``importlib.resources`` traversable) or a callable returning one.
+  The built-in libraries in ``library/`` are registered exactly this way in btmission's own
+  ``pyproject.toml``; a third-party plugin does the same in its own; or
+* by **path** to a YAML file.
+
+Implementations live in the Python module named by the library's ``module:`` key, registered by
+name on an :class:`Implementations` object called ``IMPLEMENTATIONS``::
+
+    IMPLEMENTATIONS = Implementations("aerial")
+
+    @IMPLEMENTATIONS.action("takeoff")
+    class Takeoff(py_trees.behaviour.Behaviour): ...
+
+    @IMPLEMENTATIONS.condition("is_flying")
+    def is_flying(ctx, **args) -> bool: ...
+
+The runtime binds leaves to these by name; synthesis and export never need them.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+from typing import Any, TypeVar
+
+from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
+from btmission.spec.library import Library, load_library_source
+from btmission.spec.source import parse_yaml, read_yaml
+
+ENTRY_POINT_GROUP = "btmission.libraries"
+
+T = TypeVar("T")
+
+
+class Implementations:
+    """A registry of action and condition implementations of one library, keyed by name."""
+
+    def __init__(self, library: str) -> None:
+        self.library = library
+        self.actions: dict[str, Any] = {}
+        self.conditions: dict[str, Any] = {}
+
+    def _register(self, table: dict[str, Any], kind: str, name: str) -> Callable[[T], T]:
+        def deco(obj: T) -> T:
+            if name in table:
+                raise ValueError(f"{self.library}: {kind} '{name}' is registered twice")
+            table[name] = obj
+            return obj
+
+        return deco
+
+    def action(self, name: str) -> Callable[[T], T]:
+        """Decorator registering the implementation of action ``name``."""
+        return self._register(self.actions, "action", name)
+
+    def condition(self, name: str) -> Callable[[T], T]:
+        """Decorator registering the implementation of condition ``name``."""
+        return self._register(self.conditions, "condition", name)
+
+    def check(self, library: Library) -> list[Diagnostic]:
+        """Registered names the spec does not declare are errors; unimplemented ones are listed."""
+        out: list[Diagnostic] = []
+        where = Location(library.file)
+        for kind, table, declared in (
+            ("action", self.actions, library.actions),
+            ("condition", self.conditions, library.conditions),
+        ):
+            for name in sorted(set(table) - set(declared)):
+                out.append(
+                    Diagnostic(
+                        Severity.ERROR,
+                        "unknown-implementation",
+                        f"module {library.module} implements {kind} '{name}', which the library does not declare",
+                        name,
+                        where,
+                    )
+                )
+        return out
+
+    def missing(self, library: Library) -> list[str]:
+        """Declared actions and conditions with no implementation (sorted)."""
+        return sorted(
+            [a for a in library.actions if a not in self.actions]
+            + [c for c in library.conditions if c not in self.conditions]
+        )
+
+
+@dataclass
+class LoadedLibrary:
+    """A library with where it came from, its findings and (if importable) its implementations."""
+
+    library: Library
+    diagnostics: list[Diagnostic]
+    origin: str
+    implementations: Implementations | None = None
+    import_error: str | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def runnable(self) -> bool:
+        impl = self.implementations
+        return impl is not None and not impl.missing(self.library)
+
+
+def installed_libraries() -> dict[str, metadata.EntryPoint]:
+    """Every library registered in the ``btmission.libraries`` entry-point group, by name."""
+    eps = metadata.entry_points(group=ENTRY_POINT_GROUP)
+    return {ep.name: ep for ep in sorted(eps, key=lambda e: e.name)}
+
+
+def looks_like_path(ref: str) -> bool:
+    return ref.endswith((".yaml", ".yml")) or "/" in ref or "\\" in ref
+
+
+def _spec_text(obj: Any, name: str) -> tuple[str, str]:
+    """Text and display path of the YAML an entry point designates."""
+    if callable(obj) and not hasattr(obj, "read_text"):
+        obj = obj()
+    if isinstance(obj, str):
+        obj = Path(obj)
+    if not hasattr(obj, "read_text"):
+        raise TypeError(
+            f"entry point '{name}' gives {type(obj).__name__}, expected a path to the YAML"
+        )
+    return obj.read_text(encoding="utf-8"), str(obj)
+
+
+def load_library(
+    ref: str,
+    base_dir: Path | None = None,
+    *,
+    import_module: bool = True,
+    where: Location = Location("<command line>"),
+) -> LoadedLibrary:
+    """Find a library by installed name or by path (relative to ``base_dir``) and load it.
+
+    ``where`` is where ``ref`` was written, for the message when it cannot be found.
+
+    Raises :class:`SpecError` when it cannot be found or its file is malformed; semantic findings
+    (undefined references, …) are returned in ``diagnostics`` for the caller to judge.
+    """
+    installed = installed_libraries()
+    if not looks_like_path(ref) and ref in installed:
+        ep = installed[ref]
+        try:
+            text, shown = _spec_text(ep.load(), ref)
+        except Exception as exc:  # a broken plugin must not crash the tool
+            raise SpecError(
+                [
+                    Diagnostic(
+                        Severity.ERROR,
+                        "plugin-error",
+                        f"library plugin '{ref}' ({ep.value}) could not be loaded: {exc}",
+                        ref,
+                        where,
+                    )
+                ]
+            ) from None
+        src = parse_yaml(text, shown)
+        origin = f"entry point {ep.value}"
+    else:
+        path = Path(ref)
+        if base_dir is not None and not path.is_absolute():
+            path = base_dir / path
+        if not path.exists():
+            known = ", ".join(installed) or "none"
+            raise SpecError(
+                [
+                    Diagnostic(
+                        Severity.ERROR,
+                        "unknown-library",
+                        f"unknown library '{ref}': no installed library of that name (installed: {known}) "
+                        "and no such file",
+                        ref,
+                        where,
+                    )
+                ]
+            )
+        src = read_yaml(path)
+        origin = f"file {path}"
+    lib, diags = load_library_source(src)
+    loaded = LoadedLibrary(lib, diags, origin)
+    if import_module and lib.module:
+        bind_implementations(loaded)
+    return loaded
+
+
+def bind_implementations(loaded: LoadedLibrary) -> None:
+    """Import the library's module and attach its ``IMPLEMENTATIONS`` registry (if any)."""
+    lib = loaded.library
+    assert lib.module
+    try:
+        mod = importlib.import_module(lib.module)
+    except Exception as exc:  # report, don't crash: the library still synthesises
+        loaded.import_error = f"{type(exc).__name__}: {exc}"
+        loaded.diagnostics.append(
+            Diagnostic(
+                Severity.WARNING,
+                "module-import",
+                f"cannot import implementation module '{lib.module}' ({loaded.import_error}); "
+                "the library synthesises and exports but cannot run",
+                "module",
+                Location(lib.file),
+            )
+        )
+        return
+    impl = getattr(mod, "IMPLEMENTATIONS", None)
+    if isinstance(impl, Implementations):
+        loaded.implementations = impl
+        loaded.diagnostics.extend(impl.check(lib))
+
+
+def library_catalog() -> Mapping[str, LoadedLibrary | SpecError]:
+    """Every installed library loaded (or the error that stopped it), by name."""
+    out: dict[str, LoadedLibrary | SpecError] = {}
+    for name in installed_libraries():
+        try:
+            out[name] = load_library(name)
+        except SpecError as exc:
+            out[name] = exc
+    return out

@@ -1,0 +1,119 @@
+"""Task cost expressions such as ``path_cost(pickup) + path_cost(pickup, dropoff)``.
+
+A task type's ``cost`` is what an agent bids: f_cost(task, state) in seed 003 eq. 8, e.g.
+Γ1 = path_cost(location) for inspection (eq. 9) and Γ2 = path_cost(pickup) +
+path_cost(pickup, dropoff) for pick-and-deliver (eq. 10). The agent multiplies it by k_bt.
+
+Grammar (a safe subset of Python expressions): numbers, task field names, ``+ - * /``,
+parentheses and calls of the cost functions below. ``path_cost(a)`` is the path cost from the
+agent's position to ``a``; ``path_cost(a, b)`` from ``a`` to ``b``; ``distance`` is the same with
+straight lines.
+"""
+
+from __future__ import annotations
+
+import ast
+import operator
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+
+COST_FUNCTIONS = {"path_cost": (1, 2), "distance": (1, 2)}
+"""Allowed functions and their (min, max) number of arguments."""
+
+_BINOPS: dict[type[ast.operator], Callable[[float, float], float]] = {
+    ast.Add: operator.add,
+    ast.Sub: operator.sub,
+    ast.Mult: operator.mul,
+    ast.Div: operator.truediv,
+}
+
+
+class CostExprError(ValueError):
+    """The expression is not in the allowed grammar."""
+
+
+@dataclass(frozen=True)
+class CostExpr:
+    """A parsed cost expression: its text, the task fields it reads and the calls it makes."""
+
+    text: str
+    symbols: tuple[str, ...]
+    tree: ast.Expression
+
+    def evaluate(
+        self, call: Callable[[str, tuple[object, ...]], float], fields: Mapping[str, object]
+    ) -> float:
+        """Evaluate with ``call(function_name, argument_values)`` supplying path/straight costs."""
+        return float(_eval(self.tree.body, call, fields))
+
+
+def parse_cost(text: str) -> CostExpr:
+    """Parse and check ``text``; raises :class:`CostExprError` with what is wrong.
+
+    >>> parse_cost("path_cost(pickup) + path_cost(pickup, dropoff)").symbols
+    ('dropoff', 'pickup')
+    """
+    if not isinstance(text, str) or not text.strip():
+        raise CostExprError("expected a cost expression such as path_cost(location)")
+    try:
+        tree = ast.parse(text.strip(), mode="eval")
+    except SyntaxError as exc:
+        raise CostExprError(f"'{text}' is not a valid expression ({exc.msg})") from None
+    symbols: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call):
+            if not isinstance(node.func, ast.Name) or node.func.id not in COST_FUNCTIONS:
+                name = node.func.id if isinstance(node.func, ast.Name) else ast.unparse(node.func)
+                raise CostExprError(
+                    f"unknown function '{name}' in '{text}' (allowed: {', '.join(COST_FUNCTIONS)})"
+                )
+            lo, hi = COST_FUNCTIONS[node.func.id]
+            if node.keywords or not lo <= len(node.args) <= hi:
+                raise CostExprError(f"{node.func.id} takes {lo} or {hi} task fields, in '{text}'")
+            for a in node.args:
+                if not isinstance(a, ast.Name):
+                    raise CostExprError(
+                        f"{node.func.id} arguments must be task field names, in '{text}'"
+                    )
+        elif isinstance(node, ast.Name):
+            if node.id not in COST_FUNCTIONS:
+                symbols.add(node.id)
+        elif isinstance(node, ast.BinOp):
+            if type(node.op) not in _BINOPS:
+                raise CostExprError(
+                    f"operator {type(node.op).__name__} not allowed in '{text}' (use + - * /)"
+                )
+        elif isinstance(node, ast.UnaryOp):
+            if not isinstance(node.op, (ast.USub, ast.UAdd)):
+                raise CostExprError(f"operator not allowed in '{text}'")
+        elif isinstance(node, ast.Constant):
+            if not isinstance(node.value, (int, float)) or isinstance(node.value, bool):
+                raise CostExprError(f"only numbers may appear as constants in '{text}'")
+        elif not isinstance(node, (ast.Expression, ast.Load, ast.operator, ast.unaryop)):
+            raise CostExprError(f"'{ast.unparse(node)}' is not allowed in a cost expression")
+    return CostExpr(text.strip(), tuple(sorted(symbols)), tree)
+
+
+def _eval(
+    node: ast.expr, call: Callable[[str, tuple[object, ...]], float], fields: Mapping[str, object]
+) -> float:
+    if isinstance(node, ast.Constant):
+        assert isinstance(node.value, (int, float))  # parse_cost admits only numbers
+        return float(node.value)
+    if isinstance(node, ast.Name):
+        value = fields[node.id]
+        if not isinstance(value, (int, float)):
+            raise CostExprError(f"task field '{node.id}' is not a number")
+        return float(value)
+    if isinstance(node, ast.BinOp):
+        return _BINOPS[type(node.op)](
+            _eval(node.left, call, fields), _eval(node.right, call, fields)
+        )
+    if isinstance(node, ast.UnaryOp):
+        v = _eval(node.operand, call, fields)
+        return -v if isinstance(node.op, ast.USub) else v
+    if isinstance(node, ast.Call):
+        assert isinstance(node.func, ast.Name)
+        args = tuple(fields[a.id] for a in node.args if isinstance(a, ast.Name))
+        return float(call(node.func.id, args))
+    raise CostExprError(f"cannot evaluate {ast.unparse(node)}")  # pragma: no cover - parse rejects

@@ -1,0 +1,444 @@
+"""Mission files (DESIGN.md §4.3): the schema users write and the checked :class:`Mission`.
+
+Loading validates the whole file and reports every problem at once, each with file:line:col and
+the item: YAML syntax, unknown keys, wrong types, duplicate ids, unknown libraries, conditions and
+task types, task fields a task type needs but a task lacks (or has but no type uses), cost
+expressions, commit conditions, and whether every agent's trees synthesise. Checks against the map
+(locations inside rock) belong to the world-map component.
+"""
+
+from __future__ import annotations
+
+import difflib
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator
+
+from btmission.diagnostics import Diagnostic, Location, Severity, SpecError, errors
+from btmission.plugins import LoadedLibrary, load_library
+from btmission.spec.common import Identifier, validate_model
+from btmission.spec.costexpr import CostExpr, CostExprError, parse_cost
+from btmission.spec.library import Atom, resolve_ref
+from btmission.spec.source import Source, format_path, parse_yaml, read_yaml
+
+MISSION_FORMAT_VERSION = 1
+
+Vec3 = Annotated[tuple[float, float, float], Field(description="[x, y, z] in metres")]
+BACKEND_RE = r"^(sim|mavlink://(udp|udpin|udpout|tcp|tcpin|serial):.+)$"
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class GeneratedMap(_Strict):
+    """A procedurally generated map (the world-map component provides the generators)."""
+
+    generate: Literal["mine", "empty"] = Field(
+        description="Generator: an underground mine, or free space."
+    )
+    seed: int = Field(0, description="Random seed; the same seed gives the same map.")
+    size: tuple[float, float, float] = Field(description="Extent [x, y, z] in metres.")
+
+    @field_validator("size")
+    @classmethod
+    def _positive(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        if min(v) <= 0:
+            raise ValueError("every size component must be > 0")
+        return v
+
+
+class FileMap(_Strict):
+    """A map read from a file (.npz voxel map, .ply or .pcd point cloud), relative to the mission."""
+
+    file: str = Field(description="Path to the map, relative to the mission file.")
+
+
+def _map_kind(v: Any) -> str:
+    return "File" if isinstance(v, dict) and "file" in v else "Generated"
+
+
+class WorldSpec(_Strict):
+    map: Annotated[
+        Annotated[GeneratedMap, Tag("Generated")] | Annotated[FileMap, Tag("File")],
+        Discriminator(_map_kind),
+    ] = Field(description="{generate: mine, seed: 7, size: [x, y, z]} or {file: path}")
+    resolution: float = Field(0.5, gt=0, description="Voxel size in metres.")
+
+
+class AgentSpec(_Strict):
+    id: Identifier
+    library: str = Field(description="Capability library: an installed name or a path to its YAML.")
+    start: Vec3
+    backend: str = Field(
+        "sim",
+        description="'sim' (embedded simulator) or a MAVLink URL such as mavlink://udp:127.0.0.1:14540",
+        json_schema_extra={"pattern": BACKEND_RE},
+    )
+
+    @field_validator("backend")
+    @classmethod
+    def _backend(cls, v: str) -> str:
+        if not re.match(BACKEND_RE, v):
+            raise ValueError(
+                "expected 'sim' or a MAVLink URL such as mavlink://udp:127.0.0.1:14540 "
+                "(udp, udpin, udpout, tcp, tcpin or serial)"
+            )
+        return v
+
+
+class TaskSpec(BaseModel):
+    """One task. Besides these keys, a task carries the fields its type's goal and cost use."""
+
+    model_config = ConfigDict(extra="allow", frozen=True)
+    id: Identifier
+    type: Identifier
+    at: float = Field(0.0, ge=0, description="Time (s) the task is added to the pool.")
+    priority: float | None = Field(None, gt=0, description="Overrides the task type's priority.")
+
+
+class TaskTypeSpec(_Strict):
+    goal: str | list[str] = Field(description="Goal condition(s), e.g. at_goal(location).")
+    cost: str = Field(description="Bid cost expression, e.g. path_cost(location).")
+    commit_after: str | None = Field(
+        None, description="Condition after which the agent commits to the task (k_bt = 0)."
+    )
+    priority: float = Field(
+        1.0, gt=0, description="Priority; scaled by coordination.priority_scale."
+    )
+
+
+class CoordinationSpec(_Strict):
+    auction_rate_hz: float = Field(10.0, gt=0, description="Auction rounds per second.")
+    participation: float = Field(
+        1.0, gt=0, le=1, description="Fraction of tasks each agent bids on."
+    )
+    priority_scale: float = Field(
+        1000.0, ge=0, description="Weight of task priority in the profit."
+    )
+    solver: Literal["assignment", "ilp-scip"] = Field(
+        "assignment", description="Assignment solver."
+    )
+    agent_timeout_s: float = Field(
+        3.0, gt=0, description="Silence after which an agent is dropped."
+    )
+
+
+class DefaultBehaviorSpec(_Strict):
+    goal: str | list[str] = Field(description="Goal of the default behaviour, e.g. landed_at_home.")
+    idle_timeout_s: float = Field(
+        10.0, ge=0, description="Idle time before the default behaviour runs."
+    )
+
+
+class MissionSpec(_Strict):
+    """A mission file (``version: 1``)."""
+
+    mission: Identifier
+    version: Literal[1]
+    description: str = ""
+    world: WorldSpec
+    agents: list[AgentSpec] = Field(min_length=1)
+    tasks: list[TaskSpec] = Field(default_factory=list)
+    task_types: dict[Identifier, TaskTypeSpec]
+    coordination: CoordinationSpec = CoordinationSpec()
+    default_behavior: DefaultBehaviorSpec | None = None
+
+
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class TaskType:
+    """A checked task type: goal atoms over task fields, cost expression, commit condition."""
+
+    name: str
+    goals: tuple[Atom, ...]
+    cost: CostExpr
+    commit_after: Atom | None
+    priority: float
+    fields: tuple[str, ...]
+    """Every task field the type reads (goal, cost and commit symbols)."""
+
+
+@dataclass(frozen=True)
+class Task:
+    id: str
+    type: str
+    at: float
+    priority: float
+    fields: Mapping[str, Any]
+    where: Location = Location()
+
+
+@dataclass(frozen=True)
+class Agent:
+    id: str
+    library: str
+    start: tuple[float, float, float]
+    backend: str
+    where: Location = Location()
+
+
+@dataclass(frozen=True)
+class DefaultBehavior:
+    goals: tuple[Atom, ...]
+    idle_timeout_s: float
+
+
+@dataclass
+class Mission:
+    """A validated mission with its resolved libraries."""
+
+    name: str
+    spec: MissionSpec
+    file: str
+    agents: list[Agent]
+    tasks: list[Task]
+    task_types: dict[str, TaskType]
+    default_behavior: DefaultBehavior | None
+    libraries: dict[str, LoadedLibrary]
+    """Library reference as written in the file → loaded library."""
+    diagnostics: list[Diagnostic] = field(default_factory=list)
+    """Warnings and infos found while loading (errors raise instead)."""
+
+    def agent(self, agent_id: str) -> Agent:
+        for a in self.agents:
+            if a.id == agent_id:
+                return a
+        raise KeyError(agent_id)
+
+    def library_of(self, agent_id: str) -> LoadedLibrary:
+        return self.libraries[self.agent(agent_id).library]
+
+    @property
+    def base_dir(self) -> Path:
+        return Path(self.file).parent
+
+
+def _goal_list(g: str | list[str]) -> list[str]:
+    return [g] if isinstance(g, str) else list(g)
+
+
+_FIELD_OK = (int, float, str)
+
+
+def _check_field_value(v: Any) -> str | None:
+    if isinstance(v, bool):
+        return "expected a position [x, y, z], a number or a name"
+    if isinstance(v, _FIELD_OK):
+        return None
+    if (
+        isinstance(v, list)
+        and len(v) == 3
+        and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
+    ):
+        return None
+    return "expected a position [x, y, z], a number or a name"
+
+
+def compile_mission(spec: MissionSpec, src: Source) -> Mission:
+    """Check everything that needs more than the schema. Raises :class:`SpecError` with all errors."""
+    from btmission.synthesis.mission_tree import check_agent_trees
+
+    diags: list[Diagnostic] = []
+
+    def add(
+        path: Sequence[str | int],
+        message: str,
+        code: str,
+        sev: Severity = Severity.ERROR,
+        key: bool = False,
+    ) -> None:
+        diags.append(Diagnostic(sev, code, message, format_path(path), src.locate(path, key=key)))
+
+    base = Path(src.file).parent
+    # agents: unique ids, libraries resolvable and sound
+    agents: list[Agent] = []
+    seen: dict[str, int] = {}
+    libraries: dict[str, LoadedLibrary] = {}
+    lib_failed: set[str] = set()
+    for i, a in enumerate(spec.agents):
+        if a.id in seen:
+            first = src.locate(("agents", seen[a.id], "id")).line
+            add(
+                ("agents", i, "id"),
+                f"duplicate agent id '{a.id}' (first used on line {first})",
+                "duplicate-id",
+            )
+        seen.setdefault(a.id, i)
+        agents.append(Agent(a.id, a.library, a.start, a.backend, src.locate(("agents", i))))
+        if a.library in libraries or a.library in lib_failed:
+            continue
+        try:
+            loaded = load_library(a.library, base, where=src.locate(("agents", i, "library")))
+        except SpecError as exc:
+            lib_failed.add(a.library)
+            for d in exc.diagnostics:
+                if d.code == "unknown-library":
+                    add(("agents", i, "library"), d.message, d.code)
+                else:
+                    diags.append(d)
+            continue
+        lib_errors = errors(loaded.diagnostics)
+        if lib_errors:
+            lib_failed.add(a.library)
+            add(
+                ("agents", i, "library"),
+                f"library '{a.library}' has {len(lib_errors)} error(s), listed below",
+                "library-errors",
+            )
+            diags.extend(lib_errors)
+            continue
+        libraries[a.library] = loaded
+
+    conditions_any: dict[str, Any] = {}
+    for lib in libraries.values():
+        conditions_any.update(lib.library.conditions)
+    if lib_failed:
+        conditions_any = {}  # a library is missing: checking goals against the rest would only add noise
+
+    # task types: goals, cost, commit condition
+    task_types: dict[str, TaskType] = {}
+    for tname, tt in spec.task_types.items():
+        path: tuple[str | int, ...] = ("task_types", tname)
+        ok = True
+        goals: list[Atom] = []
+        for gi, gtext in enumerate(_goal_list(tt.goal)):
+            gpath: tuple[str | int, ...] = (
+                (*path, "goal") if isinstance(tt.goal, str) else (*path, "goal", gi)
+            )
+            atom, message, code = (
+                resolve_ref(gtext, conditions_any, None) if conditions_any else (None, None, "")
+            )
+            if atom is None:
+                if conditions_any:
+                    add(gpath, f"{message} (in no agent's library)", code)
+                ok = False
+                continue
+            goals.append(atom)
+        try:
+            cost = parse_cost(tt.cost)
+        except CostExprError as exc:
+            add((*path, "cost"), str(exc), "cost-expression")
+            ok = False
+        commit: Atom | None = None
+        if tt.commit_after is not None and conditions_any:
+            commit, message, code = resolve_ref(tt.commit_after, conditions_any, None)
+            if commit is None:
+                add((*path, "commit_after"), message or "bad condition", code)
+                ok = False
+        if not ok:
+            continue
+        goal_syms = {s for g in goals for s in g.args}
+        if commit is not None:
+            stray = [s for s in commit.args if s not in goal_syms]
+            if stray:
+                add(
+                    (*path, "commit_after"),
+                    f"'{commit}' uses {', '.join(stray)}, which the goal does not (goal symbols: "
+                    f"{', '.join(sorted(goal_syms)) or 'none'})",
+                    "undefined-parameter",
+                )
+        fields = tuple(sorted(goal_syms | set(cost.symbols)))
+        task_types[tname] = TaskType(tname, tuple(goals), cost, commit, tt.priority, fields)
+
+    # default behaviour
+    default: DefaultBehavior | None = None
+    if spec.default_behavior is not None and conditions_any:
+        dgoals: list[Atom] = []
+        for gi, gtext in enumerate(_goal_list(spec.default_behavior.goal)):
+            gpath = (
+                ("default_behavior", "goal")
+                if isinstance(spec.default_behavior.goal, str)
+                else ("default_behavior", "goal", gi)
+            )
+            atom, message, code = resolve_ref(gtext, conditions_any, None)
+            if atom is None:
+                add(gpath, message or "bad goal", code)
+            else:
+                dgoals.append(atom)
+        default = DefaultBehavior(tuple(dgoals), spec.default_behavior.idle_timeout_s)
+
+    # tasks: unique ids, known types, the fields their type needs and nothing else
+    tasks: list[Task] = []
+    tseen: dict[str, int] = {}
+    for i, t in enumerate(spec.tasks):
+        tpath: tuple[str | int, ...] = ("tasks", i)
+        if t.id in tseen:
+            first = src.locate(("tasks", tseen[t.id], "id")).line
+            add(
+                (*tpath, "id"),
+                f"duplicate task id '{t.id}' (first used on line {first})",
+                "duplicate-id",
+            )
+        tseen.setdefault(t.id, i)
+        task_fields: dict[str, Any] = dict(t.model_extra or {})
+        for k, v in task_fields.items():
+            problem = _check_field_value(v)
+            if problem:
+                add((*tpath, k), f"task field '{k}': {problem} (got {v!r})", "schema")
+        if t.type not in spec.task_types:
+            close = difflib.get_close_matches(t.type, list(spec.task_types), n=1)
+            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            add(
+                (*tpath, "type"),
+                f"unknown task type '{t.type}'{hint}; declared: {', '.join(spec.task_types) or 'none'}",
+                "unknown-task-type",
+            )
+            continue
+        tt2 = task_types.get(t.type)
+        if tt2 is None:
+            continue
+        for need in tt2.fields:
+            if need not in task_fields:
+                add(
+                    tpath,
+                    f"task '{t.id}' of type '{t.type}' lacks field '{need}' (the type uses: {', '.join(tt2.fields)})",
+                    "missing-field",
+                )
+        for k in task_fields:
+            if k not in tt2.fields:
+                add(
+                    (*tpath, k),
+                    f"unknown key '{k}' for a task of type '{t.type}' (expected: id, type, "
+                    f"at, priority, {', '.join(tt2.fields)})",
+                    "schema",
+                    key=True,
+                )
+        prio = t.priority if t.priority is not None else tt2.priority
+        tasks.append(Task(t.id, t.type, t.at, prio, task_fields, src.locate(tpath)))
+
+    # map file exists
+    if isinstance(spec.world.map, FileMap):
+        mp = base / spec.world.map.file
+        if not mp.exists():
+            add(
+                ("world", "map", "file"),
+                f"map file '{spec.world.map.file}' not found (looked in {base})",
+                "no-file",
+            )
+
+    mission = Mission(spec.mission, spec, src.file, agents, tasks, task_types, default, libraries)
+    if not errors(diags):
+        diags.extend(check_agent_trees(mission, src))
+    if errors(diags):
+        raise SpecError(errors(diags) + [d for d in diags if d.severity is not Severity.ERROR])
+    mission.diagnostics = diags
+    return mission
+
+
+def load_mission_source(src: Source) -> Mission:
+    spec = validate_model(MissionSpec, src, "mission")
+    return compile_mission(spec, src)
+
+
+def load_mission(path: str | Path) -> Mission:
+    """Read and validate a mission file. Raises :class:`SpecError` listing every problem."""
+    return load_mission_source(read_yaml(path))
+
+
+def load_mission_text(text: str, file: str = "<input>") -> Mission:
+    return load_mission_source(parse_yaml(text, file))

@@ -1,0 +1,46 @@
+"""``btmission bench``: the project's benchmarks (results as Markdown + CSV tables)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+
+@click.group()
+def bench() -> None:
+    """Run benchmarks; each prints a table and writes it under --out (default benchmarks/results)."""
+
+
+@bench.command("synth")
+@click.option(
+    "--sizes",
+    default="10,100,1000,5000",
+    show_default=True,
+    help="Comma-separated numbers of actions per generated library.",
+)
+@click.option(
+    "--repeat",
+    default=5,
+    show_default=True,
+    type=click.IntRange(1),
+    help="Timed repetitions per case (the median is reported).",
+)
+@click.option(
+    "--out",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=Path("benchmarks/results"),
+    show_default=True,
+    help="Directory for synth.md and synth.csv.",
+)
+def synth_bench(sizes: str, repeat: int, out: Path) -> None:
+    """Synthesis + checks on generated libraries (chains and wide fan-in). Target: 1,000 actions < 100 ms."""
+    from btmission.bench.synth import run_synth_benchmark
+
+    try:
+        ns = [int(s) for s in sizes.split(",") if s.strip()]
+    except ValueError:
+        raise click.BadParameter(
+            f"expected comma-separated integers, got '{sizes}'", param_hint="--sizes"
+        ) from None
+    run_synth_benchmark(ns, repeat=repeat, out_dir=out, echo=click.echo)

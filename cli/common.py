@@ -1,0 +1,100 @@
+"""Shared CLI plumbing: exit codes, printing diagnostics, writing outputs safely."""
+
+from __future__ import annotations
+
+import functools
+import os
+import sys
+import tempfile
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import Any, TypeVar
+
+import click
+
+from btmission.diagnostics import Diagnostic, Severity, SpecError
+
+EXIT_OK, EXIT_CHECKS_FAILED, EXIT_BAD_INPUT = 0, 1, 2
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+class BadInput(click.ClickException):
+    """The input cannot be used (exit status 2)."""
+
+    exit_code = EXIT_BAD_INPUT
+
+
+class ChecksFailed(click.ClickException):
+    """The input is well-formed but a check failed (exit status 1)."""
+
+    exit_code = EXIT_CHECKS_FAILED
+
+
+def echo_diagnostics(diags: Iterable[Diagnostic], *, show_info: bool = True) -> None:
+    """Print findings to stderr, one per line, errors first as produced."""
+    for d in diags:
+        if d.severity is Severity.INFO and not show_info:
+            continue
+        colour = {"error": "red", "warning": "yellow", "info": None}[d.severity.value]
+        click.secho(d.format(), err=True, fg=colour)
+
+
+def handle_spec_errors(fn: F) -> F:
+    """Turn :class:`SpecError` into one clear message per problem and exit status 2."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        except SpecError as exc:
+            echo_diagnostics(exc.diagnostics)
+            n = len([d for d in exc.diagnostics if d.severity is Severity.ERROR])
+            raise BadInput(f"{n} problem(s) found; nothing was run") from None
+
+    return wrapper  # type: ignore[return-value]
+
+
+def write_output(data: str | bytes, output: Path | None) -> None:
+    """Write to ``output`` atomically (temp file + rename), or to stdout when it is None.
+
+    Writing through a temporary file means an existing file is never left half-written.
+    """
+    if output is None:
+        if isinstance(data, bytes):
+            if sys.stdout.isatty():
+                raise BadInput("this format is binary: give an output file with -o FILE")
+            sys.stdout.buffer.write(data)
+            sys.stdout.buffer.flush()
+        else:
+            click.echo(data, nl=not data.endswith("\n"))
+        return
+    output.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{output.name}.", dir=output.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data if isinstance(data, bytes) else data.encode("utf-8"))
+        os.replace(tmp, output)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    click.echo(f"wrote {output}", err=True)
+
+
+FORMAT_BY_SUFFIX = {
+    ".svg": "svg",
+    ".png": "png",
+    ".xml": "xml",
+    ".json": "json",
+    ".dot": "dot",
+    ".gv": "dot",
+    ".txt": "ascii",
+}
+
+
+def infer_format(fmt: str | None, output: Path | None) -> str:
+    if fmt:
+        return fmt
+    if output is not None:
+        return FORMAT_BY_SUFFIX.get(output.suffix.lower(), "ascii")
+    return "ascii"

@@ -1,0 +1,118 @@
+"""``btmission validate``, ``btmission mission tree`` and ``btmission schema``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+from btmission.cli.common import (
+    BadInput,
+    ChecksFailed,
+    echo_diagnostics,
+    handle_spec_errors,
+    write_output,
+)
+from btmission.cli.synth_cmds import emit_tree, format_option, output_option
+
+from btmission.diagnostics import Severity, errors, promote
+from btmission.spec.mission import load_mission
+from btmission.synthesis.mission_tree import build_mission_tree
+
+
+@click.command()
+@click.argument("mission_file", metavar="MISSION", type=click.Path(dir_okay=False, path_type=Path))
+@click.option(
+    "--strict", is_flag=True, help="Warnings (e.g. assumed conditions) fail the check (exit 1)."
+)
+@handle_spec_errors
+def validate(mission_file: Path, strict: bool) -> None:
+    """Validate a mission file without running it.
+
+    Checks the schema, ids, libraries, task types, task fields, cost expressions, commit
+    conditions, and that every agent's trees synthesise. Every problem is reported with
+    file:line:col. Exit status 2 when the mission is invalid.
+    """
+    m = load_mission(mission_file)
+    diags = promote(m.diagnostics, strict)
+    echo_diagnostics(diags)
+    libs = ", ".join(sorted({lb.library.name for lb in m.libraries.values()}))
+    click.echo(
+        f"{mission_file}: mission '{m.name}' OK — {len(m.agents)} agent(s) ({libs}), "
+        f"{len(m.tasks)} task(s), {len(m.task_types)} task type(s)"
+    )
+    if errors(diags):
+        raise ChecksFailed("warnings are errors under --strict")
+
+
+@click.group()
+def mission() -> None:
+    """Inspect a mission's per-agent trees."""
+
+
+@mission.command("tree")
+@click.argument("mission_file", metavar="MISSION", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("-a", "--agent", "agent_id", required=True, help="Agent id from the mission.")
+@click.option(
+    "-t",
+    "--task-type",
+    "task_types",
+    multiple=True,
+    help="Only this task type's branch (repeatable; default: every type the agent can do).",
+)
+@format_option
+@output_option
+@click.option(
+    "--strict", is_flag=True, help="Assumed conditions and ambiguous achievers are errors."
+)
+@handle_spec_errors
+def tree_cmd(
+    mission_file: Path,
+    agent_id: str,
+    task_types: tuple[str, ...],
+    fmt: str | None,
+    output: Path | None,
+    strict: bool,
+) -> None:
+    """Show an agent's mission tree (seed 000 Fig. 7).
+
+    The root falls back from one branch per task type (task_assigned(type) → the back-chained
+    subtree of the type's goal) to the default behaviour after the idle timeout, then to wait.
+    """
+    m = load_mission(mission_file)
+    ids = [a.id for a in m.agents]
+    if agent_id not in ids:
+        raise BadInput(f"{mission_file}: no agent '{agent_id}' (agents: {', '.join(ids)})")
+    for t in task_types:
+        if t not in m.task_types:
+            raise BadInput(
+                f"{mission_file}: no task type '{t}' (task types: {', '.join(m.task_types)})"
+            )
+    mt = build_mission_tree(m, agent_id, list(task_types) or None, strict=strict)
+    for name, why in mt.skipped.items():
+        click.echo(f"note: {agent_id} cannot do task type '{name}': {why}", err=True)
+    echo_diagnostics([d for d in mt.diagnostics if d.severity is not Severity.INFO])
+    emit_tree(
+        mt.tree,
+        fmt,
+        output,
+        f"{m.name}_{agent_id}",
+        {"mission": m.name, "agent": agent_id, "task_types": list(mt.branches)},
+    )
+    if errors(mt.diagnostics):
+        raise ChecksFailed("synthesis reported errors")
+
+
+@click.command()
+@click.argument("kind", type=click.Choice(["library", "mission"]))
+@output_option
+def schema(kind: str, output: Path | None) -> None:
+    """Print the JSON Schema of a library or mission file, for editor validation.
+
+    \b
+    For VS Code (YAML extension), add to settings.json:
+      "yaml.schemas": {"./mission.schema.json": "missions/*.yaml"}
+    """
+    from btmission.spec.schema import json_schema
+
+    write_output(json.dumps(json_schema(kind), indent=2) + "\n", output)
