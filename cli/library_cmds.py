@@ -6,8 +6,8 @@ import json
 from pathlib import Path
 
 import click
-from btmission.cli.common import ChecksFailed, echo_diagnostics, handle_spec_errors
 
+from btmission.cli.common import ChecksFailed, echo_diagnostics, handle_spec_errors
 from btmission.diagnostics import errors
 from btmission.plugins import library_catalog, load_library
 from btmission.synthesis.checks import check_library
@@ -167,7 +167,6 @@ def new_cmd(name: str, output: Path | None, force: bool) -> None:
     after `pip install -e DIR`, `btmission library list` shows it.
     """
     from btmission.cli.common import BadInput
-
     from btmission.scaffold import ScaffoldError, scaffold_plugin
 
     target = output or Path(f"btmission-{name.replace('_', '-')}")

@@ -6,9 +6,9 @@ Exit status: 0 ok, 1 checks failed, 2 bad input (unreadable or invalid files, un
 from __future__ import annotations
 
 import click
-from btmission.cli import bench_cmds, library_cmds, mission_cmds, synth_cmds
 
 from btmission import __version__
+from btmission.cli import bench_cmds, library_cmds, mission_cmds, synth_cmds
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})

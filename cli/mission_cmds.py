@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import click
+
 from btmission.cli.common import (
     BadInput,
     ChecksFailed,
@@ -14,7 +15,6 @@ from btmission.cli.common import (
     write_output,
 )
 from btmission.cli.synth_cmds import emit_tree, format_option, output_option
-
 from btmission.diagnostics import Severity, errors, promote
 from btmission.spec.mission import load_mission
 from btmission.synthesis.mission_tree import build_mission_tree

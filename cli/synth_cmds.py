@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
+
 from btmission.cli.common import (
     BadInput,
     ChecksFailed,
@@ -13,7 +14,6 @@ from btmission.cli.common import (
     infer_format,
     write_output,
 )
-
 from btmission.diagnostics import errors
 from btmission.export import FORMATS, GraphvizFailed, GraphvizMissing, export_tree
 from btmission.plugins import load_library
@@ -45,14 +45,12 @@ def emit_tree(
     output: Path | None,
     name: str,
     extra: dict[str, object] | None = None,
+    *,
+    unicode: bool = True,
 ) -> None:
     """Export ``tree`` in ``fmt`` to ``output`` or stdout, with clear errors for graphviz."""
-    fmt = infer_format(fmt, output)
     try:
-        kwargs: dict[str, object] = {"name": name}
-        if fmt == "json" and extra:
-            kwargs["extra"] = extra
-        data = export_tree(tree, fmt, **kwargs)  # type: ignore[arg-type]
+        data = export_tree(tree, infer_format(fmt, output), name=name, unicode=unicode, extra=extra)
     except GraphvizMissing as exc:
         raise BadInput(str(exc)) from None
     except GraphvizFailed as exc:
@@ -144,7 +142,7 @@ def synth(
         run = dry_run_fn(result.tree, lib, initial, action_ticks=action_ticks, max_ticks=max_ticks)
         click.echo(run.format_trace(unicode=not ascii_only))
         if output is not None:
-            emit_tree(result.tree, fmt, output, lib.name)
+            emit_tree(result.tree, fmt, output, lib.name, unicode=not ascii_only)
         if not result.ok:
             raise ChecksFailed("synthesis reported errors")
         if not run.success or run.violations:
@@ -155,14 +153,7 @@ def synth(
         "goals": [str(g) for g in atoms],
         "inputs": list(result.inputs),
     }
-    if infer_format(fmt, output) == "ascii" and not ascii_only:
-        emit_tree(result.tree, fmt, output, lib.name)
-    elif ascii_only and infer_format(fmt, output) == "ascii":
-        from btmission.export import render_ascii
-
-        write_output(render_ascii(result.tree, unicode=False), output)
-    else:
-        emit_tree(result.tree, fmt, output, lib.name, meta)
+    emit_tree(result.tree, fmt, output, lib.name, meta, unicode=not ascii_only)
     click.echo(f"{result.size} nodes; inputs: {', '.join(result.inputs) or 'none'}", err=True)
     if errors(result.diagnostics):
         raise ChecksFailed("synthesis reported errors")

@@ -7,6 +7,9 @@ levels deep are fine. Only svg/png run a program (Graphviz ``dot``, see :mod:`.g
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 from btmission.export.ascii import render_ascii
 from btmission.export.btcpp import parse_btcpp_xml, render_btcpp_xml
 from btmission.export.dot import render_dot
@@ -45,7 +48,12 @@ BINARY_FORMATS = frozenset({"svg", "png"})
 
 
 def export_tree(
-    root: Node, fmt: str, *, name: str = "MainTree", unicode: bool = True
+    root: Node,
+    fmt: str,
+    *,
+    name: str = "MainTree",
+    unicode: bool = True,
+    extra: Mapping[str, Any] | None = None,
 ) -> bytes | str:
     """``root`` in format ``fmt`` (one of :data:`FORMATS`).
 
@@ -55,6 +63,7 @@ def export_tree(
             ``bytes`` rendered by Graphviz ``dot``.
         name: the graph name (dot/svg/png), BehaviorTree ID (xml) or ``name`` key (json).
         unicode: box-drawing characters in the ascii rendering (ignored by other formats).
+        extra: additional top-level keys of the json document (e.g. library, goals, inputs).
 
     Raises:
         ValueError: unknown ``fmt``, or a tree BehaviorTree.CPP cannot represent (xml).
@@ -69,5 +78,5 @@ def export_tree(
     if fmt == "xml":
         return render_btcpp_xml(root, tree_id=name)
     if fmt == "json":
-        return render_json(root, name=name)
+        return render_json(root, name=name, **dict(extra or {}))
     raise ValueError(f"unknown export format {fmt!r}; choose one of {', '.join(FORMATS)}")
