@@ -19,7 +19,6 @@ from btmission.bench.synth import (
     fanin_library,
     measure,
     run_synth_benchmark,
-    tree_depth,
 )
 from btmission.diagnostics import Severity, errors
 from btmission.spec.library import Library, LibrarySpec, compile_library
@@ -47,7 +46,7 @@ def test_chain_tree_has_exact_size_and_linear_depth(n: int) -> None:
     assert s.diagnostics == [] and s.ok
     assert s.size == chain_nodes(n) == 4 * n - 1
     assert count_nodes(s.tree) == s.size
-    assert depth(s.tree) == tree_depth(s.tree) == 2 * n
+    assert depth(s.tree) == 2 * n
     assert s.used_actions == {f"a{i}" for i in range(n)}
     assert s.inputs == ("x",)
 
@@ -107,7 +106,7 @@ def test_diamond_shares_the_common_precondition() -> None:
     ready = {id(b.children[1].children[0]) for b in branches}
     assert len(ready) == 1  # memoised: one subtree object for every occurrence
     assert s.size == 11 * 7 + 4
-    assert tree_depth(s.tree) == depth(s.tree) == 8
+    assert depth(s.tree) == 8
 
 
 @pytest.mark.parametrize("make", [chain_library, fanin_library, diamond_library])
@@ -136,7 +135,7 @@ def test_measure_reports_sizes_and_times() -> None:
 
 
 def test_tree_depth_of_a_leaf() -> None:
-    assert tree_depth(Node(Kind.CONDITION, "c")) == 1
+    assert depth(Node(Kind.CONDITION, "c")) == 1
 
 
 def test_run_writes_markdown_and_csv(tmp_path: Path) -> None:

@@ -54,7 +54,7 @@ from btmission.diagnostics import Diagnostic, errors
 from btmission.spec.library import Library, LibrarySpec, compile_library
 from btmission.synthesis.backchain import Synthesis, Synthesizer, parse_goals
 from btmission.synthesis.checks import CheckReport, check_library
-from btmission.synthesis.tree import Node
+from btmission.synthesis.tree import depth
 
 __all__ = [
     "CSV_HEADER",
@@ -68,7 +68,6 @@ __all__ = [
     "fanin_library",
     "measure",
     "run_synth_benchmark",
-    "tree_depth",
 ]
 
 TARGET_ACTIONS = 1000
@@ -207,26 +206,6 @@ class Measurement:
         return self.total_ms < TARGET_MS
 
 
-def tree_depth(root: Node) -> int:
-    """Depth of the expanded tree (a leaf has depth 1), linear in the *distinct* nodes.
-
-    Shared subtrees are visited once, so this stays cheap for shapes whose expanded tree is much
-    larger than the synthesiser's work (``tree.depth`` walks every occurrence).
-    """
-    depths: dict[int, int] = {}
-    stack: list[tuple[Node, bool]] = [(root, False)]
-    while stack:
-        node, children_done = stack.pop()
-        if id(node) in depths:
-            continue
-        if children_done:
-            depths[id(node)] = 1 + max((depths[id(c)] for c in node.children), default=0)
-            continue
-        stack.append((node, True))
-        stack.extend((c, False) for c in node.children if id(c) not in depths)
-    return depths[id(root)]
-
-
 def _median_ms(fn: Callable[[], object], repeat: int) -> tuple[float, object]:
     """Median wall time of ``repeat`` calls, in ms, and the last call's result."""
     times: list[float] = []
@@ -266,7 +245,7 @@ def measure(
         actions=len(library.actions),
         conditions=len(library.conditions),
         tree_nodes=synthesis.size,
-        depth=tree_depth(synthesis.tree),
+        depth=depth(synthesis.tree),
         compile_ms=compile_ms,
         synth_ms=synth_ms,
         check_ms=check_ms,

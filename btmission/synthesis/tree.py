@@ -157,8 +157,11 @@ def count_nodes(root: Node) -> int:
 
 
 def depth(root: Node) -> int:
-    """Depth of the tree (a single leaf has depth 1)."""
-    return 1 + max(d for d, _ in walk(root))
+    """Depth of the tree (a single leaf has depth 1); linear in the *distinct* nodes."""
+    depths: dict[int, int] = {}
+    for node in distinct_postorder(root):
+        depths[id(node)] = 1 + max((depths[id(c)] for c in node.children), default=0)
+    return depths[id(root)]
 
 
 def leaf_signatures(root: Node) -> dict[tuple[Kind, str], tuple[str, ...]]:

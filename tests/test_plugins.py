@@ -1,0 +1,108 @@
+"""Plugin mechanism: libraries by entry point and by path; the implementation registry."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from importlib import metadata
+from pathlib import Path
+
+import pytest
+
+from btmission.diagnostics import Severity, SpecError
+from btmission.plugins import (
+    ENTRY_POINT_GROUP,
+    Implementations,
+    installed_libraries,
+    load_library,
+)
+from btmission.spec.library import load_library_file
+
+
+def test_builtin_libraries_are_registered_as_entry_points() -> None:
+    eps = installed_libraries()
+    assert {"aerial", "ground", "compra"} <= set(eps)
+    assert eps["aerial"].value == "btmission_library.aerial:SPEC"
+    assert eps["aerial"].group == ENTRY_POINT_GROUP
+
+
+def test_load_by_name_and_by_path_agree() -> None:
+    by_name = load_library("aerial")
+    path = Path(str(by_name.library.file))
+    by_path = load_library(str(path))
+    assert by_name.origin.startswith("entry point") and by_path.origin.startswith("file")
+    assert by_name.library.actions.keys() == by_path.library.actions.keys()
+    assert by_name.implementations is not None  # module imported, registry found
+
+
+def test_relative_path_resolves_against_base_dir(tmp_path: Path) -> None:
+    (tmp_path / "lib.yaml").write_text(
+        "library: mini\nversion: 1\nconditions: {a: ''}\nactions:\n  A: {post: [a]}\n"
+    )
+    assert load_library("lib.yaml", tmp_path).library.name == "mini"
+
+
+def test_unknown_library_lists_installed_ones() -> None:
+    with pytest.raises(SpecError) as exc:
+        load_library("no_such_library")
+    msg = exc.value.diagnostics[0].message
+    assert "unknown library 'no_such_library'" in msg and "aerial" in msg
+
+
+def test_unimportable_module_warns_but_library_still_synthesises(tmp_path: Path) -> None:
+    f = tmp_path / "lib.yaml"
+    f.write_text(
+        "library: m\nversion: 1\nmodule: not_a_real_module_xyz\nconditions: {a: ''}\nactions:\n  A: {post: [a]}\n"
+    )
+    loaded = load_library(str(f))
+    (d,) = [d for d in loaded.diagnostics if d.code == "module-import"]
+    assert d.severity is Severity.WARNING and "cannot import implementation module" in d.message
+    assert loaded.implementations is None and not loaded.runnable
+
+
+def test_implementations_registry() -> None:
+    impl = Implementations("t")
+
+    @impl.action("go")
+    class Go:
+        pass
+
+    @impl.condition("there")
+    def there() -> bool:
+        return True
+
+    assert impl.actions == {"go": Go} and impl.conditions == {"there": there}
+    with pytest.raises(ValueError, match="registered twice"):
+        impl.action("go")(Go)
+    lib, _ = load_library_file_text(
+        "library: t\nversion: 1\nmodule: x\nconditions: {there: '', other: ''}\nactions:\n  go: {post: [there]}\n"
+    )
+    assert impl.missing(lib) == ["other"]
+    assert impl.check(lib) == []
+    impl.action("fly")(Go)
+    (err,) = impl.check(lib)
+    assert err.code == "unknown-implementation" and "'fly'" in err.message
+
+
+def load_library_file_text(text: str):  # type: ignore[no-untyped-def]
+    from btmission.spec.library import load_library_text
+
+    return load_library_text(text, "t.yaml")
+
+
+def test_builtin_library_files_load_directly() -> None:
+    for ep in metadata.entry_points(group=ENTRY_POINT_GROUP):
+        if ep.name in ("aerial", "ground", "compra"):
+            lib, diags = load_library_file(str(ep.load()))
+            assert lib.name == ep.name and not diags
+
+
+def test_import_btmission_stays_light() -> None:
+    """DESIGN/STYLE: the core must not pull heavy adapters (viewer, MAVLink, plotting, NMPC)."""
+    code = (
+        "import sys, btmission, btmission.synthesis.backchain, btmission.spec.mission\n"
+        "heavy = {'meshcat', 'pymavlink', 'matplotlib', 'casadi', 'numba', 'ortools', 'click'}\n"
+        "print(sorted(heavy & set(sys.modules)))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
