@@ -172,18 +172,13 @@ def load_library(
             path = base_dir / path
         if not path.exists():
             known = ", ".join(installed) or "none"
-            raise SpecError(
-                [
-                    Diagnostic(
-                        Severity.ERROR,
-                        "unknown-library",
-                        f"unknown library '{ref}': no installed library of that name (installed: {known}) "
-                        "and no such file",
-                        ref,
-                        where,
-                    )
-                ]
+            message = (
+                f"library file '{path}' not found"
+                if looks_like_path(ref)
+                else f"unknown library '{ref}': no installed library of that name "
+                f"(installed: {known}) and no such file"
             )
+            raise SpecError([Diagnostic(Severity.ERROR, "unknown-library", message, ref, where)])
         src = read_yaml(path)
         origin = f"file {path}"
     lib, diags = load_library_source(src)

@@ -17,7 +17,7 @@ def bench() -> None:
     "--sizes",
     default="10,100,1000,5000",
     show_default=True,
-    help="Comma-separated numbers of actions per generated library.",
+    help="Comma-separated library sizes (chain: actions; fan-in: width, i.e. preconditions of the top action).",
 )
 @click.option(
     "--repeat",

@@ -74,11 +74,18 @@ def write_output(data: str | bytes, output: Path | None) -> None:
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data if isinstance(data, bytes) else data.encode("utf-8"))
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the usual permissions
         os.replace(tmp, output)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
     click.echo(f"wrote {output}", err=True)
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 FORMAT_BY_SUFFIX = {
@@ -95,6 +102,13 @@ FORMAT_BY_SUFFIX = {
 def infer_format(fmt: str | None, output: Path | None) -> str:
     if fmt:
         return fmt
-    if output is not None:
-        return FORMAT_BY_SUFFIX.get(output.suffix.lower(), "ascii")
+    if output is not None and output.suffix:
+        suffix = output.suffix.lower()
+        if suffix not in FORMAT_BY_SUFFIX:
+            known = ", ".join(sorted(FORMAT_BY_SUFFIX))
+            raise BadInput(
+                f"cannot tell the format from '{output.name}' (known suffixes: {known}); "
+                "give --format"
+            )
+        return FORMAT_BY_SUFFIX[suffix]
     return "ascii"

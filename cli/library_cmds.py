@@ -15,10 +15,10 @@ from btmission.synthesis.checks import check_library
 
 @click.group()
 def library() -> None:
-    """Capability libraries: list the installed ones, inspect, check, scaffold a new plugin.
+    """Capability libraries: list, show, check, scaffold a plugin.
 
-    A library is named by its installed name (entry-point group ``btmission.libraries``) or by
-    a path to its YAML file.
+    A library is named by its installed name (entry-point group btmission.libraries) or by a path
+    to its YAML file.
     """
 
 
@@ -33,7 +33,8 @@ def list_cmd(as_json: bool) -> None:
             continue
         lib = item.library
         impl = item.implementations
-        n_impl = len(impl.actions) + len(impl.conditions) if impl else 0
+        total = len(lib.actions) + len(lib.conditions)
+        n_impl = total - len(impl.missing(lib)) if impl else 0
         rows.append(
             {
                 "name": name,

@@ -36,13 +36,13 @@ def validate(mission_file: Path, strict: bool) -> None:
     m = load_mission(mission_file)
     diags = promote(m.diagnostics, strict)
     echo_diagnostics(diags)
+    if errors(diags):
+        raise ChecksFailed(f"{mission_file}: warnings are errors under --strict")
     libs = ", ".join(sorted({lb.library.name for lb in m.libraries.values()}))
     click.echo(
         f"{mission_file}: mission '{m.name}' OK — {len(m.agents)} agent(s) ({libs}), "
         f"{len(m.tasks)} task(s), {len(m.task_types)} task type(s)"
     )
-    if errors(diags):
-        raise ChecksFailed("warnings are errors under --strict")
 
 
 @click.group()
@@ -74,7 +74,7 @@ def tree_cmd(
     output: Path | None,
     strict: bool,
 ) -> None:
-    """Show an agent's mission tree (seed 000 Fig. 7).
+    """Show an agent's mission tree, as in seed 000 Fig. 7.
 
     The root falls back from one branch per task type (task_assigned(type) → the back-chained
     subtree of the type's goal) to the default behaviour after the idle timeout, then to wait.
@@ -97,7 +97,7 @@ def tree_cmd(
         fmt,
         output,
         f"{m.name}_{agent_id}",
-        {"mission": m.name, "agent": agent_id, "task_types": list(mt.branches)},
+        {"mission": m.name, "agent": agent_id, "branches": list(mt.branches)},
     )
     if errors(mt.diagnostics):
         raise ChecksFailed("synthesis reported errors")

@@ -19,8 +19,8 @@ from btmission.export import FORMATS, GraphvizFailed, GraphvizMissing, export_tr
 from btmission.plugins import load_library
 from btmission.spec.library import require_usable
 from btmission.synthesis.backchain import Synthesizer, parse_goals
-from btmission.synthesis.dryrun import dry_run
-from btmission.synthesis.tree import Node
+from btmission.synthesis.dryrun import conditions_in, dry_run
+from btmission.synthesis.tree import Node, leaf_signatures
 
 format_option = click.option(
     "-f",
@@ -49,12 +49,16 @@ def emit_tree(
     unicode: bool = True,
 ) -> None:
     """Export ``tree`` in ``fmt`` to ``output`` or stdout, with clear errors for graphviz."""
+    if any(leaf_name == name for _, leaf_name in leaf_signatures(tree)):
+        name = f"{name}_tree"  # a BT.CPP tree ID must differ from every node type's ID
     try:
         data = export_tree(tree, infer_format(fmt, output), name=name, unicode=unicode, extra=extra)
     except GraphvizMissing as exc:
         raise BadInput(str(exc)) from None
     except GraphvizFailed as exc:
         raise ChecksFailed(str(exc)) from None
+    except ValueError as exc:  # a tree the target format cannot represent (e.g. BT.CPP names)
+        raise BadInput(f"cannot export as {infer_format(fmt, output)}: {exc}") from None
     write_output(data, output)
 
 
@@ -138,7 +142,13 @@ def synth(
     result = Synthesizer(lib).synthesize(atoms, strict=strict)
     echo_diagnostics(result.diagnostics)
     if dry_run:
-        initial = {str(a): True for a in parse_goals(true_conds, lib)} if true_conds else {}
+        initial = {str(a): True for a in parse_goals(true_conds, lib, option="--true")}
+        in_tree = set(conditions_in(result.tree))
+        for cond in initial:
+            if cond not in in_tree:
+                click.echo(
+                    f"note: --true {cond}: no such condition in this tree (ignored)", err=True
+                )
         run = dry_run_fn(result.tree, lib, initial, action_ticks=action_ticks, max_ticks=max_ticks)
         click.echo(run.format_trace(unicode=not ascii_only))
         if output is not None:

@@ -253,7 +253,7 @@ def test_mission_tree(runner: CliRunner) -> None:
         runner, "mission", "tree", PICK, "--agent", "G1", "--task-type", "inspect", "-f", "json"
     )
     data = json.loads(out)
-    assert code == 0 and data["task_types"] == ["inspect", "default"]
+    assert code == 0 and data["branches"] == ["inspect", "default"]
 
 
 def test_mission_tree_bad_agent_and_type(runner: CliRunner) -> None:
@@ -279,3 +279,72 @@ def test_bench_synth_small(runner: CliRunner, tmp_path: Path) -> None:
     assert code == 0 and (tmp_path / "synth.md").exists() and (tmp_path / "synth.csv").exists()
     code, _, err = run(runner, "bench", "synth", "--sizes", "x")
     assert code == 2 and "comma-separated integers" in err
+
+
+def test_xml_export_of_unrepresentable_tree_is_a_clear_error(
+    runner: CliRunner, tmp_path: Path
+) -> None:
+    lib = tmp_path / "arm.yaml"
+    lib.write_text(
+        "library: arm\nversion: 1\nconditions: {tagged: {params: [name]}, armed: ''}\n"
+        "actions:\n  tag: {params: [name], post: [tagged(name)]}\n  arm: {post: [armed]}\n"
+    )
+    code, _, err = run(runner, "library", "check", str(lib))
+    assert code == 0 and "btcpp-reserved" not in err and "reserved attribute names" in err
+    code, _, err = run(runner, "synth", str(lib), "--goal", "tagged(x)", "-f", "xml")
+    assert code == 2 and "cannot export as xml:" in err
+    # the library is named like one of its actions: the tree ID is made distinct, export works
+    code, out, _ = run(runner, "synth", str(lib), "--goal", "armed", "-f", "xml")
+    assert code == 0 and 'main_tree_to_execute="arm_tree"' in out
+
+
+def test_unknown_output_suffix_is_refused(runner: CliRunner, tmp_path: Path) -> None:
+    code, _, err = run(
+        runner, "synth", "aerial", "--goal", "is_armed", "-o", str(tmp_path / "t.jpg")
+    )
+    assert code == 2 and "cannot tell the format from 't.jpg'" in err
+    assert not (tmp_path / "t.jpg").exists()
+    assert (
+        run(runner, "synth", "aerial", "--goal", "is_armed", "-o", str(tmp_path / "plain"))[0] == 0
+    )
+    assert (tmp_path / "plain").read_text().startswith("? Fallback: is_armed")
+
+
+def test_output_files_get_normal_permissions(runner: CliRunner, tmp_path: Path) -> None:
+    out = tmp_path / "t.json"
+    assert run(runner, "synth", "aerial", "--goal", "is_armed", "-o", str(out))[0] == 0
+    assert out.stat().st_mode & 0o044 == 0o044  # group/other readable (umask permitting)
+
+
+def test_dry_run_true_option_is_named_in_errors(runner: CliRunner) -> None:
+    code, _, err = run(
+        runner, "synth", "aerial", "--goal", "is_armed", "--dry-run", "--true", "bogus"
+    )
+    assert code == 2 and "--true: undefined condition 'bogus'" in err
+    code, _, err = run(
+        runner, "synth", "aerial", "--goal", "is_armed", "--dry-run", "--true", "has_home"
+    )
+    assert code == 0 and "note: --true has_home: no such condition in this tree" in err
+
+
+def test_library_path_not_found(runner: CliRunner) -> None:
+    code, _, err = run(runner, "library", "check", "libs/none.yaml")
+    assert code == 2 and "library file 'libs/none.yaml' not found" in err
+
+
+def test_validate_strict_does_not_claim_ok(runner: CliRunner, tmp_path: Path) -> None:
+    lib = tmp_path / "s.yaml"
+    lib.write_text(
+        "library: s\nversion: 1\nconditions: {at_goal: {params: [goal]}, ok: ''}\n"
+        "actions:\n  go: {params: [goal], pre: [ok], post: [at_goal(goal)]}\n"
+    )
+    m = tmp_path / "m.yaml"
+    m.write_text(
+        "mission: m\nversion: 1\nworld: {map: {generate: empty, size: [10, 10, 3]}}\n"
+        "agents: [{id: A, library: s.yaml, start: [0, 0, 0]}]\n"
+        "task_types: {go: {goal: at_goal(location), cost: 1}}\n"
+    )
+    code, out, err = run(runner, "validate", str(m))
+    assert code == 0 and "OK" in out and "'ok' is assumed" in err
+    code, out, err = run(runner, "validate", str(m), "--strict")
+    assert code == 1 and "OK" not in out and "warnings are errors under --strict" in err

@@ -83,7 +83,7 @@ def test_every_schema_problem_is_reported_with_its_line() -> None:
     assert "f.yaml:5:15: conditions.a.parms: unknown key 'parms'" in joined
     assert "f.yaml:7:14: actions.go.post:" in joined
     assert "f.yaml:7:23: actions.go.cost:" in joined and "greater than or equal to 0" in joined
-    assert len(out) == 6
+    assert len(out) == 6, out
 
 
 def test_flow_list_comma_trap_is_explained() -> None:
@@ -256,7 +256,7 @@ def test_shipped_missions_validate(name: str) -> None:
         (
             "cost: path_cost(location)}",
             "cost: path_cost(location) ** 2}",
-            "f.yaml:12:44: task_types.inspect.cost: operator Pow not allowed",
+            "f.yaml:12:44: task_types.inspect.cost: operator ** is not allowed",
         ),
         (
             "commit_after: holding(pickup)",
@@ -321,3 +321,20 @@ def test_mission_library_by_relative_path(tmp_path: Path) -> None:
     )
     m = load_mission(tmp_path / "m.yaml")
     assert m.library_of("A").library.name == "mini"
+
+
+def test_shipped_files_validate_against_the_published_json_schemas() -> None:
+    """Editors use `btmission schema`: our own libraries and missions must pass it (including the
+    `name: "doc"` shorthand)."""
+    import jsonschema
+    import yaml
+
+    for kind, files in (
+        ("library", sorted((ROOT / "library").glob("*.yaml"))),
+        ("mission", sorted((ROOT / "missions").glob("*.yaml"))),
+    ):
+        validator = jsonschema.Draft202012Validator(json_schema(kind))
+        assert files
+        for f in files:
+            errs = [e.message for e in validator.iter_errors(yaml.safe_load(f.read_text()))]
+            assert errs == [], f"{f.name}: {errs}"

@@ -369,3 +369,33 @@ def test_builtin_libraries_check_clean_in_strict_mode(name: str) -> None:
     loaded = load_library(name)
     report = check_library(loaded.library, loaded.diagnostics, strict=True)
     assert report.ok and not [d for d in report.diagnostics if d.severity is not Severity.INFO]
+
+
+def test_check_does_not_call_variable_specific_conditions_assumed() -> None:
+    """An achiever whose postcondition names a library variable (at_goal(home)) must not make the
+    checker report the generic at_goal(goal) as assumed."""
+    lib, diags = lib_from("""
+        library: t
+        version: 1
+        variables: {home: ""}
+        conditions: {at_goal: {params: [goal]}, landed: ""}
+        actions:
+          go_home: {post: [at_goal(home)]}
+          land: {pre: [at_goal(home)], post: [landed]}
+    """)
+    report = check_library(lib, diags, strict=True)
+    assert report.ok, [d.format() for d in report.diagnostics]
+
+
+def test_check_skips_reachability_noise_when_loading_failed() -> None:
+    lib, diags = lib_from("""
+        library: t
+        version: 1
+        conditions: {a: "", b: ""}
+        actions:
+          A: {pre: [nope], post: [a]}
+          B: {post: [b]}
+    """)
+    report = check_library(lib, diags)
+    codes = {d.code for d in report.diagnostics}
+    assert "undefined-condition" in codes and not codes & {"unused-condition", "unreachable-action"}

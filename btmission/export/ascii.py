@@ -2,9 +2,9 @@
 
 Convention (``unicode=True``; the ASCII fallback is in brackets)::
 
-    ? Fallback: ensure at_goal(goal)
+    ? Fallback: at_goal(goal)
     ├── (at_goal(goal))
-    └── → Sequence: achieve at_goal(goal)
+    └── → Sequence: follow_path(goal)
         ├── (has_path(goal)) [assumed]
         └── [follow_path(goal)]
 

@@ -5,9 +5,9 @@ Format, as read by BT.CPP's ``src/xml_parsing.cpp`` (4.x)::
     <?xml version="1.0" encoding="UTF-8"?>
     <root BTCPP_format="4" main_tree_to_execute="MainTree">
       <BehaviorTree ID="MainTree">
-        <ReactiveFallback name="ensure at_goal(goal)">
+        <ReactiveFallback name="at_goal(goal)">
           <Condition ID="at_goal" name="at_goal(goal)" goal="{goal}"/>
-          <ReactiveSequence name="achieve at_goal(goal)">
+          <ReactiveSequence name="follow_path(goal)">
             <Condition ID="has_path" name="has_path(goal)" goal="{goal}"/>
             <Action ID="follow_path" name="follow_path(goal)" goal="{goal}"/>
           </ReactiveSequence>

@@ -41,10 +41,14 @@ def _explain(err: dict[str, Any]) -> str:
     if kind == "literal_error":
         expected = err.get("ctx", {}).get("expected", "")
         return f"got {err.get('input')!r}, expected {expected}"
+    given = err.get("input")
+    if kind in ("model_type", "dict_type", "model_attributes_type"):
+        return f"expected a mapping of keys (got {given!r})"
+    if kind == "list_type":
+        return f"expected a list [...] (got {given!r})"
     msg = str(err.get("msg", "invalid value"))
     if msg.startswith("Value error, "):
         msg = msg[len("Value error, ") :]
-    given = err.get("input")
     if kind not in ("value_error", "assertion_error") and not isinstance(given, (dict, list)):
         msg += f" (got {given!r})"
     return msg

@@ -28,6 +28,19 @@ _BINOPS: dict[type[ast.operator], Callable[[float, float], float]] = {
 }
 
 
+_OP_TEXT: dict[type[ast.operator], str] = {
+    ast.Pow: "**",
+    ast.Mod: "%",
+    ast.FloorDiv: "//",
+    ast.MatMult: "@",
+    ast.BitAnd: "&",
+    ast.BitOr: "|",
+    ast.BitXor: "^",
+    ast.LShift: "<<",
+    ast.RShift: ">>",
+}
+
+
 class CostExprError(ValueError):
     """The expression is not in the allowed grammar."""
 
@@ -81,7 +94,8 @@ def parse_cost(text: str) -> CostExpr:
         elif isinstance(node, ast.BinOp):
             if type(node.op) not in _BINOPS:
                 raise CostExprError(
-                    f"operator {type(node.op).__name__} not allowed in '{text}' (use + - * /)"
+                    f"operator {_OP_TEXT.get(type(node.op), type(node.op).__name__)} is not allowed "
+                    f"in '{text}' (use + - * /)"
                 )
         elif isinstance(node, ast.UnaryOp):
             if not isinstance(node.op, (ast.USub, ast.UAdd)):

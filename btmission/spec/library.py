@@ -15,9 +15,9 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator
 
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError, errors
 from btmission.spec.common import DottedName, Identifier, validate_model
@@ -25,6 +25,9 @@ from btmission.spec.refs import Ref, RefSyntaxError, parse_ref
 from btmission.spec.source import Source, parse_yaml, read_yaml
 
 LIBRARY_FORMAT_VERSION = 1
+
+BTCPP_RESERVED_PARAMS = frozenset({"name", "ID"})
+"""Attribute names BehaviorTree.CPP keeps for itself (as are names starting with '_')."""
 
 RESERVED_NAMES = frozenset({"task_assigned", "idle_timeout", "wait"})
 """Leaves the runtime provides in every mission tree (seed 000 Fig. 7); libraries cannot reuse them."""
@@ -74,6 +77,26 @@ class ActionSpec(_Strict):
     )
 
 
+def _entry_kind(v: Any) -> str:
+    return "Doc" if isinstance(v, str) else "Null" if v is None else "Spec"
+
+
+ConditionEntry = Annotated[
+    Annotated[ConditionSpec, Tag("Spec")]
+    | Annotated[str, Tag("Doc")]
+    | Annotated[None, Tag("Null")],
+    Discriminator(_entry_kind),
+]
+"""A condition: its full form, or just its doc string, or nothing."""
+
+VariableEntry = Annotated[
+    Annotated[VariableSpec, Tag("Spec")]
+    | Annotated[str, Tag("Doc")]
+    | Annotated[None, Tag("Null")],
+    Discriminator(_entry_kind),
+]
+
+
 class LibrarySpec(_Strict):
     """A capability library file (``version: 1``)."""
 
@@ -85,7 +108,7 @@ class LibrarySpec(_Strict):
         description="Python module with the implementations (optional: without it the "
         "library synthesises and exports but cannot run).",
     )
-    variables: dict[Identifier, VariableSpec | None] = Field(
+    variables: dict[Identifier, VariableEntry] = Field(
         default_factory=dict,
         description="Blackboard values the implementations provide that references may name "
         "(e.g. home).",
@@ -95,18 +118,16 @@ class LibrarySpec(_Strict):
         description="Goals this library is built for; `library check` synthesises them and warns "
         "about actions none of them uses.",
     )
-    conditions: dict[Identifier, ConditionSpec | None]
-    actions: dict[Identifier, ActionSpec]
+    conditions: dict[Identifier, ConditionEntry] = Field(
+        description='Conditions by name; `name: "doc text"` is short for `name: {doc: ...}`.'
+    )
+    actions: dict[Identifier, ActionSpec | None] = Field(description="Actions by name.")
 
-    @field_validator("conditions", "variables", mode="before")
+    @field_validator("conditions", "variables", "actions", mode="before")
     @classmethod
-    def _shorthands(cls, v: object) -> object:
-        """``None`` is an empty mapping; ``name: "doc text"`` is short for ``name: {doc: ...}``."""
-        if v is None:
-            return {}
-        if isinstance(v, dict):
-            return {k: ({"doc": x} if isinstance(x, str) else x) for k, x in v.items()}
-        return v
+    def _empty_mapping(cls, v: object) -> object:
+        """An empty section (``conditions:`` with nothing under it) is an empty mapping."""
+        return {} if v is None else v
 
 
 # --------------------------------------------------------------------------------------------
@@ -274,8 +295,26 @@ def compile_library(
         diags.append(Diagnostic(Severity.ERROR, code, message, format_path(path), loc(*path)))
 
     conditions: dict[str, Condition] = {}
-    for cname, cspec in spec.conditions.items():
-        cspec = cspec or ConditionSpec()
+
+    def warn_btcpp(path: tuple[str | int, ...], params: Sequence[str]) -> None:
+        bad = [p for p in params if p in BTCPP_RESERVED_PARAMS or p.startswith("_")]
+        if bad:
+            from btmission.spec.source import format_path
+
+            diags.append(
+                Diagnostic(
+                    Severity.WARNING,
+                    "btcpp-reserved",
+                    f"parameter(s) {', '.join(bad)} are reserved attribute names in BehaviorTree.CPP "
+                    "XML: the tree synthesises but cannot be exported with -f xml",
+                    format_path(path),
+                    loc(*path),
+                )
+            )
+
+    for cname, centry in spec.conditions.items():
+        cspec = ConditionSpec(doc=centry) if isinstance(centry, str) else centry or ConditionSpec()
+        warn_btcpp(("conditions", cname, "params"), cspec.params)
         if len(set(cspec.params)) != len(cspec.params):
             err(
                 ("conditions", cname, "params"), "parameter names must be unique", "duplicate-param"
@@ -283,7 +322,9 @@ def compile_library(
         conditions[cname] = Condition(
             cname, tuple(cspec.params), cspec.doc, loc("conditions", cname)
         )
-    variables = {k: (v.doc if v else "") for k, v in spec.variables.items()}
+    variables = {
+        k: (v if isinstance(v, str) else v.doc if v else "") for k, v in spec.variables.items()
+    }
     for k in variables:
         if k in conditions or k in spec.actions:
             err(
@@ -303,7 +344,9 @@ def compile_library(
             err(("actions", a), f"action '{a}' has the same name as a condition", "name-clash")
 
     actions: dict[str, Action] = {}
-    for index, (aname, aspec) in enumerate(spec.actions.items()):
+    for index, (aname, aentry) in enumerate(spec.actions.items()):
+        aspec = aentry or ActionSpec()
+        warn_btcpp(("actions", aname, "params"), aspec.params)
         params = tuple(aspec.params)
         if len(set(params)) != len(params):
             err(("actions", aname, "params"), "parameter names must be unique", "duplicate-param")

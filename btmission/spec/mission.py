@@ -103,7 +103,9 @@ class TaskSpec(BaseModel):
 
 class TaskTypeSpec(_Strict):
     goal: str | list[str] = Field(description="Goal condition(s), e.g. at_goal(location).")
-    cost: str = Field(description="Bid cost expression, e.g. path_cost(location).")
+    cost: str | float = Field(
+        description="Bid cost expression, e.g. path_cost(location), or a number."
+    )
     commit_after: str | None = Field(
         None, description="Condition after which the agent commits to the task (k_bt = 0)."
     )
@@ -320,7 +322,7 @@ def compile_mission(spec: MissionSpec, src: Source) -> Mission:
                 continue
             goals.append(atom)
         try:
-            cost = parse_cost(tt.cost)
+            cost = parse_cost(str(tt.cost))
         except CostExprError as exc:
             add((*path, "cost"), str(exc), "cost-expression")
             ok = False

@@ -367,7 +367,7 @@ def _choice_diagnostics(choices: Iterable[Choice], library: Library) -> list[Dia
     return out
 
 
-def parse_goals(texts: Sequence[str], library: Library) -> list[Atom]:
+def parse_goals(texts: Sequence[str], library: Library, option: str = "--goal") -> list[Atom]:
     """Resolve goal references (free symbols allowed: they become tree inputs).
 
     Raises :class:`btmission.diagnostics.SpecError` listing every bad goal.
@@ -384,7 +384,7 @@ def parse_goals(texts: Sequence[str], library: Library) -> list[Atom]:
                     Severity.ERROR,
                     code,
                     message or "bad goal",
-                    f"--goal[{i}]",
+                    f"{option}[{i}]" if len(texts) > 1 else option,
                     Location("<command line>"),
                 )
             )

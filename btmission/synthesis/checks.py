@@ -4,8 +4,8 @@ Beyond the reference checks done while loading (undefined conditions and paramet
 lists, unbound parameters), the checker back-chains
 
 * every goal the library declares (``goals:``),
-* every condition some action achieves, with its own parameter names as symbols, and
-* every action's preconditions as written,
+* every postcondition and every precondition of every action, as written (the action's own
+  parameter names as symbols),
 
 with one memoising :class:`Synthesizer`, so each ground condition is expanded once and the check is
 linear in the library size. It reports cycles (errors, with the chain of names), conditions that
@@ -20,7 +20,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from btmission.diagnostics import Diagnostic, Severity, errors, promote
-from btmission.spec.library import Atom, Library
+from btmission.spec.library import Library
 from btmission.synthesis.backchain import Synthesizer
 from btmission.synthesis.tree import Kind, Node, Role, walk_distinct
 
@@ -51,17 +51,20 @@ def check_library(
     for goal, where in zip(library.goals, library.goal_where):
         tree = synth.expand(goal, where)
         goal_trees_used.update(n.name for _, n in walk_distinct(tree) if n.kind is Kind.ACTION)
-    # every achievable condition, generically
-    for cname, cond in library.conditions.items():
-        if cname in library.achievers:
-            synth.expand(Atom(cname, cond.params), cond.where)
-    # every action's preconditions as written
+    # every condition as some action achieves it (its postconditions as written, the action's
+    # own parameters as symbols), and every action's preconditions as written
     for act in library.actions.values():
+        for p in act.post:
+            synth.expand(p, act.where)
         for p, w in zip(act.pre, act.pre_where):
             synth.expand(p, w)
     everything = Node(Kind.SEQUENCE, "all", (), synth.expansions(), Role.ACHIEVE)
     res_all = synth.result(everything, (), max_nodes=None)
     diags.extend(res_all.diagnostics)
+
+    if errors(load_diagnostics):
+        # items with errors were left out of the model: reachability and use would only add noise
+        return CheckReport(library, _sorted(promote(_unique(diags), strict)))
 
     # actions that back-chaining never picks
     chosen: set[str] = set(res_all.used_actions)
