@@ -11,8 +11,8 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from btmission.control.apf import ApfConfig, PotentialField, repulsive_force, shape_force
-from btmission.control.mav_model import simulate
-from btmission.control.nmpc import MavNmpc, NmpcConfig
+from btmission.control.examples import corridor_flight
+from btmission.control.nmpc import NmpcConfig
 from btmission.control.scenes import lidar_scan, straight_corridor
 
 CFG = ApfConfig(gain=(0.05, 0.08, 0.03), gain_critical=0.4, dust_points=2)
@@ -118,40 +118,29 @@ def test_alg_1_small_forces_pass_unchanged() -> None:
 
 
 def test_corridor_flight_keeps_r_c_from_walls_ignores_dust_and_respects_alg_1() -> None:
-    """NMPC + APF fly down a 2.4 m corridor, the carrot pulled into the left wall, with two dust
-    points near the MAV on every other scan (seed 002 §3.2.3 test scenario)."""
-    width, height = 2.4, 3.0
-    tunnel = straight_corridor(width, height)
-    apf = PotentialField()
-    cfg = NmpcConfig()
-    nmpc = MavNmpc(cfg)
-    x = np.zeros(8)
-    x[2] = 1.5
-    x[4] = 0.5  # already drifting towards the wall
-    prev = np.zeros(3)
-    clearance = math.inf
-    dust_scans = 0
-    for k in range(140):
-        points = lidar_scan(tunnel, x[:3])
-        if k % 2:
-            points = np.vstack([points, [[0.3, 0.1, 0.0], [0.2, -0.15, 0.1]]])
-        res = apf.step(points, [1.0, 1.0, 0.0])  # ahead and into the left wall
-        assert np.linalg.norm(res.force) <= 1 + 1e-12
-        assert np.linalg.norm(res.repulsive) <= apf.config.force_max + 1e-12
-        assert np.linalg.norm(res.repulsive - prev) <= apf.config.force_rate_max + 1e-12
-        if res.critical_ignored:
-            dust_scans += 1
-        prev = res.repulsive
-        step = nmpc.solve(
-            x, x[:3] + res.reference, repulsive_force=float(np.linalg.norm(res.repulsive_raw))
-        )
-        assert step.success
-        x = simulate(x, step.u, cfg.dt_s)
-        clearance = min(clearance, width / 2 - x[1], width / 2 + x[1], x[2], height - x[2])
-    assert clearance >= apf.config.r_critical_m
-    assert dust_scans >= 60  # the dust was seen inside r_c and ignored
-    assert x[0] > 2.0  # and the MAV kept moving down the corridor
-    assert width / 2 - x[1] < 1.0  # pressed towards the wall it is pulled to, but held off it
+    """NMPC + APF fly down a 2.4 m corridor, the carrot pulled into the left wall, already
+    drifting towards it at 0.5 m/s, with two dust points near the MAV on every other scan."""
+    cfg = ApfConfig()
+    log = corridor_flight(steps=140, width_m=2.4, pull=(1.0, 1.0, 0.0), dust=True)
+    assert log.flight.success.all()
+    assert log.clearance.min() >= cfg.r_critical_m
+    assert np.all(np.linalg.norm(log.forces, axis=1) <= 1 + 1e-12)
+    assert np.all(np.linalg.norm(log.repulsive, axis=1) <= cfg.force_max + 1e-12)
+    changes = np.diff(np.vstack([np.zeros(3), log.repulsive]), axis=0)
+    assert np.all(np.linalg.norm(changes, axis=1) <= cfg.force_rate_max + 1e-12)
+    assert log.dust_ignored[1::2].all() and not log.dust_ignored[::2].any()
+    final = log.flight.states[-1]
+    assert final[0] > 2.0  # the MAV kept moving down the corridor
+    assert log.width_m / 2 - final[1] < 1.0  # pressed towards the wall it is pulled to, held off
+    # eq. 4 in the loop: the position weight dropped while the wall pushed back
+    assert log.q_position.min() < 0.6 * NmpcConfig().q_position[0]
+
+
+def test_corridor_flight_without_apf_would_hit_the_wall() -> None:
+    """The same pull with a vanishing repulsion: the clearance check above is not vacuous."""
+    weak = ApfConfig(gain=(1e-9, 1e-9, 1e-9), gain_critical=1e-9)
+    log = corridor_flight(steps=60, width_m=2.4, pull=(1.0, 1.0, 0.0), apf_config=weak)
+    assert log.clearance.min() < 0.0
 
 
 def test_lidar_scan_is_vlp16_like_and_hits_the_walls() -> None:

@@ -19,6 +19,7 @@ from btmission.control.compra import (
     altitude_from_range,
     carrot_waypoint,
 )
+from btmission.control.examples import explore_tunnel
 
 
 def test_altitude_and_carrot() -> None:
@@ -168,3 +169,18 @@ def test_localizer_bad_inputs() -> None:
         ObjectLocalizer().add(Detection(0.0, "a", 0.9, (1.0, 1.0, 0.0, 5.0)), _scene(2.0), CAM)
     with pytest.raises(ValueError, match="position"):
         CompraExplorer().step(0.0, [0.0, 0.0], 0.0, 1.0)
+
+
+@pytest.mark.parametrize("bend", ["left", "right"])
+def test_compra_explores_a_bending_tunnel_and_comes_back(bend: str) -> None:
+    """Carrot + DPHR + APF out through the bend for the time budget, breadcrumbs back, land."""
+    log = explore_tunnel(bend, mission_time_s=14.0)
+    assert log.modes[0] == "explore" and log.modes[-1] == "land"
+    side = 1.0 if bend == "left" else -1.0
+    far = log.positions[np.argmax(np.linalg.norm(log.positions[:, :2], axis=1))]
+    assert far[0] > 7.0 and side * far[1] > 3.0  # followed the tunnel round the bend
+    last_explore = max(k for k, m in enumerate(log.modes) if m == "explore")
+    assert side * log.yaws[last_explore] > 0.5  # heading turned with the tunnel
+    assert np.max(side * log.yaw_rates) > 0  # DPHR turned it the bend's way
+    assert log.clearance.min() >= 0.6  # APF r_c kept from the walls throughout
+    assert np.linalg.norm(log.positions[-1, :2] - log.breadcrumbs[0, :2]) < 1.0  # landed at home

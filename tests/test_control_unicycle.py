@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from btmission.control.examples import head_on
 from btmission.control.unicycle_nmpc import (
     UnicycleConfig,
     UnicycleNmpc,
@@ -19,56 +20,23 @@ from btmission.control.unicycle_nmpc import (
 R_OBS = 0.3
 
 
-@pytest.fixture(scope="module")
-def pair() -> tuple[UnicycleNmpc, UnicycleNmpc]:
-    return UnicycleNmpc(), UnicycleNmpc()
-
-
-def _head_on(
-    a: UnicycleNmpc, b: UnicycleNmpc, offset: float, steps: int = 110
-) -> tuple[float, np.ndarray, np.ndarray]:
-    """Two robots 4 m apart drive at each other; each avoids the other's shared prediction."""
-    a.reset()
-    b.reset()
-    n = a.config.horizon
-    xa, xb = np.array([0.0, offset, 0.0]), np.array([4.0, 0.0, math.pi])
-    pa, pb = np.tile(xa[:2], (n + 1, 1)), np.tile(xb[:2], (n + 1, 1))
-    closest = math.inf
-    for _ in range(steps):
-        ra = a.solve(xa, [4.0, offset], [shift_prediction(pb)])
-        rb = b.solve(xb, [0.0, 0.0], [shift_prediction(pa)])
-        assert ra.success and rb.success, (ra.status, rb.status)
-        for r in (ra, rb):  # inputs within bounds
-            assert a.config.v_min - 1e-9 <= r.u[0] <= a.config.v_max + 1e-9
-            assert abs(r.u[1]) <= a.config.omega_max + 1e-9
-        pa, pb = ra.predicted_positions, rb.predicted_positions
-        xa = unicycle_step(xa, ra.u, a.config.dt_s)
-        xb = unicycle_step(xb, rb.u, b.config.dt_s)
-        closest = min(closest, float(np.linalg.norm(xa[:2] - xb[:2])))
-    return closest, xa, xb
-
-
 @pytest.mark.parametrize("offset", [0.05, 0.0])
-def test_head_on_unicycles_keep_r_obs_and_reach_their_goals(
-    pair: tuple[UnicycleNmpc, UnicycleNmpc], offset: float
-) -> None:
-    closest, xa, xb = _head_on(*pair, offset)
-    assert closest >= R_OBS  # seed 003 reports at most 0.04 m violation; we keep none
-    assert np.linalg.norm(xa[:2] - [4.0, offset]) < 0.1
-    assert np.linalg.norm(xb[:2] - [0.0, 0.0]) < 0.1
+def test_head_on_unicycles_keep_r_obs_and_reach_their_goals(offset: float) -> None:
+    log = head_on(steps=110, offset=offset)
+    cfg = UnicycleConfig()
+    assert log.success.all()
+    assert log.distance.min() >= R_OBS  # seed 003 reports at most 0.04 m violation; we keep none
+    assert np.linalg.norm(log.a[-1, :2] - log.goals[0]) < 0.1
+    assert np.linalg.norm(log.b[-1, :2] - log.goals[1]) < 0.1
+    for u in (log.inputs_a, log.inputs_b):  # inputs within bounds
+        assert np.all((u[:, 0] >= cfg.v_min - 1e-9) & (u[:, 0] <= cfg.v_max + 1e-9))
+        assert np.all(np.abs(u[:, 1]) <= cfg.omega_max + 1e-9)
 
 
 def test_without_avoidance_they_would_collide() -> None:
     """The same scenario with no shared predictions: the test above is not passing by luck."""
-    a, b = UnicycleNmpc(), UnicycleNmpc()
-    xa, xb = np.array([0.0, 0.05, 0.0]), np.array([4.0, 0.0, math.pi])
-    closest = math.inf
-    for _ in range(60):
-        ra, rb = a.solve(xa, [4.0, 0.05]), b.solve(xb, [0.0, 0.0])
-        xa = unicycle_step(xa, ra.u, 0.1)
-        xb = unicycle_step(xb, rb.u, 0.1)
-        closest = min(closest, float(np.linalg.norm(xa[:2] - xb[:2])))
-    assert closest < 0.1
+    log = head_on(steps=60, offset=0.05, avoid=False)
+    assert log.distance.min() < 0.1
 
 
 def test_static_obstacle_on_the_path_is_avoided() -> None:
@@ -102,8 +70,8 @@ def test_model_and_helpers() -> None:
     assert exclusion_violation(ours, theirs, R_OBS) == pytest.approx(brute)
 
 
-def test_bad_inputs(pair: tuple[UnicycleNmpc, UnicycleNmpc]) -> None:
-    nmpc = pair[0]
+def test_bad_inputs() -> None:
+    nmpc = UnicycleNmpc()
     with pytest.raises(ValueError, match="state x"):
         nmpc.solve([0.0, 0.0], [1.0, 1.0])
     with pytest.raises(ValueError, match="x_ref"):

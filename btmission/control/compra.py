@@ -106,6 +106,8 @@ class BreadcrumbTrail:
         self.rate_hz = rate_hz
         self.radius_m = radius_m
         self._crumbs: list[Breadcrumb] = []
+        self.recorded: list[Breadcrumb] = []
+        """Every crumb ever recorded, in order (the outbound path; never consumed)."""
 
     def __len__(self) -> int:
         return len(self._crumbs)
@@ -119,7 +121,9 @@ class BreadcrumbTrail:
         if self._crumbs and t - self._crumbs[-1].t < 1.0 / self.rate_hz - 1e-9:
             return False
         p = np.asarray(position, dtype=float)
-        self._crumbs.append(Breadcrumb((float(p[0]), float(p[1]), float(p[2])), float(yaw), t))
+        crumb = Breadcrumb((float(p[0]), float(p[1]), float(p[2])), float(yaw), t)
+        self._crumbs.append(crumb)
+        self.recorded.append(crumb)
         return True
 
     def target(self) -> Breadcrumb | None:
