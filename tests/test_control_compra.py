@@ -20,6 +20,7 @@ from btmission.control.compra import (
     carrot_waypoint,
 )
 from btmission.control.examples import explore_tunnel
+from btmission.control.scenes import bending_tunnel
 
 
 def test_altitude_and_carrot() -> None:
@@ -169,6 +170,12 @@ def test_localizer_bad_inputs() -> None:
         ObjectLocalizer().add(Detection(0.0, "a", 0.9, (1.0, 1.0, 0.0, 5.0)), _scene(2.0), CAM)
     with pytest.raises(ValueError, match="position"):
         CompraExplorer().step(0.0, [0.0, 0.0], 0.0, 1.0)
+    with pytest.raises(ValueError, match="altitude and carrot step must be positive"):
+        CompraConfig(mission_altitude_m=0.0)
+    with pytest.raises(ValueError, match="time_window_s"):
+        LocalizerConfig(time_window_s=-1.0)
+    with pytest.raises(ValueError, match="width/2 < radius"):
+        bending_tunnel("left", width_m=12.0, radius_m=5.0)
 
 
 @pytest.mark.parametrize("bend", ["left", "right"])

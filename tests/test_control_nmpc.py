@@ -222,3 +222,50 @@ def test_bad_inputs_are_rejected(fatrop_nmpc: MavNmpc) -> None:
         NmpcConfig(q_position_min=(5.0, 5.0, 5.0))
     with pytest.raises(ValueError, match="horizon"):
         NmpcConfig(horizon=0)
+
+
+def test_stagewise_ocp_bad_inputs_and_shift() -> None:
+    import casadi as ca
+
+    from btmission.control.ocp import StagewiseOcp
+
+    x, u = ca.SX.sym("x", 1), ca.SX.sym("u", 1)
+    step = ca.Function("f", [x, u], [x + 0.1 * u])
+
+    def build(**kw: object) -> StagewiseOcp:
+        args: dict[str, object] = dict(
+            step=step,
+            nx=1,
+            nu=1,
+            horizon=3,
+            n_params=1,
+            stage_cost=lambda j, xx, uu, up, p: (xx[0] - p[0]) ** 2 + uu[0] ** 2,
+            terminal_cost=lambda xx, p: (xx[0] - p[0]) ** 2,
+            u_lower=[-1.0],
+            u_upper=[1.0],
+            rate_limits=[0.5],
+        )
+        args.update(kw)
+        return StagewiseOcp(**args)  # type: ignore[arg-type]
+
+    with pytest.raises(ValueError, match="unknown solver 'snopt'"):
+        build(solver="snopt")
+    with pytest.raises(ValueError, match="horizon must be at least 1"):
+        build(horizon=0)
+    with pytest.raises(ValueError, match="must each have 1 entries"):
+        build(u_lower=[-1.0, -1.0])
+    with pytest.raises(ValueError, match="input bounds are empty"):
+        build(u_lower=[2.0])
+    with pytest.raises(ValueError, match="rate limits must be positive"):
+        build(rate_limits=[0.0])
+    ocp = build()
+    sol = ocp.solve([0.0], [0.0], [1.0])
+    assert sol.success and sol.status == "Solve_Succeeded"
+    # the scalar integrator with a rate limit: inputs ramp by at most 0.5 per step, within ±1
+    assert np.all(np.abs(np.diff(np.concatenate([[0.0], sol.inputs[:, 0]]))) <= 0.5 + 1e-6)
+    assert sol.states.shape == (4, 1) and sol.inputs.shape == (3, 1)
+    shifted = ocp.shifted(sol.primal)
+    assert shifted.shape == sol.primal.shape
+    # layout z0 u0 z1 u1 z2 u2 z3 (z = [x, u_prev]: 2 values): drop stage 0, repeat u2 and z3
+    np.testing.assert_array_equal(shifted[:8], sol.primal[3:])
+    np.testing.assert_array_equal(shifted[8:], sol.primal[-3:])
