@@ -15,7 +15,15 @@ IMAGE_FORMATS = ("png", "svg", "pdf")
 
 @click.group()
 def control() -> None:
-    """Reactive navigation: NMPC, APF, DPHR and COMPRA exploration (seed 002, seed 003)."""
+    """Reactive navigation: NMPC, APF, DPHR and COMPRA exploration (seed 002, seed 003).
+
+    The algorithms live in btmission.control (see docs/control.md); these commands run their
+    small examples. Timings: btmission bench control.
+
+    \b
+    Example:
+      btmission control plot compra -o compra.png
+    """
 
 
 @control.command("plot")

@@ -88,3 +88,20 @@ def test_bench_script_uses_the_same_runner(tmp_path: Path) -> None:
     with pytest.raises(SystemExit) as exc:
         main(["--only", "lqr"])
     assert exc.value.code == 2
+
+
+def test_control_modules_import_heavy_libraries_lazily() -> None:
+    """casadi only when an NMPC is built, matplotlib only when a figure is drawn."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "import btmission.cli.main, btmission.control.apf, btmission.control.dphr\n"
+        "import btmission.control.compra, btmission.control.nmpc, btmission.control.examples\n"
+        "import btmission.bench.control\n"
+        "heavy = [m for m in ('casadi', 'matplotlib') if m in sys.modules]\n"
+        "assert not heavy, heavy\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
