@@ -161,6 +161,18 @@ def test_fatrop_and_ipopt_solve_the_same_problem(fatrop_nmpc: MavNmpc) -> None:
     np.testing.assert_allclose(a.predicted_states, b.predicted_states, atol=1e-3)
 
 
+def test_fatrop_detects_the_stage_wise_structure(fatrop_nmpc: MavNmpc) -> None:
+    """DESIGN §8: 20 stages of z = [x; u_prev] (11) and u (3); per stage the two eq. 2 rate
+    constraints, plus the 11 initial-state equalities at stage 0."""
+    fatrop_nmpc.reset()
+    assert fatrop_nmpc.solve(np.zeros(8), [1.0, 0.0, 0.0]).success
+    stats = fatrop_nmpc.ocp.last_stats
+    assert stats["N"] == 20
+    assert list(stats["nx"]) == [11] * 21
+    assert list(stats["nu"]) == [3] * 20 + [0]
+    assert list(stats["ng"]) == [13] + [2] * 19 + [0]
+
+
 def test_warm_start_is_used_and_reset_forgets(fatrop_nmpc: MavNmpc) -> None:
     fatrop_nmpc.reset()
     x = np.zeros(8)

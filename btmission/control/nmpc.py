@@ -231,7 +231,7 @@ class MavNmpc:
                 + ca.sum1(ca.DM(q_du) * du**2)
             )
 
-        self._ocp = StagewiseOcp(
+        self.ocp = StagewiseOcp(
             step=step,
             nx=NX,
             nu=NU,
@@ -299,10 +299,10 @@ class MavNmpc:
         else:
             qp = np.asarray(cfg.q_position, dtype=float)
         params = np.concatenate([ref, uref, qp])
-        sol: OcpSolution = self._ocp.solve(xs, self._u_last, params, self._guess)
+        sol: OcpSolution = self.ocp.solve(xs, self._u_last, params, self._guess)
         if sol.success:
             u = _project(sol.inputs[0], self._u_last, cfg)
-            self._guess = self._ocp.shifted(sol.primal)
+            self._guess = self.ocp.shifted(sol.primal)
             self._hold = None
             fallback = False
         else:

@@ -187,6 +187,9 @@ class StagewiseOcp:
         self._lbg = np.asarray(lbg)
         self._ubg = np.asarray(ubg)
         self.n_variables = len(lbw)
+        self.last_stats: dict[str, Any] = {}
+        """The solver's statistics of the last :meth:`solve` (fatrop adds the detected
+        structure: ``N`` and per-stage ``nx``, ``nu``, ``ng``)."""
 
     # ------------------------------------------------------------------------------------------
     def initial_guess(self, x0: ArrayLike, u: ArrayLike) -> FloatArray:
@@ -224,6 +227,7 @@ class StagewiseOcp:
             )
             wall = time.perf_counter() - t0
             stats = self._solver.stats()
+            self.last_stats = dict(stats)
             primal = np.asarray(res["x"], dtype=float).ravel()
             cost = float(res["f"])
             success = bool(stats.get("success", False))

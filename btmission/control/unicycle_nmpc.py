@@ -190,7 +190,7 @@ class UnicycleNmpc:
                 x, p, q_state * (cfg.q_terminal / max(cfg.q_position, 1e-9))
             ) + exclusion(n, x, p)
 
-        self._ocp = StagewiseOcp(
+        self.ocp = StagewiseOcp(
             step=step,
             nx=NX,
             nu=NU,
@@ -258,7 +258,7 @@ class UnicycleNmpc:
         violation = 0.0
         for _ in range(cfg.penalty_updates + 1):
             params = np.concatenate([ref, [rho], obstacles.ravel()])
-            sol = self._ocp.solve(xs, self._u_last, params, guess)
+            sol = self.ocp.solve(xs, self._u_last, params, guess)
             total_time += sol.wall_time_s
             solves += 1
             if not sol.success:
@@ -274,7 +274,7 @@ class UnicycleNmpc:
         assert sol is not None
         if sol.success:
             u = np.clip(sol.inputs[0], [cfg.v_min, -cfg.omega_max], [cfg.v_max, cfg.omega_max])
-            self._guess = self._ocp.shifted(sol.primal)
+            self._guess = self.ocp.shifted(sol.primal)
             states = sol.states
         else:
             u = np.zeros(NU)
