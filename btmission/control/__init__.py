@@ -1,0 +1,1 @@
+"""Reactive navigation: NMPC tracking, APF avoidance, DPHR heading and COMPRA exploration."""

@@ -1,0 +1,200 @@
+"""Reactive artificial potential field on a raw point cloud (seed 002 §3.2.3, eq. 3 and Alg. 1).
+
+Repulsive force from the LiDAR points ρ (body frame, metres) inside the radius of influence r_F,
+plus a static potential from the points inside the safety-critical radius r_c (seed 002 eq. 3)::
+
+    F^r = Σ_{‖ρ_i‖ ≤ r_F} L ∘ (1 − ‖ρ_i‖/r_F)² · (−ρ_i/‖ρ_i‖)  +  Σ_{‖ρ_i‖ ≤ r_c} L_c · (−ρ_i/‖ρ_i‖)
+
+where L = [L_x, L_y, L_z] is the largest force per point and L_c the static potential. The r_c term
+is zero when N_c ≤ n points lie inside r_c (the *dust rule*: a few dust particles must not trigger
+the large static force, while a real obstacle still does). Points at the origin (‖ρ‖ = 0, no
+direction) are ignored.
+
+Alg. 1 then shapes the force, with k the current and k−1 the previous scan:
+
+    if ‖F^r_k‖ > F_max:                 F^r_k ← sgn(F^r_k) F_max
+    if ‖F^r_k − F^r_{k−1}‖ > ΔF_max:     F^r_k ← F^r_{k−1} + sgn(F^r_k − F^r_{k−1}) ΔF_max
+    if ‖F^a‖ > 1:                       F^a ← F^a / ‖F^a‖
+    F ← F^r_k + F^a;  if ‖F‖ > 1:        F ← F / ‖F‖
+
+with F^a = wp^B − p̂^B (the vector to the next waypoint). The shifted reference handed to the NMPC
+is p_ref^B = F + p̂^B. ``sgn`` of a vector is read as its direction v/‖v‖: the tests right before
+each assignment are on norms, and only this reading makes the assignments meet them
+(‖F^r‖ = F_max, ‖F^r_k − F^r_{k−1}‖ = ΔF_max); an element-wise sign would turn a force along x into
+a diagonal of norm √3·F_max and break the very rate limit it is meant to impose.
+
+Everything is vectorised numpy (no Python loop over points): one pass of squared norms, two masks
+and two weighted sums.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = ["ApfConfig", "ApfResult", "PotentialField", "repulsive_force", "shape_force"]
+
+FloatArray = NDArray[np.float64]
+Vec3 = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class ApfConfig:
+    """APF parameters (seed 002 §3.2.3). The paper gives no values; these suit a ~1 m MAV in
+    2-4 m wide tunnels with a VLP-16-class scan (tens to hundreds of points inside r_F)."""
+
+    r_influence_m: float = 1.6
+    """r_F: radius of influence."""
+    r_critical_m: float = 0.6
+    """r_c: safety-critical radius with the static potential."""
+    gain: Vec3 = (0.001, 0.001, 0.001)
+    """L = [L_x, L_y, L_z]: largest force per point inside r_F."""
+    gain_critical: float = 0.2
+    """L_c: static force per point inside r_c."""
+    dust_points: int = 3
+    """n: the r_c term is ignored when at most this many points lie inside r_c."""
+    force_max: float = 1.5
+    """F_max: saturation of ‖F^r‖. Above 1, so a saturated repulsion outweighs any attraction."""
+    force_rate_max: float = 0.3
+    """ΔF_max: largest change of F^r from one scan to the next."""
+
+    def __post_init__(self) -> None:
+        if not 0 < self.r_critical_m < self.r_influence_m:
+            raise ValueError(
+                f"need 0 < r_critical_m < r_influence_m, got {self.r_critical_m} and "
+                f"{self.r_influence_m}"
+            )
+        if len(self.gain) != 3 or any(g < 0 for g in self.gain) or self.gain_critical < 0:
+            raise ValueError("gain must be three non-negative numbers and gain_critical >= 0")
+        if self.dust_points < 0:
+            raise ValueError(f"dust_points must be >= 0, got {self.dust_points}")
+        if self.force_max <= 0 or self.force_rate_max <= 0:
+            raise ValueError("force_max and force_rate_max must be positive")
+
+
+@dataclass(frozen=True)
+class ApfResult:
+    """One APF step. Forces are body-frame vectors; ``reference`` = F + p̂ (p_ref^B)."""
+
+    force: FloatArray
+    """F: the normalised total force (‖F‖ ≤ 1)."""
+    reference: FloatArray
+    """p_ref^B = F + p̂^B: the obstacle-free position reference for the NMPC."""
+    repulsive: FloatArray
+    """F^r_k after saturation and rate saturation (the value remembered for the next scan)."""
+    repulsive_raw: FloatArray
+    """F^r of eq. 3 before Alg. 1 (its norm feeds the adaptive weights of eq. 4)."""
+    attractive: FloatArray
+    """F^a after normalisation."""
+    n_influence: int
+    """N_ρr: points inside r_F."""
+    n_critical: int
+    """N_ρc: points inside r_c."""
+    critical_ignored: bool
+    """True when 0 < N_ρc ≤ n and the static r_c term was dropped as dust."""
+
+
+def _direction(v: FloatArray) -> FloatArray:
+    n = float(np.linalg.norm(v))
+    return v / n if n > 0 else np.zeros_like(v)
+
+
+def repulsive_force(points: ArrayLike, config: ApfConfig) -> tuple[FloatArray, int, int, bool]:
+    """F^r of seed 002 eq. 3 for an (M, 3) body-frame point cloud.
+
+    Returns (F^r, N_ρr, N_ρc, critical_ignored). Non-finite points (NaN returns of a LiDAR) are
+    dropped.
+    """
+    pts = np.asarray(points, dtype=float)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points must be an (M, 3) array, got shape {pts.shape}")
+    d2 = np.einsum("ij,ij->i", pts, pts)
+    rf2 = config.r_influence_m**2
+    inside = (d2 <= rf2) & (d2 > 0)  # NaN compares False: dropped here
+    if not inside.any():
+        return np.zeros(3), 0, 0, False
+    near = pts[inside]
+    d = np.sqrt(d2[inside])
+    weight = (1.0 - d / config.r_influence_m) ** 2 / d  # (1 − ‖ρ‖/r_F)² / ‖ρ‖
+    force = -(weight @ near) * np.asarray(config.gain)
+    critical = d <= config.r_critical_m
+    n_crit = int(critical.sum())
+    ignored = 0 < n_crit <= config.dust_points
+    if n_crit > config.dust_points:
+        force -= config.gain_critical * ((1.0 / d[critical]) @ near[critical])
+    return force, int(near.shape[0]), n_crit, ignored
+
+
+def shape_force(
+    repulsive: ArrayLike, previous: ArrayLike, attractive: ArrayLike, config: ApfConfig
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Seed 002 Alg. 1: saturation, rate saturation and normalisation.
+
+    Returns (F, F^r_k, F^a) with F the total force (‖F‖ ≤ 1), F^r_k the shaped repulsive force
+    (‖F^r_k‖ ≤ F_max and ‖F^r_k − F^r_{k−1}‖ ≤ ΔF_max, given a previous force within F_max) and F^a
+    the normalised attraction.
+    """
+    fr = np.asarray(repulsive, dtype=float).copy()
+    prev = np.asarray(previous, dtype=float)
+    fa = np.asarray(attractive, dtype=float).copy()
+    if np.linalg.norm(fr) > config.force_max:
+        fr = _direction(fr) * config.force_max
+    change = fr - prev
+    if np.linalg.norm(change) > config.force_rate_max:
+        fr = prev + _direction(change) * config.force_rate_max
+    if np.linalg.norm(fa) > 1.0:
+        fa = _direction(fa)
+    total = fr + fa
+    if np.linalg.norm(total) > 1.0:
+        total = _direction(total)
+    return total, fr, fa
+
+
+class PotentialField:
+    """Stateful APF: remembers F^r_{k−1} between scans. Call :meth:`step` once per scan."""
+
+    def __init__(self, config: ApfConfig | None = None) -> None:
+        self.config = config or ApfConfig()
+        self._previous = np.zeros(3)
+
+    @property
+    def previous_repulsive(self) -> FloatArray:
+        """F^r_{k−1}: the shaped repulsive force of the previous scan."""
+        return self._previous.copy()
+
+    def reset(self) -> None:
+        """Forget the previous repulsive force (start from zero)."""
+        self._previous = np.zeros(3)
+
+    def step(
+        self, points: ArrayLike, waypoint: ArrayLike, position: ArrayLike = (0.0, 0.0, 0.0)
+    ) -> ApfResult:
+        """Shift the waypoint ``wp^B`` away from obstacles in ``points`` (all body frame).
+
+        ``position`` is p̂^B (zero when the body frame is centred on the MAV). Returns the
+        reference p_ref^B = F + p̂^B with the intermediate forces.
+        """
+        p = _vec3(position, "position")
+        wp = _vec3(waypoint, "waypoint")
+        raw, n_rf, n_rc, ignored = repulsive_force(points, self.config)
+        total, fr, fa = shape_force(raw, self._previous, wp - p, self.config)
+        self._previous = fr
+        return ApfResult(
+            force=total,
+            reference=total + p,
+            repulsive=fr,
+            repulsive_raw=raw,
+            attractive=fa,
+            n_influence=n_rf,
+            n_critical=n_rc,
+            critical_ignored=ignored,
+        )
+
+
+def _vec3(values: ArrayLike, what: str) -> FloatArray:
+    arr = np.asarray(values, dtype=float).ravel()
+    if arr.size != 3 or not np.all(np.isfinite(arr)):
+        raise ValueError(f"{what} must be three finite numbers, got {arr.tolist()}")
+    return arr

@@ -1,0 +1,157 @@
+"""APF (seed 002 eq. 3, Alg. 1): brute-force reference, dust rule, Alg. 1 bounds, corridor flight."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from btmission.control.apf import ApfConfig, PotentialField, repulsive_force, shape_force
+from btmission.control.examples import corridor_flight
+from btmission.control.nmpc import NmpcConfig
+from btmission.control.scenes import lidar_scan, straight_corridor
+
+CFG = ApfConfig(gain=(0.05, 0.08, 0.03), gain_critical=0.4, dust_points=2)
+
+
+def _eq3_by_loop(points: np.ndarray, cfg: ApfConfig) -> np.ndarray:
+    """Seed 002 eq. 3 written literally, one point at a time."""
+    force = np.zeros(3)
+    critical = []
+    for rho in points:
+        d = math.sqrt(float(rho @ rho))
+        if d == 0 or d > cfg.r_influence_m:
+            continue
+        force += np.asarray(cfg.gain) * (1 - d / cfg.r_influence_m) ** 2 * (-rho / d)
+        if d <= cfg.r_critical_m:
+            critical.append(-rho / d)
+    if len(critical) > cfg.dust_points:
+        force += cfg.gain_critical * np.sum(critical, axis=0)
+    return force
+
+
+vec3 = arrays(np.float64, 3, elements=st.floats(-3, 3, allow_nan=False))
+clouds = arrays(
+    np.float64,
+    st.tuples(st.integers(0, 60), st.just(3)),
+    elements=st.floats(-2, 2, allow_nan=False),
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(clouds)
+def test_repulsive_force_matches_eq_3_point_by_point(points: np.ndarray) -> None:
+    force, n_rf, n_rc, ignored = repulsive_force(points, CFG)
+    np.testing.assert_allclose(force, _eq3_by_loop(points, CFG), atol=1e-9)
+    d = np.linalg.norm(points, axis=1)
+    assert n_rf == int(((d <= CFG.r_influence_m) & (d > 0)).sum())
+    assert n_rc == int(((d <= CFG.r_critical_m) & (d > 0)).sum())
+    assert ignored == (0 < n_rc <= CFG.dust_points)
+
+
+def test_dust_inside_r_c_is_ignored_but_a_real_obstacle_is_not() -> None:
+    cfg = ApfConfig()  # n = 3
+    wall = np.array([[0.0, 1.2, z] for z in np.linspace(-0.3, 0.3, 20)])  # outside r_c
+    dust = np.array([[0.3, 0.0, 0.1], [0.2, -0.1, 0.0], [0.1, 0.3, -0.1]])  # n points in r_c
+    base, *_ = repulsive_force(wall, cfg)
+    with_dust, _, n_rc, ignored = repulsive_force(np.vstack([wall, dust]), cfg)
+    assert n_rc == 3 and ignored
+    # only the small r_F terms of the dust points are added, no static r_c potential
+    np.testing.assert_allclose(with_dust - base, _eq3_by_loop(dust, cfg), atol=1e-12)
+    assert np.linalg.norm(with_dust - base) < 0.01
+    obstacle = np.vstack([dust, [[0.35, 0.05, 0.0]]])  # n + 1 points: a thin obstacle
+    force, _, n_rc, ignored = repulsive_force(obstacle, cfg)
+    assert n_rc == 4 and not ignored
+    assert np.linalg.norm(force) > cfg.gain_critical  # the static potential is on
+    assert force[0] < 0  # and it pushes away from the obstacle (ahead, +x)
+
+
+def test_nan_and_origin_points_are_dropped_and_bad_shapes_rejected() -> None:
+    pts = np.array([[math.nan, 0, 0], [0, 0, 0], [1.0, 0, 0]])
+    force, n_rf, _, _ = repulsive_force(pts, CFG)
+    assert n_rf == 1
+    np.testing.assert_allclose(force, _eq3_by_loop(pts[2:], CFG))
+    assert repulsive_force(np.zeros((0, 3)), CFG)[0].tolist() == [0, 0, 0]
+    with pytest.raises(ValueError, match=r"\(M, 3\)"):
+        repulsive_force(np.zeros((4, 2)), CFG)
+    with pytest.raises(ValueError, match="r_critical_m < r_influence_m"):
+        ApfConfig(r_critical_m=2.0)
+    with pytest.raises(ValueError, match="dust_points"):
+        ApfConfig(dust_points=-1)
+    with pytest.raises(ValueError, match="waypoint"):
+        PotentialField().step(np.zeros((0, 3)), [1.0, math.inf, 0])
+
+
+@settings(max_examples=200)
+@given(vec3, vec3, vec3)
+def test_alg_1_saturation_rate_and_normalisation(
+    raw: np.ndarray, prev: np.ndarray, fa: np.ndarray
+) -> None:
+    cfg = ApfConfig(force_max=1.5, force_rate_max=0.3)
+    if np.linalg.norm(prev) > cfg.force_max:  # a previous output always satisfies the bound
+        prev = prev / np.linalg.norm(prev) * cfg.force_max
+    total, fr, fa_n = shape_force(raw * 10, prev, fa, cfg)
+    assert np.linalg.norm(total) <= 1 + 1e-12
+    assert np.linalg.norm(fr) <= cfg.force_max + 1e-12
+    assert np.linalg.norm(fr - prev) <= cfg.force_rate_max + 1e-12
+    assert np.linalg.norm(fa_n) <= 1 + 1e-12
+    # direction preserved by each step of Alg. 1
+    if np.linalg.norm(fa) > 1:
+        np.testing.assert_allclose(fa_n, fa / np.linalg.norm(fa))
+    s = fr + fa_n
+    if np.linalg.norm(s) > 1:
+        np.testing.assert_allclose(total, s / np.linalg.norm(s))
+    else:
+        np.testing.assert_allclose(total, s)
+
+
+def test_alg_1_small_forces_pass_unchanged() -> None:
+    cfg = ApfConfig()
+    total, fr, fa = shape_force([0.1, 0, 0], [0.05, 0, 0], [0.5, 0.2, 0], cfg)
+    np.testing.assert_allclose(fr, [0.1, 0, 0])
+    np.testing.assert_allclose(fa, [0.5, 0.2, 0])
+    np.testing.assert_allclose(total, [0.6, 0.2, 0])
+
+
+def test_corridor_flight_keeps_r_c_from_walls_ignores_dust_and_respects_alg_1() -> None:
+    """NMPC + APF fly down a 2.4 m corridor, the carrot pulled into the left wall, already
+    drifting towards it at 0.5 m/s, with two dust points near the MAV on every other scan."""
+    cfg = ApfConfig()
+    log = corridor_flight(steps=140, width_m=2.4, pull=(1.0, 1.0, 0.0), dust=True)
+    assert log.flight.success.all()
+    assert log.clearance.min() >= cfg.r_critical_m
+    assert np.all(np.linalg.norm(log.forces, axis=1) <= 1 + 1e-12)
+    assert np.all(np.linalg.norm(log.repulsive, axis=1) <= cfg.force_max + 1e-12)
+    changes = np.diff(np.vstack([np.zeros(3), log.repulsive]), axis=0)
+    assert np.all(np.linalg.norm(changes, axis=1) <= cfg.force_rate_max + 1e-12)
+    assert log.dust_ignored[1::2].all() and not log.dust_ignored[::2].any()
+    final = log.flight.states[-1]
+    assert final[0] > 2.0  # the MAV kept moving down the corridor
+    assert log.width_m / 2 - final[1] < 1.0  # pressed towards the wall it is pulled to, held off
+    # eq. 4 in the loop: the position weight dropped while the wall pushed back
+    assert log.q_position.min() < 0.6 * NmpcConfig().q_position[0]
+
+
+def test_corridor_flight_without_apf_would_hit_the_wall() -> None:
+    """The same pull with a vanishing repulsion: the clearance check above is not vacuous."""
+    weak = ApfConfig(gain=(1e-9, 1e-9, 1e-9), gain_critical=1e-9)
+    log = corridor_flight(steps=60, width_m=2.4, pull=(1.0, 1.0, 0.0), apf_config=weak)
+    assert log.clearance.min() < 0.0
+
+
+def test_lidar_scan_is_vlp16_like_and_hits_the_walls() -> None:
+    tunnel = straight_corridor(3.0, 3.0)
+    pts = lidar_scan(tunnel, [0.0, 0.5, 1.5])
+    assert pts.shape == (30_000, 3)  # a closed tunnel: every ray hits
+    world = pts + np.array([0.0, 0.5, 1.5])
+    on_wall = np.isclose(np.abs(world[:, 1]), 1.5, atol=1e-9)
+    on_floor_or_ceiling = np.isclose(world[:, 2], 0.0, atol=1e-9) | np.isclose(
+        world[:, 2], 3.0, atol=1e-9
+    )
+    assert np.all(on_wall | on_floor_or_ceiling)
+    elev = np.degrees(np.arcsin(pts[:, 2] / np.linalg.norm(pts, axis=1)))
+    assert elev.min() == pytest.approx(-15) and elev.max() == pytest.approx(15)

@@ -1,0 +1,93 @@
+"""DPHR (seed 002 §3.2.4) on synthetic depth images of straight and bending tunnels."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from btmission.control.dphr import DphrConfig, deepest_point_heading
+from btmission.control.scenes import DepthCamera, bending_tunnel, depth_image, straight_corridor
+
+EYE = [0.0, 0.0, 1.5]
+
+
+@pytest.mark.parametrize("bend, sign", [("left", 1.0), ("right", -1.0)])
+@pytest.mark.parametrize("straight", [1.0, 3.0])
+def test_turns_towards_the_open_side_of_a_bending_tunnel(
+    bend: str, sign: float, straight: float
+) -> None:
+    img = depth_image(
+        bending_tunnel(bend, straight_m=straight), EYE, noise_m=0.02, dropout=0.05, seed=3
+    )
+    res = deepest_point_heading(img)
+    assert sign * res.yaw_rate > 0.02
+    assert sign * res.offset < 0  # the deepest cluster sits on the bend's side of the image
+    assert res.deepest_depth_m == pytest.approx(6.0, abs=0.2)  # the far opening, beyond range
+    assert res.centers.size == 10
+
+
+def test_earlier_bend_gives_a_stronger_turn() -> None:
+    near = deepest_point_heading(depth_image(bending_tunnel("left", straight_m=0.5), EYE))
+    far = deepest_point_heading(depth_image(bending_tunnel("left", straight_m=3.0), EYE))
+    assert near.yaw_rate > far.yaw_rate > 0
+
+
+def test_straight_tunnel_gives_no_turn_and_a_yawed_mav_turns_back() -> None:
+    tunnel = straight_corridor(3.0, 3.0)
+    assert abs(deepest_point_heading(depth_image(tunnel, EYE)).yaw_rate) < 0.01
+    yawed_left = deepest_point_heading(depth_image(tunnel, EYE, yaw=0.3))
+    assert yawed_left.yaw_rate < -0.05  # turn right, back along the tunnel
+    yawed_right = deepest_point_heading(depth_image(tunnel, EYE, yaw=-0.3))
+    assert yawed_right.yaw_rate == pytest.approx(-yawed_left.yaw_rate, abs=0.02)
+
+
+def test_heading_loop_aligns_with_the_tunnel() -> None:
+    """Integrate ψ̇ = DPHR(ψ) at 10 Hz from a 0.4 rad misalignment: the heading converges."""
+    tunnel = straight_corridor(3.0, 3.0)
+    cam = DepthCamera(width=160, height=120)
+    psi = 0.4
+    for _ in range(60):
+        psi += (
+            0.1
+            * deepest_point_heading(
+                depth_image(tunnel, EYE, psi, cam), DphrConfig(stride=1)
+            ).yaw_rate
+        )
+    assert abs(psi) < 0.1
+
+
+def test_morphological_close_removes_dropout_speckle() -> None:
+    tunnel = bending_tunnel("right")
+    clean = deepest_point_heading(depth_image(tunnel, EYE))
+    noisy = deepest_point_heading(depth_image(tunnel, EYE, dropout=0.1, seed=5))
+    assert noisy.offset == pytest.approx(clean.offset, abs=0.05)
+    # without the close, dropout pixels (no return ⇒ "far") pull the centroid to the centre
+    unclosed = deepest_point_heading(
+        depth_image(tunnel, EYE, dropout=0.1, seed=5), DphrConfig(close_size=1)
+    )
+    assert abs(unclosed.offset - clean.offset) > abs(noisy.offset - clean.offset)
+
+
+def test_limits_and_gain() -> None:
+    img = np.full((48, 64), 2.0)
+    img[:, :6] = 5.0  # deep on the far left edge
+    res = deepest_point_heading(img, DphrConfig(stride=1, close_size=1, yaw_rate_max=0.3, gain=2.0))
+    assert res.yaw_rate == pytest.approx(0.3)  # −l·s̄ = 2 · 0.92 clipped to the limit
+    assert res.offset == pytest.approx((2.5 - 31.5) / 31.5)
+    flat = deepest_point_heading(np.full((48, 64), 3.0))
+    assert flat.yaw_rate == 0.0 and flat.offset == 0.0
+
+
+def test_bad_inputs() -> None:
+    with pytest.raises(ValueError, match="2-D image"):
+        deepest_point_heading(np.zeros(10))
+    with pytest.raises(ValueError, match="principal_x"):
+        deepest_point_heading(np.ones((10, 10)), principal_x=20)
+    with pytest.raises(ValueError, match="clusters"):
+        DphrConfig(clusters=1)
+    with pytest.raises(ValueError, match="positive"):
+        DphrConfig(yaw_rate_max=-math.pi)
+    with pytest.raises(ValueError, match="bend"):
+        bending_tunnel("up")

@@ -1,0 +1,283 @@
+"""MAV model and NMPC (seed 002 eq. 1-2, 4): closed loop, limits, fallback, solvers, bad input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from btmission.control.mav_model import (
+    MavParams,
+    mav_dynamics,
+    mav_dynamics_casadi,
+    rk4_step,
+    simulate,
+    world_to_yaw_frame,
+    wrap_angle,
+    yaw_frame_to_world,
+    yaw_rate_pd,
+)
+from btmission.control.nmpc import (
+    MavNmpc,
+    NmpcConfig,
+    adaptive_position_weight,
+    hold_position_command,
+)
+
+finite = st.floats(-3, 3, allow_nan=False)
+
+
+@pytest.fixture(scope="module")
+def fatrop_nmpc() -> MavNmpc:
+    return MavNmpc(NmpcConfig(solver="fatrop"))
+
+
+# ---------------------------------------------------------------------------------------------
+# model
+# ---------------------------------------------------------------------------------------------
+@settings(max_examples=30, deadline=None)
+@given(st.lists(finite, min_size=8, max_size=8), st.lists(finite, min_size=3, max_size=3))
+def test_numpy_and_casadi_models_agree(x: list[float], u: list[float]) -> None:
+    import casadi as ca
+
+    xs, us = ca.SX.sym("x", 8), ca.SX.sym("u", 3)
+    f = ca.Function("f", [xs, us], [mav_dynamics_casadi(xs, us)])
+    np.testing.assert_allclose(np.asarray(f(x, u)).ravel(), mav_dynamics(x, u), atol=1e-12)
+
+
+def test_hover_is_an_equilibrium_and_tilt_accelerates_the_right_way() -> None:
+    p = MavParams()
+    x = np.array([1.0, 2.0, 3.0, 0, 0, 0, 0, 0])
+    np.testing.assert_allclose(mav_dynamics(x, [p.g, 0, 0], p), np.zeros(8), atol=1e-12)
+    # pitch forward (θ > 0) accelerates +x, roll right (φ > 0) accelerates −y
+    tilted = x.copy()
+    tilted[7] = 0.1
+    assert mav_dynamics(tilted, [p.g, 0, 0.1], p)[3] > 0
+    tilted = x.copy()
+    tilted[6] = 0.1
+    assert mav_dynamics(tilted, [p.g, 0.1, 0], p)[4] < 0
+
+
+def test_rk4_matches_the_exact_solution_of_the_attitude_lag() -> None:
+    p = MavParams()
+    x = np.zeros(8)
+    x[6] = 0.2  # roll decays towards K φ_ref = 0.1 with time constant τ
+    got = simulate(x, [p.g, 0.1, 0.0], 0.5, p, substeps=20)
+    expected = 0.1 + (0.2 - 0.1) * math.exp(-0.5 / p.tau_roll_s)
+    assert got[6] == pytest.approx(expected, abs=1e-8)
+    with pytest.raises(ValueError, match="substeps"):
+        rk4_step(lambda a, b: a, x, None, 0.1, substeps=0)
+
+
+def test_yaw_frame_round_trip_and_pd() -> None:
+    v = np.array([[1.0, 2.0, 3.0], [-1.0, 0.5, 0.0]])
+    psi = 0.7
+    np.testing.assert_allclose(yaw_frame_to_world(world_to_yaw_frame(v, psi), psi), v)
+    np.testing.assert_allclose(world_to_yaw_frame([1.0, 0, 0], math.pi / 2), [0, -1, 0], atol=1e-12)
+    assert wrap_angle(3 * math.pi) == pytest.approx(math.pi)
+    # the PD turns the short way round the ±π seam and saturates
+    assert yaw_rate_pd(psi=3.0, psi_ref=-3.0, yaw_rate=0.0) > 0
+    assert yaw_rate_pd(psi=0.0, psi_ref=2.0, yaw_rate=0.0, max_rate=0.5) == 0.5
+    with pytest.raises(ValueError, match="drag"):
+        MavParams(drag=(0.1, -0.1, 0.2))
+
+
+# ---------------------------------------------------------------------------------------------
+# adaptive weights, eq. 4
+# ---------------------------------------------------------------------------------------------
+@given(
+    st.floats(0, 100, allow_nan=False),
+    st.floats(0, 100, allow_nan=False),
+    st.floats(0.01, 10),
+    st.floats(0.01, 10),
+)
+def test_adaptive_weight_decreases_with_force_as_eq_4(
+    f1: float, f2: float, qmin: float, c: float
+) -> None:
+    qmax = qmin + 5.0
+    lo, hi = sorted((f1, f2))
+    q_lo = float(adaptive_position_weight(lo, qmin, qmax, c))
+    q_hi = float(adaptive_position_weight(hi, qmin, qmax, c))
+    assert qmin <= q_hi <= q_lo <= qmax
+    assert q_lo == pytest.approx(qmin + (qmax - qmin) / (1 + c * lo))
+    if hi > lo + 1e-6:
+        assert q_hi < q_lo
+
+
+def test_adaptive_weight_limits_and_bad_input() -> None:
+    assert float(adaptive_position_weight(0.0, 1.0, 4.0, 2.0)) == 4.0
+    assert float(adaptive_position_weight(1e9, 1.0, 4.0, 2.0)) == pytest.approx(1.0, abs=1e-6)
+    with pytest.raises(ValueError, match="non-negative"):
+        adaptive_position_weight(-1.0, 1.0, 4.0, 2.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# NMPC
+# ---------------------------------------------------------------------------------------------
+def _assert_within_limits(
+    us: np.ndarray, u0: np.ndarray, cfg: NmpcConfig, tol: float = 1e-12
+) -> None:
+    """Bounds and eq. 2 rate limits; applied commands exactly, plans to the solver tolerance."""
+    assert np.all(us >= cfg.u_lower - tol) and np.all(us <= cfg.u_upper + tol)
+    du = np.abs(np.diff(np.vstack([u0, us]), axis=0))
+    assert np.all(du[:, 1:] <= cfg.rate_max_rad + tol)
+
+
+def test_closed_loop_reaches_waypoint_within_input_and_rate_limits(fatrop_nmpc: MavNmpc) -> None:
+    cfg = fatrop_nmpc.config
+    fatrop_nmpc.reset()
+    x = np.zeros(8)
+    x[2] = 1.0
+    goal = np.array([2.0, -1.5, 2.5])
+    applied = []
+    for _ in range(100):  # 5 s at 20 Hz
+        res = fatrop_nmpc.solve(x, goal)
+        assert res.success and not res.fallback, res.status
+        # the plan itself respects the limits too
+        previous = applied[-1] if applied else cfg.hover_input
+        _assert_within_limits(res.predicted_inputs, previous, cfg, tol=1e-6)
+        applied.append(res.u)
+        x = simulate(x, res.u, cfg.dt_s, cfg.model)
+    assert np.linalg.norm(x[:3] - goal) < 0.1
+    assert np.linalg.norm(x[3:6]) < 0.2
+    _assert_within_limits(np.array(applied), cfg.hover_input, cfg)
+    # the rate limit is active on the way (otherwise the test proves nothing about it)
+    assert np.max(np.abs(np.diff(np.array(applied)[:, 1:], axis=0))) == pytest.approx(
+        cfg.rate_max_rad
+    )
+
+
+def test_fatrop_and_ipopt_solve_the_same_problem(fatrop_nmpc: MavNmpc) -> None:
+    ipopt = MavNmpc(NmpcConfig(solver="ipopt"))
+    x = np.array([0.3, -0.2, 1.0, 0.5, 0.0, -0.1, 0.05, -0.02])
+    fatrop_nmpc.reset()
+    a = fatrop_nmpc.solve(x, [1.0, 1.0, 1.5])
+    b = ipopt.solve(x, [1.0, 1.0, 1.5])
+    assert a.success and b.success
+    np.testing.assert_allclose(a.u, b.u, atol=1e-4)
+    np.testing.assert_allclose(a.predicted_states, b.predicted_states, atol=1e-3)
+
+
+def test_fatrop_detects_the_stage_wise_structure(fatrop_nmpc: MavNmpc) -> None:
+    """DESIGN §8: 20 stages of z = [x; u_prev] (11) and u (3); per stage the two eq. 2 rate
+    constraints, plus the 11 initial-state equalities at stage 0."""
+    fatrop_nmpc.reset()
+    assert fatrop_nmpc.solve(np.zeros(8), [1.0, 0.0, 0.0]).success
+    stats = fatrop_nmpc.ocp.last_stats
+    assert stats["N"] == 20
+    assert list(stats["nx"]) == [11] * 21
+    assert list(stats["nu"]) == [3] * 20 + [0]
+    assert list(stats["ng"]) == [13] + [2] * 19 + [0]
+
+
+def test_warm_start_is_used_and_reset_forgets(fatrop_nmpc: MavNmpc) -> None:
+    fatrop_nmpc.reset()
+    x = np.zeros(8)
+    cold = fatrop_nmpc.solve(x, [1.0, 0.0, 0.0])
+    x = simulate(x, cold.u, 0.05)
+    warm = fatrop_nmpc.solve(x, [1.0, 0.0, 0.0])
+    assert warm.iterations < cold.iterations
+    fatrop_nmpc.reset(u_prev=[9.0, 0.1, 0.0])
+    np.testing.assert_allclose(fatrop_nmpc.last_input, [9.0, 0.1, 0.0])
+
+
+def test_position_weight_comes_from_eq_4(fatrop_nmpc: MavNmpc) -> None:
+    cfg = fatrop_nmpc.config
+    fatrop_nmpc.reset()
+    res = fatrop_nmpc.solve(np.zeros(8), [1.0, 0, 0], repulsive_force=2.0)
+    expected = adaptive_position_weight(2.0, cfg.q_position_min, cfg.q_position, cfg.force_gain)
+    np.testing.assert_allclose(res.q_position, expected)
+    # less weight on position ⇒ a gentler first pitch command
+    fatrop_nmpc.reset()
+    stiff = fatrop_nmpc.solve(np.zeros(8), [1.0, 0, 0])
+    assert abs(res.u[2]) <= abs(stiff.u[2]) + 1e-9
+    fatrop_nmpc.reset()
+    explicit = fatrop_nmpc.solve(np.zeros(8), [1.0, 0, 0], q_position=[1.0, 1.0, 1.0])
+    np.testing.assert_allclose(explicit.q_position, [1.0, 1.0, 1.0])
+
+
+def test_solver_failure_falls_back_to_hold_position() -> None:
+    cfg = NmpcConfig(max_iter=1)
+    nmpc = MavNmpc(cfg)
+    x = np.array([0.0, 0.0, 2.0, 1.0, 0.5, 0.0, 0.0, 0.0])
+    res = nmpc.solve(x, [10.0, -10.0, 5.0])
+    assert not res.success and res.fallback
+    expected = hold_position_command(x, x[:3], cfg.hover_input, cfg)
+    np.testing.assert_allclose(res.u, expected)
+    # hold position: brake the +x/+y motion (pitch back, roll right), within the rate limits
+    assert res.u[2] < 0 and res.u[1] > 0
+    _assert_within_limits(res.u[None, :], cfg.hover_input, cfg)
+    # the fallback keeps holding the first failure's position, closing on it in a few seconds
+    hold = x[:3].copy()
+    for _ in range(200):
+        x = simulate(x, nmpc.solve(x, [10.0, -10.0, 5.0]).u, cfg.dt_s)
+    assert np.linalg.norm(x[:3] - hold) < 0.5
+
+
+def test_bad_inputs_are_rejected(fatrop_nmpc: MavNmpc) -> None:
+    with pytest.raises(ValueError, match="state x must have 8 values"):
+        fatrop_nmpc.solve(np.zeros(7), [0, 0, 0])
+    with pytest.raises(ValueError, match="state x must be finite"):
+        fatrop_nmpc.solve([math.nan] + [0.0] * 7, [0, 0, 0])
+    with pytest.raises(ValueError, match="reference x_ref must have 8 values"):
+        fatrop_nmpc.solve(np.zeros(8), [0, 0])
+    with pytest.raises(ValueError, match="q_position"):
+        fatrop_nmpc.solve(np.zeros(8), [0, 0, 0], q_position=-1.0)
+    with pytest.raises(ValueError, match="unknown solver 'osqp'"):
+        NmpcConfig(solver="osqp")
+    with pytest.raises(ValueError, match="hover thrust"):
+        NmpcConfig(thrust_max=9.0)
+    with pytest.raises(ValueError, match="q_position_min"):
+        NmpcConfig(q_position_min=(5.0, 5.0, 5.0))
+    with pytest.raises(ValueError, match="horizon"):
+        NmpcConfig(horizon=0)
+
+
+def test_stagewise_ocp_bad_inputs_and_shift() -> None:
+    import casadi as ca
+
+    from btmission.control.ocp import StagewiseOcp
+
+    x, u = ca.SX.sym("x", 1), ca.SX.sym("u", 1)
+    step = ca.Function("f", [x, u], [x + 0.1 * u])
+
+    def build(**kw: object) -> StagewiseOcp:
+        args: dict[str, object] = dict(
+            step=step,
+            nx=1,
+            nu=1,
+            horizon=3,
+            n_params=1,
+            stage_cost=lambda j, xx, uu, up, p: (xx[0] - p[0]) ** 2 + uu[0] ** 2,
+            terminal_cost=lambda xx, p: (xx[0] - p[0]) ** 2,
+            u_lower=[-1.0],
+            u_upper=[1.0],
+            rate_limits=[0.5],
+        )
+        args.update(kw)
+        return StagewiseOcp(**args)  # type: ignore[arg-type]
+
+    with pytest.raises(ValueError, match="unknown solver 'snopt'"):
+        build(solver="snopt")
+    with pytest.raises(ValueError, match="horizon must be at least 1"):
+        build(horizon=0)
+    with pytest.raises(ValueError, match="must each have 1 entries"):
+        build(u_lower=[-1.0, -1.0])
+    with pytest.raises(ValueError, match="input bounds are empty"):
+        build(u_lower=[2.0])
+    with pytest.raises(ValueError, match="rate limits must be positive"):
+        build(rate_limits=[0.0])
+    ocp = build()
+    sol = ocp.solve([0.0], [0.0], [1.0])
+    assert sol.success and sol.status == "Solve_Succeeded"
+    # the scalar integrator with a rate limit: inputs ramp by at most 0.5 per step, within ±1
+    assert np.all(np.abs(np.diff(np.concatenate([[0.0], sol.inputs[:, 0]]))) <= 0.5 + 1e-6)
+    assert sol.states.shape == (4, 1) and sol.inputs.shape == (3, 1)
+    shifted = ocp.shifted(sol.primal)
+    assert shifted.shape == sol.primal.shape
+    # layout z0 u0 z1 u1 z2 u2 z3 (z = [x, u_prev]: 2 values): drop stage 0, repeat u2 and z3
+    np.testing.assert_array_equal(shifted[:8], sol.primal[3:])
+    np.testing.assert_array_equal(shifted[8:], sol.primal[-3:])
