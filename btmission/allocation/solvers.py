@@ -32,8 +32,9 @@ order above (1, 2, 3). The paper's ILP (eq. 6-7) maximizes ``Σ ρ x``.
 ``sparse``
     :func:`scipy.sparse.csgraph.min_weight_full_bipartite_matching` (LAPJVsp) on the bid edges
     only, weights ``q + u`` (it needs non-zero weights), plus one private dummy task per agent at
-    ``BIG + u`` so a full matching always exists. Faster when bids are sparse (a few percent of
-    the pairs; see :data:`DENSE_NS_PER_CELL`).
+    ``BIG + u`` so a full matching always exists. Faster when the bids are few: below about 1 %
+    of the pairs when they come as a matrix, up to about 30 % when they come as edges
+    (:func:`estimate_us`, fitted to ``btmission bench auction``).
 ``ilp-scip``
     The paper's reference: the ILP of eq. 6-7 with one binary variable per bid, built with
     OR-Tools' model builder and solved by SCIP (default settings, ``limits/gap = 0``). Seconds at
@@ -66,15 +67,20 @@ differences below ``K · δ`` count as ties and the current holder keeps its tas
 MAX_COST = 1e12
 """Bids above this are rejected (they would swamp the profit transform in floating point)."""
 
-# Cost model for ``auto`` (measured on this 2-core machine with `btmission bench auction`): the
-# dense solver costs about DENSE_NS_PER_CELL per matrix cell, the sparse one SPARSE_NS_PER_EDGE per
-# edge (bid or dummy) plus a larger fixed overhead; converting a dense matrix to edges costs
-# SCAN_NS_PER_CELL per cell.
+# Cost model for ``auto``, fitted to `btmission bench auction` runs on this 2-core machine
+# (50 × 400 to 1,000 × 10,000, 5 bids per agent to all): the dense solver costs about
+# DENSE_NS_PER_CELL per matrix cell (plus filling the matrix when the bids come as edges), the
+# sparse one SPARSE_NS_PER_EDGE per bid plus a per-agent overhead (plus scanning the matrix when
+# the bids come dense).
 DENSE_FIXED_US = 100.0
 DENSE_NS_PER_CELL = 5.0
-SPARSE_FIXED_US = 400.0
-SPARSE_NS_PER_EDGE = 120.0
-SCAN_NS_PER_CELL = 3.0
+FILL_NS_PER_CELL = 1.0
+FILL_NS_PER_EDGE = 13.0
+SPARSE_FIXED_US = 300.0
+SPARSE_US_PER_AGENT = 4.0
+SPARSE_NS_PER_EDGE = 38.0
+SCAN_NS_PER_CELL = 2.5
+SCAN_NS_PER_EDGE = 8.0
 
 
 class SolverError(RuntimeError):
@@ -372,17 +378,25 @@ def _dense_q(problem: AssignmentProblem) -> tuple[FloatArray, _Shift]:
 # --------------------------------------------------------------------------------------------
 # Solvers
 # --------------------------------------------------------------------------------------------
-def choose_method(problem: AssignmentProblem) -> str:
-    """``dense`` or ``sparse`` by the measured cost model (module constants)."""
+def estimate_us(problem: AssignmentProblem) -> dict[str, float]:
+    """Predicted solve time (µs) of the dense and sparse solvers on ``problem`` (cost model)."""
     cells = problem.n_agents * problem.n_tasks
-    edges = problem.n_bids + problem.n_agents
-    dense_us = DENSE_FIXED_US + DENSE_NS_PER_CELL * cells / 1000.0
-    sparse_us = SPARSE_FIXED_US + SPARSE_NS_PER_EDGE * edges / 1000.0
+    nnz = problem.n_bids
+    dense = DENSE_FIXED_US + DENSE_NS_PER_CELL * cells / 1e3
+    sparse = (
+        SPARSE_FIXED_US + SPARSE_US_PER_AGENT * problem.n_agents + SPARSE_NS_PER_EDGE * nnz / 1e3
+    )
     if problem.is_dense:
-        sparse_us += SCAN_NS_PER_CELL * cells / 1000.0
+        sparse += (SCAN_NS_PER_CELL * cells + SCAN_NS_PER_EDGE * nnz) / 1e3
     else:
-        dense_us += SCAN_NS_PER_CELL * cells / 1000.0  # filling the matrix
-    return "sparse" if sparse_us < dense_us else "dense"
+        dense += (FILL_NS_PER_CELL * cells + FILL_NS_PER_EDGE * nnz) / 1e3
+    return {"dense": dense, "sparse": sparse}
+
+
+def choose_method(problem: AssignmentProblem) -> str:
+    """``dense`` or ``sparse``, whichever the measured cost model predicts to be faster."""
+    est = estimate_us(problem)
+    return "sparse" if est["sparse"] < est["dense"] else "dense"
 
 
 def solve(problem: AssignmentProblem, method: str = "auto") -> Matching:
