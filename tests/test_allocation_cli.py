@@ -89,3 +89,37 @@ def test_bench_auction_tiny_run(runner: CliRunner, tmp_path: Path) -> None:
     assert code == 0
     assert "| fig4 | 4 | 10 | 50% |" in out and "| fig5 | 4 | 10 | 100% |" in out
     assert {p.name for p in tmp_path.iterdir()} == {"auction.md", "auction.csv", "auction.png"}
+
+
+def test_auction_fig7_what_ifs(runner: CliRunner) -> None:
+    """Seed 003 Fig. 7 from the command line: before the pick the inspection steals G1, after
+    the pick (committed, k_bt = 0) it does not."""
+    code, out, _ = run(
+        runner, "auction", PICK, "--at", "3", "--holding", "G1=P1", "--agent-at", "G1=3,1.5,0"
+    )
+    assert code == 0
+    assert "  G1  I1  cost 1.80" in out and "  P1: G1 → — (G1 reassigned to I1)" in out
+    code, out, _ = run(
+        runner, "auction", PICK, "--at", "40", "--committed", "G1=P1", "--agent-at", "G1=9,2,0"
+    )
+    assert code == 0
+    assert "  G1  P1  cost 0.00" in out
+    assert "  I2 unassigned: no bids: declined by G1 (committed to P1)" in out
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--at", "5", "--committed", "G1=I1"], "task type 'inspect' has no commit_after"),
+        (["--holding", "X=P1"], "no agent 'X' (agents: G1)"),
+        (["--holding", "G1=Q"], "no task 'Q' in the mission"),
+        (["--holding", "G1"], "expected AGENT=VALUE"),
+        (["--holding", "G1=I2"], "task 'I2' arrives at 40 s, after --at 0"),
+        (["--at", "5", "--holding", "G1=I1", "--committed", "G1=P1"], "an agent holds one task"),
+        (["--at", "5", "--holding", "G1=P1", "--holding", "G1=I1"], "an agent holds one task"),
+        (["--agent-at", "G1=1,2"], "expected AGENT=X,Y,Z"),
+    ],
+)
+def test_auction_what_if_bad_options(runner: CliRunner, args: list[str], message: str) -> None:
+    code, _, err = run(runner, "auction", PICK, *args)
+    assert code == 2 and message in err

@@ -78,7 +78,7 @@ class BenchConfig:
     round_participation: float = 0.9
     rounds: int = 300
     scale: tuple[tuple[int, int], ...] = ((1000, 10_000),)
-    scale_repeat: int = 5
+    scale_repeat: int = 7
     crossover: tuple[tuple[int, int], ...] = ((200, 2000), (1000, 10_000))
     crossover_bids: tuple[float, ...] = (5, 50, 0.1, 0.3, 0.9)
     """Bids per agent: a count when ≥ 1, else a fraction of the tasks."""
