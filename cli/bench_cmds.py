@@ -137,7 +137,7 @@ def _size_list(text: str, name: str) -> tuple[tuple[int, int], ...]:
     help="Skip SCIP on instances with more bid variables than this.",
 )
 @click.option(
-    "--quick", is_flag=True, help="A short run (~30 s): fewer points, repeats and rounds."
+    "--quick", is_flag=True, help="A short run (~20 s): fewer points, repeats and rounds."
 )
 @click.option("--seed", type=int, default=0, show_default=True, help="Instance seed.")
 @click.option(
@@ -180,7 +180,7 @@ def auction_bench(
     \b
     Examples:
       btmission bench auction                      # full run, a few minutes
-      btmission bench auction --quick              # ~30 s
+      btmission bench auction --quick              # ~20 s
       btmission bench auction --agents 50 --tasks 400 -p 0.9 --scale '' --crossover '' -o /tmp/r
     """
     from btmission.bench.auction import BenchConfig, run_auction_benchmark
