@@ -423,8 +423,10 @@ def test_pool_refuses_impossible_transitions() -> None:
         pool.complete("T", "B", 1.0)
     with pytest.raises(PoolError, match="has no commit point"):
         pool.commit("T", "A", 1.0)
+    assert pool.held_by("A") is pool["T"] and pool.held_by("C") is None
     pool = pool.commit("P", "B", 1.0)
     assert pool.commit("P", "B", 2.0) is pool  # already committed
+    assert pool.held_by("B") is pool["P"]
     pool = pool.fail("P", "B", 3.0, "gripper jammed")
     assert pool["P"].state is TaskState.FAILED and pool["P"].note == "gripper jammed"
     with pytest.raises(PoolError, match="already failed"):

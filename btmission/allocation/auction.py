@@ -156,7 +156,7 @@ class Announcement:
         return len(self.tasks)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Bid:
     """An agent's bid (stage 2): costs for ``tasks`` (usually the announced ids, in order).
 

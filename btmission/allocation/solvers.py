@@ -87,7 +87,7 @@ class SolverError(RuntimeError):
     """A solver failed or is unavailable (e.g. SCIP missing from the OR-Tools build)."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class AssignmentProblem:
     """Bids of ``n_agents`` agents on ``n_tasks`` tasks, as a dense matrix or as edges.
 
@@ -223,7 +223,7 @@ def _opt_int(a: IntArray | Sequence[int] | None) -> IntArray | None:
     return None if a is None else np.asarray(a, dtype=np.intp)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Matching:
     """Assigned pairs (agent index ``rows[i]`` ↔ task index ``cols[i]``), sorted by agent."""
 
