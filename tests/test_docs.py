@@ -6,6 +6,9 @@ its trailing ``# exit N`` comment documents. Commands never touch the repository
 and ``--out`` paths are redirected into ``tmp_path``, and ``library new`` (and commands on the
 plugin it scaffolds) run inside ``tmp_path``. svg/png commands are skipped without Graphviz.
 
+Every ```` ```python ```` block is a complete program and is executed (from the repository root,
+in a fresh namespace); excerpts that cannot run on their own are fenced ```` ```py ```` instead.
+
 Only the exit status is checked, not the output shown in the docs, so that wording changes in
 messages do not break this test; re-run the examples when you change them.
 """
@@ -200,6 +203,21 @@ def _links(page: Path) -> list[str]:
 
 
 LINKED_PAGES = [*PAGES, ROOT / "README.md"]
+
+
+PYTHON_BLOCKS = [
+    pytest.param(block, id=f"{page.name}[{i}]")
+    for page in PAGES
+    for i, block in enumerate(
+        re.findall(r"```python\n(.*?)```", page.read_text(encoding="utf-8"), re.S)
+    )
+]
+
+
+@pytest.mark.parametrize("block", PYTHON_BLOCKS)
+def test_python_examples_run(block: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(ROOT)
+    exec(compile(block, "<docs example>", "exec"), {"__name__": "__docs_example__"})
 
 
 @pytest.mark.parametrize(

@@ -1,0 +1,541 @@
+"""The auctioneer: one auction round as a pure step function (seed 003 §IV, seed 000 §IV-B).
+
+A round has the paper's three stages (seed 003 Fig. 3):
+
+1. **Announcement** — :func:`announce`: the tasks that have arrived and are not finished, in
+   (arrival, id) order. The announcement keeps its serial number while that set is unchanged,
+   so bids computed against it stay aligned with it.
+2. **Bidding** — agents answer with a :class:`Bid`: one cost per announced task, ``c_kj =
+   f_cost(task, state) · k_bt`` (eq. 8-10; see :mod:`btmission.allocation.bidder`), NaN for a
+   task it does not bid on (participation) and ``inf`` for one it cannot reach. The auctioneer
+   keeps each agent's latest bid on a board; a bid older than ``agent_timeout_s`` is stale and
+   its agent is dropped (its task returns to the pool).
+3. **Allocation** — :func:`auction_round`: the board becomes a cost matrix, priorities become
+   profit bonuses, and an exact solver (:mod:`btmission.allocation.solvers`) finds the matching
+   that assigns the most tasks, then maximizes ``Σ (priority_scale · priority_j − c_kj)``
+   (eq. 4-7), keeping current holders on exact ties. Tasks whose agent has passed the commit
+   point (k_bt = 0) stay with that agent whatever the other bids. Every task left without an
+   agent gets the reason.
+
+:func:`auction_round` is pure: ``(state, bids, now) → (assignments, new_state, report)``, with no
+clock, I/O or randomness, so a round can be replayed and tested exactly. The fixed-rate loop
+that calls it is :class:`btmission.allocation.loop.AuctionLoop`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from btmission.allocation.solvers import (
+    MAX_COST,
+    MISSION_SOLVERS,
+    AssignmentProblem,
+    FloatArray,
+    solve,
+)
+from btmission.allocation.tasks import PoolTask, TaskInfo, TaskPool, TaskState
+
+SOLVERS: tuple[str, ...] = ("assignment", "ilp-scip", "dense", "sparse")
+"""``AuctionConfig.solver``: a mission's ``assignment`` (dense or sparse chosen automatically) or
+``ilp-scip`` (the paper's ILP), or one of the two assignment solvers forced (benchmarks)."""
+
+
+@dataclass(frozen=True)
+class AuctionConfig:
+    """The mission's ``coordination`` settings the auctioneer uses."""
+
+    participation: float = 1.0
+    """Fraction of the announced tasks each agent bids on: its ``ceil(p · n)`` cheapest."""
+    priority_scale: float = 1000.0
+    """Profit bonus per unit of task priority (seed 003 scenario 3)."""
+    solver: str = "assignment"
+    agent_timeout_s: float = 3.0
+    """A bid older than this is stale: its agent is dropped and its task returns to the pool."""
+    rate_hz: float = 10.0
+    """Rounds per second of the fixed-rate loop (the paper ran at 9 Hz)."""
+
+    def __post_init__(self) -> None:
+        if not 0 < self.participation <= 1:
+            raise ValueError(f"participation must be in (0, 1], got {self.participation}")
+        if not (self.priority_scale >= 0 and math.isfinite(self.priority_scale)):
+            raise ValueError(f"priority_scale must be ≥ 0, got {self.priority_scale}")
+        if self.solver not in SOLVERS:
+            raise ValueError(
+                f"unknown solver '{self.solver}' (expected one of: {', '.join(SOLVERS)})"
+            )
+        if not self.agent_timeout_s > 0:
+            raise ValueError(f"agent_timeout_s must be > 0, got {self.agent_timeout_s}")
+        if not self.rate_hz > 0:
+            raise ValueError(f"rate_hz must be > 0, got {self.rate_hz}")
+
+    @property
+    def method(self) -> str:
+        """The solver method (:func:`btmission.allocation.solvers.solve`)."""
+        return MISSION_SOLVERS.get(self.solver, self.solver)
+
+    @classmethod
+    def from_spec(cls, spec: Any) -> AuctionConfig:
+        """From a mission's :class:`~btmission.spec.mission.CoordinationSpec`."""
+        return cls(
+            participation=spec.participation,
+            priority_scale=spec.priority_scale,
+            solver=spec.solver,
+            agent_timeout_s=spec.agent_timeout_s,
+            rate_hz=spec.auction_rate_hz,
+        )
+
+
+def participation_k(participation: float, n_tasks: int) -> int:
+    """How many tasks an agent bids on: ``ceil(participation · n_tasks)`` (at least 1 if any)."""
+    if n_tasks <= 0:
+        return 0
+    return max(1, min(n_tasks, math.ceil(participation * n_tasks - 1e-9)))
+
+
+def cheapest(costs: FloatArray, k: int, keep: int = -1) -> NDArray[np.bool_]:
+    """Mask of the ``k`` cheapest finite entries of ``costs`` (ties: lower index first), plus
+    ``keep`` (an agent always bids on its current task). Unreachable (inf) entries are kept too:
+    they say "cannot", which is information, not a bid."""
+    finite = np.isfinite(costs)
+    mask = np.isinf(costs)
+    idx = np.nonzero(finite)[0]
+    if len(idx) <= k:
+        mask |= finite
+    else:
+        order = np.argsort(costs[idx], kind="stable")[:k]
+        mask[idx[order]] = True
+    if 0 <= keep < len(costs) and finite[keep]:
+        mask[keep] = True
+    return mask
+
+
+# --------------------------------------------------------------------------------------------
+# Messages
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Announcement:
+    """The announced tasks (stage 1). ``serial`` changes only when the set of tasks does."""
+
+    serial: int = 0
+    time_s: float = 0.0
+    tasks: tuple[TaskInfo, ...] = ()
+
+    @property
+    def ids(self) -> tuple[str, ...]:
+        cached = self.__dict__.get("_ids")
+        if cached is None:
+            cached = tuple(t.id for t in self.tasks)
+            object.__setattr__(self, "_ids", cached)
+        return cached  # type: ignore[no-any-return]
+
+    @property
+    def index(self) -> Mapping[str, int]:
+        """Task id → position in the announcement."""
+        cached = self.__dict__.get("_index")
+        if cached is None:
+            cached = {tid: j for j, tid in enumerate(self.ids)}
+            object.__setattr__(self, "_index", cached)
+        return cached  # type: ignore[no-any-return]
+
+    @property
+    def priorities(self) -> FloatArray:
+        """Task priorities in announcement order."""
+        cached = self.__dict__.get("_prio")
+        if cached is None:
+            cached = np.array([t.priority for t in self.tasks], dtype=np.float64)
+            object.__setattr__(self, "_prio", cached)
+        return cached  # type: ignore[no-any-return]
+
+    def __len__(self) -> int:
+        return len(self.tasks)
+
+
+@dataclass(frozen=True, eq=False)
+class Bid:
+    """An agent's bid (stage 2): costs for ``tasks`` (usually the announced ids, in order).
+
+    ``costs[i]`` is the cost for ``tasks[i]``: finite ≥ 0 = a bid, NaN = no bid (the agent does
+    not take part for that task), ``inf`` = it cannot reach it. ``committed_to`` is the task the
+    agent has passed the commit point of (its behaviour tree's k_bt = 0), if any. A bid is also
+    the agent's heartbeat: ``time_s`` is when it was made.
+    """
+
+    agent: str
+    time_s: float
+    tasks: tuple[str, ...]
+    costs: FloatArray
+    committed_to: str | None = None
+
+    @classmethod
+    def of(
+        cls,
+        agent: str,
+        time_s: float,
+        costs: Mapping[str, float],
+        committed_to: str | None = None,
+    ) -> Bid:
+        """From a task id → cost mapping (tasks left out are not bid on)."""
+        return cls(
+            agent,
+            time_s,
+            tuple(costs),
+            np.fromiter(costs.values(), dtype=np.float64, count=len(costs)),
+            committed_to,
+        )
+
+    @classmethod
+    def aligned(
+        cls,
+        agent: str,
+        time_s: float,
+        announcement: Announcement,
+        costs: FloatArray | Sequence[float],
+        committed_to: str | None = None,
+    ) -> Bid:
+        """Costs in announcement order (the fast path: no id lookups in the auctioneer)."""
+        return cls(
+            agent, time_s, announcement.ids, np.asarray(costs, dtype=np.float64), committed_to
+        )
+
+    def cost_of(self, task_id: str) -> float:
+        """This bid's cost for ``task_id`` (NaN if it does not bid on it)."""
+        for i, t in enumerate(self.tasks):
+            if t == task_id:
+                return float(self.costs[i])
+        return math.nan
+
+    def problem(self) -> str | None:
+        """What makes this bid unusable, or None."""
+        if not self.agent:
+            return "bid without an agent id"
+        if not math.isfinite(self.time_s):
+            return f"bid from {self.agent}: time is not finite"
+        if self.costs.shape != (len(self.tasks),):
+            return f"bid from {self.agent}: {self.costs.shape} costs for {len(self.tasks)} task(s)"
+        bad = (self.costs < 0) | ((self.costs > MAX_COST) & np.isfinite(self.costs))
+        if np.any(bad):
+            i = int(np.nonzero(bad)[0][0])
+            return (
+                f"bid from {self.agent}: cost {self.costs[i]:g} for task '{self.tasks[i]}' is "
+                f"out of range (expected 0 … {MAX_COST:g}, NaN for no bid, inf for unreachable)"
+            )
+        return None
+
+
+@dataclass(frozen=True)
+class Change:
+    """A task that changed hands this round (``None`` = no agent)."""
+
+    task: str
+    before: str | None
+    after: str | None
+    reason: str
+
+    def __str__(self) -> str:
+        return f"{self.task}: {self.before or '—'} → {self.after or '—'} ({self.reason})"
+
+
+@dataclass(frozen=True)
+class RoundReport:
+    """What one round did and why (the event log records it)."""
+
+    round: int
+    time_s: float
+    serial: int
+    """Serial of the announcement the round allocated."""
+    announced: int
+    agents: tuple[str, ...]
+    """Agents whose bids took part (live, sorted by id)."""
+    dropped: tuple[str, ...]
+    """Agents dropped this round because their latest bid was stale."""
+    assignments: Mapping[str, str]
+    """Agent → task for every held task after the round (committed ones included)."""
+    committed: tuple[str, ...]
+    """Agents kept on their task because they passed its commit point."""
+    unassigned: Mapping[str, str]
+    """Announced task without an agent → why."""
+    changes: tuple[Change, ...]
+    ignored: tuple[str, ...]
+    """Bids (or parts of bids) the round could not use, and why."""
+    method: str
+    """The solver that ran (dense, sparse, ilp-scip, or "none" when nothing was to solve)."""
+    bids: int
+    """(agent, task) bids considered by the solver."""
+    total_cost: float
+    """Σ bid costs of the pairs the solver assigned (pinned committed pairs excluded)."""
+
+
+@dataclass(frozen=True)
+class AuctionState:
+    """Everything the auctioneer remembers between rounds (immutable)."""
+
+    config: AuctionConfig = AuctionConfig()
+    pool: TaskPool = TaskPool()
+    round: int = 0
+    announcement: Announcement = Announcement()
+    board: Mapping[str, Bid] = field(default_factory=dict)
+    """Each live agent's latest bid."""
+
+    # -- progress reported by the agents (between rounds) ----------------------------------
+    def add_task(self, info: TaskInfo, now: float | None = None) -> AuctionState:
+        """An operator adds a task (announced from the next round at or after its arrival)."""
+        return replace(self, pool=self.pool.add(info, now))
+
+    def commit(self, task_id: str, agent: str, now: float) -> AuctionState:
+        """``agent`` passed the commit point of ``task_id`` (also inferred from bids)."""
+        return replace(self, pool=self.pool.commit(task_id, agent, now))
+
+    def complete(self, task_id: str, agent: str, now: float) -> AuctionState:
+        return replace(self, pool=self.pool.complete(task_id, agent, now))
+
+    def fail(self, task_id: str, agent: str, now: float, reason: str = "") -> AuctionState:
+        return replace(self, pool=self.pool.fail(task_id, agent, now, reason))
+
+    def holders(self) -> dict[str, str]:
+        """Agent → the task it holds (assigned or committed)."""
+        return {
+            t.agent: t.id
+            for t in self.pool
+            if t.agent is not None and t.state in (TaskState.ASSIGNED, TaskState.COMMITTED)
+        }
+
+
+# --------------------------------------------------------------------------------------------
+# Stage 1: announcement
+# --------------------------------------------------------------------------------------------
+def announce(state: AuctionState, now: float) -> AuctionState:
+    """The state with the announcement for ``now`` (same serial if the task set is unchanged)."""
+    live = state.pool.announced(now)
+    ids = tuple(t.id for t in live)
+    ann = state.announcement
+    if ids == ann.ids and all(a is b.info for a, b in zip(ann.tasks, live)):
+        return state
+    new = Announcement(ann.serial + 1, now, tuple(t.info for t in live))
+    return replace(state, announcement=new)
+
+
+# --------------------------------------------------------------------------------------------
+# Stage 3: allocation
+# --------------------------------------------------------------------------------------------
+def _ingest(board: Mapping[str, Bid], bids: Iterable[Bid], ignored: list[str]) -> dict[str, Bid]:
+    new = dict(board)
+    for b in bids:
+        problem = b.problem()
+        if problem:
+            ignored.append(problem)
+            continue
+        old = new.get(b.agent)
+        if old is not None and old.time_s > b.time_s:
+            ignored.append(f"bid from {b.agent} at t={b.time_s:.3f}s is older than its last one")
+            continue
+        new[b.agent] = b
+    return new
+
+
+def _matrix(
+    ann: Announcement, agents: Sequence[str], board: Mapping[str, Bid], ignored: list[str]
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Bids as an agents × tasks matrix (NaN = none) and which pairs a bid covered at all."""
+    na, nt = len(agents), len(ann)
+    costs = np.full((na, nt), np.nan)
+    covered = np.zeros((na, nt), dtype=bool)
+    index = ann.index
+    remap: dict[int, tuple[NDArray[np.intp], NDArray[np.intp]]] = {}
+    for i, a in enumerate(agents):
+        b = board[a]
+        if b.tasks is ann.ids or b.tasks == ann.ids:
+            costs[i] = b.costs
+            covered[i] = True
+            continue
+        key = id(b.tasks)
+        if key not in remap:
+            pos = np.fromiter((index.get(t, -1) for t in b.tasks), dtype=np.intp)
+            src = np.nonzero(pos >= 0)[0]
+            remap[key] = (src, pos[src])
+        src, dst = remap[key]
+        costs[i, dst] = b.costs[src]
+        covered[i, dst] = True
+    return costs, covered
+
+
+def _names(agents: Sequence[str], limit: int = 3) -> str:
+    shown = ", ".join(agents[:limit])
+    return shown + (f" and {len(agents) - limit} more" if len(agents) > limit else "")
+
+
+def auction_round(
+    state: AuctionState, bids: Iterable[Bid], now: float
+) -> tuple[dict[str, str | None], AuctionState, RoundReport]:
+    """One auction round at time ``now`` (module docstring).
+
+    ``bids`` are the bids received since the last round (they may answer this round's or an
+    earlier announcement). Returns ``(assignments, new_state, report)``: ``assignments`` maps every
+    live agent to the task it should execute, or None (no task: its default behaviour).
+    """
+    cfg = state.config
+    state = announce(state, now)
+    ann = state.announcement
+    ignored: list[str] = []
+    board = _ingest(state.board, bids, ignored)
+    pool = state.pool
+    changed: dict[str, PoolTask] = {}
+    changes: list[Change] = []
+
+    def move(t: PoolTask, st: TaskState, agent: str | None, reason: str) -> None:
+        changed[t.id] = t.moved(now, st, agent, reason)
+        if agent != t.agent:
+            changes.append(Change(t.id, t.agent, agent, reason))
+
+    # stale agents: dropped, their task back to the pool
+    stale = sorted(a for a, b in board.items() if now - b.time_s > cfg.agent_timeout_s)
+    holders = state.holders()
+    for a in stale:
+        age = now - board.pop(a).time_s
+        held = holders.pop(a, None)
+        if held is not None:
+            move(pool[held], TaskState.OPEN, None, f"agent {a} stopped reporting ({age:.1f} s)")
+    for a in sorted(set(holders) - set(board)):  # holds a task but never bid
+        move(pool[holders.pop(a)], TaskState.OPEN, None, f"agent {a} is not bidding")
+    agents = sorted(board)
+    row_of = {a: i for i, a in enumerate(agents)}
+    index = ann.index
+
+    # commit points reported with the bids (k_bt = 0)
+    for a in agents:
+        target = board[a].committed_to
+        if target is None:
+            continue
+        t = changed.get(target) or pool.get(target)
+        if t is None or t.agent != a or t.state.terminal:
+            ignored.append(f"{a} reports a commit point on '{target}', which it does not hold")
+        elif t.state is TaskState.ASSIGNED:
+            if t.info.multi_stage:
+                changed[target] = t.moved(now, TaskState.COMMITTED, a, "commit point (k_bt = 0)")
+            else:
+                ignored.append(f"{a} reports a commit point on '{target}', which has none")
+
+    def current(tid: str) -> PoolTask:
+        return changed.get(tid) or pool[tid]
+
+    # pinned pairs: a committed task stays with its agent whatever the bids
+    pinned = {
+        a: tid
+        for a, tid in holders.items()
+        if tid in index and current(tid).state is TaskState.COMMITTED
+    }
+    costs, covered = _matrix(ann, agents, board, ignored)
+    na, nt = costs.shape
+    for a, tid in pinned.items():  # a committed agent takes part in nothing else
+        i = row_of[a]
+        costs[i] = np.nan
+        costs[i, index[tid]] = 0.0
+    incumbent = np.full(na, -1, dtype=np.intp)
+    for a, tid in holders.items():
+        if tid in index and a not in pinned:
+            incumbent[row_of[a]] = index[tid]
+
+    # participation guard: an agent bidding on more than its k cheapest is trimmed to them
+    k = participation_k(cfg.participation, nt)
+    if k < nt:
+        for row in np.nonzero(np.count_nonzero(np.isfinite(costs), axis=1) > k)[0]:
+            costs[row, ~cheapest(costs[row], k, int(incumbent[row]))] = np.nan
+    unreachable = np.isinf(costs)
+    n_inf = unreachable.sum(axis=0)
+    costs[unreachable] = np.nan
+    n_fin = np.isfinite(costs).sum(axis=0)
+
+    # solve without the pinned agents and tasks
+    winner: dict[int, str] = {index[t]: a for a, t in pinned.items()}
+    free_rows = np.array([i for i, a in enumerate(agents) if a not in pinned], dtype=np.intp)
+    free_cols = np.array([j for j in range(nt) if j not in winner], dtype=np.intp)
+    sub = costs[np.ix_(free_rows, free_cols)] if pinned else costs
+    col_pos = np.full(nt + 1, -1, dtype=np.intp)
+    col_pos[free_cols] = np.arange(len(free_cols))
+    inc_sub = col_pos[incumbent[free_rows]]  # -1 stays -1 (last slot)
+    bonus = cfg.priority_scale * ann.priorities[free_cols]
+    problem = AssignmentProblem.dense(sub, bonus=bonus, incumbent=inc_sub)
+    method = "none"
+    total = 0.0
+    if problem.n_bids:
+        match = solve(problem, cfg.method)
+        method = match.method
+        for r, c in zip(match.rows, match.cols):
+            winner[int(free_cols[c])] = agents[int(free_rows[r])]
+            total += float(sub[r, c])
+
+    assignments: dict[str, str | None] = dict.fromkeys(agents)
+    for j, a in winner.items():
+        assignments[a] = ann.ids[j]
+
+    def why(j: int) -> tuple[str, TaskState]:
+        """Why announced task ``j`` got no agent, and the state that goes with it."""
+        if not agents:
+            return "no agents are bidding", TaskState.OPEN
+        if n_fin[j]:
+            return f"outbid: its {int(n_fin[j])} bidder(s) won other tasks", TaskState.OPEN
+        who = [agents[i] for i in np.nonzero(covered[:, j])[0]]
+        if n_inf[j]:
+            return f"unreachable: no path from {_names(who)}", TaskState.UNREACHABLE
+        if who:
+            busy = [f"{a} (committed to {pinned[a]})" if a in pinned else a for a in who]
+            part = (
+                f"; each agent bids on its {k} cheapest of {nt} (participation "
+                f"{cfg.participation:g})"
+                if k < nt
+                else ""
+            )
+            return f"no bids: declined by {_names(busy)}{part}", TaskState.OPEN
+        return "awaiting bids (newly announced)", TaskState.OPEN
+
+    # publish: update the pool, with reasons
+    unassigned: dict[str, str] = {}
+    for j, info in enumerate(ann.tasks):
+        t = current(info.id)
+        who = winner.get(j)
+        if who is not None:
+            if t.agent == who and t.state in (TaskState.ASSIGNED, TaskState.COMMITTED):
+                continue
+            c = float(costs[row_of[who], j])
+            won = f"reassigned from {t.agent}" if t.agent else "won"
+            move(t, TaskState.ASSIGNED, who, f"{won} at cost {c:.4g}")
+            continue
+        reason, st = why(j)
+        unassigned[info.id] = reason
+        if t.agent is not None:
+            moved_to = assignments.get(t.agent)
+            lost = (
+                f"{t.agent} reassigned to {moved_to}"
+                if moved_to
+                else f"{t.agent} lost it: {reason}"
+            )
+            move(t, st, None, lost)
+        elif t.state is not st:
+            move(t, st, None, reason)
+        elif t.note != reason:
+            changed[t.id] = replace(t, note=reason)
+
+    new_pool = pool.with_tasks(changed)
+    new_state = replace(state, pool=new_pool, round=state.round + 1, board=board)
+    report = RoundReport(
+        round=new_state.round,
+        time_s=now,
+        serial=ann.serial,
+        announced=nt,
+        agents=tuple(agents),
+        dropped=tuple(stale),
+        assignments={a: t for a, t in assignments.items() if t is not None},
+        committed=tuple(sorted(pinned)),
+        unassigned=unassigned,
+        changes=tuple(changes),
+        ignored=tuple(ignored),
+        method=method,
+        bids=problem.n_bids,
+        total_cost=total,
+    )
+    return assignments, new_state, report

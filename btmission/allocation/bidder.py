@@ -1,0 +1,209 @@
+"""The agent side of the auction: bids from task-type cost expressions (seed 003 §V-B, eq. 8-10).
+
+For every announced task ``T_j`` an agent ``R_k`` bids
+
+    c_kj = f_cost(T_j, state) · k_bt                                   (eq. 8)
+
+where ``f_cost`` is the task type's ``cost`` expression from the mission — e.g.
+``path_cost(location)`` (Γ1, eq. 9) or ``path_cost(pickup) + path_cost(pickup, dropoff)`` (Γ2,
+eq. 10) — evaluated with path costs from a pluggable :class:`CostProvider` (straight lines by
+default; the D*+ planner provides risk-aware path costs through the same interface), and
+``k_bt`` comes from the agent's behaviour tree: 1 normally, 0 for its current task once the
+task's commit condition holds (e.g. ``holding(pickup)``). An agent past a commit point bids
+only on that task: it keeps it (the auctioneer also pins it) and takes part in nothing else.
+
+**Participation** (seed 003 §IV-B): an agent bids only on its ``ceil(participation · n)``
+cheapest announced tasks — plus the task it is executing, so it never drops its own task just
+because others look cheaper. Tasks it cannot do (its library lacks the goal) or cannot reach
+(``inf`` from the provider) are reported as such, not bid on.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from collections.abc import Collection, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from btmission.allocation.auction import Announcement, Bid, cheapest, participation_k
+from btmission.allocation.solvers import FloatArray
+from btmission.allocation.tasks import TaskInfo
+from btmission.spec.mission import Mission, TaskType
+
+Point = tuple[float, float, float]
+
+
+@runtime_checkable
+class CostProvider(Protocol):
+    """Path costs for bids. Implemented by :class:`StraightLine` and by the D*+ planner."""
+
+    def path_cost(self, start: Point, goal: Point) -> float:
+        """Cost of the best path from ``start`` to ``goal``; ``math.inf`` if there is none."""
+        ...
+
+
+@dataclass(frozen=True)
+class StraightLine:
+    """Euclidean distance: the cost provider until a planner is plugged in."""
+
+    def path_cost(self, start: Point, goal: Point) -> float:
+        return math.dist(start, goal)
+
+
+@dataclass(frozen=True)
+class AgentState:
+    """What the bid depends on: where the agent is and what its behaviour tree is doing."""
+
+    id: str
+    position: Point
+    task: str | None = None
+    """The task it is executing, if any."""
+    committed: bool = False
+    """Its tree has passed ``task``'s commit condition (k_bt = 0 for it)."""
+
+
+def k_bt(agent: AgentState, task_id: str) -> float:
+    """The behaviour-tree factor of eq. 8-10: 0 for the current task after its commit point,
+    else 1."""
+    return 0.0 if agent.committed and task_id == agent.task else 1.0
+
+
+class BidError(ValueError):
+    """A task's fields do not fit its type's cost expression (e.g. a position is not [x, y, z])."""
+
+
+def _point(task: TaskInfo, value: object) -> Point:
+    if (
+        isinstance(value, (list, tuple))
+        and len(value) == 3
+        and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in value)
+    ):
+        return (float(value[0]), float(value[1]), float(value[2]))
+    raise BidError(
+        f"task '{task.id}' ({task.type}): cost functions need positions [x, y, z], got {value!r}"
+    )
+
+
+class Bidder:
+    """Computes one agent's bids on announcements.
+
+    ``task_types`` are the types this agent can do (others get no bid). Path costs between two
+    task fields (``path_cost(pickup, dropoff)``) do not depend on the agent and are cached
+    (least recently used, ``cache_size`` entries).
+    """
+
+    def __init__(
+        self,
+        task_types: Mapping[str, TaskType],
+        provider: CostProvider | None = None,
+        participation: float = 1.0,
+        *,
+        cache_size: int = 4096,
+    ):
+        if not 0 < participation <= 1:
+            raise ValueError(f"participation must be in (0, 1], got {participation}")
+        self.task_types = dict(task_types)
+        self.provider: CostProvider = provider if provider is not None else StraightLine()
+        self.participation = participation
+        self._cache: OrderedDict[tuple[Point, Point], float] = OrderedDict()
+        self._cache_size = cache_size
+
+    @classmethod
+    def for_agent(
+        cls,
+        mission: Mission,
+        agent_id: str,
+        provider: CostProvider | None = None,
+        *,
+        types: Collection[str] | None = None,
+    ) -> Bidder:
+        """The bidder of ``agent_id``: the task types its library can do, the mission's
+        participation."""
+        from btmission.synthesis.mission_tree import can_do
+
+        lib = mission.library_of(agent_id).library
+        doable = {
+            name: tt
+            for name, tt in mission.task_types.items()
+            if can_do(lib, tt.goals) is None and (types is None or name in types)
+        }
+        return cls(doable, provider, mission.spec.coordination.participation)
+
+    def _static_cost(self, a: Point, b: Point) -> float:
+        key = (a, b)
+        hit = self._cache.get(key)
+        if hit is not None:
+            self._cache.move_to_end(key)
+            return hit
+        value = float(self.provider.path_cost(a, b))
+        self._cache[key] = value
+        if len(self._cache) > self._cache_size:
+            self._cache.popitem(last=False)
+        return value
+
+    def f_cost(self, task: TaskInfo, agent: AgentState) -> float:
+        """``f_cost(task, state)`` of eq. 8: the task type's cost expression for this agent
+        (NaN if the agent cannot do the type, ``inf`` if a path does not exist)."""
+        tt = self.task_types.get(task.type)
+        if tt is None:
+            return math.nan
+
+        def call(name: str, args: tuple[object, ...]) -> float:
+            pts = [_point(task, v) for v in args]
+            if name == "distance":
+                start, goal = (agent.position, pts[0]) if len(pts) == 1 else (pts[0], pts[1])
+                return math.dist(start, goal)
+            if len(pts) == 1:
+                return float(self.provider.path_cost(agent.position, pts[0]))
+            return self._static_cost(pts[0], pts[1])
+
+        try:
+            value = tt.cost.evaluate(call, task.fields)
+        except KeyError as exc:
+            raise BidError(f"task '{task.id}' ({task.type}) has no field {exc}") from None
+        if math.isnan(value) or value < 0:
+            raise BidError(
+                f"task '{task.id}' ({task.type}): cost '{tt.cost.text}' is {value:g}; bids must "
+                "be ≥ 0"
+            )
+        return value
+
+    def costs(self, announcement: Announcement, agent: AgentState) -> FloatArray:
+        """``c_kj`` for every announced task, in announcement order (eq. 8), participation
+        applied: NaN = no bid, ``inf`` = unreachable."""
+        tasks = announcement.tasks
+        out = np.full(len(tasks), np.nan)
+        if agent.committed:
+            if agent.task is not None and agent.task in announcement.index:
+                out[announcement.index[agent.task]] = 0.0  # f_cost · k_bt with k_bt = 0
+            return out
+        for j, t in enumerate(tasks):
+            out[j] = self.f_cost(t, agent) * k_bt(agent, t.id)
+        k = participation_k(self.participation, len(tasks))
+        if k < len(tasks):
+            keep = announcement.index.get(agent.task, -1) if agent.task is not None else -1
+            out[~cheapest(out, k, keep)] = np.nan
+        return out
+
+    def bid(self, announcement: Announcement, agent: AgentState, now: float) -> Bid:
+        """The bid message for ``announcement`` (aligned with it)."""
+        return Bid.aligned(
+            agent.id,
+            now,
+            announcement,
+            self.costs(announcement, agent),
+            agent.task if agent.committed else None,
+        )
+
+
+def bids_for(
+    bidders: Mapping[str, Bidder],
+    agents: Sequence[AgentState],
+    announcement: Announcement,
+    now: float,
+) -> list[Bid]:
+    """Every agent's bid on ``announcement`` (in-process simulation of the bidding stage)."""
+    return [bidders[a.id].bid(announcement, a, now) for a in agents]

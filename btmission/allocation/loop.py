@@ -1,0 +1,213 @@
+"""The auctioneer's fixed-rate loop: announce, collect, allocate, publish — every period.
+
+Seed 003 §IV and §VII-B run the auction at a fixed rate (a delay after the announcement gave
+9 Hz) so tasks added mid-mission are allocated within one period. :class:`AuctionLoop` calls the
+pure step function (:func:`~btmission.allocation.auction.auction_round`) on a schedule
+``t0 + k / rate_hz``, with no drift: a round that overruns its slot is followed by the next
+free slot (the missed ones are counted, never run late in a burst).
+
+The loop owns no clock and no transport: it takes a :class:`Clock` (:class:`WallClock` for real
+time, :class:`ManualClock` for simulation and tests), a ``collect`` function that publishes the
+announcement and returns what arrived since the last round (bids and progress reports), and a
+``publish`` function that receives each round's result.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Literal, Protocol
+
+from btmission.allocation.auction import (
+    Announcement,
+    AuctionState,
+    Bid,
+    RoundReport,
+    announce,
+    auction_round,
+)
+from btmission.allocation.tasks import PoolError
+
+
+class Clock(Protocol):
+    """Time in seconds since the mission started."""
+
+    def now(self) -> float: ...
+
+    def sleep_until(self, t: float) -> None: ...
+
+
+class WallClock:
+    """Real time (monotonic), zero when created."""
+
+    def __init__(self) -> None:
+        self._t0 = time.monotonic()
+
+    def now(self) -> float:
+        return time.monotonic() - self._t0
+
+    def sleep_until(self, t: float) -> None:
+        delay = t - self.now()
+        if delay > 0:
+            time.sleep(delay)
+
+
+class ManualClock:
+    """Simulated time: ``sleep_until`` jumps forward (never back)."""
+
+    def __init__(self, t: float = 0.0):
+        self.t = t
+
+    def now(self) -> float:
+        return self.t
+
+    def sleep_until(self, t: float) -> None:
+        self.t = max(self.t, t)
+
+    def advance(self, dt: float) -> None:
+        self.t += dt
+
+
+@dataclass(frozen=True)
+class Progress:
+    """An agent's report on its task: passed the commit point, done, or failed."""
+
+    agent: str
+    task: str
+    event: Literal["committed", "done", "failed"]
+    time_s: float
+    reason: str = ""
+
+
+def apply_progress(
+    state: AuctionState, reports: Iterable[Progress]
+) -> tuple[AuctionState, list[str]]:
+    """Apply progress reports in order; reports the pool refuses are returned as messages."""
+    problems: list[str] = []
+    for p in reports:
+        try:
+            if p.event == "committed":
+                state = state.commit(p.task, p.agent, p.time_s)
+            elif p.event == "done":
+                state = state.complete(p.task, p.agent, p.time_s)
+            elif p.event == "failed":
+                state = state.fail(p.task, p.agent, p.time_s, p.reason)
+            else:
+                problems.append(f"unknown progress event '{p.event}' from {p.agent}")
+        except PoolError as exc:
+            problems.append(str(exc))
+    return state, problems
+
+
+@dataclass
+class Inbox:
+    """What arrived since the last round."""
+
+    bids: list[Bid] = field(default_factory=list)
+    progress: list[Progress] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class RoundResult:
+    """One round as seen by ``publish``."""
+
+    assignments: dict[str, str | None]
+    report: RoundReport
+    announcement: Announcement
+    state: AuctionState
+    step_s: float
+    """Wall time of the round (announce, collect, allocate), measured by the loop."""
+    progress_problems: tuple[str, ...] = ()
+
+
+Collect = Callable[[Announcement, float], Inbox | Sequence[Bid]]
+
+
+@dataclass
+class LoopStats:
+    rounds: int = 0
+    missed_slots: int = 0
+    step_s: list[float] = field(default_factory=list)
+
+
+class AuctionLoop:
+    """Runs auction rounds at ``state.config.rate_hz`` on ``clock``."""
+
+    def __init__(
+        self,
+        state: AuctionState,
+        clock: Clock,
+        collect: Collect,
+        publish: Callable[[RoundResult], object] | None = None,
+        *,
+        rate_hz: float | None = None,
+    ):
+        self.state = state
+        self.clock = clock
+        self.collect = collect
+        self.publish = publish
+        self.rate_hz = rate_hz if rate_hz is not None else state.config.rate_hz
+        if not self.rate_hz > 0:
+            raise ValueError(f"rate_hz must be > 0, got {self.rate_hz}")
+        self.stats = LoopStats()
+
+    @property
+    def period_s(self) -> float:
+        return 1.0 / self.rate_hz
+
+    def step(self) -> RoundResult:
+        """One round now: announce, collect, allocate, publish."""
+        t_start = time.perf_counter()
+        now = self.clock.now()
+        state = announce(self.state, now)
+        got = self.collect(state.announcement, now)
+        inbox = got if isinstance(got, Inbox) else Inbox(list(got))
+        state, problems = apply_progress(state, inbox.progress)
+        assignments, state, report = auction_round(state, inbox.bids, now)
+        step_s = time.perf_counter() - t_start
+        self.state = state
+        self.stats.rounds += 1
+        self.stats.step_s.append(step_s)
+        result = RoundResult(
+            assignments, report, state.announcement, state, step_s, tuple(problems)
+        )
+        if self.publish is not None:
+            self.publish(result)
+        return result
+
+    def run(
+        self,
+        *,
+        rounds: int | None = None,
+        until: float | None = None,
+        stop: Callable[[RoundResult], bool] | None = None,
+    ) -> AuctionState:
+        """Run rounds on the fixed schedule until ``rounds`` are done, the clock reaches
+        ``until``, or ``stop(result)`` is true (at least one of them must be given)."""
+        if rounds is None and until is None and stop is None:
+            raise ValueError("give rounds, until or stop, or the loop never ends")
+        period = self.period_s
+        t0 = self.clock.now()
+        slot = 0
+        done = 0
+        while True:
+            if until is not None and self.clock.now() > until:
+                break
+            result = self.step()
+            done += 1
+            if (rounds is not None and done >= rounds) or (stop is not None and stop(result)):
+                break
+            slot += 1
+            now = self.clock.now()
+            due = t0 + slot * period
+            if now > due:  # overran: skip to the next free slot
+                nxt = math.floor((now - t0) / period) + 1
+                self.stats.missed_slots += nxt - slot
+                slot = nxt
+                due = t0 + slot * period
+            if until is not None and due > until:
+                break
+            self.clock.sleep_until(due)
+        return self.state

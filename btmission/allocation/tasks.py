@@ -1,0 +1,245 @@
+"""Tasks and the task pool the auctioneer works on (seed 003 §II, seed 000 §IV-B).
+
+A task is what the operator or the mission file asks for: a type (``inspect``,
+``pick_and_deliver``…), the fields its type's goal and cost read (``location``, ``pickup``…), a
+priority and the time it arrives. Single-stage tasks (seed 000's inspections) have no commit
+point; multi-stage tasks (seed 003's pick-and-deliver) declare ``commit_after``, the condition
+after which the agent may no longer be re-routed (k_bt = 0, eq. 8-10).
+
+Each task in the pool has a state, and every change of state or agent is appended to its
+history::
+
+    open ──► assigned ──► committed ──► done
+     ▲  ▲       │            │
+     │  └───────┘ outbid     └──► failed     (reported by the agent)
+     │  agent lost / stopped reporting
+     └── unreachable (no agent can reach it; announced again every round)
+
+The pool is immutable: every operation returns a new :class:`TaskPool` (sharing the unchanged
+tasks), so the auctioneer's step function stays pure and any earlier state can be kept for
+replay or inspection.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+from btmission.spec.mission import Mission, Task
+
+
+class TaskState(str, enum.Enum):
+    """Where a task stands (see the module docstring for the transitions)."""
+
+    OPEN = "open"
+    ASSIGNED = "assigned"
+    COMMITTED = "committed"
+    DONE = "done"
+    FAILED = "failed"
+    UNREACHABLE = "unreachable"
+
+    @property
+    def terminal(self) -> bool:
+        return self in (TaskState.DONE, TaskState.FAILED)
+
+    @property
+    def announced(self) -> bool:
+        """Whether an arrived task in this state is announced to the agents."""
+        return not self.terminal
+
+
+@dataclass(frozen=True)
+class TaskInfo:
+    """What is announced about a task: enough for any agent to compute its bid."""
+
+    id: str
+    type: str
+    fields: Mapping[str, Any]
+    priority: float = 1.0
+    arrival_s: float = 0.0
+    multi_stage: bool = False
+    """True when the type declares a commit point (``commit_after``)."""
+
+    def __post_init__(self) -> None:
+        if not self.id:
+            raise ValueError("a task needs an id")
+        if not (self.priority > 0 and math.isfinite(self.priority)):
+            raise ValueError(f"task '{self.id}': priority must be > 0, got {self.priority}")
+        if not (self.arrival_s >= 0 and math.isfinite(self.arrival_s)):
+            raise ValueError(f"task '{self.id}': arrival time must be ≥ 0, got {self.arrival_s}")
+
+    @classmethod
+    def from_mission(cls, task: Task, mission: Mission) -> TaskInfo:
+        """A mission task, with its effective priority and whether its type has a commit point."""
+        tt = mission.task_types[task.type]
+        return cls(
+            task.id,
+            task.type,
+            dict(task.fields),
+            task.priority,
+            task.at,
+            tt.commit_after is not None,
+        )
+
+
+@dataclass(frozen=True)
+class TaskEvent:
+    """One entry of a task's history."""
+
+    time_s: float
+    state: TaskState
+    agent: str | None = None
+    reason: str = ""
+
+    def __str__(self) -> str:
+        who = f" {self.agent}" if self.agent else ""
+        why = f" ({self.reason})" if self.reason else ""
+        return f"t={self.time_s:.2f}s {self.state.value}{who}{why}"
+
+
+@dataclass(frozen=True)
+class PoolTask:
+    """A task in the pool: its announcement data, state, agent, current note and history."""
+
+    info: TaskInfo
+    state: TaskState = TaskState.OPEN
+    agent: str | None = None
+    """The agent holding it (assigned or committed), else None."""
+    note: str = ""
+    """Why it is in its state now, e.g. why an open task has no agent."""
+    history: tuple[TaskEvent, ...] = ()
+
+    @property
+    def id(self) -> str:
+        return self.info.id
+
+    def arrived(self, now: float) -> bool:
+        return self.info.arrival_s <= now
+
+    def moved(
+        self, now: float, state: TaskState, agent: str | None = None, reason: str = ""
+    ) -> PoolTask:
+        """The task in a new state/agent, with the change appended to its history."""
+        return replace(
+            self,
+            state=state,
+            agent=agent,
+            note=reason,
+            history=(*self.history, TaskEvent(now, state, agent, reason)),
+        )
+
+
+class PoolError(ValueError):
+    """An operation the pool cannot do (unknown task, wrong agent, task already finished…)."""
+
+
+@dataclass(frozen=True)
+class TaskPool:
+    """Immutable collection of tasks keyed by id, in the order they were added."""
+
+    tasks: Mapping[str, PoolTask] = field(default_factory=dict)
+
+    # -- queries ----------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self.tasks)
+
+    def __iter__(self) -> Iterator[PoolTask]:
+        return iter(self.tasks.values())
+
+    def __contains__(self, task_id: object) -> bool:
+        return task_id in self.tasks
+
+    def __getitem__(self, task_id: str) -> PoolTask:
+        try:
+            return self.tasks[task_id]
+        except KeyError:
+            raise PoolError(f"unknown task '{task_id}'") from None
+
+    def get(self, task_id: str) -> PoolTask | None:
+        return self.tasks.get(task_id)
+
+    def announced(self, now: float) -> list[PoolTask]:
+        """Tasks to announce at ``now``: arrived and not finished, by (arrival, id)."""
+        live = [t for t in self.tasks.values() if t.state.announced and t.arrived(now)]
+        live.sort(key=lambda t: (t.info.arrival_s, t.id))
+        return live
+
+    def held_by(self, agent: str) -> PoolTask | None:
+        """The task ``agent`` holds (assigned or committed), if any."""
+        for t in self.tasks.values():
+            if t.agent == agent and t.state in (TaskState.ASSIGNED, TaskState.COMMITTED):
+                return t
+        return None
+
+    def in_state(self, *states: TaskState) -> list[PoolTask]:
+        return [t for t in self.tasks.values() if t.state in states]
+
+    def next_arrival(self, now: float) -> float | None:
+        """The earliest arrival time after ``now`` (for a loop that wants to wake up then)."""
+        later = [t.info.arrival_s for t in self.tasks.values() if t.info.arrival_s > now]
+        return min(later) if later else None
+
+    # -- changes (each returns a new pool) --------------------------------------------------
+    def add(self, info: TaskInfo, now: float | None = None) -> TaskPool:
+        """Add a task (open from its arrival time). Ids are unique."""
+        if info.id in self.tasks:
+            raise PoolError(f"duplicate task id '{info.id}'")
+        t = info.arrival_s if now is None else max(now, info.arrival_s)
+        task = PoolTask(info, note="added", history=(TaskEvent(t, TaskState.OPEN, None, "added"),))
+        return TaskPool({**self.tasks, info.id: task})
+
+    def add_all(self, infos: Iterable[TaskInfo]) -> TaskPool:
+        pool = self
+        for info in infos:
+            pool = pool.add(info)
+        return pool
+
+    def with_tasks(self, changed: Mapping[str, PoolTask]) -> TaskPool:
+        """The pool with ``changed`` tasks replaced (they must already be in it)."""
+        if not changed:
+            return self
+        return TaskPool({**self.tasks, **changed})
+
+    def commit(self, task_id: str, agent: str, now: float) -> TaskPool:
+        """The agent reports passing the task's commit point (k_bt = 0 from now on)."""
+        t = self._held(task_id, agent, "commit to")
+        if t.state is TaskState.COMMITTED:
+            return self
+        if not t.info.multi_stage:
+            raise PoolError(f"task '{task_id}' has no commit point (its type has no commit_after)")
+        return self.with_tasks({task_id: t.moved(now, TaskState.COMMITTED, agent, "commit point")})
+
+    def complete(self, task_id: str, agent: str, now: float) -> TaskPool:
+        """The agent reports the task done."""
+        t = self._held(task_id, agent, "complete")
+        return self.with_tasks({task_id: t.moved(now, TaskState.DONE, agent, "completed")})
+
+    def fail(self, task_id: str, agent: str, now: float, reason: str = "") -> TaskPool:
+        """The agent reports the task failed (it is not retried)."""
+        t = self._held(task_id, agent, "fail")
+        why = reason or "reported failed"
+        return self.with_tasks({task_id: t.moved(now, TaskState.FAILED, agent, why)})
+
+    def release(self, task_id: str, now: float, reason: str) -> TaskPool:
+        """Back to the pool (open, no agent), e.g. when its agent was lost."""
+        t = self[task_id]
+        if t.state.terminal:
+            raise PoolError(f"task '{task_id}' is already {t.state.value}")
+        return self.with_tasks({task_id: t.moved(now, TaskState.OPEN, None, reason)})
+
+    def _held(self, task_id: str, agent: str, verb: str) -> PoolTask:
+        t = self[task_id]
+        if t.state.terminal:
+            raise PoolError(f"cannot {verb} task '{task_id}': it is already {t.state.value}")
+        if t.agent != agent:
+            holder = f"held by {t.agent}" if t.agent else "not assigned"
+            raise PoolError(f"agent '{agent}' cannot {verb} task '{task_id}': it is {holder}")
+        return t
+
+
+def pool_from_mission(mission: Mission) -> TaskPool:
+    """Every task of the mission file, each open from its ``at`` time."""
+    return TaskPool().add_all(TaskInfo.from_mission(t, mission) for t in mission.tasks)
