@@ -1,0 +1,579 @@
+"""The D*+ planner: optimal risk-aware paths on the 26-connected voxel grid.
+
+D*+ (Karlsson et al., seed 000 [35]) plans the cheapest path P between two voxels, minimising the
+sum of the traversal costs of the voxels it enters, ``Σ_{c_i ∈ P} c_i`` with ``c`` from eq. 3-4
+(:mod:`btmission.planning.risk`). Here that is:
+
+* :meth:`Planner.plan` — one query, A* with the octile-distance heuristic (admissible: every step
+  costs at least its length), returning the path, its cost and its length;
+* :meth:`Planner.one_to_all` — Dijkstra from one start to every voxel: what an agent needs to bid on
+  many tasks with a single search (seed 000 §IV-B2: the bid is the length of the risk-aware path);
+  :meth:`Planner.costs_to` stops as soon as the given goals are settled;
+* :class:`IncrementalPlanner` — D* Lite (Koenig & Likhachev 2002, the algorithm D*+ builds on): it
+  keeps its search between calls and, after a local map change (:meth:`CostMap.set_states`),
+  repairs only what the change affects, with the same result as planning from scratch; a large
+  change, or a repair that runs too long, falls back to a fresh search.
+
+Start and goal are world points. A point outside the map or inside rock is an error
+(:class:`PlanningError`) unless ``snap=True``, which moves it to the nearest free voxel (within
+``snap_radius_m``) and says so in :attr:`PlanResult.warnings`. Occupied voxels are never entered.
+
+The searches run as numba kernels (:mod:`._kernels`) on the flat padded cost array; a pure-Python
+reference lives in :mod:`.reference` for the tests.
+"""
+
+from __future__ import annotations
+
+import weakref
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from btmission.planning.risk import CostMap
+from btmission.world.voxel import MapError
+
+Point = npt.ArrayLike
+SQRT2 = float(np.sqrt(2.0))
+SQRT3 = float(np.sqrt(3.0))
+
+
+class PlanningError(MapError):
+    """A start or goal cannot be used (outside the map, in rock), or no path exists."""
+
+
+@dataclass(frozen=True)
+class PlanResult:
+    """A planned path: voxel centres from start to goal, its cost (eq. 4 summed) and length (m)."""
+
+    path: npt.NDArray[np.float64]
+    """(N, 3) world coordinates of the voxel centres, start first."""
+    voxels: npt.NDArray[np.int64]
+    """(N, 3) voxel indices of the same."""
+    cost: float
+    length_m: float
+    expanded: int
+    """Voxels the search expanded (a measure of work)."""
+    start: tuple[float, float, float]
+    goal: tuple[float, float, float]
+    warnings: tuple[str, ...] = ()
+
+    @property
+    def found(self) -> bool:
+        return bool(np.isfinite(self.cost))
+
+
+class CostField:
+    """One-to-all result: optimal cost and path length (m) from the start to every voxel.
+
+    :meth:`at` and :meth:`path_to` answer single voxels; :attr:`cost` and :attr:`length_m` build
+    full arrays of the map's shape on first use (``inf`` where unreachable and in rock).
+
+    The field reads the planner's work arrays directly, so creating it copies nothing. Before the
+    planner searches again it copies the reached voxels out (sorted, a few ms for a large mine) so
+    that the field stays valid however long it is kept.
+    """
+
+    def __init__(
+        self,
+        planner: Planner,
+        start: tuple[float, float, float],
+        run: int,
+        reached: int,
+        expanded: int,
+    ):
+        self._planner = planner
+        self.start = start
+        self._run = run
+        self.reached = reached
+        """Number of voxels with a finite cost."""
+        self.expanded = expanded
+        self._ids: npt.NDArray[np.int64] | None = None  # set when detached
+        self._g = self._length = np.zeros(0)
+        self._parent = np.zeros(0, dtype=np.int64)
+        self._full: dict[str, npt.NDArray[np.float64]] = {}
+
+    def _detach(self) -> None:
+        """Copy the reached voxels out of the planner's work arrays (before they are reused)."""
+        if self._ids is not None:
+            return
+        ids, g, length, parent = self._planner._last_tree(self.reached)
+        order = np.argsort(ids, kind="stable")
+        self._g, self._length, self._parent = g[order], length[order], parent[order]
+        self._ids = ids[order]
+
+    def _dense(self, name: str) -> npt.NDArray[np.float64]:
+        if name not in self._full:
+            cm = self._planner.cost_map
+            full = np.full(cm.padded.size, np.inf)
+            if self._ids is None:
+                g, _, length, seen = self._planner._work()[:4]
+                mask = seen == self._run
+                full[mask] = (g if name == "cost" else length)[mask]
+            else:
+                full[self._ids] = self._g if name == "cost" else self._length
+            self._full[name] = full.reshape(cm.padded.shape)[1:-1, 1:-1, 1:-1]
+        return self._full[name]
+
+    @property
+    def cost(self) -> npt.NDArray[np.float64]:
+        """Optimal cost from the start to each voxel (map-shaped)."""
+        return self._dense("cost")
+
+    @property
+    def length_m(self) -> npt.NDArray[np.float64]:
+        """Length (m) of the optimal path to each voxel (map-shaped)."""
+        return self._dense("length")
+
+    def _flat(self, point: Point) -> int | None:
+        cm = self._planner.cost_map
+        idx = cm.map.world_to_index(point)
+        return int(cm.padded_index(idx)) if bool(cm.map.in_bounds(idx)) else None
+
+    def _slot(self, flat: int) -> int | None:
+        assert self._ids is not None
+        k = int(np.searchsorted(self._ids, flat))
+        return k if k < len(self._ids) and self._ids[k] == flat else None
+
+    def at(self, point: Point) -> tuple[float, float]:
+        """(cost, length in m) of the optimal path to the voxel containing ``point`` (inf, inf if
+        unreachable, in rock or outside the map)."""
+        f = self._flat(point)
+        if f is None:
+            return np.inf, np.inf
+        if self._ids is None:
+            g, _, length, seen = self._planner._work()[:4]
+            if seen[f] != self._run:
+                return np.inf, np.inf
+            return float(g[f]), float(length[f])
+        k = self._slot(f)
+        return (np.inf, np.inf) if k is None else (float(self._g[k]), float(self._length[k]))
+
+    def path_to(self, point: Point) -> npt.NDArray[np.float64]:
+        """World path (voxel centres) from the start to ``point`` ((0, 3) if unreachable)."""
+        from btmission.planning import _kernels as K
+
+        cm = self._planner.cost_map
+        f = self._flat(point)
+        if f is None or not np.isfinite(self.at(point)[0]):
+            return np.zeros((0, 3))
+        if self._ids is None:
+            parent = self._planner._work()[1]
+            flat = K.trace(parent, f, parent.size)
+        else:
+            chain: list[int] = []
+            k = self._slot(f)
+            while k is not None:
+                chain.append(int(self._ids[k]))
+                p = int(self._parent[k])
+                k = self._slot(p) if p >= 0 else None
+            flat = np.asarray(chain[::-1], dtype=np.int64)
+        return cm.map.index_to_world(cm.unpad_index(flat))
+
+
+def neighbour_table(
+    padded_shape: tuple[int, int, int], resolution: float
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float64]]:
+    """Flat offsets and step lengths (m) of the 26 neighbours in a C-order padded grid."""
+    _, py, pz = padded_shape
+    offs: list[int] = []
+    steps: list[float] = []
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dz in (-1, 0, 1):
+                if dx == dy == dz == 0:
+                    continue
+                offs.append((dx * py + dy) * pz + dz)
+                steps.append(resolution * float(np.sqrt(dx * dx + dy * dy + dz * dz)))
+    return np.asarray(offs, dtype=np.int64), np.asarray(steps, dtype=np.float64)
+
+
+class Planner:
+    """Single queries and one-to-all searches on a :class:`CostMap` (see the module docstring)."""
+
+    def __init__(self, cost_map: CostMap):
+        self.cost_map = cost_map
+        self._off, self._step = neighbour_table(cost_map.padded.shape, cost_map.resolution)
+        _, py, pz = cost_map.padded.shape
+        self._sx, self._sy = py * pz, pz
+        # Bucket queue (see _kernels.search): width = shortest step; enough buckets for the
+        # largest key increase of one step (step + c_u + c_r, twice that with the heuristic).
+        res = cost_map.resolution
+        c_u = cost_map.params.unknown_cost
+        worst = float(self._step.max()) + c_u + c_u / (1.0 + res)
+        self._delta = float(self._step.min())
+        self._n_buckets = int(np.ceil(2.0 * worst / self._delta)) + 3
+        self._w: tuple[npt.NDArray[Any], ...] | None = None
+        self._run = 0
+        self._live: weakref.ref[CostField] | None = None
+
+    # -------------------------------------------------------------- endpoints
+    def resolve(
+        self, point: Point, what: str, *, snap: bool = False, snap_radius_m: float = 5.0
+    ) -> tuple[int, tuple[float, float, float], str | None]:
+        """Padded flat voxel of ``point`` and the point used; a warning when it was snapped.
+
+        Raises :class:`PlanningError` when the point is outside the map or in rock (unless
+        ``snap``, and then only when no free voxel lies within ``snap_radius_m``).
+        """
+        p = np.asarray(point, dtype=np.float64).ravel()
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise PlanningError(f"{what} must be three finite numbers x, y, z, got {list(p)}")
+        vm = self.cost_map.map
+        idx = vm.world_to_index(p)
+        inside = bool(vm.in_bounds(idx))
+        problem = None
+        if not inside:
+            lo, hi = vm.bounds
+            problem = (
+                f"{what} ({_fmt(p)}) is outside the map (x {lo[0]:g}..{hi[0]:g}, "
+                f"y {lo[1]:g}..{hi[1]:g}, z {lo[2]:g}..{hi[2]:g})"
+            )
+        elif not np.isfinite(self.cost_map.voxel_cost[tuple(idx)]):
+            problem = f"{what} ({_fmt(p)}) is inside rock (an occupied voxel)"
+        if problem is None:
+            return (
+                int(self.cost_map.padded_index(idx)),
+                (float(p[0]), float(p[1]), float(p[2])),
+                None,
+            )
+        if not snap:
+            raise PlanningError(problem + "; use snap to move it to the nearest free voxel")
+        q = vm.nearest_free(p, snap_radius_m)
+        if q is None:
+            raise PlanningError(problem + f" and no free voxel lies within {snap_radius_m:g} m")
+        qi = vm.world_to_index(q)
+        moved = float(np.linalg.norm(q - p))
+        msg = f"{problem}: snapped to the nearest free voxel ({_fmt(q)}), {moved:.2f} m away"
+        return int(self.cost_map.padded_index(qi)), (float(q[0]), float(q[1]), float(q[2])), msg
+
+    # -------------------------------------------------------------- searches
+    def _work(self) -> tuple[npt.NDArray[Any], ...]:
+        """The search's work arrays, allocated once per planner (see :func:`_kernels.search`)."""
+        n = self.cost_map.padded.size
+        if self._w is None or len(self._w[0]) != n or self._run > 2**30:
+            i32 = np.int32
+            self._w = (
+                np.empty(n),  # g
+                np.empty(n, dtype=i32),  # parent
+                np.empty(n),  # length
+                np.zeros(n, dtype=i32),  # seen (run number)
+                np.zeros(n, dtype=i32),  # done (run number)
+                np.empty(n, dtype=i32),  # nxt
+                np.empty(n, dtype=i32),  # prv
+                np.empty(n, dtype=np.int64),  # bkt
+                np.empty(n, dtype=i32),  # touched
+            )
+            self._run = 0
+        return self._w
+
+    def _search(
+        self,
+        sources: Sequence[int],
+        targets: Sequence[int],
+        heuristic: bool,
+        reverse: bool = False,
+    ) -> tuple[int, int]:
+        """Run the compiled search; returns (expansions, voxels reached). Results stay in the
+        work arrays until the next search: g/parent/length where ``seen == self._run``."""
+        from btmission.planning import _kernels as K
+
+        live = self._live() if self._live is not None else None
+        if live is not None:
+            live._detach()  # a CostField still reads the work arrays: give it its own copy
+        self._live = None
+        w = self._work()
+        self._run += 1
+        expanded, reached = K.search(
+            self.cost_map.flat_padded(),
+            self._off,
+            self._step,
+            np.asarray(sources, dtype=np.int64),
+            np.asarray(targets, dtype=np.int64),
+            heuristic,
+            reverse,
+            self._sx,
+            self._sy,
+            self.cost_map.resolution,
+            self._delta,
+            self._n_buckets,
+            w,
+            self._run,
+        )
+        return int(expanded), int(reached)
+
+    def _reached(self, flat: npt.NDArray[np.int64]) -> npt.NDArray[np.bool_]:
+        """Whether voxels ``flat`` were reached by the last search."""
+        out: npt.NDArray[np.bool_] = self._work()[3][flat] == self._run
+        return out
+
+    def _last_tree(
+        self, reached: int
+    ) -> tuple[
+        npt.NDArray[np.int64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.int64],
+    ]:
+        """(voxels, g, length, parent) of every voxel the last search reached (copies)."""
+        g, parent, length, *_rest, touched = self._work()
+        ids = touched[:reached].astype(np.int64)
+        return ids, g[ids], length[ids], parent[ids].astype(np.int64)
+
+    def plan(
+        self, start: Point, goal: Point, *, snap: bool = False, snap_radius_m: float = 5.0
+    ) -> PlanResult:
+        """The optimal path from ``start`` to ``goal`` (A*). ``cost`` is inf when none exists."""
+        from btmission.planning import _kernels as K
+
+        s, sp, w1 = self.resolve(start, "start", snap=snap, snap_radius_m=snap_radius_m)
+        t, tp, w2 = self.resolve(goal, "goal", snap=snap, snap_radius_m=snap_radius_m)
+        expanded, _ = self._search([s], [t], True)
+        warnings = tuple(w for w in (w1, w2) if w)
+        if not self._reached(np.array([t]))[0]:
+            return self._result(
+                np.zeros(0, dtype=np.int64), np.inf, np.inf, expanded, sp, tp, warnings
+            )
+        g, parent, length = self._work()[:3]
+        flat = K.trace(parent, t, parent.size)
+        return self._result(flat, float(g[t]), float(length[t]), expanded, sp, tp, warnings)
+
+    def _result(
+        self,
+        flat: npt.NDArray[np.int64],
+        cost: float,
+        length: float,
+        expanded: int,
+        sp: tuple[float, float, float],
+        tp: tuple[float, float, float],
+        warnings: tuple[str, ...],
+    ) -> PlanResult:
+        vox = self.cost_map.unpad_index(flat) if len(flat) else np.zeros((0, 3), dtype=np.int64)
+        path = self.cost_map.map.index_to_world(vox) if len(flat) else np.zeros((0, 3))
+        return PlanResult(path, vox, cost, length, expanded, sp, tp, warnings)
+
+    def one_to_all(self, start: Point | Sequence[Point], *, snap: bool = False) -> CostField:
+        """Optimal cost and path length from ``start`` to every voxel (Dijkstra over the grid).
+
+        ``start`` may also be a list of points: the field is then the cost from the nearest of them
+        (used to check that tasks are reachable from any agent).
+        """
+        pts = np.asarray(start, dtype=np.float64)
+        many = pts.ndim == 2
+        srcs = [self.resolve(p, "start", snap=snap)[0] for p in (pts if many else [pts])]
+        expanded, reached = self._search(srcs, [], False)
+        sp = tuple(float(v) for v in (pts[0] if many else pts))
+        field = CostField(self, (sp[0], sp[1], sp[2]), self._run, reached, expanded)
+        self._live = weakref.ref(field)
+        return field
+
+    def costs_to(
+        self, start: Point, goals: Sequence[Point], *, snap: bool = False
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """(costs, lengths in m) of the optimal paths from ``start`` to each goal, from one search
+        that stops once every goal is settled. Goals outside the map or in rock give inf."""
+        s = self.resolve(start, "start", snap=snap)[0]
+        vm = self.cost_map.map
+        gi = vm.world_to_index(np.asarray(goals, dtype=np.float64).reshape(-1, 3))
+        ok = vm.in_bounds(gi)
+        flat = np.full(len(gi), -1, dtype=np.int64)
+        flat[ok] = self.cost_map.padded_index(gi[ok])
+        valid = [int(f) for f in flat if f >= 0 and np.isfinite(self.cost_map.flat_padded()[f])]
+        targets = sorted(set(valid))
+        if not targets:
+            return np.full(len(gi), np.inf), np.full(len(gi), np.inf)
+        self._search([s], targets, False)
+        g, _, length = self._work()[:3]
+        safe = np.maximum(flat, 0)
+        hit = (flat >= 0) & self._reached(safe)
+        costs = np.where(hit, g[safe], np.inf)
+        lengths = np.where(hit, length[safe], np.inf)
+        return costs, lengths
+
+
+@dataclass
+class ReplanStats:
+    """What the last :meth:`IncrementalPlanner.plan` did."""
+
+    expanded: int = 0
+    changed_voxels: int = 0
+    fresh: bool = True
+    """True when the search started from scratch (first call, goal change or fallback)."""
+    reason: str = "first search"
+
+
+class IncrementalPlanner:
+    """D* Lite toward a fixed goal, repaired after map changes instead of re-run.
+
+    >>> # planner = IncrementalPlanner(cost_map, goal); planner.plan(start)
+    >>> # changed = cost_map.set_box(lo, hi, OCCUPIED); planner.notify(*changed)
+    >>> # planner.plan(new_start)   # same cost as a fresh search, far fewer expansions
+
+    ``max_changed`` voxels in one batch of changes, or ``max_expansions_factor`` × the voxels of
+    the map in one repair, trigger a fresh search instead (:attr:`stats` says which happened).
+    """
+
+    def __init__(
+        self,
+        cost_map: CostMap,
+        goal: Point,
+        *,
+        snap: bool = False,
+        max_changed: int = 50_000,
+        max_expansions_factor: float = 1.0,
+    ):
+        self.cost_map = cost_map
+        self._planner = Planner(cost_map)
+        self.goal_flat, self.goal, w = self._planner.resolve(goal, "goal", snap=snap)
+        self.warnings: list[str] = [w] if w else []
+        self.max_changed = max_changed
+        self.max_expansions = max(1000, int(max_expansions_factor * cost_map.padded.size))
+        self.stats = ReplanStats()
+        self._pending: list[tuple[npt.NDArray[np.int64], npt.NDArray[np.float64]]] = []
+        self._last_start: int | None = None
+        self._reset_needed = True
+
+    def notify(self, changed: npt.NDArray[np.int64], old_cost: npt.NDArray[np.float64]) -> None:
+        """Tell the planner which voxels changed cost (the return value of
+        :meth:`CostMap.set_states` / :meth:`CostMap.set_box`)."""
+        if len(changed):
+            self._pending.append((np.asarray(changed, np.int64), np.asarray(old_cost, np.float64)))
+
+    def _initialise(self, start: int) -> int:
+        """A fresh search: the full backward tree from the goal (the bucket-queue Dijkstra of
+        :meth:`Planner.one_to_all` on reversed edges), which leaves every voxel consistent
+        (``g = rhs``) and the open list empty. Later repairs then only touch voxels whose path to
+        the goal a change affects, and of those only the ones that matter to the start (D* Lite's
+        keys)."""
+        p = self._planner
+        expanded, reached = p._search([self.goal_flat], [], False, reverse=True)
+        ids, g_reached, _, _ = p._last_tree(reached)
+        n = self.cost_map.padded.size
+        g = np.full(n, np.inf)
+        g[ids] = g_reached
+        self.g = g
+        self.rhs = g.copy()
+        self.inq = np.zeros(n, dtype=np.uint8)
+        self.qk1 = np.empty(n)  # read only where inq is set
+        self.qk2 = np.empty(n)
+        cap = 1 << 16
+        self.hk1 = np.empty(cap)
+        self.hk2 = np.empty(cap)
+        self.hv = np.empty(cap, dtype=np.int64)
+        self.km = 0.0
+        self.n_heap = 0
+        self._last_start = start
+        self._pending.clear()
+        self._reset_needed = False
+        return expanded
+
+    def plan(self, start: Point, *, snap: bool = False) -> PlanResult:
+        """The optimal path from ``start`` to the goal under the current costs."""
+        from btmission.planning import _kernels as K
+
+        p = self._planner
+        s, sp, w = p.resolve(start, "start", snap=snap)
+        warnings = tuple(self.warnings + ([w] if w else []))
+        if not np.isfinite(self.cost_map.flat_padded()[self.goal_flat]):
+            raise PlanningError(f"goal ({_fmt(self.goal)}) is now inside rock")
+        n_changed = sum(len(c) for c, _ in self._pending)
+        fresh, reason = False, "repaired"
+        if self._reset_needed:
+            fresh, reason = True, "first search"
+        elif n_changed > self.max_changed:
+            fresh, reason = True, f"{n_changed} changed voxels > max_changed={self.max_changed}"
+        initial = 0
+        if fresh:
+            initial = self._initialise(s)
+        else:
+            assert self._last_start is not None
+            if s != self._last_start:
+                self.km += float(
+                    K._octile(self._last_start, s, p._sx, p._sy, self.cost_map.resolution)
+                )
+                self._last_start = s
+            cost = self.cost_map.flat_padded()
+            for changed, old in self._pending:
+                self.hk1, self.hk2, self.hv, self.n_heap = K.dstar_edges_changed(
+                    changed,
+                    old,
+                    self.g,
+                    self.rhs,
+                    cost,
+                    p._off,
+                    p._step,
+                    self.goal_flat,
+                    s,
+                    self.km,
+                    p._sx,
+                    p._sy,
+                    self.cost_map.resolution,
+                    self.hk1,
+                    self.hk2,
+                    self.hv,
+                    self.n_heap,
+                    self.inq,
+                    self.qk1,
+                    self.qk2,
+                )
+            self._pending.clear()
+        expanded, ok = self._compute(s)
+        expanded += initial
+        if not ok:
+            fresh, reason = True, f"repair exceeded {self.max_expansions:,} expansions"
+            expanded += self._initialise(s)
+            more, ok = self._compute(s)
+            expanded += more
+        self.stats = ReplanStats(expanded, n_changed, fresh, reason)
+        cost_map = self.cost_map
+        total = float(self.g[s]) if self.g[s] == self.rhs[s] else float(self.rhs[s])
+        if not np.isfinite(total):
+            return p._result(
+                np.zeros(0, dtype=np.int64), np.inf, np.inf, expanded, sp, self.goal, warnings
+            )
+        flat = K.descend(
+            self.g, cost_map.flat_padded(), p._off, p._step, s, self.goal_flat, cost_map.padded.size
+        )
+        steps = self._steps(flat)
+        return p._result(flat, total, float(steps.sum()), expanded, sp, self.goal, warnings)
+
+    def _compute(self, start: int) -> tuple[int, bool]:
+        from btmission.planning import _kernels as K
+
+        p = self._planner
+        self.hk1, self.hk2, self.hv, n, expanded, ok = K.dstar_compute(
+            self.n_heap,
+            self.km,
+            self.goal_flat,
+            self.g,
+            self.rhs,
+            self.cost_map.flat_padded(),
+            p._off,
+            p._step,
+            start,
+            p._sx,
+            p._sy,
+            self.cost_map.resolution,
+            self.hk1,
+            self.hk2,
+            self.hv,
+            self.inq,
+            self.qk1,
+            self.qk2,
+            self.max_expansions,
+        )
+        self.n_heap = int(n)
+        return int(expanded), bool(ok)
+
+    def _steps(self, flat: npt.NDArray[np.int64]) -> npt.NDArray[np.float64]:
+        if len(flat) < 2:
+            return np.zeros(0)
+        idx = self.cost_map.unpad_index(flat)
+        out: npt.NDArray[np.float64] = np.linalg.norm(np.diff(idx, axis=0), axis=1)
+        return out * self.cost_map.resolution
+
+
+def _fmt(p: npt.ArrayLike) -> str:
+    return ", ".join(f"{v:g}" for v in np.asarray(p, dtype=np.float64).ravel())
