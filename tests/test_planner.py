@@ -20,7 +20,11 @@ SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[Healt
 
 @st.composite
 def random_maps(draw: st.DrawFn, max_side: int = 9) -> VoxelMap:
-    shape = (draw(st.integers(2, max_side)), draw(st.integers(2, max_side)), draw(st.integers(1, 4)))
+    shape = (
+        draw(st.integers(2, max_side)),
+        draw(st.integers(2, max_side)),
+        draw(st.integers(1, 4)),
+    )
     seed = draw(st.integers(0, 2**31))
     p_occ = draw(st.floats(0.0, 0.45))
     p_unk = draw(st.floats(0.0, 0.2))
@@ -196,9 +200,10 @@ def test_local_update_equals_rebuild(data: st.DataObject) -> None:
         np.testing.assert_array_equal(old, before[tuple(cm.unpad_index(changed).T)])
 
 
+@pytest.mark.parametrize("method", IncrementalPlanner.METHODS)
 @SETTINGS
-@given(st.data())
-def test_incremental_replanning_equals_fresh_search(data: st.DataObject) -> None:
+@given(data=st.data())
+def test_incremental_replanning_equals_fresh_search(method: str, data: st.DataObject) -> None:
     vm = data.draw(random_maps(max_side=10))
     params = RiskParams(
         data.draw(st.sampled_from([0.0, 1.0])), data.draw(st.sampled_from([0.0, 5.0]))
@@ -210,7 +215,7 @@ def test_incremental_replanning_equals_fresh_search(data: st.DataObject) -> None
     gi, si = data.draw(st.lists(st.integers(0, len(free) - 1), min_size=2, max_size=2))
     goal = vm.index_to_world(free[gi])
     start = vm.index_to_world(free[si])
-    inc = IncrementalPlanner(cm, goal)
+    inc = IncrementalPlanner(cm, goal, method=method)
     fresh = Planner(cm)
     for step in range(data.draw(st.integers(1, 4))):
         r = inc.plan(start)
@@ -238,11 +243,12 @@ def test_incremental_replanning_equals_fresh_search(data: st.DataObject) -> None
     )
 
 
-def test_incremental_repairs_locally_and_falls_back_when_told() -> None:
+@pytest.mark.parametrize("method", IncrementalPlanner.METHODS)
+def test_incremental_repairs_locally_and_falls_back_when_told(method: str) -> None:
     vm = _corridor(width=9, length=60)
     cm = CostMap(vm)
     a, b = vm.index_to_world((2, 5, 4)), vm.index_to_world((58, 5, 4))
-    inc = IncrementalPlanner(cm, b)
+    inc = IncrementalPlanner(cm, b, method=method)
     first = inc.plan(a)
     assert inc.stats.fresh and inc.stats.reason == "first search"
     inc.notify(*cm.set_box(vm.index_to_world((10, 3, 2)), vm.index_to_world((12, 7, 6)), OCCUPIED))
@@ -250,7 +256,14 @@ def test_incremental_repairs_locally_and_falls_back_when_told() -> None:
     assert not inc.stats.fresh and again.cost > first.cost
     assert again.cost == pytest.approx(Planner(cm).plan(a, b).cost)
     assert inc.stats.expanded < first.expanded
-    small = IncrementalPlanner(cm, b, max_changed=3)
+    # the rock goes again: the field method renews its field, D* Lite repairs
+    inc.notify(*cm.set_box(vm.index_to_world((10, 3, 2)), vm.index_to_world((12, 7, 6)), FREE))
+    back = inc.plan(a)
+    assert back.cost == pytest.approx(first.cost)
+    assert inc.stats.fresh == (method == "field")
+    if method == "field":
+        assert "rock became passable" in inc.stats.reason
+    small = IncrementalPlanner(cm, b, method=method, max_changed=3)
     small.plan(a)
     small.notify(
         *cm.set_box(vm.index_to_world((30, 3, 2)), vm.index_to_world((31, 7, 6)), OCCUPIED)
@@ -258,6 +271,19 @@ def test_incremental_repairs_locally_and_falls_back_when_told() -> None:
     res = small.plan(a)
     assert small.stats.fresh and "max_changed=3" in small.stats.reason
     assert res.cost == pytest.approx(Planner(cm).plan(a, b).cost)
+
+
+def test_incremental_bad_inputs() -> None:
+    vm = _corridor()
+    cm = CostMap(vm)
+    with pytest.raises(ValueError, match="unknown method 'astar'"):
+        IncrementalPlanner(cm, vm.index_to_world((5, 5, 3)), method="astar")
+    with pytest.raises(PlanningError, match=r"goal .* is inside rock"):
+        IncrementalPlanner(cm, vm.index_to_world((0, 5, 3)))
+    inc = IncrementalPlanner(cm, vm.index_to_world((5, 5, 3)))
+    inc.notify(*cm.set_box(vm.index_to_world((5, 5, 3)), vm.index_to_world((5, 5, 3)), OCCUPIED))
+    with pytest.raises(PlanningError, match="is now inside rock"):
+        inc.plan(vm.index_to_world((2, 2, 2)))
 
 
 def test_bad_endpoints_and_snapping() -> None:

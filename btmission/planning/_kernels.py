@@ -55,9 +55,34 @@ def _bucket_push(v, b, head, nxt, prv, bkt, n_buckets):
     head[sl] = v
 
 
+@njit(cache=True, inline="always")
+def _heur(v, goal, sx, sy, res, hfield, hshift):
+    h = _octile(v, goal, sx, sy, res)
+    if len(hfield) > 0:
+        hf = hfield[v] - hshift
+        if hf > h:
+            h = hf
+    return h
+
+
 @njit(cache=True)
 def search(
-    cost, off, step, sources, targets, heuristic, reverse, sx, sy, res, delta, n_buckets, w, run
+    cost,
+    off,
+    step,
+    sources,
+    targets,
+    heuristic,
+    reverse,
+    sx,
+    sy,
+    res,
+    delta,
+    n_buckets,
+    w,
+    run,
+    hfield,
+    hshift,
 ):
     """Dijkstra (or A* with the octile heuristic when ``heuristic`` and one target) from every
     voxel in ``sources`` (cost 0) over the padded grid, with a bucket queue (Dial's algorithm).
@@ -70,6 +95,12 @@ def search(
     goal's bucket is drained, which keeps it exact. ``n_buckets`` must exceed the largest key
     increase of one step divided by ``delta`` (a circular array of buckets; intrusive doubly
     linked lists, so a voxel sits in one bucket at a time).
+
+    ``hfield`` (optional, empty to skip) is a lower bound on each voxel's cost to the goal known
+    from an earlier search (a cost-to-goal field before the map changed); the heuristic is then
+    ``max(octile, hfield - hshift)``. Costs that only rose since the field was computed keep it a
+    lower bound; ``hshift`` = the sum of all cost decreases since restores that (see
+    :class:`~btmission.planning.dstar.IncrementalPlanner`).
 
     With ``reverse`` the edges are walked backwards (the step ``v → u`` costs ``step + cost[u]``),
     so ``g`` is the cost *to* the sources: the backward tree D* Lite starts from.
@@ -103,7 +134,7 @@ def search(
         g[s] = 0.0
         parent[s] = -1
         length[s] = 0.0
-        b = int(_octile(s, goal, sx, sy, res) / delta) if use_h else 0
+        b = int(_heur(s, goal, sx, sy, res, hfield, hshift) / delta) if use_h else 0
         _bucket_push(s, b, head, nxt, prv, bkt, n_buckets)
         queued += 1
         cur = b if cur < 0 else min(cur, b)
@@ -163,7 +194,13 @@ def search(
             g[v] = nd
             parent[v] = u
             length[v] = lu + step[k]
-            b = int((nd + _octile(v, goal, sx, sy, res)) / delta) if use_h else int(nd / delta)
+            if use_h:
+                b = int((nd + _heur(v, goal, sx, sy, res, hfield, hshift)) / delta)
+                # a key beyond the circular window would land in a wrong bucket: queue it early
+                # instead (label correcting: an early expansion costs work, never exactness)
+                b = min(b, cur + n_buckets - 1)
+            else:
+                b = int(nd / delta)
             _bucket_push(v, max(b, cur), head, nxt, prv, bkt, n_buckets)
             queued += 1
     return expanded, nt

@@ -36,6 +36,7 @@ from btmission.planning.risk import CostMap
 from btmission.world.voxel import MapError
 
 Point = npt.ArrayLike
+_NO_FIELD = np.zeros(0)
 SQRT2 = float(np.sqrt(2.0))
 SQRT3 = float(np.sqrt(3.0))
 
@@ -275,6 +276,8 @@ class Planner:
         targets: Sequence[int],
         heuristic: bool,
         reverse: bool = False,
+        hfield: npt.NDArray[np.float64] | None = None,
+        hshift: float = 0.0,
     ) -> tuple[int, int]:
         """Run the compiled search; returns (expansions, voxels reached). Results stay in the
         work arrays until the next search: g/parent/length where ``seen == self._run``."""
@@ -301,6 +304,8 @@ class Planner:
             self._n_buckets,
             w,
             self._run,
+            _NO_FIELD if hfield is None else hfield,
+            float(hshift),
         )
         return int(expanded), int(reached)
 
@@ -405,25 +410,51 @@ class ReplanStats:
 
 
 class IncrementalPlanner:
-    """D* Lite toward a fixed goal, repaired after map changes instead of re-run.
+    """Replanning toward a fixed goal after local map changes, with the same result as a fresh
+    search and far less work.
 
     >>> # planner = IncrementalPlanner(cost_map, goal); planner.plan(start)
-    >>> # changed = cost_map.set_box(lo, hi, OCCUPIED); planner.notify(*changed)
-    >>> # planner.plan(new_start)   # same cost as a fresh search, far fewer expansions
+    >>> # planner.notify(*cost_map.set_box(lo, hi, OCCUPIED))   # a 2 m rock appears
+    >>> # planner.plan(new_start)   # same cost as Planner.plan, a fraction of the expansions
 
-    ``max_changed`` voxels in one batch of changes, or ``max_expansions_factor`` × the voxels of
-    the map in one repair, trigger a fresh search instead (:attr:`stats` says which happened).
+    Both methods start from the full backward tree from the goal (the cost-to-goal of every voxel,
+    one bucket-queue Dijkstra on reversed edges: what a fresh search costs).
+
+    ``method="field"`` (default) keeps that cost-to-goal field ``G`` and answers each query with
+    A* from the start using ``max(octile, G - Δ)`` as heuristic, ``Δ`` being the sum of every cost
+    decrease since ``G`` was computed. Costs that rose leave ``G`` a lower bound; decreases are
+    covered by ``Δ`` (a path's cost fell by at most the sum of the decreases), so the heuristic stays
+    admissible and the result exact, and A* expands only the voxels whose cost-to-goal the change
+    made worse — the detour — plus ties (Adaptive A*, Koenig & Likhachev 2005, with the shift for
+    decreases). Rock that becomes passable, or repairs that grow too large, refresh ``G``.
+
+    ``method="dstar-lite"`` is D* Lite (Koenig & Likhachev 2002, Fig. 4) with ``km`` for the moving
+    start: changed edges make voxels inconsistent and only those whose keys are below the start's
+    are repaired. Same results; on the 26-connected grid each of its expansions costs several times
+    a bucket-queue expansion, so it is the slower of the two here (see ``btmission bench planner``).
+
+    A batch of more than ``max_changed`` changed voxels, or (D* Lite) a repair over
+    ``max_expansions_factor`` × the map's voxels, triggers a fresh search; :attr:`stats` says what
+    happened on the last call.
     """
+
+    METHODS = ("field", "dstar-lite")
 
     def __init__(
         self,
         cost_map: CostMap,
         goal: Point,
         *,
+        method: str = "field",
         snap: bool = False,
         max_changed: int = 50_000,
         max_expansions_factor: float = 1.0,
     ):
+        if method not in self.METHODS:
+            raise ValueError(
+                f"unknown method '{method}' (expected one of: {', '.join(self.METHODS)})"
+            )
+        self.method = method
         self.cost_map = cost_map
         self._planner = Planner(cost_map)
         self.goal_flat, self.goal, w = self._planner.resolve(goal, "goal", snap=snap)
@@ -434,6 +465,8 @@ class IncrementalPlanner:
         self._pending: list[tuple[npt.NDArray[np.int64], npt.NDArray[np.float64]]] = []
         self._last_start: int | None = None
         self._reset_needed = True
+        self._hshift = 0.0
+        self._field_reached = 0
 
     def notify(self, changed: npt.NDArray[np.int64], old_cost: npt.NDArray[np.float64]) -> None:
         """Tell the planner which voxels changed cost (the return value of
@@ -442,11 +475,8 @@ class IncrementalPlanner:
             self._pending.append((np.asarray(changed, np.int64), np.asarray(old_cost, np.float64)))
 
     def _initialise(self, start: int) -> int:
-        """A fresh search: the full backward tree from the goal (the bucket-queue Dijkstra of
-        :meth:`Planner.one_to_all` on reversed edges), which leaves every voxel consistent
-        (``g = rhs``) and the open list empty. Later repairs then only touch voxels whose path to
-        the goal a change affects, and of those only the ones that matter to the start (D* Lite's
-        keys)."""
+        """A fresh search: the full backward tree from the goal, which leaves every voxel
+        consistent (``g = rhs``) and the open list empty."""
         p = self._planner
         expanded, reached = p._search([self.goal_flat], [], False, reverse=True)
         ids, g_reached, _, _ = p._last_tree(reached)
@@ -454,16 +484,19 @@ class IncrementalPlanner:
         g = np.full(n, np.inf)
         g[ids] = g_reached
         self.g = g
-        self.rhs = g.copy()
-        self.inq = np.zeros(n, dtype=np.uint8)
-        self.qk1 = np.empty(n)  # read only where inq is set
-        self.qk2 = np.empty(n)
-        cap = 1 << 16
-        self.hk1 = np.empty(cap)
-        self.hk2 = np.empty(cap)
-        self.hv = np.empty(cap, dtype=np.int64)
-        self.km = 0.0
-        self.n_heap = 0
+        self._field_reached = reached
+        self._hshift = 0.0
+        if self.method == "dstar-lite":
+            self.rhs = g.copy()
+            self.inq = np.zeros(n, dtype=np.uint8)
+            self.qk1 = np.empty(n)  # read only where inq is set
+            self.qk2 = np.empty(n)
+            cap = 1 << 16
+            self.hk1 = np.empty(cap)
+            self.hk2 = np.empty(cap)
+            self.hv = np.empty(cap, dtype=np.int64)
+            self.km = 0.0
+            self.n_heap = 0
         self._last_start = start
         self._pending.clear()
         self._reset_needed = False
@@ -471,8 +504,6 @@ class IncrementalPlanner:
 
     def plan(self, start: Point, *, snap: bool = False) -> PlanResult:
         """The optimal path from ``start`` to the goal under the current costs."""
-        from btmission.planning import _kernels as K
-
         p = self._planner
         s, sp, w = p.resolve(start, "start", snap=snap)
         warnings = tuple(self.warnings + ([w] if w else []))
@@ -484,6 +515,60 @@ class IncrementalPlanner:
             fresh, reason = True, "first search"
         elif n_changed > self.max_changed:
             fresh, reason = True, f"{n_changed} changed voxels > max_changed={self.max_changed}"
+        if self.method == "field":
+            return self._plan_field(s, sp, warnings, fresh, reason, n_changed)
+        return self._plan_dstar(s, sp, warnings, fresh, reason, n_changed)
+
+    def _plan_field(
+        self,
+        s: int,
+        sp: tuple[float, float, float],
+        warnings: tuple[str, ...],
+        fresh: bool,
+        reason: str,
+        n_changed: int,
+    ) -> PlanResult:
+        from btmission.planning import _kernels as K
+
+        p = self._planner
+        cost = self.cost_map.flat_padded()
+        for changed, old in self._pending:
+            new = cost[changed]
+            if not fresh and np.any(~np.isfinite(old) & np.isfinite(new)):
+                fresh, reason = True, "rock became passable: the cost-to-goal field is renewed"
+            both = np.isfinite(old) & np.isfinite(new)
+            drop = old[both] - new[both]
+            self._hshift += float(drop[drop > 0].sum())
+        self._pending.clear()
+        initial = self._initialise(s) if fresh else 0
+        expanded, _ = p._search([s], [self.goal_flat], True, hfield=self.g, hshift=self._hshift)
+        if not fresh and expanded > self._field_reached // 2:
+            self._reset_needed = True  # the field no longer pays: renew it on the next call
+            reason = "repaired; the field is renewed on the next call"
+        self.stats = ReplanStats(expanded + initial, n_changed, fresh, reason)
+        g, parent, length = p._work()[:3]
+        t = self.goal_flat
+        if not p._reached(np.array([t]))[0]:
+            return p._result(
+                np.zeros(0, dtype=np.int64), np.inf, np.inf, expanded, sp, self.goal, warnings
+            )
+        flat = K.trace(parent, t, parent.size)
+        return p._result(
+            flat, float(g[t]), float(length[t]), expanded + initial, sp, self.goal, warnings
+        )
+
+    def _plan_dstar(
+        self,
+        s: int,
+        sp: tuple[float, float, float],
+        warnings: tuple[str, ...],
+        fresh: bool,
+        reason: str,
+        n_changed: int,
+    ) -> PlanResult:
+        from btmission.planning import _kernels as K
+
+        p = self._planner
         initial = 0
         if fresh:
             initial = self._initialise(s)

@@ -158,8 +158,9 @@ class CostMap:
             raise MapError("set_states: states are 0 (free), 1 (occupied) or 2 (unknown)")
         st = self.map.state
         st[idx[:, 0], idx[:, 1], idx[:, 2]] = new
-        # Window: the change's bounding box ± r (costs that can change) ± r again (rock they see).
-        reach = int(np.ceil(self._cap / self.map.resolution)) + 1
+        # Window: the change's bounding box ± cap (the only capped distances that can change)
+        # ± cap again (the rock those voxels can see within cap).
+        reach = int(np.ceil(self._cap / self.map.resolution - 1e-9))
         shape = np.asarray(self.map.shape)
         lo_in = np.maximum(idx.min(axis=0) - reach, 0)
         hi_in = np.minimum(idx.max(axis=0) + reach + 1, shape)
