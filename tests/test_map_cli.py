@@ -127,7 +127,7 @@ def test_validate_reports_map_problems(runner: CliRunner, tmp_path: Path) -> Non
         Path(MINE)
         .read_text()
         .replace("start: [4, 5, 0]", "start: [4, 5, -0.5]")  # in the floor
-        .replace("location: [97.6, 43.9, 2]", "location: [97.6, 43.9, 40]")  # above the map
+        .replace("location: [91.7, 44.8, 2]", "location: [91.7, 44.8, 40]")  # above the map
         .replace("location: [33, 73.6, 2]", "location: [33, 60, 2]")  # in rock
     )
     code, out, err = run(runner, "validate", str(bad))
@@ -136,7 +136,7 @@ def test_validate_reports_map_problems(runner: CliRunner, tmp_path: Path) -> Non
     assert lines == [
         f"{bad}:13:5: agents[0].start: agent R1 starts at [4, 5, -0.5] is inside rock (an occupied voxel); "
         "the nearest free voxel is at [3.75, 4.75, 0.25]",
-        f"{bad}:18:5: tasks[1].location: task T2: location [97.6, 43.9, 40] is outside the map "
+        f"{bad}:18:5: tasks[1].location: task T2: location [91.7, 44.8, 40] is outside the map "
         "(x 0..200, y 0..120, z -1..11)",
         f"{bad}:20:5: tasks[3].location: task T4: location [33, 60, 2] is inside rock (an occupied voxel)",
     ]

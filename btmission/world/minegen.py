@@ -141,6 +141,24 @@ def _spanning_edges(
     return tree, rest
 
 
+def _clear_of(a: Vec3, b: Vec3, w: float, others: list[Tunnel], from_m: float) -> bool:
+    """Whether the drift a → b (width w) stays 1.5 m of rock away, in plan view, from every drift
+    in ``others``, ignoring its first ``from_m`` metres (where it leaves a junction)."""
+    pa, pb = np.asarray(a[:2]), np.asarray(b[:2])
+    length = float(np.linalg.norm(pb - pa))
+    ts = np.arange(min(from_m, length), length + 1e-9, 0.5) / max(length, 1e-9)
+    pts = pa[None, :] + ts[:, None] * (pb - pa)[None, :]
+    for t in others:
+        qa, qb = np.asarray(t.a[:2]), np.asarray(t.b[:2])
+        d = qb - qa
+        l2 = float(d @ d)
+        u = np.clip(((pts - qa) @ d) / l2, 0.0, 1.0) if l2 > 0 else np.zeros(len(pts))
+        dist = np.linalg.norm(pts - (qa + u[:, None] * d), axis=1)
+        if np.any(dist < (w + t.width) / 2 + 1.5):
+            return False
+    return True
+
+
 def _layout(
     rng: np.random.Generator, sx: float, sy: float, sz: float, clutter: bool
 ) -> tuple[list[Vec3], list[Tunnel], list[Machine], list[tuple[Vec3, float]], Vec3]:
@@ -153,15 +171,16 @@ def _layout(
     jx = 0.2 * (xs[1] - xs[0]) if n_cols > 1 else 0.0
     jy = 0.2 * (ys[1] - ys[0]) if n_rows > 1 else 0.0
     has_upper = sz - FLOOR_ROCK_M >= UPPER_FLOOR_M + 5.0
-    # Raised junctions make ramps; with an upper level they stay low enough to leave rock between.
-    max_rise = 1.0 if has_upper else max(0.0, min(2.0, sz - FLOOR_ROCK_M - 5.5))
+    # Raised junctions make ramps; with an upper level they stay low enough (ceilings ≤ 5.5 m) to
+    # leave rock under the upper floor (6 m), so upper drifts may pass over main-level ones.
+    max_rise = 0.5 if has_upper else max(0.0, min(2.0, sz - FLOOR_ROCK_M - 5.5))
     nodes: list[Vec3] = []
     for i in range(n_cols):
         for j in range(n_rows):
             x = float(np.clip(xs[i] + rng.uniform(-jx, jx), margin, sx - margin))
             y = float(np.clip(ys[j] + rng.uniform(-jy, jy), margin, sy - margin))
             # Some junctions sit higher: the drifts to them are ramps.
-            z = float(rng.choice([0.0, 0.0, max_rise])) if max_rise >= 1.0 else 0.0
+            z = float(rng.choice([0.0, 0.0, max_rise])) if max_rise >= 0.5 else 0.0
             nodes.append((x, y, round(z, 1)))
     nodes[0] = (nodes[0][0], nodes[0][1], 0.0)  # the junction next to the portal is level
 
@@ -205,21 +224,32 @@ def _layout(
 
     # Upper level: a long ramp (about 1:7) from a main-level junction up to a few drifts.
     if has_upper:
-        start = nodes[int(rng.integers(1, len(nodes)))]
-        for _ in range(20):
-            ang = rng.uniform(0, 2 * np.pi)
+        low = list(tunnels)  # the upper level must not cut into the main level's drifts
+        for k in rng.permutation(np.arange(1, len(nodes))):
+            start = nodes[int(k)]
             run = 7.0 * (UPPER_FLOOR_M - start[2])
-            x1, y1 = start[0] + run * np.cos(ang), start[1] + run * np.sin(ang)
-            if margin <= x1 <= sx - margin and margin <= y1 <= sy - margin:
-                top: Vec3 = (float(x1), float(y1), UPPER_FLOOR_M)
-                tunnels.append(Tunnel(start, top, width(), 4.5, "ramp"))
-                for _ in range(2):
-                    a2 = ang + rng.uniform(-2.0, 2.0)
-                    ln = rng.uniform(15.0, 30.0)
-                    x2 = float(np.clip(x1 + ln * np.cos(a2), margin, sx - margin))
-                    y2 = float(np.clip(y1 + ln * np.sin(a2), margin, sy - margin))
-                    tunnels.append(Tunnel(top, (x2, y2, UPPER_FLOOR_M), width(), 4.5, "upper"))
-                break
+            ramp_w = width()
+            top: Vec3 | None = None
+            ang = 0.0
+            for _ in range(12):
+                ang = rng.uniform(0, 2 * np.pi)
+                x1, y1 = start[0] + run * np.cos(ang), start[1] + run * np.sin(ang)
+                end: Vec3 = (float(x1), float(y1), UPPER_FLOOR_M)
+                inside = margin <= x1 <= sx - margin and margin <= y1 <= sy - margin
+                # leave the junction it starts from; from there on, rock around it
+                if inside and _clear_of(start, end, ramp_w, low, from_m=ramp_w + 4.0):
+                    top = end
+                    break
+            if top is None:
+                continue
+            tunnels.append(Tunnel(start, top, ramp_w, 4.5, "ramp"))
+            for _ in range(2):
+                a2 = ang + rng.uniform(-2.0, 2.0)
+                ln = rng.uniform(15.0, 30.0)
+                x2 = float(np.clip(top[0] + ln * np.cos(a2), margin, sx - margin))
+                y2 = float(np.clip(top[1] + ln * np.sin(a2), margin, sy - margin))
+                tunnels.append(Tunnel(top, (x2, y2, UPPER_FLOOR_M), width(), 4.5, "upper"))
+            break
 
     # Parked machines: boxes against a wall of a level drift, leaving room to pass.
     machines: list[Machine] = []
