@@ -276,11 +276,15 @@ def show_cmd(
 
 def _params(risk_radius: float | None, unknown_cost: float | None) -> Any:
     from btmission.planning.risk import DEFAULT_RADIUS_M, DEFAULT_UNKNOWN_COST, RiskParams
+    from btmission.world.voxel import MapError
 
-    return RiskParams(
-        DEFAULT_RADIUS_M if risk_radius is None else risk_radius,
-        DEFAULT_UNKNOWN_COST if unknown_cost is None else unknown_cost,
-    )
+    try:
+        return RiskParams(
+            DEFAULT_RADIUS_M if risk_radius is None else risk_radius,
+            DEFAULT_UNKNOWN_COST if unknown_cost is None else unknown_cost,
+        )
+    except MapError as exc:
+        raise BadInput(str(exc)) from None
 
 
 @click.command("plan")

@@ -117,6 +117,10 @@ def test_plan_bad_inputs(runner: CliRunner, tmp_path: Path) -> None:
     assert code == 2 and "start (5.1, 1, 0.5) is inside rock" in err and "snap" in err
     code, _, err = run(runner, "plan", m, "--from", "5.1,1,0.5", "--to", "2,2,0.5", "--snap")
     assert code == 0 and "warning: start (5.1, 1, 0.5) is inside rock" in err and "snapped" in err
+    code, _, err = run(
+        runner, "plan", m, "--from", "1,1,0.5", "--to", "2,2,0.5", "--unknown-cost", "1e9"
+    )
+    assert code == 2 and "unknown cost c_u must be a number in [0, 100000]" in err
     code, _, err = run(runner, "plan", m, "--from", "1,1,0.5", "--to", "8,1,0.5")
     assert code == 1 and "no path from (1, 1, 0.5) to (8, 1, 0.5)" in err
 

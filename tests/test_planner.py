@@ -171,6 +171,22 @@ def test_unknown_avoided_when_a_known_route_exists() -> None:
     assert Planner(cm).plan(a, b).found
 
 
+def test_bad_risk_params() -> None:
+    from btmission.world.voxel import MapError
+
+    with pytest.raises(MapError, match="risk radius r must be"):
+        RiskParams(-1.0, 10.0)
+    with pytest.raises(MapError, match=r"unknown cost c_u must be a number in \[0, 100000\]"):
+        RiskParams(1.5, 1e9)
+    # a large c_u is still exact (the bucket queue grows with it)
+    vm = _corridor(width=3, length=10, height=3)
+    vm.state[5, 1:4, 1:4] = UNKNOWN
+    cm = CostMap(vm, RiskParams(1.5, 1e4))
+    a, b = vm.index_to_world((1, 2, 2)), vm.index_to_world((9, 2, 2))
+    ref = dijkstra_reference(cm, (1, 2, 2))
+    assert Planner(cm).plan(a, b).cost == pytest.approx(ref[9, 2, 2], rel=1e-12)
+
+
 def test_risk_cost_is_eq3() -> None:
     p = RiskParams(radius_m=1.5, unknown_cost=10.0)
     np.testing.assert_allclose(

@@ -43,10 +43,11 @@ def _octile(p, q, sx, sy, res):
 
 # ------------------------------------------------------------------------------------ search
 @njit(cache=True, inline="always")
-def _bucket_push(v, b, head, nxt, prv, bkt, n_buckets):
-    """Put voxel v at the front of bucket b (intrusive doubly linked list)."""
-    bkt[v] = b
-    sl = b % n_buckets
+def _bucket_push(v, b, head, nxt, prv, bkt, mask):
+    """Put voxel v at the front of bucket b (intrusive doubly linked list; the number of
+    buckets is a power of two, ``mask`` = that number - 1)."""
+    sl = b & mask
+    bkt[v] = sl
     h0 = head[sl]
     nxt[v] = h0
     prv[v] = -1
@@ -93,7 +94,7 @@ def search(
     With A* the key ``g + h`` can stay level along a step, so a voxel improved after its
     expansion is re-queued and expanded again (label correcting); the search stops only once the
     goal's bucket is drained, which keeps it exact. ``n_buckets`` must exceed the largest key
-    increase of one step divided by ``delta`` (a circular array of buckets; intrusive doubly
+    increase of one step divided by ``delta`` and be a power of two (a circular array of buckets; intrusive doubly
     linked lists, so a voxel sits in one bucket at a time).
 
     ``hfield`` (optional, empty to skip) is a lower bound on each voxel's cost to the goal known
@@ -122,6 +123,9 @@ def search(
             done[t] = -run
             remaining += 1
     head = np.full(n_buckets, -1, dtype=np.int32)
+    mask = n_buckets - 1
+    inv_delta = 1.0 / delta  # bucket = int(key * inv_delta); a rounding at a bucket edge only
+    # re-opens a voxel (handled below), it never costs exactness
     queued = 0
     nt = 0
     cur = -1
@@ -134,8 +138,8 @@ def search(
         g[s] = 0.0
         parent[s] = -1
         length[s] = 0.0
-        b = int(_heur(s, goal, sx, sy, res, hfield, hshift) / delta) if use_h else 0
-        _bucket_push(s, b, head, nxt, prv, bkt, n_buckets)
+        b = int(_heur(s, goal, sx, sy, res, hfield, hshift) * inv_delta) if use_h else 0
+        _bucket_push(s, b, head, nxt, prv, bkt, mask)
         queued += 1
         cur = b if cur < 0 else min(cur, b)
     stop_bucket = -1
@@ -144,7 +148,7 @@ def search(
     while queued > 0:
         if stop_bucket >= 0 and cur > stop_bucket:
             break
-        sl = cur % n_buckets
+        sl = cur & mask
         u = head[sl]
         if u < 0:
             cur += 1
@@ -162,7 +166,7 @@ def search(
             if not use_h:
                 break
             if stop_bucket < 0:
-                stop_bucket = int(g[u] / delta)
+                stop_bucket = int(g[u] * inv_delta)
         gu = g[u]
         lu = length[u]
         cu = cost[u]
@@ -181,7 +185,7 @@ def search(
                     if p >= 0:
                         nxt[p] = q
                     else:
-                        head[bkt[v] % n_buckets] = q
+                        head[bkt[v]] = q
                     if q >= 0:
                         prv[q] = p
                     queued -= 1
@@ -195,13 +199,13 @@ def search(
             parent[v] = u
             length[v] = lu + step[k]
             if use_h:
-                b = int((nd + _heur(v, goal, sx, sy, res, hfield, hshift)) / delta)
+                b = int((nd + _heur(v, goal, sx, sy, res, hfield, hshift)) * inv_delta)
                 # a key beyond the circular window would land in a wrong bucket: queue it early
                 # instead (label correcting: an early expansion costs work, never exactness)
                 b = min(b, cur + n_buckets - 1)
             else:
-                b = int(nd / delta)
-            _bucket_push(v, max(b, cur), head, nxt, prv, bkt, n_buckets)
+                b = int(nd * inv_delta)
+            _bucket_push(v, max(b, cur), head, nxt, prv, bkt, mask)
             queued += 1
     return expanded, nt
 

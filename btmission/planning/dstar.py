@@ -205,7 +205,8 @@ class Planner:
         c_u = cost_map.params.unknown_cost
         worst = float(self._step.max()) + c_u + c_u / (1.0 + res)
         self._delta = float(self._step.min())
-        self._n_buckets = int(np.ceil(2.0 * worst / self._delta)) + 3
+        need = int(np.ceil(2.0 * worst / self._delta)) + 3
+        self._n_buckets = 1 << max(4, (need - 1).bit_length())  # a power of two: bucket & mask
         self._w: tuple[npt.NDArray[Any], ...] | None = None
         self._run = 0
         self._live: weakref.ref[CostField] | None = None
@@ -264,7 +265,7 @@ class Planner:
                 np.zeros(n, dtype=i32),  # done (run number)
                 np.empty(n, dtype=i32),  # nxt
                 np.empty(n, dtype=i32),  # prv
-                np.empty(n, dtype=np.int64),  # bkt
+                np.empty(n, dtype=i32),  # bkt
                 np.empty(n, dtype=i32),  # touched
             )
             self._run = 0

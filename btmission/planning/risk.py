@@ -41,6 +41,7 @@ from btmission.world.voxel import OCCUPIED, UNKNOWN, MapError, VoxelMap
 
 DEFAULT_RADIUS_M = 1.5
 DEFAULT_UNKNOWN_COST = 10.0
+MAX_UNKNOWN_COST = 1e5
 
 
 @dataclass(frozen=True)
@@ -55,8 +56,11 @@ class RiskParams:
     def __post_init__(self) -> None:
         if not (np.isfinite(self.radius_m) and self.radius_m >= 0):
             raise MapError(f"risk radius r must be a finite number ≥ 0 m, got {self.radius_m}")
-        if not (np.isfinite(self.unknown_cost) and self.unknown_cost >= 0):
-            raise MapError(f"unknown cost c_u must be a finite number ≥ 0, got {self.unknown_cost}")
+        if not (np.isfinite(self.unknown_cost) and 0 <= self.unknown_cost <= MAX_UNKNOWN_COST):
+            raise MapError(
+                f"unknown cost c_u must be a number in [0, {MAX_UNKNOWN_COST:g}], got "
+                f"{self.unknown_cost} (beyond that paths no longer change, searches only slow down)"
+            )
 
 
 def risk_cost(distance: npt.ArrayLike, params: RiskParams) -> npt.NDArray[np.float64]:
