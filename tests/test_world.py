@@ -144,6 +144,9 @@ def test_bad_map_files(tmp_path: Path) -> None:
         load_map(tmp_path / "future.npz")
     with pytest.raises(MapError, match=r"resolution is 0.5 m, not 0.25 m"):
         load_map(tmp_path / "ok.npz", 0.25)
+    save_map(vm, tmp_path / "ok.ply")
+    with pytest.raises(MapError, match=r"resolution is 0.5 m, not 0.25 m"):
+        load_map(tmp_path / "ok.ply", 0.25)
     write_cloud(tmp_path / "noxyz.ply", {"x": np.zeros(2), "y": np.zeros(2), "z": np.zeros(2)})
     with pytest.raises(MapError, match="give the voxel resolution"):
         load_map(tmp_path / "noxyz.ply")

@@ -138,7 +138,10 @@ def search(
         g[s] = 0.0
         parent[s] = -1
         length[s] = 0.0
-        b = int(_heur(s, goal, sx, sy, res, hfield, hshift) * inv_delta) if use_h else 0
+        hs = _heur(s, goal, sx, sy, res, hfield, hshift) if use_h else 0.0
+        if hs == INF:  # cannot reach the goal at all
+            continue
+        b = int(hs * inv_delta)
         _bucket_push(s, b, head, nxt, prv, bkt, mask)
         queued += 1
         cur = b if cur < 0 else min(cur, b)
@@ -176,6 +179,11 @@ def search(
             if cv == INF:
                 continue
             nd = gu + (step[k] + (cu if reverse else cv))
+            hv = 0.0
+            if use_h:
+                hv = _heur(v, goal, sx, sy, res, hfield, hshift)
+                if hv == INF:  # the field says v cannot reach the goal: prune it
+                    continue
             if seen[v] == run:
                 if nd >= g[v]:
                     continue
@@ -199,7 +207,7 @@ def search(
             parent[v] = u
             length[v] = lu + step[k]
             if use_h:
-                b = int((nd + _heur(v, goal, sx, sy, res, hfield, hshift)) * inv_delta)
+                b = int((nd + hv) * inv_delta)
                 # a key beyond the circular window would land in a wrong bucket: queue it early
                 # instead (label correcting: an early expansion costs work, never exactness)
                 b = min(b, cur + n_buckets - 1)

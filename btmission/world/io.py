@@ -219,7 +219,13 @@ def load_map(path: str | Path, resolution: float | None = None, *, fill: Fill = 
             )
         return vm
     cols, comments = read_cloud(p)
-    res = resolution if resolution is not None else _comment_resolution(comments)
+    own = _comment_resolution(comments)
+    if own is not None and resolution is not None and not np.isclose(own, resolution):
+        raise MapError(
+            f"{p}: the map's resolution is {own:g} m, not {resolution:g} m "
+            "(set the same resolution, or convert the map)"
+        )
+    res = resolution if resolution is not None else own
     if res is None:
         raise MapError(f"{p}: give the voxel resolution for this point cloud (e.g. 0.5 m)")
     xyz = np.stack([np.asarray(cols[c], dtype=np.float64) for c in "xyz"], axis=1)
