@@ -84,6 +84,7 @@ def search(
     run,
     hfield,
     hshift,
+    tree,
 ):
     """Dijkstra (or A* with the octile heuristic when ``heuristic`` and one target) from every
     voxel in ``sources`` (cost 0) over the padded grid, with a bucket queue (Dial's algorithm).
@@ -103,6 +104,16 @@ def search(
     lower bound; ``hshift`` = the sum of all cost decreases since restores that (see
     :class:`~btmission.planning.dstar.IncrementalPlanner`).
 
+    ``tree`` = (next, changed, field_id, memo, stack) lets A* stop early when ``hfield`` is an
+    exact cost-to-goal field from before the map changed and costs only rose since (``hshift`` =
+    0): ``next[v]`` is v's next voxel toward the goal in that field's tree and ``changed[x] ==
+    field_id`` marks the voxels changed since. A voxel whose old path to the goal enters no changed
+    voxel still has that path at the same cost, and no cheaper one (costs only rose), so its
+    cost-to-goal is exact: popping it gives a complete candidate ``g + hfield`` and it need not be
+    expanded; the search stops once the best candidate's bucket is drained, which keeps it exact.
+    The checks walk old paths once (``memo`` stamps the verdicts with ``run``). Empty ``next``
+    disables this. The voxel whose candidate won is returned (-1 without a tree).
+
     With ``reverse`` the edges are walked backwards (the step ``v → u`` costs ``step + cost[u]``),
     so ``g`` is the cost *to* the sources: the backward tree D* Lite starts from.
 
@@ -114,6 +125,10 @@ def search(
     (expansions, n reached).
     """
     g, parent, length, seen, done, nxt, prv, bkt, touched = w
+    gnext, chg, fid, memo, stack = tree
+    use_tree = len(gnext) > 0
+    best = INF
+    best_node = -1
     n_targets = len(targets)
     use_h = heuristic and n_targets == 1
     goal = targets[0] if n_targets > 0 else -1
@@ -170,6 +185,13 @@ def search(
                 break
             if stop_bucket < 0:
                 stop_bucket = int(g[u] * inv_delta)
+        if use_tree and _clean_path(u, goal, gnext, chg, fid, memo, run, stack):
+            c = g[u] + hfield[u]
+            if c < best:
+                best = c
+                best_node = u
+                stop_bucket = int(best * inv_delta)
+            continue
         gu = g[u]
         lu = length[u]
         cu = cost[u]
@@ -179,14 +201,15 @@ def search(
             if cv == INF:
                 continue
             nd = gu + (step[k] + (cu if reverse else cv))
+            seen_v = seen[v] == run
+            if seen_v and nd >= g[v]:
+                continue
             hv = 0.0
             if use_h:
                 hv = _heur(v, goal, sx, sy, res, hfield, hshift)
                 if hv == INF:  # the field says v cannot reach the goal: prune it
                     continue
-            if seen[v] == run:
-                if nd >= g[v]:
-                    continue
+            if seen_v:
                 if done[v] != run:  # queued: unlink from its bucket
                     p = prv[v]
                     q = nxt[v]
@@ -215,7 +238,37 @@ def search(
                 b = int(nd * inv_delta)
             _bucket_push(v, max(b, cur), head, nxt, prv, bkt, mask)
             queued += 1
-    return expanded, nt
+    return expanded, nt, best_node
+
+
+@njit(cache=True)
+def _clean_path(v, goal, gnext, chg, fid, memo, run, stack):
+    """Whether the old path from v to the goal (following ``gnext``) enters no voxel changed
+    since the field was made; verdicts are memoised for every voxel walked (``memo = ±run``)."""
+    n = 0
+    x = v
+    status = 0
+    while True:
+        m = memo[x]
+        if m == run:
+            status = 1
+            break
+        if m == -run:
+            status = -1
+            break
+        if x == goal:
+            status = 1
+            break
+        y = gnext[x]
+        stack[n] = x
+        n += 1
+        if y < 0 or chg[y] == fid:
+            status = -1
+            break
+        x = y
+    for i in range(n):
+        memo[stack[i]] = status * run
+    return status == 1
 
 
 @njit(cache=True)

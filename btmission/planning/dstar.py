@@ -37,6 +37,8 @@ from btmission.world.voxel import MapError
 
 Point = npt.ArrayLike
 _NO_FIELD = np.zeros(0)
+_NO_INT = np.zeros(0, dtype=np.int32)
+_NO_TREE = (_NO_INT, _NO_INT, 0, _NO_INT, _NO_INT)
 SQRT2 = float(np.sqrt(2.0))
 SQRT3 = float(np.sqrt(3.0))
 
@@ -210,6 +212,7 @@ class Planner:
         self._w: tuple[npt.NDArray[Any], ...] | None = None
         self._run = 0
         self._live: weakref.ref[CostField] | None = None
+        self._best_node = -1
 
     # -------------------------------------------------------------- endpoints
     def resolve(
@@ -279,6 +282,7 @@ class Planner:
         reverse: bool = False,
         hfield: npt.NDArray[np.float64] | None = None,
         hshift: float = 0.0,
+        tree: tuple[Any, ...] | None = None,
     ) -> tuple[int, int]:
         """Run the compiled search; returns (expansions, voxels reached). Results stay in the
         work arrays until the next search: g/parent/length where ``seen == self._run``."""
@@ -290,7 +294,7 @@ class Planner:
         self._live = None
         w = self._work()
         self._run += 1
-        expanded, reached = K.search(
+        expanded, reached, best = K.search(
             self.cost_map.flat_padded(),
             self._off,
             self._step,
@@ -307,7 +311,9 @@ class Planner:
             self._run,
             _NO_FIELD if hfield is None else hfield,
             float(hshift),
+            _NO_TREE if tree is None else tree,
         )
+        self._best_node = int(best)
         return int(expanded), int(reached)
 
     def _reached(self, flat: npt.NDArray[np.int64]) -> npt.NDArray[np.bool_]:
@@ -425,9 +431,12 @@ class IncrementalPlanner:
     A* from the start using ``max(octile, G - Δ)`` as heuristic, ``Δ`` being the sum of every cost
     decrease since ``G`` was computed. Costs that rose leave ``G`` a lower bound; decreases are
     covered by ``Δ`` (a path's cost fell by at most the sum of the decreases), so the heuristic stays
-    admissible and the result exact, and A* expands only the voxels whose cost-to-goal the change
-    made worse — the detour — plus ties (Adaptive A*, Koenig & Likhachev 2005, with the shift for
-    decreases). Rock that becomes passable, or repairs that grow too large, refresh ``G``.
+    admissible and the result exact (Adaptive A*, Koenig & Likhachev 2005, with the shift for
+    decreases). While costs have only risen, the field's own tree (each voxel's next voxel toward
+    the goal) also ends the search early: a voxel whose old path avoids every changed voxel keeps
+    exactly that cost-to-goal, so reaching it completes a candidate path and the search stops once
+    no open voxel can beat the best candidate. A* then expands little more than the detour around
+    the change. Rock that becomes passable, or repairs that grow too large, renew ``G``.
 
     ``method="dstar-lite"`` is D* Lite (Koenig & Likhachev 2002, Fig. 4) with ``km`` for the moving
     start: changed edges make voxels inconsistent and only those whose keys are below the start's
@@ -468,6 +477,9 @@ class IncrementalPlanner:
         self._reset_needed = True
         self._hshift = 0.0
         self._field_reached = 0
+        self._chg: npt.NDArray[np.int32] | None = None
+        self._memo = self._stack = self._gnext = np.zeros(0, dtype=np.int32)
+        self._fid = 0
 
     def notify(self, changed: npt.NDArray[np.int64], old_cost: npt.NDArray[np.float64]) -> None:
         """Tell the planner which voxels changed cost (the return value of
@@ -480,13 +492,23 @@ class IncrementalPlanner:
         consistent (``g = rhs``) and the open list empty."""
         p = self._planner
         expanded, reached = p._search([self.goal_flat], [], False, reverse=True)
-        ids, g_reached, _, _ = p._last_tree(reached)
+        ids, g_reached, _, parent = p._last_tree(reached)
         n = self.cost_map.padded.size
         g = np.full(n, np.inf)
         g[ids] = g_reached
         self.g = g
         self._field_reached = reached
         self._hshift = 0.0
+        if self.method == "field":
+            # the tree of the field: each voxel's next voxel toward the goal, and which voxels
+            # changed since (stamped with the field's number), for the early stop of the search
+            if self._chg is None or len(self._chg) != n:
+                self._chg = np.zeros(n, dtype=np.int32)
+                self._memo = np.zeros(n, dtype=np.int32)
+                self._stack = np.empty(n, dtype=np.int32)
+            self._gnext = np.full(n, -1, dtype=np.int32)
+            self._gnext[ids] = parent
+            self._fid += 1
         if self.method == "dstar-lite":
             self.rhs = g.copy()
             self.inq = np.zeros(n, dtype=np.uint8)
@@ -540,23 +562,38 @@ class IncrementalPlanner:
             both = np.isfinite(old) & np.isfinite(new)
             drop = old[both] - new[both]
             self._hshift += float(drop[drop > 0].sum())
+            if self._chg is not None:
+                self._chg[changed] = self._fid
         self._pending.clear()
         initial = self._initialise(s) if fresh else 0
-        expanded, _ = p._search([s], [self.goal_flat], True, hfield=self.g, hshift=self._hshift)
+        # With only rises since the field was made, its tree gives exact costs wherever the old
+        # path avoids the changes: the search may stop there (see _kernels.search).
+        tree = None
+        if self._hshift == 0.0 and self._chg is not None:
+            tree = (self._gnext, self._chg, self._fid, self._memo, self._stack)
+        expanded, _ = p._search(
+            [s], [self.goal_flat], True, hfield=self.g, hshift=self._hshift, tree=tree
+        )
         if not fresh and expanded > self._field_reached // 2:
             self._reset_needed = True  # the field no longer pays: renew it on the next call
             reason = "repaired; the field is renewed on the next call"
         self.stats = ReplanStats(expanded + initial, n_changed, fresh, reason)
-        g, parent, length = p._work()[:3]
-        t = self.goal_flat
-        if not p._reached(np.array([t]))[0]:
+        g, parent = p._work()[:2]
+        t = p._best_node if tree is not None else self.goal_flat
+        if t < 0 or not p._reached(np.array([t]))[0]:
             return p._result(
                 np.zeros(0, dtype=np.int64), np.inf, np.inf, expanded, sp, self.goal, warnings
             )
-        flat = K.trace(parent, t, parent.size)
-        return p._result(
-            flat, float(g[t]), float(length[t]), expanded + initial, sp, self.goal, warnings
-        )
+        head = K.trace(parent, t, parent.size)
+        cost_t = float(g[t]) + (float(self.g[t]) if t != self.goal_flat else 0.0)
+        tail: list[int] = []
+        x = t
+        while x != self.goal_flat:  # the rest of the way along the field's old tree
+            x = int(self._gnext[x])
+            tail.append(x)
+        flat = np.concatenate([head, np.asarray(tail, dtype=np.int64)])
+        length_m = float(self._steps(flat).sum())
+        return p._result(flat, cost_t, length_m, expanded + initial, sp, self.goal, warnings)
 
     def _plan_dstar(
         self,
