@@ -27,7 +27,7 @@ from __future__ import annotations
 import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -405,6 +405,18 @@ class Planner:
         return costs, lengths
 
 
+class _Query(NamedTuple):
+    """One IncrementalPlanner.plan call: start voxel and point, warnings, whether to start afresh
+    and why, and how many voxels changed since the last call."""
+
+    start: int
+    point: tuple[float, float, float]
+    warnings: tuple[str, ...]
+    fresh: bool
+    reason: str
+    n_changed: int
+
+
 @dataclass
 class ReplanStats:
     """What the last :meth:`IncrementalPlanner.plan` did."""
@@ -538,21 +550,13 @@ class IncrementalPlanner:
             fresh, reason = True, "first search"
         elif n_changed > self.max_changed:
             fresh, reason = True, f"{n_changed} changed voxels > max_changed={self.max_changed}"
-        if self.method == "field":
-            return self._plan_field(s, sp, warnings, fresh, reason, n_changed)
-        return self._plan_dstar(s, sp, warnings, fresh, reason, n_changed)
+        q = _Query(s, sp, warnings, fresh, reason, n_changed)
+        return self._plan_field(q) if self.method == "field" else self._plan_dstar(q)
 
-    def _plan_field(
-        self,
-        s: int,
-        sp: tuple[float, float, float],
-        warnings: tuple[str, ...],
-        fresh: bool,
-        reason: str,
-        n_changed: int,
-    ) -> PlanResult:
+    def _plan_field(self, q: _Query) -> PlanResult:
         from btmission.planning import _kernels as K
 
+        s, sp, warnings, fresh, reason, n_changed = q
         p = self._planner
         cost = self.cost_map.flat_padded()
         for changed, old in self._pending:
@@ -595,17 +599,10 @@ class IncrementalPlanner:
         length_m = float(self._steps(flat).sum())
         return p._result(flat, cost_t, length_m, expanded + initial, sp, self.goal, warnings)
 
-    def _plan_dstar(
-        self,
-        s: int,
-        sp: tuple[float, float, float],
-        warnings: tuple[str, ...],
-        fresh: bool,
-        reason: str,
-        n_changed: int,
-    ) -> PlanResult:
+    def _plan_dstar(self, q: _Query) -> PlanResult:
         from btmission.planning import _kernels as K
 
+        s, sp, warnings, fresh, reason, n_changed = q
         p = self._planner
         initial = 0
         if fresh:
