@@ -9,10 +9,11 @@ sum of the traversal costs of the voxels it enters, ``Σ_{c_i ∈ P} c_i`` with 
 * :meth:`Planner.one_to_all` — Dijkstra from one start to every voxel: what an agent needs to bid on
   many tasks with a single search (seed 000 §IV-B2: the bid is the length of the risk-aware path);
   :meth:`Planner.costs_to` stops as soon as the given goals are settled;
-* :class:`IncrementalPlanner` — D* Lite (Koenig & Likhachev 2002, the algorithm D*+ builds on): it
-  keeps its search between calls and, after a local map change (:meth:`CostMap.set_states`),
-  repairs only what the change affects, with the same result as planning from scratch; a large
-  change, or a repair that runs too long, falls back to a fresh search.
+* :class:`IncrementalPlanner` — replanning toward one goal after local map changes
+  (:meth:`CostMap.set_states`) with D* Lite semantics: the same result as planning from scratch,
+  far less work. It keeps the cost-to-goal field of its last fresh search and repairs from it
+  (``method="field"``, the default) or runs D* Lite itself (Koenig & Likhachev 2002, the algorithm
+  D*+ builds on; ``method="dstar-lite"``); a large change falls back to a fresh search.
 
 Start and goal are world points. A point outside the map or inside rock is an error
 (:class:`PlanningError`) unless ``snap=True``, which moves it to the nearest free voxel (within
@@ -39,8 +40,6 @@ Point = npt.ArrayLike
 _NO_FIELD = np.zeros(0)
 _NO_INT = np.zeros(0, dtype=np.int32)
 _NO_TREE = (_NO_INT, _NO_INT, 0, _NO_INT, _NO_INT)
-SQRT2 = float(np.sqrt(2.0))
-SQRT3 = float(np.sqrt(3.0))
 
 
 class PlanningError(MapError):
