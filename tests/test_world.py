@@ -244,6 +244,25 @@ def test_survey_cloud_lies_on_rock_faces(mine) -> None:  # type: ignore[no-untyp
     np.testing.assert_array_equal(survey_point_cloud(vm, seed=1), pts)
 
 
+def test_survey_cloud_back_to_a_map() -> None:
+    """A closed survey (no unknown patches) voxelised with fill=enclosed gives the tunnels back:
+    free inside, and unknown only where the original map had rock."""
+    mine = generate_mine(3, (80, 50, 8), unknown=False)
+    pts = survey_point_cloud(mine.map, seed=2)
+    vm = voxelize(pts, 0.5, fill="enclosed")
+    assert vm.resolution == 0.5
+    offset = np.rint((np.asarray(vm.origin) - mine.map.origin) / 0.5).astype(int)
+    assert np.allclose(np.asarray(vm.origin) - mine.map.origin, offset * 0.5)
+    idx = np.argwhere(vm.state == FREE) + offset
+    orig = mine.map.state[tuple(idx.T)]
+    # nothing outside the tunnels comes out free but the odd rock voxel walled in by survey points
+    assert np.mean(orig == FREE) > 0.999
+    assert len(idx) > 0.6 * mine.map.counts()["free"]  # most of the tunnels (points take a layer)
+    unk = np.argwhere(vm.state == UNKNOWN) + offset
+    inside = np.all((unk >= 0) & (unk < np.asarray(mine.map.shape)), axis=1)
+    assert np.all(mine.map.state[tuple(unk[inside].T)] == OCCUPIED)
+
+
 # ------------------------------------------------------------------------------- mission checks
 MISSION = textwrap.dedent(
     """\

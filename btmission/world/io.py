@@ -178,11 +178,15 @@ def voxelize(
 
 
 def _mark_outside_unknown(grid: npt.NDArray[np.uint8]) -> None:
-    """Set to unknown every empty voxel connected (26-neighbourhood) to the grid's border."""
+    """Set to unknown every empty voxel connected to the grid's border through faces.
+
+    Face connectivity, not the planner's 26: a surveyed wall puts a point in at least one of the
+    two voxels on either side of each of its faces, so no face-connected route crosses it, while
+    edge- and corner-connected ones slip through the staircase of a slanted wall."""
     from scipy import ndimage
 
     empty = grid != OCCUPIED
-    labels, _ = ndimage.label(empty, structure=np.ones((3, 3, 3), dtype=bool))
+    labels, _ = ndimage.label(empty)
     border = np.concatenate(
         [
             labels[0].ravel(),
