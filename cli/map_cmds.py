@@ -329,8 +329,8 @@ def plan_cmd(
 
     \b
     Examples:
-      btmission plan missions/mine_inspection.yaml --from 7,5,0 --to 60,10,2
-      btmission plan mine.npz --from 7,5,2 --to 150,80,2 --png path.png --json
+      btmission plan missions/mine_inspection.yaml --from 7,5,0 --to 64.4,9.6,2.5
+      btmission plan mine.npz --from 7,5,2 --to 187.7,62.9,2 --png path.png --json
     """
     from btmission.planning.dstar import Planner, PlanningError
     from btmission.planning.paths import thin_path

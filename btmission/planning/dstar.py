@@ -196,6 +196,11 @@ class Planner:
     """Single queries and one-to-all searches on a :class:`CostMap` (see the module docstring)."""
 
     def __init__(self, cost_map: CostMap):
+        if cost_map.padded.size >= 2**31 - 1:
+            raise MapError(
+                f"a map of {cost_map.map.size:,} voxels is too large to plan on (the search "
+                "indexes voxels with 32-bit integers): use a coarser resolution or a smaller map"
+            )
         self.cost_map = cost_map
         self._off, self._step = neighbour_table(cost_map.padded.shape, cost_map.resolution)
         _, py, pz = cost_map.padded.shape
