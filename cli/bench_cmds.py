@@ -6,6 +6,8 @@ from pathlib import Path
 
 import click
 
+from btmission.cli.map_cmds import mine_resolution_option, size_option
+
 
 @click.group()
 def bench() -> None:
@@ -91,6 +93,8 @@ def control_bench(only: str, steps: int, repeat: int, out: Path) -> None:
             f"unknown part(s) '{only}' (choose from {', '.join(PARTS)})", param_hint="--only"
         )
     run_control_benchmark(parts, steps=steps, repeat=repeat, out_dir=out, echo=click.echo)
+
+
 def _int_list(text: str, name: str) -> tuple[int, ...]:
     try:
         values = tuple(int(s) for s in text.split(",") if s.strip())
@@ -252,3 +256,50 @@ def auction_bench(
         overrides["crossover"] = _size_list(crossover, "--crossover")
     cfg = BenchConfig.quick(**overrides) if quick else BenchConfig(**overrides)  # type: ignore[arg-type]
     run_auction_benchmark(cfg, out_dir=out, png=png, echo=click.echo)
+
+
+@bench.command("planner")
+@size_option((200.0, 120.0, 10.0))
+@mine_resolution_option
+@click.option(
+    "--repeat",
+    default=5,
+    show_default=True,
+    type=click.IntRange(1),
+    help="Timed repetitions (median reported).",
+)
+@click.option(
+    "--queries",
+    default=20,
+    show_default=True,
+    type=click.IntRange(1),
+    help="Random start/goal pairs for single queries.",
+)
+@click.option("--no-peers", is_flag=True, help="Skip skimage and networkx (scipy always runs).")
+@click.option(
+    "--out",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=Path("benchmarks/results"),
+    show_default=True,
+    help="Directory for planner.md and planner.csv.",
+)
+def planner_bench(
+    size: tuple[float, float, float],
+    resolution: float,
+    repeat: int,
+    queries: int,
+    no_peers: bool,
+    out: Path,
+) -> None:
+    """D*+ planner on a generated mine vs scipy / skimage / networkx (one-to-all, queries, replan).
+
+    \b
+    Example:
+      btmission bench planner                      # the 200 × 120 × 10 m mine, ~1.9 M voxels
+      btmission bench planner --size 80 50 8 --repeat 3 --queries 5 --out /tmp/r
+    """
+    from btmission.bench.planner import run_planner_benchmark
+
+    run_planner_benchmark(
+        size, resolution, repeat, queries, out_dir=out, echo=click.echo, peers=not no_peers
+    )

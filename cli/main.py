@@ -13,6 +13,7 @@ from btmission.cli import (
     bench_cmds,
     control_cmds,
     library_cmds,
+    map_cmds,
     mission_cmds,
     synth_cmds,
 )
@@ -47,6 +48,8 @@ cli.add_command(mission_cmds.schema)
 cli.add_command(bench_cmds.bench)
 cli.add_command(control_cmds.control)
 cli.add_command(auction_cmds.auction)
+cli.add_command(map_cmds.map_group)
+cli.add_command(map_cmds.plan_cmd)
 
 
 def main() -> None:

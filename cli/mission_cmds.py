@@ -15,7 +15,7 @@ from btmission.cli.common import (
     write_output,
 )
 from btmission.cli.synth_cmds import emit_tree, format_option, output_option
-from btmission.diagnostics import Severity, errors, promote
+from btmission.diagnostics import Severity, SpecError, errors, promote
 from btmission.spec.mission import load_mission
 from btmission.synthesis.mission_tree import build_mission_tree
 
@@ -30,11 +30,19 @@ def validate(mission_file: Path, strict: bool) -> None:
     """Validate a mission file without running it.
 
     Checks the schema, ids, libraries, task types, task fields, cost expressions, commit
-    conditions, and that every agent's trees synthesise. Every problem is reported with
-    file:line:col. Exit status 2 when the mission is invalid.
+    conditions, that every agent's trees synthesise, and against the world map that agent starts
+    and task locations are inside the map, not in rock and reachable from some agent. Every
+    problem is reported with file:line:col. Exit status 2 when the mission is invalid.
     """
+    from btmission.world.checks import check_mission_world
+
     m = load_mission(mission_file)
-    diags = promote(m.diagnostics, strict)
+    map_diags = check_mission_world(m)
+    if errors(map_diags):
+        raise SpecError(
+            errors(map_diags) + [d for d in map_diags if d.severity is not Severity.ERROR]
+        )
+    diags = promote(m.diagnostics + map_diags, strict)
     echo_diagnostics(diags)
     if errors(diags):
         raise ChecksFailed(f"{mission_file}: warnings are errors under --strict")

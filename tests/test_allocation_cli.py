@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import re
+
 import json
 from pathlib import Path
 
@@ -33,7 +35,7 @@ def test_auction_round_on_the_mine_mission(runner: CliRunner) -> None:
     code, out, _ = run(runner, "auction", MINE, "--at", "120", "--bids")
     assert "T7 unassigned" in out and "not yet arrived" not in out
     assert out.splitlines()[-4].split() == ["T1", "T2", "T3", "T4", "T5", "T6", "T7"]
-    assert out.splitlines()[-1].split()[:2] == ["R3", "54.63"]
+    assert out.splitlines()[-1].split()[:2] == ["R3", "54.65"]
 
 
 def test_auction_json_and_solver_override(runner: CliRunner) -> None:
@@ -55,10 +57,10 @@ def test_auction_bad_inputs(runner: CliRunner, tmp_path: Path) -> None:
     code, _, err = run(runner, "auction", MINE, "--at", "-1")
     assert code == 2 and "--at" in err
     bad = tmp_path / "named.yaml"
-    bad.write_text(
-        Path(MINE).read_text().replace("location: [60, 10, 2]", "location: bay3"),
-        encoding="utf-8",
-    )
+    text = Path(MINE).read_text()
+    t1 = re.search(r"\{id: T1, type: inspect, location: (\[[^\]]*\])", text)
+    assert t1 is not None
+    bad.write_text(text.replace(t1.group(1), "bay3", 1), encoding="utf-8")
     code, _, err = run(runner, "auction", str(bad))
     assert code == 2
     assert "task 'T1' (inspect): cost functions need positions [x, y, z], got 'bay3'" in err

@@ -227,7 +227,7 @@ def test_validate(runner: CliRunner, tmp_path: Path) -> None:
         Path(MINE)
         .read_text()
         .replace("id: R2", "id: R1")
-        .replace("type: inspect, location: [60", "type: inspct, location: [60")
+        .replace("type: inspect, location: [64.4", "type: inspct, location: [64.4")
     )
     code, out, err = run(runner, "validate", str(bad))
     assert code == 2 and out == ""
