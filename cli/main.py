@@ -8,7 +8,7 @@ from __future__ import annotations
 import click
 
 from btmission import __version__
-from btmission.cli import bench_cmds, library_cmds, mission_cmds, synth_cmds
+from btmission.cli import bench_cmds, dispatch_cmds, library_cmds, mission_cmds, synth_cmds
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
@@ -38,6 +38,7 @@ cli.add_command(mission_cmds.validate)
 cli.add_command(mission_cmds.mission)
 cli.add_command(mission_cmds.schema)
 cli.add_command(bench_cmds.bench)
+cli.add_command(dispatch_cmds.dispatch)
 
 
 def main() -> None:

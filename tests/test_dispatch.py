@@ -13,6 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from btmission.diagnostics import SpecError
+from btmission.dispatch.dynamic import DynamicConfig, DynamicPlanner, executed_tracks
 from btmission.dispatch.evaluate import Evaluator, evaluate_reference, timeline
 from btmission.dispatch.ga import GAParams, optimize
 from btmission.dispatch.maps import mine_map, static_map
@@ -387,3 +388,56 @@ def test_timeline() -> None:
     m = corridor()
     arr, dep = timeline(m, [m.id("A"), m.id("X"), m.id("P")], [5.0, 0.0, 0.0], 1.0)
     assert arr == [1.0, 16.0, 19.0] and dep == [6.0, 16.0, math.inf]
+
+
+def _small_dynamic(vehicles: int, hours: float = 1.0, seed: int = 4) -> DynamicPlanner:
+    cfg = DynamicConfig(
+        vehicles,
+        duration_s=hours * 3600,
+        ga=GAParams(budget_s=60, max_generations=120),
+        seed=seed,
+    )
+    return DynamicPlanner(mine_map(), cfg)
+
+
+def test_dynamic_replanning_is_causal() -> None:
+    """No plan changes an item that starts before its optimisation ends; new missions depart after."""
+    planner = _small_dynamic(3)
+    checks: list[int] = []
+
+    def check(t_done: float, before, after, changed) -> None:  # type: ignore[no-untyped-def]
+        tmap = planner.tmap
+        for k, (old, new) in enumerate(zip(before, after)):
+            _, dep = timeline(tmap, new.nodes.tolist(), list(new.waits), new.t0)
+            if k in changed and new.head == 0:
+                assert new.nodes[0] == old.end and dep[0] >= t_done - 1e-9
+                continue
+            old_arr, _ = timeline(tmap, old.nodes.tolist(), list(old.waits), old.t0)
+            started = [i for i in range(old.items) if old_arr[i] < t_done]
+            keep = new.head if k in changed else len(started)
+            assert new.t0 == old.t0
+            assert new.nodes[: keep + 1].tolist() == old.nodes[: keep + 1].tolist()
+            assert new.waits[:keep].tolist() == old.waits[:keep].tolist()
+            if k in changed:
+                assert dep[new.head] >= t_done - 1e-9
+        checks.append(len(changed))
+
+    planner.on_adopt = check
+    res = planner.run()
+    assert len(checks) >= 6 and res.traversals_per_vehicle > 0
+    assert res.optimisations == len(checks) + res.failures
+
+
+def test_executed_dynamic_plan_is_collision_free() -> None:
+    res = _small_dynamic(3, hours=1.0, seed=7).run()
+    tracks = executed_tracks(res)
+    conflicts, _ = evaluate_reference(mine_map(), tracks)
+    assert conflicts == []
+    assert 0 <= res.idle_terminal < 1 and 0 <= res.idle_pause < 1
+
+
+def test_dynamic_needs_one_offloading_site() -> None:
+    with pytest.raises(ValueError, match="exactly one prioritized terminal"):
+        DynamicPlanner(static_map("npr"), DynamicConfig(2))
+    with pytest.raises(ValueError, match="loading sites"):
+        DynamicPlanner(mine_map(), DynamicConfig(7))

@@ -127,6 +127,8 @@ class DynamicPlanner:
         self.queue: deque[int] = deque(range(cfg.vehicles))  # §5 fn. 4: requests at time 0
         self.optimisations = 0
         self.failures = 0
+        self.on_adopt: Callable[[float, FleetMission, FleetMission, set[int]], None] | None = None
+        """Called with (t_done, tracks before, fleet mission adopted, changed vehicles)."""
 
     # ------------------------------------------------------------------------- planning
     def _targets(self, skip: int) -> set[int]:
@@ -262,6 +264,9 @@ class DynamicPlanner:
                     self.failures += 1
                     self.queue.append(r)
                 else:
+                    if self.on_adopt is not None:
+                        before = tuple(v.track for v in self.veh)
+                        self.on_adopt(t, before, best, changed)
                     self._adopt(best, changed, prim, r)
         for v in self.veh:  # idle time of vehicles still waiting at a terminal at the end
             if v.phase == "waiting":
@@ -331,6 +336,23 @@ def run_dynamic(
 ) -> DynamicResult:
     """One dynamic run (see the module docstring)."""
     return DynamicPlanner(tmap, cfg).run(progress)
+
+
+def executed_tracks(result: DynamicResult) -> FleetMission:
+    """Each vehicle's whole run as one track (its missions joined end to start), e.g. to check
+    with the evaluator that the executed dynamic plan never had a collision."""
+    out = []
+    for hist in result.histories:
+        nodes: list[int] = [int(hist[0].nodes[0])]
+        waits: list[float] = []
+        for m in hist:  # waits holds one stop time per item so far
+            if m.items:
+                waits.append(float(m.waits[0]))
+                waits.extend(float(x) for x in m.waits[1:-1])
+                nodes.extend(int(x) for x in m.nodes[1:])
+        waits.append(0.0)
+        out.append(Mission(np.asarray(nodes, np.int32), np.asarray(waits), hist[0].t0))
+    return tuple(out)
 
 
 def mean_std(xs: list[float]) -> tuple[float, float]:
