@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
+from dataclasses import replace
 
 from btmission.dispatch.topomap import Node, NodeKind, Segment, TopoMap
 
@@ -149,6 +150,8 @@ def mine_map() -> TopoMap:
         prev = junction
     nodes.append(Node("PM1", NodeKind.PAUSE, xy=(1000.0, -760.0)))
     edges.append(("M1", "PM1"))
+    # shift into positive coordinates (the simulator's voxel mine starts at the origin)
+    nodes = [replace(n, xy=(n.xy[0] + 50.0, n.xy[1] + 1000.0)) if n.xy else n for n in nodes]
     names = [n.name for n in nodes]
     by_name = {n.name: n for n in nodes}
     ramp_edges = {frozenset((ramp[i], ramp[i + 1])) for i in range(len(ramp) - 1)}
