@@ -122,3 +122,14 @@ def test_bench_dispatch_writes_results(runner: CliRunner, tmp_path: Path) -> Non
         ("static_spr", "GA"), ("static_spr", "push-and-swap"),
     }  # fmt: skip
     assert "evaluations/s" in (tmp_path / "dispatch.md").read_text()
+
+
+def test_bench_dispatch_dynamic_writes_results(runner: CliRunner, tmp_path: Path) -> None:
+    code, out, _ = run(
+        runner, "bench", "dispatch-dynamic", "--vehicles", "2", "--runs", "1", "--hours", "0.2",
+        "--budget", "0.05", "--out", str(tmp_path),
+    )  # fmt: skip
+    assert code == 0, out
+    assert "| 2 | 1 |" in out and "Table 6" in (tmp_path / "dispatch_dynamic.md").read_text()
+    code, _, err = run(runner, "bench", "dispatch", "--vehicles", "x", "--out", str(tmp_path))
+    assert code == 2 and "comma-separated integers" in err

@@ -175,7 +175,7 @@ class TopoMap:
             ra, rb = root(a), root(b)
             if ra == rb:
                 loop = _tree_path(adj, a, b)
-                names = " → ".join(nodes[i].name for i in [*loop, a])
+                names = " → ".join(nodes[i].name for i in [*loop, b])
                 raise TopoMapError(
                     f"segment {s.a}-{s.b} closes a loop ({names}); maps must be loop-free "
                     "(seed 004 §3.1)",
