@@ -149,7 +149,7 @@ delta_option = click.option(
 @seed_option
 @delta_option
 @click.option("--gantt", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Write a Fig. 3-style PNG of the GA plan of the first instance of the last size.")  # fmt: skip
+              help="Write a Fig. 3-style PNG of the GA plan of one more instance of the last size.")  # fmt: skip
 @handle_spec_errors
 def static_cmd(
     map_ref: str, vehicles: str, runs: int, budget: float | None, generations: int | None,
