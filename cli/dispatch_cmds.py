@@ -142,7 +142,7 @@ delta_option = click.option(
     "--vehicles", default="10", show_default=True, help="Fleet sizes, e.g. 2,4,6,8,10 (even)."
 )
 @click.option(
-    "--runs", type=click.IntRange(1), default=10, show_default=True, help="Instances per size."
+    "--runs", type=click.IntRange(1), default=5, show_default=True, help="Instances per size."
 )
 @budget_option
 @generations_option
