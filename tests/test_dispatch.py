@@ -441,3 +441,19 @@ def test_dynamic_needs_one_offloading_site() -> None:
         DynamicPlanner(static_map("npr"), DynamicConfig(2))
     with pytest.raises(ValueError, match="loading sites"):
         DynamicPlanner(mine_map(), DynamicConfig(7))
+
+
+@pytest.mark.parametrize("variant", ["npr", "spr"])
+def test_ga_solves_ten_vehicle_instances(variant: str) -> None:
+    """The hardest §6.1 size: every plan the GA returns is feasible under the reference evaluator
+    (a generation cap instead of a time budget keeps this reproducible on a busy machine)."""
+    tmap = static_map(variant)
+    rng = np.random.default_rng(10)
+    for k in range(5):
+        inst = random_instance(tmap, 10, rng)
+        run = plan_static(
+            tmap, inst, GAParams(max_generations=1500, budget_s=600), np.random.default_rng(k)
+        )
+        assert run.result.feasible and run.result.first_feasible_generation is not None
+        assert evaluate_reference(tmap, run.result.best)[0] == []
+        assert run.xi0 <= run.result.evaluation.items
