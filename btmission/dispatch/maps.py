@@ -6,7 +6,7 @@ of the map, each reached by a short branch off a trunk; the two trunks meet in a
 bottleneck (W0 — M — E0); pause nodes hang off every trunk node and the centre. Vehicles moving
 right to left (loaded) take twice as long per segment as those moving left to right (§6.1).
 In the SPR variant the left terminals are prioritised; in NPR none are. A terminal-to-terminal path
-has 6-10 segments (8 on average; the paper's averages imply about 11).
+has 8-12 segments (10 on average; the paper's averages imply about 11).
 
 ``mine_map()`` — Fig. 1, the dynamic planning mine: a single prioritised offloading site O at the
 top, three pause nodes near it, a steep spiralling ramp (six segments, two passing bays) down to
