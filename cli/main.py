@@ -12,6 +12,7 @@ from btmission.cli import (
     auction_cmds,
     bench_cmds,
     control_cmds,
+    dispatch_cmds,
     library_cmds,
     map_cmds,
     mission_cmds,
@@ -50,6 +51,7 @@ cli.add_command(control_cmds.control)
 cli.add_command(auction_cmds.auction)
 cli.add_command(map_cmds.map_group)
 cli.add_command(map_cmds.plan_cmd)
+cli.add_command(dispatch_cmds.dispatch)
 
 
 def main() -> None:

@@ -290,3 +290,12 @@ def test_evaluate_rejects_invalid_matchings() -> None:
     assert p.cost(0, 1) != p.cost(0, 1)  # NaN: no bid
     sp = AssignmentProblem.sparse(2, 2, [1], [1], [3.0])
     assert sp.cost(1, 1) == 3.0 and math.isnan(sp.cost(0, 0))
+
+
+def test_denormal_cost_span_still_assigns_with_every_solver() -> None:
+    """Regression (found by hypothesis): costs 0 and 5e-324 made all ILP profits underflow, and
+    SCIP assigned nothing."""
+    costs = np.array([[0.0, 0.0, 0.0, 5e-324]])
+    for method in ("dense", "sparse", "ilp-scip"):
+        m = solve(AssignmentProblem.dense(costs), method)
+        assert len(m.rows) == 1, method

@@ -292,9 +292,14 @@ class _Shift:
     """Shifted cost of "no assignment"; more than any ``K`` bids together."""
 
 
+MIN_SPAN = 1e-6
+"""Cost spans below this are treated as equal costs (scale 1): a denormal span would make every
+profit underflow below the solvers' tolerances, and SCIP would then see nothing worth assigning."""
+
+
 def _make_shift(lo: float, hi: float, k: int) -> _Shift:
     span = hi - lo
-    unit = span if span > 0 else 1.0
+    unit = span if span >= MIN_SPAN else 1.0
     delta = TIE_EPS * unit
     big = (k + 1) * (span + delta + unit) + unit
     return _Shift(-lo, delta, unit, big)

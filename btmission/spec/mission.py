@@ -68,6 +68,11 @@ class WorldSpec(_Strict):
         Discriminator(_map_kind),
     ] = Field(description="{generate: mine, seed: 7, size: [x, y, z]} or {file: path}")
     resolution: float = Field(0.5, gt=0, description="Voxel size in metres.")
+    topomap: str | None = Field(
+        None,
+        description="Topological map for GA fleet dispatch (seed 004): a built-in map (mine, "
+        "static_npr, static_spr) or a map YAML file relative to the mission. Default: none.",
+    )
 
 
 class AgentSpec(_Strict):
@@ -423,6 +428,10 @@ def compile_mission(spec: MissionSpec, src: Source) -> Mission:
                 "no-file",
             )
 
+    # topological map (GA dispatch): a built-in name or a file that loads
+    if spec.world.topomap is not None:
+        diags.extend(_check_topomap(spec.world.topomap, base, src))
+
     mission = Mission(spec.mission, spec, src.file, agents, tasks, task_types, default, libraries)
     if not errors(diags):
         diags.extend(check_agent_trees(mission, src))
@@ -430,6 +439,27 @@ def compile_mission(spec: MissionSpec, src: Source) -> Mission:
         raise SpecError(errors(diags) + [d for d in diags if d.severity is not Severity.ERROR])
     mission.diagnostics = diags
     return mission
+
+
+def _check_topomap(ref: str, base: Path, src: Source) -> list[Diagnostic]:
+    """Problems with ``world.topomap`` (dispatch is imported only when a mission names one)."""
+    from btmission.dispatch.maps import BUILTIN_MAPS
+    from btmission.dispatch.topomap import load_topomap
+
+    path = ("world", "topomap")
+    if ref in BUILTIN_MAPS:
+        return []
+    f = base / ref
+    if not f.exists():
+        known = ", ".join(BUILTIN_MAPS)
+        msg = f"topological map '{ref}' is neither a built-in map ({known}) nor a file in {base}"
+        return [src.diag(path, msg, "no-file")]
+    try:
+        load_topomap(f)
+    except SpecError as exc:
+        return [src.diag(path, f"topological map '{ref}' has errors, listed below", "topomap"),
+                *exc.diagnostics]  # fmt: skip
+    return []
 
 
 def load_mission_source(src: Source) -> Mission:
