@@ -80,6 +80,20 @@ def test_k_bt_zero_after_the_commit_point() -> None:
     assert np.isnan(b.costs(announcement(I1), busy)).all()
 
 
+def test_switch_cost_is_added_to_other_tasks_only_while_busy() -> None:
+    m = load_mission(PICK)
+    ann = announcement(P1, I1, I2)
+    at = (1.0, 1.0, 0.0)
+    plain = Bidder(m.task_types).costs(ann, AgentState("G1", at, task="I1"))
+    sticky = Bidder(m.task_types, switch_cost=5.0)
+    np.testing.assert_allclose(
+        sticky.costs(ann, AgentState("G1", at, task="I1")), plain + np.array([5.0, 0.0, 5.0])
+    )
+    np.testing.assert_allclose(sticky.costs(ann, AgentState("G1", at)), plain)  # idle: no cost
+    with pytest.raises(ValueError, match="switch_cost"):
+        Bidder(m.task_types, switch_cost=-1.0)
+
+
 def test_participation_bids_on_the_k_cheapest_plus_the_current_task() -> None:
     m = load_mission(PICK)
     tasks = [TaskInfo(f"I{i}", "inspect", {"location": [float(i), 0, 0]}) for i in range(10)]

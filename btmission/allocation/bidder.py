@@ -12,6 +12,10 @@ default; the D*+ planner provides risk-aware path costs through the same interfa
 task's commit condition holds (e.g. ``holding(pickup)``). An agent past a commit point bids
 only on that task: it keeps it (the auctioneer also pins it) and takes part in nothing else.
 
+**Switch cost** (``coordination.switch_cost``, 0 by default as in the paper): an agent that is
+executing a task adds it to its bids on every other task, so two agents whose bids differ by
+less than that no longer trade tasks back and forth as they move.
+
 **Participation** (seed 003 §IV-B): an agent bids only on its ``ceil(participation · n)``
 cheapest announced tasks — plus the task it is executing, so it never drops its own task just
 because others look cheaper. Tasks it cannot do (its library lacks the goal) or cannot reach
@@ -102,9 +106,13 @@ class Bidder:
         participation: float = 1.0,
         *,
         cache_size: int = 4096,
+        switch_cost: float = 0.0,
     ):
         if not 0 < participation <= 1:
             raise ValueError(f"participation must be in (0, 1], got {participation}")
+        if not (switch_cost >= 0 and math.isfinite(switch_cost)):
+            raise ValueError(f"switch_cost must be ≥ 0, got {switch_cost}")
+        self.switch_cost = switch_cost
         self.task_types = dict(task_types)
         self.provider: CostProvider = provider if provider is not None else StraightLine()
         self.participation = participation
@@ -130,7 +138,8 @@ class Bidder:
             for name, tt in mission.task_types.items()
             if can_do(lib, tt.goals) is None and (types is None or name in types)
         }
-        return cls(doable, provider, mission.spec.coordination.participation)
+        coord = mission.spec.coordination
+        return cls(doable, provider, coord.participation, switch_cost=coord.switch_cost)
 
     def _static_cost(self, a: Point, b: Point) -> float:
         key = (a, b)
@@ -182,6 +191,8 @@ class Bidder:
             return out
         for j, t in enumerate(tasks):
             out[j] = self.f_cost(t, agent) * k_bt(agent, t.id)
+            if self.switch_cost and agent.task is not None and t.id != agent.task:
+                out[j] += self.switch_cost
         k = participation_k(self.participation, len(tasks))
         if k < len(tasks):
             keep = announcement.index.get(agent.task, -1) if agent.task is not None else -1
