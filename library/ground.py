@@ -33,7 +33,7 @@ IMPLEMENTATIONS = Implementations(
         "speed_m_s": 0.4,
         "tolerance_m": 0.2,
         "clearance_m": 0.25,
-        "lookahead_m": 0.5,
+        "lookahead_m": 1.0,
     },
 )
 

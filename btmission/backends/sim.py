@@ -76,6 +76,7 @@ YAW_RATE_MAX = 0.8
 VEHICLE_POINTS = 200
 """Points another vehicle returns in a LiDAR scan (a 0.5 m drone 1-2 m away in a VLP-16 scan
 gives hundreds)."""
+CONTACT_GAP_S = 0.5
 WALL_QUERY_M = 5.0
 """Clearances beyond this are reported as inf (nothing near enough to matter)."""
 """Heading-loop rate limit (rad/s), about PX4's MPC_YAWRAUTO_MAX."""
@@ -248,6 +249,8 @@ class _Vehicle:
     took_off: bool = False
     thrust: float = 0.0
     contact: dict[str, bool] = field(default_factory=dict)
+    touching: dict[str, float] = field(default_factory=dict)
+    """Other party (rock or a vehicle id) → last time they touched."""
     failsafe: str = ""
     clearance_min: float = math.inf
     frozen: bool = False
@@ -507,14 +510,17 @@ class Simulator:
     def _episode(
         self, v: _Vehicle, other: str, hit: bool, out: list[SimEvent], t: float, c: FloatArray
     ) -> None:
-        """Report a collision once when it begins (not on every step it lasts)."""
-        key = f"touch:{other}"
-        if hit and not v.contact.get(key, False):
+        """Report a collision when a contact begins: once, however long it lasts (a contact
+        counts as over after ``CONTACT_GAP_S`` without touching)."""
+        if not hit:
+            return
+        last = v.touching.get(other)
+        if last is None or t - last > CONTACT_GAP_S:
             p = v.position
             out.append(
                 SimEvent(t, v.id, "collision", other, (float(p[0]), float(p[1]), float(p[2])))
             )
-        v.contact[key] = hit
+        v.touching[other] = t
 
     def take_clearance(self, vid: str) -> float | None:
         """Smallest clearance of ``vid`` since the last call (None if nothing was measured)."""

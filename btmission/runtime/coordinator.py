@@ -80,6 +80,7 @@ class Coordinator:
         self.rounds: list[float] = []
         """Wall time (s) of each round."""
         self.last: RoundResult | None = None
+        self._last_assignments: dict[str, str] = {}
 
     # ---------------------------------------------------------------- operator API
     @property
@@ -208,17 +209,20 @@ class Coordinator:
             self._history_len[t.id] = len(t.history)
         for msg in result.progress_problems:
             self._emit("warning", message=msg)
-        self._emit(
-            "round",
-            round=rep.round,
-            announced=rep.announced,
-            agents=len(rep.agents),
-            assignments=dict(rep.assignments),
-            method=rep.method,
-            bids=rep.bids,
-            dropped=list(rep.dropped),
-            step_ms=result.step_s * 1000,
-        )
+        data: dict[str, Any] = {
+            "round": rep.round,
+            "announced": rep.announced,
+            "agents": len(rep.agents),
+            "method": rep.method,
+            "bids": rep.bids,
+            "step_ms": result.step_s * 1000,
+        }
+        if dict(rep.assignments) != self._last_assignments:
+            self._last_assignments = dict(rep.assignments)
+            data["assignments"] = self._last_assignments
+        if rep.dropped:
+            data["dropped"] = list(rep.dropped)
+        self._emit("round", **data)
         self.bus.assign(Assignment(now, rep.round, result.assignments, result.announcement))
 
     # ---------------------------------------------------------------- queries

@@ -14,8 +14,9 @@ The kinds a run emits (fields in brackets; positions are ``[x, y, z]`` lists in 
 ``task``           a task changed state or agent (the auction pool's history): ``task``,
                    ``state`` (open/assigned/committed/done/failed/unreachable), ``agent``,
                    ``reason``
-``round``          one auction round: ``round``, ``announced``, ``agents``, ``assignments``
-                   (agent → task), ``method``, ``bids``, ``dropped``, ``step_ms``
+``round``          one auction round: ``round``, ``announced``, ``agents``, ``method``,
+                   ``bids``, ``step_ms``; ``assignments`` (agent → task) when they changed,
+                   ``dropped`` (agents that stopped bidding) when there are any
 ``agent_task``     an agent started or stopped executing a task: ``agent``, ``task`` (or null)
 ``stage``          an agent's tree started an action: ``agent``, ``task``, ``action``
 ``committed``      an agent passed its task's commit point (k_bt = 0): ``agent``, ``task``

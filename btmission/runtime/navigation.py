@@ -76,9 +76,9 @@ class NavConfig:
     """Flight height above the ground for take-off and for goals on the ground (e.g. home)."""
     stuck_s: float = 20.0
     """A route with no progress for this long fails ("stuck")."""
-    apf_gain: float = 1.2
-    """APF gain L per m² of LiDAR point spacing (seed 002 eq. 3): L = apf_gain · spacing²."""
-    lidar_spacing_m: float = 0.25
+    apf_gain: float = 0.075
+    """APF gain L per point (seed 002 eq. 3), for the simulated LiDAR's one point per rock
+    voxel face (0.5 m maps); the paper's VLP-16 scans are far denser (ApfConfig: 0.001)."""
     clearance_m: float = 0.5
     """Paths keep voxel centres at least this far from rock (the vehicle's radius and a margin)."""
 
@@ -97,8 +97,7 @@ SETTINGS_DOC: dict[str, str] = {
     "tolerance_m": "distance within which a goal counts as reached (m)",
     "altitude_m": "flight height above the ground for take-off and ground-level goals (m)",
     "stuck_s": "a route with no progress for this long fails (s)",
-    "apf_gain": "APF gain per m² of LiDAR point spacing (seed 002 eq. 3)",
-    "lidar_spacing_m": "spacing of the LiDAR points on rock surfaces (m)",
+    "apf_gain": "APF gain L per LiDAR point (seed 002 eq. 3)",
     "clearance_m": "paths keep this far from rock: the map is inflated by it for planning (m)",
 }
 
@@ -234,16 +233,18 @@ class Navigator:
         if self.kind is VehicleKind.MULTIROTOR:
             from btmission.control.apf import ApfConfig, PotentialField
 
-            g = cfg.apf_gain * cfg.lidar_spacing_m**2
+            g = cfg.apf_gain
             self._apf = PotentialField(ApfConfig(gain=(g, g, g)))
             if controller == "nmpc":
                 from btmission.control.nmpc import MavNmpc, NmpcConfig
 
                 self._nmpc = MavNmpc(NmpcConfig(dt_s=control_dt))
         elif controller == "nmpc":
-            from btmission.control.unicycle_nmpc import UnicycleNmpc
+            from btmission.control.unicycle_nmpc import UnicycleConfig, UnicycleNmpc
 
-            self._uni = UnicycleNmpc()
+            # forward only: with the heading free (q_heading = 0) the optimiser may otherwise
+            # settle on reversing the whole way at v_min rather than turning round
+            self._uni = UnicycleNmpc(UnicycleConfig(v_min=0.0))
 
     # ---------------------------------------------------------------- commands
     @property
