@@ -707,13 +707,12 @@ class SimVehicle:
         p = self._v.position
         pts = sim.world.surface_points(p, cfg.lidar_range_m) - p
         others = [
-            sim._centre(o) - p
+            sim._centre(o) - p + _SPHERE * sim._radius(o)
             for o in sim._vehicles.values()
             if o is not self._v and float(np.linalg.norm(o.position - p)) < cfg.lidar_range_m
         ]
         if others:  # other vehicles are seen as points on their body spheres
-            shell = _SPHERE * sim.config.body_radius_m
-            pts = np.vstack([pts, *[c + shell for c in others]])
+            pts = np.vstack([pts, *others])
         if cfg.dust_points:
             dust = sim.rng.normal(0.0, 0.25, (cfg.dust_points, 3))
             pts = np.vstack([pts, dust])

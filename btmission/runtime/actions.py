@@ -161,9 +161,8 @@ class UpdatePath(StatefulAction):
 
 class FollowPath(StatefulAction):
     """Track the planned path to ``goal`` (NMPC or tracking controller, with APF); when the
-    vehicle makes no progress, replan from where it is (``replans`` times) before failing."""
-
-    replans = 2
+    vehicle makes no progress (blocked by another vehicle, pushed off by the APF) it replans
+    from where it is, up to the ``replans`` setting, before failing."""
 
     def on_start(self) -> Status:
         self._tries = 0
@@ -185,7 +184,7 @@ class FollowPath(StatefulAction):
             return Status.SUCCESS
         if st.command != "follow" or st.state is NavState.FAILED:
             self._tries += 1
-            if self._tries > self.replans:
+            if self._tries > self.ctx.navigator.config.replans:
                 self.reason = st.reason or "path following stopped"
                 return Status.FAILURE
             goal = point(self.args["goal"])

@@ -26,6 +26,7 @@ is how tests and the operator simulate a lost link: the agent keeps executing it
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
@@ -155,20 +156,31 @@ class InMemoryBus:
         self._predictions[agent] = _Prediction(time_s, np.asarray(positions, dtype=float))
 
     def predictions(
-        self, agent: str, time_s: float, step_s: float, near: FloatArray | None = None
+        self,
+        agent: str,
+        time_s: float,
+        step_s: float,
+        near: FloatArray | None = None,
+        within_m: float = math.inf,
     ) -> list[FloatArray]:
-        """The other agents' predictions, advanced to ``time_s`` (each shifted by the steps of
-        ``step_s`` since it was published, the last point repeated), nearest first."""
+        """The other agents' predictions — (N+1, 2) or (N+1, 3) positions, a vehicle that only
+        shares where it is gives one row — advanced to ``time_s`` (shifted by the steps of
+        ``step_s`` since they were published, the last point repeated), nearest to ``near``
+        first, those farther than ``within_m`` left out."""
         out: list[tuple[float, FloatArray]] = []
         for other, pred in self._predictions.items():
             if other == agent:
                 continue
-            k = max(0, round((time_s - pred.time_s) / step_s))
             pts = pred.positions
-            if k:
+            d = 0.0
+            if near is not None:
+                d = math.dist(pts[0, :2], near[:2])
+                if d > within_m:
+                    continue
+            k = max(0, round((time_s - pred.time_s) / step_s))
+            if k and len(pts) > 1:
                 k = min(k, len(pts) - 1)
                 pts = np.vstack([pts[k:], np.repeat(pts[-1:], k, axis=0)])
-            d = 0.0 if near is None else float(np.linalg.norm(pts[0] - near[:2]))
             out.append((d, pts))
         out.sort(key=lambda x: x[0])
         return [p for _, p in out]

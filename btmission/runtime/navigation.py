@@ -35,6 +35,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from btmission.backends.base import Backend, FloatArray, Mode, Sensors, Telemetry, VehicleKind
+from btmission.control.apf import ApfConfig, PotentialField, repulsive_force, shape_force
 from btmission.control.mav_model import world_to_yaw_frame, wrap_angle, yaw_frame_to_world
 
 CONTROLLERS = ("nmpc", "track")
@@ -75,7 +76,9 @@ class NavConfig:
     altitude_m: float = 2.0
     """Flight height above the ground for take-off and for goals on the ground (e.g. home)."""
     stuck_s: float = 20.0
-    """A route with no progress for this long fails ("stuck")."""
+    """A route with no progress for this long is replanned from where the vehicle is."""
+    replans: float = 5
+    """Replans after which a route with no progress fails (the task fails with the reason)."""
     apf_gain: float = 0.075
     """APF gain L per point (seed 002 eq. 3), for the simulated LiDAR's one point per rock
     voxel face (0.5 m maps); the paper's VLP-16 scans are far denser (ApfConfig: 0.001)."""
@@ -96,8 +99,9 @@ SETTINGS_DOC: dict[str, str] = {
     "lookahead_m": "carrot distance ahead on the route (m)",
     "tolerance_m": "distance within which a goal counts as reached (m)",
     "altitude_m": "flight height above the ground for take-off and ground-level goals (m)",
-    "stuck_s": "a route with no progress for this long fails (s)",
-    "apf_gain": "APF gain L per LiDAR point (seed 002 eq. 3)",
+    "stuck_s": "a route with no progress for this long is replanned (s)",
+    "replans": "replans of a route with no progress before the task fails",
+    "apf_gain": "APF gain L per m² of rock surface seen by the LiDAR (seed 002 eq. 3)",
     "clearance_m": "paths keep this far from rock: the map is inflated by it for planning (m)",
 }
 
@@ -187,6 +191,25 @@ class _Land(_Command):
     name: str = "land"
 
 
+AGENT_APF = {
+    VehicleKind.MULTIROTOR: ApfConfig(
+        r_influence_m=2.5,
+        r_critical_m=0.9,
+        gain=(4.0, 4.0, 4.0),
+        gain_critical=2.0,
+        dust_points=0,
+    ),
+    VehicleKind.GROUND: ApfConfig(
+        r_influence_m=1.0,
+        r_critical_m=0.4,
+        gain=(1.5, 1.5, 0.0),
+        gain_critical=1.0,
+        dust_points=0,
+    ),
+}
+"""Eq. 3 for the other agents' shared positions: one point per agent, so a larger radius and
+gain than for LiDAR points on rock (smaller for TurtleBot-sized ground robots in 2 m aisles)."""
+
 PREDICTION_STEPS = 50
 """Horizon of the shared predictions (seed 003: N = 50 at 0.1 s)."""
 
@@ -208,6 +231,7 @@ class Navigator:
         control_dt: float = 0.05,
         predictions: Predictions | None = None,
         ground_at: Callable[[FloatArray], float] | None = None,
+        point_area_m2: float = 0.25,
     ) -> None:
         if controller not in CONTROLLERS:
             raise ValueError(f"unknown controller '{controller}' (expected nmpc or track)")
@@ -223,6 +247,7 @@ class Navigator:
         self._cmd: _Command = _Hold(np.asarray(backend.telemetry().position, dtype=float))
         self._status = NavStatus(NavState.IDLE, "", "hold")
         self._apf = None
+        self._apf_previous = np.zeros(3)
         self._nmpc = None
         self._uni = None
         self.prediction: FloatArray | None = None
@@ -230,21 +255,25 @@ class Navigator:
         self._last_uni_t = -math.inf
         self._uni_u = np.zeros(2)
         self.solve_times: list[float] = []
+        g = cfg.apf_gain * point_area_m2
         if self.kind is VehicleKind.MULTIROTOR:
-            from btmission.control.apf import ApfConfig, PotentialField
-
-            g = cfg.apf_gain
             self._apf = PotentialField(ApfConfig(gain=(g, g, g)))
             if controller == "nmpc":
                 from btmission.control.nmpc import MavNmpc, NmpcConfig
 
-                self._nmpc = MavNmpc(NmpcConfig(dt_s=control_dt))
+                # tol 1e-4: the same commands to a fraction of a percent, ~20 % fewer
+                # interior-point iterations than the 1e-6 default
+                self._nmpc = MavNmpc(NmpcConfig(dt_s=control_dt, tol=1e-4))
         elif controller == "nmpc":
             from btmission.control.unicycle_nmpc import UnicycleConfig, UnicycleNmpc
 
             # forward only: with the heading free (q_heading = 0) the optimiser may otherwise
             # settle on reversing the whole way at v_min rather than turning round
             self._uni = UnicycleNmpc(UnicycleConfig(v_min=0.0))
+        else:  # the tracking controller steers through the APF (small robot: smaller radii)
+            self._apf = PotentialField(
+                ApfConfig(gain=(g, g, 0.0), r_influence_m=0.8, r_critical_m=0.3)
+            )
 
     # ---------------------------------------------------------------- commands
     @property
@@ -254,8 +283,7 @@ class Navigator:
     def _set(self, cmd: _Command) -> None:
         self._cmd = cmd
         self._status = NavStatus(NavState.RUNNING, "", cmd.name)
-        if self._apf is not None:
-            self._apf.reset()
+        self._apf_previous = np.zeros(3)
 
     def hold(self, point: Sequence[float] | None = None) -> None:
         tel = self.backend.telemetry()
@@ -354,6 +382,7 @@ class Navigator:
     def _step_multirotor(self, now: float, tel: Telemetry) -> None:
         cmd = self._cmd
         p = tel.position
+        self.prediction = p[None, :].copy()  # shared with the others: where this vehicle is
         cfg = self.config
         ref = p.copy()
         vel = np.zeros(3)
@@ -400,19 +429,50 @@ class Navigator:
     def _apf_reference(
         self, tel: Telemetry, goal: FloatArray, speed: float
     ) -> tuple[FloatArray, FloatArray, float | None, float]:
-        """APF (seed 002 eq. 3, Alg. 1) on the LiDAR scan: reference point and velocity."""
+        """APF (seed 002 eq. 3, Alg. 1) on the LiDAR scan, plus the other agents' shared
+        positions: reference point and velocity, and ‖F^r‖ before shaping (for eq. 4)."""
         p = tel.position
         assert self._apf is not None
+        cfg = self._apf.config
         wp_body = world_to_yaw_frame(goal - p, tel.yaw)
         points = self.sensors.lidar() if self.sensors is not None else np.zeros((0, 3))
-        res = self._apf.step(points, wp_body)
-        force = yaw_frame_to_world(res.force, tel.yaw)
+        raw, _, _, _ = repulsive_force(points, cfg)
+        raw = raw + self._agent_force(tel, wp_body)
+        total, fr, _ = shape_force(raw, self._apf_previous, wp_body, cfg)
+        self._apf_previous = fr
+        force = yaw_frame_to_world(total, tel.yaw)
         # p_ref = F + p̂ (seed 002), stretched at cruise so that the autopilot's position loop
         # (v = K_p·(p_ref − p̂)) flies at ‖F‖·speed; near the goal (‖F‖ < 1) p_ref is the goal
         norm = float(math.sqrt(force @ force))
         ref = p + force * max(1.0, speed * norm / POSITION_GAIN)
         vel = force * speed
-        return ref, vel, None, float(np.linalg.norm(res.repulsive_raw))
+        return ref, vel, None, float(np.linalg.norm(raw))
+
+    def _agent_force(self, tel: Telemetry, wp_body: FloatArray) -> FloatArray:
+        """Repulsion (body frame) from the other agents' shared positions: eq. 3 with one point
+        per agent and its own radii (:data:`AGENT_APF`), so that vehicles keep apart before their
+        LiDARs would push them. When it opposes the way ahead the vehicle also sidesteps to
+        its right, so two vehicles meeting head-on in a tunnel pass each other."""
+        if self._predictions is None:
+            return np.zeros(3)
+        p = tel.position
+        near = [
+            pred[0, :3] - p if pred.shape[1] >= 3 else np.append(pred[0, :2] - p[:2], 0.0)
+            for pred in self._predictions(self.agent)
+        ]
+        if not near:
+            return np.zeros(3)
+        rel = world_to_yaw_frame(np.array(near), tel.yaw)
+        if self.kind is VehicleKind.GROUND:
+            rel[:, 2] = 0.0
+        force, n, _, _ = repulsive_force(rel, AGENT_APF[self.kind])
+        if n == 0:
+            return force
+        ahead = wp_body / max(float(np.linalg.norm(wp_body)), 1e-9)
+        if float(force @ ahead) < -0.7 * float(np.linalg.norm(force)):
+            right = np.array([ahead[1], -ahead[0], 0.0])
+            force = force + 0.5 * float(np.linalg.norm(force)) * right
+        return force
 
     def _follow_reference(
         self, now: float, tel: Telemetry, cmd: _Follow
@@ -529,8 +589,12 @@ class Navigator:
         if self._uni is not None:
             cfg = self._uni.config
             if now - self._last_uni_t >= cfg.dt_s - 1e-9:
-                others = list(self._predictions(self.agent)) if self._predictions else []
-                others = others[: cfg.max_agents]
+                shared = list(self._predictions(self.agent)) if self._predictions else []
+                n = cfg.horizon + 1
+                others = [  # a vehicle sharing only its position stands still over the horizon
+                    o[:n] if len(o) >= n else np.vstack([o, np.repeat(o[-1:], n - len(o), axis=0)])
+                    for o in shared[: cfg.max_agents]
+                ]
                 target = x[:2] if goal is None else goal
                 res = self._uni.solve(x, target, others)
                 self.solve_times.append(res.solve_time_s)
@@ -544,6 +608,10 @@ class Navigator:
             if goal is None:
                 uv = uw = 0.0
             else:
+                if self._apf is not None:  # seed 002 eq. 3 / Alg. 1: steer at p̂ + F
+                    goal3 = np.array([goal[0], goal[1], tel.position[2]])
+                    ref, _, _, _ = self._apf_reference(tel, goal3, 1.0)
+                    goal = ref[:2] if float(np.hypot(*(goal - x[:2]))) > 0.05 else goal
                 d = goal - x[:2]
                 err = wrap_angle(math.atan2(d[1], d[0]) - psi)
                 dist = float(np.hypot(*d))

@@ -269,15 +269,17 @@ def format_report(rep: MissionReport) -> str:
         ("Collisions", str(s.collisions)),
     ]
     lines += _table(("Parameter", "Value"), summary)
-    if rep.objects:
-        lines += ["", "Objects localised"]
+    if rep.objects or rep.header.get("artifacts"):
+        truth = rep.header.get("artifacts") or []
+        lines += ["", f"Objects localised ({len(rep.objects)}; {len(truth)} placed in the world)"]
         lines += _table(
-            ("Label", "Position [m]", "Observations"),
+            ("Label", "Position [m]", "Observations", "Error [m]"),
             [
                 (
                     str(o.get("label")),
                     "[" + ", ".join(f"{v:.2f}" for v in o.get("p", [])) + "]",
                     str(o.get("observations", "")),
+                    _f(_nearest(o, truth), 2),
                 )
                 for o in rep.objects
             ],
@@ -285,6 +287,14 @@ def format_report(rep: MissionReport) -> str:
     for w in rep.warnings:
         lines.append(f"warning: {w}")
     return "\n".join(lines)
+
+
+def _nearest(obj: Mapping[str, Any], truth: Sequence[Mapping[str, Any]]) -> float | None:
+    """Distance from a localised object to the nearest placed artifact of its class."""
+    same = [t["p"] for t in truth if t.get("label") == obj.get("label")]
+    if not same or not obj.get("p"):
+        return None
+    return min(math.dist(obj["p"], p) for p in same)
 
 
 def _table(head: tuple[str, ...], rows: Sequence[tuple[str, ...]]) -> list[str]:
@@ -380,7 +390,8 @@ def _world_from_header(header: Mapping[str, Any]) -> Any:
 
 
 def topview_png(rep: MissionReport, path: str | Path, voxel_map: Any = None) -> Path:
-    """Top view: open space of the map (grey), trajectories, starts (squares) and tasks (×)."""
+    """Top view: open space of the map (grey), trajectories, starts (squares), tasks (×),
+    artifacts placed in the simulator (stars) and the objects localised (+)."""
     vm = voxel_map if voxel_map is not None else _world_from_header(rep.header)
     aspect = 0.6
     if vm is not None:
@@ -420,6 +431,10 @@ def topview_png(rep: MissionReport, path: str | Path, voxel_map: Any = None) -> 
             fontsize=8,
             color="#d62728",
         )
+    for a in rep.header.get("artifacts") or []:
+        ax.plot(a["p"][0], a["p"][1], "*", color="#ff9f1c", ms=12, mec="black")
+    for o in rep.objects:
+        ax.plot(o["p"][0], o["p"][1], "+", color="#17becf", ms=12, mew=2)
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")

@@ -42,6 +42,9 @@ from btmission.runtime.paths import PathCosts
 from btmission.spec.mission import Mission
 from btmission.world.voxel import VoxelMap
 
+NEIGHBOUR_RANGE_M = 6.0
+"""Agents farther than this are left out of each other's avoidance (APF, NMPC constraints)."""
+
 
 @dataclass
 class RunResult:
@@ -199,7 +202,7 @@ class MissionRun:
 
             def predictions(agent: str, _aid: str = aid) -> list[Any]:
                 pos = self.sim.backends[_aid].telemetry().position
-                return self.bus.predictions(agent, self.now(), 0.1, pos)
+                return self.bus.predictions(agent, self.now(), 0.1, pos, NEIGHBOUR_RANGE_M)
 
             nav = Navigator(
                 spec.id,
@@ -210,6 +213,7 @@ class MissionRun:
                 control_dt=control_dt,
                 predictions=predictions,
                 ground_at=self.map.ground_z,
+                point_area_m2=self.map.resolution**2,
             )
             self.agents[spec.id] = Agent(
                 self.mission,
@@ -255,6 +259,10 @@ class MissionRun:
             tasks=[
                 {"id": t.id, "type": t.type, "at": t.at, "fields": dict(t.fields)} for t in m.tasks
             ],
+            artifacts=[
+                {"label": a.label, "p": list(a.position), "size_m": a.size_m}
+                for a in m.spec.runtime.sim.artifacts
+            ],
         )
 
     # ---------------------------------------------------------------- API
@@ -282,6 +290,12 @@ class MissionRun:
         if a.alive:
             a.kill()
             self.emit("agent_lost", agent=agent, reason=reason)
+
+    def signal(self, agent: str, name: str, value: Any = True) -> None:
+        """Set a supervisor signal on an agent (its leaves read ``ctx.state[name]``), e.g. the
+        COMPRA library's ``stop``. Thread-safe enough: one dict assignment."""
+        self.agents[agent].ctx.state[name] = value
+        self.emit("signal", agent=agent, name=name, value=value)
 
     def set_link(self, agent: str, up: bool) -> None:
         """Cut or restore an agent's link to the coordinator; the agent keeps executing."""

@@ -38,8 +38,9 @@ class _Strict(BaseModel):
 class GeneratedMap(_Strict):
     """A procedurally generated map (the world-map component provides the generators)."""
 
-    generate: Literal["mine", "empty"] = Field(
-        description="Generator: an underground mine, or free space."
+    generate: Literal["mine", "empty", "warehouse"] = Field(
+        description="Generator: an underground mine, free space, or a warehouse floor with "
+        "rows of shelves."
     )
     seed: int = Field(0, description="Random seed; the same seed gives the same map.")
     size: tuple[float, float, float] = Field(description="Extent [x, y, z] in metres.")
