@@ -61,9 +61,10 @@ def test_inflation_keeps_paths_off_the_rock() -> None:
     d_free = np.argwhere(inflated.state != OCCUPIED)
     occ = np.argwhere(vm.state == OCCUPIED)
     # every voxel left open is at least 0.5 m (centre to rock surface) from rock
-    gaps = np.min(
-        np.linalg.norm(d_free[:, None, :] - occ[None, :, :], axis=2), axis=1
-    ) * vm.resolution - vm.resolution / 2
+    gaps = (
+        np.min(np.linalg.norm(d_free[:, None, :] - occ[None, :, :], axis=2), axis=1) * vm.resolution
+        - vm.resolution / 2
+    )
     assert gaps.min() >= 0.5 - 1e-9
     assert inflate(vm, 0.0) is vm
     # a start in the inflated margin (a drone on the floor) is moved to the nearest open voxel
@@ -89,7 +90,10 @@ def test_bus_predictions_are_shifted_and_ordered() -> None:
     bus.share_prediction("B", 0.2, np.array([[5.0, 0.0]]))
     out = bus.predictions("C", 0.2, 0.1, near=np.array([4.0, 0.0]))
     assert [p[0].tolist() for p in out] == [[5.0, 0.0], [2.0, 0.0]]  # nearest first, A moved on
-    assert bus.predictions("C", 0.2, 0.1, near=np.array([4.0, 0.0]), within_m=1.5)[0].shape == (1, 2)
+    assert bus.predictions("C", 0.2, 0.1, near=np.array([4.0, 0.0]), within_m=1.5)[0].shape == (
+        1,
+        2,
+    )
     assert [len(p) for p in bus.predictions("A", 0.0, 0.1)] == [1]  # never one's own
 
 

@@ -39,6 +39,9 @@ from btmission.control.apf import ApfConfig, PotentialField, repulsive_force, sh
 from btmission.control.mav_model import world_to_yaw_frame, wrap_angle, yaw_frame_to_world
 
 CONTROLLERS = ("nmpc", "track")
+KEEP_RIGHT_M = 1.2
+"""A robot this close in front makes a ground robot keep to the right (NMPC)."""
+KEEP_RIGHT_OFFSET_M = 0.5
 SETTLED_M_S = 0.5
 """A vehicle slower than this counts as stopped at its goal."""
 CARROT_WINDOW = 8
@@ -267,9 +270,10 @@ class Navigator:
         elif controller == "nmpc":
             from btmission.control.unicycle_nmpc import UnicycleConfig, UnicycleNmpc
 
-            # forward only: with the heading free (q_heading = 0) the optimiser may otherwise
-            # settle on reversing the whole way at v_min rather than turning round
-            self._uni = UnicycleNmpc(UnicycleConfig(v_min=0.0))
+            # forward only, and a heading reference towards the way-point: with the heading
+            # free (q_heading = 0) the optimiser reverses the whole way at v_min, or — forward
+            # only, way-point straight behind — sits at the symmetric stationary point u = 0
+            self._uni = UnicycleNmpc(UnicycleConfig(v_min=0.0, q_heading=0.5))
         else:  # the tracking controller steers through the APF (small robot: smaller radii)
             self._apf = PotentialField(
                 ApfConfig(gain=(g, g, 0.0), r_influence_m=0.8, r_critical_m=0.3)
@@ -582,6 +586,25 @@ class Navigator:
             return
         self._drive(now, tel, c[:2])
 
+    def _keep_right(
+        self, x: FloatArray, goal: FloatArray, shared: Sequence[FloatArray]
+    ) -> FloatArray:
+        """The NMPC's way-point, moved to the right of the way ahead while another robot is
+        close in front: the set-exclusion constraints (eq. 12) stop two robots meeting head-on
+        in an aisle, each waiting for the other; a common side lets them pass."""
+        d = goal - x[:2]
+        dist = float(np.hypot(*d))
+        if dist < 1e-6:
+            return goal
+        ahead = d / dist
+        for other in shared:
+            rel = other[0, :2] - x[:2]
+            r = float(np.hypot(*rel))
+            if r < KEEP_RIGHT_M and float(rel @ ahead) > 0.5 * r:
+                right = np.array([ahead[1], -ahead[0]])
+                return goal + KEEP_RIGHT_OFFSET_M * right
+        return goal
+
     def _drive(self, now: float, tel: Telemetry, goal: FloatArray | None) -> None:
         """[u_v, u_ω] towards ``goal`` (None: stop), streamed as a velocity setpoint."""
         psi = tel.yaw
@@ -595,8 +618,10 @@ class Navigator:
                     o[:n] if len(o) >= n else np.vstack([o, np.repeat(o[-1:], n - len(o), axis=0)])
                     for o in shared[: cfg.max_agents]
                 ]
-                target = x[:2] if goal is None else goal
-                res = self._uni.solve(x, target, others)
+                target = x[:2] if goal is None else self._keep_right(x, goal, shared)
+                d = target - x[:2]
+                heading = math.atan2(d[1], d[0]) if float(np.hypot(*d)) > 0.05 else x[2]
+                res = self._uni.solve(x, np.array([target[0], target[1], heading]), others)
                 self.solve_times.append(res.solve_time_s)
                 self._uni_u = res.u
                 self.prediction = res.predicted_positions
