@@ -18,7 +18,7 @@ from btmission.runtime.navigation import Polyline
 from btmission.runtime.paths import PathCosts, inflate
 from btmission.runtime.runner import MissionRun
 from btmission.spec.mission import load_mission_text
-from btmission.world.minegen import generate_mine, warehouse_world
+from btmission.world.minegen import warehouse_world
 from btmission.world.voxel import OCCUPIED, MapError, VoxelMap
 
 
