@@ -135,8 +135,14 @@ def run_cmd(
     finally:
         signal.signal(signal.SIGINT, previous)
         log.close()
-    rep = report_from_log(log_path)
-    click.echo(format_report(rep))
+    rep = report_from_log(log_path)  # the report comes from the log alone
+    if not quiet:
+        click.echo(
+            f"{result.reason}: {result.time_s:.1f} s simulated in {result.wall_s:.1f} s "
+            f"({result.speedup:.0f}× real time)",
+            err=True,
+        )
+    click.echo(f"log: {log_path}", err=True)
     if not no_png:
         try:
             pngs = _write_pngs(rep, log_dir, log_path.stem)
@@ -145,13 +151,7 @@ def run_cmd(
         else:
             for p in pngs:
                 click.echo(f"wrote {p}", err=True)
-    click.echo(f"log: {log_path}", err=True)
-    if not quiet:
-        click.echo(
-            f"{result.reason}: {result.time_s:.1f} s simulated in {result.wall_s:.1f} s "
-            f"({result.speedup:.0f}× real time)",
-            err=True,
-        )
+    click.echo(format_report(rep))
     if result.reason == "interrupted":
         sys.exit(EXIT_INTERRUPTED)
     if result.open:

@@ -24,6 +24,7 @@ because others look cheaper. Tasks it cannot do (its library lacks the goal) or 
 
 from __future__ import annotations
 
+import ast
 import math
 from collections import OrderedDict
 from collections.abc import Collection, Mapping, Sequence
@@ -42,7 +43,11 @@ Point = tuple[float, float, float]
 
 @runtime_checkable
 class CostProvider(Protocol):
-    """Path costs for bids. Implemented by :class:`StraightLine` and by the D*+ planner."""
+    """Path costs for bids. Implemented by :class:`StraightLine` and by the D*+ planner.
+
+    A provider may also offer ``path_costs(start, goals) -> array``, the costs from one start to
+    many goals in one call (the runtime's D*+ fields answer it with one lookup per goal); the
+    bidder then uses it for every task type whose cost is exactly ``path_cost(field)``."""
 
     def path_cost(self, start: Point, goal: Point) -> float:
         """Cost of the best path from ``start`` to ``goal``; ``math.inf`` if there is none."""
@@ -73,6 +78,30 @@ def k_bt(agent: AgentState, task_id: str) -> float:
     """The behaviour-tree factor of eq. 8-10: 0 for the current task after its commit point,
     else 1."""
     return 0.0 if agent.committed and task_id == agent.task else 1.0
+
+
+def _single_path_cost(tt: TaskType) -> str | None:
+    """The task field ``X`` when the type's cost is exactly ``path_cost(X)`` (eq. 9's Γ1): such
+    bids can be computed for all tasks of the type at once by a provider's ``path_costs``."""
+    cached = _SINGLE.get(tt.cost.text, _MISSING)
+    if cached is not _MISSING:
+        return cached  # type: ignore[return-value]
+    body = tt.cost.tree.body
+    field = None
+    if (
+        isinstance(body, ast.Call)
+        and isinstance(body.func, ast.Name)
+        and body.func.id == "path_cost"
+        and len(body.args) == 1
+        and isinstance(body.args[0], ast.Name)
+    ):
+        field = body.args[0].id
+    _SINGLE[tt.cost.text] = field
+    return field
+
+
+_MISSING = object()
+_SINGLE: dict[str, object] = {}
 
 
 class BidError(ValueError):
@@ -189,10 +218,23 @@ class Bidder:
             if agent.task is not None and agent.task in announcement.index:
                 out[announcement.index[agent.task]] = 0.0  # f_cost · k_bt with k_bt = 0
             return out
+        batch = getattr(self.provider, "path_costs", None)
+        direct: dict[str, list[int]] = {}
         for j, t in enumerate(tasks):
+            tt = self.task_types.get(t.type)
+            if batch is not None and tt is not None and _single_path_cost(tt) is not None:
+                direct.setdefault(t.type, []).append(j)  # evaluated together below
+                continue
             out[j] = self.f_cost(t, agent) * k_bt(agent, t.id)
-            if self.switch_cost and agent.task is not None and t.id != agent.task:
-                out[j] += self.switch_cost
+        for ttype, rows in direct.items():
+            field = _single_path_cost(self.task_types[ttype])
+            assert field is not None and batch is not None
+            goals = [_point(tasks[j], tasks[j].fields.get(field)) for j in rows]
+            out[rows] = np.asarray(batch(agent.position, goals), dtype=np.float64)
+        # k_bt = 1 on every task here: an agent past its commit point returned above (eq. 8)
+        if self.switch_cost and agent.task is not None:
+            others = np.array([t.id != agent.task for t in tasks])
+            out[others] += self.switch_cost
         k = participation_k(self.participation, len(tasks))
         if k < len(tasks):
             keep = announcement.index.get(agent.task, -1) if agent.task is not None else -1

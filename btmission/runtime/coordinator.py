@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import queue
+import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -78,7 +79,9 @@ class Coordinator:
         self._history_len: dict[str, int] = {}
         self.statuses: dict[str, AgentStatus] = {}
         self.rounds: list[float] = []
-        """Wall time (s) of each round."""
+        """Wall time (s) of each round (announce, bids, allocation, publication)."""
+        self.bid_times: list[float] = []
+        """Wall time (s) of each round's bidding stage (every agent's bid, in this process)."""
         self.last: RoundResult | None = None
         self._last_assignments: dict[str, str] = {}
 
@@ -180,7 +183,9 @@ class Coordinator:
         )
 
     def _collect(self, ann: Announcement, now: float) -> Inbox:
-        self.bus.announce(ann)
+        t0 = time.perf_counter()
+        self.bus.announce(ann)  # in one process, every agent computes its bid right here
+        self.bid_times.append(time.perf_counter() - t0)
         inbox = self.bus.drain()
         for s in inbox.statuses:
             self.statuses[s.agent] = s

@@ -171,8 +171,16 @@ class PathCosts:
         return float(entry.length[s])
 
     def path_costs(self, start: Point, goals: Sequence[Point]) -> npt.NDArray[np.float64]:
-        """:meth:`path_cost` to each of ``goals``."""
-        return np.array([self.path_cost(start, g) for g in goals], dtype=np.float64)
+        """:meth:`path_cost` to each of ``goals`` (the start's voxel is found once)."""
+        out = np.full(len(goals), np.inf)
+        s = self._start(start)
+        if s < 0:
+            return out
+        for i, g in enumerate(goals):
+            entry = self._goal(g)
+            if entry is not None:
+                out[i] = entry.length[s]
+        return out
 
     def route(self, start: Point, goal: Point) -> Route | None:
         """The D*+ path from ``start`` to ``goal`` (None if there is none)."""
