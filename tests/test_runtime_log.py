@@ -166,10 +166,9 @@ def test_report_pngs(tmp_path: Path) -> None:
         assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_a_killed_run_leaves_a_log_the_report_reads(tmp_path: Path) -> None:
-    """Kill ``btmission run`` mid-mission (SIGKILL: no cleanup at all); the report computes."""
-    logs = tmp_path / "logs"
-    proc = subprocess.Popen(
+def _start_run(logs: Path, cwd: Path, *extra: str, **popen: object) -> subprocess.Popen[str]:
+    """``btmission run missions/pick_and_deliver.yaml`` in a subprocess, paced to the wall clock."""
+    return subprocess.Popen(  # type: ignore[call-overload, no-any-return]
         [
             sys.executable,
             "-m",
@@ -182,24 +181,32 @@ def test_a_killed_run_leaves_a_log_the_report_reads(tmp_path: Path) -> None:
             "--realtime",
             "--controller",
             "track",
+            *extra,
         ],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        cwd=tmp_path,
+        cwd=cwd,
+        text=True,
+        **popen,
     )
+
+
+def _wait_for_poses(logs: Path, timeout_s: float = 60.0) -> Path | None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        found = list(logs.glob("*.jsonl")) if logs.exists() else []
+        if found and '"ev":"pose"' in found[0].read_text():
+            return found[0]
+        time.sleep(0.2)
+    return None
+
+
+def test_a_killed_run_leaves_a_log_the_report_reads(tmp_path: Path) -> None:
+    """Kill ``btmission run`` mid-mission (SIGKILL: no cleanup at all); the report computes."""
+    logs = tmp_path / "logs"
+    proc = _start_run(logs, tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        deadline = time.monotonic() + 60
-        log = None
-        while time.monotonic() < deadline:
-            found = list(logs.glob("*.jsonl")) if logs.exists() else []
-            if found and any(
-                '"ev":"pose"' in line for line in found[0].read_text().splitlines()[-3:]
-            ):
-                log = found[0]
-                time.sleep(3.0)  # let it run a few (real-time) seconds
-                break
-            time.sleep(0.2)
+        log = _wait_for_poses(logs)
         assert log is not None, "the run never started logging"
+        time.sleep(3.0)  # let it run a few (real-time) seconds
     finally:
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait()
@@ -207,3 +214,19 @@ def test_a_killed_run_leaves_a_log_the_report_reads(tmp_path: Path) -> None:
     assert rep.summary.end == "log ends" and rep.summary.duration_s > 1.0
     assert {r.task for r in rep.rows} >= {"P1"}
     assert any(r.agent == "G1" for r in rep.rows)
+
+
+def test_ctrl_c_ends_the_run_cleanly_with_the_report(tmp_path: Path) -> None:
+    """SIGINT (Ctrl-C): exit 130, the log ends with an 'interrupted' end event, and the report of
+    what happened so far is printed."""
+    logs = tmp_path / "logs"
+    proc = _start_run(logs, tmp_path, "--no-png", stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert _wait_for_poses(logs) is not None
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "Tasks (seed 000 Table III)" in out and "ended: interrupted" in out
+    log = next(logs.glob("*.jsonl"))
+    last = json.loads(log.read_text().splitlines()[-1])
+    assert last["ev"] == "end" and last["reason"] == "interrupted"

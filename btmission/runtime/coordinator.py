@@ -39,16 +39,13 @@ class TaskError(ValueError):
     """A task given to :meth:`Coordinator.add_task` cannot be used (the message says why)."""
 
 
-class _FnClock:
-    """The loop's clock, reading the runtime's time (the loop never sleeps here)."""
+class _Now:
+    """The auction loop's clock from a ``now()`` function (the runner steps time itself)."""
 
     def __init__(self, now: Callable[[], float]) -> None:
-        self._now = now
+        self.now = now
 
-    def now(self) -> float:
-        return self._now()
-
-    def sleep_until(self, t: float) -> None:  # pragma: no cover - the runtime steps time itself
+    def sleep_until(self, t: float) -> None:  # pragma: no cover - never called: rounds are stepped
         pass
 
 
@@ -70,7 +67,7 @@ class Coordinator:
         self._check = check_location
         cfg = AuctionConfig.from_spec(mission.spec.coordination)
         state = AuctionState(cfg, pool_from_mission(mission))
-        self.loop = AuctionLoop(state, _FnClock(clock), self._collect, self._publish)
+        self.loop = AuctionLoop(state, _Now(clock), self._collect, self._publish)
         self.period_s = self.loop.period_s
         self.next_round = 0.0
         self._pending: queue.SimpleQueue[tuple[TaskInfo, str]] = queue.SimpleQueue()

@@ -42,6 +42,8 @@ CONTROLLERS = ("nmpc", "track")
 KEEP_RIGHT_M = 1.2
 """A robot this close in front makes a ground robot keep to the right (NMPC)."""
 KEEP_RIGHT_OFFSET_M = 0.5
+PROGRESS_M = 0.1
+"""Progress along a route counts when the distance left shrinks by this much."""
 SETTLED_M_S = 0.5
 """A vehicle slower than this counts as stopped at its goal."""
 CARROT_WINDOW = 8
@@ -478,29 +480,39 @@ class Navigator:
             force = force + 0.5 * float(np.linalg.norm(force)) * right
         return force
 
+    def _route_step(
+        self, now: float, tel: Telemetry, cmd: _Follow
+    ) -> tuple[str, FloatArray, float]:
+        """Where a route stands — ``arrived`` (stopped at the target), ``stuck`` (no progress for
+        ``stuck_s``) or ``go`` — with the carrot and the arc length of the closest point."""
+        cfg = self.config
+        cmd.seg, arc = cmd.route.project(tel.position, cmd.seg)
+        left = cmd.route.length - arc
+        if left < cmd.best_left - PROGRESS_M:
+            cmd.best_left = left
+            cmd.progress_t = now
+        if self.at(cmd.target, tel):
+            self._finish(True)
+            return "arrived", cmd.target, arc
+        if now - cmd.progress_t > cfg.stuck_s:
+            self._finish(False, f"no progress along the route for {cfg.stuck_s:g} s")
+            return "stuck", tel.position, arc
+        return "go", cmd.route.at(arc + cfg.lookahead_m), arc
+
     def _follow_reference(
         self, now: float, tel: Telemetry, cmd: _Follow
     ) -> tuple[FloatArray, FloatArray, float | None, float]:
         p = tel.position
         cfg = self.config
-        cmd.seg, arc = cmd.route.project(p, cmd.seg)
-        c = cmd.route.at(arc + cfg.lookahead_m)
-        left = cmd.route.length - arc
-        if left < cmd.best_left - 0.1:
-            cmd.best_left = left
-            cmd.progress_t = now
-        if self.at(cmd.target, tel):
-            self._finish(True)
-            hold = self.flight_target(cmd.target)
-            if cmd.ground_goal:
-                hold = p.copy()
+        state, c, arc = self._route_step(now, tel, cmd)
+        if state != "go":
+            hold = p.copy()
+            if state == "arrived" and not cmd.ground_goal:
+                hold = self.flight_target(cmd.target)
             self._cmd = _Hold(hold)
             return hold, np.zeros(3), None, 0.0
-        if now - cmd.progress_t > cfg.stuck_s:
-            self._finish(False, f"no progress along the route for {cfg.stuck_s:g} s")
-            self._cmd = _Hold(p.copy())
-            return p.copy(), np.zeros(3), None, 0.0
         goal = c
+        left = cmd.route.length - arc
         if cmd.ground_goal and left < cfg.lookahead_m:
             goal = self.flight_target(cmd.target)
         ref, vel, _, repulsion = self._apf_reference(tel, goal, cfg.speed_m_s)
@@ -560,7 +572,6 @@ class Navigator:
     def _step_ground(self, now: float, tel: Telemetry) -> None:
         cmd = self._cmd
         p = tel.position
-        cfg = self.config
         if isinstance(cmd, (_Hold, _Land, _Takeoff)):
             self._drive(now, tel, None)
             return
@@ -568,19 +579,8 @@ class Navigator:
             self._drive(now, tel, cmd.waypoint[:2])
             return
         assert isinstance(cmd, _Follow)
-        cmd.seg, arc = cmd.route.project(p, cmd.seg)
-        c = cmd.route.at(arc + cfg.lookahead_m)
-        left = cmd.route.length - arc
-        if left < cmd.best_left - 0.05:
-            cmd.best_left = left
-            cmd.progress_t = now
-        if self.at(cmd.target, tel):
-            self._finish(True)
-            self._cmd = _Hold(p.copy())
-            self._drive(now, tel, None)
-            return
-        if now - cmd.progress_t > cfg.stuck_s:
-            self._finish(False, f"no progress along the route for {cfg.stuck_s:g} s")
+        state, c, _ = self._route_step(now, tel, cmd)
+        if state != "go":
             self._cmd = _Hold(p.copy())
             self._drive(now, tel, None)
             return

@@ -35,6 +35,7 @@ from btmission.backends.sim import Artifact, SimConfig, Simulator
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
 from btmission.runtime.agent import Agent
 from btmission.runtime.bus import InMemoryBus
+from btmission.runtime.clock import Clock, SimClock
 from btmission.runtime.coordinator import Coordinator
 from btmission.runtime.events import LOG_FORMAT, LOG_VERSION, EventStream, Observer
 from btmission.runtime.navigation import SETTINGS_DOC, NavConfig, Navigator
@@ -160,6 +161,7 @@ class MissionRun:
             seed=seed,
             artifacts=[Artifact(a.label, a.position, a.size_m) for a in sim_spec.artifacts],
         )
+        self.clock: Clock = SimClock(self.sim)
         self.paths = PathCosts(
             self.map,
             RiskParams(rt.risk_radius_m, rt.unknown_cost),
@@ -267,7 +269,8 @@ class MissionRun:
 
     # ---------------------------------------------------------------- API
     def now(self) -> float:
-        return self.sim.time_s
+        """Mission time (s), from the clock (the simulator's)."""
+        return self.clock.now()
 
     def emit(self, kind: str, t: float | None = None, **data: Any) -> None:
         self.events.emit(self.now() if t is None else t, kind, **data)
