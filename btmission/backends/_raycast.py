@@ -1,4 +1,9 @@
-"""Compiled ray marching through a voxel grid (numba, cached), for the simulated depth camera."""
+# mypy: allow-untyped-defs
+"""Compiled ray marching through a voxel grid, for the simulated depth camera.
+
+numba in nopython mode (typed by numba, not annotated: like the planner's kernels); ``cache=True``
+stores the machine code next to this file, so only the first run on a machine compiles it.
+"""
 
 from __future__ import annotations
 
