@@ -41,12 +41,37 @@ T = TypeVar("T")
 
 
 class Implementations:
-    """A registry of action and condition implementations of one library, keyed by name."""
+    """A registry of action and condition implementations of one library, keyed by name.
 
-    def __init__(self, library: str) -> None:
+    ``vehicle`` is the kind of vehicle the library drives (``multirotor`` or ``ground``: the
+    simulator builds that model for its agents); ``settings`` are the names and default values
+    of the tunables its implementations read (a mission sets them under ``runtime.settings``).
+    Functions registered with :meth:`on_setup` run once per agent before its first tick (to put
+    initial variables such as ``home`` on its blackboard).
+    """
+
+    def __init__(
+        self,
+        library: str,
+        *,
+        vehicle: str = "multirotor",
+        settings: Mapping[str, float | str | bool] | None = None,
+    ) -> None:
+        if vehicle not in ("multirotor", "ground"):
+            raise ValueError(
+                f"{library}: vehicle must be 'multirotor' or 'ground', got '{vehicle}'"
+            )
         self.library = library
+        self.vehicle = vehicle
+        self.settings: dict[str, float | str | bool] = dict(settings or {})
         self.actions: dict[str, Any] = {}
         self.conditions: dict[str, Any] = {}
+        self.setup_hooks: list[Callable[[Any], None]] = []
+
+    def on_setup(self, fn: Callable[[Any], None]) -> Callable[[Any], None]:
+        """Decorator: ``fn(ctx)`` runs once per agent before its first tick."""
+        self.setup_hooks.append(fn)
+        return fn
 
     def _register(self, table: dict[str, Any], kind: str, name: str) -> Callable[[T], T]:
         def deco(obj: T) -> T:

@@ -385,3 +385,65 @@ def dispatch_dynamic_bench(
         run_dynamic_benchmark(
             sizes, runs, hours, budget, seed, out, echo=click.echo, on_run=lambda _: advance(1)
         )
+
+
+@bench.command("sim")
+@click.option(
+    "--controllers",
+    default="track,nmpc",
+    show_default=True,
+    help="Comma-separated controllers to run the mine mission with (track, nmpc).",
+)
+@click.option(
+    "--scale",
+    default="50x400",
+    show_default=True,
+    help="Comma-separated AGENTSxTASKS scaling points ('' for none).",
+)
+@click.option(
+    "-p",
+    "--participation",
+    default=0.3,
+    show_default=True,
+    type=click.FloatRange(0, 1, min_open=True),
+    help="Participation of the scaling runs (seed 003 Fig. 4: 0.3, 0.6, 0.9).",
+)
+@click.option(
+    "--duration",
+    default=30.0,
+    show_default=True,
+    type=click.FloatRange(min=0, min_open=True),
+    help="Simulated seconds of each scaling run.",
+)
+@click.option(
+    "--out",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=Path("benchmarks/results"),
+    show_default=True,
+    help="Directory for sim.md and sim.csv.",
+)
+def sim_bench(
+    controllers: str, scale: str, participation: float, duration: float, out: Path
+) -> None:
+    """Simulator speed: mine_inspection vs real time per controller (targets: track >= 50x,
+    nmpc >= 5x) and the seed 003 scaling point (round rate, bid time, wall time).
+
+    \b
+    Example (quick):
+      btmission bench sim --controllers track --scale 10x40 --duration 5 --out /tmp/results
+    """
+    from btmission.bench.sim import run_sim_benchmark
+
+    ctrls = [c.strip() for c in controllers.split(",") if c.strip()]
+    bad = [c for c in ctrls if c not in ("track", "nmpc")]
+    if bad:
+        raise click.BadParameter(
+            f"unknown controller(s) {', '.join(bad)}", param_hint="--controllers"
+        )
+    points: list[tuple[int, int, float]] = []
+    for item in (s.strip() for s in scale.split(",") if s.strip()):
+        a, sep, t = item.partition("x")
+        if not sep or not a.isdigit() or not t.isdigit() or int(a) < 1 or int(t) < 1:
+            raise click.BadParameter(f"expected AGENTSxTASKS, got '{item}'", param_hint="--scale")
+        points.append((int(a), int(t), participation))
+    run_sim_benchmark(ctrls, points, duration, out, click.echo)

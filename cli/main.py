@@ -16,6 +16,7 @@ from btmission.cli import (
     library_cmds,
     map_cmds,
     mission_cmds,
+    run_cmds,
     synth_cmds,
 )
 
@@ -52,6 +53,8 @@ cli.add_command(auction_cmds.auction)
 cli.add_command(map_cmds.map_group)
 cli.add_command(map_cmds.plan_cmd)
 cli.add_command(dispatch_cmds.dispatch)
+cli.add_command(run_cmds.run_cmd)
+cli.add_command(run_cmds.report_cmd)
 
 
 def main() -> None:

@@ -1,16 +1,64 @@
 """Implementations of the ``aerial`` capability library (spec: ``aerial.yaml``).
 
-The runtime issue binds these actions to a backend; until then the library is abstract: it
-synthesises, checks and exports, and ``IMPLEMENTATIONS`` is empty.
+A multirotor under PX4 offboard control (seed 000 Table I, Fig. 8 and 9): every leaf goes through
+the agent's context — the autopilot backend, the D*+ path service and the navigator (NMPC or
+tracking controller with APF) — following the request-and-poll pattern of
+:class:`~btmission.runtime.leaves.StatefulAction`.
+
+Settings (``runtime.settings`` of a mission): the navigator's (``speed_m_s``, ``altitude_m``,
+``tolerance_m``…).
 """
 
 from __future__ import annotations
 
+import math
 from importlib.resources import files
 
+from py_trees.common import Status
+
 from btmission.plugins import Implementations
+from btmission.runtime import actions as A
+from btmission.runtime.leaves import AgentContext, StatefulAction
 
 SPEC = files(__package__).joinpath("aerial.yaml")
 """The library file; the ``btmission.libraries`` entry point ``aerial`` points here."""
 
-IMPLEMENTATIONS = Implementations("aerial")
+IMPLEMENTATIONS = Implementations("aerial", vehicle="multirotor")
+
+
+@IMPLEMENTATIONS.condition("has_home")
+def has_home(ctx: AgentContext) -> bool:
+    return "home" in ctx.blackboard
+
+
+@IMPLEMENTATIONS.condition("landed_at_home")
+def landed_at_home(ctx: AgentContext) -> bool:
+    """On the ground with the motors off, at home (or where it started, if it never set one)."""
+    if not A.landed(ctx):
+        return False
+    home = ctx.blackboard.get("home", ctx.start)
+    p = ctx.telemetry().position
+    return math.hypot(p[0] - home[0], p[1] - home[1]) <= ctx.navigator.config.tolerance_m
+
+
+@IMPLEMENTATIONS.action("set_home")
+class SetHome(StatefulAction):
+    """Store the current position as home."""
+
+    def on_start(self) -> Status:
+        p = self.ctx.telemetry().position
+        self.ctx.blackboard.set("home", (float(p[0]), float(p[1]), float(p[2])))
+        return Status.SUCCESS
+
+
+IMPLEMENTATIONS.condition("is_armed")(A.is_armed)
+IMPLEMENTATIONS.condition("in_offboard")(A.in_offboard)
+IMPLEMENTATIONS.condition("is_flying")(A.is_flying)
+IMPLEMENTATIONS.condition("has_path")(A.has_path)
+IMPLEMENTATIONS.condition("at_goal")(A.at_goal)
+IMPLEMENTATIONS.action("arm")(A.Arm)
+IMPLEMENTATIONS.action("set_offboard")(A.SetOffboard)
+IMPLEMENTATIONS.action("takeoff")(A.Takeoff)
+IMPLEMENTATIONS.action("update_path")(A.UpdatePath)
+IMPLEMENTATIONS.action("follow_path")(A.FollowPath)
+IMPLEMENTATIONS.action("land")(A.Land)

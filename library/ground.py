@@ -1,16 +1,98 @@
 """Implementations of the ``ground`` capability library (spec: ``ground.yaml``).
 
-The runtime issue binds these actions to a backend; until then the library is abstract: it
-synthesises, checks and exports, and ``IMPLEMENTATIONS`` is empty.
+A TurtleBot-class robot (seed 003): D*+ paths, tracked by the unicycle NMPC with the other robots'
+shared predictions (eq. 11-12) or by pure pursuit; pick and place take a fixed time. The object
+picked up is recorded on the blackboard (``holding``), which is the commit condition of
+``pick_and_deliver`` tasks (k_bt = 0 once it holds, eq. 8-10).
+
+Settings (``runtime.settings`` of a mission): ``pick_time_s``, ``place_time_s`` and the
+navigator's (``speed_m_s``, ``tolerance_m``…), with defaults for a TurtleBot.
 """
 
 from __future__ import annotations
 
 from importlib.resources import files
+from typing import Any
+
+from py_trees.common import Status
 
 from btmission.plugins import Implementations
+from btmission.runtime import actions as A
+from btmission.runtime.leaves import AgentContext, StatefulAction
 
 SPEC = files(__package__).joinpath("ground.yaml")
 """The library file; the ``btmission.libraries`` entry point ``ground`` points here."""
 
-IMPLEMENTATIONS = Implementations("ground")
+IMPLEMENTATIONS = Implementations(
+    "ground",
+    vehicle="ground",
+    settings={
+        "pick_time_s": 2.0,
+        "place_time_s": 2.0,
+        # a TurtleBot: 0.4 m/s top speed, ~0.1 m radius, goals reached within 0.2 m
+        "speed_m_s": 0.4,
+        "tolerance_m": 0.2,
+        "clearance_m": 0.25,
+        "lookahead_m": 1.0,
+    },
+)
+
+
+@IMPLEMENTATIONS.on_setup
+def _home(ctx: AgentContext) -> None:
+    """The robot's home is where it starts (seed 003 Fig. 6a)."""
+    ctx.blackboard.set("home", ctx.start)
+
+
+@IMPLEMENTATIONS.condition("is_localized")
+def is_localized(ctx: AgentContext) -> bool:
+    return bool(ctx.blackboard.get("localized", False))
+
+
+@IMPLEMENTATIONS.condition("holding")
+def holding(ctx: AgentContext, pickup: Any) -> bool:
+    return bool(ctx.blackboard.get("holding") == A.point(pickup))
+
+
+@IMPLEMENTATIONS.condition("delivered")
+def delivered(ctx: AgentContext, pickup: Any, dropoff: Any) -> bool:
+    return (A.point(pickup), A.point(dropoff)) in ctx.blackboard.get("delivered", ())
+
+
+@IMPLEMENTATIONS.action("localize")
+class Localize(StatefulAction):
+    """The shared map's frame is the simulator's: localisation succeeds at once."""
+
+    def on_start(self) -> Status:
+        self.ctx.blackboard.set("localized", True)
+        return Status.SUCCESS
+
+
+@IMPLEMENTATIONS.action("pick")
+class Pick(A.Timed):
+    """Pick the object up (``pick_time_s``)."""
+
+    setting = "pick_time_s"
+
+    def finish(self) -> None:
+        self.ctx.blackboard.set("holding", A.point(self.args["pickup"]))
+
+
+@IMPLEMENTATIONS.action("place")
+class Place(A.Timed):
+    """Put the object down at the drop-off (``place_time_s``)."""
+
+    setting = "place_time_s"
+
+    def finish(self) -> None:
+        bb = self.ctx.blackboard
+        done = set(bb.get("delivered", ()))
+        done.add((A.point(self.args["pickup"]), A.point(self.args["dropoff"])))
+        bb.set("delivered", frozenset(done))
+        bb.unset("holding")
+
+
+IMPLEMENTATIONS.condition("has_path")(A.has_path)
+IMPLEMENTATIONS.condition("at_goal")(A.at_goal)
+IMPLEMENTATIONS.action("update_path")(A.UpdatePath)
+IMPLEMENTATIONS.action("drive_path")(A.FollowPath)

@@ -80,6 +80,53 @@ def test_k_bt_zero_after_the_commit_point() -> None:
     assert np.isnan(b.costs(announcement(I1), busy)).all()
 
 
+def test_switch_cost_is_added_to_other_tasks_only_while_busy() -> None:
+    m = load_mission(PICK)
+    ann = announcement(P1, I1, I2)
+    at = (1.0, 1.0, 0.0)
+    plain = Bidder(m.task_types).costs(ann, AgentState("G1", at, task="I1"))
+    sticky = Bidder(m.task_types, switch_cost=5.0)
+    np.testing.assert_allclose(
+        sticky.costs(ann, AgentState("G1", at, task="I1")), plain + np.array([5.0, 0.0, 5.0])
+    )
+    np.testing.assert_allclose(sticky.costs(ann, AgentState("G1", at)), plain)  # idle: no cost
+    with pytest.raises(ValueError, match="switch_cost"):
+        Bidder(m.task_types, switch_cost=-1.0)
+
+
+@dataclass
+class BatchProvider:
+    """Answers single queries and batches; counts the batches."""
+
+    batches: int = 0
+
+    def path_cost(self, start: Point, goal: Point) -> float:
+        return 1.5 * math.dist(start, goal) + 1.0
+
+    def path_costs(self, start: Point, goals: list[Point]) -> np.ndarray:
+        self.batches += 1
+        return np.array([self.path_cost(start, g) for g in goals])
+
+
+def test_a_batch_provider_gives_the_same_bids() -> None:
+    """Types whose cost is exactly path_cost(field) go through path_costs in one call per
+    type; the others are evaluated task by task; the bids are the same either way."""
+    m = load_mission(PICK)
+    tasks = [P1, I1, I2, TaskInfo("I3", "inspect", {"location": [7, 7, 0]})]
+    ann = announcement(*tasks)
+
+    class Single:
+        def path_cost(self, start: Point, goal: Point) -> float:
+            return BatchProvider().path_cost(start, goal)
+
+    batch = BatchProvider()
+    for state in (AgentState("G1", (1.0, 2.0, 0.0)), AgentState("G1", (1.0, 2.0, 0.0), "I2")):
+        a = Bidder(m.task_types, Single(), switch_cost=2.0).costs(ann, state)
+        b = Bidder(m.task_types, batch, switch_cost=2.0).costs(ann, state)
+        np.testing.assert_allclose(a, b)
+    assert batch.batches == 2  # one call per round for the three inspections
+
+
 def test_participation_bids_on_the_k_cheapest_plus_the_current_task() -> None:
     m = load_mission(PICK)
     tasks = [TaskInfo(f"I{i}", "inspect", {"location": [float(i), 0, 0]}) for i in range(10)]

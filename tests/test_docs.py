@@ -32,7 +32,7 @@ PAGES = sorted(DOCS.glob("*.md"))
 
 _EXIT = re.compile(r"\s+#\s*exit\s+(\d+)\s*$")
 _FENCE = re.compile(r"^\s*(```+|~~~+)\s*([\w+-]*)")
-_OUTPUT_OPTIONS = ("-o", "--output", "--out")
+_OUTPUT_OPTIONS = ("-o", "--output", "--out", "--log", "--png")
 _SCAFFOLD_DIR = re.compile(r"^btmission-([a-z0-9-]+)(/|$)")
 
 
@@ -110,7 +110,9 @@ def _rewrite_outputs(args: list[str], tmp_path: Path) -> list[str]:
             out += [arg, str(tmp_path / Path(args[i + 1]).name)]
             i += 2
             continue
-        assert not arg.startswith(("--output=", "--out=")), "write '-o PATH' in the docs"
+        assert not arg.startswith(("--output=", "--out=", "--log=", "--png=")), (
+            "write '-o PATH' in the docs"
+        )
         assert not (arg.startswith("-o") and len(arg) > 2), "write '-o PATH' in the docs"
         out.append(arg)
         i += 1

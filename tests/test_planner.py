@@ -66,6 +66,37 @@ def test_one_to_all_equals_scipy_and_reference(data: st.DataObject) -> None:
     assert np.all(np.isinf(field.cost[vm.state == OCCUPIED]))
 
 
+@SETTINGS
+@given(st.data())
+def test_reverse_one_to_all_is_the_cost_to_the_root(data: st.DataObject) -> None:
+    """``one_to_all(goal, reverse=True)`` = scipy's Dijkstra on the transposed graph, and each
+    path it gives runs from the point to the goal at exactly the field's cost."""
+    vm = data.draw(random_maps())
+    cm = CostMap(vm, _params(data.draw))
+    free = _enterable(vm)
+    if len(free) == 0:
+        return
+    g = tuple(int(v) for v in free[data.draw(st.integers(0, len(free) - 1))])
+    field = Planner(cm).one_to_all(vm.index_to_world(g), reverse=True)
+    graph, flat = grid_graph(cm)
+    node = int(np.flatnonzero(flat == vm.flat(g))[0])
+    expect = np.full(vm.size, np.inf)
+    expect[flat] = dijkstra(graph.T.tocsr(), indices=node)
+    np.testing.assert_allclose(field.cost.ravel(), expect, rtol=1e-9, atol=1e-9)
+    p = tuple(int(v) for v in free[data.draw(st.integers(0, len(free) - 1))])
+    path = field.path_to(vm.index_to_world(p))
+    if not np.isfinite(field.cost[p]):
+        assert len(path) == 0
+        return
+    np.testing.assert_allclose(path[0], vm.index_to_world(p))
+    np.testing.assert_allclose(path[-1], vm.index_to_world(g))
+    idx = vm.world_to_index(path)
+    steps = np.linalg.norm(np.diff(path, axis=0), axis=1)
+    entered = cm.voxel_cost[idx[1:, 0], idx[1:, 1], idx[1:, 2]]  # c_r + c_u of entered voxels
+    assert field.cost[p] == pytest.approx(float(np.sum(steps + entered)), rel=1e-9, abs=1e-9)
+    assert field.length_m[p] == pytest.approx(float(steps.sum()), rel=1e-9, abs=1e-9)
+
+
 def test_cost_field_survives_later_searches() -> None:
     vm = _corridor(width=5, length=12, height=3)
     planner = Planner(CostMap(vm))

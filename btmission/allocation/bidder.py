@@ -12,6 +12,10 @@ default; the D*+ planner provides risk-aware path costs through the same interfa
 task's commit condition holds (e.g. ``holding(pickup)``). An agent past a commit point bids
 only on that task: it keeps it (the auctioneer also pins it) and takes part in nothing else.
 
+**Switch cost** (``coordination.switch_cost``, 0 by default as in the paper): an agent that is
+executing a task adds it to its bids on every other task, so two agents whose bids differ by
+less than that no longer trade tasks back and forth as they move.
+
 **Participation** (seed 003 §IV-B): an agent bids only on its ``ceil(participation · n)``
 cheapest announced tasks — plus the task it is executing, so it never drops its own task just
 because others look cheaper. Tasks it cannot do (its library lacks the goal) or cannot reach
@@ -20,6 +24,7 @@ because others look cheaper. Tasks it cannot do (its library lacks the goal) or 
 
 from __future__ import annotations
 
+import ast
 import math
 from collections import OrderedDict
 from collections.abc import Collection, Mapping, Sequence
@@ -38,7 +43,11 @@ Point = tuple[float, float, float]
 
 @runtime_checkable
 class CostProvider(Protocol):
-    """Path costs for bids. Implemented by :class:`StraightLine` and by the D*+ planner."""
+    """Path costs for bids. Implemented by :class:`StraightLine` and by the D*+ planner.
+
+    A provider may also offer ``path_costs(start, goals) -> array``, the costs from one start to
+    many goals in one call (the runtime's D*+ fields answer it with one lookup per goal); the
+    bidder then uses it for every task type whose cost is exactly ``path_cost(field)``."""
 
     def path_cost(self, start: Point, goal: Point) -> float:
         """Cost of the best path from ``start`` to ``goal``; ``math.inf`` if there is none."""
@@ -69,6 +78,30 @@ def k_bt(agent: AgentState, task_id: str) -> float:
     """The behaviour-tree factor of eq. 8-10: 0 for the current task after its commit point,
     else 1."""
     return 0.0 if agent.committed and task_id == agent.task else 1.0
+
+
+def _single_path_cost(tt: TaskType) -> str | None:
+    """The task field ``X`` when the type's cost is exactly ``path_cost(X)`` (eq. 9's Γ1): such
+    bids can be computed for all tasks of the type at once by a provider's ``path_costs``."""
+    cached = _SINGLE.get(tt.cost.text, _MISSING)
+    if cached is not _MISSING:
+        return cached  # type: ignore[return-value]
+    body = tt.cost.tree.body
+    field = None
+    if (
+        isinstance(body, ast.Call)
+        and isinstance(body.func, ast.Name)
+        and body.func.id == "path_cost"
+        and len(body.args) == 1
+        and isinstance(body.args[0], ast.Name)
+    ):
+        field = body.args[0].id
+    _SINGLE[tt.cost.text] = field
+    return field
+
+
+_MISSING = object()
+_SINGLE: dict[str, object] = {}
 
 
 class BidError(ValueError):
@@ -102,9 +135,13 @@ class Bidder:
         participation: float = 1.0,
         *,
         cache_size: int = 4096,
+        switch_cost: float = 0.0,
     ):
         if not 0 < participation <= 1:
             raise ValueError(f"participation must be in (0, 1], got {participation}")
+        if not (switch_cost >= 0 and math.isfinite(switch_cost)):
+            raise ValueError(f"switch_cost must be ≥ 0, got {switch_cost}")
+        self.switch_cost = switch_cost
         self.task_types = dict(task_types)
         self.provider: CostProvider = provider if provider is not None else StraightLine()
         self.participation = participation
@@ -130,7 +167,8 @@ class Bidder:
             for name, tt in mission.task_types.items()
             if can_do(lib, tt.goals) is None and (types is None or name in types)
         }
-        return cls(doable, provider, mission.spec.coordination.participation)
+        coord = mission.spec.coordination
+        return cls(doable, provider, coord.participation, switch_cost=coord.switch_cost)
 
     def _static_cost(self, a: Point, b: Point) -> float:
         key = (a, b)
@@ -180,8 +218,23 @@ class Bidder:
             if agent.task is not None and agent.task in announcement.index:
                 out[announcement.index[agent.task]] = 0.0  # f_cost · k_bt with k_bt = 0
             return out
+        batch = getattr(self.provider, "path_costs", None)
+        direct: dict[str, list[int]] = {}
         for j, t in enumerate(tasks):
+            tt = self.task_types.get(t.type)
+            if batch is not None and tt is not None and _single_path_cost(tt) is not None:
+                direct.setdefault(t.type, []).append(j)  # evaluated together below
+                continue
             out[j] = self.f_cost(t, agent) * k_bt(agent, t.id)
+        for ttype, rows in direct.items():
+            field = _single_path_cost(self.task_types[ttype])
+            assert field is not None and batch is not None
+            goals = [_point(tasks[j], tasks[j].fields.get(field)) for j in rows]
+            out[rows] = np.asarray(batch(agent.position, goals), dtype=np.float64)
+        # k_bt = 1 on every task here: an agent past its commit point returned above (eq. 8)
+        if self.switch_cost and agent.task is not None:
+            others = np.array([t.id != agent.task for t in tasks])
+            out[others] += self.switch_cost
         k = participation_k(self.participation, len(tasks))
         if k < len(tasks):
             keep = announcement.index.get(agent.task, -1) if agent.task is not None else -1

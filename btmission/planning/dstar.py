@@ -70,6 +70,11 @@ class PlanResult:
 class CostField:
     """One-to-all result: optimal cost and path length (m) from the start to every voxel.
 
+    A *reverse* field (``Planner.one_to_all(goal, reverse=True)``) holds the cost and length of
+    the optimal path from every voxel *to* its root instead: the cost-to-goal field D* keeps.
+    :meth:`at` then answers "how far from here to the goal" and :meth:`path_to` gives the path
+    from the point to the goal.
+
     :meth:`at` and :meth:`path_to` answer single voxels; :attr:`cost` and :attr:`length_m` build
     full arrays of the map's shape on first use (``inf`` where unreachable and in rock).
 
@@ -85,9 +90,12 @@ class CostField:
         run: int,
         reached: int,
         expanded: int,
+        reverse: bool = False,
     ):
         self._planner = planner
         self.start = start
+        self.reverse = reverse
+        """True when the field holds costs *to* ``start`` (see the class docstring)."""
         self._run = run
         self.reached = reached
         """Number of voxels with a finite cost."""
@@ -118,6 +126,10 @@ class CostField:
                 full[self._ids] = self._g if name == "cost" else self._length
             self._full[name] = full.reshape(cm.padded.shape)[1:-1, 1:-1, 1:-1]
         return self._full[name]
+
+    def drop_dense(self) -> None:
+        """Forget the full arrays built by :attr:`cost` / :attr:`length_m` (memory)."""
+        self._full.clear()
 
     @property
     def cost(self) -> npt.NDArray[np.float64]:
@@ -154,7 +166,8 @@ class CostField:
         return (np.inf, np.inf) if k is None else (float(self._g[k]), float(self._length[k]))
 
     def path_to(self, point: Point) -> npt.NDArray[np.float64]:
-        """World path (voxel centres) from the start to ``point`` ((0, 3) if unreachable)."""
+        """World path (voxel centres) from the start to ``point`` ((0, 3) if unreachable); for a
+        reverse field, from ``point`` to the root."""
         from btmission.planning import _kernels as K
 
         cm = self._planner.cost_map
@@ -172,6 +185,8 @@ class CostField:
                 p = int(self._parent[k])
                 k = self._slot(p) if p >= 0 else None
             flat = np.asarray(chain[::-1], dtype=np.int64)
+        if self.reverse:  # parents point toward the root: the chain runs point → root
+            flat = flat[::-1]
         return cm.map.index_to_world(cm.unpad_index(flat))
 
 
@@ -370,18 +385,23 @@ class Planner:
         path = self.cost_map.map.index_to_world(vox) if len(flat) else np.zeros((0, 3))
         return PlanResult(path, vox, cost, length, expanded, sp, tp, warnings)
 
-    def one_to_all(self, start: Point | Sequence[Point], *, snap: bool = False) -> CostField:
+    def one_to_all(
+        self, start: Point | Sequence[Point], *, snap: bool = False, reverse: bool = False
+    ) -> CostField:
         """Optimal cost and path length from ``start`` to every voxel (Dijkstra over the grid).
 
         ``start`` may also be a list of points: the field is then the cost from the nearest of them
-        (used to check that tasks are reachable from any agent).
+        (used to check that tasks are reachable from any agent). With ``reverse`` the edges are
+        walked backwards: the field holds the cost of the optimal path from every voxel *to*
+        ``start`` (eq. 4 charges the voxels a path enters, so the two directions differ) — one
+        search gives every agent's cost to one goal, wherever the agents are.
         """
         pts = np.asarray(start, dtype=np.float64)
         many = pts.ndim == 2
         srcs = [self.resolve(p, "start", snap=snap)[0] for p in (pts if many else [pts])]
-        expanded, reached = self._search(srcs, [], False)
+        expanded, reached = self._search(srcs, [], False, reverse=reverse)
         sp = tuple(float(v) for v in (pts[0] if many else pts))
-        field = CostField(self, (sp[0], sp[1], sp[2]), self._run, reached, expanded)
+        field = CostField(self, (sp[0], sp[1], sp[2]), self._run, reached, expanded, reverse)
         self._live = weakref.ref(field)
         return field
 

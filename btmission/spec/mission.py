@@ -38,8 +38,9 @@ class _Strict(BaseModel):
 class GeneratedMap(_Strict):
     """A procedurally generated map (the world-map component provides the generators)."""
 
-    generate: Literal["mine", "empty"] = Field(
-        description="Generator: an underground mine, or free space."
+    generate: Literal["mine", "empty", "warehouse"] = Field(
+        description="Generator: an underground mine, free space, or a warehouse floor with "
+        "rows of shelves."
     )
     seed: int = Field(0, description="Random seed; the same seed gives the same map.")
     size: tuple[float, float, float] = Field(description="Extent [x, y, z] in metres.")
@@ -133,6 +134,12 @@ class CoordinationSpec(_Strict):
     agent_timeout_s: float = Field(
         3.0, gt=0, description="Silence after which an agent is dropped."
     )
+    switch_cost: float = Field(
+        0.0,
+        ge=0,
+        description="Added to an agent's bids on tasks other than the one it executes "
+        "(hysteresis against swapping on near-equal bids; 0 = the paper's auction).",
+    )
 
 
 class DefaultBehaviorSpec(_Strict):
@@ -140,6 +147,58 @@ class DefaultBehaviorSpec(_Strict):
     idle_timeout_s: float = Field(
         10.0, ge=0, description="Idle time before the default behaviour runs."
     )
+
+
+class ArtifactSpec(_Strict):
+    """An object of interest the simulator places in the world (seed 002 §3.3.1)."""
+
+    label: Identifier = Field(description="Class of the object, e.g. survivor, backpack.")
+    position: Vec3
+    size_m: float = Field(0.5, gt=0, description="Width of the object in metres.")
+
+
+class SimSpec(_Strict):
+    """Settings of the embedded simulator (``btmission run``; ignored by other backends)."""
+
+    step_s: float = Field(0.05, gt=0, le=0.2, description="Fixed simulation time step (s).")
+    lidar_range_m: float = Field(
+        2.0,
+        gt=0,
+        description="Range of the simulated LiDAR (m); the APF only uses points within 1.6 m.",
+    )
+    dust_points: int = Field(
+        0, ge=0, description="Dust outliers added to each LiDAR scan near the vehicle."
+    )
+    detection_noise_px: float = Field(
+        2.0, ge=0, description="Standard deviation of artifact detection boxes (pixels)."
+    )
+    artifacts: list[ArtifactSpec] = Field(
+        default_factory=list, description="Objects the simulated camera can detect (COMPRA)."
+    )
+
+
+class RuntimeSpec(_Strict):
+    """How ``btmission run`` executes the mission (all optional)."""
+
+    tick_hz: float = Field(10.0, gt=0, le=100, description="Behaviour-tree ticks per second.")
+    controller: Literal["nmpc", "track"] = Field(
+        "nmpc",
+        description="Path following: nmpc (seed 002/003 NMPC with APF) or track (lightweight "
+        "tracking controller, for large fleets).",
+    )
+    max_duration_s: float = Field(
+        3600.0, gt=0, description="The run stops at this mission time if it has not ended."
+    )
+    status_hz: float = Field(
+        2.0, gt=0, le=50, description="Agent status and pose events per second in the log."
+    )
+    risk_radius_m: float = Field(1.5, ge=0, description="D*+ risk radius r (eq. 3).")
+    unknown_cost: float = Field(10.0, ge=0, description="D*+ unknown-voxel cost c_u (eq. 4).")
+    settings: dict[Identifier, float | str | bool] = Field(
+        default_factory=dict,
+        description="Settings of the libraries' implementations, e.g. {speed_m_s: 1.5}.",
+    )
+    sim: SimSpec = SimSpec()
 
 
 class MissionSpec(_Strict):
@@ -154,6 +213,7 @@ class MissionSpec(_Strict):
     task_types: dict[Identifier, TaskTypeSpec]
     coordination: CoordinationSpec = CoordinationSpec()
     default_behavior: DefaultBehaviorSpec | None = None
+    runtime: RuntimeSpec = RuntimeSpec()
 
 
 # --------------------------------------------------------------------------------------------

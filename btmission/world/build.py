@@ -1,7 +1,8 @@
 """Build a mission's world (the ``world:`` key of a mission file) as a :class:`VoxelMap`.
 
 ``{generate: mine, seed, size}`` → :func:`~btmission.world.minegen.generate_mine`;
-``{generate: empty, size}`` → free space from the origin; ``{file: path}`` → a ``.npz``, ``.ply`` or
+``{generate: empty, size}`` → free space from the origin; ``{generate: warehouse, seed, size}``
+→ :func:`~btmission.world.minegen.warehouse_world` (shelves and aisles); ``{file: path}`` → a ``.npz``, ``.ply`` or
 ``.pcd`` map relative to the mission file (:func:`~btmission.world.io.load_map`), at the mission's
 ``resolution``.
 """
@@ -18,7 +19,7 @@ def world_from_spec(world_spec: Any, base_dir: str | Path = ".") -> VoxelMap:
     """The voxel map a mission's ``world`` describes. Raises :class:`MapError` when it cannot be
     built (unreadable file, size too small for a mine...)."""
     from btmission.world.io import load_map
-    from btmission.world.minegen import empty_world, generate_mine
+    from btmission.world.minegen import empty_world, generate_mine, warehouse_world
 
     spec = world_spec.map
     res = float(world_spec.resolution)
@@ -29,4 +30,6 @@ def world_from_spec(world_spec: Any, base_dir: str | Path = ".") -> VoxelMap:
         return generate_mine(spec.seed, spec.size, res).map
     if kind == "empty":
         return empty_world(spec.size, res)
-    raise MapError(f"unknown map generator '{kind}' (expected mine or empty)")
+    if kind == "warehouse":
+        return warehouse_world(spec.size, res, spec.seed)
+    raise MapError(f"unknown map generator '{kind}' (expected mine, empty or warehouse)")

@@ -447,3 +447,36 @@ def empty_world(size: Sequence[float], resolution: float) -> VoxelMap:
     vm = VoxelMap.empty(size, resolution)
     vm.meta = {"generator": "empty", "size": [float(v) for v in size]}
     return vm
+
+
+def warehouse_world(size: Sequence[float], resolution: float, seed: int = 0) -> VoxelMap:
+    """A warehouse floor like seed 003's lab (Fig. 1, Fig. 10): rows of shelves with aisles.
+
+    Shelves are 1 m deep, full height, in rows along x separated by 2 m aisles; each row is cut
+    into racks with 1.5 m cross-aisles between them (at seeded positions), and a 2.5 m open strip
+    runs along each wall (the docks and drop-off area). No floor, walls or roof: the map is the
+    free space the robots drive in, standing on z = 0. The same seed gives the same map.
+    """
+    x, y, _ = (float(v) for v in size)
+    if x < 8 or y < 8:
+        raise MapError(f"a warehouse needs at least 8 × 8 m, got {x:g} × {y:g}")
+    vm = VoxelMap.empty(size, resolution)
+    rng = np.random.default_rng(seed)
+    margin, depth, aisle, cross = 2.5, 1.0, 2.0, 1.5
+
+    def cells(lo: float, hi: float, n: int) -> slice:
+        return slice(max(0, round(lo / resolution)), min(n, round(hi / resolution)))
+
+    nx, ny, _ = vm.shape
+    y0 = margin
+    while y0 + depth <= y - margin:
+        x0 = margin
+        while x0 < x - margin:
+            length = float(rng.uniform(3.0, 6.0))
+            x1 = min(x0 + length, x - margin)
+            if x1 - x0 >= 1.0:
+                vm.state[cells(x0, x1, nx), cells(y0, y0 + depth, ny), :] = OCCUPIED
+            x0 = x1 + cross
+        y0 += depth + aisle
+    vm.meta = {"generator": "warehouse", "seed": seed, "size": [x, y, float(size[2])]}
+    return vm

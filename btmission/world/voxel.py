@@ -167,6 +167,23 @@ class VoxelMap:
             f"free {c['free']:,}, occupied {c['occupied']:,}, unknown {c['unknown']:,}"
         )
 
+    def ground_z(self, point: npt.ArrayLike) -> float:
+        """Height of the ground under ``point``: the top of the highest occupied voxel at or
+        below it in its column, or the map's bottom (``origin`` z) where there is none — a map
+        without a floor (a room, a warehouse) stands on z = origin."""
+        p = np.asarray(point, dtype=np.float64).ravel()
+        res = self.resolution
+        ix = int(np.floor((p[0] - self.origin[0]) / res))
+        iy = int(np.floor((p[1] - self.origin[1]) / res))
+        iz = int(np.floor((p[2] - self.origin[2]) / res))
+        nx, ny, nz = self.shape
+        if not (0 <= ix < nx and 0 <= iy < ny) or iz < 0:
+            return self.origin[2]
+        hits = np.flatnonzero(self.state[ix, iy, : min(iz, nz - 1) + 1] == OCCUPIED)
+        if len(hits) == 0:
+            return self.origin[2]
+        return self.origin[2] + (int(hits[-1]) + 1) * res
+
     def nearest_free(self, point: npt.ArrayLike, max_distance: float = np.inf) -> FloatArray | None:
         """Centre of the free voxel nearest to ``point`` (None if none within ``max_distance`` m).
 

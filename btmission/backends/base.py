@@ -1,0 +1,158 @@
+"""The interface between an agent and its vehicle: what PX4 offboard (or a ground robot) offers.
+
+An agent's leaves never touch a vehicle directly: they go through its :class:`Backend` — the
+embedded simulator (:mod:`btmission.backends.sim`) or, later, a MAVLink autopilot. The calls
+mirror PX4's offboard interface so that behaviour written against the simulator carries over
+(DESIGN.md §6, §8):
+
+* commands — :meth:`Backend.arm`, :meth:`Backend.disarm`, :meth:`Backend.set_mode`,
+  :meth:`Backend.takeoff`, :meth:`Backend.land` — are answered with an :class:`Ack`, like
+  MAVLink's COMMAND_ACK: accepted, or refused with the reason;
+* setpoints — position, velocity, or attitude + thrust (what the seed 002 NMPC outputs) — are
+  streamed, and OFFBOARD is only accepted once they have been streaming for a while; a vehicle
+  in OFFBOARD whose setpoints stop falls back to a failsafe mode;
+* :meth:`Backend.telemetry` returns pose, velocity, attitude, mode, armed state and battery.
+
+Exteroceptive sensors (LiDAR, depth camera, object detections) are a separate
+:class:`Sensors` interface: on a real robot they come from drivers, not from the autopilot.
+Positions are world-frame metres, z up; yaw is counter-clockwise from +x, in radians.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from btmission.control.compra import CameraIntrinsics, Detection
+
+FloatArray = NDArray[np.float64]
+Vec3 = tuple[float, float, float]
+
+
+class Mode(str, Enum):
+    """Flight modes, named after PX4's."""
+
+    MANUAL = "MANUAL"  # on the ground, nothing commanded (the power-on mode)
+    HOLD = "HOLD"  # hold position (PX4 AUTO.LOITER); the offboard-loss failsafe
+    TAKEOFF = "TAKEOFF"  # PX4 AUTO.TAKEOFF: climb to the commanded altitude, then HOLD
+    OFFBOARD = "OFFBOARD"  # follow the streamed setpoints
+    LAND = "LAND"  # PX4 AUTO.LAND: descend, touch down, disarm
+
+
+class VehicleKind(str, Enum):
+    MULTIROTOR = "multirotor"
+    GROUND = "ground"
+
+
+@dataclass(frozen=True)
+class Ack:
+    """The answer to a command (MAVLink COMMAND_ACK): accepted or refused, and why."""
+
+    accepted: bool
+    reason: str = ""
+
+    def __bool__(self) -> bool:
+        return self.accepted
+
+
+ACCEPTED = Ack(True)
+
+
+@dataclass(frozen=True)
+class Telemetry:
+    """The vehicle's state as its autopilot reports it."""
+
+    time_s: float
+    position: FloatArray
+    velocity: FloatArray
+    yaw: float
+    roll: float
+    pitch: float
+    yaw_rate: float
+    mode: Mode
+    armed: bool
+    landed: bool
+    """On the ground (PX4's land detector)."""
+    battery: float
+    """Remaining charge, 1.0 = full."""
+    ground_z: float
+    """Height of the ground under the vehicle (its range-finder reading, world z)."""
+
+    @property
+    def height_above_ground(self) -> float:
+        return float(self.position[2] - self.ground_z)
+
+
+@runtime_checkable
+class Backend(Protocol):
+    """Commands and setpoints to one vehicle, and its telemetry (see the module docstring)."""
+
+    kind: VehicleKind
+
+    def arm(self) -> Ack: ...
+
+    def disarm(self) -> Ack: ...
+
+    def set_mode(self, mode: Mode) -> Ack: ...
+
+    def takeoff(self, altitude_m: float) -> Ack:
+        """Climb to ``altitude_m`` above the ground (PX4 AUTO.TAKEOFF). Needs the vehicle armed."""
+        ...
+
+    def land(self) -> Ack: ...
+
+    def set_position_setpoint(
+        self,
+        position: Vec3 | FloatArray,
+        velocity: Vec3 | FloatArray | None = None,
+        yaw: float | None = None,
+    ) -> None:
+        """Go to ``position`` (world), with an optional velocity feed-forward and heading."""
+        ...
+
+    def set_velocity_setpoint(self, velocity: Vec3 | FloatArray, yaw_rate: float = 0.0) -> None:
+        """Fly (drive) at ``velocity`` (world frame) turning at ``yaw_rate``. A ground robot
+        drives at the component along its heading (its cmd_vel)."""
+        ...
+
+    def set_attitude_setpoint(
+        self, thrust: float, roll: float, pitch: float, yaw_rate: float = 0.0
+    ) -> None:
+        """Mass-less thrust (m/s²) and roll/pitch references in the yaw frame — the output of
+        the seed 002 NMPC — plus a yaw-rate command. Multirotors only."""
+        ...
+
+    def telemetry(self) -> Telemetry: ...
+
+
+@dataclass(frozen=True)
+class CameraFrame:
+    """A depth image with the camera's intrinsics and pose, and the object detections in it
+    (the inputs of DPHR and of the seed 002 object localiser)."""
+
+    time_s: float
+    depth_m: FloatArray
+    """(H, W) metres along the optical axis, 0 = no return."""
+    intrinsics: CameraIntrinsics
+    rotation: FloatArray
+    """^W R_C: optical frame (x right, y down, z forward) → world."""
+    translation: FloatArray
+    """Camera position (world)."""
+    detections: tuple[Detection, ...] = ()
+
+
+@runtime_checkable
+class Sensors(Protocol):
+    """Exteroceptive sensors of one vehicle."""
+
+    def lidar(self) -> FloatArray:
+        """(N, 3) points relative to the vehicle, in its yaw frame (x forward, z up)."""
+        ...
+
+    def camera(self) -> CameraFrame:
+        """The latest depth frame (with detections)."""
+        ...

@@ -1,0 +1,787 @@
+"""The embedded simulator: multirotors and ground robots in a voxel world, with PX4-like rules.
+
+One :class:`Simulator` holds the world (a :class:`~btmission.world.voxel.VoxelMap`) and every
+vehicle, and advances them all by a fixed step (:meth:`Simulator.step`); it owns no clock and
+never sleeps, so it runs as fast as the machine allows, and the same seed gives the same run.
+Each vehicle is driven through a :class:`SimVehicle`, which implements the
+:class:`~btmission.backends.base.Backend` and :class:`~btmission.backends.base.Sensors`
+interfaces.
+
+**Vehicle models.** A multirotor is the seed 002 eight-state model
+(:mod:`btmission.control.mav_model`: x = [p, v, φ, θ], u = [T, φ_ref, θ_ref], attitude as a
+first-order lag) integrated with RK4, plus a yaw that follows the commanded yaw rate. A ground
+robot is the seed 003 unicycle (eq. 11, :func:`~btmission.control.unicycle_nmpc.unicycle_step`)
+on the floor, driven by [u_v, u_ω] like a TurtleBot's cmd_vel.
+
+**Autopilot rules** (PX4 offboard semantics, DESIGN.md §8), so behaviour written against the
+simulator carries over to a real autopilot:
+
+* OFFBOARD is refused until setpoints have been streaming at more than 2 Hz for at least 1 s;
+* arming is refused in the air, and with the battery below 10 %; an armed vehicle that has not
+  taken off within 10 s disarms (COM_DISARM_PRFLT), and one that has landed disarms after 2 s
+  (COM_DISARM_LAND);
+* take-off (AUTO.TAKEOFF) is refused unless armed; LAND descends at 0.7 m/s and disarms after
+  touch-down;
+* in OFFBOARD, setpoints that stop for more than 1 s (COM_OF_LOSS_T) switch the vehicle to HOLD;
+* position and velocity setpoints go through a cascaded position → velocity → attitude
+  controller (what PX4 runs on board); attitude setpoints (the NMPC's output) go straight to the
+  attitude loop. Tilt is limited to 0.35 rad, as in the NMPC.
+
+**Sensors.** The LiDAR returns points on the rock surfaces within range (the centres of the faces
+between rock voxels and open voxels; no occlusion), plus optional dust outliers near the
+vehicle (seed 002 §3.2.3's reason for the dust rule); the depth camera is a low-resolution
+pinhole camera ray-cast through the voxel map (for DPHR); artifacts listed in the mission are
+rendered into the depth image as spheres and detected with noisy boxes and probabilities (for the
+COMPRA object localiser).
+
+**Collisions.** A vehicle is a sphere of radius ``body_radius_m`` whose bottom touches the
+ground when landed. It collides with rock when the sphere reaches a wall or roof face, when its
+centre enters a rock voxel, or when it hits the ground faster than 2 m/s; with another vehicle
+when the spheres overlap. ``clearance_m`` is the smallest distance from the sphere to a wall or
+roof face (the floor under a vehicle is where it lands, so it is not counted).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from btmission.backends.base import (
+    ACCEPTED,
+    Ack,
+    CameraFrame,
+    FloatArray,
+    Mode,
+    Telemetry,
+    Vec3,
+    VehicleKind,
+)
+from btmission.control.compra import CameraIntrinsics, Detection
+from btmission.control.mav_model import MavParams, mav_dynamics, rk4_step, world_to_yaw_frame
+from btmission.world.voxel import OCCUPIED, VoxelMap
+
+G = 9.81
+STREAM_MIN_HZ = 2.0
+STREAM_MIN_S = 1.0
+OFFBOARD_LOSS_S = 1.0
+DISARM_PREFLIGHT_S = 10.0
+DISARM_LAND_S = 2.0
+LAND_SPEED = 0.7
+TILT_MAX = 0.35
+IMPACT_SPEED = 2.0
+YAW_RATE_MAX = 0.8
+VEHICLE_POINTS = 200
+"""Points another vehicle returns in a LiDAR scan (a 0.5 m drone 1-2 m away in a VLP-16 scan
+gives hundreds)."""
+CONTACT_GAP_S = 0.5
+WALL_QUERY_M = 5.0
+"""Clearances beyond this are reported as inf (nothing near enough to matter)."""
+"""Heading-loop rate limit (rad/s), about PX4's MPC_YAWRAUTO_MAX."""
+HEADING_P = 1.0
+"""Heading loop gain (rad/s per rad) for position setpoints with a yaw."""
+CMD_VEL_TIMEOUT_S = 0.5
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Simulator settings (a mission's ``runtime.sim`` section, plus vehicle constants)."""
+
+    step_s: float = 0.05
+    lidar_range_m: float = 2.0
+    dust_points: int = 0
+    detection_noise_px: float = 2.0
+    body_radius_m: float = 0.25
+    ground_radius_m: float = 0.15
+    max_speed_m_s: float = 3.0
+    """Horizontal speed limit of the on-board position controller (PX4 MPC_XY_VEL_MAX)."""
+    max_climb_m_s: float = 1.5
+    ground_v_max: float = 0.4
+    ground_v_min: float = -0.1
+    ground_omega_max: float = 1.5
+    battery_s: float = 1200.0
+    """Flight time on a full battery (s)."""
+    camera_size: tuple[int, int] = (64, 48)
+    camera_hfov_deg: float = 86.0
+    camera_range_m: float = 6.0
+
+    def __post_init__(self) -> None:
+        if not 0 < self.step_s <= 0.2:
+            raise ValueError(f"step_s must be in (0, 0.2], got {self.step_s}")
+        if self.lidar_range_m <= 0 or self.dust_points < 0:
+            raise ValueError("lidar_range_m must be positive and dust_points >= 0")
+
+
+@dataclass(frozen=True)
+class Artifact:
+    label: str
+    position: tuple[float, float, float]
+    size_m: float = 0.5
+
+
+@dataclass(frozen=True)
+class SimEvent:
+    """Something the simulator detected: a collision (with ``rock`` or another vehicle's id)."""
+
+    time_s: float
+    vehicle: str
+    kind: str
+    other: str
+    position: tuple[float, float, float]
+
+
+class SimWorld:
+    """The static world: voxel map, rock surfaces (KD-trees), ground heights, ray casting."""
+
+    def __init__(self, voxel_map: VoxelMap, artifacts: Sequence[Artifact] = ()) -> None:
+        from scipy.spatial import cKDTree
+
+        self.map = voxel_map
+        self.artifacts = tuple(artifacts)
+        st = voxel_map.state
+        occ = st == OCCUPIED
+        res = voxel_map.resolution
+        pts: list[FloatArray] = []
+        normals: list[int] = []
+        for axis in range(3):
+            for d in (-1, 1):
+                # faces of rock voxels whose neighbour along (axis, d) is inside the map and open
+                src = [slice(None)] * 3
+                dst = [slice(None)] * 3
+                src[axis] = slice(0, -1) if d == 1 else slice(1, None)
+                dst[axis] = slice(1, None) if d == 1 else slice(0, -1)
+                face = occ[tuple(src)] & ~occ[tuple(dst)]
+                idx = np.argwhere(face)
+                if d == -1:
+                    idx[:, axis] += 1
+                centres = voxel_map.index_to_world(idx)
+                centres[:, axis] += d * res / 2
+                pts.append(centres)
+                normals.append(len(idx) * (1 if (axis == 2 and d == 1) else 0))
+        self.surface = np.vstack(pts) if pts else np.zeros((0, 3))
+        up = np.zeros(len(self.surface), dtype=bool)
+        start = 0
+        for block, is_floor in zip(pts, normals):
+            if is_floor:
+                up[start : start + len(block)] = True
+            start += len(block)
+        self.walls = self.surface[~up]
+        self._kd_all = cKDTree(self.surface) if len(self.surface) else None
+        self._kd_walls = cKDTree(self.walls) if len(self.walls) else None
+        self._occ = occ
+
+    # ------------------------------------------------------------------ queries
+    def occupied(self, p: FloatArray) -> bool:
+        idx = self.map.world_to_index(p)
+        if not bool(self.map.in_bounds(idx)):
+            return False
+        return bool(self._occ[idx[0], idx[1], idx[2]])
+
+    def ground_z(self, p: FloatArray) -> float:
+        return self.map.ground_z(p)
+
+    def wall_distance(self, p: FloatArray) -> float:
+        """Distance from ``p`` to the nearest wall or roof face (inf if there is none)."""
+        if self._kd_walls is None:
+            return math.inf
+        d, _ = self._kd_walls.query(p, distance_upper_bound=WALL_QUERY_M)
+        return float(d)
+
+    def surface_points(self, p: FloatArray, radius: float) -> FloatArray:
+        if self._kd_all is None:
+            return np.zeros((0, 3))
+        idx = self._kd_all.query_ball_point(p, radius)
+        return self.surface[idx] if idx else np.zeros((0, 3))
+
+    def raycast(self, origin: FloatArray, dirs: FloatArray, max_range: float) -> FloatArray:
+        """Distance along each unit direction to the first rock voxel (inf beyond ``max_range``).
+
+        Marches every ray in steps of a quarter voxel (a compiled loop that stops at the first
+        hit): a ray can skip at most the corner of a voxel, which the sub-voxel step keeps below
+        the depth camera's noise."""
+        from btmission.backends._raycast import march
+
+        vm = self.map
+        return march(  # type: ignore[no-any-return]
+            self._occ,
+            np.asarray(origin, dtype=np.float64),
+            np.ascontiguousarray(dirs, dtype=np.float64),
+            np.asarray(vm.origin, dtype=np.float64),
+            vm.resolution,
+            vm.resolution / 4,
+            float(max_range),
+        )
+
+
+@dataclass
+class _Vehicle:
+    id: str
+    kind: VehicleKind
+    x: FloatArray
+    """Multirotor: [p(3), v(3), φ, θ]; ground robot: [p_x, p_y, ψ]."""
+    z: float = 0.0
+    """Ground robot height (its floor)."""
+    yaw: float = 0.0
+    yaw_rate: float = 0.0
+    armed: bool = False
+    mode: Mode = Mode.MANUAL
+    landed: bool = True
+    battery: float = 1.0
+    odometer_m: float = 0.0
+    ground: float = 0.0
+    # setpoints
+    sp_kind: str = ""
+    sp_pos: FloatArray = field(default_factory=lambda: np.zeros(3))
+    sp_vel: FloatArray = field(default_factory=lambda: np.zeros(3))
+    sp_yaw: float | None = None
+    sp_yaw_rate: float = 0.0
+    sp_att: FloatArray = field(default_factory=lambda: np.array([G, 0.0, 0.0]))
+    sp_time: float = -math.inf
+    stream_since: float = math.inf
+    # autopilot state
+    hold: FloatArray = field(default_factory=lambda: np.zeros(3))
+    armed_at: float = -math.inf
+    landed_at: float = -math.inf
+    took_off: bool = False
+    thrust: float = 0.0
+    contact: dict[str, bool] = field(default_factory=dict)
+    touching: dict[str, float] = field(default_factory=dict)
+    """Other party (rock or a vehicle id) → last time they touched."""
+    failsafe: str = ""
+    clearance_min: float = math.inf
+    frozen: bool = False
+
+    @property
+    def position(self) -> FloatArray:
+        if self.kind is VehicleKind.MULTIROTOR:
+            return self.x[:3]
+        return np.array([self.x[0], self.x[1], self.z])
+
+    @property
+    def velocity(self) -> FloatArray:
+        if self.kind is VehicleKind.MULTIROTOR:
+            return self.x[3:6]
+        v = self.sp_vel_body
+        return np.array([v * math.cos(self.x[2]), v * math.sin(self.x[2]), 0.0])
+
+    sp_vel_body: float = 0.0
+
+
+class Simulator:
+    """All vehicles in one world, advanced together by a fixed step (module docstring)."""
+
+    def __init__(
+        self,
+        voxel_map: VoxelMap,
+        config: SimConfig | None = None,
+        *,
+        seed: int = 0,
+        artifacts: Sequence[Artifact] = (),
+        params: MavParams | None = None,
+    ) -> None:
+        self.config = config or SimConfig()
+        self.world = SimWorld(voxel_map, artifacts)
+        self.params = params or MavParams()
+        self.rng = np.random.default_rng(seed)
+        self.time_s = 0.0
+        self.steps = 0
+        self._vehicles: dict[str, _Vehicle] = {}
+        self.backends: dict[str, SimVehicle] = {}
+
+    # ------------------------------------------------------------------ vehicles
+    def add_multirotor(self, vid: str, start: Sequence[float], yaw: float = 0.0) -> SimVehicle:
+        p = np.asarray(start, dtype=float)
+        x = np.zeros(8)
+        x[:3] = p
+        g = self.world.ground_z(p + np.array([0.0, 0.0, 0.01]))
+        x[2] = max(p[2], g)
+        v = _Vehicle(vid, VehicleKind.MULTIROTOR, x, yaw=yaw, ground=g)
+        v.hold = x[:3].copy()
+        return self._add(v)
+
+    def add_ground(self, vid: str, start: Sequence[float], yaw: float = 0.0) -> SimVehicle:
+        p = np.asarray(start, dtype=float)
+        g = self.world.ground_z(p + np.array([0.0, 0.0, 0.01]))
+        v = _Vehicle(vid, VehicleKind.GROUND, np.array([p[0], p[1], yaw]), z=g, yaw=yaw, ground=g)
+        v.armed = True  # a ground robot has no arming: it drives when commanded
+        return self._add(v)
+
+    def _add(self, v: _Vehicle) -> SimVehicle:
+        if v.id in self._vehicles:
+            raise ValueError(f"vehicle '{v.id}' exists already")
+        self._vehicles[v.id] = v
+        backend = SimVehicle(self, v)
+        self.backends[v.id] = backend
+        return backend
+
+    def vehicle(self, vid: str) -> _Vehicle:
+        return self._vehicles[vid]
+
+    @property
+    def vehicle_ids(self) -> list[str]:
+        return list(self._vehicles)
+
+    # ------------------------------------------------------------------ stepping
+    def step(self) -> list[SimEvent]:
+        """Advance every vehicle by one step; returns the collisions that began in it."""
+        dt = self.config.step_s
+        t = self.time_s
+        for v in self._vehicles.values():
+            if v.kind is VehicleKind.MULTIROTOR:
+                self._autopilot(v, t)
+                self._step_multirotor(v, dt)
+            else:
+                self._step_ground(v, t, dt)
+        self.time_s = round(t + dt, 9)
+        self.steps += 1
+        return self._collisions()
+
+    # ---- multirotor
+    def _autopilot(self, v: _Vehicle, t: float) -> None:
+        """PX4-like mode logic: failsafes and automatic disarming."""
+        if v.mode is Mode.OFFBOARD and t - v.sp_time > OFFBOARD_LOSS_S:
+            v.mode = Mode.HOLD if not v.landed else Mode.MANUAL
+            v.hold = v.x[:3].copy()
+            v.failsafe = f"offboard setpoints lost for more than {OFFBOARD_LOSS_S:g} s"
+        if v.armed and v.landed:
+            if not v.took_off and t - v.armed_at > DISARM_PREFLIGHT_S:
+                v.armed = False
+                v.failsafe = f"disarmed: no take-off within {DISARM_PREFLIGHT_S:g} s of arming"
+            elif v.took_off and t - v.landed_at > DISARM_LAND_S:
+                v.armed = False
+                v.took_off = False
+                if v.mode in (Mode.LAND, Mode.HOLD, Mode.TAKEOFF):
+                    v.mode = Mode.MANUAL
+
+    def _attitude_command(self, v: _Vehicle) -> FloatArray:
+        """[T, φ_ref, θ_ref] from the active mode and setpoint."""
+        p, vel = v.x[:3], v.x[3:6]
+        cfg = self.config
+        if v.mode is Mode.OFFBOARD and v.sp_kind == "attitude":
+            return v.sp_att.copy()
+        if v.mode is Mode.OFFBOARD and v.sp_kind == "position":
+            v_des = v.sp_vel + 1.0 * (v.sp_pos - p)
+        elif v.mode is Mode.OFFBOARD and v.sp_kind == "velocity":
+            v_des = v.sp_vel.copy()
+        elif v.mode is Mode.TAKEOFF or v.mode is Mode.HOLD:
+            v_des = 1.0 * (v.hold - p)
+        elif v.mode is Mode.LAND:
+            v_des = np.array([0.0, 0.0, -LAND_SPEED])
+            v_des[:2] = 1.0 * (v.hold[:2] - p[:2])
+        else:
+            return np.array([0.0, 0.0, 0.0])
+        h = float(np.hypot(v_des[0], v_des[1]))
+        if h > cfg.max_speed_m_s:
+            v_des[:2] *= cfg.max_speed_m_s / h
+        v_des[2] = float(np.clip(v_des[2], -cfg.max_climb_m_s, cfg.max_climb_m_s))
+        acc = 1.2 * (v_des - vel) + np.asarray(self.params.drag) * vel
+        return thrust_attitude(acc, v.yaw, self.params.g)
+
+    def _step_multirotor(self, v: _Vehicle, dt: float) -> None:
+        t = self.time_s
+        if v.frozen:
+            return
+        u = self._attitude_command(v) if v.armed else np.zeros(3)
+        if v.armed and v.mode is not Mode.MANUAL:
+            u[1] = float(np.clip(u[1], -TILT_MAX, TILT_MAX))
+            u[2] = float(np.clip(u[2], -TILT_MAX, TILT_MAX))
+        v.thrust = float(u[0])
+        # yaw: the commanded rate, or a P loop on the heading setpoint
+        if v.mode is Mode.OFFBOARD and v.sp_kind in ("velocity", "attitude"):
+            rate = v.sp_yaw_rate
+        elif v.mode is Mode.OFFBOARD and v.sp_yaw is not None:
+            rate = float(np.clip(HEADING_P * _wrap(v.sp_yaw - v.yaw), -YAW_RATE_MAX, YAW_RATE_MAX))
+        else:
+            rate = 0.0
+        if v.landed and v.thrust < self.params.g * 1.01:
+            rate = 0.0
+        v.yaw_rate = rate
+        old = v.x[:3].copy()
+        if v.landed and v.thrust <= self.params.g:
+            v.x[3:] = 0.0  # resting on the ground
+        else:
+            # the model lives in the yaw frame (seed 002 §3.2.2): integrate there, rotate back
+            # (ṗ = v only: integrate from p = 0 and rotate the displacement back)
+            params = self.params
+            c, sn = math.cos(v.yaw), math.sin(v.yaw)
+            vx, vy = v.x[3], v.x[4]
+            xy = v.x.copy()
+            xy[0:3] = 0.0
+            xy[3], xy[4] = c * vx + sn * vy, -sn * vx + c * vy
+            xy = rk4_step(lambda s, w: mav_dynamics(s, w, params), xy, u, dt)
+            new = xy.copy()
+            new[0] = v.x[0] + c * xy[0] - sn * xy[1]
+            new[1] = v.x[1] + sn * xy[0] + c * xy[1]
+            new[2] = v.x[2] + xy[2]
+            new[3], new[4] = c * xy[3] - sn * xy[4], sn * xy[3] + c * xy[4]
+            if self.world.occupied(new[:3] + np.array([0.0, 0.0, self.config.body_radius_m])):
+                v.contact["rock"] = True  # bumped into rock: stopped at the last free position
+                new[0:3] = v.x[0:3]
+                new[3:6] = 0.0
+            v.x = new
+        v.yaw = _wrap(v.yaw + rate * dt)
+        ground = self.world.ground_z(v.x[:3] + np.array([0.0, 0.0, 0.05]))
+        v.ground = ground
+        if v.x[2] <= ground:
+            if v.x[5] < -IMPACT_SPEED:
+                v.contact["impact"] = True
+            v.x[2] = ground
+            v.x[3:8] = 0.0
+        was_landed = v.landed
+        v.landed = v.x[2] - ground < 0.05 and v.x[5] <= 0.3 and v.thrust <= self.params.g * 1.05
+        if v.landed and not was_landed:
+            v.landed_at = t
+            if v.mode is Mode.TAKEOFF:
+                pass
+        if not v.landed:
+            v.took_off = True
+        if v.mode is Mode.TAKEOFF and abs(v.x[2] - v.hold[2]) < 0.1:
+            v.mode = Mode.HOLD
+        if v.armed:
+            v.battery = max(0.0, v.battery - dt / self.config.battery_s)
+        v.odometer_m += float(np.linalg.norm(v.x[:3] - old))
+
+    # ---- ground robot
+    def _step_ground(self, v: _Vehicle, t: float, dt: float) -> None:
+        from btmission.control.unicycle_nmpc import unicycle_step
+
+        if v.frozen:
+            return
+        cfg = self.config
+        if t - v.sp_time > CMD_VEL_TIMEOUT_S or v.sp_kind != "velocity":
+            uv, uw = 0.0, 0.0
+        else:
+            uv = float(np.dot(v.sp_vel[:2], [math.cos(v.x[2]), math.sin(v.x[2])]))
+            uv = float(np.clip(uv, cfg.ground_v_min, cfg.ground_v_max))
+            uw = float(np.clip(v.sp_yaw_rate, -cfg.ground_omega_max, cfg.ground_omega_max))
+        new = unicycle_step(v.x, np.array([uv, uw]), dt)
+        p_new = np.array([new[0], new[1], v.z + cfg.ground_radius_m])
+        if self.world.occupied(p_new):
+            v.contact["rock"] = True  # a wall stops the robot
+            v.sp_vel_body = 0.0
+            v.yaw_rate = 0.0
+            return
+        v.odometer_m += float(math.hypot(new[0] - v.x[0], new[1] - v.x[1]))
+        v.x = new
+        v.yaw = float(new[2])
+        v.yaw_rate = uw
+        v.sp_vel_body = uv
+        v.landed = True
+
+    # ---- collisions
+    def _radius(self, v: _Vehicle) -> float:
+        return (
+            self.config.body_radius_m
+            if v.kind is VehicleKind.MULTIROTOR
+            else self.config.ground_radius_m
+        )
+
+    def _centre(self, v: _Vehicle) -> FloatArray:
+        c: FloatArray = v.position + np.array([0.0, 0.0, self._radius(v)])
+        return c
+
+    def _collisions(self) -> list[SimEvent]:
+        out: list[SimEvent] = []
+        t = self.time_s
+        vs = list(self._vehicles.values())
+        centres = {v.id: self._centre(v) for v in vs}
+        for v in vs:
+            r = self._radius(v)
+            c = centres[v.id]
+            gap = self.world.wall_distance(c) - r
+            measured = not v.landed or v.kind is VehicleKind.GROUND
+            if measured and math.isfinite(gap):
+                v.clearance_min = min(v.clearance_min, gap)
+            hit = gap < -0.02 or self.world.occupied(c) or v.contact.pop("impact", False)
+            hit = hit or v.contact.pop("rock", False)
+            self._episode(v, "rock", hit, out, t, c)
+        for i, a in enumerate(vs):
+            for b in vs[i + 1 :]:
+                d = float(np.linalg.norm(centres[a.id] - centres[b.id]))
+                hit = d < self._radius(a) + self._radius(b)
+                self._episode(a, b.id, hit, out, t, centres[a.id])
+                self._episode(b, a.id, hit, out, t, centres[b.id])
+        return out
+
+    def _episode(
+        self, v: _Vehicle, other: str, hit: bool, out: list[SimEvent], t: float, c: FloatArray
+    ) -> None:
+        """Report a collision when a contact begins: once, however long it lasts (a contact
+        counts as over after ``CONTACT_GAP_S`` without touching)."""
+        if not hit:
+            return
+        last = v.touching.get(other)
+        if last is None or t - last > CONTACT_GAP_S:
+            p = v.position
+            out.append(
+                SimEvent(t, v.id, "collision", other, (float(p[0]), float(p[1]), float(p[2])))
+            )
+        v.touching[other] = t
+
+    def take_clearance(self, vid: str) -> float | None:
+        """Smallest clearance of ``vid`` since the last call (None if nothing was measured)."""
+        v = self._vehicles[vid]
+        c = v.clearance_min
+        v.clearance_min = math.inf
+        return c if math.isfinite(c) else None
+
+
+def thrust_attitude(acc: FloatArray, yaw: float, g: float = G) -> FloatArray:
+    """[T, φ, θ] giving the world acceleration ``acc`` in the seed 002 model.
+
+    In the yaw frame the model's acceleration is [T cos φ sin θ, −T sin φ, T cos φ cos θ − g], so
+    with t = R_z(−ψ)(acc + g e_z): T = ‖t‖, φ = asin(−t_y / T), θ = atan2(t_x, t_z). The thrust
+    vector is first tilted back inside the tilt limit (keeping its vertical part).
+    """
+    tw = np.array([acc[0], acc[1], max(acc[2] + g, 0.2 * g)])
+    tx, ty, tz = world_to_yaw_frame(tw, yaw)
+    horiz = math.hypot(tx, ty)
+    limit = tz * math.tan(TILT_MAX)
+    if horiz > limit:
+        tx, ty = tx * limit / horiz, ty * limit / horiz
+    thrust = math.sqrt(tx * tx + ty * ty + tz * tz)
+    phi = math.asin(max(-1.0, min(1.0, -ty / thrust)))
+    theta = math.atan2(tx, tz)
+    return np.array([thrust, phi, theta])
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+class SimVehicle:
+    """One simulated vehicle as its agent sees it: :class:`Backend` and :class:`Sensors`."""
+
+    def __init__(self, sim: Simulator, vehicle: _Vehicle) -> None:
+        self._sim = sim
+        self._v = vehicle
+        self.id = vehicle.id
+        self.kind = vehicle.kind
+        self._camera_cache: tuple[float, CameraFrame] | None = None
+
+    # ------------------------------------------------------------------ commands
+    def arm(self) -> Ack:
+        v = self._v
+        if v.kind is VehicleKind.GROUND:
+            return ACCEPTED
+        if v.armed:
+            return ACCEPTED
+        if not v.landed:
+            return Ack(False, "cannot arm in the air")
+        if v.battery < 0.1:
+            return Ack(False, f"battery too low ({v.battery:.0%})")
+        v.armed = True
+        v.armed_at = self._sim.time_s
+        v.took_off = False
+        v.failsafe = ""
+        return ACCEPTED
+
+    def disarm(self) -> Ack:
+        v = self._v
+        if v.kind is VehicleKind.GROUND:
+            return ACCEPTED
+        if not v.landed:
+            return Ack(False, "cannot disarm in the air")
+        v.armed = False
+        v.mode = Mode.MANUAL
+        return ACCEPTED
+
+    def set_mode(self, mode: Mode) -> Ack:
+        v = self._v
+        t = self._sim.time_s
+        if v.kind is VehicleKind.GROUND:
+            v.mode = mode
+            return ACCEPTED
+        if mode is Mode.OFFBOARD:
+            streaming = t - v.sp_time <= 1.0 / STREAM_MIN_HZ and t - v.stream_since >= STREAM_MIN_S
+            if not streaming:
+                return Ack(
+                    False,
+                    f"offboard refused: stream setpoints at > {STREAM_MIN_HZ:g} Hz for "
+                    f"{STREAM_MIN_S:g} s first",
+                )
+        if mode is Mode.TAKEOFF:
+            return self.takeoff(2.0)
+        if mode is Mode.LAND:
+            return self.land()
+        if mode is Mode.HOLD:
+            v.hold = v.x[:3].copy()
+        v.mode = mode
+        return ACCEPTED
+
+    def takeoff(self, altitude_m: float) -> Ack:
+        v = self._v
+        if v.kind is VehicleKind.GROUND:
+            return Ack(False, "a ground robot cannot take off")
+        if not v.armed:
+            return Ack(False, "takeoff refused: not armed")
+        if not altitude_m > 0:
+            return Ack(False, f"takeoff altitude must be > 0, got {altitude_m:g}")
+        v.hold = v.x[:3].copy()
+        v.hold[2] = v.ground + altitude_m
+        v.mode = Mode.TAKEOFF
+        return ACCEPTED
+
+    def land(self) -> Ack:
+        v = self._v
+        if v.kind is VehicleKind.GROUND:
+            return Ack(False, "a ground robot cannot land")
+        if not v.armed:
+            return Ack(False, "land refused: not armed")
+        v.hold = v.x[:3].copy()
+        v.mode = Mode.LAND
+        return ACCEPTED
+
+    # ------------------------------------------------------------------ setpoints
+    def _stream(self, kind: str) -> None:
+        v = self._v
+        t = self._sim.time_s
+        if t - v.sp_time > 1.0 / STREAM_MIN_HZ:
+            v.stream_since = t
+        v.sp_time = t
+        v.sp_kind = kind
+
+    def set_position_setpoint(
+        self,
+        position: Vec3 | FloatArray,
+        velocity: Vec3 | FloatArray | None = None,
+        yaw: float | None = None,
+    ) -> None:
+        v = self._v
+        self._stream("position")
+        v.sp_pos = np.asarray(position, dtype=float).copy()
+        v.sp_vel = np.zeros(3) if velocity is None else np.asarray(velocity, dtype=float).copy()
+        v.sp_yaw = yaw
+
+    def set_velocity_setpoint(self, velocity: Vec3 | FloatArray, yaw_rate: float = 0.0) -> None:
+        v = self._v
+        self._stream("velocity")
+        v.sp_vel = np.asarray(velocity, dtype=float).copy()
+        v.sp_yaw_rate = float(yaw_rate)
+
+    def set_attitude_setpoint(
+        self, thrust: float, roll: float, pitch: float, yaw_rate: float = 0.0
+    ) -> None:
+        v = self._v
+        if v.kind is VehicleKind.GROUND:
+            raise ValueError("a ground robot takes velocity setpoints, not attitude setpoints")
+        self._stream("attitude")
+        v.sp_att = np.array([float(thrust), float(roll), float(pitch)])
+        v.sp_yaw_rate = float(yaw_rate)
+
+    # ------------------------------------------------------------------ telemetry
+    def telemetry(self) -> Telemetry:
+        v = self._v
+        if v.kind is VehicleKind.MULTIROTOR:
+            roll, pitch = float(v.x[6]), float(v.x[7])
+        else:
+            roll = pitch = 0.0
+        return Telemetry(
+            time_s=self._sim.time_s,
+            position=v.position.copy(),
+            velocity=v.velocity.copy(),
+            yaw=float(v.yaw),
+            roll=roll,
+            pitch=pitch,
+            yaw_rate=float(v.yaw_rate),
+            mode=v.mode,
+            armed=v.armed,
+            landed=v.landed,
+            battery=v.battery,
+            ground_z=v.ground if v.kind is VehicleKind.MULTIROTOR else v.z,
+        )
+
+    @property
+    def failsafe(self) -> str:
+        """The last failsafe the autopilot triggered ("" if none)."""
+        return self._v.failsafe
+
+    # ------------------------------------------------------------------ sensors
+    def lidar(self) -> FloatArray:
+        sim = self._sim
+        cfg = sim.config
+        p = self._v.position
+        pts = sim.world.surface_points(p, cfg.lidar_range_m) - p
+        others = [
+            sim._centre(o) - p + _SPHERE * sim._radius(o)
+            for o in sim._vehicles.values()
+            if o is not self._v and float(np.linalg.norm(o.position - p)) < cfg.lidar_range_m
+        ]
+        if others:  # other vehicles are seen as points on their body spheres
+            pts = np.vstack([pts, *others])
+        if cfg.dust_points:
+            dust = sim.rng.normal(0.0, 0.25, (cfg.dust_points, 3))
+            pts = np.vstack([pts, dust])
+        return world_to_yaw_frame(pts, self._v.yaw)
+
+    def camera(self) -> CameraFrame:
+        """Depth image (z-depth, 0 = no return) from a forward-looking level camera, with the
+        artifacts in view detected (noisy box, probability 0.6-0.95)."""
+        sim = self._sim
+        if self._camera_cache is not None and self._camera_cache[0] == sim.time_s:
+            return self._camera_cache[1]
+        cfg = sim.config
+        w, h = cfg.camera_size
+        fx = (w / 2) / math.tan(math.radians(cfg.camera_hfov_deg) / 2)
+        intr = CameraIntrinsics(fx, fx, (w - 1) / 2, (h - 1) / 2)
+        p = self._v.position + np.array([0.0, 0.0, 0.1])
+        yaw = self._v.yaw
+        c, s = math.cos(yaw), math.sin(yaw)
+        # optical frame (x right, y down, z forward) → world, for a level camera facing yaw
+        rot = np.array([[s, 0.0, c], [-c, 0.0, s], [0.0, -1.0, 0.0]])
+        uu, vv = np.meshgrid((np.arange(w) - intr.cx) / fx, (np.arange(h) - intr.cy) / fx)
+        rays = np.column_stack([uu.ravel(), vv.ravel(), np.ones(w * h)]) @ rot.T
+        norm = np.linalg.norm(rays, axis=1)
+        dirs = rays / norm[:, None]
+        dist = sim.world.raycast(p, dirs, cfg.camera_range_m)
+        seen: list[tuple[Artifact, float]] = []
+        for art in sim.world.artifacts:
+            d = _ray_sphere(p, dirs, np.asarray(art.position), art.size_m / 2)
+            closer = d < dist
+            if np.any(closer):
+                dist = np.where(closer, d, dist)
+                seen.append((art, float(np.min(d))))
+        z = dist / norm  # distance along the ray → depth along the optical axis
+        depth = np.where(z <= cfg.camera_range_m, z, 0.0).reshape(h, w)
+        dets: list[Detection] = []
+        for art, _rng_m in seen:
+            rel = rot.T @ (np.asarray(art.position) - p)
+            if rel[2] <= 0.1:
+                continue
+            u = fx * rel[0] / rel[2] + intr.cx
+            vpx = fx * rel[1] / rel[2] + intr.cy
+            size_px = fx * art.size_m / rel[2]
+            noise = sim.rng.normal(0.0, cfg.detection_noise_px, 2)
+            x0 = u - size_px / 2 + noise[0]
+            y0 = vpx - size_px / 2 + noise[1]
+            if not (0 <= u < w and 0 <= vpx < h):
+                continue
+            prob = float(sim.rng.uniform(0.6, 0.95))
+            dets.append(Detection(sim.time_s, art.label, prob, (x0, y0, size_px, size_px)))
+        frame = CameraFrame(sim.time_s, depth, intr, rot, p, tuple(dets))
+        self._camera_cache = (sim.time_s, frame)
+        return frame
+
+
+def _fibonacci_sphere(n: int) -> FloatArray:
+    """``n`` points spread evenly on the unit sphere."""
+    k = np.arange(n) + 0.5
+    z = 1 - 2 * k / n
+    r = np.sqrt(1 - z * z)
+    phi = math.pi * (1 + 5**0.5) * k
+    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
+
+
+_SPHERE = _fibonacci_sphere(VEHICLE_POINTS)
+
+
+def _ray_sphere(origin: FloatArray, dirs: FloatArray, centre: FloatArray, r: float) -> FloatArray:
+    """Distance along each unit ray to a sphere (inf where it misses)."""
+    oc = origin - centre
+    b = dirs @ oc
+    c = float(oc @ oc) - r * r
+    disc = b * b - c
+    t = -b - np.sqrt(np.maximum(disc, 0.0))
+    return np.where((disc >= 0) & (t > 0), t, math.inf)

@@ -1,0 +1,294 @@
+"""The agent runtime: one robot's mission tree, ticked at a fixed rate, bidding in the auction.
+
+An :class:`Agent` holds (seed 000 §IV-C, Fig. 3-4, Fig. 7; seed 003 §V):
+
+* its **mission tree** — :func:`~btmission.synthesis.mission_tree.build_mission_tree` turned into
+  py_trees with every leaf bound to the library's implementations through an
+  :class:`~btmission.runtime.leaves.AgentContext` — ticked every ``1 / tick_hz`` seconds;
+* its **blackboard**, where the current task's fields are written when a task is assigned;
+* a **bidder** (:class:`~btmission.allocation.bidder.Bidder`) whose path costs come from D*+
+  (:class:`~btmission.runtime.paths.PathCosts`): on every announcement it answers with
+  ``c_kj = f_cost(T_j, state) · k_bt`` (eq. 8-10);
+* **k_bt from the tree**: a task type with ``commit_after`` (e.g. ``holding(pickup)``) puts that
+  condition in its branch; once a tick leaves it SUCCESS the agent is committed (k_bt = 0 for its
+  task, no bids on anything else) and says so to the coordinator;
+* its :class:`~btmission.runtime.navigation.Navigator`, stepped every control period.
+
+When the task branch's goal holds (the branch returns SUCCESS) the agent reports the task done;
+when the branch fails it reports it failed, with the reason of the action that failed. Without a
+task, the idle timer runs and the default branch (e.g. return home and land) takes over after
+``idle_timeout_s``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import py_trees
+from py_trees.common import Status
+
+from btmission.allocation.auction import Announcement
+from btmission.allocation.bidder import AgentState, Bidder
+from btmission.allocation.loop import Progress
+from btmission.allocation.tasks import TaskInfo
+from btmission.backends.base import Backend, Sensors
+from btmission.plugins import Implementations
+from btmission.runtime.bus import AgentStatus, Assignment, InMemoryBus
+from btmission.runtime.leaves import (
+    BUILTIN_ACTIONS,
+    BUILTIN_CONDITIONS,
+    AgentContext,
+    Blackboard,
+    ConditionLeaf,
+    StatefulAction,
+)
+from btmission.runtime.navigation import Navigator
+from btmission.runtime.paths import PathCosts
+from btmission.spec.mission import Mission
+from btmission.synthesis.mission_tree import build_mission_tree
+from btmission.synthesis.pytrees import build_behaviour_tree
+from btmission.synthesis.tree import Kind, Node, Role
+
+Emit = Callable[..., None]
+
+
+class Agent:
+    """One agent (module docstring). The runtime calls :meth:`tick` and :meth:`control_step`."""
+
+    def __init__(
+        self,
+        mission: Mission,
+        agent_id: str,
+        implementations: Implementations,
+        backend: Backend,
+        sensors: Sensors | None,
+        navigator: Navigator,
+        paths: PathCosts,
+        bus: InMemoryBus,
+        clock: Callable[[], float],
+        *,
+        settings: Mapping[str, Any],
+        emit: Emit,
+        namespace: str = "",
+    ) -> None:
+        spec = mission.agent(agent_id)
+        self.id = agent_id
+        self.mission = mission
+        self.bus = bus
+        self.clock = clock
+        self.navigator = navigator
+        self._emit = emit
+        self.blackboard = Blackboard(f"{namespace}/agents/{agent_id}")
+        self.ctx = AgentContext(
+            agent_id=agent_id,
+            blackboard=self.blackboard,
+            backend=backend,
+            sensors=sensors,
+            navigator=navigator,
+            paths=paths,
+            clock=clock,
+            settings=settings,
+            start=spec.start,
+            agent=self,
+            events=self._leaf_event,
+        )
+        self.blackboard.set("start", spec.start)
+        self.mission_tree = build_mission_tree(mission, agent_id)
+        self.root = build_behaviour_tree(
+            self.mission_tree.tree, self._leaf_factory(implementations)
+        )
+        self._branches = {
+            child.name: child for child in self.root.children if child.name.startswith("task(")
+        }
+        self._commit_leaves = self._find_commit_leaves()
+        self._default = next((c for c in self.root.children if c.name == "default"), None)
+        self.bidder = Bidder.for_agent(mission, agent_id, provider=paths, types=self.task_types)
+        self.task: TaskInfo | None = None
+        self.committed = False
+        self.idle_since = 0.0
+        self.finished: set[str] = set()
+        self.action = ""
+        self._failure = ""
+        self.alive = True
+        self.ticks = 0
+        self.last_announcement: Announcement | None = None
+        for hook in implementations.setup_hooks:
+            hook(self.ctx)
+        bus.connect(agent_id, self.on_announcement, self.on_assignment)
+
+    # ---------------------------------------------------------------- tree construction
+    @property
+    def task_types(self) -> list[str]:
+        """The task types this agent's library can do (it bids on those only)."""
+        return list(self.mission_tree.branches.keys() - {"default"})
+
+    def _leaf_factory(
+        self, impl: Implementations
+    ) -> Callable[[Node], py_trees.behaviour.Behaviour]:
+        ctx = self.ctx
+
+        def leaf(node: Node) -> py_trees.behaviour.Behaviour:
+            builtin = node.role is Role.BUILTIN
+            if node.kind is Kind.CONDITION:
+                fn = BUILTIN_CONDITIONS[node.name] if builtin else impl.conditions[node.name]
+                return ConditionLeaf(node, fn, ctx)
+            cls: type[StatefulAction] = (
+                BUILTIN_ACTIONS[node.name] if builtin else impl.actions[node.name]
+            )
+            return cls(node, ctx)
+
+        return leaf
+
+    def _find_commit_leaves(self) -> dict[str, list[py_trees.behaviour.Behaviour]]:
+        """Per task branch with ``commit_after``, the condition leaves that check it."""
+        out: dict[str, list[py_trees.behaviour.Behaviour]] = {}
+        for node in self.mission_tree.tree.children:
+            commit = node.get_meta("commit_after")
+            if commit is None:
+                continue
+            branch = self._branches[node.name]
+            out[node.name] = [
+                b
+                for b in branch.iterate()
+                if isinstance(b, ConditionLeaf) and b.node.label == commit
+            ]
+        return out
+
+    # ---------------------------------------------------------------- messages
+    def on_announcement(self, ann: Announcement) -> None:
+        """Bid on the announced tasks (stage 2 of the auction)."""
+        if not self.alive:
+            return
+        self.last_announcement = ann
+        now = self.clock()
+        tel = self.ctx.telemetry()
+        p = tel.position
+        state = AgentState(
+            self.id,
+            (float(p[0]), float(p[1]), float(p[2])),
+            self.task.id if self.task is not None else None,
+            self.committed,
+        )
+        self.bus.send_bid(self.bidder.bid(ann, state, now))
+
+    def on_assignment(self, msg: Assignment) -> None:
+        if not self.alive or self.id not in msg.tasks:
+            return
+        task_id = msg.tasks[self.id]
+        current = self.task.id if self.task is not None else None
+        if task_id == current or (task_id is not None and task_id in self.finished):
+            return
+        info = None
+        if task_id is not None:
+            for t in msg.announcement.tasks:
+                if t.id == task_id:
+                    info = t
+                    break
+            if info is None:
+                return
+        self._switch(info, msg.time_s)
+
+    def _switch(self, info: TaskInfo | None, now: float) -> None:
+        """Start executing ``info`` (None: no task). Halts the tree so every action restarts
+        with the new task's fields."""
+        if self.task is not None and info is None:
+            self.idle_since = now
+        self.task = info
+        self.committed = False
+        if info is not None:
+            for k, v in info.fields.items():
+                self.blackboard.set(k, tuple(v) if isinstance(v, list) else v)
+            self.blackboard.set("task", info.id)
+        else:
+            self.blackboard.unset("task")
+        self.root.stop(Status.INVALID)
+        self._emit("agent_task", agent=self.id, task=info.id if info else None)
+
+    # ---------------------------------------------------------------- ticking
+    def tick(self, now: float) -> Status:
+        """Tick the mission tree once; report commit points, completions and failures."""
+        if not self.alive:
+            return Status.INVALID
+        self._failure = ""
+        self.root.tick_once()
+        self.ticks += 1
+        task = self.task
+        if task is not None:
+            branch = self._branches.get(f"task({task.type})")
+            if branch is not None:
+                if not self.committed and any(
+                    leaf.status is Status.SUCCESS
+                    for leaf in self._commit_leaves.get(branch.name, [])
+                ):
+                    self.committed = True
+                    self._progress(task.id, "committed", now)
+                    self._emit("committed", agent=self.id, task=task.id)
+                if branch.status is Status.SUCCESS:
+                    self.finished.add(task.id)
+                    self._progress(task.id, "done", now)
+                    self.task = None
+                    self.committed = False
+                    self.idle_since = now
+                    self._emit("agent_task", agent=self.id, task=None)
+                elif branch.status is Status.FAILURE:
+                    reason = self._failure or "the task's behaviour tree failed"
+                    self.finished.add(task.id)
+                    self._progress(task.id, "failed", now, reason)
+                    self.task = None
+                    self.committed = False
+                    self.idle_since = now
+                    self._emit("agent_task", agent=self.id, task=None)
+        return self.root.status
+
+    def _progress(self, task: str, event: str, now: float, reason: str = "") -> None:
+        self.bus.send_progress(Progress(self.id, task, event, now, reason))  # type: ignore[arg-type]
+        self._emit("progress", agent=self.id, task=task, event=event, reason=reason)
+
+    def note_failure(self, action: str, reason: str) -> None:
+        """Called by a failing action: the reason reported if the task fails."""
+        self._failure = f"{action}: {reason}" if reason else action
+
+    def _leaf_event(self, kind: str, **data: Any) -> None:
+        if kind == "stage":
+            self.action = str(data.get("action", ""))
+            data = {"task": self.task.id if self.task else None, **data}
+        self._emit(kind, agent=self.id, **data)
+
+    def control_step(self, now: float) -> None:
+        if self.alive:
+            self.navigator.step(now)
+            if self.navigator.prediction is not None:
+                self.bus.share_prediction(self.id, now, self.navigator.prediction)
+
+    def status(self, now: float) -> AgentStatus:
+        tel = self.ctx.telemetry()
+        p = tel.position
+        return AgentStatus(
+            self.id,
+            now,
+            (float(p[0]), float(p[1]), float(p[2])),
+            tel.mode.value,
+            tel.armed,
+            tel.battery,
+            self.task.id if self.task else None,
+            self.action,
+        )
+
+    @property
+    def at_rest(self) -> bool:
+        """No task, and the tree has nothing left to do: the default behaviour's goal holds
+        (root SUCCESS), or there is no default behaviour and the agent waits."""
+        if not self.alive:
+            return True
+        if self.task is not None:
+            return False
+        default = self._default
+        if default is not None:
+            return default.status is Status.SUCCESS
+        return self.root.children[-1].status is Status.RUNNING
+
+    def kill(self) -> None:
+        """The agent stops: no more ticks, bids, setpoints or messages."""
+        self.alive = False
+        self.bus.disconnect(self.id)

@@ -1,0 +1,244 @@
+"""The coordinator: the auction loop of a running mission, and the operator's way in.
+
+It wraps :class:`~btmission.allocation.loop.AuctionLoop` (the pure round function
+:func:`~btmission.allocation.auction.auction_round` at ``coordination.auction_rate_hz``) around
+the message bus: each round it announces the open tasks to the agents, collects their bids and
+progress reports, allocates, and sends everyone their assignment (seed 000 §IV-B, seed 003 §IV).
+Around that it
+
+* adds the mission's tasks at their ``at:`` time (the pool holds them from the start; they are
+  announced from their arrival), and tasks given to :meth:`Coordinator.add_task` while the mission
+  runs — the hook the operator interface and the network transport use; it may be called from any
+  thread and takes effect at the next step;
+* drops agents that stop bidding for ``coordination.agent_timeout_s`` and returns their task to
+  the pool (the auction's stale-bid rule: a bid is also the agent's heartbeat);
+* leaves tasks no agent can reach open (state ``unreachable``) with the reason, and says at once
+  when an added task's location is outside the map or inside rock;
+* publishes every change of a task's state as an event (``task``), every round (``round``) and
+  every arrival (``task_added``).
+"""
+
+from __future__ import annotations
+
+import math
+import queue
+import time
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from btmission.allocation.auction import Announcement, AuctionConfig, AuctionState
+from btmission.allocation.loop import AuctionLoop, Inbox, RoundResult
+from btmission.allocation.tasks import TaskInfo, TaskState, pool_from_mission
+from btmission.runtime.bus import AgentStatus, Assignment, InMemoryBus
+from btmission.spec.mission import Mission
+
+Emit = Callable[..., None]
+
+
+class TaskError(ValueError):
+    """A task given to :meth:`Coordinator.add_task` cannot be used (the message says why)."""
+
+
+class _Now:
+    """The auction loop's clock from a ``now()`` function (the runner steps time itself)."""
+
+    def __init__(self, now: Callable[[], float]) -> None:
+        self.now = now
+
+    def sleep_until(self, t: float) -> None:  # pragma: no cover - never called: rounds are stepped
+        pass
+
+
+class Coordinator:
+    """Runs the auction during a mission (module docstring); call :meth:`step` every step."""
+
+    def __init__(
+        self,
+        mission: Mission,
+        bus: InMemoryBus,
+        clock: Callable[[], float],
+        emit: Emit,
+        *,
+        check_location: Callable[[tuple[float, float, float]], str | None] | None = None,
+    ) -> None:
+        self.mission = mission
+        self.bus = bus
+        self._emit = emit
+        self._check = check_location
+        cfg = AuctionConfig.from_spec(mission.spec.coordination)
+        state = AuctionState(cfg, pool_from_mission(mission))
+        self.loop = AuctionLoop(state, _Now(clock), self._collect, self._publish)
+        self.period_s = self.loop.period_s
+        self.next_round = 0.0
+        self._pending: queue.SimpleQueue[tuple[TaskInfo, str]] = queue.SimpleQueue()
+        self._added: set[str] = set()
+        self._queued: set[str] = set()
+        self._history_len: dict[str, int] = {}
+        self.statuses: dict[str, AgentStatus] = {}
+        self.rounds: list[float] = []
+        """Wall time (s) of each round (announce, bids, allocation, publication)."""
+        self.bid_times: list[float] = []
+        """Wall time (s) of each round's bidding stage (every agent's bid, in this process)."""
+        self.last: RoundResult | None = None
+        self._last_assignments: dict[str, str] = {}
+
+    # ---------------------------------------------------------------- operator API
+    @property
+    def state(self) -> AuctionState:
+        return self.loop.state
+
+    def task_info(self, task: Mapping[str, Any] | TaskInfo, now: float) -> TaskInfo:
+        """Check a task given as ``{id, type, <fields>, [priority], [at]}`` (or a TaskInfo)."""
+        if isinstance(task, TaskInfo):
+            info = task
+        else:
+            data = dict(task)
+            tid = str(data.pop("id", "") or "")
+            ttype = str(data.pop("type", "") or "")
+            at = float(data.pop("at", now) or 0.0)
+            prio = data.pop("priority", None)
+            tt = self.mission.task_types.get(ttype)
+            if tt is None:
+                raise TaskError(
+                    f"task '{tid}': unknown type '{ttype}' (task types: "
+                    f"{', '.join(self.mission.task_types)})"
+                )
+            missing = [f for f in tt.fields if f not in data]
+            extra = [f for f in data if f not in tt.fields]
+            if missing or extra:
+                raise TaskError(
+                    f"task '{tid}' of type '{ttype}' needs fields {', '.join(tt.fields) or 'none'}"
+                    + (f"; missing {', '.join(missing)}" if missing else "")
+                    + (f"; unknown {', '.join(extra)}" if extra else "")
+                )
+            try:
+                info = TaskInfo(
+                    tid,
+                    ttype,
+                    data,
+                    float(prio) if prio is not None else tt.priority,
+                    max(at, now),
+                    tt.commit_after is not None,
+                )
+            except ValueError as exc:
+                raise TaskError(str(exc)) from None
+        if info.id in self.state.pool or info.id in self._queued:
+            raise TaskError(f"duplicate task id '{info.id}'")
+        return info
+
+    def add_task(self, task: Mapping[str, Any] | TaskInfo, now: float, by: str = "api") -> TaskInfo:
+        """Queue a task for the pool (thread-safe); it is announced from the next round at or
+        after its arrival. Raises :class:`TaskError` for an unknown type, missing fields, a
+        duplicate id or a bad priority."""
+        info = self.task_info(task, now)
+        self._queued.add(info.id)
+        self._pending.put((info, by))
+        return info
+
+    # ---------------------------------------------------------------- stepping
+    def step(self, now: float) -> RoundResult | None:
+        """Take queued tasks, report arrivals, and run a round if one is due."""
+        while True:
+            try:
+                info, by = self._pending.get_nowait()
+            except queue.Empty:
+                break
+            if info.id in self.state.pool:
+                self._emit("warning", message=f"task '{info.id}' added twice; ignored")
+                continue
+            self.loop.state = self.state.add_task(info, now)
+            self._emit_added(info, now, by)
+        for t in self.state.pool:
+            if t.id not in self._added and t.info.arrival_s <= now:
+                self._emit_added(t.info, t.info.arrival_s, "mission")
+        if now + 1e-9 < self.next_round:
+            return None
+        result = self.loop.step()
+        self.next_round = self.next_round + self.period_s
+        if self.next_round <= now:  # a long step: skip to the next slot
+            self.next_round = (math.floor(now / self.period_s) + 1) * self.period_s
+        return result
+
+    def _emit_added(self, info: TaskInfo, t: float, by: str) -> None:
+        self._added.add(info.id)
+        problems = []
+        if self._check is not None:
+            for name, value in info.fields.items():
+                if isinstance(value, (list, tuple)) and len(value) == 3:
+                    why = self._check((float(value[0]), float(value[1]), float(value[2])))
+                    if why:
+                        problems.append(f"{name}: {why}")
+        self._emit(
+            "task_added",
+            t=t,
+            task=info.id,
+            type=info.type,
+            fields=dict(info.fields),
+            priority=info.priority,
+            by=by,
+            problems=problems,
+        )
+
+    def _collect(self, ann: Announcement, now: float) -> Inbox:
+        t0 = time.perf_counter()
+        self.bus.announce(ann)  # in one process, every agent computes its bid right here
+        self.bid_times.append(time.perf_counter() - t0)
+        inbox = self.bus.drain()
+        for s in inbox.statuses:
+            self.statuses[s.agent] = s
+        return inbox
+
+    def _publish(self, result: RoundResult) -> None:
+        self.last = result
+        self.rounds.append(result.step_s)
+        rep = result.report
+        now = rep.time_s
+        for t in result.state.pool:
+            seen = self._history_len.get(t.id, 0)
+            if seen == 0 and t.info.arrival_s > now:
+                continue  # not arrived yet: its history starts when it does
+            for ev in t.history[seen:]:
+                if seen == 0 and ev.reason == "added":
+                    continue  # the task_added event said it
+                self._emit(
+                    "task",
+                    t=ev.time_s,
+                    task=t.id,
+                    state=ev.state.value,
+                    agent=ev.agent,
+                    reason=ev.reason,
+                )
+            self._history_len[t.id] = len(t.history)
+        for msg in result.progress_problems:
+            self._emit("warning", message=msg)
+        data: dict[str, Any] = {
+            "round": rep.round,
+            "announced": rep.announced,
+            "agents": len(rep.agents),
+            "method": rep.method,
+            "bids": rep.bids,
+            "step_ms": result.step_s * 1000,
+        }
+        if dict(rep.assignments) != self._last_assignments:
+            self._last_assignments = dict(rep.assignments)
+            data["assignments"] = self._last_assignments
+        if rep.dropped:
+            data["dropped"] = list(rep.dropped)
+        self._emit("round", **data)
+        self.bus.assign(Assignment(now, rep.round, result.assignments, result.announcement))
+
+    # ---------------------------------------------------------------- queries
+    def open_tasks(self) -> list[str]:
+        return [t.id for t in self.state.pool if not t.state.terminal]
+
+    def settled(self, now: float) -> bool:
+        """Nothing left to allocate: every arrived task is done, failed or unreachable, nothing
+        is held, nothing is queued and no task is still to arrive."""
+        if not self._pending.empty() or self.state.pool.next_arrival(now) is not None:
+            return False
+        for t in self.state.pool:
+            if t.state.terminal:
+                continue
+            if t.state is not TaskState.UNREACHABLE:
+                return False
+        return True

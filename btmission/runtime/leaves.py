@@ -1,0 +1,237 @@
+"""Behaviour-tree leaves bound to an agent: the blackboard, the context, and the leaf base classes.
+
+Library implementations (``library/aerial.py`` and third-party plugins) register, on their
+:class:`~btmission.plugins.Implementations` registry,
+
+* **conditions** as functions ``fn(ctx, **args) -> bool`` — pure queries of the agent's state;
+* **actions** as :class:`StatefulAction` subclasses with ``on_start`` / ``on_running`` /
+  ``on_halted`` (STYLE.md item 5, BT.CPP's StatefulActionNode), mapped onto py_trees'
+  ``initialise`` / ``update`` / ``terminate``. An action does no heavy work itself: it sends a
+  request — to the backend, the path service, the navigator — through its :class:`AgentContext`
+  and polls it on later ticks.
+
+Arguments are bound by name from the abstract tree (:class:`~btmission.synthesis.tree.Arg`): a
+literal stays as written; a symbol (``location``, ``home``) is read from the agent's
+:class:`Blackboard` when the leaf is ticked — the runtime writes the current task's fields there,
+and actions record variables such as ``home``.
+
+The leaves of the mission tree itself (seed 000 Fig. 7) are built in: ``task_assigned(type)``,
+``idle_timeout(seconds)`` and ``wait``.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import py_trees
+from py_trees.common import Status
+
+from btmission.synthesis.tree import Node
+
+if TYPE_CHECKING:
+    from btmission.backends.base import Backend, Sensors, Telemetry
+    from btmission.runtime.agent import Agent
+    from btmission.runtime.navigation import Navigator
+    from btmission.runtime.paths import PathCosts
+
+log = logging.getLogger(__name__)
+
+UNSET = object()
+
+
+class Blackboard:
+    """One agent's key-value store, under its own namespace (``/agents/<id>``).
+
+    Deliberately not py_trees' ``Blackboard``, whose storage is class-level and so shared by
+    every tree in the process (STYLE.md item 6): two agents — or two runs in one test session —
+    must never see each other's keys. Every write is recorded with the time for observers.
+    """
+
+    def __init__(self, namespace: str) -> None:
+        self.namespace = namespace
+        self._data: dict[str, Any] = {}
+
+    def get(self, key: str, default: Any = None) -> Any:
+        return self._data.get(key, default)
+
+    def __getitem__(self, key: str) -> Any:
+        try:
+            return self._data[key]
+        except KeyError:
+            raise KeyError(f"{self.namespace}: no key '{key}' on the blackboard") from None
+
+    def __contains__(self, key: object) -> bool:
+        return key in self._data
+
+    def set(self, key: str, value: Any) -> None:
+        self._data[key] = value
+
+    def unset(self, key: str) -> None:
+        self._data.pop(key, None)
+
+    def keys(self) -> Iterator[str]:
+        return iter(self._data)
+
+    def snapshot(self) -> dict[str, Any]:
+        return dict(self._data)
+
+
+@dataclass
+class AgentContext:
+    """Everything a leaf may use, passed explicitly at setup (no process-wide singletons)."""
+
+    agent_id: str
+    blackboard: Blackboard
+    backend: Backend
+    sensors: Sensors | None
+    navigator: Navigator
+    paths: PathCosts
+    clock: Callable[[], float]
+    settings: Mapping[str, Any]
+    start: tuple[float, float, float]
+    agent: Agent | None = None
+    events: Callable[..., None] = field(default=lambda kind, **data: None)
+    """``events(kind, **data)`` publishes an event for observers (log, report, viewer)."""
+    state: dict[str, Any] = field(default_factory=dict)
+    """Per-agent scratch space for implementations (e.g. a localiser kept across actions)."""
+
+    def now(self) -> float:
+        return self.clock()
+
+    def telemetry(self) -> Telemetry:
+        return self.backend.telemetry()
+
+    def setting(self, name: str, default: Any) -> Any:
+        return self.settings.get(name, default)
+
+
+Condition = Callable[..., bool]
+"""A condition implementation: ``fn(ctx, **args) -> bool``."""
+
+
+def resolve(ctx: AgentContext, node: Node) -> dict[str, Any] | None:
+    """The leaf's arguments, symbols read from the blackboard (None if one is not set yet)."""
+    out: dict[str, Any] = {}
+    for a in node.args:
+        if a.literal:
+            out[a.param] = a.value
+            continue
+        value = ctx.blackboard.get(a.value, UNSET)
+        if value is UNSET:
+            return None
+        out[a.param] = value
+    return out
+
+
+class ConditionLeaf(py_trees.behaviour.Behaviour):
+    """A condition: SUCCESS iff its implementation says it holds (FAILURE if an argument is
+    not on the blackboard yet)."""
+
+    def __init__(self, node: Node, fn: Condition, ctx: AgentContext) -> None:
+        super().__init__(name=node.label)
+        self.node = node
+        self.fn = fn
+        self.ctx = ctx
+
+    def update(self) -> Status:
+        args = resolve(self.ctx, self.node)
+        if args is None:
+            return Status.FAILURE
+        return Status.SUCCESS if self.fn(self.ctx, **args) else Status.FAILURE
+
+
+class StatefulAction(py_trees.behaviour.Behaviour):
+    """Base class of action implementations (STYLE.md item 5).
+
+    Override :meth:`on_start` (first tick: send the request; return RUNNING, or SUCCESS/FAILURE
+    at once), :meth:`on_running` (later ticks: poll) and :meth:`on_halted` (a higher-priority
+    branch took over: cancel). ``self.args`` are the bound arguments, ``self.ctx`` the agent's
+    :class:`AgentContext`. Set ``self.reason`` when returning FAILURE: it is reported with the
+    task.
+    """
+
+    def __init__(self, node: Node, ctx: AgentContext) -> None:
+        super().__init__(name=node.label)
+        self.node = node
+        self.ctx = ctx
+        self.args: dict[str, Any] = {}
+        self.reason = ""
+        self._started = False
+
+    # py_trees plumbing ------------------------------------------------------------------
+    def initialise(self) -> None:
+        self._started = False
+        self.reason = ""
+
+    def update(self) -> Status:
+        if not self._started:
+            args = resolve(self.ctx, self.node)
+            if args is None:
+                missing = [a.value for a in self.node.args if not a.literal]
+                self.reason = f"{self.name}: {', '.join(missing)} not on the blackboard"
+                return Status.FAILURE
+            self.args = args
+            self._started = True
+            self.ctx.events("stage", action=self.name)
+            status = self.on_start()
+        else:
+            status = self.on_running()
+        if status is Status.FAILURE and self.ctx.agent is not None:
+            self.ctx.agent.note_failure(self.name, self.reason)
+        return status
+
+    def terminate(self, new_status: Status) -> None:
+        if new_status is Status.INVALID and self._started:
+            self.on_halted()
+        self._started = False
+
+    # to override ------------------------------------------------------------------------
+    def on_start(self) -> Status:
+        return self.on_running()
+
+    def on_running(self) -> Status:
+        return Status.SUCCESS
+
+    def on_halted(self) -> None:
+        pass
+
+
+# ------------------------------------------------------------------ built-in leaves (Fig. 7)
+def task_assigned(ctx: AgentContext, type: str) -> bool:
+    """The agent's current task (from the auction) is of this type."""
+    agent = ctx.agent
+    return agent is not None and agent.task is not None and agent.task.type == type
+
+
+def idle_timeout(ctx: AgentContext, seconds: str) -> bool:
+    """No task has been assigned for ``seconds``."""
+    agent = ctx.agent
+    if agent is None or agent.task is not None:
+        return False
+    return ctx.now() - agent.idle_since >= float(seconds)
+
+
+class Wait(StatefulAction):
+    """Hold position (keep streaming setpoints) until something changes: always RUNNING."""
+
+    def on_start(self) -> Status:
+        if self.ctx.navigator.status.command != "hold":
+            self.ctx.navigator.hold()
+        return Status.RUNNING
+
+    def on_running(self) -> Status:
+        return Status.RUNNING
+
+
+BUILTIN_CONDITIONS: dict[str, Condition] = {
+    "task_assigned": task_assigned,
+    "idle_timeout": idle_timeout,
+}
+BUILTIN_ACTIONS: dict[str, type[StatefulAction]] = {"wait": Wait}
+
+
+def log_unbound(name: str) -> None:  # pragma: no cover - guarded by Implementations.missing
+    log.warning("no implementation for %s", name)

@@ -1,0 +1,651 @@
+"""An agent's motion layer: path following with NMPC or a tracking controller, plus APF.
+
+Behaviour-tree actions never fly the vehicle themselves; they give the :class:`Navigator` a
+command (hold, take off, follow a D*+ route, go to a local waypoint, land) and poll its
+:attr:`Navigator.status`. The navigator runs at the control rate (every simulator step) and
+streams setpoints to the :class:`~btmission.backends.base.Backend` — continuously, as PX4
+offboard requires, even while holding (DESIGN.md §8).
+
+Path following (seed 000 §IV-C3, seed 002 §3.2.2-3.2.3, seed 003 §VI):
+
+1. a *carrot* on the route, ``lookahead_m`` beyond the point of the route closest to the vehicle;
+2. multirotors: the APF (seed 002 eq. 3, Alg. 1, :class:`~btmission.control.apf.PotentialField`)
+   turns the carrot and the LiDAR scan into the normalised force F, and the reference is
+   p_ref = p̂ + F·lookahead with velocity F·speed;
+3. the controller tracks it:
+
+   ``nmpc``  multirotor: the seed 002 NMPC (:class:`~btmission.control.nmpc.MavNmpc`, eq. 1-2,
+             with the adaptive position weight of eq. 4 from the APF's raw repulsion) → attitude
+             and thrust setpoints; ground robot: the seed 003 unicycle NMPC
+             (:class:`~btmission.control.unicycle_nmpc.UnicycleNmpc`, eq. 11-12) with the other
+             robots' shared predictions → [u_v, u_ω].
+   ``track`` multirotor: a position + velocity setpoint that the autopilot's own cascaded
+             controller tracks (what PX4 does with offboard position setpoints); ground robot:
+             pure pursuit of the carrot. Much cheaper: for large fleets.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from btmission.backends.base import Backend, FloatArray, Mode, Sensors, Telemetry, VehicleKind
+from btmission.control.apf import ApfConfig, PotentialField, repulsive_force, shape_force
+from btmission.control.mav_model import world_to_yaw_frame, wrap_angle, yaw_frame_to_world
+
+CONTROLLERS = ("nmpc", "track")
+KEEP_RIGHT_M = 1.2
+"""A robot this close in front makes a ground robot keep to the right (NMPC)."""
+KEEP_RIGHT_OFFSET_M = 0.5
+PROGRESS_M = 0.1
+"""Progress along a route counts when the distance left shrinks by this much."""
+SETTLED_M_S = 0.5
+"""A vehicle slower than this counts as stopped at its goal."""
+CARROT_WINDOW = 8
+"""Route segments searched for the closest point, from the last one (it only moves forward)."""
+HEADING_GAIN = 1.0
+"""Gain of the autopilot's heading loop (rad/s per rad), to turn a yaw rate into a heading."""
+POSITION_GAIN = 1.0
+"""Gain of the autopilot's position loop (1/s): velocity = gain · position error."""
+
+
+class NavState(str, Enum):
+    IDLE = "idle"
+    RUNNING = "running"
+    ARRIVED = "arrived"
+    FAILED = "failed"
+
+
+@dataclass(frozen=True)
+class NavStatus:
+    state: NavState
+    reason: str = ""
+    command: str = "hold"
+
+
+@dataclass(frozen=True)
+class NavConfig:
+    """Motion settings (a mission's ``runtime.settings`` override them by name)."""
+
+    speed_m_s: float = 1.5
+    """Cruise speed along a route."""
+    lookahead_m: float = 2.0
+    """Carrot distance ahead of the closest point of the route."""
+    tolerance_m: float = 0.5
+    """A goal is reached within this distance (horizontally and vertically)."""
+    altitude_m: float = 2.0
+    """Flight height above the ground for take-off and for goals on the ground (e.g. home)."""
+    stuck_s: float = 20.0
+    """A route with no progress for this long is replanned from where the vehicle is."""
+    replans: float = 5
+    """Replans after which a route with no progress fails (the task fails with the reason)."""
+    apf_gain: float = 0.075
+    """APF gain L per point (seed 002 eq. 3), for the simulated LiDAR's one point per rock
+    voxel face (0.5 m maps); the paper's VLP-16 scans are far denser (ApfConfig: 0.001)."""
+    clearance_m: float = 0.5
+    """Paths keep voxel centres at least this far from rock (the vehicle's radius and a margin)."""
+
+    @classmethod
+    def from_settings(cls, settings: Mapping[str, object]) -> NavConfig:
+        kw: dict[str, float] = {}
+        for name in cls.__dataclass_fields__:
+            if name in settings:
+                kw[name] = float(settings[name])  # type: ignore[arg-type]
+        return cls(**kw)
+
+
+SETTINGS_DOC: dict[str, str] = {
+    "speed_m_s": "cruise speed along a route (m/s)",
+    "lookahead_m": "carrot distance ahead on the route (m)",
+    "tolerance_m": "distance within which a goal counts as reached (m)",
+    "altitude_m": "flight height above the ground for take-off and ground-level goals (m)",
+    "stuck_s": "a route with no progress for this long is replanned (s)",
+    "replans": "replans of a route with no progress before the task fails",
+    "apf_gain": "APF gain L per m² of rock surface seen by the LiDAR (seed 002 eq. 3)",
+    "clearance_m": "paths keep this far from rock: the map is inflated by it for planning (m)",
+}
+
+
+class Polyline:
+    """A route as a polyline with its arc length, for carrot chasing."""
+
+    def __init__(self, points: FloatArray) -> None:
+        self.points = np.asarray(points, dtype=float).reshape(-1, 3)
+        seg = np.diff(self.points, axis=0)
+        self.seg = seg
+        self.seg_len2 = np.einsum("ij,ij->i", seg, seg)
+        self.seg_len = np.sqrt(self.seg_len2)
+        self.arc = np.concatenate([[0.0], np.cumsum(self.seg_len)])
+        """Arc length (m) at each point."""
+
+    @property
+    def length(self) -> float:
+        return float(self.arc[-1])
+
+    def project(self, position: FloatArray, start: int = 0) -> tuple[int, float]:
+        """(segment, arc length) of the point of the route closest to ``position``, searching
+        ``CARROT_WINDOW`` segments forward from ``start`` (progress only moves forward)."""
+        n = len(self.seg)
+        if n == 0:
+            return 0, 0.0
+        stop = min(n, start + CARROT_WINDOW)
+        a = self.points[start:stop]
+        ab = self.seg[start:stop]
+        ll = self.seg_len2[start:stop]
+        t = np.clip(np.einsum("ij,ij->i", position - a, ab) / np.where(ll > 0, ll, 1.0), 0.0, 1.0)
+        d = position - (a + t[:, None] * ab)
+        k = int(np.argmin(np.einsum("ij,ij->i", d, d)))
+        seg = start + k
+        return seg, float(self.arc[seg] + t[k] * self.seg_len[seg])
+
+    def at(self, s: float) -> FloatArray:
+        """The point at arc length ``s`` (clamped to the ends)."""
+        pts: FloatArray = self.points
+        if s <= 0 or len(self.seg) == 0 or s >= self.arc[-1]:
+            end: FloatArray = np.array(pts[0] if s <= 0 else pts[-1], dtype=float)
+            return end
+        j = int(np.searchsorted(self.arc, s, side="right")) - 1
+        frac = float((s - self.arc[j]) / self.seg_len[j]) if self.seg_len[j] > 0 else 0.0
+        out: FloatArray = pts[j] + frac * self.seg[j]
+        return out
+
+
+class _Command:
+    name = "hold"
+
+
+@dataclass
+class _Hold(_Command):
+    point: FloatArray
+    name: str = "hold"
+
+
+@dataclass
+class _Takeoff(_Command):
+    point: FloatArray
+    name: str = "takeoff"
+
+
+@dataclass
+class _Follow(_Command):
+    route: Polyline
+    target: FloatArray
+    ground_goal: bool
+    seg: int = 0
+    best_left: float = math.inf
+    progress_t: float = 0.0
+    name: str = "follow"
+
+
+@dataclass
+class _Goto(_Command):
+    waypoint: FloatArray
+    yaw: float | None
+    yaw_rate: float
+    name: str = "goto"
+
+
+@dataclass
+class _Land(_Command):
+    hold: FloatArray | None = None
+    name: str = "land"
+
+
+AGENT_APF = {
+    VehicleKind.MULTIROTOR: ApfConfig(
+        r_influence_m=2.5,
+        r_critical_m=0.9,
+        gain=(4.0, 4.0, 4.0),
+        gain_critical=2.0,
+        dust_points=0,
+    ),
+    VehicleKind.GROUND: ApfConfig(
+        r_influence_m=1.0,
+        r_critical_m=0.4,
+        gain=(1.5, 1.5, 0.0),
+        gain_critical=1.0,
+        dust_points=0,
+    ),
+}
+"""Eq. 3 for the other agents' shared positions: one point per agent, so a larger radius and
+gain than for LiDAR points on rock (smaller for TurtleBot-sized ground robots in 2 m aisles)."""
+
+PREDICTION_STEPS = 50
+"""Horizon of the shared predictions (seed 003: N = 50 at 0.1 s)."""
+
+Predictions = Callable[[str], Sequence[FloatArray]]
+"""Other agents' predicted (N+1, 2) positions, for the ground NMPC (seed 003 §VI)."""
+
+
+class Navigator:
+    """One agent's motion layer (module docstring). Call :meth:`step` every control period."""
+
+    def __init__(
+        self,
+        agent: str,
+        backend: Backend,
+        sensors: Sensors | None,
+        controller: str = "nmpc",
+        config: NavConfig | None = None,
+        *,
+        control_dt: float = 0.05,
+        predictions: Predictions | None = None,
+        ground_at: Callable[[FloatArray], float] | None = None,
+        point_area_m2: float = 0.25,
+    ) -> None:
+        if controller not in CONTROLLERS:
+            raise ValueError(f"unknown controller '{controller}' (expected nmpc or track)")
+        self.agent = agent
+        self.backend = backend
+        self.sensors = sensors
+        self.controller = controller
+        self.config = cfg = config or NavConfig()
+        self.kind = backend.kind
+        self.control_dt = control_dt
+        self._predictions = predictions
+        self._ground_at = ground_at
+        self._cmd: _Command = _Hold(np.asarray(backend.telemetry().position, dtype=float))
+        self._status = NavStatus(NavState.IDLE, "", "hold")
+        self._apf = None
+        self._apf_previous = np.zeros(3)
+        self._nmpc = None
+        self._uni = None
+        self.prediction: FloatArray | None = None
+        """This agent's predicted (N+1, 2) positions, shared with the others (ground NMPC)."""
+        self._last_uni_t = -math.inf
+        self._uni_u = np.zeros(2)
+        self.solve_times: list[float] = []
+        g = cfg.apf_gain * point_area_m2
+        if self.kind is VehicleKind.MULTIROTOR:
+            self._apf = PotentialField(ApfConfig(gain=(g, g, g)))
+            if controller == "nmpc":
+                from btmission.control.nmpc import MavNmpc, NmpcConfig
+
+                # tol 1e-4: the same commands to a fraction of a percent, ~20 % fewer
+                # interior-point iterations than the 1e-6 default
+                self._nmpc = MavNmpc(NmpcConfig(dt_s=control_dt, tol=1e-4))
+        elif controller == "nmpc":
+            from btmission.control.unicycle_nmpc import UnicycleConfig, UnicycleNmpc
+
+            # forward only, and a heading reference towards the way-point: with the heading
+            # free (q_heading = 0) the optimiser reverses the whole way at v_min, or — forward
+            # only, way-point straight behind — sits at the symmetric stationary point u = 0
+            self._uni = UnicycleNmpc(UnicycleConfig(v_min=0.0, q_heading=0.5))
+        else:  # the tracking controller steers through the APF (small robot: smaller radii)
+            self._apf = PotentialField(
+                ApfConfig(gain=(g, g, 0.0), r_influence_m=0.8, r_critical_m=0.3)
+            )
+
+    # ---------------------------------------------------------------- commands
+    @property
+    def status(self) -> NavStatus:
+        return self._status
+
+    def _set(self, cmd: _Command) -> None:
+        self._cmd = cmd
+        self._status = NavStatus(NavState.RUNNING, "", cmd.name)
+        self._apf_previous = np.zeros(3)
+
+    def hold(self, point: Sequence[float] | None = None) -> None:
+        tel = self.backend.telemetry()
+        p = tel.position if point is None else np.asarray(point, dtype=float)
+        self._cmd = _Hold(np.asarray(p, dtype=float).copy())
+        self._status = NavStatus(NavState.IDLE, "", "hold")
+
+    def takeoff(self, altitude_m: float | None = None) -> None:
+        tel = self.backend.telemetry()
+        alt = self.config.altitude_m if altitude_m is None else altitude_m
+        p = tel.position.copy()
+        p[2] = tel.ground_z + alt
+        self._set(_Takeoff(p))
+
+    def follow(self, route: FloatArray, target: ArrayLike, now: float) -> None:
+        """Follow ``route`` ((N, 3) waypoints) to ``target``."""
+        tgt = np.asarray(target, dtype=float)
+        pts = np.asarray(route, dtype=float).reshape(-1, 3).copy()
+        ground_goal = False
+        if self.kind is VehicleKind.MULTIROTOR:
+            pts = self.flight_route(pts)
+            ground_goal = tgt[2] < self.ground_under(tgt) + 0.5
+        if len(pts) == 0 or not np.allclose(pts[-1], tgt):
+            pts = np.vstack([pts, tgt]) if len(pts) else tgt[None, :]
+        self._set(_Follow(Polyline(pts), tgt, ground_goal, progress_t=now))
+
+    def goto(
+        self, waypoint: Sequence[float], yaw: float | None = None, yaw_rate: float = 0.0
+    ) -> None:
+        """Head for a local waypoint (no route) with a heading or a yaw rate (COMPRA)."""
+        w = np.asarray(waypoint, dtype=float)
+        if isinstance(self._cmd, _Goto):
+            self._cmd.waypoint, self._cmd.yaw, self._cmd.yaw_rate = w, yaw, yaw_rate
+            return
+        self._set(_Goto(w, yaw, yaw_rate))
+
+    def land(self) -> None:
+        self._set(_Land())
+
+    # ---------------------------------------------------------------- geometry
+    def ground_under(self, p: FloatArray) -> float:
+        """Ground height under ``p`` from the agent's map (its telemetry's without one)."""
+        if self._ground_at is not None:
+            return float(self._ground_at(p))
+        return float(self.backend.telemetry().ground_z)
+
+    def flight_target(self, goal: ArrayLike) -> FloatArray:
+        """Where a multirotor goes for ``goal``: the goal itself, raised to ``altitude_m`` above
+        the ground when it lies on the ground (home, a landing spot)."""
+        g = np.asarray(goal, dtype=float).copy()
+        if self.kind is VehicleKind.MULTIROTOR:
+            ground = self.ground_under(g)
+            if g[2] < ground + 0.5:
+                g[2] = ground + self.config.altitude_m
+        return g
+
+    def flight_route(self, route: FloatArray) -> FloatArray:
+        return route
+
+    def at(self, goal: ArrayLike, tel: Telemetry | None = None) -> bool:
+        """Stopped within tolerance of ``goal``'s flight target (a goal on the ground: above it at
+        any height up to the flight altitude, so a vehicle landing there still is at it).
+
+        "Stopped" (slower than ``SETTLED_M_S``): a vehicle that passes through the tolerance
+        sphere at speed has not reached the goal — it could not inspect it, nor land there."""
+        tel = tel or self.backend.telemetry()
+        g = np.asarray(goal, dtype=float)
+        tol = self.config.tolerance_m
+        p = tel.position
+        if math.hypot(p[0] - g[0], p[1] - g[1]) > tol:
+            return False
+        v = tel.velocity
+        if math.sqrt(float(v @ v)) > SETTLED_M_S:
+            return False
+        if self.kind is VehicleKind.GROUND:
+            return True
+        target = self.flight_target(g)
+        if target[2] != g[2]:  # a ground-level goal
+            return bool(p[2] <= target[2] + tol)
+        return bool(abs(p[2] - target[2]) <= tol)
+
+    # ---------------------------------------------------------------- control step
+    def step(self, now: float) -> None:
+        """Stream this period's setpoint to the backend and update :attr:`status`."""
+        tel = self.backend.telemetry()
+        if self.kind is VehicleKind.MULTIROTOR:
+            self._step_multirotor(now, tel)
+        else:
+            self._step_ground(now, tel)
+
+    def _finish(self, ok: bool, reason: str = "") -> None:
+        self._status = NavStatus(
+            NavState.ARRIVED if ok else NavState.FAILED, reason, self._cmd.name
+        )
+
+    def _step_multirotor(self, now: float, tel: Telemetry) -> None:
+        cmd = self._cmd
+        p = tel.position
+        self.prediction = p[None, :].copy()  # shared with the others: where this vehicle is
+        cfg = self.config
+        ref = p.copy()
+        vel = np.zeros(3)
+        yaw: float | None = None
+        yaw_rate = 0.0
+        repulsion = 0.0
+        if isinstance(cmd, _Land):
+            if cmd.hold is None:
+                cmd.hold = p.copy()
+            speed = float(np.linalg.norm(tel.velocity))
+            if tel.mode is not Mode.LAND and tel.armed and not tel.landed and speed > 0.3:
+                self._command_multirotor(tel, cmd.hold, np.zeros(3), None, 0.0, 0.0)
+                return  # brake over the landing spot first: AUTO.LAND lands where it is
+            if tel.mode is not Mode.LAND and tel.armed:
+                ack = self.backend.land()
+                if not ack.accepted:
+                    self._finish(False, ack.reason)
+            if tel.landed and not tel.armed:
+                self._finish(True)
+                self._cmd = _Hold(p.copy())
+            self._stream_hold(tel, p)
+            return
+        if isinstance(cmd, _Hold):
+            ref = cmd.point
+        elif isinstance(cmd, _Takeoff):
+            ref = cmd.point
+            vel = np.array([0.0, 0.0, 0.0])
+            if abs(p[2] - cmd.point[2]) < 0.2 and not tel.landed:
+                self._finish(True)
+                self._cmd = _Hold(cmd.point.copy())
+        elif isinstance(cmd, _Follow):
+            ref, vel, yaw, repulsion = self._follow_reference(now, tel, cmd)
+        elif isinstance(cmd, _Goto):
+            ref, vel, _, repulsion = self._apf_reference(tel, cmd.waypoint, cfg.speed_m_s)
+            yaw, yaw_rate = cmd.yaw, cmd.yaw_rate
+        self._command_multirotor(tel, ref, vel, yaw, yaw_rate, repulsion)
+
+    def _stream_hold(self, tel: Telemetry, p: FloatArray) -> None:
+        if self._nmpc is not None:
+            self.backend.set_attitude_setpoint(0.0, 0.0, 0.0, 0.0)
+        else:
+            self.backend.set_position_setpoint(p)
+
+    def _apf_reference(
+        self, tel: Telemetry, goal: FloatArray, speed: float
+    ) -> tuple[FloatArray, FloatArray, float | None, float]:
+        """APF (seed 002 eq. 3, Alg. 1) on the LiDAR scan, plus the other agents' shared
+        positions: reference point and velocity, and ‖F^r‖ before shaping (for eq. 4)."""
+        p = tel.position
+        assert self._apf is not None
+        cfg = self._apf.config
+        wp_body = world_to_yaw_frame(goal - p, tel.yaw)
+        points = self.sensors.lidar() if self.sensors is not None else np.zeros((0, 3))
+        raw, _, _, _ = repulsive_force(points, cfg)
+        raw = raw + self._agent_force(tel, wp_body)
+        total, fr, _ = shape_force(raw, self._apf_previous, wp_body, cfg)
+        self._apf_previous = fr
+        force = yaw_frame_to_world(total, tel.yaw)
+        # p_ref = F + p̂ (seed 002), stretched at cruise so that the autopilot's position loop
+        # (v = K_p·(p_ref − p̂)) flies at ‖F‖·speed; near the goal (‖F‖ < 1) p_ref is the goal
+        norm = float(math.sqrt(force @ force))
+        ref = p + force * max(1.0, speed * norm / POSITION_GAIN)
+        vel = force * speed
+        return ref, vel, None, float(np.linalg.norm(raw))
+
+    def _agent_force(self, tel: Telemetry, wp_body: FloatArray) -> FloatArray:
+        """Repulsion (body frame) from the other agents' shared positions: eq. 3 with one point
+        per agent and its own radii (:data:`AGENT_APF`), so that vehicles keep apart before their
+        LiDARs would push them. When it opposes the way ahead the vehicle also sidesteps to
+        its right, so two vehicles meeting head-on in a tunnel pass each other."""
+        if self._predictions is None:
+            return np.zeros(3)
+        p = tel.position
+        near = [
+            pred[0, :3] - p if pred.shape[1] >= 3 else np.append(pred[0, :2] - p[:2], 0.0)
+            for pred in self._predictions(self.agent)
+        ]
+        if not near:
+            return np.zeros(3)
+        rel = world_to_yaw_frame(np.array(near), tel.yaw)
+        if self.kind is VehicleKind.GROUND:
+            rel[:, 2] = 0.0
+        force, n, _, _ = repulsive_force(rel, AGENT_APF[self.kind])
+        if n == 0:
+            return force
+        ahead = wp_body / max(float(np.linalg.norm(wp_body)), 1e-9)
+        if float(force @ ahead) < -0.7 * float(np.linalg.norm(force)):
+            right = np.array([ahead[1], -ahead[0], 0.0])
+            force = force + 0.5 * float(np.linalg.norm(force)) * right
+        return force
+
+    def _route_step(
+        self, now: float, tel: Telemetry, cmd: _Follow
+    ) -> tuple[str, FloatArray, float]:
+        """Where a route stands — ``arrived`` (stopped at the target), ``stuck`` (no progress for
+        ``stuck_s``) or ``go`` — with the carrot and the arc length of the closest point."""
+        cfg = self.config
+        cmd.seg, arc = cmd.route.project(tel.position, cmd.seg)
+        left = cmd.route.length - arc
+        if left < cmd.best_left - PROGRESS_M:
+            cmd.best_left = left
+            cmd.progress_t = now
+        if self.at(cmd.target, tel):
+            self._finish(True)
+            return "arrived", cmd.target, arc
+        if now - cmd.progress_t > cfg.stuck_s:
+            self._finish(False, f"no progress along the route for {cfg.stuck_s:g} s")
+            return "stuck", tel.position, arc
+        return "go", cmd.route.at(arc + cfg.lookahead_m), arc
+
+    def _follow_reference(
+        self, now: float, tel: Telemetry, cmd: _Follow
+    ) -> tuple[FloatArray, FloatArray, float | None, float]:
+        p = tel.position
+        cfg = self.config
+        state, c, arc = self._route_step(now, tel, cmd)
+        if state != "go":
+            hold = p.copy()
+            if state == "arrived" and not cmd.ground_goal:
+                hold = self.flight_target(cmd.target)
+            self._cmd = _Hold(hold)
+            return hold, np.zeros(3), None, 0.0
+        goal = c
+        left = cmd.route.length - arc
+        if cmd.ground_goal and left < cfg.lookahead_m:
+            goal = self.flight_target(cmd.target)
+        ref, vel, _, repulsion = self._apf_reference(tel, goal, cfg.speed_m_s)
+        ahead = cmd.route.at(arc + 2 * cfg.lookahead_m)
+        heading = ahead[:2] - p[:2]
+        yaw = math.atan2(heading[1], heading[0]) if np.hypot(*heading) > 0.3 else None
+        return ref, vel, yaw, repulsion
+
+    def _command_multirotor(
+        self,
+        tel: Telemetry,
+        ref: FloatArray,
+        vel: FloatArray,
+        yaw: float | None,
+        yaw_rate: float,
+        repulsion: float,
+    ) -> None:
+        if self._nmpc is None:
+            # the autopilot's position loop (v = K_p·(p_sp − p)) turns the APF step into the
+            if yaw is None and yaw_rate:  # a rate (DPHR) through the autopilot's heading P loop
+                yaw = wrap_angle(tel.yaw + yaw_rate / HEADING_GAIN)
+            self.backend.set_position_setpoint(ref, None, yaw)
+            return
+        from btmission.control.mav_model import yaw_rate_pd
+
+        if (
+            not tel.armed
+            or tel.mode is not Mode.OFFBOARD
+            or (tel.landed and ref[2] <= tel.position[2] + 0.1)
+        ):
+            self.backend.set_attitude_setpoint(0.0, 0.0, 0.0, 0.0)
+            self._nmpc.reset()
+            return
+        psi = tel.yaw
+        x = np.concatenate(
+            [
+                world_to_yaw_frame(tel.position, psi),
+                world_to_yaw_frame(tel.velocity, psi),
+                [tel.roll, tel.pitch],
+            ]
+        )
+        target = tel.position + (ref - tel.position) / max(
+            1.0, float(np.linalg.norm(ref - tel.position))
+        )
+        x_ref = np.concatenate(
+            [world_to_yaw_frame(target, psi), world_to_yaw_frame(vel, psi), [0.0, 0.0]]
+        )
+        res = self._nmpc.solve(x, x_ref, repulsive_force=repulsion)
+        self.solve_times.append(res.solve_time_s)
+        if yaw is not None:
+            rate = yaw_rate_pd(psi, yaw, tel.yaw_rate)
+        else:
+            rate = yaw_rate
+        self.backend.set_attitude_setpoint(float(res.u[0]), float(res.u[1]), float(res.u[2]), rate)
+
+    # ---------------------------------------------------------------- ground robots
+    def _step_ground(self, now: float, tel: Telemetry) -> None:
+        cmd = self._cmd
+        p = tel.position
+        if isinstance(cmd, (_Hold, _Land, _Takeoff)):
+            self._drive(now, tel, None)
+            return
+        if isinstance(cmd, _Goto):
+            self._drive(now, tel, cmd.waypoint[:2])
+            return
+        assert isinstance(cmd, _Follow)
+        state, c, _ = self._route_step(now, tel, cmd)
+        if state != "go":
+            self._cmd = _Hold(p.copy())
+            self._drive(now, tel, None)
+            return
+        self._drive(now, tel, c[:2])
+
+    def _keep_right(
+        self, x: FloatArray, goal: FloatArray, shared: Sequence[FloatArray]
+    ) -> FloatArray:
+        """The NMPC's way-point, moved to the right of the way ahead while another robot is
+        close in front: the set-exclusion constraints (eq. 12) stop two robots meeting head-on
+        in an aisle, each waiting for the other; a common side lets them pass."""
+        d = goal - x[:2]
+        dist = float(np.hypot(*d))
+        if dist < 1e-6:
+            return goal
+        ahead = d / dist
+        for other in shared:
+            rel = other[0, :2] - x[:2]
+            r = float(np.hypot(*rel))
+            if r < KEEP_RIGHT_M and float(rel @ ahead) > 0.5 * r:
+                right = np.array([ahead[1], -ahead[0]])
+                return goal + KEEP_RIGHT_OFFSET_M * right
+        return goal
+
+    def _drive(self, now: float, tel: Telemetry, goal: FloatArray | None) -> None:
+        """[u_v, u_ω] towards ``goal`` (None: stop), streamed as a velocity setpoint."""
+        psi = tel.yaw
+        x = np.array([tel.position[0], tel.position[1], psi])
+        if self._uni is not None:
+            cfg = self._uni.config
+            if now - self._last_uni_t >= cfg.dt_s - 1e-9:
+                shared = list(self._predictions(self.agent)) if self._predictions else []
+                n = cfg.horizon + 1
+                others = [  # a vehicle sharing only its position stands still over the horizon
+                    o[:n] if len(o) >= n else np.vstack([o, np.repeat(o[-1:], n - len(o), axis=0)])
+                    for o in shared[: cfg.max_agents]
+                ]
+                target = x[:2] if goal is None else self._keep_right(x, goal, shared)
+                d = target - x[:2]
+                heading = math.atan2(d[1], d[0]) if float(np.hypot(*d)) > 0.05 else x[2]
+                res = self._uni.solve(x, np.array([target[0], target[1], heading]), others)
+                self.solve_times.append(res.solve_time_s)
+                self._uni_u = res.u
+                self.prediction = res.predicted_positions
+                self._last_uni_t = now
+            uv, uw = float(self._uni_u[0]), float(self._uni_u[1])
+            if goal is None:
+                uv, uw = 0.0, 0.0
+        else:
+            if goal is None:
+                uv = uw = 0.0
+            else:
+                if self._apf is not None:  # seed 002 eq. 3 / Alg. 1: steer at p̂ + F
+                    goal3 = np.array([goal[0], goal[1], tel.position[2]])
+                    ref, _, _, _ = self._apf_reference(tel, goal3, 1.0)
+                    goal = ref[:2] if float(np.hypot(*(goal - x[:2]))) > 0.05 else goal
+                d = goal - x[:2]
+                err = wrap_angle(math.atan2(d[1], d[0]) - psi)
+                dist = float(np.hypot(*d))
+                uw = float(np.clip(2.0 * err, -1.5, 1.5))
+                uv = (
+                    0.0
+                    if abs(err) > math.pi / 3
+                    else min(0.4, self.config.speed_m_s, 0.8 * dist) * math.cos(err)
+                )
+            self.prediction = np.tile(x[:2], (PREDICTION_STEPS + 1, 1))
+        heading = np.array([math.cos(psi), math.sin(psi), 0.0])
+        self.backend.set_velocity_setpoint(heading * uv, uw)

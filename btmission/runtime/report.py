@@ -1,0 +1,459 @@
+"""The mission report, computed from the event log alone (DESIGN.md §6).
+
+:class:`ReportBuilder` is an :class:`~btmission.runtime.events.Observer`: feed it a run's events
+live, or the events read back from its JSON Lines log (:func:`report_from_log`) — the same code
+either way, so what a run prints and what ``btmission report LOG`` prints agree, and a log cut
+short by a crash still gives the report of what happened until then.
+
+* **Table III** (seed 000): per task, when it was added, when it finished, its execution time
+  (from its allocation to the agent that completed it until completion) and that agent; tasks not
+  done show their state and reason.
+* **Table II** (seed 000): mission duration, total distance flown or driven, agents, tasks done,
+  smallest clearance to rock, collisions.
+* a **timeline** (Gantt chart: which agent executed which task when) and a **top view** (the map,
+  the trajectories, starts and task locations), as PNG (matplotlib, imported only here, lazily).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from btmission.runtime.events import Event, LogContents, read_events
+
+
+@dataclass(frozen=True)
+class TaskRow:
+    """One row of Table III."""
+
+    task: str
+    type: str
+    added_s: float | None
+    finished_s: float | None
+    execution_s: float | None
+    agent: str | None
+    state: str
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class Summary:
+    """Table II."""
+
+    duration_s: float
+    distance_m: float
+    agents: int
+    tasks: int
+    tasks_done: int
+    min_clearance_m: float | None
+    collisions: int
+    end: str
+    """How the run ended (completed, time limit, interrupted...; "log ends" for a cut log)."""
+
+
+@dataclass
+class MissionReport:
+    """Everything the report shows, from a run's events."""
+
+    header: dict[str, Any]
+    rows: list[TaskRow]
+    summary: Summary
+    distance_by_agent: dict[str, float]
+    trajectories: dict[str, np.ndarray]
+    """Agent → (N, 3) positions from the pose events."""
+    intervals: dict[str, list[tuple[str, float, float, str]]]
+    """Agent → (task, start, end, outcome) for the Gantt chart; outcome: done / failed / left."""
+    objects: list[dict[str, Any]] = field(default_factory=list)
+    task_fields: dict[str, dict[str, Any]] = field(default_factory=dict)
+    truncated: bool = False
+    warnings: list[str] = field(default_factory=list)
+
+
+class ReportBuilder:
+    """Accumulates events (an observer) and computes the :class:`MissionReport`."""
+
+    def __init__(self) -> None:
+        self.header: dict[str, Any] = {}
+        self.added: dict[str, tuple[float, str]] = {}
+        self.fields: dict[str, dict[str, Any]] = {}
+        self.task_events: dict[str, list[Event]] = {}
+        self.poses: dict[str, list[tuple[float, list[float]]]] = {}
+        self.odometer: dict[str, float] = {}
+        self.min_clearance: float | None = None
+        self.rock_collisions = 0
+        self.agent_collisions: set[tuple[str, str, float]] = set()
+        self.agent_task: dict[str, list[tuple[float, str | None]]] = {}
+        self.objects: list[dict[str, Any]] = []
+        self.end: Event | None = None
+        self.last_t = 0.0
+        self.warnings: list[str] = []
+
+    def on_event(self, ev: Event) -> None:
+        self.last_t = max(self.last_t, ev.t)
+        kind = ev.kind
+        if kind == "header":
+            self.header = dict(ev.data)
+        elif kind == "task_added":
+            self.added[ev.get("task")] = (ev.t, str(ev.get("type", "")))
+            self.fields[ev.get("task")] = dict(ev.get("fields") or {})
+            for problem in ev.get("problems") or []:
+                self.warnings.append(f"task {ev.get('task')}: {problem}")
+        elif kind == "task":
+            self.task_events.setdefault(ev.get("task"), []).append(ev)
+        elif kind == "pose":
+            agent = ev.get("agent")
+            self.poses.setdefault(agent, []).append((ev.t, ev.get("p")))
+            if ev.get("odometer_m") is not None:
+                self.odometer[agent] = float(ev.get("odometer_m"))
+            c = ev.get("clearance_m")
+            if c is not None:
+                self.min_clearance = c if self.min_clearance is None else min(self.min_clearance, c)
+        elif kind == "collision":
+            other = str(ev.get("other"))
+            if other == "rock":
+                self.rock_collisions += 1
+            else:
+                a, b = sorted((str(ev.get("agent")), other))
+                self.agent_collisions.add((a, b, round(ev.t, 3)))
+        elif kind == "agent_task":
+            self.agent_task.setdefault(ev.get("agent"), []).append((ev.t, ev.get("task")))
+        elif kind == "objects":
+            self.objects.extend(ev.get("objects") or [])
+        elif kind == "end":
+            self.end = ev
+
+    # ------------------------------------------------------------------ computing
+    def _row(self, task: str) -> TaskRow:
+        added, ttype = self.added.get(task, (None, ""))
+        evs = self.task_events.get(task, [])
+        state = evs[-1].get("state") if evs else "open"
+        reason = evs[-1].get("reason", "") if evs else "not allocated yet"
+        if state == "done":
+            done = evs[-1]
+            agent = done.get("agent")
+            start = None
+            for ev in evs[:-1]:  # the allocation of the agent that finished it
+                if ev.get("agent") == agent and ev.get("state") == "assigned":
+                    start = ev.t
+                elif ev.get("agent") != agent:
+                    start = None
+            execution = None if start is None else done.t - start
+            return TaskRow(task, ttype, added, done.t, execution, agent, "done")
+        agent = evs[-1].get("agent") if evs else None
+        return TaskRow(task, ttype, added, None, None, agent, str(state), str(reason))
+
+    def report(self) -> MissionReport:
+        tasks = list(self.added)
+        for t in self.task_events:
+            if t not in self.added:
+                tasks.append(t)
+        rows = [self._row(t) for t in tasks]
+        agents = [a["id"] for a in self.header.get("agents", [])] or sorted(self.poses)
+        trajectories = {
+            a: np.array([p for _, p in self.poses.get(a, [])], dtype=float).reshape(-1, 3)
+            for a in agents
+        }
+        distance = {a: self.odometer.get(a, _path_length(trajectories[a])) for a in agents}
+        end_reason = str(self.end.get("reason")) if self.end is not None else "log ends"
+        duration = self.end.t if self.end is not None else self.last_t
+        summary = Summary(
+            duration_s=duration,
+            distance_m=float(sum(distance.values())),
+            agents=len(agents),
+            tasks=len(rows),
+            tasks_done=sum(1 for r in rows if r.state == "done"),
+            min_clearance_m=self.min_clearance,
+            collisions=self.rock_collisions + len(self.agent_collisions),
+            end=end_reason,
+        )
+        return MissionReport(
+            self.header,
+            rows,
+            summary,
+            distance,
+            trajectories,
+            self._intervals(duration),
+            list(self.objects),
+            dict(self.fields),
+            warnings=list(self.warnings),
+        )
+
+    def _intervals(self, end: float) -> dict[str, list[tuple[str, float, float, str]]]:
+        done_by = {
+            t: (evs[-1].get("agent"), evs[-1].get("state"))
+            for t, evs in self.task_events.items()
+            if evs and evs[-1].get("state") in ("done", "failed")
+        }
+        out: dict[str, list[tuple[str, float, float, str]]] = {}
+        for agent, changes in self.agent_task.items():
+            spans = []
+            for (t0, task), nxt in zip(changes, [*changes[1:], (end, None)]):
+                if task is None:
+                    continue
+                who, state = done_by.get(task, (None, None))
+                outcome = str(state) if who == agent and nxt[1] is None else "left"
+                spans.append((str(task), t0, nxt[0], outcome))
+            out[agent] = spans
+        return out
+
+
+def _path_length(points: np.ndarray) -> float:
+    if len(points) < 2:
+        return 0.0
+    return float(np.linalg.norm(np.diff(points, axis=0), axis=1).sum())
+
+
+def build_report(events: Iterable[Event]) -> MissionReport:
+    b = ReportBuilder()
+    for ev in events:
+        b.on_event(ev)
+    return b.report()
+
+
+def report_from_log(path: str | Path) -> MissionReport:
+    """The report of a JSON Lines log (raises :class:`~btmission.runtime.events.LogError`)."""
+    contents: LogContents = read_events(path)
+    rep = build_report(contents.events)
+    rep.truncated = contents.truncated
+    if contents.truncated:
+        rep.warnings.append("the last line of the log was cut off (the run was killed)")
+    if contents.skipped:
+        rep.warnings.append(f"unreadable lines skipped: {contents.skipped[:5]}")
+    return rep
+
+
+# ---------------------------------------------------------------------------- text
+def _f(v: float | None, digits: int = 0) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "—"
+    return f"{v:.{digits}f}"
+
+
+def format_report(rep: MissionReport) -> str:
+    """Table III and Table II of seed 000 as text."""
+    h = rep.header
+    s = rep.summary
+    lines = [
+        f"Mission {h.get('mission', '?')} — {h.get('description', '')}".rstrip(" —"),
+        f"seed {h.get('seed', '?')}, controller {h.get('controller', '?')}, ended: {s.end}",
+        "",
+        "Tasks (seed 000 Table III)",
+    ]
+    head = ("Task", "Added [s]", "Finished [s]", "Execution [s]", "Agent", "Note")
+    body = [
+        (
+            r.task,
+            _f(r.added_s, 1),
+            _f(r.finished_s, 1),
+            _f(r.execution_s, 1),
+            r.agent or "—",
+            "" if r.state == "done" else f"{r.state}: {r.reason}".rstrip(": "),
+        )
+        for r in rep.rows
+    ]
+    lines += _table(head, body)
+    lines += ["", "Mission (seed 000 Table II)"]
+    clearance = "—" if s.min_clearance_m is None else f"{s.min_clearance_m:.2f} m"
+    per_agent = ", ".join(f"{a} {d:.1f}" for a, d in rep.distance_by_agent.items())
+    summary = [
+        ("Mission duration", f"{s.duration_s:.1f} s"),
+        ("Total distance covered", f"{s.distance_m:.1f} m ({per_agent})" if per_agent else "0 m"),
+        ("Number of agents", str(s.agents)),
+        ("Tasks done", f"{s.tasks_done} of {s.tasks}"),
+        ("Min clearance to rock", clearance),
+        ("Collisions", str(s.collisions)),
+    ]
+    lines += _table(("Parameter", "Value"), summary)
+    if rep.objects or rep.header.get("artifacts"):
+        truth = rep.header.get("artifacts") or []
+        lines += ["", f"Objects localised ({len(rep.objects)}; {len(truth)} placed in the world)"]
+        lines += _table(
+            ("Label", "Position [m]", "Observations", "Error [m]"),
+            [
+                (
+                    str(o.get("label")),
+                    "[" + ", ".join(f"{v:.2f}" for v in o.get("p", [])) + "]",
+                    str(o.get("observations", "")),
+                    _f(_nearest(o, truth), 2),
+                )
+                for o in rep.objects
+            ],
+        )
+    for w in rep.warnings:
+        lines.append(f"warning: {w}")
+    return "\n".join(lines)
+
+
+def _nearest(obj: Mapping[str, Any], truth: Sequence[Mapping[str, Any]]) -> float | None:
+    """Distance from a localised object to the nearest placed artifact of its class."""
+    same = [t["p"] for t in truth if t.get("label") == obj.get("label")]
+    if not same or not obj.get("p"):
+        return None
+    return min(math.dist(obj["p"], p) for p in same)
+
+
+def _table(head: tuple[str, ...], rows: Sequence[tuple[str, ...]]) -> list[str]:
+    widths = [
+        max(len(head[i]), *(len(r[i]) for r in rows)) if rows else len(head[i])
+        for i in range(len(head))
+    ]
+    fmt = "  ".join("{:<" + str(w) + "}" for w in widths)
+    out = [fmt.format(*head).rstrip(), fmt.format(*("-" * w for w in widths)).rstrip()]
+    out += [fmt.format(*r).rstrip() for r in rows]
+    return out
+
+
+def report_json(rep: MissionReport) -> dict[str, Any]:
+    """Plain data of Tables II and III."""
+    s = rep.summary
+    return {
+        "mission": rep.header.get("mission"),
+        "summary": {
+            "duration_s": s.duration_s,
+            "distance_m": s.distance_m,
+            "distance_by_agent_m": rep.distance_by_agent,
+            "agents": s.agents,
+            "tasks": s.tasks,
+            "tasks_done": s.tasks_done,
+            "min_clearance_m": s.min_clearance_m,
+            "collisions": s.collisions,
+            "end": s.end,
+        },
+        "tasks": [r.__dict__ for r in rep.rows],
+        "objects": rep.objects,
+        "truncated": rep.truncated,
+    }
+
+
+# ---------------------------------------------------------------------------- figures
+def _figure(size: tuple[float, float]) -> Any:
+    from matplotlib.figure import Figure  # no pyplot: no GUI backend, no global state
+
+    return Figure(figsize=size, layout="constrained")
+
+
+def timeline_png(rep: MissionReport, path: str | Path) -> Path:
+    """Gantt chart: one row per agent, a bar per task it executed (seed 000 Table III)."""
+    agents = list(rep.distance_by_agent) or sorted(rep.intervals)
+    fig = _figure((10, 1.2 + 0.6 * max(1, len(agents))))
+    ax = fig.subplots()
+    tasks = [r.task for r in rep.rows]
+    colour = {t: f"C{i % 10}" for i, t in enumerate(tasks)}
+    for i, agent in enumerate(agents):
+        for task, t0, t1, outcome in rep.intervals.get(agent, []):
+            ax.barh(
+                i,
+                max(t1 - t0, 0.05),
+                left=t0,
+                color=colour.get(task, "grey"),
+                alpha=1.0 if outcome == "done" else 0.35,
+                edgecolor="black",
+                hatch="" if outcome == "done" else "//",
+            )
+            if t1 - t0 > 0.04 * max(rep.summary.duration_s, 1e-9):
+                ax.text((t0 + t1) / 2, i, task, ha="center", va="center", fontsize=8)
+    for r in rep.rows:
+        if r.added_s is not None and r.added_s > 0:
+            ax.axvline(r.added_s, color=colour.get(r.task, "grey"), ls=":", lw=1)
+            ax.text(
+                r.added_s, len(agents) - 0.4, f"{r.task} added", fontsize=7, rotation=90, va="top"
+            )
+    ax.set_yticks(range(len(agents)), agents)
+    ax.set_ylim(-0.6, len(agents) - 0.4)
+    ax.set_xlim(0, max(rep.summary.duration_s, 1.0))
+    ax.set_xlabel("mission time [s]")
+    ax.set_title(
+        f"{rep.header.get('mission', '')}: task execution per agent "
+        "(solid: completed, hatched: left for another task or lost)"
+    )
+    out = Path(path)
+    fig.savefig(out, dpi=100)
+    return out
+
+
+def _world_from_header(header: Mapping[str, Any]) -> Any:
+    """The mission's voxel map rebuilt from the log's header (None if it cannot be)."""
+    try:
+        from btmission.spec.mission import WorldSpec
+        from btmission.world.build import world_from_spec
+
+        world = WorldSpec.model_validate(header["world"])
+        base = Path(str(header.get("file", "."))).parent
+        return world_from_spec(world, base)
+    except Exception:
+        return None
+
+
+def topview_png(rep: MissionReport, path: str | Path, voxel_map: Any = None) -> Path:
+    """Top view: open space of the map (grey), trajectories, starts (squares), tasks (×),
+    artifacts placed in the simulator (stars) and the objects localised (+)."""
+    vm = voxel_map if voxel_map is not None else _world_from_header(rep.header)
+    aspect = 0.6
+    if vm is not None:
+        ex = vm.extent
+        aspect = ex[1] / max(ex[0], 1e-9)
+    fig = _figure((10, max(3.5, 10 * aspect) + 0.8))
+    ax = fig.subplots()
+    ax.set_facecolor("#202020")
+    if vm is not None:
+        from btmission.world.voxel import OCCUPIED
+
+        open_cols = (vm.state != OCCUPIED).any(axis=2)
+        lo = vm.origin
+        ex = vm.extent
+        ax.imshow(
+            np.where(open_cols, 0.85, 0.25).T,
+            origin="lower",
+            extent=(lo[0], lo[0] + ex[0], lo[1], lo[1] + ex[1]),
+            cmap="gray",
+            vmin=0,
+            vmax=1,
+            interpolation="nearest",
+        )
+    for i, (agent, traj) in enumerate(rep.trajectories.items()):
+        if len(traj):
+            ax.plot(traj[:, 0], traj[:, 1], color=f"C{i % 10}", lw=1.5, label=agent)
+    for i, a in enumerate(rep.header.get("agents", [])):
+        st = a.get("start", [0, 0, 0])
+        ax.plot(st[0], st[1], "s", color=f"C{i % 10}", mec="white", ms=7)
+    for task, pos in _task_positions(rep):
+        ax.plot(pos[0], pos[1], "x", color="#d62728", ms=8, mew=2)
+        ax.annotate(
+            task,
+            (pos[0], pos[1]),
+            xytext=(4, 4),
+            textcoords="offset points",
+            fontsize=8,
+            color="#d62728",
+        )
+    for a in rep.header.get("artifacts") or []:
+        ax.plot(a["p"][0], a["p"][1], "*", color="#ff9f1c", ms=12, mec="black")
+    for o in rep.objects:
+        ax.plot(o["p"][0], o["p"][1], "+", color="#17becf", ms=12, mew=2)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(f"{rep.header.get('mission', '')}: trajectories (top view)")
+    if rep.trajectories:
+        ax.legend(loc="upper right", fontsize=8)
+    out = Path(path)
+    fig.savefig(out, dpi=100)
+    return out
+
+
+def _task_positions(rep: MissionReport) -> list[tuple[str, list[float]]]:
+    out = []
+    for r in rep.rows:
+        points = [
+            (name, v)
+            for name, v in rep.task_fields.get(r.task, {}).items()
+            if isinstance(v, list) and len(v) == 3
+        ]
+        for name, value in points:
+            out.append((r.task if len(points) == 1 else f"{r.task} {name}", value))
+    return out

@@ -1,0 +1,431 @@
+"""Run a mission end to end in the embedded simulator: coordinator, agents, vehicles, events.
+
+:class:`MissionRun` builds everything from a validated :class:`~btmission.spec.mission.Mission`
+and advances it in fixed steps of simulated time (``runtime.sim.step_s``). One step, at time t:
+
+1. callbacks scheduled for t run (:meth:`MissionRun.at`), tasks added through the API enter
+   the pool;
+2. the coordinator runs an auction round if one is due (``coordination.auction_rate_hz``):
+   announce → every agent bids → allocate → every agent gets its assignment;
+3. agents whose tick is due tick their mission tree (``runtime.tick_hz``);
+4. every agent's navigator streams this period's setpoints;
+5. status reports go to the coordinator and pose events to the observers (``runtime.status_hz``);
+6. the simulator advances every vehicle by one step and reports collisions.
+
+Time comes from the simulator, never from the wall clock, so a run is deterministic for a seed
+and goes as fast as the machine allows; ``realtime=True`` paces it against the wall clock.
+
+The run ends when every task is done (or failed, or unreachable by any agent), nothing is left
+to arrive and every agent has finished its default behaviour (or waits, if it has none); or at
+``runtime.max_duration_s`` / ``until``; or when :meth:`MissionRun.stop` is called (Ctrl-C).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from btmission.allocation.tasks import TaskInfo, TaskState
+from btmission.backends.sim import Artifact, SimConfig, Simulator
+from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
+from btmission.runtime.agent import Agent
+from btmission.runtime.bus import InMemoryBus
+from btmission.runtime.clock import Clock, SimClock
+from btmission.runtime.coordinator import Coordinator
+from btmission.runtime.events import LOG_FORMAT, LOG_VERSION, EventStream, Observer
+from btmission.runtime.navigation import SETTINGS_DOC, NavConfig, Navigator
+from btmission.runtime.paths import PathCosts
+from btmission.spec.mission import Mission
+from btmission.world.voxel import VoxelMap
+
+NEIGHBOUR_RANGE_M = 6.0
+"""Agents farther than this are left out of each other's avoidance (APF, NMPC constraints)."""
+
+
+@dataclass
+class RunResult:
+    """How a run ended."""
+
+    reason: str
+    """completed, finished with open tasks, time limit, until, interrupted, no agents left."""
+    time_s: float
+    wall_s: float
+    steps: int
+    done: list[str] = field(default_factory=list)
+    open: dict[str, str] = field(default_factory=dict)
+    """Tasks not done → state and reason."""
+    collisions: int = 0
+
+    @property
+    def speedup(self) -> float:
+        return self.time_s / self.wall_s if self.wall_s > 0 else math.inf
+
+
+def runtime_problems(mission: Mission) -> list[Diagnostic]:
+    """What stops a valid mission from running: libraries without implementations, unknown
+    settings. (Bad files are caught by loading; this is what running adds.)"""
+    out: list[Diagnostic] = []
+    known: dict[str, str] = dict(SETTINGS_DOC)
+    for ref, loaded in mission.libraries.items():
+        impl = loaded.implementations
+        lib = loaded.library
+        if impl is None:
+            why = loaded.import_error or f"library '{lib.name}' has no implementation module"
+            out.append(
+                Diagnostic(
+                    Severity.ERROR,
+                    "not-runnable",
+                    f"library '{ref}' cannot run: {why}",
+                    "agents",
+                    Location(mission.file),
+                )
+            )
+            continue
+        missing = impl.missing(lib)
+        if missing:
+            out.append(
+                Diagnostic(
+                    Severity.ERROR,
+                    "not-runnable",
+                    f"library '{ref}' cannot run: no implementation of {', '.join(missing)}",
+                    "agents",
+                    Location(mission.file),
+                )
+            )
+        for name in impl.settings:
+            known.setdefault(name, f"{lib.name} setting")
+    for name in mission.spec.runtime.settings:
+        if name not in known:
+            out.append(
+                Diagnostic(
+                    Severity.ERROR,
+                    "unknown-setting",
+                    f"unknown setting '{name}' (known: {', '.join(sorted(known))})",
+                    f"runtime.settings.{name}",
+                    Location(mission.file),
+                )
+            )
+    return out
+
+
+class MissionRun:
+    """A mission running in the embedded simulator (module docstring)."""
+
+    def __init__(
+        self,
+        mission: Mission,
+        *,
+        seed: int = 0,
+        controller: str | None = None,
+        observers: Iterable[Observer] = (),
+        voxel_map: VoxelMap | None = None,
+        realtime: bool = False,
+    ) -> None:
+        from btmission.planning.risk import RiskParams
+        from btmission.world.build import world_from_spec
+
+        problems = runtime_problems(mission)
+        if problems:
+            raise SpecError(problems)
+        self.mission = mission
+        rt = mission.spec.runtime
+        self.seed = seed
+        self.controller = controller or rt.controller
+        self.realtime = realtime
+        self.events = EventStream(observers)
+        self.map = (
+            voxel_map
+            if voxel_map is not None
+            else world_from_spec(mission.spec.world, mission.base_dir)
+        )
+        self.settings: dict[str, Any] = {}
+        for loaded in mission.libraries.values():
+            if loaded.implementations is not None:
+                self.settings.update(loaded.implementations.settings)
+        self.settings.update(rt.settings)
+        self.nav_config = NavConfig.from_settings(self.settings)
+        sim_spec = rt.sim
+        self.sim = Simulator(
+            self.map,
+            SimConfig(
+                step_s=sim_spec.step_s,
+                lidar_range_m=sim_spec.lidar_range_m,
+                dust_points=sim_spec.dust_points,
+                detection_noise_px=sim_spec.detection_noise_px,
+            ),
+            seed=seed,
+            artifacts=[Artifact(a.label, a.position, a.size_m) for a in sim_spec.artifacts],
+        )
+        self.clock: Clock = SimClock(self.sim)
+        self.paths = PathCosts(
+            self.map,
+            RiskParams(rt.risk_radius_m, rt.unknown_cost),
+            clearance_m=self.nav_config.clearance_m,
+        )
+        self.bus = InMemoryBus()
+        self.coordinator = Coordinator(
+            mission, self.bus, self.now, self.emit, check_location=self.paths.problem
+        )
+        self._namespace = f"/run-{uuid.uuid4().hex[:8]}"
+        self.agents: dict[str, Agent] = {}
+        self._schedule: list[tuple[float, int, Callable[[MissionRun], None]]] = []
+        self._stop = threading.Event()
+        self._stop_reason = "interrupted"
+        self.dt = sim_spec.step_s
+        self._tick_period = 1.0 / rt.tick_hz
+        self._status_period = 1.0 / rt.status_hz
+        self._next_tick = 0.0
+        self._next_status = 0.0
+        self.collisions = 0
+        self._wall0: float | None = None
+        self._wall_used = 0.0
+        self._ended: RunResult | None = None
+        self._build_agents()
+        self._emit_header()
+
+    # ---------------------------------------------------------------- construction
+    def _build_agents(self) -> None:
+        for spec in self.mission.agents:
+            loaded = self.mission.library_of(spec.id)
+            impl = loaded.implementations
+            assert impl is not None  # runtime_problems() checked it
+            if impl.vehicle == "ground":
+                vehicle = self.sim.add_ground(spec.id, spec.start)
+                control_dt = 0.1
+            else:
+                vehicle = self.sim.add_multirotor(spec.id, spec.start)
+                control_dt = self.dt
+            aid = spec.id
+
+            def predictions(agent: str, _aid: str = aid) -> list[Any]:
+                pos = self.sim.backends[_aid].telemetry().position
+                return self.bus.predictions(agent, self.now(), 0.1, pos, NEIGHBOUR_RANGE_M)
+
+            nav = Navigator(
+                spec.id,
+                vehicle,
+                vehicle,
+                self.controller,
+                self.nav_config,
+                control_dt=control_dt,
+                predictions=predictions,
+                ground_at=self.map.ground_z,
+                point_area_m2=self.map.resolution**2,
+            )
+            self.agents[spec.id] = Agent(
+                self.mission,
+                spec.id,
+                impl,
+                vehicle,
+                vehicle,
+                nav,
+                self.paths,
+                self.bus,
+                self.now,
+                settings=self.settings,
+                emit=self.emit,
+                namespace=self._namespace,
+            )
+
+    def _emit_header(self) -> None:
+        m = self.mission
+        world = m.spec.world.model_dump(mode="json")
+        vm = self.map
+        self.emit(
+            "header",
+            format=LOG_FORMAT,
+            version=LOG_VERSION,
+            mission=m.name,
+            description=m.spec.description,
+            file=m.file,
+            seed=self.seed,
+            controller=self.controller,
+            world=world,
+            map={"shape": list(vm.shape), "resolution": vm.resolution, "origin": list(vm.origin)},
+            step_s=self.dt,
+            auction_rate_hz=m.spec.coordination.auction_rate_hz,
+            agents=[
+                {
+                    "id": a.id,
+                    "library": m.library_of(a.id).library.name,
+                    "vehicle": self.sim.backends[a.id].kind.value,
+                    "start": list(a.start),
+                }
+                for a in m.agents
+            ],
+            tasks=[
+                {"id": t.id, "type": t.type, "at": t.at, "fields": dict(t.fields)} for t in m.tasks
+            ],
+            artifacts=[
+                {"label": a.label, "p": list(a.position), "size_m": a.size_m}
+                for a in m.spec.runtime.sim.artifacts
+            ],
+        )
+
+    # ---------------------------------------------------------------- API
+    def now(self) -> float:
+        """Mission time (s), from the clock (the simulator's)."""
+        return self.clock.now()
+
+    def emit(self, kind: str, t: float | None = None, **data: Any) -> None:
+        self.events.emit(self.now() if t is None else t, kind, **data)
+
+    def add_task(self, task: Mapping[str, Any] | TaskInfo) -> TaskInfo:
+        """Add a task while the mission runs (thread-safe): ``{"id": "T8", "type": "inspect",
+        "location": [x, y, z]}``, optionally with ``priority`` and ``at``. Raises
+        :class:`~btmission.runtime.coordinator.TaskError` when it cannot be used."""
+        return self.coordinator.add_task(task, self.now())
+
+    def at(self, t: float, fn: Callable[[MissionRun], None]) -> None:
+        """Call ``fn(run)`` at mission time ``t`` (before that step's auction round)."""
+        self._schedule.append((t, len(self._schedule), fn))
+        self._schedule.sort()
+
+    def kill_agent(self, agent: str, reason: str = "killed") -> None:
+        """The agent's computer stops: no more ticks, bids or setpoints (its vehicle's
+        autopilot falls back to HOLD when the setpoints stop)."""
+        a = self.agents[agent]
+        if a.alive:
+            a.kill()
+            self.emit("agent_lost", agent=agent, reason=reason)
+
+    def signal(self, agent: str, name: str, value: Any = True) -> None:
+        """Set a supervisor signal on an agent (its leaves read ``ctx.state[name]``), e.g. the
+        COMPRA library's ``stop``. Thread-safe enough: one dict assignment."""
+        self.agents[agent].ctx.state[name] = value
+        self.emit("signal", agent=agent, name=name, value=value)
+
+    def set_link(self, agent: str, up: bool) -> None:
+        """Cut or restore an agent's link to the coordinator; the agent keeps executing."""
+        self.bus.set_link(agent, up)
+        self.emit("link", agent=agent, up=up)
+
+    def stop(self, reason: str = "interrupted") -> None:
+        """Ask the run to end after the current step (thread-safe; what Ctrl-C does)."""
+        self._stop_reason = reason
+        self._stop.set()
+
+    # ---------------------------------------------------------------- running
+    def step(self) -> None:
+        """One fixed step (module docstring)."""
+        now = self.now()
+        while self._schedule and self._schedule[0][0] <= now + 1e-9:
+            _, _, fn = self._schedule.pop(0)
+            fn(self)
+        self.coordinator.step(now)
+        if now + 1e-9 >= self._next_tick:
+            for a in self.agents.values():
+                a.tick(now)
+            self._next_tick += self._tick_period
+        for a in self.agents.values():
+            a.control_step(now)
+        if now + 1e-9 >= self._next_status:
+            self._report(now)
+            self._next_status += self._status_period
+        for ev in self.sim.step():
+            self.collisions += 1
+            self.emit("collision", agent=ev.vehicle, other=ev.other, p=list(ev.position))
+
+    def _report(self, now: float) -> None:
+        for aid, a in self.agents.items():
+            if a.alive:
+                self.bus.send_status(a.status(now))
+            tel = self.sim.backends[aid].telemetry()
+            v = self.sim.vehicle(aid)
+            self.emit(
+                "pose",
+                agent=aid,
+                p=tel.position,
+                v=tel.velocity,
+                yaw=tel.yaw,
+                mode=tel.mode.value,
+                armed=tel.armed,
+                flying=not tel.landed,
+                odometer_m=v.odometer_m,
+                clearance_m=self.sim.take_clearance(aid),
+            )
+
+    def finished(self) -> str | None:
+        """Why the run should end now (None: go on)."""
+        live = [a for a in self.agents.values() if a.alive]
+        pool = self.coordinator.state.pool
+        if not self.coordinator.settled(self.now()):
+            if not live and any(not t.state.terminal for t in pool):
+                return "no agents left"
+            return None
+        if not all(a.at_rest for a in live):
+            return None
+        if all(t.state is TaskState.DONE for t in pool):
+            return "completed"
+        return "finished with open tasks"
+
+    def run(
+        self,
+        until: float | None = None,
+        *,
+        progress: Callable[[MissionRun], None] | None = None,
+        progress_every_s: float = 1.0,
+    ) -> RunResult:
+        """Step until the mission ends (or mission time ``until``); can be called again to
+        continue. ``progress(run)`` is called every ``progress_every_s`` of mission time."""
+        limit = self.mission.spec.runtime.max_duration_s
+        stop_at = limit if until is None else min(until, limit)
+        wall0 = time.perf_counter()
+        sim0 = self.now()
+        next_progress = self.now()
+        reason = ""
+        self._stop.clear()
+        try:
+            while True:
+                if self._stop.is_set():
+                    reason = self._stop_reason
+                    break
+                done = self.finished()
+                if done:
+                    reason = done
+                    break
+                if self.now() >= stop_at - 1e-9:
+                    reason = "time limit" if stop_at >= limit else "until"
+                    break
+                self.step()
+                if progress is not None and self.now() >= next_progress:
+                    progress(self)
+                    next_progress += progress_every_s
+                if self.realtime:
+                    lag = (self.now() - sim0) - (time.perf_counter() - wall0)
+                    if lag > 0:
+                        time.sleep(lag)
+        finally:
+            self._wall_used += time.perf_counter() - wall0
+        return self._result(reason)
+
+    def _result(self, reason: str) -> RunResult:
+        pool = self.coordinator.state.pool
+        return RunResult(
+            reason,
+            self.now(),
+            self._wall_used,
+            self.sim.steps,
+            [t.id for t in pool if t.state is TaskState.DONE],
+            {t.id: f"{t.state.value}: {t.note}" for t in pool if t.state is not TaskState.DONE},
+            self.collisions,
+        )
+
+    def end(self, result: RunResult) -> None:
+        """Publish the ``end`` event (once): the run is over."""
+        if self._ended is not None:
+            return
+        self._ended = result
+        self.emit(
+            "end",
+            reason=result.reason,
+            wall_s=result.wall_s,
+            steps=result.steps,
+            done=result.done,
+            open=result.open,
+        )

@@ -1,0 +1,48 @@
+"""``btmission bench sim`` runs and writes its tables (tiny sizes: speed is not asserted)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from click.testing import CliRunner
+
+from btmission.bench.sim import scale_mission_text
+from btmission.cli.main import cli
+from btmission.spec.mission import load_mission_text
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_bench_sim_writes_its_tables(runner: CliRunner, tmp_path: Path) -> None:
+    result = runner.invoke(
+        cli,
+        [
+            "bench",
+            "sim",
+            "--controllers",
+            "track",
+            "--scale",
+            "4x12",
+            "--duration",
+            "2",
+            "--out",
+            str(tmp_path),
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    md = (tmp_path / "sim.md").read_text()
+    assert "| track |" in md and "7/7" in md and "| 4 × 12 |" in md
+    rows = (tmp_path / "sim.csv").read_text().splitlines()
+    assert rows[0].startswith("kind,") and len(rows) == 3
+
+
+def test_bench_sim_rejects_bad_options(runner: CliRunner, tmp_path: Path) -> None:
+    for args in (["--controllers", "pid"], ["--scale", "50by400"], ["--scale", "0x3"]):
+        result = runner.invoke(cli, ["bench", "sim", *args, "--out", str(tmp_path)])
+        assert result.exit_code == 2, (args, result.output)
+
+
+def test_the_scaling_mission_is_valid() -> None:
+    m = load_mission_text(scale_mission_text(5, 20, 0.3, seed=1), "scale.yaml")
+    assert len(m.agents) == 5 and len(m.tasks) == 20
+    assert m.spec.coordination.participation == 0.3

@@ -1,0 +1,162 @@
+"""Runtime building blocks: D*+ path costs for bids, the navigator's polyline, the bus, the
+warehouse world, COMPRA on a small mine."""
+
+from __future__ import annotations
+
+import math
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from btmission.planning.dstar import Planner
+from btmission.planning.risk import CostMap, RiskParams
+from btmission.runtime.bus import InMemoryBus
+from btmission.runtime.events import Recorder
+from btmission.runtime.navigation import Polyline
+from btmission.runtime.paths import PathCosts, inflate
+from btmission.runtime.runner import MissionRun
+from btmission.spec.mission import load_mission_text
+from btmission.world.minegen import warehouse_world
+from btmission.world.voxel import OCCUPIED, MapError, VoxelMap
+
+
+def corridor() -> VoxelMap:
+    vm = VoxelMap.empty((12, 6, 3), 0.5)
+    vm.state[:, 0, :] = vm.state[:, -1, :] = OCCUPIED
+    vm.state[6:8, 1:7, :] = OCCUPIED  # a wall at x 3-4 m with a 2 m gap at the far side
+    return vm
+
+
+def test_path_costs_are_the_planners_lengths_to_each_goal() -> None:
+    """One backward search per goal gives, for every start, the length of the optimal path
+    the planner finds from that start (seed 000 §IV-B2: bids are D*+ path lengths)."""
+    vm = corridor()
+    pc = PathCosts(vm, RiskParams(1.0, 5.0))
+    planner = Planner(CostMap(vm, RiskParams(1.0, 5.0)))
+    goal = (10.25, 2.25, 1.25)
+    for start in [(1.25, 1.25, 0.25), (1.25, 4.25, 2.25), (5.25, 2.25, 1.25)]:
+        _, length = planner.one_to_all(start).at(goal)
+        assert pc.path_cost(start, goal) == pytest.approx(length, rel=1e-6)
+    assert pc.searches == 1  # one search served every start
+    route = pc.route((1.25, 1.25, 0.25), goal)
+    assert route is not None
+    np.testing.assert_allclose(route.waypoints[0], (1.25, 1.25, 0.25))
+    np.testing.assert_allclose(route.waypoints[-1], goal)
+    assert route.length_m == pytest.approx(pc.path_cost((1.25, 1.25, 0.25), goal), rel=1e-6)
+
+
+def test_goals_in_rock_or_outside_have_no_path() -> None:
+    pc = PathCosts(corridor())
+    assert math.isinf(pc.path_cost((1.25, 1.25, 0.25), (3.25, 1.25, 1.25)))
+    assert pc.problem((3.25, 1.25, 1.25)) == "inside rock"
+    assert "outside the map" in str(pc.problem((50, 1, 1)))
+    assert pc.route((1.25, 1.25, 0.25), (50.0, 1.0, 1.0)) is None
+
+
+def test_inflation_keeps_paths_off_the_rock() -> None:
+    vm = corridor()
+    inflated = inflate(vm, 0.5)
+    d_free = np.argwhere(inflated.state != OCCUPIED)
+    occ = np.argwhere(vm.state == OCCUPIED)
+    # every voxel left open is at least 0.5 m (centre to rock surface) from rock
+    gaps = (
+        np.min(np.linalg.norm(d_free[:, None, :] - occ[None, :, :], axis=2), axis=1) * vm.resolution
+        - vm.resolution / 2
+    )
+    assert gaps.min() >= 0.5 - 1e-9
+    assert inflate(vm, 0.0) is vm
+    # a start in the inflated margin (a drone on the floor) is moved to the nearest open voxel
+    pc = PathCosts(vm, clearance_m=0.5)
+    assert math.isfinite(pc.path_cost((1.25, 0.75, 0.25), (10.25, 2.75, 1.25)))
+
+
+def test_polyline_projection_and_arc_length() -> None:
+    line = Polyline(np.array([[0.0, 0, 0], [4, 0, 0], [4, 3, 0]]))
+    assert line.length == 7.0
+    seg, s = line.project(np.array([2.0, 1.0, 0.0]))
+    assert (seg, s) == (0, 2.0)
+    np.testing.assert_allclose(line.at(s + 3.0), [4.0, 1.0, 0.0])
+    np.testing.assert_allclose(line.at(100.0), [4.0, 3.0, 0.0])
+    np.testing.assert_allclose(line.at(-1.0), [0.0, 0.0, 0.0])
+    seg, s = line.project(np.array([5.0, 2.0, 0.0]), start=1)
+    assert (seg, s) == (1, 6.0)
+
+
+def test_bus_predictions_are_shifted_and_ordered() -> None:
+    bus = InMemoryBus()
+    bus.share_prediction("A", 0.0, np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]]))
+    bus.share_prediction("B", 0.2, np.array([[5.0, 0.0]]))
+    out = bus.predictions("C", 0.2, 0.1, near=np.array([4.0, 0.0]))
+    assert [p[0].tolist() for p in out] == [[5.0, 0.0], [2.0, 0.0]]  # nearest first, A moved on
+    assert bus.predictions("C", 0.2, 0.1, near=np.array([4.0, 0.0]), within_m=1.5)[0].shape == (
+        1,
+        2,
+    )
+    assert [len(p) for p in bus.predictions("A", 0.0, 0.1)] == [1]  # never one's own
+
+
+def test_warehouse_world() -> None:
+    a = warehouse_world((24, 16, 1), 0.25, seed=3)
+    b = warehouse_world((24, 16, 1), 0.25, seed=3)
+    assert np.array_equal(a.state, b.state)
+    assert not np.array_equal(a.state, warehouse_world((24, 16, 1), 0.25, seed=4).state)
+    occ = a.state == OCCUPIED
+    assert occ.any() and (occ.all(axis=2) == occ.any(axis=2)).all()  # shelves are full height
+    # the 2.5 m strips along the walls are open (docks, drop-off)
+    assert not occ[:, :10].any() and not occ[:, -10:].any()
+    assert not occ[:10].any() and not occ[-10:].any()
+    with pytest.raises(MapError, match="at least 8"):
+        warehouse_world((6, 16, 1), 0.25)
+
+
+COMPRA = """
+mission: sar
+version: 1
+world:
+  map: {generate: mine, seed: 3, size: [80, 50, 8]}
+  resolution: 0.5
+agents:
+  - {id: M1, library: compra, start: [4, 5, 0]}
+tasks:
+  - {id: S1, type: search}
+task_types:
+  search: {goal: [stop_handled, mission_complete], cost: 0}
+runtime:
+  controller: track
+  settings: {explore_time_s: 12}
+  sim:
+    artifacts:
+      - {label: survivor, position: [11.5, 7.5, 0.4], size_m: 0.6}
+"""
+
+
+def test_compra_explores_localises_returns_and_lands(tmp_path: Path) -> None:
+    m = load_mission_text(textwrap.dedent(COMPRA).lstrip(), str(tmp_path / "m.yaml"))
+    rec = Recorder()
+    run = MissionRun(m, observers=[rec])
+    result = run.run(until=120)
+    assert result.reason == "completed" and result.collisions == 0
+    poses = [e.get("p") for e in rec.of("pose") if e.get("agent") == "M1"]
+    start = np.array([4.0, 5.0, 0.0])
+    far = max(float(np.linalg.norm(np.array(p) - start)) for p in poses)
+    assert far > 6.0  # it explored...
+    assert float(np.linalg.norm(np.array(poses[-1][:2]) - start[:2])) < 1.5  # ...and came back
+    tel = run.sim.backends["M1"].telemetry()
+    assert tel.landed and not tel.armed
+    objects = rec.of("objects")[0].get("objects")
+    assert [o["label"] for o in objects] == ["survivor"]
+    assert math.dist(objects[0]["p"], (11.5, 7.5, 0.4)) < 0.3
+
+
+def test_compra_stop_lands_and_holds_until_cleared(tmp_path: Path) -> None:
+    text = textwrap.dedent(COMPRA).lstrip().replace("explore_time_s: 12", "explore_time_s: 60")
+    run = MissionRun(load_mission_text(text, str(tmp_path / "m.yaml")))
+    run.at(6.0, lambda r: r.signal("M1", "stop", True))
+    run.run(until=16.0)
+    tel = run.sim.backends["M1"].telemetry()
+    assert tel.landed and run.agents["M1"].action == "emergency_land"
+    run.signal("M1", "stop", False)
+    run.run(until=24.0)
+    assert not run.sim.backends["M1"].telemetry().landed  # back in the air, exploring again

@@ -1,0 +1,254 @@
+"""The embedded simulator: PX4-like rules, vehicle models, sensors, collisions."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from btmission.backends.base import Backend, Mode, Sensors
+from btmission.backends.sim import (
+    DISARM_LAND_S,
+    OFFBOARD_LOSS_S,
+    Artifact,
+    SimConfig,
+    Simulator,
+    SimWorld,
+    thrust_attitude,
+)
+from btmission.control.mav_model import MavParams, mav_dynamics, world_to_yaw_frame
+from btmission.world.voxel import OCCUPIED, VoxelMap
+
+
+def room(size: tuple[float, float, float] = (20, 10, 6), res: float = 0.5) -> VoxelMap:
+    """A closed box: floor, walls and roof of rock around open space; floor top at z = 0."""
+    vm = VoxelMap.empty(size, res, origin=(0.0, 0.0, -res))
+    st_ = vm.state
+    st_[0, :, :] = st_[-1, :, :] = OCCUPIED
+    st_[:, 0, :] = st_[:, -1, :] = OCCUPIED
+    st_[:, :, 0] = st_[:, :, -1] = OCCUPIED
+    return vm
+
+
+def stream(sim: Simulator, vid: str, seconds: float, hz: float = 20.0) -> None:
+    """Stream hold setpoints at ``hz`` for ``seconds`` while the simulator runs."""
+    veh = sim.backends[vid]
+    every = max(1, round(1.0 / (hz * sim.config.step_s)))
+    for k in range(round(seconds / sim.config.step_s)):
+        if k % every == 0:
+            veh.set_position_setpoint(veh.telemetry().position)
+        sim.step()
+
+
+def flying(sim: Simulator, vid: str = "R1") -> None:
+    """Arm, switch to OFFBOARD and climb to 2 m with position setpoints."""
+    veh = sim.backends[vid]
+    stream(sim, vid, 1.2)
+    assert veh.arm() and veh.set_mode(Mode.OFFBOARD)
+    p = veh.telemetry().position
+    for _ in range(120):
+        veh.set_position_setpoint((p[0], p[1], 2.0))
+        sim.step()
+    assert not veh.telemetry().landed
+
+
+def test_sim_vehicle_implements_the_interfaces() -> None:
+    sim = Simulator(room())
+    veh = sim.add_multirotor("R1", (5, 5, 0))
+    assert isinstance(veh, Backend) and isinstance(veh, Sensors)
+    tel = veh.telemetry()
+    assert tel.landed and not tel.armed and tel.mode is Mode.MANUAL
+    assert tel.ground_z == pytest.approx(0.0) and tel.position[2] == pytest.approx(0.0)
+
+
+def test_offboard_is_refused_until_setpoints_have_streamed() -> None:
+    sim = Simulator(room())
+    veh = sim.add_multirotor("R1", (5, 5, 0))
+    ack = veh.set_mode(Mode.OFFBOARD)
+    assert not ack and "stream" in ack.reason
+    stream(sim, "R1", 0.5)
+    assert not veh.set_mode(Mode.OFFBOARD)  # streaming, but not for a second yet
+    stream(sim, "R1", 0.7)
+    assert veh.set_mode(Mode.OFFBOARD)
+    assert veh.telemetry().mode is Mode.OFFBOARD
+
+
+def test_offboard_needs_more_than_2_hz() -> None:
+    sim = Simulator(room())
+    veh = sim.add_multirotor("R1", (5, 5, 0))
+    stream(sim, "R1", 3.0, hz=1.0)
+    assert not veh.set_mode(Mode.OFFBOARD)
+
+
+def test_takeoff_is_refused_unarmed_and_climbs_when_armed() -> None:
+    sim = Simulator(room())
+    veh = sim.add_multirotor("R1", (5, 5, 0))
+    ack = veh.takeoff(2.0)
+    assert not ack and "not armed" in ack.reason
+    assert veh.arm()
+    assert veh.takeoff(2.0)
+    assert veh.telemetry().mode is Mode.TAKEOFF
+    for _ in range(300):
+        sim.step()
+    tel = veh.telemetry()
+    assert tel.mode is Mode.HOLD and not tel.landed
+    assert tel.position[2] == pytest.approx(2.0, abs=0.15)
+
+
+def test_arm_is_refused_in_the_air_and_land_disarms() -> None:
+    sim = Simulator(room())
+    veh = sim.add_multirotor("R1", (5, 5, 0))
+    flying(sim)
+    ack = veh.arm()
+    assert ack  # already armed: accepted
+    assert not veh.disarm()  # cannot disarm in the air
+    assert veh.land()
+    for _ in range(round((4.0 + DISARM_LAND_S + 0.5) / sim.config.step_s)):
+        sim.step()
+    tel = veh.telemetry()
+    assert tel.landed and not tel.armed
+    assert tel.position[2] == pytest.approx(0.0, abs=0.05)
+
+
+def test_offboard_loss_switches_to_hold() -> None:
+    sim = Simulator(room())
+    veh = sim.add_multirotor("R1", (5, 5, 0))
+    flying(sim)
+    for _ in range(round((OFFBOARD_LOSS_S + 0.2) / sim.config.step_s)):
+        sim.step()  # no setpoints
+    tel = veh.telemetry()
+    assert tel.mode is Mode.HOLD and tel.armed and not tel.landed
+    assert "offboard" in veh.failsafe
+
+
+def test_an_armed_vehicle_that_never_takes_off_disarms() -> None:
+    sim = Simulator(room())
+    veh = sim.add_multirotor("R1", (5, 5, 0))
+    assert veh.arm()
+    for _ in range(round(11 / sim.config.step_s)):
+        sim.step()
+    assert not veh.telemetry().armed
+
+
+def test_flying_into_a_wall_is_a_collision() -> None:
+    sim = Simulator(room())
+    veh = sim.add_multirotor("R1", (5, 5, 0))
+    flying(sim)
+    events = []
+    for _ in range(400):
+        veh.set_position_setpoint((30.0, 5.0, 2.0))  # beyond the wall at x = 19.5
+        events += sim.step()
+    hits = [e for e in events if e.other == "rock"]
+    assert len(hits) == 1 and hits[0].vehicle == "R1"
+    assert veh.telemetry().position[0] < 19.5  # it never goes through the rock
+
+
+def test_two_vehicles_meeting_collide_once() -> None:
+    sim = Simulator(room())
+    a = sim.add_multirotor("A", (5, 5, 0))
+    b = sim.add_multirotor("B", (8, 5, 0))
+    for vid in ("A", "B"):
+        flying(sim, vid)
+    events = []
+    for _ in range(200):
+        a.set_position_setpoint((7.0, 5.0, 2.0))
+        b.set_position_setpoint((6.0, 5.0, 2.0))
+        events += sim.step()
+    pairs = {(e.vehicle, e.other) for e in events}
+    assert pairs == {("A", "B"), ("B", "A")} and len(events) == 2
+
+
+def test_clearance_is_the_gap_to_the_nearest_wall() -> None:
+    sim = Simulator(room())
+    veh = sim.add_multirotor("R1", (5, 5, 0))
+    flying(sim)
+    for _ in range(100):
+        veh.set_position_setpoint((5.0, 2.0, 2.0))
+        sim.step()
+    sim.take_clearance("R1")
+    sim.step()
+    gap = sim.take_clearance("R1")
+    p = veh.telemetry().position
+    # the wall face is y = 0.5; the body sphere (radius 0.25) is centred 0.25 above p
+    assert gap == pytest.approx(p[1] - 0.5 - sim.config.body_radius_m, abs=0.2)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(-3, 3), st.floats(-3, 3), st.floats(-3, 3), st.floats(-math.pi, math.pi))
+def test_thrust_attitude_inverts_the_model(ax: float, ay: float, az: float, yaw: float) -> None:
+    """The [T, φ, θ] returned gives back the requested acceleration (inside the tilt limit)."""
+    acc = np.array([ax, ay, az])
+    u = thrust_attitude(acc, yaw)
+    x = np.zeros(8)
+    x[6], x[7] = u[1], u[2]  # attitude settled at the reference
+    a_yaw = mav_dynamics(x, u, MavParams(drag=(0.0, 0.0, 0.0)))[3:6]
+    want = world_to_yaw_frame(acc, yaw)
+    tilt = math.hypot(want[0], want[1]) / (want[2] + 9.81)
+    if want[2] + 9.81 > 0.2 * 9.81 and tilt <= math.tan(0.35):
+        np.testing.assert_allclose(a_yaw, want, atol=1e-9)
+    assert abs(u[1]) <= 0.35 + 1e-9 and abs(u[2]) <= 0.35 + 1e-9
+
+
+def test_ground_robot_drives_its_cmd_vel_and_stops_at_walls() -> None:
+    sim = Simulator(room())
+    g = sim.add_ground("G1", (5, 5, 0))
+    assert g.arm() and not g.takeoff(1.0)
+    for _ in range(40):  # 2 s at 0.4 m/s along +x
+        g.set_velocity_setpoint((0.4, 0.0, 0.0), 0.0)
+        sim.step()
+    assert g.telemetry().position[0] == pytest.approx(5.8, abs=0.02)
+    for _ in range(40):  # no command: a cmd_vel timeout stops it
+        sim.step()
+    assert g.telemetry().position[0] == pytest.approx(5.8 + 0.4 * 0.5, abs=0.05)
+    events = []
+    for _ in range(1000):
+        g.set_velocity_setpoint((0.4, 0.0, 0.0), 0.0)
+        events += sim.step()
+    assert g.telemetry().position[0] < 19.5 and any(e.other == "rock" for e in events)
+
+
+def test_lidar_sees_rock_within_range_other_vehicles_and_dust() -> None:
+    sim = Simulator(room(), SimConfig(lidar_range_m=2.0, dust_points=3), seed=1)
+    a = sim.add_multirotor("A", (5, 1.5, 0))
+    pts = a.lidar()
+    assert len(pts) and np.all(np.linalg.norm(pts[:-3], axis=1) <= 2.0 + 1e-9)
+    sim.add_multirotor("B", (6, 1.5, 0))
+    with_b = a.lidar()
+    assert len(with_b) > len(pts)  # B's body appears in the scan
+    sim2 = Simulator(room(), SimConfig(lidar_range_m=2.0, dust_points=3), seed=1)
+    sim2.add_multirotor("A", (5, 1.5, 0))
+    np.testing.assert_array_equal(sim2.backends["A"].lidar(), pts)  # seeded
+
+
+def test_depth_camera_sees_the_wall_and_detects_an_artifact() -> None:
+    vm = room()
+    art = np.array([9.0, 5.0, 2.0])
+    sim = Simulator(
+        vm, SimConfig(detection_noise_px=0.0), artifacts=[Artifact("survivor", (9, 5, 2), 0.6)]
+    )
+    veh = sim.add_multirotor("R1", (5, 5, 0))
+    flying(sim)
+    frame = veh.camera()
+    assert frame.depth_m.max() <= sim.config.camera_range_m
+    assert len(frame.detections) == 1 and frame.detections[0].label == "survivor"
+    x0, y0, bw, bh = frame.detections[0].bbox
+    rel = frame.rotation.T @ (art - frame.translation)  # optical frame
+    u = frame.intrinsics.fx * rel[0] / rel[2] + frame.intrinsics.cx
+    v = frame.intrinsics.fy * rel[1] / rel[2] + frame.intrinsics.cy
+    assert x0 + bw / 2 == pytest.approx(u) and y0 + bh / 2 == pytest.approx(v)
+    # the localiser's 3×3 window at the box centre reads the artifact's front surface
+    centre = frame.depth_m[round(v), round(u)]
+    assert centre == pytest.approx(rel[2] - 0.3, abs=0.1)
+
+
+def test_world_surfaces_and_ground_heights() -> None:
+    vm = room()
+    world = SimWorld(vm)
+    assert world.ground_z(np.array([5.0, 5.0, 3.0])) == pytest.approx(0.0)
+    assert world.occupied(np.array([5.0, 5.0, -0.2]))
+    # faces are sampled at their centres: the nearest lies up to half a voxel (diagonally) aside
+    assert world.wall_distance(np.array([5.0, 5.0, 2.0])) == pytest.approx(3.0, abs=0.03)
+    assert world.wall_distance(np.array([5.0, 1.5, 3.0])) == pytest.approx(1.0, abs=0.12)
