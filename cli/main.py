@@ -37,6 +37,7 @@ def cli() -> None:
       btmission synth aerial --goal 'at_goal(goal)' --dry-run
       btmission validate missions/mine_inspection.yaml
       btmission mission tree missions/mine_inspection.yaml --agent R1 -o r1.svg
+      btmission run missions/mine_inspection.yaml --controller track
 
     Exit status: 0 ok, 1 checks failed, 2 bad input.
     """

@@ -11,7 +11,6 @@ it asks the backend, the path service or the navigator for something and watches
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -246,7 +245,3 @@ class Timed(StatefulAction):
 
 def _fmt(p: Point) -> str:
     return "[" + ", ".join(f"{v:g}" for v in p) + "]"
-
-
-def distance(a: Any, b: Any) -> float:
-    return math.dist(point(a), point(b))

@@ -21,7 +21,6 @@ The leaves of the mission tree itself (seed 000 Fig. 7) are built in: ``task_ass
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -36,8 +35,6 @@ if TYPE_CHECKING:
     from btmission.runtime.agent import Agent
     from btmission.runtime.navigation import Navigator
     from btmission.runtime.paths import PathCosts
-
-log = logging.getLogger(__name__)
 
 UNSET = object()
 
@@ -231,7 +228,3 @@ BUILTIN_CONDITIONS: dict[str, Condition] = {
     "idle_timeout": idle_timeout,
 }
 BUILTIN_ACTIONS: dict[str, type[StatefulAction]] = {"wait": Wait}
-
-
-def log_unbound(name: str) -> None:  # pragma: no cover - guarded by Implementations.missing
-    log.warning("no implementation for %s", name)

@@ -310,7 +310,6 @@ class Navigator:
         pts = np.asarray(route, dtype=float).reshape(-1, 3).copy()
         ground_goal = False
         if self.kind is VehicleKind.MULTIROTOR:
-            pts = self.flight_route(pts)
             ground_goal = tgt[2] < self.ground_under(tgt) + 0.5
         if len(pts) == 0 or not np.allclose(pts[-1], tgt):
             pts = np.vstack([pts, tgt]) if len(pts) else tgt[None, :]
@@ -345,9 +344,6 @@ class Navigator:
             if g[2] < ground + 0.5:
                 g[2] = ground + self.config.altitude_m
         return g
-
-    def flight_route(self, route: FloatArray) -> FloatArray:
-        return route
 
     def at(self, goal: ArrayLike, tel: Telemetry | None = None) -> bool:
         """Stopped within tolerance of ``goal``'s flight target (a goal on the ground: above it at

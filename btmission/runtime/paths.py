@@ -197,9 +197,6 @@ class PathCosts:
         pts = thin_path(self.cost_map, pts)  # waypoints where a straight line would be worse
         return Route((float(goal[0]), float(goal[1]), float(goal[2])), pts, float(entry.length[s]))
 
-    def reachable(self, start: Point, goal: Point) -> bool:
-        return math.isfinite(self.path_cost(start, goal))
-
     def problem(self, point: Sequence[float]) -> str | None:
         """Why ``point`` cannot be a goal (outside the map, inside rock), or None."""
         vm = self.map
