@@ -15,6 +15,7 @@ from btmission.cli import (
     library_cmds,
     map_cmds,
     mission_cmds,
+    reloc_cmds,
     synth_cmds,
 )
 
@@ -50,6 +51,7 @@ cli.add_command(control_cmds.control)
 cli.add_command(auction_cmds.auction)
 cli.add_command(map_cmds.map_group)
 cli.add_command(map_cmds.plan_cmd)
+cli.add_command(reloc_cmds.reloc)
 
 
 def main() -> None:

@@ -226,6 +226,7 @@ class Relocalizer:
         self._fine, self._fine_tree = small_gicp.preprocess_points(cloud, config.fine_voxel_m)
         self._dense_tree = small_gicp.KdTree(cloud)
         self._default_height = float(np.median(db.positions[:, 2] - db.floor_z))
+        cast(db.voxel_map, db.positions[0], [[1.0, 0.0, 0.0]], 1.0)  # load the compiled kernel
 
     # ---------------------------------------------------------------- building blocks
     def clean(self, points: FloatArray) -> FloatArray:
