@@ -8,7 +8,7 @@ level, 1-3 m above the floor, any heading. At each pose the simulated OS1-32 (3 
 scans the mine, and every method localises the same scan:
 
 * **ours** — :meth:`~btmission.localization.relocalize.Relocalizer.localize`: descriptors →
-  16 candidate poses → coarse GICP → fine GICP on the best two → best fit, confidence, "not
+  40 candidate poses → coarse GICP → fine GICP on the best two → best fit, confidence, "not
   localised". A success must be *localised* and within the tolerance; a localised pose outside
   it is counted as a wrong answer.
 * **descriptor guess only** — the best initial guess ``T_0`` of the descriptors, no ICP.

@@ -62,7 +62,7 @@ class RelocConfig:
 
     retrieve: int = 200
     """Nearest ring keys fetched from the KD-tree (then ranked by their polar images)."""
-    top_k: int = 16
+    top_k: int = 40
     """Candidates registered by coarse ICP."""
     separation_m: float = 3.0
     """Candidates registered are at least this far apart."""
@@ -71,7 +71,7 @@ class RelocConfig:
     registration: str = "GICP"
     coarse_voxel_m: float = 1.5
     coarse_max_corr_m: float = 2.5
-    coarse_iterations: int = 20
+    coarse_iterations: int = 10
     fine_voxel_m: float = 0.5
     fine_max_corr_m: float = 0.8
     fine_iterations: int = 30
@@ -79,7 +79,7 @@ class RelocConfig:
     """Scan points more than this in front of another return in their direction cell are dropped
     as dust (:func:`~btmission.localization.scan.drop_see_through`; 0: keep every point)."""
     inlier_m: float = 0.3
-    quick_points: int = 800
+    quick_points: int = 400
     """Scan points scored after coarse ICP (all points are scored after fine ICP)."""
     conflict_margin_m: float = 0.5
     conflict_margin_rel: float = 0.1
@@ -226,7 +226,9 @@ class Relocalizer:
         self._fine, self._fine_tree = small_gicp.preprocess_points(cloud, config.fine_voxel_m)
         self._dense_tree = small_gicp.KdTree(cloud)
         self._default_height = float(np.median(db.positions[:, 2] - db.floor_z))
-        cast(db.voxel_map, db.positions[0], [[1.0, 0.0, 0.0]], 1.0)  # load the compiled kernel
+        # first calls load the compiled ray caster and scipy.ndimage: pay them here, not per scan
+        cast(db.voxel_map, db.positions[0], [[1.0, 0.0, 0.0]], 1.0)
+        describe(np.array([[5.0, 0.0, 0.0], [0.0, 5.0, -1.0]]), db.params)
 
     # ---------------------------------------------------------------- building blocks
     def clean(self, points: FloatArray) -> FloatArray:
