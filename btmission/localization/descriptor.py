@@ -28,9 +28,11 @@ itself (where the lowest beams meet the floor, :func:`floor_height`). Scans are 
 gravity-aligned (roll and pitch removed with the IMU attitude, as a LiDAR-inertial odometry such as
 FAST-LIO provides).
 
-Measured on the generated 200 m mine of seed 7 with places every 1 m (80 random poses): the place
-within 1 m of the true one is among the 12 most similar of the 200 nearest ring keys in 96 % of
-scans, among the 20 best in 97.5 %.
+Measured on the generated 200 m mine of seed 7 with places every 1 m (100 random poses 1-3 m above
+the floor): a place within 1.2 m of the true pose is among the 200 nearest ring keys for 98 % of
+the scans, and the polar images rank one in their top 8 for 92 %, top 20 for 95 %. A first version
+with floor and roof points in the image (Scan Context's highest point per bin, rings from the
+sensor out) and places every 1.5 m had one in its top 8 for 37 % of 60 scans.
 """
 
 from __future__ import annotations
