@@ -16,6 +16,7 @@ from btmission.cli import (
     library_cmds,
     map_cmds,
     mission_cmds,
+    reloc_cmds,
     run_cmds,
     synth_cmds,
 )
@@ -56,6 +57,7 @@ cli.add_command(map_cmds.plan_cmd)
 cli.add_command(dispatch_cmds.dispatch)
 cli.add_command(run_cmds.run_cmd)
 cli.add_command(run_cmds.report_cmd)
+cli.add_command(reloc_cmds.reloc)
 
 
 def main() -> None:

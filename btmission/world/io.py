@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -250,12 +250,17 @@ def _comment_resolution(comments: list[str]) -> float | None:
     return None
 
 
-def _load_npz(p: Path) -> VoxelMap:
+def read_npz(p: Path) -> dict[str, npt.NDArray[Any]]:
+    """Every array of an ``.npz`` file (no pickles); :class:`MapError` when it cannot be read."""
     try:
         with p.open("rb") as fh, np.load(fh, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
+            return {k: z[k] for k in z.files}
     except Exception as exc:  # zipfile.BadZipFile, ValueError, OSError...
         raise MapError(f"{p}: not a readable .npz file ({exc})") from None
+
+
+def _load_npz(p: Path) -> VoxelMap:
+    data = read_npz(p)
     fmt = str(data.get("format", ""))
     if fmt != NPZ_FORMAT:
         raise MapError(f"{p}: not a btmission voxel map (format '{fmt or 'missing'}')")
