@@ -2,11 +2,26 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any, TypeVar
 
 import click
 
 from btmission.cli.map_cmds import mine_resolution_option, size_option
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def out_option(what: str) -> Callable[[F], F]:
+    """The ``--out`` directory option every benchmark shares (results land in ``what``)."""
+    return click.option(
+        "--out",
+        type=click.Path(file_okay=False, path_type=Path),
+        default=Path("benchmarks/results"),
+        show_default=True,
+        help=f"Directory for {what}.",
+    )
 
 
 @click.group()
@@ -28,13 +43,7 @@ def bench() -> None:
     type=click.IntRange(1),
     help="Timed repetitions per case (the median is reported).",
 )
-@click.option(
-    "--out",
-    type=click.Path(file_okay=False, path_type=Path),
-    default=Path("benchmarks/results"),
-    show_default=True,
-    help="Directory for synth.md and synth.csv.",
-)
+@out_option("synth.md and synth.csv")
 def synth_bench(sizes: str, repeat: int, out: Path) -> None:
     """Synthesis + checks on generated libraries (chains and wide fan-in). Target: 1,000 actions < 100 ms."""
     from btmission.bench.synth import run_synth_benchmark
@@ -69,13 +78,7 @@ def synth_bench(sizes: str, repeat: int, out: Path) -> None:
     type=click.IntRange(1),
     help="Timed APF calls (DPHR runs a quarter as many).",
 )
-@click.option(
-    "--out",
-    type=click.Path(file_okay=False, path_type=Path),
-    default=Path("benchmarks/results"),
-    show_default=True,
-    help="Directory for control.md and control.csv.",
-)
+@out_option("control.md and control.csv")
 def control_bench(only: str, steps: int, repeat: int, out: Path) -> None:
     """NMPC (fatrop vs ipopt), APF and DPHR timings. Targets: NMPC median <= 3 ms and p99 <= 15 ms,
     APF (30,000 points) <= 1 ms, DPHR (640x480) <= 10 ms.
@@ -276,13 +279,7 @@ def auction_bench(
     help="Random start/goal pairs for single queries.",
 )
 @click.option("--no-peers", is_flag=True, help="Skip skimage and networkx (scipy always runs).")
-@click.option(
-    "--out",
-    type=click.Path(file_okay=False, path_type=Path),
-    default=Path("benchmarks/results"),
-    show_default=True,
-    help="Directory for planner.md and planner.csv.",
-)
+@out_option("planner.md and planner.csv")
 def planner_bench(
     size: tuple[float, float, float],
     resolution: float,
@@ -321,13 +318,7 @@ def planner_bench(
     help="GA budget per vehicle in s (0.3: 3 s at 10 vehicles, a tenth of the paper's).",
 )  # fmt: skip
 @click.option("--seed", default=0, show_default=True, type=int, help="Random seed.")
-@click.option(
-    "--out",
-    type=click.Path(file_okay=False, path_type=Path),
-    default=Path("benchmarks/results"),
-    show_default=True,
-    help="Directory for dispatch.md and dispatch.csv.",
-)
+@out_option("dispatch.md and dispatch.csv")
 def dispatch_bench(vehicles: str, runs: int, tau: float, seed: int, out: Path) -> None:
     """Static GA batch vs push and swap on the NPR/SPR maps, and fitness evaluations per second.
 
@@ -359,13 +350,7 @@ def dispatch_bench(vehicles: str, runs: int, tau: float, seed: int, out: Path) -
     help="GA wall-clock budget per optimisation (s).",
 )  # fmt: skip
 @click.option("--seed", default=0, show_default=True, type=int, help="Random seed.")
-@click.option(
-    "--out",
-    type=click.Path(file_okay=False, path_type=Path),
-    default=Path("benchmarks/results"),
-    show_default=True,
-    help="Directory for dispatch_dynamic.md and .csv.",
-)
+@out_option("dispatch_dynamic.md and .csv")
 def dispatch_dynamic_bench(
     vehicles: str, runs: int, hours: float, budget: float, seed: int, out: Path
 ) -> None:
@@ -415,13 +400,7 @@ def dispatch_dynamic_bench(
     type=click.FloatRange(min=0, min_open=True),
     help="Simulated seconds of each scaling run.",
 )
-@click.option(
-    "--out",
-    type=click.Path(file_okay=False, path_type=Path),
-    default=Path("benchmarks/results"),
-    show_default=True,
-    help="Directory for sim.md and sim.csv.",
-)
+@out_option("sim.md and sim.csv")
 def sim_bench(
     controllers: str, scale: str, participation: float, duration: float, out: Path
 ) -> None:
@@ -474,13 +453,7 @@ def sim_bench(
 )
 @click.option("--no-peers", is_flag=True, help="Only ours (no descriptor-only or plain-ICP rows).")
 @click.option("--quick", is_flag=True, help="A short run (~30 s): one 120 × 80 m mine, 40 poses.")
-@click.option(
-    "--out",
-    type=click.Path(file_okay=False, path_type=Path),
-    default=Path("benchmarks/results"),
-    show_default=True,
-    help="Directory for reloc.md and reloc.csv.",
-)
+@out_option("reloc.md and reloc.csv")
 def reloc_bench(
     seeds: str,
     size: tuple[float, float, float],
