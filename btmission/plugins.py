@@ -47,7 +47,9 @@ class Implementations:
     simulator builds that model for its agents); ``settings`` are the names and default values
     of the tunables its implementations read (a mission sets them under ``runtime.settings``).
     Functions registered with :meth:`on_setup` run once per agent before its first tick (to put
-    initial variables such as ``home`` on its blackboard).
+    initial variables such as ``home`` on its blackboard). Factories registered with
+    :meth:`service` build one object per *run*, shared by every agent of the library (a fleet
+    dispatcher, a shared map database): see :meth:`service`.
     """
 
     def __init__(
@@ -67,6 +69,7 @@ class Implementations:
         self.actions: dict[str, Any] = {}
         self.conditions: dict[str, Any] = {}
         self.setup_hooks: list[Callable[[Any], None]] = []
+        self.services: dict[str, Callable[[Any], Any]] = {}
 
     def on_setup(self, fn: Callable[[Any], None]) -> Callable[[Any], None]:
         """Decorator: ``fn(ctx)`` runs once per agent before its first tick."""
@@ -89,6 +92,17 @@ class Implementations:
     def condition(self, name: str) -> Callable[[T], T]:
         """Decorator registering the implementation of condition ``name``."""
         return self._register(self.conditions, "condition", name)
+
+    def service(self, name: str) -> Callable[[T], T]:
+        """Decorator registering a run-wide service: ``factory(run) -> object``.
+
+        The runtime calls each factory once per run, before any agent is set up, with a
+        :class:`~btmission.runtime.leaves.RunContext` (the mission, its world, the clock,
+        settings, seed, events). The object is shared by every agent (``ctx.services[name]``);
+        if it has a ``step(now)`` method, the runtime calls it at the start of every step, before
+        the auction and the ticks (a service does its periodic work there, in simulated time).
+        """
+        return self._register(self.services, "service", name)
 
     def check(self, library: Library) -> list[Diagnostic]:
         """Registered names the spec does not declare are errors; unimplemented ones are listed."""

@@ -1,229 +1,350 @@
 """Implementations of the ``haulage`` capability library (spec: ``haulage.yaml``).
 
-The leaves talk to a :class:`HaulageContext` handed to ``setup(ctx=...)`` (the runtime issue
-provides it: the truck's id, the clock, the backend and a :class:`Dispatcher` in front of
-:mod:`btmission.dispatch`). The drive action does no planning of its own: at every tick it asks
-:class:`~btmission.dispatch.follow.MissionFollower` where the dispatched mission's schedule puts
-the truck now — waiting at a node, or a fraction along a segment — and commands exactly that, so
-the fleet keeps to the collision-free plan the GA found (seed 004 §3-5).
+Haul trucks on the roads of a topological mine map, dispatched by the GA fleet planner
+(seed 004 §5). A mission using this library names a ``world.topomap``; its tasks name map nodes
+(``pickup: L1n``, ``dropoff: O``).
 
-Conditions are functions ``(ctx, **params) -> bool``; actions are py_trees behaviours whose
-parameters (node names, as in the mission's task fields) are given to the constructor.
+One run-wide service, :class:`HaulageFleet` (``ctx.services["fleet"]``), holds the
+:class:`~btmission.dispatch.service.FleetDispatcher` and **keeps every truck on its dispatched
+schedule at every step**: where the adopted mission puts the truck now — standing at a node, or a
+fraction along a segment — is what its navigator tracks (:meth:`Navigator.track
+<btmission.runtime.navigation.Navigator.track>`). The plan fixes each truck's whole trajectory in
+time (§3.2), so no leaf may stop a truck on its own: a leaf halted half-way (the auction gave the
+truck another haul) leaves it driving its schedule to the end of the mission, collision-free.
+
+The leaves are therefore thin: ``request_dispatch`` queues a request and waits for the plan,
+``drive_mission`` waits for the schedule to end, ``wait_at_pause`` waits at a secondary
+destination for the onward mission, ``load`` / ``offload`` take a random time at the node
+(2-5 min and 30-60 s in the paper, settings below), ``park`` asks for the nearest free pause node.
+
+Settings (``runtime.settings``): ``load_min_s``, ``load_max_s``, ``offload_min_s``,
+``offload_max_s``; ``dispatch_opt_time_s`` (mission time charged per optimisation, §5),
+``dispatch_generations`` (GA generations per optimisation: runs are reproducible) and
+``dispatch_budget_s`` (wall-clock cap per optimisation); ``speed_m_s`` is the trucks' top speed
+(above the schedule's 30 km/h so that a truck behind its schedule catches up).
 """
 
 from __future__ import annotations
 
+import math
+import zlib
+from dataclasses import dataclass, field
 from importlib.resources import files
-from typing import Any, Protocol
 
-import py_trees
+import numpy as np
+from py_trees.common import Status
 
+from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
+from btmission.dispatch.dynamic import DynamicConfig
 from btmission.dispatch.follow import MissionFollower, MissionState
+from btmission.dispatch.ga import GAParams
 from btmission.dispatch.missions import Mission
+from btmission.dispatch.service import FleetDispatcher
 from btmission.dispatch.topomap import TopoMap
 from btmission.plugins import Implementations
+from btmission.runtime.leaves import AgentContext, RunContext, StatefulAction
+from btmission.runtime.navigation import Navigator
 
 SPEC = files(__package__).joinpath("haulage.yaml")
 """The library file; the ``btmission.libraries`` entry point ``haulage`` points here."""
 
-IMPLEMENTATIONS = Implementations("haulage")
-Status = py_trees.common.Status
+IMPLEMENTATIONS = Implementations(
+    "haulage",
+    vehicle="ground",
+    settings={
+        "load_min_s": 120.0,
+        "load_max_s": 300.0,
+        "offload_min_s": 30.0,
+        "offload_max_s": 60.0,
+        "dispatch_opt_time_s": 3.0,
+        "dispatch_generations": 200,
+        "dispatch_budget_s": 2.0,
+        # a haul truck: 43 km/h top speed (the schedule asks for at most 30 km/h)
+        "speed_m_s": 12.0,
+        "tolerance_m": 5.0,
+    },
+)
+
+START_SNAP_M = 30.0
+"""A truck must start this close to a node of the map (it is placed on that node)."""
 
 
-class Dispatcher(Protocol):
-    """The fleet dispatcher as a truck sees it (a front for seed 004 §5 dynamic planning)."""
+@dataclass
+class Truck:
+    """One truck's state outside the tree: its navigator, load and random stream."""
 
-    tmap: TopoMap
-
-    def request(self, truck: str, goal: int) -> None:
-        """Queue a re-planning request: ``truck`` wants a mission to node ``goal``."""
-
-    def mission(self, truck: str) -> Mission | None:
-        """The truck's mission in the adopted fleet mission (None before the first plan)."""
-
-    def primary(self, truck: str) -> int | None:
-        """The primary destination of that mission (its end node may be a secondary one)."""
-
-    def park(self, truck: str) -> None:
-        """Ask for a mission to the nearest free pause node."""
-
-
-class HaulageContext(Protocol):
-    """What the leaves need from the runtime."""
-
-    truck: str
-    dispatcher: Dispatcher
-    cargo: str | None
+    name: str
+    rng: np.random.Generator
+    navigator: Navigator | None = None
+    cargo: str | None = None
     """Name of the loading site the load on board comes from (None: empty)."""
-    hauls: set[tuple[str, str]]
+    hauls: set[tuple[str, str]] = field(default_factory=set)
     """(pickup, dropoff) of every load offloaded so far."""
 
-    def now(self) -> float:
-        """Mission time in s (the dispatcher's clock)."""
 
-    def command(self, state: MissionState) -> None:
-        """Send the backend where the truck must be now (wait at a node / along a segment)."""
+class HaulageFleet:
+    """The run-wide service (module docstring): the dispatcher and every truck's schedule."""
 
-    def process(self, kind: str, node: int) -> bool:
-        """Start or continue loading/offloading (``kind``) at ``node``; True once finished."""
+    def __init__(self, run: RunContext) -> None:
+        mission = run.mission
+        ref = mission.spec.world.topomap
+        where = Location(mission.file)
+        if ref is None:
+            raise SpecError([Diagnostic(Severity.ERROR, "no-topomap",
+                "library 'haulage' needs a topological map: set world.topomap (e.g. 'mine')",
+                "world.topomap", where)])  # fmt: skip
+        from btmission.dispatch.maps import topomap_ref
+
+        self.tmap: TopoMap = topomap_ref(ref, mission.base_dir)
+        self.places = run.places
+        starts: dict[str, int] = {}
+        problems = []
+        for spec in mission.agents:
+            if mission.library_of(spec.id).library.name != "haulage":
+                continue
+            node, d = self._nearest(spec.start)
+            if d > START_SNAP_M:
+                problems.append(Diagnostic(Severity.ERROR, "start-off-road",
+                    f"agent '{spec.id}' starts {d:.0f} m from the nearest node of map "
+                    f"'{self.tmap.name}' ({self.tmap.nodes[node].name}); trucks must start on a "
+                    f"node (within {START_SNAP_M:g} m)", f"agents.{spec.id}.start", where))  # fmt: skip
+            starts[spec.id] = node
+        if problems:
+            raise SpecError(problems)
+        ga = GAParams(
+            budget_s=float(run.setting("dispatch_budget_s", 2.0)),
+            max_generations=int(run.setting("dispatch_generations", 200)),
+        )
+        cfg = DynamicConfig(
+            vehicles=len(starts),
+            opt_time_s=float(run.setting("dispatch_opt_time_s", 3.0)),
+            ga=ga,
+            seed=run.seed,
+        )
+        self.dispatcher = FleetDispatcher(self.tmap, starts, cfg, run.events)
+        self.trucks = {
+            name: Truck(name, np.random.default_rng([run.seed, zlib.crc32(name.encode())]))
+            for name in starts
+        }
+        self._followers: dict[int, MissionFollower] = {}
+
+    def _nearest(self, p: tuple[float, float, float]) -> tuple[int, float]:
+        best, dist = 0, math.inf
+        for i, n in enumerate(self.tmap.nodes):
+            if n.xy is not None:
+                d = math.hypot(p[0] - n.xy[0], p[1] - n.xy[1])
+                if d < dist:
+                    best, dist = i, d
+        return best, dist
+
+    def state(self, truck: str, now: float) -> MissionState:
+        """Where the truck's dispatched schedule puts it at ``now``."""
+        m: Mission = self.dispatcher.mission(truck)
+        f = self._followers.get(id(m))
+        if f is None or f.mission is not m:
+            f = self._followers[id(m)] = MissionFollower(self.tmap, m)
+        return f.state(now)
+
+    def reference(self, st: MissionState) -> tuple[np.ndarray, np.ndarray]:
+        """Position and velocity the schedule asks for (world frame, on the ground)."""
+        a = np.array(self.places[self.tmap.nodes[st.node].name])
+        if st.phase != "moving":
+            return a, np.zeros(3)
+        b = np.array(self.places[self.tmap.nodes[st.next].name])
+        span = float(self.tmap.ttime[st.node, st.next])
+        return a + st.fraction * (b - a), (b - a) / span
+
+    def step(self, now: float) -> None:
+        """Run the dispatcher, then point every truck's navigator at its schedule."""
+        self.dispatcher.step(now)
+        for name, truck in self.trucks.items():
+            if truck.navigator is not None:
+                ref, vel = self.reference(self.state(name, now))
+                truck.navigator.track(ref, vel, now)
 
 
-def _node(ctx: HaulageContext, name: str) -> int:
-    return ctx.dispatcher.tmap.id(name)
+@IMPLEMENTATIONS.service("fleet")
+def _fleet(run: RunContext) -> HaulageFleet:
+    return HaulageFleet(run)
 
 
-def _state(ctx: HaulageContext) -> MissionState | None:
-    m = ctx.dispatcher.mission(ctx.truck)
-    return None if m is None else MissionFollower(ctx.dispatcher.tmap, m).state(ctx.now())
+@IMPLEMENTATIONS.on_setup
+def _attach(ctx: AgentContext) -> None:
+    """The fleet keeps this truck's navigator on its schedule from the first step."""
+    fleet: HaulageFleet = ctx.services["fleet"]
+    fleet.trucks[ctx.agent_id].navigator = ctx.navigator
+
+
+def _fleet_of(ctx: AgentContext) -> HaulageFleet:
+    fleet: HaulageFleet = ctx.services["fleet"]
+    return fleet
+
+
+def _node(ctx: AgentContext, name: str) -> int:
+    return _fleet_of(ctx).tmap.id(str(name))
+
+
+def _state(ctx: AgentContext) -> MissionState:
+    return _fleet_of(ctx).state(ctx.agent_id, ctx.now())
 
 
 # ------------------------------------------------------------------------------- conditions
 @IMPLEMENTATIONS.condition("at_node")
-def at_node(ctx: HaulageContext, goal: str, **_: Any) -> bool:
+def at_node(ctx: AgentContext, goal: str) -> bool:
     """The schedule is done and ends at ``goal``."""
     st = _state(ctx)
-    return st is not None and st.done and st.node == _node(ctx, goal)
+    return st.done and st.node == _node(ctx, goal)
 
 
 @IMPLEMENTATIONS.condition("dispatched")
-def dispatched(ctx: HaulageContext, goal: str, **_: Any) -> bool:
+def dispatched(ctx: AgentContext, goal: str) -> bool:
     """The adopted plan has a mission for this truck towards ``goal`` that is not finished."""
     st = _state(ctx)
-    return st is not None and not st.done and ctx.dispatcher.primary(ctx.truck) == _node(ctx, goal)
+    d = _fleet_of(ctx).dispatcher
+    return not st.done and d.primary(ctx.agent_id) == _node(ctx, goal)
 
 
 @IMPLEMENTATIONS.condition("released")
-def released(ctx: HaulageContext, goal: str, **_: Any) -> bool:
-    """False only while parked at a pause node (secondary destination) with no onward mission."""
+def released(ctx: AgentContext, goal: str) -> bool:
+    """False only while parked at a secondary destination (a pause node) on the way to
+    ``goal``, its onward mission not given yet."""
     st = _state(ctx)
-    if st is None or not st.done:
-        return True
-    tmap = ctx.dispatcher.tmap
-    return not (tmap.is_pause[st.node] and st.node != _node(ctx, goal))
+    fleet = _fleet_of(ctx)
+    g = _node(ctx, goal)
+    held = st.done and fleet.tmap.is_pause[st.node] and st.node != g
+    return not (held and fleet.dispatcher.primary(ctx.agent_id) == g)
 
 
 @IMPLEMENTATIONS.condition("loaded")
-def loaded(ctx: HaulageContext, pickup: str, **_: Any) -> bool:
-    return ctx.cargo == pickup
+def loaded(ctx: AgentContext, pickup: str) -> bool:
+    return _fleet_of(ctx).trucks[ctx.agent_id].cargo == str(pickup)
 
 
 @IMPLEMENTATIONS.condition("hauled")
-def hauled(ctx: HaulageContext, pickup: str, dropoff: str, **_: Any) -> bool:
-    return (pickup, dropoff) in ctx.hauls
+def hauled(ctx: AgentContext, pickup: str, dropoff: str) -> bool:
+    return (str(pickup), str(dropoff)) in _fleet_of(ctx).trucks[ctx.agent_id].hauls
 
 
 @IMPLEMENTATIONS.condition("parked")
-def parked(ctx: HaulageContext, **_: Any) -> bool:
+def parked(ctx: AgentContext) -> bool:
+    """Stopped at a pause node, out of every other truck's way."""
     st = _state(ctx)
-    if st is None:
-        return True
-    kind = ctx.dispatcher.tmap.nodes[st.node].kind.name
-    return st.done and kind in ("PAUSE", "TERMINAL")
+    return st.done and bool(_fleet_of(ctx).tmap.is_pause[st.node])
 
 
 # ------------------------------------------------------------------------------- actions
-class _Leaf(py_trees.behaviour.Behaviour):  # type: ignore[misc]
-    """A leaf bound to a :class:`HaulageContext` in ``setup(ctx=...)``."""
+class _Haulage(StatefulAction):
+    @property
+    def fleet(self) -> HaulageFleet:
+        return _fleet_of(self.ctx)
 
-    def __init__(self, name: str = "", **params: str) -> None:
-        super().__init__(name or type(self).__name__)
-        self.params = params
-        self.ctx: HaulageContext | None = None
-
-    def setup(self, **kwargs: Any) -> None:
-        ctx = kwargs.get("ctx")
-        if ctx is None:
-            raise KeyError(f"{self.name}: setup() needs ctx= (a HaulageContext)")
-        self.ctx = ctx
-
-    def _ctx(self) -> HaulageContext:
-        if self.ctx is None:
-            raise RuntimeError(f"{self.name}: ticked before setup(ctx=...)")
-        return self.ctx
-
-    def _drive(self) -> MissionState | None:
-        """Command where the dispatched schedule puts the truck now (None: no mission yet)."""
-        ctx = self._ctx()
-        st = _state(ctx)
-        if st is not None:
-            ctx.command(st)
-        return st
+    @property
+    def truck(self) -> str:
+        return self.ctx.agent_id
 
 
 @IMPLEMENTATIONS.action("request_dispatch")
-class RequestDispatch(_Leaf):
-    """Queue one request, then RUNNING until a plan towards the goal is adopted."""
+class RequestDispatch(_Haulage):
+    """Queue one request, then RUNNING until a plan towards the goal is adopted (a failed
+    optimisation is re-queued by the dispatcher)."""
 
-    def initialise(self) -> None:
-        ctx = self._ctx()
-        ctx.dispatcher.request(ctx.truck, _node(ctx, self.params["goal"]))
+    def on_start(self) -> Status:
+        self.fleet.dispatcher.request(self.truck, _node(self.ctx, self.args["goal"]))
+        return self.on_running()
 
-    def update(self) -> Status:
-        return Status.SUCCESS if dispatched(self._ctx(), self.params["goal"]) else Status.RUNNING
+    def on_running(self) -> Status:
+        goal = self.args["goal"]
+        if dispatched(self.ctx, goal) or at_node(self.ctx, goal):
+            return Status.SUCCESS
+        d = self.fleet.dispatcher
+        if not d.waiting(self.truck):  # served without moving us (e.g. already there): ask again
+            d.request(self.truck, _node(self.ctx, goal))
+        return Status.RUNNING
 
 
 @IMPLEMENTATIONS.action("drive_mission")
-class DriveMission(_Leaf):
-    """Keep to the dispatched schedule; SUCCESS when the mission ends (at the goal or at a
-    secondary destination — then ``released`` is false and ``wait_at_pause`` takes over)."""
+class DriveMission(_Haulage):
+    """Wait while the fleet service drives the dispatched schedule; SUCCESS when it ends (at
+    the goal, or at a secondary destination — then ``released`` is false and
+    ``wait_at_pause`` takes over)."""
 
-    def update(self) -> Status:
-        st = self._drive()
-        if st is None:
-            return Status.FAILURE
-        return Status.SUCCESS if st.done else Status.RUNNING
+    def on_running(self) -> Status:
+        self.feedback_message = f"{_state(self.ctx).phase} on the dispatched schedule"
+        return Status.SUCCESS if _state(self.ctx).done else Status.RUNNING
 
 
 @IMPLEMENTATIONS.action("wait_at_pause")
-class WaitAtPause(_Leaf):
-    """RUNNING while parked at a secondary destination; SUCCESS once the onward mission is there."""
+class WaitAtPause(_Haulage):
+    """RUNNING while parked at a secondary destination; SUCCESS once the onward mission is
+    there. When the primary destination is free and no request is queued for this truck, it
+    asks for the onward mission itself (it does not wait for another truck's request)."""
 
-    def update(self) -> Status:
-        ok = released(self._ctx(), self.params["goal"])
-        return Status.SUCCESS if ok else Status.RUNNING
+    def on_running(self) -> Status:
+        goal = self.args["goal"]
+        if released(self.ctx, goal):
+            return Status.SUCCESS
+        d = self.fleet.dispatcher
+        g = _node(self.ctx, goal)
+        k = d.names.index(self.truck)
+        if not d.waiting(self.truck) and g not in d.planner.targets(k):
+            d.request(self.truck, g)
+        return Status.RUNNING
 
 
-class _Process(_Leaf):
+class _Process(_Haulage):
+    """Stand at the node for a random duration in [``<kind>_min_s``, ``<kind>_max_s``]."""
+
     kind = ""
-    at = ""
 
-    def update(self) -> Status:
-        ctx = self._ctx()
-        if not ctx.process(self.kind, _node(ctx, self.params[self.at])):
+    def on_start(self) -> Status:
+        lo = float(self.ctx.setting(f"{self.kind}_min_s", 0.0))
+        hi = float(self.ctx.setting(f"{self.kind}_max_s", lo))
+        rng = self.fleet.trucks[self.truck].rng
+        self._until = self.ctx.now() + lo + float(rng.random()) * max(0.0, hi - lo)
+        self.ctx.events(self.kind, until=round(self._until, 3))
+        return self.on_running()
+
+    def on_running(self) -> Status:
+        if self.ctx.now() < self._until:
             return Status.RUNNING
-        self.finish(ctx)
+        self.finish(self.fleet.trucks[self.truck])
         return Status.SUCCESS
 
-    def finish(self, ctx: HaulageContext) -> None:
+    def finish(self, truck: Truck) -> None:  # pragma: no cover - overridden
         raise NotImplementedError
 
 
 @IMPLEMENTATIONS.action("load")
 class Load(_Process):
-    kind, at = "load", "pickup"
+    kind = "load"
 
-    def finish(self, ctx: HaulageContext) -> None:
-        ctx.cargo = self.params["pickup"]
+    def finish(self, truck: Truck) -> None:
+        truck.cargo = str(self.args["pickup"])
 
 
 @IMPLEMENTATIONS.action("offload")
 class Offload(_Process):
-    kind, at = "offload", "dropoff"
+    kind = "offload"
 
-    def finish(self, ctx: HaulageContext) -> None:
-        ctx.hauls.add((self.params["pickup"], self.params["dropoff"]))
-        ctx.cargo = None
+    def finish(self, truck: Truck) -> None:
+        truck.hauls.add((str(self.args["pickup"]), str(self.args["dropoff"])))
+        truck.cargo = None
 
 
 @IMPLEMENTATIONS.action("park")
-class Park(_Leaf):
-    """Ask for the nearest free pause node, then drive there on the dispatched schedule."""
+class Park(_Haulage):
+    """Ask for the nearest free pause node, then wait until the schedule has the truck there."""
 
-    def initialise(self) -> None:
-        ctx = self._ctx()
-        ctx.dispatcher.park(ctx.truck)
+    def on_start(self) -> Status:
+        if parked(self.ctx):
+            return Status.SUCCESS
+        self.fleet.dispatcher.park(self.truck)
+        return Status.RUNNING
 
-    def update(self) -> Status:
-        if self._drive() is None:
-            return Status.RUNNING
-        return Status.SUCCESS if parked(self._ctx()) else Status.RUNNING
+    def on_running(self) -> Status:
+        if parked(self.ctx):
+            return Status.SUCCESS
+        d = self.fleet.dispatcher
+        if not d.waiting(self.truck) and _state(self.ctx).done:
+            d.park(self.truck)
+        return Status.RUNNING

@@ -62,7 +62,9 @@ def test_auction_bad_inputs(runner: CliRunner, tmp_path: Path) -> None:
     bad.write_text(text.replace(t1.group(1), "bay3", 1), encoding="utf-8")
     code, _, err = run(runner, "auction", str(bad))
     assert code == 2
-    assert "task 'T1' (inspect): cost functions need positions [x, y, z], got 'bay3'" in err
+    line = next(i for i, t in enumerate(text.splitlines(), 1) if "{id: T1," in t)
+    assert f"named.yaml:{line}:" in err and "tasks[0].location" in err  # caught on loading
+    assert "expected [x, y, z] (a place name like 'bay3' needs a world.topomap)" in err
 
 
 @pytest.mark.parametrize(

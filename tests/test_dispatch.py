@@ -18,6 +18,7 @@ from btmission.dispatch.evaluate import Evaluator, evaluate_reference, timeline
 from btmission.dispatch.ga import GAParams, optimize
 from btmission.dispatch.maps import mine_map, static_map
 from btmission.dispatch.missions import (
+    FleetMission,
     Mission,
     direct_mission,
     fleet_items,
@@ -400,26 +401,36 @@ def _small_dynamic(vehicles: int, hours: float = 1.0, seed: int = 4) -> DynamicP
     return DynamicPlanner(mine_map(), cfg)
 
 
+def assert_causal(
+    tmap: TopoMap,
+    t_done: float,
+    before: FleetMission,
+    after: FleetMission,
+    changed: set[int],
+) -> None:
+    """No item starting before ``t_done`` changed; changed missions depart after ``t_done``."""
+    for k, (old, new) in enumerate(zip(before, after, strict=True)):
+        _, dep = timeline(tmap, new.nodes.tolist(), list(new.waits), new.t0)
+        if k in changed and new.head == 0:
+            assert new.nodes[0] == old.end and dep[0] >= t_done - 1e-9
+            continue
+        old_arr, _ = timeline(tmap, old.nodes.tolist(), list(old.waits), old.t0)
+        started = [i for i in range(old.items) if old_arr[i] < t_done]
+        keep = new.head if k in changed else len(started)
+        assert new.t0 == old.t0
+        assert new.nodes[: keep + 1].tolist() == old.nodes[: keep + 1].tolist()
+        assert new.waits[:keep].tolist() == old.waits[:keep].tolist()
+        if k in changed:
+            assert dep[new.head] >= t_done - 1e-9
+
+
 def test_dynamic_replanning_is_causal() -> None:
     """No plan changes an item that starts before its optimisation ends; new missions depart after."""
     planner = _small_dynamic(3)
     checks: list[int] = []
 
     def check(t_done: float, before, after, changed) -> None:  # type: ignore[no-untyped-def]
-        tmap = planner.tmap
-        for k, (old, new) in enumerate(zip(before, after)):
-            _, dep = timeline(tmap, new.nodes.tolist(), list(new.waits), new.t0)
-            if k in changed and new.head == 0:
-                assert new.nodes[0] == old.end and dep[0] >= t_done - 1e-9
-                continue
-            old_arr, _ = timeline(tmap, old.nodes.tolist(), list(old.waits), old.t0)
-            started = [i for i in range(old.items) if old_arr[i] < t_done]
-            keep = new.head if k in changed else len(started)
-            assert new.t0 == old.t0
-            assert new.nodes[: keep + 1].tolist() == old.nodes[: keep + 1].tolist()
-            assert new.waits[:keep].tolist() == old.waits[:keep].tolist()
-            if k in changed:
-                assert dep[new.head] >= t_done - 1e-9
+        assert_causal(planner.tmap, t_done, before, after, changed)
         checks.append(len(changed))
 
     planner.on_adopt = check

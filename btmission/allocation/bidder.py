@@ -108,7 +108,17 @@ class BidError(ValueError):
     """A task's fields do not fit its type's cost expression (e.g. a position is not [x, y, z])."""
 
 
-def _point(task: TaskInfo, value: object) -> Point:
+def _point(task: TaskInfo, value: object, places: Mapping[str, Point] | None = None) -> Point:
+    """A task field as a position: ``[x, y, z]``, or the name of a place (a node of the
+    mission's topological map)."""
+    if isinstance(value, str) and places:
+        hit = places.get(value)
+        if hit is not None:
+            return hit
+        raise BidError(
+            f"task '{task.id}' ({task.type}): '{value}' is not a place of the mission's "
+            f"topological map (known: {', '.join(sorted(places))})"
+        )
     if (
         isinstance(value, (list, tuple))
         and len(value) == 3
@@ -136,6 +146,7 @@ class Bidder:
         *,
         cache_size: int = 4096,
         switch_cost: float = 0.0,
+        places: Mapping[str, Point] | None = None,
     ):
         if not 0 < participation <= 1:
             raise ValueError(f"participation must be in (0, 1], got {participation}")
@@ -145,6 +156,8 @@ class Bidder:
         self.task_types = dict(task_types)
         self.provider: CostProvider = provider if provider is not None else StraightLine()
         self.participation = participation
+        self.places: Mapping[str, Point] = dict(places or {})
+        """Named places task fields may refer to (nodes of the mission's topological map)."""
         self._cache: OrderedDict[tuple[Point, Point], float] = OrderedDict()
         self._cache_size = cache_size
 
@@ -156,6 +169,7 @@ class Bidder:
         provider: CostProvider | None = None,
         *,
         types: Collection[str] | None = None,
+        places: Mapping[str, Point] | None = None,
     ) -> Bidder:
         """The bidder of ``agent_id``: the task types its library can do, the mission's
         participation."""
@@ -168,7 +182,9 @@ class Bidder:
             if can_do(lib, tt.goals) is None and (types is None or name in types)
         }
         coord = mission.spec.coordination
-        return cls(doable, provider, coord.participation, switch_cost=coord.switch_cost)
+        return cls(
+            doable, provider, coord.participation, switch_cost=coord.switch_cost, places=places
+        )
 
     def _static_cost(self, a: Point, b: Point) -> float:
         key = (a, b)
@@ -190,7 +206,7 @@ class Bidder:
             return math.nan
 
         def call(name: str, args: tuple[object, ...]) -> float:
-            pts = [_point(task, v) for v in args]
+            pts = [_point(task, v, self.places) for v in args]
             if name == "distance":
                 start, goal = (agent.position, pts[0]) if len(pts) == 1 else (pts[0], pts[1])
                 return math.dist(start, goal)
@@ -229,7 +245,7 @@ class Bidder:
         for ttype, rows in direct.items():
             field = _single_path_cost(self.task_types[ttype])
             assert field is not None and batch is not None
-            goals = [_point(tasks[j], tasks[j].fields.get(field)) for j in rows]
+            goals = [_point(tasks[j], tasks[j].fields.get(field), self.places) for j in rows]
             out[rows] = np.asarray(batch(agent.position, goals), dtype=np.float64)
         # k_bt = 1 on every task here: an agent past its commit point returned above (eq. 8)
         if self.switch_cost and agent.task is not None:

@@ -267,6 +267,8 @@ class _Vehicle:
         return np.array([v * math.cos(self.x[2]), v * math.sin(self.x[2]), 0.0])
 
     sp_vel_body: float = 0.0
+    v_max: float | None = None
+    """This ground vehicle's top speed (m/s); None: ``SimConfig.ground_v_max``."""
 
 
 class Simulator:
@@ -301,10 +303,24 @@ class Simulator:
         v.hold = x[:3].copy()
         return self._add(v)
 
-    def add_ground(self, vid: str, start: Sequence[float], yaw: float = 0.0) -> SimVehicle:
+    def add_ground(
+        self, vid: str, start: Sequence[float], yaw: float = 0.0, *, v_max: float | None = None
+    ) -> SimVehicle:
+        """A differential-drive robot (unicycle); ``v_max`` overrides the configured top speed
+        (a haul truck is not a TurtleBot)."""
+        if v_max is not None and not v_max > 0:
+            raise ValueError(f"v_max must be > 0 m/s, got {v_max}")
         p = np.asarray(start, dtype=float)
         g = self.world.ground_z(p + np.array([0.0, 0.0, 0.01]))
-        v = _Vehicle(vid, VehicleKind.GROUND, np.array([p[0], p[1], yaw]), z=g, yaw=yaw, ground=g)
+        v = _Vehicle(
+            vid,
+            VehicleKind.GROUND,
+            np.array([p[0], p[1], yaw]),
+            z=g,
+            yaw=yaw,
+            ground=g,
+            v_max=v_max,
+        )
         v.armed = True  # a ground robot has no arming: it drives when commanded
         return self._add(v)
 
@@ -454,7 +470,8 @@ class Simulator:
             uv, uw = 0.0, 0.0
         else:
             uv = float(np.dot(v.sp_vel[:2], [math.cos(v.x[2]), math.sin(v.x[2])]))
-            uv = float(np.clip(uv, cfg.ground_v_min, cfg.ground_v_max))
+            v_max = cfg.ground_v_max if v.v_max is None else v.v_max
+            uv = float(np.clip(uv, cfg.ground_v_min, v_max))
             uw = float(np.clip(v.sp_yaw_rate, -cfg.ground_omega_max, cfg.ground_omega_max))
         new = unicycle_step(v.x, np.array([uv, uw]), dt)
         p_new = np.array([new[0], new[1], v.z + cfg.ground_radius_m])

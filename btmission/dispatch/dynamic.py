@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -98,7 +98,9 @@ class DynamicResult:
 class DynamicPlanner:
     """The §5 loop on ``tmap`` (one prioritised terminal: the offloading site)."""
 
-    def __init__(self, tmap: TopoMap, cfg: DynamicConfig) -> None:
+    def __init__(
+        self, tmap: TopoMap, cfg: DynamicConfig, starts: Sequence[int] | None = None
+    ) -> None:
         prio = [t for t in tmap.terminals if tmap.prioritized[t]]
         if len(prio) != 1:
             raise ValueError(
@@ -115,7 +117,10 @@ class DynamicPlanner:
             )
         self.rng = np.random.default_rng(cfg.seed)
         self.wait_max = cfg.ga.wait_max if cfg.ga.wait_max is not None else default_wait_max(tmap)
-        starts = [int(x) for x in self.rng.choice(self.loading, cfg.vehicles, replace=False)]
+        if starts is None:
+            starts = [int(x) for x in self.rng.choice(self.loading, cfg.vehicles, replace=False)]
+        elif len(starts) != cfg.vehicles:
+            raise ValueError(f"{cfg.vehicles} vehicles but {len(starts)} start nodes")
         self.veh = [
             _Vehicle(
                 make_mission(tmap, [s]), primary=s, arrive_at=0.0, phase="waiting", ready_at=0.0
@@ -131,10 +136,10 @@ class DynamicPlanner:
         """Called with (t_done, tracks before, fleet mission adopted, changed vehicles)."""
 
     # ------------------------------------------------------------------------- planning
-    def _targets(self, skip: int) -> set[int]:
+    def targets(self, skip: int) -> set[int]:
         return {v.track.end for k, v in enumerate(self.veh) if k != skip}
 
-    def _pause_for(self, near: int, taken: set[int]) -> int | None:
+    def pause_for(self, near: int, taken: set[int]) -> int | None:
         free = [p for p in self.tmap.pauses if p not in taken]
         if not free:
             return None
@@ -178,15 +183,23 @@ class DynamicPlanner:
             min_wait=min_wait, head=m.head,
         )  # fmt: skip
 
-    def plan(self, r: int, t_now: float) -> tuple[FleetMission, set[int], dict[int, int]]:
-        """The static fleet mission to optimise for v_r's request (made at ``t_now``)."""
+    def plan(
+        self, r: int, t_now: float, primary: int | None = None
+    ) -> tuple[FleetMission, set[int], dict[int, int]]:
+        """The static fleet mission to optimise for v_r's request (made at ``t_now``).
+
+        ``primary``: v_r's primary destination; None picks it as the §6.2 shuttle does (a free
+        loading site from the offloading site, else the offloading site). Missions to a
+        prioritised terminal are inbound (prioritised)."""
         t_done = t_now + self.cfg.opt_time_s
         tracks: dict[int, Mission] = {}
         primaries: dict[int, int] = {}
         vr = self.veh[r]
         at = vr.track.end
-        taken = self._targets(r)
-        if at == self.offload:
+        taken = self.targets(r)
+        if primary is not None:
+            inbound = bool(self.tmap.prioritized[primary])
+        elif at == self.offload:
             free = [x for x in self.loading if x not in taken]
             primary = int(self.rng.choice(free if free else self.loading))
             inbound = False
@@ -194,10 +207,10 @@ class DynamicPlanner:
             primary, inbound = self.offload, True
         current = primary
         if primary in taken:
-            current = self._pause_for(self.offload if inbound else primary, taken) or primary
+            current = self.pause_for(self.offload if inbound else primary, taken) or primary
         tracks[r] = self._new_track(r, current, t_done, inbound)
         primaries[r] = primary
-        taken = {tracks[r].end} | self._targets(r)
+        taken = {tracks[r].end} | self.targets(r)
         changed = {r}
         # vehicles at (or driving to) a secondary destination whose primary is now free
         waiting = sorted(
@@ -236,7 +249,7 @@ class DynamicPlanner:
             if pending is None and self.queue:
                 r = self.queue.popleft()
                 fleet0, changed, prim = self.plan(r, t)
-                pending = (r, t + self.cfg.opt_time_s, self._optimise(fleet0, t), changed, prim)
+                pending = (r, t + self.cfg.opt_time_s, self.optimise(fleet0, t), changed, prim)
             times = [pending[1]] if pending else []
             for v in self.veh:
                 if v.phase == "driving":
@@ -267,13 +280,13 @@ class DynamicPlanner:
                     if self.on_adopt is not None:
                         before = tuple(v.track for v in self.veh)
                         self.on_adopt(t, before, best, changed)
-                    self._adopt(best, changed, prim, r)
+                    self.adopt(best, changed, prim, r)
         for v in self.veh:  # idle time of vehicles still waiting at a terminal at the end
             if v.phase == "waiting":
                 v.idle_terminal_s += max(0.0, T - v.ready_at)
         return self._result()
 
-    def _optimise(self, fleet0: FleetMission, t_now: float) -> FleetMission | None:
+    def optimise(self, fleet0: FleetMission, t_now: float) -> FleetMission | None:
         self.optimisations += 1
         t_done = t_now + self.cfg.opt_time_s
         ev = Evaluator(
@@ -286,7 +299,7 @@ class DynamicPlanner:
         res = optimize(self.tmap, fleet0, ev, self.cfg.ga, self.rng)
         return res.best if res.feasible else None
 
-    def _adopt(self, fleet: FleetMission, changed: set[int], prim: dict[int, int], r: int) -> None:
+    def adopt(self, fleet: FleetMission, changed: set[int], prim: dict[int, int], r: int) -> None:
         for k, m in enumerate(fleet):
             v = self.veh[k]
             arr, dep = timeline(self.tmap, [int(x) for x in m.nodes], list(m.waits), m.t0)

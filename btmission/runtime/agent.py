@@ -29,7 +29,7 @@ import py_trees
 from py_trees.common import Status
 
 from btmission.allocation.auction import Announcement
-from btmission.allocation.bidder import AgentState, Bidder
+from btmission.allocation.bidder import AgentState, Bidder, CostProvider
 from btmission.allocation.loop import Progress
 from btmission.allocation.tasks import TaskInfo
 from btmission.backends.base import Backend, Sensors
@@ -71,6 +71,9 @@ class Agent:
         settings: Mapping[str, Any],
         emit: Emit,
         namespace: str = "",
+        services: Mapping[str, Any] | None = None,
+        places: Mapping[str, tuple[float, float, float]] | None = None,
+        provider: CostProvider | None = None,
     ) -> None:
         spec = mission.agent(agent_id)
         self.id = agent_id
@@ -92,6 +95,7 @@ class Agent:
             start=spec.start,
             agent=self,
             events=self._leaf_event,
+            services=services if services is not None else {},
         )
         self.blackboard.set("start", spec.start)
         self.mission_tree = build_mission_tree(mission, agent_id)
@@ -103,7 +107,13 @@ class Agent:
         }
         self._commit_leaves = self._find_commit_leaves()
         self._default = next((c for c in self.root.children if c.name == "default"), None)
-        self.bidder = Bidder.for_agent(mission, agent_id, provider=paths, types=self.task_types)
+        self.bidder = Bidder.for_agent(
+            mission,
+            agent_id,
+            provider=provider if provider is not None else paths,
+            types=self.task_types,
+            places=places,
+        )
         self.task: TaskInfo | None = None
         self.committed = False
         self.idle_since = 0.0

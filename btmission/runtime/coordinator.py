@@ -60,11 +60,13 @@ class Coordinator:
         emit: Emit,
         *,
         check_location: Callable[[tuple[float, float, float]], str | None] | None = None,
+        places: Mapping[str, tuple[float, float, float]] | None = None,
     ) -> None:
         self.mission = mission
         self.bus = bus
         self._emit = emit
         self._check = check_location
+        self._places = dict(places or {})
         cfg = AuctionConfig.from_spec(mission.spec.coordination)
         state = AuctionState(cfg, pool_from_mission(mission))
         self.loop = AuctionLoop(state, _Now(clock), self._collect, self._publish)
@@ -164,6 +166,8 @@ class Coordinator:
         problems = []
         if self._check is not None:
             for name, value in info.fields.items():
+                if isinstance(value, str) and value in self._places:
+                    value = self._places[value]
                 if isinstance(value, (list, tuple)) and len(value) == 3:
                     why = self._check((float(value[0]), float(value[1]), float(value[2])))
                     if why:

@@ -35,6 +35,8 @@ if TYPE_CHECKING:
     from btmission.runtime.agent import Agent
     from btmission.runtime.navigation import Navigator
     from btmission.runtime.paths import PathCosts
+    from btmission.spec.mission import Mission
+    from btmission.world.voxel import VoxelMap
 
 UNSET = object()
 
@@ -77,6 +79,28 @@ class Blackboard:
 
 
 @dataclass
+class RunContext:
+    """What a run-wide service factory gets (:meth:`~btmission.plugins.Implementations.service`):
+    the whole run's shared facts, no agent in particular."""
+
+    mission: Mission
+    map: VoxelMap
+    clock: Callable[[], float]
+    settings: Mapping[str, Any]
+    seed: int
+    events: Callable[..., None] = field(default=lambda kind, **data: None)
+    """``events(kind, **data)`` publishes an event for observers (log, report, viewer)."""
+    places: Mapping[str, tuple[float, float, float]] = field(default_factory=dict)
+    """Named places (the nodes of the mission's topological map, on the ground)."""
+
+    def now(self) -> float:
+        return self.clock()
+
+    def setting(self, name: str, default: Any) -> Any:
+        return self.settings.get(name, default)
+
+
+@dataclass
 class AgentContext:
     """Everything a leaf may use, passed explicitly at setup (no process-wide singletons)."""
 
@@ -94,6 +118,8 @@ class AgentContext:
     """``events(kind, **data)`` publishes an event for observers (log, report, viewer)."""
     state: dict[str, Any] = field(default_factory=dict)
     """Per-agent scratch space for implementations (e.g. a localiser kept across actions)."""
+    services: Mapping[str, Any] = field(default_factory=dict)
+    """The run-wide services of the agent's library, by name (shared by all its agents)."""
 
     def now(self) -> float:
         return self.clock()

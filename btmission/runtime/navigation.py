@@ -191,6 +191,18 @@ class _Goto(_Command):
 
 
 @dataclass
+class _Track(_Command):
+    point: FloatArray
+    velocity: FloatArray
+    t0: float
+    name: str = "track"
+
+    def reference(self, now: float) -> FloatArray:
+        out: FloatArray = self.point + self.velocity * max(0.0, now - self.t0)
+        return out
+
+
+@dataclass
 class _Land(_Command):
     hold: FloatArray | None = None
     name: str = "land"
@@ -220,6 +232,41 @@ PREDICTION_STEPS = 50
 
 Predictions = Callable[[str], Sequence[FloatArray]]
 """Other agents' predicted (N+1, 2) positions, for the ground NMPC (seed 003 §VI)."""
+
+
+TRACK_LOOKAHEAD_S = 1.0
+"""How far ahead of the schedule reference :func:`track_unicycle` steers (s of travel)."""
+TRACK_GAIN = 0.5
+"""Speed added per metre of along-track lag (1/s)."""
+TRACK_STOP_M = 0.5
+"""A standing reference closer than this is reached: stop instead of creeping."""
+
+
+def track_unicycle(
+    p: FloatArray, yaw: float, ref: FloatArray, v_ref: FloatArray, v_max: float
+) -> tuple[float, float]:
+    """[u_v, u_ω] for a unicycle keeping to a moving reference ``ref`` with velocity ``v_ref``.
+
+    Pure pursuit of the point ``TRACK_LOOKAHEAD_S`` ahead of the reference, at the reference's
+    speed plus ``TRACK_GAIN`` × the along-track lag (so a vehicle behind catches up and one ahead
+    slows down), capped at ``v_max``; it turns on the spot when the way ahead is more than 90°
+    off its heading (a truck reversing out of a pause bay, in this model)."""
+    speed = float(np.hypot(*v_ref))
+    target = ref + v_ref * TRACK_LOOKAHEAD_S
+    d = target - p
+    dist = float(np.hypot(*d))
+    if speed < 1e-6 and dist < TRACK_STOP_M:
+        return 0.0, 0.0
+    err = wrap_angle(math.atan2(d[1], d[0]) - yaw)
+    uw = float(np.clip(2.0 * err, -1.5, 1.5))
+    if abs(err) > math.pi / 2:
+        return 0.0, uw
+    heading = np.array([math.cos(yaw), math.sin(yaw)])
+    lag = float((ref - p) @ heading)
+    uv = (speed + TRACK_GAIN * lag) * math.cos(err)
+    if speed < 1e-6:  # standing reference: approach it, slowing down
+        uv = min(uv, 0.8 * dist)
+    return float(np.clip(uv, 0.0, v_max)), uw
 
 
 class Navigator:
@@ -325,6 +372,18 @@ class Navigator:
             return
         self._set(_Goto(w, yaw, yaw_rate))
 
+    def track(self, point: ArrayLike, velocity: ArrayLike, now: float) -> None:
+        """Keep to a moving reference: ``point`` at ``now``, moving at ``velocity`` (world) — a
+        schedule to keep, not a place to reach (a truck on its dispatched timetable, seed 004
+        §3.2). Call again whenever the schedule says where to be; in between the reference is
+        extrapolated. Status stays RUNNING: the caller decides when the schedule is done."""
+        p = np.asarray(point, dtype=float)
+        v = np.asarray(velocity, dtype=float)
+        if isinstance(self._cmd, _Track):
+            self._cmd.point, self._cmd.velocity, self._cmd.t0 = p, v, now
+            return
+        self._set(_Track(p, v, now))
+
     def land(self) -> None:
         self._set(_Land())
 
@@ -420,6 +479,8 @@ class Navigator:
         elif isinstance(cmd, _Goto):
             ref, vel, _, repulsion = self._apf_reference(tel, cmd.waypoint, cfg.speed_m_s)
             yaw, yaw_rate = cmd.yaw, cmd.yaw_rate
+        elif isinstance(cmd, _Track):
+            ref, vel = cmd.reference(now), cmd.velocity
         self._command_multirotor(tel, ref, vel, yaw, yaw_rate, repulsion)
 
     def _stream_hold(self, tel: Telemetry, p: FloatArray) -> None:
@@ -573,6 +634,14 @@ class Navigator:
             return
         if isinstance(cmd, _Goto):
             self._drive(now, tel, cmd.waypoint[:2])
+            return
+        if isinstance(cmd, _Track):
+            uv, uw = track_unicycle(
+                p[:2], tel.yaw, cmd.reference(now)[:2], cmd.velocity[:2], self.config.speed_m_s
+            )
+            heading = np.array([math.cos(tel.yaw), math.sin(tel.yaw), 0.0])
+            self.prediction = np.tile(p[:2], (PREDICTION_STEPS + 1, 1))
+            self.backend.set_velocity_setpoint(heading * uv, uw)
             return
         assert isinstance(cmd, _Follow)
         state, c, _ = self._route_step(now, tel, cmd)

@@ -28,7 +28,7 @@ import time
 import uuid
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from btmission.allocation.tasks import TaskInfo, TaskState
 from btmission.backends.sim import Artifact, SimConfig, Simulator
@@ -38,10 +38,14 @@ from btmission.runtime.bus import InMemoryBus
 from btmission.runtime.clock import Clock, SimClock
 from btmission.runtime.coordinator import Coordinator
 from btmission.runtime.events import LOG_FORMAT, LOG_VERSION, EventStream, Observer
+from btmission.runtime.leaves import RunContext, StatefulAction
 from btmission.runtime.navigation import SETTINGS_DOC, NavConfig, Navigator
 from btmission.runtime.paths import PathCosts
 from btmission.spec.mission import Mission
 from btmission.world.voxel import VoxelMap
+
+if TYPE_CHECKING:
+    from btmission.runtime.roads import RoadCosts
 
 NEIGHBOUR_RANGE_M = 6.0
 """Agents farther than this are left out of each other's avoidance (APF, NMPC constraints)."""
@@ -93,6 +97,23 @@ def runtime_problems(mission: Mission) -> list[Diagnostic]:
                     Severity.ERROR,
                     "not-runnable",
                     f"library '{ref}' cannot run: no implementation of {', '.join(missing)}",
+                    "agents",
+                    Location(mission.file),
+                )
+            )
+        wrong = sorted(
+            name
+            for name, cls in impl.actions.items()
+            if not (isinstance(cls, type) and issubclass(cls, StatefulAction))
+        )
+        if wrong:
+            out.append(
+                Diagnostic(
+                    Severity.ERROR,
+                    "not-runnable",
+                    f"library '{ref}' cannot run: the implementations of {', '.join(wrong)} are "
+                    "not StatefulAction subclasses (btmission.runtime.leaves.StatefulAction: "
+                    "constructed as cls(node, ctx), see docs/plugins.md)",
                     "agents",
                     Location(mission.file),
                 )
@@ -167,9 +188,16 @@ class MissionRun:
             RiskParams(rt.risk_radius_m, rt.unknown_cost),
             clearance_m=self.nav_config.clearance_m,
         )
+        self.roads = self._roads()
+        self.places = self.roads.places if self.roads is not None else {}
         self.bus = InMemoryBus()
         self.coordinator = Coordinator(
-            mission, self.bus, self.now, self.emit, check_location=self.paths.problem
+            mission,
+            self.bus,
+            self.now,
+            self.emit,
+            check_location=self.paths.problem,
+            places=self.places,
         )
         self._namespace = f"/run-{uuid.uuid4().hex[:8]}"
         self.agents: dict[str, Agent] = {}
@@ -185,17 +213,53 @@ class MissionRun:
         self._wall0: float | None = None
         self._wall_used = 0.0
         self._ended: RunResult | None = None
+        self.services: dict[str, dict[str, Any]] = self._build_services()
         self._build_agents()
         self._emit_header()
 
     # ---------------------------------------------------------------- construction
+    def _roads(self) -> RoadCosts | None:
+        """Places and road costs of the mission's topological map, if it has one."""
+        ref = self.mission.spec.world.topomap
+        if ref is None:
+            return None
+        from btmission.dispatch.maps import topomap_ref
+        from btmission.runtime.roads import RoadCosts, RoadMapError
+
+        top = self.map.origin[2] + self.map.shape[2] * self.map.resolution
+        try:
+            return RoadCosts(
+                topomap_ref(ref, self.mission.base_dir),
+                lambda x, y: self.map.ground_z((x, y, top)),
+                self.paths,
+                snap_m=max(25.0, 2 * self.map.resolution),
+            )
+        except RoadMapError as exc:
+            where = Location(self.mission.file)
+            raise SpecError(
+                [Diagnostic(Severity.ERROR, "topomap", str(exc), "world.topomap", where)]
+            ) from None
+
+    def _build_services(self) -> dict[str, dict[str, Any]]:
+        """One instance of every run-wide service of the libraries the agents use."""
+        run = RunContext(
+            self.mission, self.map, self.now, self.settings, self.seed, self.emit, self.places
+        )
+        out: dict[str, dict[str, Any]] = {}
+        for spec in self.mission.agents:
+            impl = self.mission.library_of(spec.id).implementations
+            assert impl is not None
+            if impl.library not in out:
+                out[impl.library] = {name: make(run) for name, make in impl.services.items()}
+        return out
+
     def _build_agents(self) -> None:
         for spec in self.mission.agents:
             loaded = self.mission.library_of(spec.id)
             impl = loaded.implementations
             assert impl is not None  # runtime_problems() checked it
             if impl.vehicle == "ground":
-                vehicle = self.sim.add_ground(spec.id, spec.start)
+                vehicle = self.sim.add_ground(spec.id, spec.start, v_max=self.nav_config.speed_m_s)
                 control_dt = 0.1
             else:
                 vehicle = self.sim.add_multirotor(spec.id, spec.start)
@@ -230,6 +294,9 @@ class MissionRun:
                 settings=self.settings,
                 emit=self.emit,
                 namespace=self._namespace,
+                services=self.services[impl.library],
+                places=self.places,
+                provider=self.roads,
             )
 
     def _emit_header(self) -> None:
@@ -317,6 +384,11 @@ class MissionRun:
         while self._schedule and self._schedule[0][0] <= now + 1e-9:
             _, _, fn = self._schedule.pop(0)
             fn(self)
+        for services in self.services.values():
+            for service in services.values():
+                step = getattr(service, "step", None)
+                if step is not None:
+                    step(now)
         self.coordinator.step(now)
         if now + 1e-9 >= self._next_tick:
             for a in self.agents.values():

@@ -489,8 +489,32 @@ def compile_mission(spec: MissionSpec, src: Source) -> Mission:
             )
 
     # topological map (GA dispatch): a built-in name or a file that loads
+    places: frozenset[str] | None = None
     if spec.world.topomap is not None:
-        diags.extend(_check_topomap(spec.world.topomap, base, src))
+        found, places = _check_topomap(spec.world.topomap, base, src)
+        diags.extend(found)
+    # cost arguments: a position, or (with a topological map) the name of one of its nodes
+    for i, ts in enumerate(spec.tasks):
+        tt3 = task_types.get(ts.type)
+        if tt3 is None:
+            continue
+        for name, v in (ts.model_extra or {}).items():  # in file order
+            if (
+                name not in tt3.cost.symbols
+                or not isinstance(v, str)
+                or (places is None and spec.world.topomap is not None)
+            ):
+                continue  # (a topological map with errors is reported above)
+            fpath = ("tasks", i, name)
+            if places is None:
+                add(fpath, f"task field '{name}' is used as a position by the cost "
+                    f"'{tt3.cost.text}': expected [x, y, z] (a place name like {v!r} needs a "
+                    "world.topomap)", "schema")  # fmt: skip
+            elif v not in places:
+                close = difflib.get_close_matches(v, sorted(places), n=1)
+                hint = f" (did you mean '{close[0]}'?)" if close else ""
+                add(fpath, f"task field '{name}': '{v}' is not a node of the topological map "
+                    f"'{spec.world.topomap}'{hint}", "unknown-place")  # fmt: skip
 
     mission = Mission(spec.mission, spec, src.file, agents, tasks, task_types, default, libraries)
     if not errors(diags):
@@ -501,25 +525,24 @@ def compile_mission(spec: MissionSpec, src: Source) -> Mission:
     return mission
 
 
-def _check_topomap(ref: str, base: Path, src: Source) -> list[Diagnostic]:
-    """Problems with ``world.topomap`` (dispatch is imported only when a mission names one)."""
-    from btmission.dispatch.maps import BUILTIN_MAPS
-    from btmission.dispatch.topomap import load_topomap
+def _check_topomap(
+    ref: str, base: Path, src: Source
+) -> tuple[list[Diagnostic], frozenset[str] | None]:
+    """Problems with ``world.topomap``, and its node names when it loads (dispatch is imported
+    only when a mission names one)."""
+    from btmission.dispatch.maps import BUILTIN_MAPS, topomap_ref
 
     path = ("world", "topomap")
-    if ref in BUILTIN_MAPS:
-        return []
-    f = base / ref
-    if not f.exists():
+    if ref not in BUILTIN_MAPS and not (base / ref).exists():
         known = ", ".join(BUILTIN_MAPS)
         msg = f"topological map '{ref}' is neither a built-in map ({known}) nor a file in {base}"
-        return [src.diag(path, msg, "no-file")]
+        return [src.diag(path, msg, "no-file")], None
     try:
-        load_topomap(f)
+        tmap = topomap_ref(ref, base)
     except SpecError as exc:
         return [src.diag(path, f"topological map '{ref}' has errors, listed below", "topomap"),
-                *exc.diagnostics]  # fmt: skip
-    return []
+                *exc.diagnostics], None  # fmt: skip
+    return [], frozenset(tmap.index)
 
 
 def load_mission_source(src: Source) -> Mission:

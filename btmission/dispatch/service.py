@@ -1,0 +1,188 @@
+"""The fleet dispatcher as a service of a running mission (seed 004 §5, driven by the trucks' trees).
+
+:mod:`btmission.dispatch.dynamic` simulates the §6.2 shuttle on its own: it decides where every
+vehicle goes next and draws the loading times. In a mission, those decisions belong to the
+agents — the auction gives a truck a haul, its behaviour tree asks for a mission to the pickup,
+loads, asks for a mission to the dropoff — so :class:`FleetDispatcher` keeps only the planner's
+part, with the same rules:
+
+* requests (truck, primary destination) wait in a **FIFO queue** and are served one at a time;
+* serving one builds the static fleet mission of :meth:`DynamicPlanner.plan
+  <btmission.dispatch.dynamic.DynamicPlanner.plan>` — Π0 from where the truck is (or will be),
+  a secondary destination (nearest free pause node) when the primary one is targeted by another
+  truck, onward missions for trucks parked at a secondary destination whose primary is now free —
+  and optimises it with the GA (Alg. 1-3);
+* **causality**: the optimisation is charged ``opt_time_s`` of mission time; the plan is made for
+  t_done = request time + ``opt_time_s`` and only items starting after t_done change;
+* a failed optimisation puts the request at the back of the queue (§7).
+
+Time is the mission's clock: the runtime calls :meth:`FleetDispatcher.step` every step. The GA
+itself runs for at most ``GAParams.max_generations`` generations (and ``budget_s`` of wall time as
+a safety net), so that a run is reproducible for a seed.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, replace
+
+from btmission.dispatch.dynamic import DynamicConfig, DynamicPlanner
+from btmission.dispatch.missions import FleetMission, Mission
+from btmission.dispatch.topomap import TopoMap
+
+PARK = -1
+"""Request goal meaning "the nearest free pause node"."""
+
+Event = Callable[..., None]
+
+
+@dataclass(frozen=True)
+class _Pending:
+    truck: int
+    goal: int
+    t_done: float
+    best: FleetMission | None
+    changed: frozenset[int]
+    primaries: Mapping[int, int]
+
+
+class FleetDispatcher:
+    """Seed 004 §5 dynamic planning for trucks whose destinations come from their trees.
+
+    Args:
+        tmap: the topological map (exactly one prioritised terminal: the offloading site).
+        starts: truck name → node it starts at (stopped there).
+        cfg: ``opt_time_s``, the GA settings and the seed (``vehicles``, ``duration_s`` and the
+            loading ranges are not used: the trucks load and offload themselves).
+        events: ``events(kind, **data)`` for observers: ``dispatch`` events when a request is
+            queued, a plan adopted or an optimisation failed.
+    """
+
+    def __init__(
+        self,
+        tmap: TopoMap,
+        starts: Mapping[str, int],
+        cfg: DynamicConfig,
+        events: Event | None = None,
+    ) -> None:
+        if not starts:
+            raise ValueError("the dispatcher needs at least one truck")
+        self.names = list(starts)
+        self._index = {name: k for k, name in enumerate(self.names)}
+        self.planner = DynamicPlanner(
+            tmap, replace(cfg, vehicles=len(self.names)), [starts[n] for n in self.names]
+        )
+        self.tmap = tmap
+        self.cfg = cfg
+        self._events = events or (lambda kind, **data: None)
+        self.queue: deque[tuple[int, int]] = deque()
+        self.pending: _Pending | None = None
+        self.adopted = 0
+        self.failed = 0
+
+    # ------------------------------------------------------------------ the trucks' interface
+    def request(self, truck: str, goal: int) -> None:
+        """Queue a request: ``truck`` wants a mission to node ``goal`` (or :data:`PARK`). A truck
+        has at most one request waiting: a new goal replaces the queued one."""
+        k = self._index[truck]
+        if self.pending is not None and self.pending.truck == k and self.pending.goal == goal:
+            return
+        for i, (kk, g) in enumerate(self.queue):
+            if kk == k:
+                if g != goal:
+                    self.queue[i] = (k, goal)
+                return
+        self.queue.append((k, goal))
+        self._events("dispatch", truck=truck, event="requested", goal=self._name(goal))
+
+    def park(self, truck: str) -> None:
+        """Ask for a mission to the nearest pause node no other truck targets."""
+        self.request(truck, PARK)
+
+    def mission(self, truck: str) -> Mission:
+        """The truck's current mission (its last adopted one; a 0-item one before any)."""
+        return self.planner.veh[self._index[truck]].track
+
+    def primary(self, truck: str) -> int:
+        """The primary destination of that mission (its end may be a secondary destination)."""
+        return self.planner.veh[self._index[truck]].primary
+
+    def waiting(self, truck: str) -> bool:
+        """Whether the truck has a request queued or being optimised."""
+        k = self._index[truck]
+        return any(kk == k for kk, _ in self.queue) or (
+            self.pending is not None and self.pending.truck == k
+        )
+
+    # ------------------------------------------------------------------ the runtime's
+    def step(self, now: float) -> None:
+        """Advance to mission time ``now``: note arrivals, adopt a finished optimisation, start
+        the next one."""
+        for v in self.planner.veh:
+            if v.phase == "driving" and v.arrive_at <= now:
+                v.phase = "waiting" if v.track.end == v.primary else "parked"
+                v.ready_at = v.arrive_at
+        p = self.pending
+        if p is not None and p.t_done <= now:
+            self.pending = None
+            name = self.names[p.truck]
+            if p.best is None:
+                self.failed += 1
+                self.queue.append((p.truck, p.goal))
+                self._events("dispatch", truck=name, event="failed", goal=self._name(p.goal))
+            else:
+                if self.planner.on_adopt is not None:
+                    before = tuple(v.track for v in self.planner.veh)
+                    self.planner.on_adopt(p.t_done, before, p.best, set(p.changed))
+                self.planner.adopt(p.best, set(p.changed), dict(p.primaries), p.truck)
+                self.adopted += 1
+                for k in sorted(p.changed):
+                    m = p.best[k]
+                    self._events(
+                        "dispatch",
+                        truck=self.names[k],
+                        event="adopted",
+                        goal=self._name(self.planner.veh[k].primary),
+                        to=self.tmap.nodes[m.end].name,
+                        items=m.items,
+                        depart=round(m.t0 + float(m.waits[m.head]), 3) if m.items else None,
+                        arrive=round(self.planner.veh[k].arrive_at, 3),
+                    )
+        if self.pending is None and self.queue:
+            self._serve(now)
+
+    def _serve(self, now: float) -> None:
+        k, goal = self.queue.popleft()
+        v = self.planner.veh[k]
+        if v.phase == "driving" and not self.tmap.is_pause[v.track.end]:
+            # a new destination while driving to a terminal: it may not stop there mid-mission
+            # (initial stop times only at the start and at pause nodes, §3.2), so the request
+            # waits until it has arrived; the queue moves on meanwhile
+            self.queue.append((k, goal))
+            return
+        target = goal
+        if goal == PARK:
+            here = v.track.end
+            taken = self.planner.targets(k)
+            if self.tmap.is_pause[here] and here not in taken:
+                target = here
+            else:
+                pause = self.planner.pause_for(here, taken)
+                if pause is None:  # every pause node is taken: try again later
+                    self.queue.append((k, goal))
+                    return
+                target = pause
+        if target == v.track.end:  # already there (or driving there): nothing to optimise
+            v.primary = target
+            self._events("dispatch", truck=self.names[k], event="adopted", goal=self._name(goal),
+                         to=self.tmap.nodes[target].name, items=0)  # fmt: skip
+            return
+        fleet0, changed, prim = self.planner.plan(k, now, target)
+        best = self.planner.optimise(fleet0, now)
+        self.pending = _Pending(
+            k, goal, now + self.cfg.opt_time_s, best, frozenset(changed), dict(prim)
+        )
+
+    def _name(self, goal: int) -> str:
+        return "park" if goal == PARK else self.tmap.nodes[goal].name
