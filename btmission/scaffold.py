@@ -241,8 +241,8 @@ names are implemented, and the library is runnable once all of them are.
 
 # An example implementation, in the form btmission.plugins documents: a condition is a function
 # of a context and the condition's parameters as keyword arguments, returning whether it holds.
-# Actions are registered the same way with @IMPLEMENTATIONS.action("name"), typically on a
-# py_trees Behaviour subclass.
+# Actions are registered the same way with @IMPLEMENTATIONS.action("name") on a subclass of
+# btmission.runtime.leaves.StatefulAction (on_start sends a request, on_running polls it).
 @IMPLEMENTATIONS.condition("is_ready")
 def is_ready(ctx: Any, **args: Any) -> bool:
     """Drivers are up and the self-test passed. Replace with a real check of your platform."""
