@@ -76,6 +76,23 @@ class Implementations:
         self.setup_hooks.append(fn)
         return fn
 
+    def extend(
+        self, library: str, *, settings: Mapping[str, float | str | bool] | None = None
+    ) -> Implementations:
+        """A registry for a variant library ``library`` that starts with everything of this one
+        — vehicle, settings (plus ``settings``), setup hooks, actions and conditions — and to
+        which the variant adds its own (``aerial_mine`` = ``aerial`` + ``relocalize``)::
+
+            IMPLEMENTATIONS = aerial.IMPLEMENTATIONS.extend("aerial_mine")
+        """
+        out = Implementations(
+            library, vehicle=self.vehicle, settings={**self.settings, **(settings or {})}
+        )
+        out.actions.update(self.actions)
+        out.conditions.update(self.conditions)
+        out.setup_hooks.extend(self.setup_hooks)
+        return out
+
     def _register(self, table: dict[str, Any], kind: str, name: str) -> Callable[[T], T]:
         def deco(obj: T) -> T:
             if name in table:

@@ -1,177 +1,258 @@
 """Implementations of the ``aerial_mine`` capability library (spec: ``aerial_mine.yaml``).
 
-``aerial_mine`` is seed 000's Table I plus ``relocalize``; only the new leaf has an
-implementation here (the Table I actions are bound by the runtime, as for ``aerial``).
+``aerial_mine`` is seed 000's Table I plus one action, ``relocalize``, achieving the condition
+``is_localized`` that ``takeoff`` needs first (§IV-C1: before a mission each agent finds the
+transform ``T : R → W`` from its frame to the shared map frame W, from one LiDAR scan). Every
+Table I action and condition, the vehicle kind, the settings and the setup hooks are ``aerial``'s
+own (:meth:`~btmission.plugins.Implementations.extend`), so ``aerial``'s tree stays exactly seed
+000's Fig. 8 and this library's is Fig. 8 with one more fallback under take-off.
 
-``relocalize`` is a py_trees behaviour around the pure
-:class:`~btmission.localization.relocalize.Relocalizer`: it reads the latest LiDAR scan from the
-agent's blackboard and writes whether the agent is localised and the transform of its frame into
-the map frame W. Blackboard keys (relative to the agent's namespace, e.g. ``/agents/R1``):
+``relocalize`` is a :class:`~btmission.runtime.leaves.StatefulAction`: on every tick until it ends
+it asks the agent's sensors for the latest full-range 3D LiDAR scan
+(:meth:`~btmission.backends.base.Sensors.lidar_scan`: in the simulator, every beam of an
+OS1-32-like sensor ray-cast through the voxel map from the vehicle's true pose), RUNNING while
+there is none (a real driver needs a full turn first; FAILURE after ``SCAN_TIMEOUT_S``), then
+localises it inside the tick — so a run stays deterministic for a seed — with the
+:class:`~btmission.localization.relocalize.Relocalizer` (descriptors → candidate poses →
+coarse-then-fine GICP → best fit; ~0.1 s). It writes on the agent's blackboard
 
-=====================  =====  ===========================================================
-key                    access  content
-=====================  =====  ===========================================================
-``scan``               read   latest scan, ``(N, 3)`` points in the robot frame,
-                              gravity-aligned (the simulator writes
-                              :func:`~btmission.localization.scan.simulate_scan` at the
-                              agent's true pose)
-``is_localized``       write  True once a scan was localised
-``world_from_robot``   write  4×4 ``T_world_robot`` when the scan was taken (seed 000's
-                              ``T : R → W``)
-``reloc_confidence``   write  0-1 (docs/relocalization.md says what it means)
-``reloc_result``       write  the whole :class:`~btmission.localization.relocalize.Relocalization`
-=====================  =====  ===========================================================
+=====================  ==============================================================
+key                    content
+=====================  ==============================================================
+``is_localized``       True once a scan was localised (the condition reads it)
+``world_from_robot``   4×4 ``T_world_robot`` when the scan was taken (the LiDAR mounting
+                       taken out): seed 000's ``T : R → W``
+``reloc_confidence``   0-1 (docs/relocalization.md says what it means)
+``reloc_result``       the whole :class:`~btmission.localization.relocalize.Relocalization`
+=====================  ==============================================================
 
-The relocalizer (place database and prepared map) is given to the constructor or to
-``setup(relocalizer=...)`` / ``setup(reloc_database="map_db.npz")``. The work (~0.1 s) runs on a
-worker thread so that the tree keeps ticking (RUNNING meanwhile), or in the tick itself with
-``blocking=True``. A scan that is not localised gives FAILURE (``is_localized`` False); ticking the
-leaf again tries the newest scan.
+publishes a ``relocalized`` event (estimate, confidence, the vehicle's telemetry pose — the truth
+in the simulator — and the error against it), and ends SUCCESS, or FAILURE with the reason ("not
+localised: …") reported with the task.
+
+**The relocalizer** is made once per map by a setup hook, before the first tick: from the place
+database file of the setting ``reloc_database`` (relative to the mission file, as its map file is;
+``btmission reloc build`` writes one), or, when that is empty, built from the run's own voxel map
+with places every ``reloc_spacing_m`` metres. Relocalizers are memoised by map content and
+settings (:func:`shared_relocalizer`), so N agents on one map — and several runs of one mission in
+a process — build one database.
+
+**What the estimate is used for.** It gates take-off (an agent that cannot localise does not fly,
+and its task fails with the reason) and it is logged with its error. Navigation still uses the
+vehicle's telemetry: in the simulator that is already the true pose in W, so there is nothing to
+correct; a real vehicle whose odometry starts in its own frame would need ``world_from_robot``
+applied to its telemetry, which the runtime does not do yet.
+
+Settings (``runtime.settings`` of a mission): ``reloc_database`` (path, default ``""``: build one
+from the map), ``reloc_spacing_m`` (1.0: the spacing the benchmark measured) and the navigator's.
 """
 
 from __future__ import annotations
 
-import logging
-from concurrent.futures import Future, ThreadPoolExecutor
+import hashlib
+import time
+from collections import OrderedDict
 from importlib.resources import files
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import numpy.typing as npt
-import py_trees
+from py_trees.common import Status
 
-from btmission.plugins import Implementations
+from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
+from btmission.runtime.leaves import AgentContext, StatefulAction
+from btmission_library import aerial
+
+if TYPE_CHECKING:
+    from btmission.backends.base import LidarScan
+    from btmission.localization.relocalize import Relocalization, Relocalizer
+    from btmission.world.voxel import VoxelMap
 
 SPEC = files(__package__).joinpath("aerial_mine.yaml")
 """The library file; the ``btmission.libraries`` entry point ``aerial_mine`` points here."""
 
-IMPLEMENTATIONS = Implementations("aerial_mine")
+IMPLEMENTATIONS = aerial.IMPLEMENTATIONS.extend(
+    "aerial_mine", settings={"reloc_database": "", "reloc_spacing_m": 1.0}
+)
 
-log = logging.getLogger(__name__)
-
-SCAN = "scan"
 IS_LOCALIZED = "is_localized"
 WORLD_FROM_ROBOT = "world_from_robot"
 CONFIDENCE = "reloc_confidence"
 RESULT = "reloc_result"
+RELOCALIZER = "relocalizer"
+"""``ctx.state`` key of the agent's :class:`Relocalizer` (set by the setup hook)."""
+SCAN_TIMEOUT_S = 5.0
+"""``relocalize`` fails when the sensors give no scan for this long."""
+CACHE_SIZE = 2
+"""Relocalizers kept (each holds its map and database: tens of MB for a 200 m mine)."""
+
+
+# ------------------------------------------------------------------------------- relocalizers
+_cache: OrderedDict[tuple[Any, ...], Relocalizer] = OrderedDict()
+
+
+def _map_key(vm: VoxelMap) -> str:
+    h = hashlib.blake2b(vm.state.tobytes(), digest_size=16)
+    h.update(repr((vm.state.shape, vm.resolution, vm.origin)).encode())
+    return h.hexdigest()
+
+
+def shared_relocalizer(
+    vm: VoxelMap, database: Path | None = None, *, spacing_m: float = 1.0
+) -> Relocalizer:
+    """The relocalizer of a place database file, or of ``vm`` (a database built with places
+    every ``spacing_m`` metres), made once and memoised (the last ``CACHE_SIZE``, keyed by the
+    file's path, size and modification time, or by the map's content and the spacing).
+
+    Raises :class:`~btmission.localization.database.DatabaseError` when the file cannot be read
+    or the map has no place for a sensor."""
+    from btmission.localization.database import build_database, load_database
+    from btmission.localization.relocalize import Relocalizer
+
+    if database is not None:
+        st = database.stat() if database.is_file() else None
+        key: tuple[Any, ...] = (
+            "file",
+            str(database.resolve()),
+            st.st_size if st else -1,
+            st.st_mtime_ns if st else -1,
+        )
+    else:
+        key = ("map", _map_key(vm), float(spacing_m))
+    found = _cache.get(key)
+    if found is not None:
+        _cache.move_to_end(key)
+        return found
+    db = (
+        load_database(database) if database is not None else build_database(vm, spacing_m=spacing_m)
+    )
+    reloc = Relocalizer(db)
+    _cache[key] = reloc
+    while len(_cache) > CACHE_SIZE:
+        _cache.popitem(last=False)
+    return reloc
+
+
+@IMPLEMENTATIONS.on_setup
+def _setup_relocalizer(ctx: AgentContext) -> None:
+    """Give the agent its map's relocalizer (module docstring); a bad setting is a mission
+    error (exit status 2), reported before anything runs."""
+    from btmission.localization.database import DatabaseError
+
+    mission = ctx.agent.mission if ctx.agent is not None else None
+    where = Location(mission.file if mission is not None else "<settings>")
+
+    def bad(setting: str, message: str) -> SpecError:
+        return SpecError(
+            [
+                Diagnostic(
+                    Severity.ERROR,
+                    "bad-setting",
+                    message,
+                    f"runtime.settings.{setting}",
+                    where,
+                )
+            ]
+        )
+
+    raw = ctx.setting("reloc_spacing_m", 1.0)
+    try:
+        spacing = float(raw)
+    except (TypeError, ValueError):
+        spacing = float("nan")
+    if not spacing > 0:
+        raise bad("reloc_spacing_m", f"expected a positive number of metres, got {raw!r}")
+    name = str(ctx.setting("reloc_database", "") or "")
+    database = None
+    if name:
+        database = Path(name)
+        if not database.is_absolute() and mission is not None:
+            database = mission.base_dir / database
+    try:
+        ctx.state[RELOCALIZER] = shared_relocalizer(ctx.paths.map, database, spacing_m=spacing)
+    except DatabaseError as exc:
+        setting = "reloc_database" if database is not None else "reloc_spacing_m"
+        raise bad(setting, f"cannot make the relocalizer: {exc}") from None
+
+
+# ------------------------------------------------------------------------------- leaves
+@IMPLEMENTATIONS.condition("is_localized")
+def is_localized(ctx: AgentContext) -> bool:
+    """The agent knows its pose in the map frame W (its blackboard's ``is_localized``)."""
+    return bool(ctx.blackboard.get(IS_LOCALIZED, False))
+
+
+def _pose_record(pose: np.ndarray) -> dict[str, float]:
+    from btmission.localization.scan import yaw_of
+
+    return {
+        "x": round(float(pose[0, 3]), 4),
+        "y": round(float(pose[1, 3]), 4),
+        "z": round(float(pose[2, 3]), 4),
+        "yaw_deg": round(float(np.degrees(yaw_of(pose))), 3),
+    }
 
 
 @IMPLEMENTATIONS.action("relocalize")
-class Relocalize(py_trees.behaviour.Behaviour):
-    """Global relocalization leaf: scan on the blackboard in, ``is_localized`` and the pose out.
+class Relocalize(StatefulAction):
+    """Localise the agent in the shared map from one LiDAR scan (module docstring)."""
 
-    Args:
-        name: the behaviour's name.
-        relocalizer: a :class:`~btmission.localization.relocalize.Relocalizer` (or give one to
-            :meth:`setup`).
-        namespace: the agent's blackboard namespace.
-        robot_from_sensor: 4×4 mounting of the LiDAR on the robot (identity: the scan is in the
-            robot frame).
-        blocking: localise inside the tick instead of on a worker thread.
-    """
+    def on_start(self) -> Status:
+        self._since = self.ctx.now()
+        return self.on_running()
 
-    def __init__(
-        self,
-        name: str = "relocalize",
-        *,
-        relocalizer: Any = None,
-        namespace: str = "/",
-        robot_from_sensor: npt.ArrayLike | None = None,
-        blocking: bool = False,
-    ) -> None:
-        super().__init__(name)
-        self.relocalizer = relocalizer
-        self.blocking = blocking
-        self.sensor_from_robot = (
-            np.eye(4)
-            if robot_from_sensor is None
-            else np.linalg.inv(np.asarray(robot_from_sensor, dtype=np.float64))
-        )
-        self.blackboard = self.attach_blackboard_client(name=name, namespace=namespace)
-        self.blackboard.register_key(SCAN, access=py_trees.common.Access.READ)
-        for key in (IS_LOCALIZED, WORLD_FROM_ROBOT, CONFIDENCE, RESULT):
-            self.blackboard.register_key(key, access=py_trees.common.Access.WRITE)
-        self._executor: ThreadPoolExecutor | None = None
-        self._job: Future[Any] | None = None
-        self._done: Any = None
+    def on_running(self) -> Status:
+        reloc: Relocalizer | None = self.ctx.state.get(RELOCALIZER)
+        if reloc is None:
+            self.reason = "no relocalizer (the library's setup hook did not run)"
+            return Status.FAILURE
+        sensors = self.ctx.sensors
+        if sensors is None:
+            self.reason = "the vehicle has no sensors"
+            return Status.FAILURE
+        scan = sensors.lidar_scan()
+        if scan is None:
+            if self.ctx.now() - self._since >= SCAN_TIMEOUT_S:
+                self.reason = f"no LiDAR scan within {SCAN_TIMEOUT_S:g} s"
+                return Status.FAILURE
+            return Status.RUNNING
+        t0 = time.perf_counter()
+        result = reloc.localize(scan.points)
+        return self._publish(result, scan, (time.perf_counter() - t0) * 1000)
 
-    # ------------------------------------------------------------------ py_trees hooks
-    def setup(self, **kwargs: Any) -> None:
-        """Take ``relocalizer`` (a Relocalizer) or ``reloc_database`` (a path) from the tree's
-        setup arguments when none was given to the constructor."""
-        if self.relocalizer is None and kwargs.get("relocalizer") is not None:
-            self.relocalizer = kwargs["relocalizer"]
-        if self.relocalizer is None and kwargs.get("reloc_database") is not None:
-            from btmission.localization.database import load_database
-            from btmission.localization.relocalize import Relocalizer
+    def _publish(self, result: Relocalization, scan: LidarScan, ms: float) -> Status:
+        from btmission.localization.relocalize import pose_error
+        from btmission.localization.scan import pose_matrix
 
-            self.relocalizer = Relocalizer(load_database(Path(kwargs["reloc_database"])))
-        if self.relocalizer is None:
-            raise RuntimeError(
-                f"{self.name}: no relocalizer (pass relocalizer= or reloc_database= to setup)"
+        board = self.ctx.blackboard
+        board.set(RESULT, result)
+        board.set(CONFIDENCE, float(result.confidence))
+        board.set(IS_LOCALIZED, bool(result.localized))
+        tel = self.ctx.telemetry()
+        p = tel.position
+        truth = pose_matrix(float(p[0]), float(p[1]), float(p[2]), tel.yaw)
+        event: dict[str, Any] = {
+            "task": board.get("task"),
+            "localized": bool(result.localized),
+            "confidence": round(float(result.confidence), 4),
+            "fitness": round(float(result.fitness), 4),
+            "reason": result.reason,
+            "points": len(scan.points),
+            "sensor": scan.sensor,
+            "time_ms": round(ms, 1),
+            "truth": _pose_record(truth),
+        }
+        if result.localized and result.pose is not None:
+            estimate = np.asarray(result.pose) @ np.linalg.inv(scan.robot_from_sensor)
+            board.set(WORLD_FROM_ROBOT, estimate)
+            err_m, err_deg = pose_error(estimate, truth)
+            event.update(
+                estimate=_pose_record(estimate),
+                error_m=round(err_m, 4),
+                error_deg=round(err_deg, 3),
             )
-        if not self.blocking and self._executor is None:
-            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="relocalize")
-
-    def initialise(self) -> None:
-        self._job = None
-        self._done = None
-        self.feedback_message = "waiting for a scan"
-
-    def update(self) -> py_trees.common.Status:
-        if self.relocalizer is None:
-            self.feedback_message = "not set up: no relocalizer"
-            return py_trees.common.Status.FAILURE
-        if self._job is None and self._done is None:
-            scan = self.blackboard.get(SCAN) if self.blackboard.exists(SCAN) else None
-            if scan is None:
-                self.feedback_message = "waiting for a scan"
-                return py_trees.common.Status.RUNNING
-            points = np.asarray(scan, dtype=np.float64)
-            if self.blocking or self._executor is None:
-                self._done = self.relocalizer.localize(points)
-            else:
-                self._job = self._executor.submit(self.relocalizer.localize, points)
-        if self._done is None:
-            assert self._job is not None
-            if not self._job.done():
-                self.feedback_message = "localising"
-                return py_trees.common.Status.RUNNING
-            self._done = self._job.result()
-        return self._publish(self._done)
-
-    def terminate(self, new_status: py_trees.common.Status) -> None:
-        if new_status == py_trees.common.Status.INVALID and self._job is not None:
-            self._job.cancel()  # a running localisation finishes; its result is dropped
-        self._job = None
-
-    def shutdown(self) -> None:
-        if self._executor is not None:
-            self._executor.shutdown(wait=True)
-            self._executor = None
-
-    # ------------------------------------------------------------------ results
-    def _publish(self, result: Any) -> py_trees.common.Status:
-        self.blackboard.set(RESULT, result)
-        self.blackboard.set(CONFIDENCE, float(result.confidence))
-        self.blackboard.set(IS_LOCALIZED, bool(result.localized))
-        self.feedback_message = result.reason
-        if not result.localized:
-            log.info("%s: %s", self.name, result.reason)
-            return py_trees.common.Status.FAILURE
-        world_from_robot = np.asarray(result.pose, dtype=np.float64) @ self.sensor_from_robot
-        self.blackboard.set(WORLD_FROM_ROBOT, world_from_robot)
-        return py_trees.common.Status.SUCCESS
-
-
-@IMPLEMENTATIONS.condition("is_localized")
-def is_localized(ctx: Any) -> bool:
-    """Whether the agent is localised in the map: its blackboard's ``is_localized`` (False while
-    unset). ``ctx`` is the agent's blackboard client (or any mapping holding the key)."""
-    if isinstance(ctx, dict):
-        return bool(ctx.get(IS_LOCALIZED, False))
-    try:
-        return bool(ctx.get(IS_LOCALIZED)) if ctx.exists(IS_LOCALIZED) else False
-    except (AttributeError, KeyError):
-        return False
+        else:
+            board.unset(WORLD_FROM_ROBOT)
+            self.reason = result.reason
+        self.ctx.events("relocalized", **event)
+        return Status.SUCCESS if result.localized else Status.FAILURE

@@ -84,6 +84,34 @@ def test_implementations_registry() -> None:
     assert err.code == "unknown-implementation" and "'fly'" in err.message
 
 
+def test_extend_starts_a_variant_with_everything_of_its_base() -> None:
+    base = Implementations("base", vehicle="ground", settings={"speed_m_s": 0.4, "pick_s": 2.0})
+
+    @base.action("go")
+    class Go:
+        pass
+
+    @base.condition("there")
+    def there() -> bool:
+        return True
+
+    @base.on_setup
+    def home(ctx: object) -> None:
+        pass
+
+    variant = base.extend("variant", settings={"pick_s": 3.0, "extra": "x"})
+    assert variant.library == "variant" and variant.vehicle == "ground"
+    assert variant.settings == {"speed_m_s": 0.4, "pick_s": 3.0, "extra": "x"}
+    assert variant.actions == {"go": Go} and variant.conditions == {"there": there}
+    assert variant.setup_hooks == [home]
+    variant.action("fly")(Go)
+    variant.on_setup(there)
+    assert "fly" not in base.actions and base.setup_hooks == [home]  # the base is untouched
+    assert base.settings["pick_s"] == 2.0
+    with pytest.raises(ValueError, match="'go' is registered twice"):
+        variant.action("go")(Go)
+
+
 def load_library_file_text(text: str):  # type: ignore[no-untyped-def]
     from btmission.spec.library import load_library_text
 

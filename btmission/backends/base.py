@@ -145,12 +145,39 @@ class CameraFrame:
     detections: tuple[Detection, ...] = ()
 
 
+@dataclass(frozen=True)
+class LidarScan:
+    """One full turn of a 3D LiDAR (the input of global relocalization, seed 000 §IV-C1).
+
+    ``points`` are in the **sensor frame, gravity-aligned**: origin at the LiDAR, x along the
+    vehicle's heading, z up (roll and pitch taken out with the IMU attitude, as a LiDAR-inertial
+    driver such as FAST-LIO gives them). ``robot_from_sensor`` is where the LiDAR sits on the
+    vehicle (4×4), so that a pose found for the sensor gives the vehicle's."""
+
+    time_s: float
+    points: FloatArray
+    """(N, 3) returns, metres."""
+    robot_from_sensor: FloatArray
+    """4×4 mounting of the LiDAR in the vehicle frame (x forward, z up, origin at the vehicle's
+    reference point — for the simulator, the bottom of the body, on the ground when landed)."""
+    sensor: str = ""
+    """Sensor model name (e.g. ``os1-32``)."""
+
+
 @runtime_checkable
 class Sensors(Protocol):
     """Exteroceptive sensors of one vehicle."""
 
     def lidar(self) -> FloatArray:
         """(N, 3) points relative to the vehicle, in its yaw frame (x forward, z up)."""
+        ...
+
+    def lidar_scan(self) -> LidarScan | None:
+        """The latest full-range 3D LiDAR scan (:class:`LidarScan`), or None while the driver
+        has no complete one yet. :meth:`lidar` is the short-range view for obstacle avoidance;
+        this is the whole turn of the sensor (tens of thousands of returns out to its maximum
+        range), what relocalization matches against the map. On a real robot the LiDAR driver
+        supplies it; the simulator ray-casts its voxel map from the vehicle's true pose."""
         ...
 
     def camera(self) -> CameraFrame:

@@ -32,7 +32,9 @@ between rock voxels and open voxels; no occlusion), plus optional dust outliers 
 vehicle (seed 002 §3.2.3's reason for the dust rule); the depth camera is a low-resolution
 pinhole camera ray-cast through the voxel map (for DPHR); artifacts listed in the mission are
 rendered into the depth image as spheres and detected with noisy boxes and probabilities (for the
-COMPRA object localiser).
+COMPRA object localiser). The full-range 3D LiDAR scan (``lidar_scan``, for global
+relocalization) casts every beam of an OS1-32-like sensor through the voxel map from the vehicle's
+true pose, gravity-aligned, with range noise from the simulator's seeded generator.
 
 **Collisions.** A vehicle is a sphere of radius ``body_radius_m`` whose bottom touches the
 ground when landed. It collides with rock when the sphere reaches a wall or roof face, when its
@@ -54,6 +56,7 @@ from btmission.backends.base import (
     Ack,
     CameraFrame,
     FloatArray,
+    LidarScan,
     Mode,
     Telemetry,
     Vec3,
@@ -61,6 +64,7 @@ from btmission.backends.base import (
 )
 from btmission.control.compra import CameraIntrinsics, Detection
 from btmission.control.mav_model import MavParams, mav_dynamics, rk4_step, world_to_yaw_frame
+from btmission.localization.scan import OS1_32, LidarSensor, pose_matrix, simulate_scan
 from btmission.world.voxel import OCCUPIED, VoxelMap
 
 G = 9.81
@@ -577,6 +581,7 @@ class SimVehicle:
         self.id = vehicle.id
         self.kind = vehicle.kind
         self._camera_cache: tuple[float, CameraFrame] | None = None
+        self._scan_cache: LidarScan | None = None
 
     # ------------------------------------------------------------------ commands
     def arm(self) -> Ack:
@@ -716,6 +721,33 @@ class SimVehicle:
         return self._v.failsafe
 
     # ------------------------------------------------------------------ sensors
+    scan_sensor: LidarSensor = OS1_32
+    """The 3D LiDAR of :meth:`lidar_scan` (seed 000's platforms carry an Ouster OS1-32)."""
+    lidar_mount_m: float = 0.2
+    """Height of that LiDAR above the vehicle's reference point (the bottom of its body)."""
+
+    def lidar_scan(self) -> LidarScan:
+        """A full turn of the 3D LiDAR at the vehicle's true pose: every beam of
+        :attr:`scan_sensor` ray-cast through the voxel map
+        (:func:`~btmission.localization.scan.simulate_scan`, with its range noise drawn from the
+        simulator's generator, so a seed gives the same scans). The sensor sits
+        :attr:`lidar_mount_m` above the vehicle and is gravity-aligned (x along the heading,
+        z up): the points are what a LiDAR-inertial driver gives. Other vehicles are not in it
+        (the voxel map is static). One scan per simulation step: asking again in the same step
+        returns the same scan."""
+        sim = self._sim
+        cached = self._scan_cache
+        if cached is not None and cached.time_s == sim.time_s:
+            return cached
+        v = self._v
+        p = v.position
+        pose = pose_matrix(float(p[0]), float(p[1]), float(p[2]) + self.lidar_mount_m, v.yaw)
+        points = simulate_scan(sim.world.map, pose, self.scan_sensor, rng=sim.rng)
+        mount = pose_matrix(0.0, 0.0, self.lidar_mount_m)
+        scan = LidarScan(sim.time_s, points, mount, self.scan_sensor.name)
+        self._scan_cache = scan
+        return scan
+
     def lidar(self) -> FloatArray:
         sim = self._sim
         cfg = sim.config

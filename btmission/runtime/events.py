@@ -29,6 +29,11 @@ The kinds a run emits (fields in brackets; positions are ``[x, y, z]`` lists in 
 ``agent_lost``     an agent stopped (killed, link lost): ``agent``, ``reason``
 ``objects``        an agent reported localised objects: ``agent``, ``objects``
                    (``[{label, p, observations}]``), ``truth`` (``[{label, p}]``)
+``relocalized``    an agent localised itself in the map from one LiDAR scan (library
+                   ``aerial_mine``): ``agent``, ``task``, ``localized``, ``confidence``,
+                   ``fitness``, ``reason``, ``points``, ``sensor``, ``time_ms``, ``truth`` (the
+                   telemetry pose ``{x, y, z, yaw_deg}``: the true pose in the simulator) and,
+                   when localised, ``estimate`` and its ``error_m``, ``error_deg``
 ``end``            last event: ``reason`` (completed/time limit/interrupted/...), ``wall_s``
 =================  =======================================================================
 
