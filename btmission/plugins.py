@@ -81,7 +81,8 @@ class Implementations:
     ) -> Implementations:
         """A registry for a variant library ``library`` that starts with everything of this one
         — vehicle, settings (plus ``settings``), setup hooks, actions and conditions — and to
-        which the variant adds its own (``aerial_mine`` = ``aerial`` + ``relocalize``)::
+        which the variant adds its own (``aerial_mine`` = ``aerial`` + ``relocalize``); run-wide
+        services are inherited too::
 
             IMPLEMENTATIONS = aerial.IMPLEMENTATIONS.extend("aerial_mine")
         """
@@ -91,6 +92,7 @@ class Implementations:
         out.actions.update(self.actions)
         out.conditions.update(self.conditions)
         out.setup_hooks.extend(self.setup_hooks)
+        out.services.update(self.services)
         return out
 
     def _register(self, table: dict[str, Any], kind: str, name: str) -> Callable[[T], T]:
