@@ -29,13 +29,16 @@ def _log_path(directory: Path, mission: str, seed: int) -> Path:
 
 
 def _write_pngs(rep: Any, directory: Path, stem: str) -> list[Path]:
-    from btmission.runtime.report import timeline_png, topview_png
+    from btmission.runtime.report import dispatch_png, timeline_png, topview_png
 
     directory.mkdir(parents=True, exist_ok=True)
-    return [
+    out = [
         timeline_png(rep, directory / f"{stem}-timeline.png"),
         topview_png(rep, directory / f"{stem}-topview.png"),
     ]
+    if rep.dispatched:  # trucks dispatched by the GA: their schedule (seed 004 Fig. 3)
+        out.append(dispatch_png(rep, directory / f"{stem}-dispatch.png"))
+    return out
 
 
 @click.command("run")

@@ -22,12 +22,13 @@ from btmission.dispatch.follow import MissionFollower
 from btmission.dispatch.ga import GAParams
 from btmission.dispatch.maps import mine_map
 from btmission.dispatch.missions import Mission
-from btmission.dispatch.service import FleetDispatcher
+from btmission.dispatch.service import FleetDispatcher, missions_from_records
 from btmission.dispatch.static import StaticInstance, plan_static
 from btmission.dispatch.topomap import Node, NodeKind, Segment, TopoMap
 from btmission.plugins import load_library
 from btmission.runtime.events import Recorder
 from btmission.runtime.navigation import track_unicycle
+from btmission.runtime.report import build_report, dispatch_png
 from btmission.runtime.roads import RoadCosts, RoadMapError
 from btmission.runtime.runner import MissionRun
 from btmission.spec.mission import load_mission, load_mission_text
@@ -281,7 +282,7 @@ def test_track_unicycle_keeps_to_a_moving_reference() -> None:
 
 
 # ----------------------------------------------------------------------------- the mission
-def test_mine_haulage_runs_every_haul_on_schedule() -> None:
+def test_mine_haulage_runs_every_haul_on_schedule(tmp_path: Path) -> None:
     events = Recorder()
     run = MissionRun(load_mission(MISSION), seed=0, observers=[events])
     fleet = run.services["haulage"]["fleet"]
@@ -309,6 +310,20 @@ def test_mine_haulage_runs_every_haul_on_schedule() -> None:
     ends = [fleet.state(a, run.now()) for a in run.agents]
     assert all(st.done and tmap.is_pause[st.node] for st in ends)
     assert len({st.node for st in ends}) == len(ends)
+    # the log holds every adopted mission: the report rebuilds each truck's exact history
+    rep = build_report(events.events)
+    for k, a in enumerate(fleet.dispatcher.names):
+        logged = missions_from_records(tmap, rep.dispatched[a])
+        history = [m for m in fleet.dispatcher.planner.veh[k].history if m.items]
+        assert [m.nodes.tolist() for m in logged] == [m.nodes.tolist() for m in history]
+        assert [m.prioritized for m in logged] == [m.prioritized for m in history]
+        np.testing.assert_allclose(
+            np.concatenate([m.waits for m in logged]),
+            np.concatenate([m.waits for m in history]),
+            atol=1e-3,
+        )
+    png = dispatch_png(rep, tmp_path / "dispatch.png")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     kinds = [e.get("event") for e in events.of("dispatch")]
     assert kinds.count("adopted") >= 12 and "requested" in kinds
     assert {e.get("agent") for e in events.of("load")} == set(run.agents)

@@ -354,8 +354,13 @@ def run_dynamic(
 def executed_tracks(result: DynamicResult) -> FleetMission:
     """Each vehicle's whole run as one track (its missions joined end to start), e.g. to check
     with the evaluator that the executed dynamic plan never had a collision."""
+    return join_histories(result.histories)
+
+
+def join_histories(histories: Sequence[Sequence[Mission]]) -> FleetMission:
+    """One track per vehicle from its successive missions (each starting where the last ended)."""
     out = []
-    for hist in result.histories:
+    for hist in histories:
         nodes: list[int] = [int(hist[0].nodes[0])]
         waits: list[float] = []
         for m in hist:  # waits holds one stop time per item so far

@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import io
 import textwrap
+from collections.abc import Sequence
 from typing import Any
 
 from btmission.dispatch.evaluate import timeline
-from btmission.dispatch.missions import FleetMission
+from btmission.dispatch.missions import Mission
 from btmission.dispatch.topomap import NodeKind, TopoMap
 
 STOP_COLOUR = "#9fd3f0"
@@ -33,36 +34,26 @@ def _pyplot() -> Any:
 
 def gantt_png(
     tmap: TopoMap,
-    fleet: FleetMission,
+    fleet: Sequence[Mission | Sequence[Mission]],
     title: str = "",
     now: float | None = None,
     labels: list[str] | None = None,
 ) -> bytes:
-    """A Fig. 3-style chart of ``fleet`` as PNG bytes."""
+    """A Fig. 3-style chart of ``fleet`` as PNG bytes: one row per vehicle, stops (with the
+    pause node's name), drives, and prioritised drives in their own colour. A row may be one
+    mission or a vehicle's successive missions."""
     plt = _pyplot()
-    n = len(fleet)
+    rows = [[m] if isinstance(m, Mission) else list(m) for m in fleet]
+    n = len(rows)
     fig, ax = plt.subplots(figsize=(11, 0.55 * n + 1.4), dpi=110)
     t_max = 0.0
-    for row, m in enumerate(fleet):
+    for row, missions in enumerate(rows):
         y = n - 1 - row
-        arr, dep = timeline(tmap, [int(x) for x in m.nodes], list(m.waits), m.t0)
-        colour = PRIO_COLOUR if m.prioritized else MOVE_COLOUR
-        for i in range(m.items):
-            if dep[i] > arr[i]:
-                ax.broken_barh([(arr[i], dep[i] - arr[i])], (y - 0.35, 0.7), color=STOP_COLOUR)
-                if tmap.is_pause[int(m.nodes[i])]:
-                    ax.text(
-                        (arr[i] + dep[i]) / 2, y, tmap.nodes[int(m.nodes[i])].name,
-                        ha="center", va="center", fontsize=6,
-                    )  # fmt: skip
-            ax.broken_barh(
-                [(dep[i], arr[i + 1] - dep[i])], (y - 0.35, 0.7),
-                facecolor=colour, edgecolor="white", linewidth=0.4,
-            )  # fmt: skip
-        t_max = max(t_max, arr[-1])
+        for m in missions:
+            t_max = max(t_max, _gantt_row(ax, tmap, m, y))
     names = labels or [
-        f"v{k + 1}: {tmap.nodes[m.start].name}→{tmap.nodes[m.end].name}"
-        for k, m in enumerate(fleet)
+        f"v{k + 1}: {tmap.nodes[ms[0].start].name}→{tmap.nodes[ms[-1].end].name}"
+        for k, ms in enumerate(rows)
     ]
     ax.set_yticks(range(n))
     ax.set_yticklabels(list(reversed(names)), fontsize=8)
@@ -74,6 +65,25 @@ def gantt_png(
     ax.grid(axis="x", alpha=0.3)
     fig.tight_layout()
     return _png(plt, fig)
+
+
+def _gantt_row(ax: Any, tmap: TopoMap, m: Mission, y: float) -> float:
+    """Draw one mission on row ``y``; returns its end time."""
+    arr, dep = timeline(tmap, [int(x) for x in m.nodes], list(m.waits), m.t0)
+    colour = PRIO_COLOUR if m.prioritized else MOVE_COLOUR
+    for i in range(m.items):
+        if dep[i] > arr[i]:
+            ax.broken_barh([(arr[i], dep[i] - arr[i])], (y - 0.35, 0.7), color=STOP_COLOUR)
+            if tmap.is_pause[int(m.nodes[i])]:
+                ax.text(
+                    (arr[i] + dep[i]) / 2, y, tmap.nodes[int(m.nodes[i])].name,
+                    ha="center", va="center", fontsize=6,
+                )  # fmt: skip
+        ax.broken_barh(
+            [(dep[i], arr[i + 1] - dep[i])], (y - 0.35, 0.7),
+            facecolor=colour, edgecolor="white", linewidth=0.4,
+        )  # fmt: skip
+    return float(arr[-1])
 
 
 def map_png(tmap: TopoMap, title: str = "") -> bytes:

@@ -24,11 +24,12 @@ a safety net), so that a run is reproducible for a seed.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 from btmission.dispatch.dynamic import DynamicConfig, DynamicPlanner
-from btmission.dispatch.missions import FleetMission, Mission
+from btmission.dispatch.missions import FleetMission, Mission, make_mission
 from btmission.dispatch.topomap import TopoMap
 
 PARK = -1
@@ -148,6 +149,7 @@ class FleetDispatcher:
                         items=m.items,
                         depart=round(m.t0 + float(m.waits[m.head]), 3) if m.items else None,
                         arrive=round(self.planner.veh[k].arrive_at, 3),
+                        mission=mission_record(self.tmap, m),
                     )
         if self.pending is None and self.queue:
             self._serve(now)
@@ -186,3 +188,38 @@ class FleetDispatcher:
 
     def _name(self, goal: int) -> str:
         return "park" if goal == PARK else self.tmap.nodes[goal].name
+
+
+def mission_record(tmap: TopoMap, m: Mission) -> dict[str, Any]:
+    """A mission as JSON for the event log: node names, stop times, start time, whether it is
+    prioritised, and ``head`` (> 0: it continues the truck's previous mission, whose first
+    ``head`` items it keeps)."""
+    return {
+        "nodes": [tmap.nodes[int(x)].name for x in m.nodes],
+        "waits": [round(float(w), 3) for w in m.waits],
+        "t0": round(float(m.t0), 3),
+        "prioritized": bool(m.prioritized),
+        "head": int(m.head),
+    }
+
+
+def missions_from_records(
+    tmap: TopoMap, records: Sequence[Mapping[str, Any]]
+) -> list[Mission]:
+    """A truck's successive missions from its ``adopted`` records, in log order (a record with
+    ``head`` > 0 replaces the mission it continues)."""
+    out: list[Mission] = []
+    for r in records:
+        m = make_mission(
+            tmap,
+            [tmap.id(n) for n in r["nodes"]],
+            list(r["waits"]),
+            t0=float(r["t0"]),
+            prioritized=bool(r.get("prioritized", False)),
+            head=int(r.get("head", 0)),
+        )
+        if m.head > 0 and out:
+            out[-1] = m
+        else:
+            out.append(m)
+    return out

@@ -72,6 +72,8 @@ class MissionReport:
     task_fields: dict[str, dict[str, Any]] = field(default_factory=dict)
     truncated: bool = False
     warnings: list[str] = field(default_factory=list)
+    dispatched: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
+    """Truck → its missions adopted by the fleet dispatcher, in order (``dispatch`` events)."""
 
 
 class ReportBuilder:
@@ -92,6 +94,7 @@ class ReportBuilder:
         self.end: Event | None = None
         self.last_t = 0.0
         self.warnings: list[str] = []
+        self.dispatched: dict[str, list[dict[str, Any]]] = {}
 
     def on_event(self, ev: Event) -> None:
         self.last_t = max(self.last_t, ev.t)
@@ -124,6 +127,9 @@ class ReportBuilder:
             self.agent_task.setdefault(ev.get("agent"), []).append((ev.t, ev.get("task")))
         elif kind == "objects":
             self.objects.extend(ev.get("objects") or [])
+        elif kind == "dispatch":
+            if ev.get("event") == "adopted" and ev.get("mission"):
+                self.dispatched.setdefault(str(ev.get("truck")), []).append(ev.get("mission"))
         elif kind == "end":
             self.end = ev
 
@@ -181,6 +187,7 @@ class ReportBuilder:
             list(self.objects),
             dict(self.fields),
             warnings=list(self.warnings),
+            dispatched={k: list(v) for k, v in self.dispatched.items()},
         )
 
     def _intervals(self, end: float) -> dict[str, list[tuple[str, float, float, str]]]:
@@ -373,6 +380,25 @@ def timeline_png(rep: MissionReport, path: str | Path) -> Path:
     )
     out = Path(path)
     fig.savefig(out, dpi=100)
+    return out
+
+
+def dispatch_png(rep: MissionReport, path: str | Path) -> Path:
+    """Fig. 3-style chart of what the fleet dispatcher planned (seed 004): one row per truck, its
+    dispatched missions joined — stops, drives, prioritised (loaded) drives, pause visits."""
+    from btmission.dispatch.maps import topomap_ref
+    from btmission.dispatch.plot import gantt_png
+    from btmission.dispatch.service import missions_from_records
+
+    ref = (rep.header.get("world") or {}).get("topomap")
+    if not ref or not rep.dispatched:
+        raise ValueError("the log has no dispatched missions")
+    tmap = topomap_ref(str(ref), Path(str(rep.header.get("file", "."))).parent)
+    trucks = sorted(rep.dispatched)
+    fleet = [missions_from_records(tmap, rep.dispatched[t]) for t in trucks]
+    title = f"{rep.header.get('mission', '')}: dispatched schedule on map {tmap.name}"
+    out = Path(path)
+    out.write_bytes(gantt_png(tmap, fleet, title, labels=trucks))
     return out
 
 
