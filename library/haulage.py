@@ -42,8 +42,7 @@ from btmission.dispatch.missions import Mission
 from btmission.dispatch.service import FleetDispatcher
 from btmission.dispatch.topomap import TopoMap
 from btmission.plugins import Implementations
-from btmission.runtime.leaves import AgentContext, RunContext, StatefulAction
-from btmission.runtime.navigation import Navigator
+from btmission.runtime.leaves import AgentContext, RunContext, StatefulAction, resolve
 
 SPEC = files(__package__).joinpath("haulage.yaml")
 """The library file; the ``btmission.libraries`` entry point ``haulage`` points here."""
@@ -61,7 +60,6 @@ IMPLEMENTATIONS = Implementations(
         "dispatch_budget_s": 2.0,
         # a haul truck: 43 km/h top speed (the schedule asks for at most 30 km/h)
         "speed_m_s": 12.0,
-        "tolerance_m": 5.0,
     },
 )
 
@@ -71,15 +69,27 @@ START_SNAP_M = 30.0
 
 @dataclass
 class Truck:
-    """One truck's state outside the tree: its navigator, load and random stream."""
+    """One truck's state outside the tree: its agent context, load and random stream."""
 
     name: str
     rng: np.random.Generator
-    navigator: Navigator | None = None
+    ctx: AgentContext | None = None
     cargo: str | None = None
     """Name of the loading site the load on board comes from (None: empty)."""
-    hauls: set[tuple[str, str]] = field(default_factory=set)
-    """(pickup, dropoff) of every load offloaded so far."""
+    hauled: dict[str, tuple[str, str]] = field(default_factory=dict)
+    """Task id → (pickup, dropoff) of every load offloaded so far (a mine repeats hauls: the
+    same pickup and dropoff in a new task is a new haul)."""
+
+    @property
+    def idle(self) -> bool:
+        """No task (the default behaviour may be running)."""
+        agent = self.ctx.agent if self.ctx is not None else None
+        return agent is not None and agent.task is None
+
+    @property
+    def task(self) -> str | None:
+        agent = self.ctx.agent if self.ctx is not None else None
+        return agent.task.id if agent is not None and agent.task is not None else None
 
 
 class HaulageFleet:
@@ -100,14 +110,21 @@ class HaulageFleet:
         starts: dict[str, int] = {}
         problems = []
         for spec in mission.agents:
-            if mission.library_of(spec.id).library.name != "haulage":
-                continue
+            impl = mission.library_of(spec.id).implementations
+            if impl is None or impl.services.get("fleet") is not _fleet:
+                continue  # not a truck (haulage, or a variant made with extend())
             node, d = self._nearest(spec.start)
             if d > START_SNAP_M:
                 problems.append(Diagnostic(Severity.ERROR, "start-off-road",
                     f"agent '{spec.id}' starts {d:.0f} m from the nearest node of map "
                     f"'{self.tmap.name}' ({self.tmap.nodes[node].name}); trucks must start on a "
                     f"node (within {START_SNAP_M:g} m)", f"agents.{spec.id}.start", where))  # fmt: skip
+            other = next((a for a, n in starts.items() if n == node), None)
+            if other is not None:
+                problems.append(Diagnostic(Severity.ERROR, "same-start",
+                    f"agents '{other}' and '{spec.id}' both start at node "
+                    f"{self.tmap.nodes[node].name}: one truck per node",
+                    f"agents.{spec.id}.start", where))  # fmt: skip
             starts[spec.id] = node
         if problems:
             raise SpecError(problems)
@@ -126,7 +143,7 @@ class HaulageFleet:
             name: Truck(name, np.random.default_rng([run.seed, zlib.crc32(name.encode())]))
             for name in starts
         }
-        self._followers: dict[int, MissionFollower] = {}
+        self._followers: dict[str, MissionFollower] = {}
 
     def _nearest(self, p: tuple[float, float, float]) -> tuple[int, float]:
         best, dist = 0, math.inf
@@ -140,9 +157,9 @@ class HaulageFleet:
     def state(self, truck: str, now: float) -> MissionState:
         """Where the truck's dispatched schedule puts it at ``now``."""
         m: Mission = self.dispatcher.mission(truck)
-        f = self._followers.get(id(m))
+        f = self._followers.get(truck)
         if f is None or f.mission is not m:
-            f = self._followers[id(m)] = MissionFollower(self.tmap, m)
+            f = self._followers[truck] = MissionFollower(self.tmap, m)
         return f.state(now)
 
     def reference(self, st: MissionState) -> tuple[np.ndarray, np.ndarray]:
@@ -155,12 +172,21 @@ class HaulageFleet:
         return a + st.fraction * (b - a), (b - a) / span
 
     def step(self, now: float) -> None:
-        """Run the dispatcher, then point every truck's navigator at its schedule."""
-        self.dispatcher.step(now)
+        """Run the dispatcher, move idle trucks out of the way, then point every truck's
+        navigator at its schedule."""
+        d = self.dispatcher
         for name, truck in self.trucks.items():
-            if truck.navigator is not None:
+            # an idle truck standing where another truck has to go leaves (parks) by itself:
+            # no truck waits at a pause node for one that has nothing to do
+            if truck.idle and not d.waiting(name):
+                st = self.state(name, now)
+                if st.done and d.wanted(st.node, name):
+                    d.park(name)
+        d.step(now)
+        for name, truck in self.trucks.items():
+            if truck.ctx is not None:
                 ref, vel = self.reference(self.state(name, now))
-                truck.navigator.track(ref, vel, now)
+                truck.ctx.navigator.track(ref, vel, now)
 
 
 @IMPLEMENTATIONS.service("fleet")
@@ -172,7 +198,7 @@ def _fleet(run: RunContext) -> HaulageFleet:
 def _attach(ctx: AgentContext) -> None:
     """The fleet keeps this truck's navigator on its schedule from the first step."""
     fleet: HaulageFleet = ctx.services["fleet"]
-    fleet.trucks[ctx.agent_id].navigator = ctx.navigator
+    fleet.trucks[ctx.agent_id].ctx = ctx
 
 
 def _fleet_of(ctx: AgentContext) -> HaulageFleet:
@@ -181,7 +207,9 @@ def _fleet_of(ctx: AgentContext) -> HaulageFleet:
 
 
 def _node(ctx: AgentContext, name: str) -> int:
-    return _fleet_of(ctx).tmap.id(str(name))
+    """The node called ``name`` (-1 if the map has none: conditions on it are false, and
+    ``request_dispatch`` fails with the reason)."""
+    return _fleet_of(ctx).tmap.index.get(str(name), -1)
 
 
 def _state(ctx: AgentContext) -> MissionState:
@@ -222,14 +250,17 @@ def loaded(ctx: AgentContext, pickup: str) -> bool:
 
 @IMPLEMENTATIONS.condition("hauled")
 def hauled(ctx: AgentContext, pickup: str, dropoff: str) -> bool:
-    return (str(pickup), str(dropoff)) in _fleet_of(ctx).trucks[ctx.agent_id].hauls
+    """This task's load from ``pickup`` has been offloaded at ``dropoff``."""
+    truck = _fleet_of(ctx).trucks[ctx.agent_id]
+    return truck.hauled.get(truck.task or "") == (str(pickup), str(dropoff))
 
 
 @IMPLEMENTATIONS.condition("parked")
 def parked(ctx: AgentContext) -> bool:
-    """Stopped at a pause node, out of every other truck's way."""
+    """Stopped out of every other truck's way: at a pause node no other truck targets (or,
+    when all of them are, at a free non-prioritised terminal)."""
     st = _state(ctx)
-    return st.done and bool(_fleet_of(ctx).tmap.is_pause[st.node])
+    return st.done and st.node == _fleet_of(ctx).dispatcher.park_target(ctx.agent_id)
 
 
 # ------------------------------------------------------------------------------- actions
@@ -242,6 +273,18 @@ class _Haulage(StatefulAction):
     def truck(self) -> str:
         return self.ctx.agent_id
 
+    def on_halted(self) -> None:
+        """Halted because the truck's task changed (the auction gave it another haul, or took
+        its haul away): the dispatcher forgets what was asked for the old one. Halted for any
+        other reason (a condition above now holds), nothing changes."""
+        goal = self.args.get("goal")
+        if goal is None:
+            return
+        agent = self.ctx.agent
+        now = resolve(self.ctx, self.node) if agent is not None and agent.task else None
+        if now is None or str(now.get("goal")) != str(goal):
+            self.fleet.dispatcher.withdraw(self.truck)
+
 
 @IMPLEMENTATIONS.action("request_dispatch")
 class RequestDispatch(_Haulage):
@@ -249,7 +292,11 @@ class RequestDispatch(_Haulage):
     optimisation is re-queued by the dispatcher)."""
 
     def on_start(self) -> Status:
-        self.fleet.dispatcher.request(self.truck, _node(self.ctx, self.args["goal"]))
+        node = _node(self.ctx, self.args["goal"])
+        if node < 0:
+            self.reason = f"no node '{self.args['goal']}' in map '{self.fleet.tmap.name}'"
+            return Status.FAILURE
+        self.fleet.dispatcher.request(self.truck, node)
         return self.on_running()
 
     def on_running(self) -> Status:
@@ -327,19 +374,18 @@ class Offload(_Process):
     kind = "offload"
 
     def finish(self, truck: Truck) -> None:
-        truck.hauls.add((str(self.args["pickup"]), str(self.args["dropoff"])))
+        truck.hauled[truck.task or ""] = (str(self.args["pickup"]), str(self.args["dropoff"]))
         truck.cargo = None
 
 
 @IMPLEMENTATIONS.action("park")
 class Park(_Haulage):
-    """Ask for the nearest free pause node, then wait until the schedule has the truck there."""
+    """Ask to be parked out of the way (:meth:`FleetDispatcher.park_target
+    <btmission.dispatch.service.FleetDispatcher.park_target>`), then wait until the schedule has
+    the truck there."""
 
     def on_start(self) -> Status:
-        if parked(self.ctx):
-            return Status.SUCCESS
-        self.fleet.dispatcher.park(self.truck)
-        return Status.RUNNING
+        return self.on_running()
 
     def on_running(self) -> Status:
         if parked(self.ctx):

@@ -26,6 +26,7 @@ from btmission.dispatch.service import FleetDispatcher, missions_from_records
 from btmission.dispatch.static import StaticInstance, plan_static
 from btmission.dispatch.topomap import Node, NodeKind, Segment, TopoMap
 from btmission.plugins import load_library
+from btmission.runtime.coordinator import TaskError
 from btmission.runtime.events import Recorder
 from btmission.runtime.navigation import track_unicycle
 from btmission.runtime.report import build_report, dispatch_png
@@ -155,13 +156,18 @@ def test_dispatcher_serves_a_prioritised_inbound_mission_after_the_optimisation(
     assert [e["event"] for e in events] == ["requested", "adopted"]
 
 
+def _both_to_o() -> tuple[FleetDispatcher, list[dict[str, Any]], float]:
+    """H1 (at L1n) and H2 (at L2n) both ask for O; both requests served."""
+    d, events = _dispatcher(H1="L1n", H2="L2n")
+    d.request("H1", d.tmap.id("O"))
+    d.request("H2", d.tmap.id("O"))
+    return d, events, _serve(d, 0.0)
+
+
 def test_second_truck_waits_at_a_pause_node_and_gets_its_onward_mission() -> None:
-    d, _ = _dispatcher(H1="L1n", H2="L2n")
+    d, _, t = _both_to_o()
     tmap = d.tmap
     o = tmap.id("O")
-    d.request("H1", o)
-    d.request("H2", o)
-    t = _serve(d, 0.0)
     h1, h2 = d.mission("H1"), d.mission("H2")
     assert h1.end == o and d.primary("H2") == o
     assert tmap.is_pause[h2.end] and h2.end in tmap.nodes_of(NodeKind.PAUSE)  # secondary dest.
@@ -298,8 +304,8 @@ def test_mine_haulage_runs_every_haul_on_schedule(tmp_path: Path) -> None:
             errors.append(float(np.hypot(*(pos[:2] - ref[:2]))))
     result = run._result(run.finished() or "time limit")
     assert result.reason == "completed" and len(result.done) == 6 and result.collisions == 0
-    hauls = set().union(*(t.hauls for t in fleet.trucks.values()))
-    assert hauls == {(t.fields["pickup"], t.fields["dropoff"]) for t in run.mission.tasks}
+    hauled = {k: v for t in fleet.trucks.values() for k, v in t.hauled.items()}
+    assert hauled == {t.id: (t.fields["pickup"], t.fields["dropoff"]) for t in run.mission.tasks}
     # the trucks kept to the dispatched schedule (turns on the spot at pause bays lag most)
     assert np.percentile(errors, 95) < 2.0 and max(errors) < 25.0
     # the plan they drove was collision-free (seed 004 §4.2 evaluation of the executed tracks)
@@ -336,3 +342,100 @@ def test_haulage_bad_inputs_are_reported(runner: CliRunner, tmp_path: Path) -> N
     r = runner.invoke(cli, ["run", str(off), "--until", "1"])
     assert r.exit_code == 2 and "agent 'H1' starts" in r.output and "L1n" in r.output
     assert "Traceback" not in r.output
+
+
+def test_withdrawn_request_is_dropped_and_the_truck_not_sent_on() -> None:
+    d, events, t = _both_to_o()
+    tmap = d.tmap
+    o = tmap.id("O")
+    assert d.primary("H2") == o and tmap.is_pause[d.mission("H2").end]  # secondary destination
+    d.withdraw("H2")  # its haul went to another truck
+    assert d.primary("H2") == d.mission("H2").end
+    arrive = MissionFollower(tmap, d.mission("H1")).end_time
+    d.request("H1", tmap.id("L3s"))  # O is free again: nothing sends H2 there now
+    _serve(d, max(t, arrive))
+    assert d.mission("H2").end != o
+    d.request("H2", tmap.id("L1s"))
+    d.withdraw("H2")
+    assert not d.waiting("H2") and not d.queue
+    assert [e["event"] for e in events if e["truck"] == "H2"][-2:] == ["requested", "withdrawn"]
+
+
+def _one_pause_map() -> TopoMap:
+    nodes = [Node("O", NodeKind.TERMINAL, True, xy=(0.0, 0.0)),
+             Node("J", NodeKind.TRANSIT, xy=(100.0, 0.0)),
+             Node("P", NodeKind.PAUSE, xy=(100.0, 40.0)),
+             Node("A", NodeKind.TERMINAL, xy=(200.0, 40.0)),
+             Node("B", NodeKind.TERMINAL, xy=(200.0, -40.0))]  # fmt: skip
+    segs = [Segment(a, b, 10.0, 10.0) for a, b in (("O", "J"), ("J", "P"), ("J", "A"), ("J", "B"))]
+    return TopoMap.build("one_pause", nodes, segs)
+
+
+def test_park_falls_back_to_a_free_terminal_and_requests_wait_without_failing() -> None:
+    tmap = _one_pause_map()
+    cfg = DynamicConfig(vehicles=2, ga=GAParams(max_generations=50, budget_s=60), seed=0)
+    events: list[dict[str, Any]] = []
+    d = FleetDispatcher(tmap, {"H1": tmap.id("A"), "H2": tmap.id("O")}, cfg,
+                        lambda kind, **data: events.append(data))  # fmt: skip
+    d.park("H1")
+    t = _serve(d, 0.0)
+    assert d.mission("H1").end == tmap.id("P")
+    assert d.park_target("H2") == tmap.id("A")  # P is taken: the nearest free terminal (H1 left A)
+    # H2 asks for P, which H1 holds, and there is no other pause node: it waits (no GA run)
+    d.request("H2", tmap.id("P"))
+    for _ in range(20):
+        d.step(t)
+        t += 1.0
+    assert d.failed == 0 and d.waiting("H2")
+    assert [e["event"] for e in events].count("deferred") == 1
+
+
+def _variant(tmp_path: Path, text: str) -> Path:
+    f = tmp_path / "variant.yaml"
+    f.write_text(text)
+    return f
+
+
+def _with_tasks(*tasks: str) -> str:
+    """mine_haulage.yaml with these task lines instead of its own."""
+    text = MISSION.read_text()
+    lines = "".join(f"  - {t}\n" for t in tasks)
+    return (
+        text.split("tasks:")[0] + "tasks:\n" + lines + "task_types:" + text.split("task_types:")[1]
+    )
+
+
+def test_an_idle_truck_moves_out_of_the_way_without_a_default_behaviour(tmp_path: Path) -> None:
+    text = _with_tasks(
+        "{id: C1, type: haul, pickup: L1n, dropoff: O}",
+        "{id: C2, type: haul, pickup: L2n, dropoff: O}",
+    ).replace("default_behavior: {goal: parked, idle_timeout_s: 60}\n", "")
+    run = MissionRun(load_mission(_variant(tmp_path, text)), seed=0)
+    result = run.run()
+    assert result.reason == "completed" and sorted(result.done) == ["C1", "C2"]
+
+
+def test_a_repeated_haul_is_hauled_again(tmp_path: Path) -> None:
+    text = _with_tasks(
+        "{id: C1, type: haul, pickup: L1n, dropoff: O}",
+        "{id: C2, type: haul, pickup: L1n, dropoff: O, at: 10}",
+    ).replace("  - {id: H2, library: haulage, start: [1350, 480, 0]}    # L2n\n", "")
+    text = text.replace("  - {id: H3, library: haulage, start: [1850, 480, 0]}    # L3n\n", "")
+    events = Recorder()
+    run = MissionRun(load_mission(_variant(tmp_path, text)), seed=0, observers=[events])
+    result = run.run()
+    assert result.reason == "completed" and sorted(result.done) == ["C1", "C2"]
+    loads = [e for e in events.of("load")]
+    offloads = [e for e in events.of("offload")]
+    assert len(loads) == 2 and len(offloads) == 2  # the second haul really happened
+
+
+def test_haulage_runtime_inputs_are_checked(tmp_path: Path) -> None:
+    text = MISSION.read_text()
+    same = text.replace("start: [1350, 480, 0]", "start: [850, 480, 0]")
+    with pytest.raises(SpecError) as exc:
+        MissionRun(load_mission(_variant(tmp_path, same)), seed=0)
+    assert "'H1' and 'H2' both start at node L1n" in exc.value.diagnostics[0].message
+    run = MissionRun(load_mission(MISSION), seed=0)
+    with pytest.raises(TaskError, match="'nowhere', which is not a place"):
+        run.add_task({"id": "X", "type": "haul", "pickup": "nowhere", "dropoff": "O"})

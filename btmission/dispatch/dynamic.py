@@ -111,7 +111,7 @@ class DynamicPlanner:
         self.cfg = cfg
         self.offload = prio[0]
         self.loading = [t for t in tmap.terminals if t != self.offload]
-        if cfg.vehicles > len(self.loading):
+        if starts is None and cfg.vehicles > len(self.loading):
             raise ValueError(
                 f"{cfg.vehicles} vehicles but only {len(self.loading)} loading sites to start at"
             )

@@ -28,6 +28,8 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
+import numpy as np
+
 from btmission.dispatch.dynamic import DynamicConfig, DynamicPlanner
 from btmission.dispatch.missions import FleetMission, Mission, make_mission
 from btmission.dispatch.topomap import TopoMap
@@ -81,6 +83,7 @@ class FleetDispatcher:
         self.pending: _Pending | None = None
         self.adopted = 0
         self.failed = 0
+        self._deferred: set[tuple[int, int]] = set()
 
     # ------------------------------------------------------------------ the trucks' interface
     def request(self, truck: str, goal: int) -> None:
@@ -98,8 +101,25 @@ class FleetDispatcher:
         self._events("dispatch", truck=truck, event="requested", goal=self._name(goal))
 
     def park(self, truck: str) -> None:
-        """Ask for a mission to the nearest pause node no other truck targets."""
+        """Ask to be parked out of the way: see :meth:`park_target`."""
         self.request(truck, PARK)
+
+    def withdraw(self, truck: str) -> None:
+        """The truck no longer wants what it asked for (its task was given to another truck):
+        drop its queued request and any plan being optimised for it, and make the end of its
+        current schedule its destination, so that no later plan sends it on to the old goal.
+        The schedule itself is kept: it is part of the collision-free fleet plan."""
+        k = self._index[truck]
+        dropped = [g for kk, g in self.queue if kk == k]
+        self.queue = deque((kk, g) for kk, g in self.queue if kk != k)
+        if self.pending is not None and self.pending.truck == k:
+            dropped.append(self.pending.goal)
+            self.pending = None
+        v = self.planner.veh[k]
+        if dropped or v.primary != v.track.end:
+            v.primary = v.track.end
+            self._events("dispatch", truck=truck, event="withdrawn",
+                         goal=", ".join(self._name(g) for g in dropped) or None)  # fmt: skip
 
     def mission(self, truck: str) -> Mission:
         """The truck's current mission (its last adopted one; a 0-item one before any)."""
@@ -116,6 +136,37 @@ class FleetDispatcher:
             self.pending is not None and self.pending.truck == k
         )
 
+    def wanted(self, node: int, by_other_than: str) -> bool:
+        """Whether another truck is heading for ``node`` as its destination, or asks to."""
+        k = self._index[by_other_than]
+        if any(kk != k and g == node for kk, g in self.queue):
+            return True
+        if self.pending is not None and self.pending.truck != k and self.pending.goal == node:
+            return True
+        return any(
+            j != k and v.primary == node and v.track.end != node
+            for j, v in enumerate(self.planner.veh)
+        )
+
+    def park_target(self, truck: str) -> int | None:
+        """Where :meth:`park` sends the truck: where it stands if that is a pause node no other
+        truck targets, else the nearest such pause node; when every pause node is targeted, a
+        non-prioritised terminal no other truck targets (where it stands, or the nearest).
+        None: nowhere is free."""
+        k = self._index[truck]
+        here = self.mission(truck).end
+        taken = self.planner.targets(k)
+        tm = self.tmap
+        if tm.is_pause[here] and here not in taken:
+            return here
+        pause = self.planner.pause_for(here, taken)
+        if pause is not None:
+            return pause
+        free = [t for t in tm.terminals if not tm.prioritized[t] and t not in taken]
+        if not free:
+            return None
+        return min(free, key=lambda t: (tm.dist[here, t], t))
+
     # ------------------------------------------------------------------ the runtime's
     def step(self, now: float) -> None:
         """Advance to mission time ``now``: note arrivals, adopt a finished optimisation, start
@@ -127,58 +178,75 @@ class FleetDispatcher:
         p = self.pending
         if p is not None and p.t_done <= now:
             self.pending = None
-            name = self.names[p.truck]
             if p.best is None:
                 self.failed += 1
                 self.queue.append((p.truck, p.goal))
-                self._events("dispatch", truck=name, event="failed", goal=self._name(p.goal))
+                self._events("dispatch", truck=self.names[p.truck], event="failed",
+                             goal=self._name(p.goal))  # fmt: skip
             else:
-                if self.planner.on_adopt is not None:
-                    before = tuple(v.track for v in self.planner.veh)
-                    self.planner.on_adopt(p.t_done, before, p.best, set(p.changed))
-                self.planner.adopt(p.best, set(p.changed), dict(p.primaries), p.truck)
-                self.adopted += 1
-                for k in sorted(p.changed):
-                    m = p.best[k]
-                    self._events(
-                        "dispatch",
-                        truck=self.names[k],
-                        event="adopted",
-                        goal=self._name(self.planner.veh[k].primary),
-                        to=self.tmap.nodes[m.end].name,
-                        items=m.items,
-                        depart=round(m.t0 + float(m.waits[m.head]), 3) if m.items else None,
-                        arrive=round(self.planner.veh[k].arrive_at, 3),
-                        mission=mission_record(self.tmap, m),
-                    )
+                self._adopt(p)
         if self.pending is None and self.queue:
             self._serve(now)
+
+    def _adopt(self, p: _Pending) -> None:
+        assert p.best is not None
+        before = tuple(v.track for v in self.planner.veh)
+        if self.planner.on_adopt is not None:
+            self.planner.on_adopt(p.t_done, before, p.best, set(p.changed))
+        self.planner.adopt(p.best, set(p.changed), dict(p.primaries), p.truck)
+        self.adopted += 1
+        self._deferred.discard((p.truck, p.goal))
+        for k, m in enumerate(p.best):
+            old = before[k]
+            same = (
+                k not in p.changed
+                and m.t0 == old.t0
+                and np.array_equal(m.nodes, old.nodes)
+                and np.array_equal(m.waits, old.waits)
+            )
+            if same:
+                continue  # the GA may also change other trucks' missions (after t_done)
+            self._events(
+                "dispatch",
+                truck=self.names[k],
+                event="adopted",
+                goal=self._name(self.planner.veh[k].primary),
+                to=self.tmap.nodes[m.end].name,
+                items=m.items,
+                depart=round(m.t0 + float(m.waits[m.head]), 3) if m.items else None,
+                arrive=round(self.planner.veh[k].arrive_at, 3),
+                mission=mission_record(self.tmap, m),
+            )
 
     def _serve(self, now: float) -> None:
         k, goal = self.queue.popleft()
         v = self.planner.veh[k]
+        name = self.names[k]
         if v.phase == "driving" and not self.tmap.is_pause[v.track.end]:
             # a new destination while driving to a terminal: it may not stop there mid-mission
             # (initial stop times only at the start and at pause nodes, §3.2), so the request
             # waits until it has arrived; the queue moves on meanwhile
             self.queue.append((k, goal))
             return
-        target = goal
-        if goal == PARK:
-            here = v.track.end
-            taken = self.planner.targets(k)
-            if self.tmap.is_pause[here] and here not in taken:
-                target = here
-            else:
-                pause = self.planner.pause_for(here, taken)
-                if pause is None:  # every pause node is taken: try again later
-                    self.queue.append((k, goal))
-                    return
-                target = pause
+        target = self.park_target(name) if goal == PARK else goal
+        taken = self.planner.targets(k)
+        if target is None or (
+            target in taken and self.planner.pause_for(target, taken) is None
+        ):
+            # nowhere to go (every place is targeted): wait until a truck moves on, without
+            # spending an optimisation that cannot succeed
+            self.queue.append((k, goal))
+            if (k, goal) not in self._deferred:
+                self._deferred.add((k, goal))
+                self._events("dispatch", truck=name, event="deferred", goal=self._name(goal),
+                             reason="every pause node is taken")  # fmt: skip
+            return
+        self._deferred.discard((k, goal))
         if target == v.track.end:  # already there (or driving there): nothing to optimise
-            v.primary = target
-            self._events("dispatch", truck=self.names[k], event="adopted", goal=self._name(goal),
-                         to=self.tmap.nodes[target].name, items=0)  # fmt: skip
+            if v.primary != target:
+                v.primary = target
+                self._events("dispatch", truck=name, event="adopted", goal=self._name(goal),
+                             to=self.tmap.nodes[target].name, items=0)  # fmt: skip
             return
         fleet0, changed, prim = self.planner.plan(k, now, target)
         best = self.planner.optimise(fleet0, now)

@@ -113,6 +113,14 @@ class Coordinator:
                     + (f"; missing {', '.join(missing)}" if missing else "")
                     + (f"; unknown {', '.join(extra)}" if extra else "")
                 )
+            for name in tt.cost.symbols:  # cost arguments: positions or named places
+                v = data.get(name)
+                if isinstance(v, str) and v not in self._places:
+                    known = ", ".join(sorted(self._places)) or "none: the mission has no topomap"
+                    raise TaskError(
+                        f"task '{tid}': field '{name}' is '{v}', which is not a place "
+                        f"(expected [x, y, z] or one of: {known})"
+                    )
             try:
                 info = TaskInfo(
                     tid,

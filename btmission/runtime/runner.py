@@ -246,11 +246,16 @@ class MissionRun:
             self.mission, self.map, self.now, self.settings, self.seed, self.emit, self.places
         )
         out: dict[str, dict[str, Any]] = {}
+        made: dict[int, Any] = {}  # one instance per factory: variants (extend) share it
         for spec in self.mission.agents:
             impl = self.mission.library_of(spec.id).implementations
             assert impl is not None
             if impl.library not in out:
-                out[impl.library] = {name: make(run) for name, make in impl.services.items()}
+                out[impl.library] = {}
+                for name, make in impl.services.items():
+                    if id(make) not in made:
+                        made[id(make)] = make(run)
+                    out[impl.library][name] = made[id(make)]
         return out
 
     def _build_agents(self) -> None:
@@ -296,7 +301,7 @@ class MissionRun:
                 namespace=self._namespace,
                 services=self.services[impl.library],
                 places=self.places,
-                provider=self.roads,
+                provider=self.roads if impl.vehicle == "ground" else None,  # drones fly
             )
 
     def _emit_header(self) -> None:
