@@ -2,26 +2,58 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import sys
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
 import click
 
+from btmission.bench.synth import DEFAULT_SHAPES, SHAPES
+from btmission.cli.common import file_option, int_option, positive_float_option
 from btmission.cli.map_cmds import mine_resolution_option, size_option
 
 F = TypeVar("F", bound=Callable[..., Any])
 
 
-def out_option(what: str) -> Callable[[F], F]:
+def out_option(what: str, *short: str) -> Callable[[F], F]:
     """The ``--out`` directory option every benchmark shares (results land in ``what``)."""
     return click.option(
         "--out",
+        *short,
         type=click.Path(file_okay=False, path_type=Path),
         default=Path("benchmarks/results"),
         show_default=True,
         help=f"Directory for {what}.",
     )
+
+
+def list_option(name: str, default: str, help: str) -> Callable[[F], F]:
+    """A comma-separated list given as text (parsed by the command), default shown."""
+    return click.option(name, default=default, show_default=True, help=help)
+
+
+def seed_option(help: str) -> Callable[[F], F]:
+    """``--seed`` (an integer, default 0)."""
+    return click.option("--seed", type=int, default=0, show_default=True, help=help)
+
+
+def script_main(name: str, script: str, argv: Sequence[str] | None = None) -> int:
+    """Run ``btmission bench NAME`` as the script ``benchmarks/bench_NAME.py``.
+
+    The same options, output and exit statuses as the command; the only difference is where
+    results go by default: ``results/`` next to ``script`` (not relative to the current directory).
+    Returns 0 when it ran; bad options exit (``SystemExit``) with click's status, as argparse would.
+    """
+    args = list(sys.argv[1:] if argv is None else argv)
+    if not any(a in ("-o", "--out") or a.startswith("--out=") for a in args):
+        args += ["--out", str(Path(script).resolve().parent / "results")]
+    try:
+        bench.commands[name].main(args, prog_name=Path(script).name)
+    except SystemExit as exc:
+        if exc.code not in (0, None):
+            raise
+    return 0
 
 
 @click.group()
@@ -30,54 +62,35 @@ def bench() -> None:
 
 
 @bench.command("synth")
-@click.option(
+@list_option(
     "--sizes",
     default="10,100,1000,5000",
-    show_default=True,
     help="Comma-separated library sizes (chain: actions; fan-in: width, i.e. preconditions of the top action).",
 )
-@click.option(
-    "--repeat",
-    default=5,
-    show_default=True,
-    type=click.IntRange(1),
-    help="Timed repetitions per case (the median is reported).",
+@int_option("--repeat", default=5, help="Timed repetitions per case (the median is reported).")
+@list_option(
+    "--shapes",
+    default=",".join(DEFAULT_SHAPES),
+    help=f"Comma-separated shapes: {', '.join(SHAPES)}.",
 )
 @out_option("synth.md and synth.csv")
-def synth_bench(sizes: str, repeat: int, out: Path) -> None:
+def synth_bench(sizes: str, repeat: int, shapes: str, out: Path) -> None:
     """Synthesis + checks on generated libraries (chains and wide fan-in). Target: 1,000 actions < 100 ms."""
     from btmission.bench.synth import run_synth_benchmark
 
-    try:
-        ns = [int(s) for s in sizes.split(",") if s.strip()]
-    except ValueError:
-        raise click.BadParameter(
-            f"expected comma-separated integers, got '{sizes}'", param_hint="--sizes"
-        ) from None
-    run_synth_benchmark(ns, repeat=repeat, out_dir=out, echo=click.echo)
+    ns = _int_list(sizes, "--sizes")
+    names = _names(shapes, list(SHAPES), "--shapes", "shape")
+    run_synth_benchmark(ns, repeat=repeat, out_dir=out, echo=click.echo, shapes=names)
 
 
 @bench.command("control")
-@click.option(
+@list_option(
     "--only",
     default="nmpc,apf,dphr",
-    show_default=True,
     help="Comma-separated parts to run: nmpc, apf, dphr.",
 )
-@click.option(
-    "--steps",
-    default=200,
-    show_default=True,
-    type=click.IntRange(1),
-    help="Closed-loop NMPC steps per solver (20 Hz).",
-)
-@click.option(
-    "--repeat",
-    default=200,
-    show_default=True,
-    type=click.IntRange(1),
-    help="Timed APF calls (DPHR runs a quarter as many).",
-)
+@int_option("--steps", default=200, help="Closed-loop NMPC steps per solver (20 Hz).")
+@int_option("--repeat", default=200, help="Timed APF calls (DPHR runs a quarter as many).")
 @out_option("control.md and control.csv")
 def control_bench(only: str, steps: int, repeat: int, out: Path) -> None:
     """NMPC (fatrop vs ipopt), APF and DPHR timings. Targets: NMPC median <= 3 ms and p99 <= 15 ms,
@@ -89,13 +102,18 @@ def control_bench(only: str, steps: int, repeat: int, out: Path) -> None:
     """
     from btmission.bench.control import PARTS, run_control_benchmark
 
-    parts = [p.strip() for p in only.split(",") if p.strip()]
-    unknown = [p for p in parts if p not in PARTS]
-    if unknown or not parts:
-        raise click.BadParameter(
-            f"unknown part(s) '{only}' (choose from {', '.join(PARTS)})", param_hint="--only"
-        )
+    parts = _names(only, PARTS, "--only", "part")
     run_control_benchmark(parts, steps=steps, repeat=repeat, out_dir=out, echo=click.echo)
+
+
+def _names(text: str, known: Sequence[str], name: str, what: str) -> list[str]:
+    """The comma-separated ``text`` as a list of names, each one of ``known``."""
+    names = [s.strip() for s in text.split(",") if s.strip()]
+    if not names or any(n not in known for n in names):
+        raise click.BadParameter(
+            f"unknown {what}(s) '{text}' (choose from {', '.join(known)})", param_hint=name
+        )
+    return names
 
 
 def _int_list(text: str, name: str) -> tuple[int, ...]:
@@ -191,20 +209,9 @@ def _size_list(text: str, name: str) -> tuple[tuple[int, int], ...]:
 @click.option(
     "--quick", is_flag=True, help="A short run (~20 s): fewer points, repeats and rounds."
 )
-@click.option("--seed", type=int, default=0, show_default=True, help="Instance seed.")
-@click.option(
-    "--out",
-    "-o",
-    type=click.Path(file_okay=False, path_type=Path),
-    default=Path("benchmarks/results"),
-    show_default=True,
-    help="Directory for auction.md, auction.csv (and auction.png).",
-)
-@click.option(
-    "--png",
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="Where to write the plot. [default: OUT/auction.png]",
-)
+@seed_option("Instance seed.")
+@out_option("auction.md, auction.csv (and auction.png)", "-o")
+@file_option("--png", help="Where to write the plot. [default: OUT/auction.png]")
 def auction_bench(
     agents: str | None,
     tasks: str | None,
@@ -264,20 +271,8 @@ def auction_bench(
 @bench.command("planner")
 @size_option((200.0, 120.0, 10.0))
 @mine_resolution_option
-@click.option(
-    "--repeat",
-    default=5,
-    show_default=True,
-    type=click.IntRange(1),
-    help="Timed repetitions (median reported).",
-)
-@click.option(
-    "--queries",
-    default=20,
-    show_default=True,
-    type=click.IntRange(1),
-    help="Random start/goal pairs for single queries.",
-)
+@int_option("--repeat", default=5, help="Timed repetitions (median reported).")
+@int_option("--queries", default=20, help="Random start/goal pairs for single queries.")
 @click.option("--no-peers", is_flag=True, help="Skip skimage and networkx (scipy always runs).")
 @out_option("planner.md and planner.csv")
 def planner_bench(
@@ -303,21 +298,18 @@ def planner_bench(
 
 
 @bench.command("dispatch")
-@click.option(
+@list_option(
     "--vehicles",
     default="2,4,6,8,10",
-    show_default=True,
     help="Fleet sizes (even), comma-separated.",
 )
-@click.option(
-    "--runs", default=5, show_default=True, type=click.IntRange(1),
-    help="Random instances per fleet size and map (the paper: 1,000).",
-)  # fmt: skip
-@click.option(
-    "--tau", default=0.3, show_default=True, type=click.FloatRange(min=0, min_open=True),
+@int_option("--runs", default=5, help="Random instances per fleet size and map (the paper: 1,000).")
+@positive_float_option(
+    "--tau",
+    default=0.3,
     help="GA budget per vehicle in s (0.3: 3 s at 10 vehicles, a tenth of the paper's).",
-)  # fmt: skip
-@click.option("--seed", default=0, show_default=True, type=int, help="Random seed.")
+)
+@seed_option("Random seed.")
 @out_option("dispatch.md and dispatch.csv")
 def dispatch_bench(vehicles: str, runs: int, tau: float, seed: int, out: Path) -> None:
     """Static GA batch vs push and swap on the NPR/SPR maps, and fitness evaluations per second.
@@ -339,17 +331,11 @@ def dispatch_bench(vehicles: str, runs: int, tau: float, seed: int, out: Path) -
 
 
 @bench.command("dispatch-dynamic")
-@click.option("--vehicles", default="2,3,4,5", show_default=True, help="Fleet sizes.")
-@click.option("--runs", default=5, show_default=True, type=click.IntRange(1), help="Runs per size.")
-@click.option(
-    "--hours", default=4.0, show_default=True, type=click.FloatRange(min=0, min_open=True),
-    help="Simulated hours per run.",
-)  # fmt: skip
-@click.option(
-    "--budget", default=0.5, show_default=True, type=click.FloatRange(min=0, min_open=True),
-    help="GA wall-clock budget per optimisation (s).",
-)  # fmt: skip
-@click.option("--seed", default=0, show_default=True, type=int, help="Random seed.")
+@list_option("--vehicles", default="2,3,4,5", help="Fleet sizes.")
+@int_option("--runs", default=5, help="Runs per size.")
+@positive_float_option("--hours", default=4.0, help="Simulated hours per run.")
+@positive_float_option("--budget", default=0.5, help="GA wall-clock budget per optimisation (s).")
+@seed_option("Random seed.")
 @out_option("dispatch_dynamic.md and .csv")
 def dispatch_dynamic_bench(
     vehicles: str, runs: int, hours: float, budget: float, seed: int, out: Path
@@ -373,16 +359,14 @@ def dispatch_dynamic_bench(
 
 
 @bench.command("sim")
-@click.option(
+@list_option(
     "--controllers",
     default="track,nmpc",
-    show_default=True,
     help="Comma-separated controllers to run the mine mission with (track, nmpc).",
 )
-@click.option(
+@list_option(
     "--scale",
     default="50x400",
-    show_default=True,
     help="Comma-separated AGENTSxTASKS scaling points ('' for none).",
 )
 @click.option(
@@ -393,13 +377,7 @@ def dispatch_dynamic_bench(
     type=click.FloatRange(0, 1, min_open=True),
     help="Participation of the scaling runs (seed 003 Fig. 4: 0.3, 0.6, 0.9).",
 )
-@click.option(
-    "--duration",
-    default=30.0,
-    show_default=True,
-    type=click.FloatRange(min=0, min_open=True),
-    help="Simulated seconds of each scaling run.",
-)
+@positive_float_option("--duration", default=30.0, help="Simulated seconds of each scaling run.")
 @out_option("sim.md and sim.csv")
 def sim_bench(
     controllers: str, scale: str, participation: float, duration: float, out: Path
@@ -429,26 +407,18 @@ def sim_bench(
 
 
 @bench.command("reloc")
-@click.option(
+@list_option(
     "--seeds",
     default="7,11",
-    show_default=True,
     help="Comma-separated mine seeds (the poses are split evenly over them).",
 )
 @size_option((200.0, 120.0, 12.0))
 @mine_resolution_option
-@click.option(
-    "--poses",
-    default=200,
-    show_default=True,
-    type=click.IntRange(1),
-    help="Random poses in all, each localised by every method.",
-)
-@click.option(
+@int_option("--poses", default=200, help="Random poses in all, each localised by every method.")
+@int_option(
     "--robustness",
     default=50,
-    show_default=True,
-    type=click.IntRange(0),
+    min=0,
     help="Poses per mine for the dust, occlusion and other-mine rows (0: skip them).",
 )
 @click.option("--no-peers", is_flag=True, help="Only ours (no descriptor-only or plain-ICP rows).")

@@ -112,3 +112,39 @@ def infer_format(fmt: str | None, output: Path | None) -> str:
             )
         return FORMAT_BY_SUFFIX[suffix]
     return "ascii"
+
+
+# ------------------------------------------------------------------ option helpers
+# One definition for the option shapes the commands repeat; each returns a plain
+# ``click.option`` so --help reads exactly as a hand-written one would.
+
+
+def int_option(
+    *decls: str, default: int, help: str, min: int = 1, max: int | None = None
+) -> Callable[[F], F]:
+    """An integer option bounded below by ``min`` (and above by ``max``), default shown."""
+    return click.option(
+        *decls, default=default, show_default=True, type=click.IntRange(min, max), help=help
+    )
+
+
+def positive_float_option(*decls: str, default: float, help: str) -> Callable[[F], F]:
+    """A float option that must be > 0, default shown."""
+    return click.option(
+        *decls,
+        default=default,
+        show_default=True,
+        type=click.FloatRange(min=0, min_open=True),
+        help=help,
+    )
+
+
+def file_option(*decls: str, help: str, required: bool = False) -> Callable[[F], F]:
+    """A file path option (``Path``; a directory is refused); None when not given."""
+    return click.option(
+        *decls,
+        type=click.Path(dir_okay=False, path_type=Path),
+        required=required,
+        default=None,
+        help=help,
+    )

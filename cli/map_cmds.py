@@ -10,7 +10,13 @@ from typing import Any, TypeVar
 
 import click
 
-from btmission.cli.common import BadInput, ChecksFailed, handle_spec_errors, write_output
+from btmission.cli.common import (
+    BadInput,
+    ChecksFailed,
+    file_option,
+    handle_spec_errors,
+    write_output,
+)
 
 F = TypeVar("F", bound=Callable[..., Any])
 MAP_HELP = "A map file (.npz, .ply, .pcd) or a mission file (.yaml: its world)."
@@ -37,12 +43,24 @@ resolution_option = click.option(
     default=None,
     help="Voxel size (m) for point clouds without one (default 0.5).",
 )
-fill_option = click.option(
-    "--fill",
-    type=click.Choice(["free", "unknown", "enclosed"]),
-    default="free",
-    show_default=True,
-    help="For plain point clouds: what the voxels without points are (see docs/planner.md).",
+map_argument = click.argument(
+    "map_file", metavar="MAP", type=click.Path(dir_okay=False, path_type=Path)
+)
+
+
+def fill_option(default: str, help: str) -> Callable[[F], F]:
+    """--fill: for a plain point cloud, what the voxels without points are."""
+    return click.option(
+        "--fill",
+        type=click.Choice(["free", "unknown", "enclosed"]),
+        default=default,
+        show_default=True,
+        help=help,
+    )
+
+
+map_fill_option = fill_option(
+    "free", "For plain point clouds: what the voxels without points are (see docs/planner.md)."
 )
 
 
@@ -62,12 +80,6 @@ def risk_options(fn: F) -> F:
         default=None,
         help=f"r of eq. 3 in metres (default {DEFAULT_RADIUS_M:g}).",
     )(fn)
-
-
-def png_option(help_text: str) -> Callable[[F], F]:
-    return click.option(
-        "--png", type=click.Path(dir_okay=False, path_type=Path), default=None, help=help_text
-    )
 
 
 def size_option(default: tuple[float, float, float]) -> Callable[[F], F]:
@@ -155,19 +167,8 @@ def map_group() -> None:
 @click.option(
     "--unknown/--no-unknown", default=True, show_default=True, help="A few unknown patches."
 )
-@click.option(
-    "-o",
-    "--output",
-    type=click.Path(dir_okay=False, path_type=Path),
-    required=True,
-    help="Map file: .npz (recommended), .ply or .pcd.",
-)
-@click.option(
-    "--survey",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Also write the LiDAR survey point cloud (.ply or .pcd).",
-)
+@file_option("-o", "--output", required=True, help="Map file: .npz (recommended), .ply or .pcd.")
+@file_option("--survey", help="Also write the LiDAR survey point cloud (.ply or .pcd).")
 @click.option("--ascii", "ascii_", is_flag=True, help="ASCII .ply/.pcd instead of binary.")
 def generate_cmd(
     seed: int,
@@ -225,8 +226,8 @@ def generate_cmd(
 
 
 @map_group.command("show")
-@click.argument("map_file", metavar="MAP", type=click.Path(dir_okay=False, path_type=Path))
-@png_option("Write a top view with risk shading.")
+@map_argument
+@file_option("--png", help="Write a top view with risk shading.")
 @click.option(
     "--z",
     type=float,
@@ -235,7 +236,7 @@ def generate_cmd(
 )
 @risk_options
 @resolution_option
-@fill_option
+@map_fill_option
 @handle_spec_errors
 def show_cmd(
     map_file: Path,
@@ -288,7 +289,7 @@ def _params(risk_radius: float | None, unknown_cost: float | None) -> Any:
 
 
 @click.command("plan")
-@click.argument("map_file", metavar="MAP", type=click.Path(dir_okay=False, path_type=Path))
+@map_argument
 @click.option(
     "--from", "start", required=True, callback=_xyz, metavar="X,Y,Z", help="Start point (m)."
 )
@@ -299,7 +300,7 @@ def _params(risk_radius: float | None, unknown_cost: float | None) -> Any:
     help="Move a start/goal in rock or outside the map to the nearest free voxel.",
 )
 @risk_options
-@png_option("Write a top view with the path.")
+@file_option("--png", help="Write a top view with the path.")
 @click.option(
     "--json",
     "as_json",
@@ -307,7 +308,7 @@ def _params(risk_radius: float | None, unknown_cost: float | None) -> Any:
     help="Print the result as JSON (path, waypoints, cost, length).",
 )
 @resolution_option
-@fill_option
+@map_fill_option
 @handle_spec_errors
 def plan_cmd(
     map_file: Path,

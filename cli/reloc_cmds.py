@@ -11,8 +11,14 @@ from typing import Any
 import click
 import numpy as np
 
-from btmission.cli.common import BadInput, ChecksFailed, handle_spec_errors
-from btmission.cli.map_cmds import _xyz, load_map_arg, resolution_option
+from btmission.cli.common import BadInput, ChecksFailed, file_option, handle_spec_errors
+from btmission.cli.map_cmds import (
+    _xyz,
+    fill_option,
+    load_map_arg,
+    map_argument,
+    resolution_option,
+)
 
 SCAN_SUFFIXES = (".ply", ".pcd", ".npy")
 
@@ -242,13 +248,7 @@ def build_options(fn: Any) -> Any:
             _metres("--clearance", 0.5, "Places keep this far from rock (m).", positive=False),
             sensor_option,
             resolution_option,
-            click.option(
-                "--fill",
-                type=click.Choice(["free", "unknown", "enclosed"]),
-                default="enclosed",
-                show_default=True,
-                help="For plain point clouds: what the voxels without points are.",
-            ),
+            fill_option("enclosed", "For plain point clouds: what the voxels without points are."),
         ]
     ):
         fn = opt(fn)
@@ -256,25 +256,15 @@ def build_options(fn: Any) -> Any:
 
 
 @reloc.command("build")
-@click.argument("map_file", metavar="MAP", type=click.Path(dir_okay=False, path_type=Path))
-@click.option(
-    "-o",
-    "--output",
-    type=click.Path(dir_okay=False, path_type=Path),
-    required=True,
-    help="The database file (.npz).",
-)
-@click.option(
+@map_argument
+@file_option("-o", "--output", required=True, help="The database file (.npz).")
+@file_option(
     "--cloud",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
     help="The map's point cloud for ICP (.ply/.pcd/.npy; default: MAP's own points if it is a "
     "plain survey, else the faces between free and occupied voxels).",
 )
-@click.option(
+@file_option(
     "--trajectory",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
     help="Put places along this path (.csv/.txt/.npy/.ply/.pcd of x, y, z) instead of all over "
     "the free space.",
 )
@@ -431,13 +421,12 @@ def _simulate(
 
 
 @reloc.command("scan")
-@click.argument("map_file", metavar="MAP", type=click.Path(dir_okay=False, path_type=Path))
+@map_argument
 @_with_options(scan_pose_options)
 @sensor_option
-@click.option(
+@file_option(
     "-o",
     "--output",
-    type=click.Path(dir_okay=False, path_type=Path),
     required=True,
     help="The scan: .ply, .pcd or .npy (points in the sensor frame).",
 )
@@ -486,14 +475,10 @@ def scan_cmd(
 
 
 @reloc.command("try")
-@click.argument("map_file", metavar="MAP", type=click.Path(dir_okay=False, path_type=Path))
+@map_argument
 @_with_options(scan_pose_options)
-@click.option(
-    "--db",
-    "database",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Use this place database of MAP instead of building one in memory.",
+@file_option(
+    "--db", "database", help="Use this place database of MAP instead of building one in memory."
 )
 @build_options
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
