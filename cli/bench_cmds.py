@@ -10,7 +10,7 @@ from typing import Any, TypeVar
 import click
 
 from btmission.bench.synth import DEFAULT_SHAPES, SHAPES
-from btmission.cli.common import file_option, int_option, positive_float_option
+from btmission.cli.common import BadInput, file_option, int_option, positive_float_option
 from btmission.cli.map_cmds import mine_resolution_option, size_option
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -291,10 +291,14 @@ def planner_bench(
       btmission bench planner --size 80 50 8 --repeat 3 --queries 5 --out /tmp/r
     """
     from btmission.bench.planner import run_planner_benchmark
+    from btmission.world.voxel import MapError
 
-    run_planner_benchmark(
-        size, resolution, repeat, queries, out_dir=out, echo=click.echo, peers=not no_peers
-    )
+    try:
+        run_planner_benchmark(
+            size, resolution, repeat, queries, out_dir=out, echo=click.echo, peers=not no_peers
+        )
+    except MapError as exc:
+        raise BadInput(f"--size: {exc}") from None
 
 
 @bench.command("dispatch")
@@ -444,17 +448,21 @@ def reloc_bench(
       btmission bench reloc --quick --out /tmp/r     # ~30 s
     """
     from btmission.bench.reloc import run_reloc_benchmark
+    from btmission.world.voxel import MapError
 
     seed_list = _int_list(seeds, "--seeds")
     if quick:
         seed_list, size, poses, robustness = (seed_list[0],), (120.0, 80.0, 12.0), 40, 10
-    run_reloc_benchmark(
-        seed_list,
-        poses,
-        size,
-        resolution,
-        robustness,
-        out_dir=out,
-        echo=click.echo,
-        peers=not no_peers,
-    )
+    try:
+        run_reloc_benchmark(
+            seed_list,
+            poses,
+            size,
+            resolution,
+            robustness,
+            out_dir=out,
+            echo=click.echo,
+            peers=not no_peers,
+        )
+    except MapError as exc:
+        raise BadInput(f"--size: {exc}") from None

@@ -57,3 +57,23 @@ def test_bench_synth_shapes_and_bad_values(runner: CliRunner, tmp_path: Path) ->
         assert result.exit_code == 2, (args, result.output)
         assert message in result.stderr and "Traceback" not in result.output
         assert not (tmp_path / "no").exists()
+
+
+@pytest.mark.parametrize("name", ["planner", "reloc"])
+def test_a_mine_too_small_is_a_clear_error(name: str, runner: CliRunner, tmp_path: Path) -> None:
+    r = runner.invoke(cli, ["bench", name, "--size", "30", "20", "4", "--out", str(tmp_path)])
+    assert r.exit_code == 2 and "--size: a mine needs at least 40 × 30 × 6 m" in r.output
+    assert "Traceback" not in r.output
+
+
+def test_bench_planner_on_a_small_mine_replans_where_it_can(
+    runner: CliRunner, tmp_path: Path
+) -> None:
+    """On a small mine the path is short: the replanning rows leave out the positions where the
+    2 m cube would bury the agent or the goal, instead of failing."""
+    args = ["--size", "60", "40", "6", "--repeat", "1", "--queries", "2", "--no-peers"]
+    r = runner.invoke(cli, ["bench", "planner", *args, "--out", str(tmp_path)])
+    assert r.exit_code == 0, r.output
+    table = (tmp_path / "planner.md").read_text()
+    rows = [line for line in table.splitlines() if line.startswith("| replan (")]
+    assert len(rows) == 2 and all("MISMATCH" not in row for row in rows)
