@@ -159,8 +159,11 @@ def test_static_maps_follow_the_paper_description() -> None:
     # right → left takes twice as long as left → right on the same path
     a, b = left[0], right[0]
     assert npr.dist[b, a] == pytest.approx(2 * npr.dist[a, b])
-    # every left-right path goes through the central bottleneck
+    # every left-right path goes through the central bottleneck, a single lane W0 — M — E0
+    # with no pause node inside it (§6.1.2: "the bottleneck in the middle")
     assert all(npr.id("M") in npr.path(x, y) for x in left for y in right)
+    assert {npr.nodes[i].name for i in npr.neighbors[npr.id("M")]} == {"W0", "E0"}
+    assert npr.pause_neighbors[npr.id("M")] == ()
 
 
 def test_mine_map_speeds_follow_section_6_2() -> None:
@@ -382,6 +385,42 @@ def test_push_and_swap_swaps_in_a_corridor_with_a_junction() -> None:
     m = corridor()
     res = push_and_swap(m, [m.id("A"), m.id("B")], [m.id("B"), m.id("A")])
     assert res.success and _replay(m, [m.id("A"), m.id("B")], res.moves) == [m.id("B"), m.id("A")]
+
+
+@settings(max_examples=12, deadline=None)
+@given(st.integers(0, 6))
+def test_a_swap_d_hops_back_costs_4d_plus_4_items(d: int) -> None:
+    """A — J(+P) — C1 … Cd — B, two agents trading A and B: agent 0 stops next to B (a dead end,
+    its partner cannot be pushed out), the pair backs up d hops to J (the only vertex of degree 3),
+    swaps there (6 moves) and replays: 2·ℓ + 4d + 4 moves in all, one swap."""
+    corr = [f"C{k}" for k in range(1, d + 1)]
+    chain = ["J", *corr, "B"]
+    m = TopoMap.build(
+        "dead_end",
+        [Node("A", T), Node("J", Q), Node("P", S), *(Node(c, Q) for c in corr), Node("B", T)],
+        [Segment("A", "J", 1, 1), Segment("J", "P", 1, 1)]
+        + [Segment(a, b, 1, 1) for a, b in itertools.pairwise(chain)],
+    )
+    ell = d + 2
+    res = push_and_swap(m, [m.id("A"), m.id("B")], [m.id("B"), m.id("A")])
+    assert res.success and res.swaps == 1
+    assert _replay(m, [m.id("A"), m.id("B")], res.moves) == [m.id("B"), m.id("A")]
+    assert res.items == 2 * ell + 4 * d + 4
+
+
+@pytest.mark.parametrize("vehicles", [2, 4, 10])
+def test_push_and_swap_on_the_static_map_swaps_once_per_pair_one_hop_back(vehicles: int) -> None:
+    """On the Fig. 6 map a terminal hangs two segments off a trunk junction, so every pair's swap
+    is one hop back (d = 1): push and swap needs exactly ξ_min + 8 items per pair, whatever the
+    pause nodes (no truck is pushed aside on these instances)."""
+    m = static_map("npr")
+    rng = np.random.default_rng(vehicles)
+    for _ in range(5):
+        inst = random_instance(m, vehicles, rng)
+        xi_min = fleet_items(initial_fleet(m, list(zip(inst.starts, inst.ends))))
+        res = push_and_swap(m, inst.starts, inst.ends)
+        assert res.success and res.swaps == vehicles // 2
+        assert res.items == xi_min + 8 * (vehicles // 2)
 
 
 # ------------------------------------------------------------------------------ dynamic

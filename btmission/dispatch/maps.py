@@ -2,9 +2,11 @@
 not coordinates, so these are our reconstructions; ``docs/dispatch.md`` shows and explains them).
 
 ``static_map("npr" | "spr")`` — Fig. 6, the static planning benchmark: six terminals on each half
-of the map, each reached by a short branch off a trunk; the two trunks meet in a central
-bottleneck (W0 — M — E0); pause nodes hang off every trunk node and the centre. Vehicles moving
-right to left (loaded) take twice as long per segment as those moving left to right (§6.1).
+of the map, each reached by a short branch off a trunk; the two trunks meet in a single-lane
+central bottleneck W0 — M — E0 ("when the vehicles cross the bottleneck in the middle", §6.1.2):
+no pause node inside it, so trucks can only pass each other at its ends (pause nodes PW0, PE0)
+or further out, where a pause node hangs off every trunk node. Vehicles moving right to left
+(loaded) take twice as long per segment as those moving left to right (§6.1).
 In the SPR variant the left terminals are prioritised; in NPR none are. A terminal-to-terminal path
 has 8-12 segments (10 on average; the paper's averages imply about 11).
 
@@ -71,11 +73,9 @@ def static_map(variant: str = "npr", speed_mps: float = 2.5, slow_factor: float 
     """Fig. 6 (see the module docstring). ``variant``: ``npr`` or ``spr`` (left terminals prioritised)."""
     if variant not in ("npr", "spr"):
         raise ValueError(f"unknown static map variant '{variant}' (expected npr or spr)")
-    nodes: list[Node] = [
-        Node("M", NodeKind.TRANSIT, xy=(0.0, 0.0)),
-        Node("PM", NodeKind.PAUSE, xy=(0.0, -8.0)),
-    ]
-    edges: list[tuple[str, str]] = [("M", "PM")]
+    # M is a corridor point of the single-lane bottleneck W0 — M — E0: no pause node there
+    nodes: list[Node] = [Node("M", NodeKind.TRANSIT, xy=(0.0, 0.0))]
+    edges: list[tuple[str, str]] = []
     for side, sign, tag in (("left", -1.0, "W"), ("right", 1.0, "E")):
         prev = "M"
         for k in range(4):

@@ -20,6 +20,13 @@ cleared; the paper's clear also tries moving the pair a step back. Vertex types 
 transit) mean nothing to push and swap, which is why its plans reverse direction and park vehicles
 anywhere — the reason the paper finds it unsuitable for mines.
 
+What a swap costs: when r stands next to s and the swap vertex is d hops back, the pair moves
+2d times to get there, the primitive takes 6 moves and the replay 2d more; r's last step onto
+s's vertex and s's first step off it are no longer needed, so the swap adds 4d + 4 items to what
+the two would drive along Π0. On the §6.1 instances every pair needs exactly one swap: the first
+of the two to be solved drives to the vertex next to its goal, where its partner still stands in a
+dead-end terminal it cannot be pushed out of (``PasResult.swaps`` counts them).
+
 The result is a sequential plan (one move at a time). Its number of moves is the number of mission
 items ξ compared in Table 5; its *serial* duration (the sum of the moves' traversal times) is
 reported too, as the plan has no parallel schedule.
@@ -45,6 +52,8 @@ class PasResult:
     serial_duration: float
     """Sum of the moves' traversal times (the plan executes one move at a time)."""
     reason: str = ""
+    swaps: int = 0
+    """Number of swap operations (each exchanges two agents; see the module docstring)."""
 
 
 class _Fail(Exception):
@@ -76,6 +85,7 @@ class PushAndSwap:
         self.moves: list[tuple[int, int, int]] = []
         self.max_moves = max_moves if max_moves is not None else 200 * tmap.n * max(len(starts), 1)
         self.deg3 = [v for v in range(tmap.n) if len(tmap.neighbors[v]) >= 3]
+        self.swaps = 0
 
     # --------------------------------------------------------------------------- primitives
     def _move(self, a: int, to: int) -> None:
@@ -205,6 +215,7 @@ class PushAndSwap:
                 self._move(b, frm)
             if s in solved:
                 solved.discard(s)
+            self.swaps += 1
             return True
         return False
 
@@ -228,7 +239,7 @@ class PushAndSwap:
 
     def _result(self, success: bool, reason: str) -> PasResult:
         dur = sum(float(self.tmap.ttime[f, t]) for _, f, t in self.moves)
-        return PasResult(success, tuple(self.moves), len(self.moves), dur, reason)
+        return PasResult(success, tuple(self.moves), len(self.moves), dur, reason, self.swaps)
 
 
 def push_and_swap(
