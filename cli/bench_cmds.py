@@ -346,7 +346,7 @@ def dispatch_dynamic_bench(
 ) -> None:
     """Dynamic planning on the Fig. 1 mine: Table 6 (C, i_t, i_p) for 2-5 trucks.
 
-    The full run (5 × 4 h per size) takes about 20 min here.
+    The full run (5 × 4 h per size) takes about 8 min here.
 
     \b
     Example:

@@ -15,8 +15,11 @@ from btmission.bench.synth import (
     _csv_row,
     _md_cells,
     chain_library,
+    describe_load,
     diamond_library,
+    environment,
     fanin_library,
+    header_lines,
     measure,
     run_synth_benchmark,
 )
@@ -158,11 +161,47 @@ def test_run_writes_markdown_and_csv(tmp_path: Path) -> None:
     )
 
     md = (tmp_path / "synth.md").read_text()
-    for key in ("date:", "machine:", "CPU(s)", "Python:", "btmission:"):
+    for key in ("date:", "machine:", "CPU(s)", "load: ", "Python:", "btmission:"):
         assert key in md
+    assert "noisy" not in md  # no fixed claim: the load line is measured
     assert "| shape | size | actions | tree nodes | depth |" in md
     assert "| chain | 10 | 10 | 39 | 20 |" in md
     assert "| fanin | 10 | 14 | 46 | 6 |" in md
+
+
+@pytest.mark.parametrize(
+    ("start", "end", "own", "other", "quiet"),
+    [
+        (0.05, 1.02, 1.0, 0.05, True),  # only the benchmark ran
+        (0.10, 0.60, 1.0, 0.10, True),  # a short run: the 1-min average had not caught up
+        (0.70, 1.10, 1.0, 0.70, False),  # busy when it started
+        (0.10, 3.10, 1.0, 2.10, False),  # two other jobs joined during the run
+        (0.20, 2.10, 2.0, 0.20, True),  # the benchmark itself used both cores
+    ],
+)
+def test_describe_load_subtracts_the_benchmark_itself(
+    start: float, end: float, own: float, other: float, quiet: bool
+) -> None:
+    note = describe_load(start, end, own)
+    assert f"{start:.2f} at start, {end:.2f} at end" in note
+    assert f"used {own:.2f} CPU" in note
+    assert f"other work ≈ {other:.2f}" in note
+    assert ("quiet" in note) is quiet
+    assert ("busy" in note) is not quiet
+
+
+def test_header_lines_measure_the_load_or_say_it_is_unknown() -> None:
+    lines = header_lines(environment())
+    assert [line.split(":")[0] for line in lines] == [
+        "- date",
+        "- machine",
+        "- load",
+        "- Python",
+        "- btmission",
+    ]
+    assert "1-min load average" in lines[2]
+    bare = {"date": "d", "machine": "m", "cpus": "2", "python": "p", "btmission": "v"}
+    assert "unknown" in header_lines(bare)[2]
 
 
 def test_run_echoes_the_table_as_it_goes(tmp_path: Path) -> None:

@@ -50,7 +50,7 @@ from btmission.allocation.solvers import (
 )
 from btmission.allocation.tasks import TaskInfo, TaskPool
 from btmission.bench.synth import _median_ms as median_ms
-from btmission.bench.synth import environment
+from btmission.bench.synth import environment, header_lines
 
 T = TypeVar("T")
 
@@ -583,10 +583,7 @@ def markdown(b: AuctionBench) -> str:
     lines = [
         "# Auction benchmark (seed 003 Fig. 4 and 5)",
         "",
-        f"- date: {env['date']}",
-        f"- machine: {env['machine']}, {env['cpus']} CPU(s) (shared with other jobs: expect noise)",
-        f"- Python: {env['python']}",
-        f"- btmission: {env['btmission']}",
+        *header_lines(env),
         "",
         "Instances: agents and tasks uniformly random in a 100 m × 100 m area, straight-line costs, "
         "each agent bidding on its ⌈p·n⌉ cheapest tasks (seed "

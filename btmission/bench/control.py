@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from btmission.bench.synth import environment
+from btmission.bench.synth import environment, header_lines
 
 __all__ = [
     "CSV_HEADER",
@@ -309,10 +309,7 @@ def _markdown(
     lines = [
         "# Control benchmark",
         "",
-        f"- date: {env['date']}",
-        f"- machine: {env['machine']}, {env['cpus']} CPU(s)",
-        f"- Python: {env['python']}",
-        f"- btmission: {env['btmission']}",
+        *header_lines(env),
         "",
         f"Per-call wall time (ms). *nmpc*: every solve of a {steps}-step closed loop (MAV, 20 Hz, "
         "N = 20, warm-started), fatrop and ipopt on the same NLP; the unicycle rows are the "
@@ -326,7 +323,8 @@ def _markdown(
         *(f"- {n}" for n in notes),
         "",
         "Regenerate with `btmission bench control` or `python benchmarks/bench_control.py`. "
-        "Numbers from a shared 2-core machine are noisy; compare ratios (fatrop vs ipopt) first.",
+        "The load line at the top says whether other work shared the machine; if it did, compare "
+        "ratios (fatrop vs ipopt) first.",
         "",
     ]
     return "\n".join(lines)

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from btmission.bench.synth import environment
+from btmission.bench.synth import environment, header_lines
 from btmission.dispatch.dynamic import DynamicResult, mean_std
 from btmission.dispatch.evaluate import Evaluator, default_beta
 from btmission.dispatch.ga import GAParams, default_wait_max
@@ -129,10 +129,7 @@ def run_dispatch_benchmark(
     md = [
         "# GA dispatch benchmark (seed 004)",
         "",
-        f"- date: {env['date']}",
-        f"- machine: {env['machine']}, {env['cpus']} CPU(s) (shared with other jobs: noisy)",
-        f"- Python: {env['python']}",
-        f"- btmission: {env['btmission']}",
+        *header_lines(env),
         "",
         f"Static batch (§6.1): {runs} random instance(s) per fleet size and map; GA with Table 1 "
         f"settings and a budget of τ = {tau_s:g} s per vehicle (D = {tau_s * 10:g} s at 10 "
@@ -219,10 +216,7 @@ def run_dynamic_benchmark(
     md = [
         "# Dynamic GA dispatch benchmark (seed 004 Table 6)",
         "",
-        f"- date: {env['date']}",
-        f"- machine: {env['machine']}, {env['cpus']} CPU(s) (shared with other jobs: noisy)",
-        f"- Python: {env['python']}",
-        f"- btmission: {env['btmission']}",
+        *header_lines(env),
         "",
         f"Mine map (Fig. 1 reconstruction), {runs} run(s) of {hours:g} h per fleet size; loading "
         "2-5 min, offloading 30-60 s; GA with Table 1 settings and a wall-clock budget of "

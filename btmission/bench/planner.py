@@ -23,8 +23,8 @@ on the first call; that first call is reported on its own):
   point (:meth:`~btmission.planning.dstar.Planner.plan`) and the median of the repairs is the
   "typical" figure.
 
-Results go to ``planner.md`` and ``planner.csv`` under ``out_dir``. The machine is shared and has 2
-cores, so the numbers are noisy; the committed table says when and where it was measured.
+Results go to ``planner.md`` and ``planner.csv`` under ``out_dir``. The committed table says when
+and where it was measured and, from the load average, whether other work shared the machine.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from btmission.bench.synth import _median_ms, environment
+from btmission.bench.synth import _median_ms, environment, header_lines
 
 SIZE = (200.0, 120.0, 10.0)
 SMALL = (60.0, 40.0, 8.0)
@@ -443,10 +443,7 @@ def _markdown(
     lines = [
         "# Planner benchmark",
         "",
-        f"- date: {env['date']}",
-        f"- machine: {env['machine']}, {env['cpus']} CPU(s) (shared with other jobs: noisy)",
-        f"- Python: {env['python']}",
-        f"- btmission: {env['btmission']}",
+        *header_lines(env),
         "",
         f"Mine of seed {SEED}, {label} voxels; median of {repeat} runs after a warm-up (the first "
         f"call of the compiled search took {first_ms:,.0f} ms: numba compiling or loading its cache). "

@@ -30,7 +30,8 @@ short of the wall), **ours with an occluding object** (a 2 × 2 × 3 m box the m
 the next mine's database: the right answer is "not localised").
 
 Results go to ``reloc.md`` and ``reloc.csv`` under ``out_dir``; the Markdown also has the success
-rate of ours by confidence. The machine is shared and has 2 cores, so times are noisy.
+rate of ours by confidence. Its header says, from the load average, whether other work shared the
+machine (times are noisy if it did).
 """
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ from typing import Any
 import numpy as np
 
 from btmission.bench.planner import _md_row
-from btmission.bench.synth import environment
+from btmission.bench.synth import environment, header_lines
 
 SIZE = (200.0, 120.0, 12.0)
 SEEDS = (7, 11)
@@ -358,10 +359,7 @@ def _markdown(
     lines = [
         "# Relocalization benchmark",
         "",
-        f"- date: {env['date']}",
-        f"- machine: {env['machine']}, {env['cpus']} CPU(s) (shared with other jobs: noisy)",
-        f"- Python: {env['python']}",
-        f"- btmission: {env['btmission']}",
+        *header_lines(env),
         "",
         f"Generated mines {', '.join(map(str, seeds))} at {' × '.join(f'{v:g}' for v in size)} m "
         f"({resolution:g} m voxels); {poses} random poses in all (uniform over the floors, 1-3 m "

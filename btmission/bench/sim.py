@@ -14,8 +14,8 @@
   and the total wall time. The first round, which runs the 400 backward searches the bids read,
   is reported on its own.
 
-Times are wall-clock (``time.perf_counter``) on a machine that may be shared: the tables say
-when and where they were measured.
+Times are wall-clock (``time.perf_counter``); the results say when and where they were measured
+and, from the load average, whether other work shared the machine.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from btmission.bench.synth import environment
+from btmission.bench.synth import environment, header_lines
 
 TARGETS = {"track": 50.0, "nmpc": 5.0}
 """Speed-up over real time the mine mission must reach with each controller."""
@@ -253,10 +253,7 @@ def markdown(
     lines = [
         "# Simulator benchmark",
         "",
-        f"- date: {env['date']}",
-        f"- machine: {env['machine']}, {env['cpus']} CPU(s) (shared with other jobs: noisy)",
-        f"- Python: {env['python']}",
-        f"- btmission: {env['btmission']}",
+        *header_lines(env),
         "",
         "## mine_inspection (seed 000 §VI) to its end",
         "",

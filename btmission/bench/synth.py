@@ -59,13 +59,18 @@ from btmission.synthesis.tree import depth
 __all__ = [
     "CSV_HEADER",
     "DEFAULT_SHAPES",
+    "QUIET_LOAD",
     "SHAPES",
     "TARGET_ACTIONS",
     "TARGET_MS",
     "Measurement",
     "chain_library",
+    "describe_load",
     "diamond_library",
+    "environment",
     "fanin_library",
+    "header_lines",
+    "load_note",
     "measure",
     "run_synth_benchmark",
 ]
@@ -342,26 +347,87 @@ def _csv_row(m: Measurement) -> list[str]:
     ]
 
 
+QUIET_LOAD = 0.5
+"""Other work (runnable tasks in the 1-minute load average, the benchmark itself subtracted) below
+which a header calls the machine quiet: less than half a core busy with anything else."""
+
+
+def _load1() -> float | None:
+    """The 1-minute load average now, or None where the OS does not report one."""
+    try:
+        return os.getloadavg()[0]
+    except (OSError, AttributeError):
+        return None
+
+
 def environment() -> dict[str, str]:
-    """Where the numbers were measured (written at the top of ``synth.md``)."""
+    """Where and when the numbers are measured; call it when the benchmark starts.
+
+    Besides date, machine, CPUs and versions it records the 1-minute load average and the
+    process's CPU and wall clocks at the start, which :func:`load_note` compares with the end.
+    """
     machine = " ".join(x for x in (platform.processor(), platform.machine()) if x) or "unknown"
+    load = _load1()
     return {
         "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         "machine": f"{machine} ({platform.system()} {platform.release()})",
         "cpus": str(os.cpu_count() or "unknown"),
         "python": f"{platform.python_implementation()} {sys.version.split()[0]}",
         "btmission": __version__,
+        "load_start": "" if load is None else repr(load),
+        "cpu_s_start": repr(time.process_time()),
+        "wall_s_start": repr(time.perf_counter()),
     }
+
+
+def describe_load(start: float, end: float, own_cpus: float) -> str:
+    """How busy the machine was, from the 1-minute load average at the start and end of a run.
+
+    ``own_cpus`` is the benchmark's own average CPU use (process CPU time ÷ wall time): at the end
+    the load average counts the benchmark itself, so other work ≈ end − own; at the start (before
+    any of our work) it is all other work. The larger of the two is compared with
+    :data:`QUIET_LOAD`. The 1-minute average lags (it decays over about a minute), so this is an
+    estimate, which the note says by giving the raw numbers.
+    """
+    other = max(start, end - own_cpus, 0.0)
+    verdict = (
+        f"quiet (< {QUIET_LOAD:g})"
+        if other < QUIET_LOAD
+        else "busy: other jobs shared the machine, expect noise"
+    )
+    return (
+        f"1-min load average {start:.2f} at start, {end:.2f} at end; the benchmark itself used "
+        f"{own_cpus:.2f} CPU on average, so other work ≈ {other:.2f}: {verdict}"
+    )
+
+
+def load_note(env: dict[str, str]) -> str:
+    """:func:`describe_load` for a run that began with ``env = environment()`` and ends now."""
+    end = _load1()
+    if not env.get("load_start") or end is None:
+        return "load average not available on this OS: quiet or shared is unknown"
+    wall = time.perf_counter() - float(env["wall_s_start"])
+    own = (time.process_time() - float(env["cpu_s_start"])) / wall if wall > 0 else 0.0
+    return describe_load(float(env["load_start"]), end, own)
+
+
+def header_lines(env: dict[str, str]) -> list[str]:
+    """The lines every results file starts with (under its title): date, machine, measured
+    load, Python and btmission versions. Call it when the run has finished (it reads the load)."""
+    return [
+        f"- date: {env['date']}",
+        f"- machine: {env['machine']}, {env['cpus']} CPU(s)",
+        f"- load: {load_note(env)}",
+        f"- Python: {env['python']}",
+        f"- btmission: {env['btmission']}",
+    ]
 
 
 def _markdown(results: Sequence[Measurement], repeat: int, env: dict[str, str]) -> str:
     lines = [
         "# Synthesis benchmark",
         "",
-        f"- date: {env['date']}",
-        f"- machine: {env['machine']}, {env['cpus']} CPU(s)",
-        f"- Python: {env['python']}",
-        f"- btmission: {env['btmission']}",
+        *header_lines(env),
         "",
         f"Timed (median of {repeat} run(s), ms): *compile* = validated spec → checked library; "
         "*synth* = back-chaining the goal into the fully expanded tree; *check* = the "
