@@ -97,15 +97,12 @@ class HaulageFleet:
 
     def __init__(self, run: RunContext) -> None:
         mission = run.mission
-        ref = mission.spec.world.topomap
         where = Location(mission.file)
-        if ref is None:
+        if run.topomap is None:
             raise SpecError([Diagnostic(Severity.ERROR, "no-topomap",
                 "library 'haulage' needs a topological map: set world.topomap (e.g. 'mine')",
                 "world.topomap", where)])  # fmt: skip
-        from btmission.dispatch.maps import topomap_ref
-
-        self.tmap: TopoMap = topomap_ref(ref, mission.base_dir)
+        self.tmap: TopoMap = run.topomap
         self.places = run.places
         starts: dict[str, int] = {}
         problems = []

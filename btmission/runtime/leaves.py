@@ -32,6 +32,7 @@ from btmission.synthesis.tree import Node
 
 if TYPE_CHECKING:
     from btmission.backends.base import Backend, Sensors, Telemetry
+    from btmission.dispatch.topomap import TopoMap
     from btmission.runtime.agent import Agent
     from btmission.runtime.navigation import Navigator
     from btmission.runtime.paths import PathCosts
@@ -92,6 +93,8 @@ class RunContext:
     """``events(kind, **data)`` publishes an event for observers (log, report, viewer)."""
     places: Mapping[str, tuple[float, float, float]] = field(default_factory=dict)
     """Named places (the nodes of the mission's topological map, on the ground)."""
+    topomap: TopoMap | None = None
+    """The mission's topological map (``world.topomap``), loaded once by the runner."""
 
     def now(self) -> float:
         return self.clock()

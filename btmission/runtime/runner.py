@@ -243,7 +243,14 @@ class MissionRun:
     def _build_services(self) -> dict[str, dict[str, Any]]:
         """One instance of every run-wide service of the libraries the agents use."""
         run = RunContext(
-            self.mission, self.map, self.now, self.settings, self.seed, self.emit, self.places
+            self.mission,
+            self.map,
+            self.now,
+            self.settings,
+            self.seed,
+            self.emit,
+            self.places,
+            self.roads.tmap if self.roads is not None else None,
         )
         out: dict[str, dict[str, Any]] = {}
         made: dict[int, Any] = {}  # one instance per factory: variants (extend) share it
