@@ -439,3 +439,11 @@ def test_haulage_runtime_inputs_are_checked(tmp_path: Path) -> None:
     run = MissionRun(load_mission(MISSION), seed=0)
     with pytest.raises(TaskError, match="'nowhere', which is not a place"):
         run.add_task({"id": "X", "type": "haul", "pickup": "nowhere", "dropoff": "O"})
+
+
+def test_haulage_without_a_topomap_is_exit_2(runner: CliRunner, tmp_path: Path) -> None:
+    text = MISSION.read_text().replace("  topomap: mine", "  # no topomap")
+    text = text.split("tasks:")[0] + "tasks: []\ntask_types:" + text.split("task_types:")[1]
+    r = runner.invoke(cli, ["run", str(_variant(tmp_path, text)), "--quiet", "--log", str(tmp_path)])
+    assert r.exit_code == 2 and "library 'haulage' needs a topological map" in r.output
+    assert "Traceback" not in r.output
