@@ -7,6 +7,7 @@ import re
 import sys
 import xml.etree.ElementTree as ET
 from collections import Counter
+from collections.abc import Iterator
 
 import pytest
 
@@ -26,6 +27,8 @@ from btmission.export import (
     tree_from_dict,
     tree_to_dict,
 )
+from btmission.export import btcpp as btcpp_module
+from btmission.export.btcpp import SUBTREE_DEPTH
 from btmission.export.dot import dot_quote
 from btmission.synthesis.tree import (
     Arg,
@@ -36,6 +39,7 @@ from btmission.synthesis.tree import (
     condition,
     count_nodes,
     depth,
+    distinct_postorder,
     fallback,
     leaf_signatures,
     sequence,
@@ -423,11 +427,10 @@ SMALL_XML = """\
 <root BTCPP_format="4" main_tree_to_execute="MainTree">
   <BehaviorTree ID="MainTree">
     <ReactiveFallback name="ensure at_goal(goal)">
-      <Condition ID="at_goal" name="at_goal(goal)" goal="{goal}"/>
+      <at_goal name="at_goal(goal)" goal="{goal}"/>
       <ReactiveSequence name="achieve at_goal(goal)">
-        <Condition ID="has_path" name="has_path(goal)" goal="{goal}"/>
-        <Action ID="follow_path" name="follow_path(goal, &quot;fast&quot;)" goal="{goal}" \
-speed="fast"/>
+        <has_path name="has_path(goal)" goal="{goal}"/>
+        <follow_path name="follow_path(goal, &quot;fast&quot;)" goal="{goal}" speed="fast"/>
       </ReactiveSequence>
     </ReactiveFallback>
   </BehaviorTree>
@@ -447,6 +450,9 @@ speed="fast"/>
 </root>
 """
 
+COMPOSITE_TAGS = {Kind.FALLBACK: "ReactiveFallback", Kind.SEQUENCE: "ReactiveSequence"}
+MODEL_TAGS = {Kind.ACTION: "Action", Kind.CONDITION: "Condition"}
+
 
 def test_xml_small_tree_exact() -> None:
     assert render_btcpp_xml(small_tree()) == SMALL_XML
@@ -463,32 +469,28 @@ def test_xml_structure(name: str) -> None:
     assert bt.get("ID") == "Mission"
     (top,) = list(bt)
 
-    # every node once per occurrence, in pre-order, with the right element and attributes
+    # every node once per occurrence, in pre-order; leaves in the compact form <ID name=.../>
     elements = list(top.iter())
     assert len(elements) == count_nodes(tree)
-    tags = {
-        Kind.FALLBACK: "ReactiveFallback",
-        Kind.SEQUENCE: "ReactiveSequence",
-        Kind.ACTION: "Action",
-        Kind.CONDITION: "Condition",
-    }
     for element, (_, node) in zip(elements, walk(tree), strict=True):
-        assert element.tag == tags[node.kind]
         if node.kind.is_composite:
+            assert element.tag == COMPOSITE_TAGS[node.kind]
             assert element.attrib == {"name": node.name}
         else:
-            expected = {"ID": node.name, "name": node.label}
+            assert element.tag == node.name
+            expected = {"name": node.label}
             expected.update(
                 {a.param: a.value if a.literal else "{" + a.value + "}" for a in node.args}
             )
             assert element.attrib == expected
+    assert not doc.findall(".//Action[@name]") and not doc.findall(".//Condition[@name]")
 
     # TreeNodesModel: each leaf type once, with one input_port per parameter, and its doc
     (model_root,) = doc.findall("TreeNodesModel")
     models = Counter((m.tag, m.get("ID")) for m in model_root)
     assert all(count == 1 for count in models.values())
     signatures = leaf_signatures(tree)
-    assert set(models) == {(tags[kind], leaf) for kind, leaf in signatures}
+    assert set(models) == {(MODEL_TAGS[kind], leaf) for kind, leaf in signatures}
     docs = {n.name: n.doc for _, n in walk(tree) if n.is_leaf and n.doc}
     for model in model_root:
         kind = Kind.ACTION if model.tag == "Action" else Kind.CONDITION
@@ -499,10 +501,10 @@ def test_xml_structure(name: str) -> None:
 
 def test_xml_symbol_and_literal_args() -> None:
     doc = ET.fromstring(render_btcpp_xml(mission_tree()))
-    inspect = next(e for e in doc.iter("Action") if e.get("ID") == "inspect" and e.get("name"))
+    inspect = next(doc.iter("inspect"))
     assert inspect.get("target") == "{location}"
     assert inspect.get("mode") == "thermal"
-    assigned = next(e for e in doc.iter("Condition") if e.get("ID") == "task_assigned")
+    assigned = next(doc.iter("task_assigned"))
     assert assigned.get("type") == "inspect"
     assert assigned.get("name") == 'task_assigned("inspect")'
 
@@ -524,11 +526,66 @@ def test_xml_round_trip_awkward_values() -> None:
     assert_same_tree(parse_btcpp_xml(render_btcpp_xml(tree)), tree, roles=False)
 
 
-def test_xml_deep_chain_round_trip() -> None:
+def element_depths(tree: ET.Element) -> Iterator[tuple[int, ET.Element]]:
+    """``(level, element)`` below a <BehaviorTree> (its child is level 1); iterative."""
+    stack = [(1, child) for child in tree]
+    while stack:
+        level, element = stack.pop()
+        yield level, element
+        stack.extend((level + 1, child) for child in element)
+
+
+def test_xml_deep_chain_is_split_into_subtrees_and_round_trips() -> None:
     tree = deep_chain()
     text = render_btcpp_xml(tree)
     assert max(map(len, text.splitlines())) < 300  # indentation capped: linear, not quadratic
+    doc = ET.fromstring(text)
+    trees = doc.findall("BehaviorTree")
+    ids = [t.get("ID") for t in trees]
+    assert ids[0] == "MainTree"
+    assert ids[1:] == [f"MainTree_sub{i}" for i in range(1, len(trees))]
+    assert len(trees) >= DEEP // SUBTREE_DEPTH
+    for bt in trees:  # BehaviorTree.CPP refuses anything nested deeper than 256 per tree
+        levels = [(level, e) for level, e in element_depths(bt)]
+        assert max(level for level, _ in levels) <= SUBTREE_DEPTH + 1
+        refs = [e for _, e in levels if e.tag == "SubTree"]
+        assert [r.attrib for r in refs] == (
+            []
+            if bt is trees[-1]
+            else [{"ID": ids[ids.index(bt.get("ID")) + 1], "_autoremap": "true"}]
+        )
+        composite_levels = [lv for lv, e in levels if e.tag in COMPOSITE_TAGS.values()]
+        assert max(composite_levels) <= SUBTREE_DEPTH
     assert_same_tree(parse_btcpp_xml(text), tree, roles=False)
+
+
+def test_xml_shallow_tree_has_no_subtrees() -> None:
+    chain = deep_chain(SUBTREE_DEPTH // 2 - 1)  # depth SUBTREE_DEPTH - 1: fits
+    assert "<SubTree" not in render_btcpp_xml(chain)
+    assert "<SubTree" in render_btcpp_xml(deep_chain(SUBTREE_DEPTH // 2 + 1))
+
+
+def test_xml_shared_deep_subtree_written_once_and_read_back_shared() -> None:
+    shared = deep_chain(SUBTREE_DEPTH)  # deeper than one <BehaviorTree> may be
+    root = sequence("both", fallback("f", condition("c"), shared), fallback("g", shared))
+    doc = ET.fromstring(render_btcpp_xml(root))
+    refs = [e.get("ID", "") for e in doc.iter("SubTree")]
+    # both occurrences are cut at the same node: one <BehaviorTree>, referenced twice
+    assert refs[:2] == ["MainTree_sub1", "MainTree_sub1"] and refs.count("MainTree_sub1") == 2
+    ids = [t.get("ID") for t in doc.findall("BehaviorTree")]
+    assert ids == ["MainTree", *sorted(set(refs), key=lambda r: int(r.rsplit("sub", 1)[1]))]
+    back = parse_btcpp_xml(render_btcpp_xml(root))
+    assert_same_tree(back, root, roles=False)
+    # the subtree below the cut is read back once and shared by both occurrences
+    assert len(distinct_postorder(back)) < count_nodes(back) < 2 * len(distinct_postorder(back))
+
+
+def test_xml_subtree_ids_avoid_leaf_ids() -> None:
+    text = render_btcpp_xml(
+        sequence("s", deep_chain(SUBTREE_DEPTH), action("MainTree_sub1")), tree_id="MainTree"
+    )
+    ids = [t.get("ID") for t in ET.fromstring(text).findall("BehaviorTree")]
+    assert ids[1] == "MainTree_sub_1" and "MainTree_sub1" not in ids
 
 
 def test_xml_rejects_what_btcpp_rejects() -> None:
@@ -542,6 +599,26 @@ def test_xml_rejects_what_btcpp_rejects() -> None:
         render_btcpp_xml(action("go.now"))
     with pytest.raises(ValueError, match="clashes"):
         render_btcpp_xml(action("MainTree"))
+    # the compact form makes the ID an element name, so BT.CPP's own types and XML tags are out
+    for taken in ("Sleep", "Action", "Condition", "SubTree", "TreeNodesModel", "Sequence"):
+        with pytest.raises(ValueError, match=f"'{taken}' is the name of one of BehaviorTree"):
+            render_btcpp_xml(sequence("s", condition(taken)))
+    with pytest.raises(ValueError, match="'Sequence' is the name of one of BehaviorTree"):
+        render_btcpp_xml(action("go"), tree_id="Sequence")
+    with pytest.raises(ValueError, match="'2go' is not a valid XML element name"):
+        render_btcpp_xml(action("2go"))
+    with pytest.raises(ValueError, match="not a valid XML attribute name"):
+        render_btcpp_xml(action("go", Arg("a(b", "x")))
+    assert "<étape " in render_btcpp_xml(action("étape"))  # non-ASCII letters are fine
+
+
+def test_xml_reads_the_explicit_form() -> None:
+    """Files written before the compact form (and by other tools) still load."""
+    explicit = SMALL_XML.replace(
+        '<at_goal name="at_goal(goal)"', '<Condition ID="at_goal" name="at_goal(goal)"'
+    ).replace("<follow_path name=", '<Action ID="follow_path" name=')
+    assert explicit.count(' ID="') == SMALL_XML.count(' ID="') + 2
+    assert_same_tree(parse_btcpp_xml(explicit), small_tree(), roles=False, meta=False)
 
 
 def test_xml_parse_errors_and_compact_form() -> None:
@@ -578,6 +655,89 @@ def test_xml_parse_errors_and_compact_form() -> None:
         ),
     )
     assert parse_btcpp_xml(compact) == expected
+
+
+SUBTREES_XML = """
+<root BTCPP_format="4" main_tree_to_execute="Main">
+  <BehaviorTree ID="Main">
+    <Sequence>
+      <SubTree ID="Go" _autoremap="true"/>
+      <SubTree ID="Go" target="{home}" speed="slow"/>
+      <SubTree ID="Go" target="{=}"/>
+      <SubTree ID="Go" _autoremap="true"/>
+    </Sequence>
+  </BehaviorTree>
+  <BehaviorTree ID="Go">
+    <move goal="{target}" speed="{speed}" mode="fly"/>
+  </BehaviorTree>
+  <TreeNodesModel><Action ID="move"/></TreeNodesModel>
+</root>"""
+
+
+def test_xml_reads_subtrees_with_remapping() -> None:
+    root = parse_btcpp_xml(SUBTREES_XML)
+    assert root.kind is Kind.SEQUENCE
+    got = [tuple((a.param, a.value, a.literal) for a in c.args) for c in root.children]
+    fly = ("mode", "fly", True)
+    assert got == [
+        (("goal", "target", False), ("speed", "speed", False), fly),  # autoremap: same keys
+        (("goal", "home", False), ("speed", "slow", True), fly),  # remapped key and literal
+        (("goal", "target", False), ("speed", "speed", False), fly),  # {=}; speed stays private
+        (("goal", "target", False), ("speed", "speed", False), fly),
+    ]
+    assert root.children[0] is root.children[3]  # same subtree, same mapping: shared
+
+
+@pytest.mark.parametrize(
+    ("xml", "message"),
+    [
+        (SUBTREES_XML.replace('ID="Go" target="{=}"', 'ID="Gone"'), "<SubTree ID='Gone'> names no"),
+        (
+            SUBTREES_XML.replace("<move goal", '<SubTree ID="Main"/><move goal'),
+            "exactly one child",
+        ),
+        (
+            SUBTREES_XML.replace(
+                '<move goal="{target}" speed="{speed}" mode="fly"/>',
+                '<Sequence><SubTree ID="Main"/></Sequence>',
+            ),
+            "<SubTree ID='Main'> contains itself",
+        ),
+        (
+            SUBTREES_XML.replace('main_tree_to_execute="Main"', ""),
+            "several <BehaviorTree> elements and no main_tree_to_execute",
+        ),
+        (
+            SUBTREES_XML.replace('<BehaviorTree ID="Go">', '<BehaviorTree ID="Main">'),
+            "two <BehaviorTree> elements with ID='Main'",
+        ),
+    ],
+)
+def test_xml_subtree_errors(xml: str, message: str) -> None:
+    with pytest.raises(ValueError, match=re.escape(message)):
+        parse_btcpp_xml(xml)
+
+
+def test_xml_subtree_bomb_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
+    """40 levels of two differently remapped references: 2**40 leaves if expanded."""
+    trees = [
+        f'<BehaviorTree ID="T{i}"><Sequence><SubTree ID="T{i + 1}" k="{{a}}"/>'
+        f'<SubTree ID="T{i + 1}" k="{{b}}"/></Sequence></BehaviorTree>'
+        for i in range(40)
+    ]
+    text = (
+        '<root BTCPP_format="4" main_tree_to_execute="T0">'
+        + "".join(trees)
+        + '<BehaviorTree ID="T40"><leaf x="{k}"/></BehaviorTree>'
+        + '<TreeNodesModel><Action ID="leaf"/></TreeNodesModel></root>'
+    )
+    monkeypatch.setattr(btcpp_module, "MAX_PARSED_NODES", 10_000)
+    with pytest.raises(ValueError, match="more than 10,000 nodes once its <SubTree>s are expanded"):
+        parse_btcpp_xml(text)
+    # the same shape with autoremapping only is shared, not expanded: 40 + 1 distinct nodes
+    shared = re.sub(r' k="\{[ab]\}"', ' _autoremap="true"', text)
+    back = parse_btcpp_xml(shared)
+    assert count_nodes(back) == 2**41 - 1  # 2**40 - 1 sequences and 2**40 leaves, built shared
 
 
 # -------------------------------------------------------------------------------------- JSON
