@@ -2,15 +2,20 @@
 
 from __future__ import annotations
 
+import inspect
 import json
 import re
 import sys
 import xml.etree.ElementTree as ET
 from collections import Counter
 from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
 
 import pytest
+from click.testing import CliRunner
 
+from btmission.cli.main import cli
 from btmission.export import (
     FORMATS,
     GraphvizFailed,
@@ -557,6 +562,47 @@ def test_xml_deep_chain_is_split_into_subtrees_and_round_trips() -> None:
         composite_levels = [lv for lv, e in levels if e.tag in COMPOSITE_TAGS.values()]
         assert max(composite_levels) <= SUBTREE_DEPTH
     assert_same_tree(parse_btcpp_xml(text), tree, roles=False)
+
+
+@contextmanager
+def shallow_stack(frames: int = 80) -> Iterator[None]:
+    """Only ``frames`` more Python frames than now: anything recursive per level fails."""
+    before = sys.getrecursionlimit()
+    sys.setrecursionlimit(len(inspect.stack(0)) + frames)
+    try:
+        yield
+    finally:
+        sys.setrecursionlimit(before)
+
+
+def test_xml_writer_and_reader_are_iterative() -> None:
+    tree = deep_chain()
+    with shallow_stack():
+        text = render_btcpp_xml(tree)
+        back = parse_btcpp_xml(text)
+    assert_same_tree(back, tree, roles=False)
+
+
+def test_xml_thousand_action_chain_library(tmp_path: Path) -> None:
+    """A library a1 (pre c0, post c1), a2 (pre c1, post c2), ...: synth -f xml, then read back."""
+    n = 1000
+    body = "\n".join(
+        ["library: chain", "version: 1", "conditions:"]
+        + [f"  c{i}: step {i}" for i in range(n + 1)]
+        + ["actions:"]
+        + [f"  a{i}: {{pre: [c{i - 1}], post: [c{i}]}}" for i in range(1, n + 1)]
+    )
+    lib = tmp_path / "chain.yaml"
+    lib.write_text(body + "\n", encoding="utf-8")
+    result = CliRunner().invoke(cli, ["synth", str(lib), "--goal", f"c{n}", "-f", "xml"])
+    assert result.exit_code == 0, result.output
+    text = result.stdout
+    doc = ET.fromstring(text)
+    assert len(doc.findall("BehaviorTree")) == 16  # 2,001 levels, at most 128 per tree
+    back = parse_btcpp_xml(text)
+    assert count_nodes(back) == 4 * n + 1 and depth(back) == 2 * n + 1
+    leaves = [node.name for _, node in walk(back) if node.is_leaf]
+    assert leaves[:3] == [f"c{n}", f"c{n - 1}", f"c{n - 2}"] and leaves[-1] == f"a{n}"
 
 
 def test_xml_shallow_tree_has_no_subtrees() -> None:
