@@ -605,6 +605,23 @@ def test_xml_thousand_action_chain_library(tmp_path: Path) -> None:
     assert leaves[:3] == [f"c{n}", f"c{n - 1}", f"c{n - 2}"] and leaves[-1] == f"a{n}"
 
 
+def test_xml_cli_refuses_a_leaf_named_like_a_btcpp_node(tmp_path: Path) -> None:
+    lib = tmp_path / "sleepy.yaml"
+    lib.write_text(
+        "library: sleepy\nversion: 1\nconditions: {rested: Rested}\n"
+        "actions:\n  Sleep: {post: [rested]}\n",
+        encoding="utf-8",
+    )
+    out = tmp_path / "t.xml"
+    result = CliRunner().invoke(cli, ["synth", str(lib), "--goal", "rested", "-o", str(out)])
+    assert result.exit_code == 2
+    assert (
+        "Error: cannot export as xml: BehaviorTree.CPP action ID 'Sleep' is the name of one of "
+        "BehaviorTree.CPP's own node types or XML elements" in result.stderr
+    )
+    assert not out.exists()
+
+
 def test_xml_shallow_tree_has_no_subtrees() -> None:
     chain = deep_chain(SUBTREE_DEPTH // 2 - 1)  # depth SUBTREE_DEPTH - 1: fits
     assert "<SubTree" not in render_btcpp_xml(chain)
