@@ -673,6 +673,8 @@ def test_xml_rejects_what_btcpp_rejects() -> None:
     with pytest.raises(ValueError, match="not a valid XML attribute name"):
         render_btcpp_xml(action("go", Arg("a(b", "x")))
     assert "<étape " in render_btcpp_xml(action("étape"))  # non-ASCII letters are fine
+    # a tree ID is only an attribute value: <mission>_<agent> may start with a digit
+    assert 'main_tree_to_execute="2024_demo_G1"' in render_btcpp_xml(action("go"), "2024_demo_G1")
 
 
 def test_xml_reads_the_explicit_form() -> None:

@@ -150,7 +150,8 @@ _INVALID_XML_CHARS = re.compile("[\x00-\x08\x0b\x0c\x0e-\x1f\ufffe\uffff\ud800-\
 
 
 # --------------------------------------------------------------------------- validation helpers
-def _check_model_name(name: str, what: str) -> None:
+def _check_model_name(name: str, what: str, *, element: bool = False) -> None:
+    """BT.CPP's rules for a model (node type or tree) ID; ``element``: also an XML element name."""
     if not name:
         raise ValueError(f"BehaviorTree.CPP {what} cannot be empty")
     if name == "Root":
@@ -165,7 +166,7 @@ def _check_model_name(name: str, what: str) -> None:
             f"BehaviorTree.CPP {what} {name!r} is the name of one of BehaviorTree.CPP's own "
             "node types or XML elements"
         )
-    if not _XML_NAME.fullmatch(name):
+    if element and not _XML_NAME.fullmatch(name):
         raise ValueError(f"BehaviorTree.CPP {what} {name!r} is not a valid XML element name")
 
 
@@ -302,7 +303,7 @@ def render_btcpp_xml(root: Node, tree_id: str = "MainTree") -> str:
     _check_model_name(tree_id, "tree ID")
     models = _node_models(root)
     for kind, name, params, _ in models:
-        _check_model_name(name, f"{kind.value} ID")
+        _check_model_name(name, f"{kind.value} ID", element=True)
         if name == tree_id:
             raise ValueError(f"tree ID {tree_id!r} clashes with the {kind.value} of that name")
         for param in params:
