@@ -154,7 +154,11 @@ def map_group() -> None:
 
 @map_group.command("generate")
 @click.option(
-    "--seed", type=int, default=0, show_default=True, help="Random seed (same seed, same mine)."
+    "--seed",
+    type=click.IntRange(min=0),
+    default=0,
+    show_default=True,
+    help="Random seed (same seed, same mine).",
 )
 @size_option((200.0, 120.0, 12.0))
 @mine_resolution_option

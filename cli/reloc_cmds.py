@@ -62,10 +62,12 @@ def read_points(path: Path, what: str = "scan") -> np.ndarray:
     if not path.is_file():
         raise BadInput(f"{path}: no such file")
     if suffix == ".npy":
+        from btmission.world.io import NUMBER, NpzField, read_npy
+
         try:
-            pts = np.load(path, allow_pickle=False)
-        except Exception as exc:  # ValueError, OSError, pickle refusal
-            raise BadInput(f"{path}: not a readable .npy file ({exc})") from None
+            pts = read_npy(path, NpzField(what, NUMBER, None, "an array of numbers"))
+        except MapError as exc:
+            raise BadInput(str(exc)) from None
     elif suffix in (".ply", ".pcd"):
         try:
             cols, _ = read_cloud(path)
@@ -395,7 +397,9 @@ scan_pose_options = [
         show_default=True,
         help="Fraction of the returns replaced by dust.",
     ),
-    click.option("--seed", type=int, default=0, show_default=True, help="Noise seed."),
+    click.option(
+        "--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Noise seed."
+    ),
 ]
 
 
