@@ -389,13 +389,13 @@ def test_mission_map_sizes(
     ("args", "message"),
     [
         (["--seed", "-1"], "Invalid value for '--seed': -1 is not in the range x>=0"),
-        (["--size", "nan", "100", "10"], "size must be three finite numbers (m), got nan × 100"),
-        (["--size", "inf", "100", "10"], "size must be three finite numbers (m), got inf × 100"),
+        (["--size", "nan", "100", "10"], "Invalid value for '--size': 'nan' is not a finite number"),
+        (["--size", "inf", "100", "10"], "Invalid value for '--size': 'inf' is not a finite number"),
         (["--size", "100000", "100000", "100"],
          "100000 × 100000 × 100 m at 0.5 m makes 200,000 × 200,000 × 200 = 8,000,000,000,000 "
          "voxels; the limit is 40,000,000 (set BTMISSION_MAX_VOXELS to change it)"),
         (["--resolution", "0.01"], "200 × 120 × 12 m at 0.01 m makes 20,000 × 12,000 × 1,200"),
-        (["--resolution", "nan"], "mine resolution must be in (0, 1] m, got nan"),
+        (["--resolution", "nan"], "Invalid value for '--resolution': 'nan' is not a finite number"),
     ],
 )  # fmt: skip
 def test_map_generate_sizes(
@@ -406,6 +406,32 @@ def test_map_generate_sizes(
     out = refused(runner, "map", "generate", *args, "-o", str(out_file))
     assert time.perf_counter() - t0 < 1.0
     assert message in out and not out_file.exists()
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["map", "show", "MAP", "--z", "nan"],
+        ["plan", "MAP", "--from", "7,5,0", "--to", "10,5,0", "--risk-radius", "nan"],
+        ["plan", "MAP", "--from", "nan,5,0", "--to", "10,5,0"],
+        ["reloc", "scan", "MAP", "--at", "7,5,1", "--yaw", "nan", "-o", "OUT"],
+        ["reloc", "scan", "MAP", "--at", "7,5,1", "--dust", "inf", "-o", "OUT"],
+        ["reloc", "build", "MAP", "--height", "inf", "-o", "OUT"],
+        ["reloc", "scan", "MAP", "--at", "7,5,1", "--seed", "-1", "-o", "OUT"],
+    ],
+)
+def test_map_and_reloc_options_refuse_non_finite_numbers(
+    runner: CliRunner, tmp_path: Path, args: list[str]
+) -> None:
+    map_file = write_npz(tmp_path / "map.npz", MAP_FIELDS, {})
+    out_file = tmp_path / "out.ply"
+    args = [str(map_file) if a == "MAP" else str(out_file) if a == "OUT" else a for a in args]
+    out = refused(runner, *args)
+    bad = next(a for a in args if a in ("nan", "inf", "-1") or a.startswith("nan,"))
+    assert (
+        "Invalid value for '--" in out and f"'{bad}'" in out
+    ) or f"{bad} is not in the range" in out
+    assert not out_file.exists()
 
 
 def test_voxel_budget_from_the_environment(
