@@ -216,11 +216,26 @@ def _check_flow_depth(text: str, file: str) -> None:
             depth = max(0, depth - 1)
 
 
+_FAST_LOADER: Any = getattr(yaml, "CSafeLoader", None)  # libyaml's, when PyYAML was built with it
+
+
+def _compose(text: str) -> yaml.Node | None:
+    """The node graph of ``text``: by libyaml when available (several times faster on large
+    files), else, and whenever libyaml finds an error, by PyYAML itself, whose messages (and
+    positions) are the ones btmission documents."""
+    if _FAST_LOADER is not None:
+        try:
+            return yaml.compose(text, Loader=_FAST_LOADER)  # type: ignore[no-any-return]
+        except yaml.YAMLError:
+            pass  # PyYAML says what is wrong
+    return yaml.compose(text, Loader=yaml.SafeLoader)
+
+
 def parse_yaml(text: str, file: str = "<input>") -> Source:
     """Parse one YAML document, keeping positions. Raises :class:`SpecError` on bad YAML."""
     _check_flow_depth(text, file)
     try:
-        node = yaml.compose(text, Loader=yaml.SafeLoader)
+        node = _compose(text)
     except RecursionError:  # PyYAML's composer recurses once per nesting level
         raise _too_deep(file) from None
     except yaml.MarkedYAMLError as exc:
