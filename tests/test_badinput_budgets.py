@@ -159,8 +159,12 @@ def test_an_environment_variable_raises_or_lowers_a_yaml_budget(
         SpecError, match=r"the limit is 10,000 \(set BTMISSION_MAX_YAML_ALIAS_NODES"
     ):
         parse_yaml(text)
-    monkeypatch.setenv("BTMISSION_MAX_YAML_ALIAS_NODES", "1_000_000")
-    assert len(parse_yaml(laughs(5)).data["a5"]) == 9  # 531,441: above the default
+    wide = "a: &a [" + ", ".join(["x"] * 1000) + "]\nb: [" + ", ".join(["*a"] * 101) + "]\n"
+    monkeypatch.delenv("BTMISSION_MAX_YAML_ALIAS_NODES")
+    with pytest.raises(SpecError, match=r"is 100,099, the limit is 100,000 \(set BTMISSION_MAX"):
+        parse_yaml(wide)  # 100 repeats of 1,001 items: just over the default
+    monkeypatch.setenv("BTMISSION_MAX_YAML_ALIAS_NODES", "200_000")
+    assert len(parse_yaml(wide).data["b"]) == 101
 
 
 def test_a_bad_environment_value_warns_and_keeps_the_default(
