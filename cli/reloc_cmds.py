@@ -15,6 +15,8 @@ from btmission.cli.common import BadInput, ChecksFailed, file_option, handle_spe
 from btmission.cli.map_cmds import (
     _xyz,
     fill_option,
+    finite,
+    finite_numbers,
     load_map_arg,
     map_argument,
     resolution_option,
@@ -28,13 +30,7 @@ def _pose4(
 ) -> tuple[float, float, float, float] | None:
     if value is None:
         return None
-    parts = [p.strip() for p in value.split(",")]
-    try:
-        x, y, z, yaw = (float(p) for p in parts)
-    except ValueError:
-        raise click.BadParameter(
-            f"expected X,Y,Z,YAW (metres and degrees), got '{value}'"
-        ) from None
+    x, y, z, yaw = finite_numbers(value, 4, "X,Y,Z,YAW (metres and degrees, finite numbers)")
     return x, y, z, yaw
 
 
@@ -62,10 +58,12 @@ def read_points(path: Path, what: str = "scan") -> np.ndarray:
     if not path.is_file():
         raise BadInput(f"{path}: no such file")
     if suffix == ".npy":
+        from btmission.world.io import NUMBER, NpzField, read_npy
+
         try:
-            pts = np.load(path, allow_pickle=False)
-        except Exception as exc:  # ValueError, OSError, pickle refusal
-            raise BadInput(f"{path}: not a readable .npy file ({exc})") from None
+            pts = read_npy(path, NpzField(what, NUMBER, None, "an array of numbers"))
+        except MapError as exc:
+            raise BadInput(str(exc)) from None
     elif suffix in (".ply", ".pcd"):
         try:
             cols, _ = read_cloud(path)
@@ -73,11 +71,18 @@ def read_points(path: Path, what: str = "scan") -> np.ndarray:
             raise BadInput(str(exc)) from None
         pts = np.stack([np.asarray(cols[c], dtype=np.float64) for c in "xyz"], axis=1)
     elif suffix in (".csv", ".txt") and what == "trajectory":
+        from btmission import limits
+        from btmission.spec.source import read_regular_file
+
         try:
-            text = path.read_text(encoding="utf-8").replace(",", " ")
+            data = read_regular_file(path, limits.MAX_FILE_BYTES)
+        except OSError as exc:
+            raise BadInput(f"{path}: {exc}") from None
+        try:
+            text = data.decode("utf-8").replace(",", " ")
             rows = [ln.split() for ln in text.splitlines() if ln.strip() and not ln.startswith("#")]
             pts = np.array([[float(v) for v in r[:3]] for r in rows if len(r) >= 3])
-        except ValueError as exc:
+        except ValueError as exc:  # (UnicodeDecodeError too)
             raise BadInput(f"{path}: expected lines of x, y, z numbers ({exc})") from None
     else:
         known = ".ply, .pcd, .npy" + (", .csv, .txt" if what == "trajectory" else "")
@@ -232,7 +237,7 @@ def reloc() -> None:
 def _metres(name: str, default: float, text: str, *, positive: bool = True) -> Any:
     return click.option(
         name,
-        type=click.FloatRange(min=0, min_open=positive),
+        type=finite(min=0, min_open=positive),
         default=default,
         show_default=True,
         help=text,
@@ -323,7 +328,7 @@ def build_cmd(
 @click.option("--top-k", type=click.IntRange(1), default=None, help="Candidate poses to register.")
 @click.option(
     "--min-confidence",
-    type=click.FloatRange(0, 1),
+    type=finite(min=0, max=1),
     default=None,
     help="Below this the scan is 'not localised' (default 0.2).",
 )
@@ -387,15 +392,17 @@ scan_pose_options = [
         metavar="X,Y,Z",
         help="Sensor position in the map (m).",
     ),
-    click.option("--yaw", type=float, default=0.0, show_default=True, help="Heading (degrees)."),
+    click.option("--yaw", type=finite(), default=0.0, show_default=True, help="Heading (degrees)."),
     click.option(
         "--dust",
-        type=click.FloatRange(0, 1),
+        type=finite(min=0, max=1),
         default=0.0,
         show_default=True,
         help="Fraction of the returns replaced by dust.",
     ),
-    click.option("--seed", type=int, default=0, show_default=True, help="Noise seed."),
+    click.option(
+        "--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Noise seed."
+    ),
 ]
 
 

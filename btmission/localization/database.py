@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from btmission import limits
 from btmission.localization.descriptor import DescriptorParams, describe
 from btmission.localization.scan import (
     OS1_32,
@@ -49,7 +50,15 @@ from btmission.localization.scan import (
     record,
     simulate_scan,
 )
-from btmission.world.io import read_npz
+from btmission.world.io import (
+    MAP_FIELDS,
+    NUMBER,
+    TEXT,
+    NpzField,
+    json_field,
+    read_npz,
+    require_file,
+)
 from btmission.world.voxel import FREE, OCCUPIED, MapError, VoxelMap
 
 DB_FORMAT = "btmission-reloc-db"
@@ -273,43 +282,66 @@ def save_database(db: PlaceDatabase, path: str | Path) -> Path:
 
 
 _FIELDS = ("positions", "floor_z", "ring_keys", "polar", "cloud", "state", "resolution", "origin")
+DB_FIELDS: tuple[NpzField, ...] = (
+    *(f for f in MAP_FIELDS if f.name != "meta"),
+    NpzField("positions", NUMBER, 2, "n × 3 sensor positions", 3),
+    NpzField("floor_z", NUMBER, 1, "n floor heights"),
+    NpzField("ring_keys", NUMBER, 2, "n × rings ring keys"),
+    NpzField("polar", NUMBER, 3, "n × rings × sectors polar images"),
+    NpzField("cloud", NUMBER, 2, "m × 3 map points", 3),
+    NpzField("map_meta", TEXT, 0, "a JSON text"),
+    NpzField("descriptor", TEXT, 0, "a JSON text"),
+    NpzField("sensor", TEXT, 0, "a JSON text"),
+    NpzField("meta", TEXT, 0, "a JSON text"),
+)
 
 
 def load_database(path: str | Path) -> PlaceDatabase:
     """Read a database written by :func:`save_database`; :class:`DatabaseError` names the file and
     what is wrong with it."""
     p = Path(path)
-    if not p.is_file():
-        raise DatabaseError(f"{p}: no such file")
     try:
-        data = read_npz(p)
+        require_file(p)
+        data = read_npz(p, DB_FIELDS)
+        fmt = str(data["format"]) if "format" in data else ""
+        if fmt != DB_FORMAT:
+            hint = (
+                " (a voxel map: build a database from it with `btmission reloc build`)"
+                if (fmt == "btmission-voxelmap")
+                else ""
+            )
+            raise DatabaseError(
+                f"{p}: not a btmission place database (format '{fmt or 'missing'}'){hint}"
+            )
+        version = int(data["version"]) if "version" in data else None
+        if version != DB_VERSION:
+            raise DatabaseError(
+                f"{p}: unsupported place database version {version} "
+                f"(this btmission reads {DB_VERSION})"
+            )
+        missing = [k for k in _FIELDS if k not in data]
+        if missing:
+            raise DatabaseError(f"{p}: the database lacks {', '.join(missing)}")
+        if len(data["cloud"]) > limits.MAX_POINTS.limit:
+            raise DatabaseError(
+                f"{p}: field 'cloud': "
+                + limits.MAX_POINTS.exceeded("its number of points", len(data["cloud"]))
+            )
+        records = {k: json_field(p, data, k) for k in ("descriptor", "sensor", "meta", "map_meta")}
     except MapError as exc:
         raise DatabaseError(str(exc)) from None
-    fmt = str(data.get("format", ""))
-    if fmt != DB_FORMAT:
-        hint = (
-            " (a voxel map: build a database from it with `btmission reloc build`)"
-            if (fmt == "btmission-voxelmap")
-            else ""
-        )
-        raise DatabaseError(
-            f"{p}: not a btmission place database (format '{fmt or 'missing'}'){hint}"
-        )
-    version = int(data["version"]) if "version" in data else None
-    if version != DB_VERSION:
-        raise DatabaseError(
-            f"{p}: unsupported place database version {version} (this btmission reads {DB_VERSION})"
-        )
-    missing = [k for k in _FIELDS if k not in data]
-    if missing:
-        raise DatabaseError(f"{p}: the database lacks {', '.join(missing)}")
+    field_name = "descriptor"
     try:
-        params = from_record(DescriptorParams, json.loads(str(data["descriptor"])))
-        sensor = from_record(LidarSensor, json.loads(str(data["sensor"])))
-        meta = json.loads(str(data["meta"])) if "meta" in data else {}
-        map_meta = json.loads(str(data["map_meta"])) if "map_meta" in data else {}
+        params = from_record(DescriptorParams, records["descriptor"])
+        field_name = "sensor"
+        sensor = from_record(LidarSensor, records["sensor"])
+        if sensor.channels * sensor.azimuths > limits.MAX_POINTS.limit:
+            raise ValueError(
+                limits.MAX_POINTS.exceeded("its beams (channels × azimuths)", sensor.beams)
+            )
+        field_name = ""
         origin = np.asarray(data["origin"], dtype=np.float64).ravel()
-        vm = VoxelMap(data["state"], float(data["resolution"]), tuple(origin), map_meta)  # type: ignore[arg-type]
+        vm = VoxelMap(data["state"], float(data["resolution"]), tuple(origin), records["map_meta"])  # type: ignore[arg-type]
         return PlaceDatabase(
             np.asarray(data["positions"], dtype=np.float64),
             np.asarray(data["floor_z"], dtype=np.float64),
@@ -319,10 +351,11 @@ def load_database(path: str | Path) -> PlaceDatabase:
             vm,
             params,
             sensor,
-            meta,
+            records["meta"],
         )
     except (KeyError, TypeError, ValueError, MapError) as exc:
-        raise DatabaseError(f"{p}: {exc}") from None
+        where = f"field '{field_name}': " if field_name else ""
+        raise DatabaseError(f"{p}: {where}{exc}") from None
 
 
 def random_poses(

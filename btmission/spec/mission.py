@@ -10,16 +10,27 @@ expressions, commit conditions, and whether every agent's trees synthesise. Chec
 from __future__ import annotations
 
 import difflib
+import math
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Discriminator,
+    Field,
+    Tag,
+    ValidationInfo,
+    field_validator,
+)
 
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError, errors
+from btmission.limits import grid_shape
 from btmission.plugins import LoadedLibrary, load_library
+from btmission.spec.budgets import check_mission_scale
 from btmission.spec.common import Identifier, validate_model
 from btmission.spec.costexpr import CostExpr, CostExprError, parse_cost
 from btmission.spec.library import Atom, resolve_ref
@@ -42,12 +53,14 @@ class GeneratedMap(_Strict):
         description="Generator: an underground mine, free space, or a warehouse floor with "
         "rows of shelves."
     )
-    seed: int = Field(0, description="Random seed; the same seed gives the same map.")
+    seed: int = Field(0, ge=0, description="Random seed; the same seed gives the same map.")
     size: tuple[float, float, float] = Field(description="Extent [x, y, z] in metres.")
 
     @field_validator("size")
     @classmethod
     def _positive(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        if not all(math.isfinite(x) for x in v):
+            raise ValueError(f"every size component must be a finite number, got {list(v)}")
         if min(v) <= 0:
             raise ValueError("every size component must be > 0")
         return v
@@ -74,6 +87,14 @@ class WorldSpec(_Strict):
         description="Topological map for GA fleet dispatch (seed 004): a built-in map (mine, "
         "static_npr, static_spr) or a map YAML file relative to the mission. Default: none.",
     )
+
+    @field_validator("resolution")
+    @classmethod
+    def _voxel_budget(cls, v: float, info: ValidationInfo) -> float:
+        """A finite resolution, and a generated map within the voxel budget (before building)."""
+        m = info.data.get("map")
+        grid_shape(m.size if isinstance(m, GeneratedMap) else (1.0, 1.0, 1.0), v)
+        return v
 
 
 class AgentSpec(_Strict):
@@ -546,6 +567,7 @@ def _check_topomap(
 
 
 def load_mission_source(src: Source) -> Mission:
+    check_mission_scale(src)  # budgets first: a 20,000-task file is refused before it is built
     spec = validate_model(MissionSpec, src, "mission")
     return compile_mission(spec, src)
 

@@ -8,6 +8,9 @@ Duplicate keys, which PyYAML silently overwrites, are reported as errors here.
 
 from __future__ import annotations
 
+import os
+import re
+import stat
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,6 +18,7 @@ from typing import Any
 
 import yaml
 
+from btmission import limits
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
 
 PathKey = tuple[str | int, ...]
@@ -68,6 +72,77 @@ class Source:
         return Diagnostic(severity, code, message, format_path(path), self.locate(path, key=key))
 
 
+def _check_graph(root: yaml.Node, file: str) -> None:
+    """Refuse, before anything is built, a node graph that is cyclic (a recursive alias), nested
+    deeper than :data:`~btmission.limits.MAX_YAML_DEPTH` or that repeats more than
+    :data:`~btmission.limits.MAX_YAML_ALIAS_NODES` items through aliases ("billion laughs").
+
+    The composer keeps an alias as the very node object of its anchor, so an alias-expanded size
+    is counted once per distinct node (memoised), in time linear in the file, without expanding."""
+    max_depth = limits.MAX_YAML_DEPTH.limit
+    budget = limits.MAX_YAML_ALIAS_NODES.limit
+    expanded: dict[int, int] = {}  # id(node) -> nodes in its expansion (itself included)
+    on_path: set[int] = set()
+    distinct = 0
+
+    def fail(node: yaml.Node, message: str, code: str) -> SpecError:
+        m = node.start_mark
+        return SpecError(
+            [
+                Diagnostic(
+                    Severity.ERROR, code, message, "", Location(file, m.line + 1, m.column + 1)
+                )
+            ]
+        )
+
+    # iterative post-order walk: (node, depth, children not yet pushed?)
+    stack: list[tuple[yaml.Node, int, bool]] = [(root, 1, True)]
+    while stack:
+        node, depth, enter = stack.pop()
+        key = id(node)
+        if enter:
+            if key in expanded:
+                continue
+            if key in on_path:
+                raise fail(
+                    node,
+                    "recursive alias: this item contains an alias (*name) to itself, "
+                    "so it has no end",
+                    "yaml-alias",
+                )
+            if depth > max_depth:
+                m = node.start_mark
+                raise _too_deep(file, m.line + 1, m.column + 1, depth)
+            distinct += 1
+            kids = _children(node)
+            if not kids:
+                expanded[key] = 1
+                continue
+            on_path.add(key)
+            stack.append((node, depth, False))
+            stack.extend((k, depth + 1, True) for k in kids)
+            continue
+        on_path.discard(key)
+        total = 1 + sum(expanded[id(k)] for k in _children(node))
+        expanded[key] = total
+        if total - distinct > budget:
+            raise fail(
+                node,
+                limits.MAX_YAML_ALIAS_NODES.exceeded(
+                    "alias expansion (items repeated through *aliases)", total - distinct
+                ),
+                "yaml-aliases",
+            )
+
+
+def _children(node: yaml.Node) -> list[yaml.Node]:
+    if isinstance(node, yaml.MappingNode):
+        return [n for pair in node.value for n in pair]
+    if isinstance(node, yaml.SequenceNode):
+        return list(node.value)
+    return []
+
+
 def _convert(
     node: yaml.Node,
     path: PathKey,
@@ -75,6 +150,7 @@ def _convert(
     problems: list[Diagnostic],
     loader: yaml.SafeLoader,
 ) -> Any:
+    """Plain data from a checked node graph (:func:`_check_graph` bounds its depth and size)."""
     mark = node.start_mark
     src.positions.setdefault(path, (mark.line + 1, mark.column + 1))
     if isinstance(node, yaml.MappingNode):
@@ -106,10 +182,62 @@ def _convert(
     return loader.construct_object(node, deep=True)
 
 
+def _too_deep(file: str, line: int = 1, col: int = 1, depth: int | None = None) -> SpecError:
+    budget = limits.MAX_YAML_DEPTH
+    what = f"is {depth:,}" if depth is not None else "is too deep for the YAML reader"
+    return SpecError(
+        [Diagnostic(Severity.ERROR, "yaml-depth", f"nesting depth {what}, the limit is "
+                    f"{budget.show()} levels (set {budget.env} to change it)", "",
+                    Location(file, line, col))]
+    )  # fmt: skip
+
+
+# quoted strings and comments (skipped), flow brackets (counted)
+_FLOW_TOKEN = re.compile(
+    r""""(?:[^"\\]|\\.)*"|'(?:[^']|'')*'|(?:^|(?<=\s))#[^\n]*|[\[\]{}]""", re.M
+)
+
+
+def _check_flow_depth(text: str, file: str) -> None:
+    """Refuse ``[[[[...`` / ``{{{...`` nested deeper than the budget before PyYAML sees it (its
+    scanner slows down quadratically with flow depth, its composer recurses)."""
+    if text.count("[") + text.count("{") <= (limit := limits.MAX_YAML_DEPTH.limit):
+        return
+    depth = 0
+    for m in _FLOW_TOKEN.finditer(text):
+        c = m.group()
+        if c in "[{":
+            depth += 1
+            if depth > limit:
+                line = text.count("\n", 0, m.start()) + 1
+                col = m.start() - (text.rfind("\n", 0, m.start()) + 1) + 1
+                raise _too_deep(file, line, col, depth)
+        elif c in "]}":
+            depth = max(0, depth - 1)
+
+
+_FAST_LOADER: Any = getattr(yaml, "CSafeLoader", None)  # libyaml's, when PyYAML was built with it
+
+
+def _compose(text: str) -> yaml.Node | None:
+    """The node graph of ``text``: by libyaml when available (several times faster on large
+    files), else, and whenever libyaml finds an error, by PyYAML itself, whose messages (and
+    positions) are the ones btmission documents."""
+    if _FAST_LOADER is not None:
+        try:
+            return yaml.compose(text, Loader=_FAST_LOADER)  # type: ignore[no-any-return]
+        except yaml.YAMLError:
+            pass  # PyYAML says what is wrong
+    return yaml.compose(text, Loader=yaml.SafeLoader)
+
+
 def parse_yaml(text: str, file: str = "<input>") -> Source:
     """Parse one YAML document, keeping positions. Raises :class:`SpecError` on bad YAML."""
+    _check_flow_depth(text, file)
     try:
-        node = yaml.compose(text, Loader=yaml.SafeLoader)
+        node = _compose(text)
+    except RecursionError:  # PyYAML's composer recurses once per nesting level
+        raise _too_deep(file) from None
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         what = " ".join(str(x) for x in (exc.context, exc.problem) if x)
@@ -128,24 +256,84 @@ def parse_yaml(text: str, file: str = "<input>") -> Source:
         raise SpecError(
             [Diagnostic(Severity.ERROR, "empty", "the file is empty", "", Location(file, 1, 1))]
         )
+    _check_graph(node, file)
     problems: list[Diagnostic] = []
-    src.data = _convert(node, (), src, problems, yaml.SafeLoader(""))
+    try:
+        src.data = _convert(node, (), src, problems, yaml.SafeLoader(""))
+    except RecursionError:  # only when BTMISSION_MAX_YAML_DEPTH was raised very high
+        raise _too_deep(file) from None
     if problems:
         raise SpecError(problems)
     return src
 
 
 def read_yaml(path: str | Path) -> Source:
-    """Read and parse a YAML file; unreadable files become a :class:`SpecError`."""
+    """Read and parse a YAML file; unreadable files become a :class:`SpecError`.
+
+    Only regular files are read (a FIFO, ``/dev/zero`` or a directory is refused without waiting
+    on it), and only up to :data:`~btmission.limits.MAX_FILE_BYTES`."""
     p = Path(path)
+
+    def refuse(code: str, message: str) -> SpecError:
+        return SpecError([Diagnostic(Severity.ERROR, code, message, "", Location(str(p)))])
+
     try:
-        text = p.read_text(encoding="utf-8")
+        data = read_regular_file(p, limits.MAX_FILE_BYTES)
+        text = data.decode("utf-8")
     except FileNotFoundError:
-        raise SpecError(
-            [Diagnostic(Severity.ERROR, "no-file", "file not found", "", Location(str(p)))]
-        ) from None
+        raise refuse("no-file", "file not found") from None
+    except FileRefused as exc:
+        raise refuse(exc.code, str(exc)) from None
     except (OSError, UnicodeDecodeError) as exc:
-        raise SpecError(
-            [Diagnostic(Severity.ERROR, "unreadable", f"cannot read: {exc}", "", Location(str(p)))]
-        ) from None
+        raise refuse("unreadable", f"cannot read: {exc}") from None
     return parse_yaml(text, str(p))
+
+
+class FileRefused(OSError):
+    """A file that is not read: larger than its budget (``code`` ``too-large``) or not a regular
+    file (``unreadable``)."""
+
+    def __init__(self, message: str, code: str) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+_KINDS = (
+    (stat.S_ISDIR, "a directory"),
+    (stat.S_ISFIFO, "a FIFO (named pipe)"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISSOCK, "a socket"),
+)
+
+
+def read_regular_file(path: Path, budget: limits.Budget) -> bytes:
+    """The bytes of ``path`` when it is a regular file of at most ``budget`` bytes.
+
+    Raises :class:`FileRefused` (an :class:`OSError`) naming the problem otherwise. The file is
+    opened non-blocking and checked again once open, so a FIFO swapped in never blocks the read."""
+    limit = budget.limit
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            kind = next((name for test, name in _KINDS if test(st.st_mode)), "not a file")
+            raise FileRefused(
+                f"not a regular file but {kind}: only regular files are read", "unreadable"
+            )
+        if st.st_size > limit:
+            raise FileRefused(_too_large(st.st_size, budget), "too-large")
+        with os.fdopen(fd, "rb", closefd=False) as fh:
+            data = fh.read(limit + 1)
+    finally:
+        os.close(fd)
+    if len(data) > limit:  # grew while we read it
+        raise FileRefused(_too_large(len(data), budget), "too-large")
+    return data
+
+
+def _too_large(size: int, budget: limits.Budget) -> str:
+    return (
+        f"file too large: {size:,} bytes, the limit is {budget.show()} bytes "
+        f"(set {budget.env} to change it)"
+    )

@@ -26,13 +26,17 @@ A point cloud becomes a voxel map in one of two ways:
 from __future__ import annotations
 
 import json
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
 
-from btmission.world.voxel import FREE, OCCUPIED, UNKNOWN, MapError, VoxelMap
+from btmission import limits
+from btmission.world.voxel import FREE, OCCUPIED, UNKNOWN, MapError, VoxelMap, check_grid
 
 NPZ_FORMAT = "btmission-voxelmap"
 NPZ_VERSION = 1
@@ -44,19 +48,24 @@ Columns = dict[str, npt.NDArray[np.generic]]
 
 
 # ------------------------------------------------------------------------------------ clouds
+def require_file(p: Path) -> None:
+    """:class:`MapError` unless ``p`` is a regular file (a FIFO or a device is never opened)."""
+    if not p.is_file():
+        raise MapError(f"{p}: not a regular file" if p.exists() else f"{p}: no such file")
+
+
 def read_cloud(path: str | Path) -> tuple[Columns, list[str]]:
     """Read a ``.ply`` or ``.pcd`` point cloud: its per-point columns (``x``, ``y``, ``z``, ...) and
     header comments. Raises :class:`MapError` naming the file and the problem."""
     p = Path(path)
     suffix = p.suffix.lower()
-    if not p.is_file():
-        raise MapError(f"{p}: no such file")
-    if suffix == ".ply":
-        cols, comments = _read_ply(p)
-    elif suffix == ".pcd":
-        cols, comments = _read_pcd(p)
-    else:
+    require_file(p)
+    if suffix not in (".ply", ".pcd"):
         raise MapError(f"{p}: not a point cloud (expected .ply or .pcd)")
+    declared = _declared_points(p)
+    if declared > limits.MAX_POINTS.limit:
+        raise MapError(f"{p}: " + limits.MAX_POINTS.exceeded("its number of points", declared))
+    cols, comments = _read_ply(p) if suffix == ".ply" else _read_pcd(p)
     missing = [c for c in ("x", "y", "z") if c not in cols]
     if missing:
         raise MapError(
@@ -67,6 +76,35 @@ def read_cloud(path: str | Path) -> tuple[Columns, list[str]]:
         bad = int(np.sum(~np.all(np.isfinite(xyz), axis=1)))
         raise MapError(f"{p}: {bad} point(s) have NaN or infinite coordinates")
     return cols, comments
+
+
+def _declared_points(p: Path) -> int:
+    """The number of items a ``.ply`` header (every element) or a ``.pcd`` header (``POINTS``, or
+    ``WIDTH`` × ``HEIGHT``) declares; 0 when the header cannot be read (the reader then says why)."""
+    with p.open("rb") as fh:
+        head = fh.read(65536)
+    total, width, height = 0, 1, 1
+    for raw in head.split(b"\n"):
+        words = raw.split()
+        if not words:
+            continue
+        key = words[0].lower()
+        try:
+            if key == b"element" and len(words) >= 3:
+                total += int(words[2])
+            elif key == b"points" and len(words) >= 2:
+                total = max(total, int(words[1]))
+            elif key == b"width" and len(words) >= 2:
+                width = int(words[1])
+            elif key == b"height" and len(words) >= 2:
+                height = int(words[1])
+        except ValueError:
+            continue
+        if key in (b"end_header", b"data"):
+            break
+    if p.suffix.lower() == ".pcd":
+        total = max(total, width * height)
+    return total
 
 
 def _read_ply(p: Path) -> tuple[Columns, list[str]]:
@@ -142,8 +180,8 @@ def voxelize(
     fill: Fill = "free",
 ) -> VoxelMap:
     """Turn points into a voxel map (see the module docstring for the two conventions)."""
-    if not resolution > 0:
-        raise MapError(f"resolution must be > 0, got {resolution}")
+    if not (math.isfinite(resolution) and resolution > 0):
+        raise MapError(f"resolution must be a finite number > 0, got {resolution}")
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(pts) == 0:
         raise MapError("the point cloud is empty")
@@ -159,15 +197,19 @@ def voxelize(
             raise MapError(
                 f"voxel state {st[bad][0]!r} is not one of 0 (free), 1 (occupied), 2 (unknown)"
             )
+        span = np.rint((pts.max(axis=0) - lo) / resolution)
+        shape = tuple(int(v) + 1 for v in span)
+        check_grid(shape, f"{len(pts):,} points at {resolution:g} m")
         idx = np.rint((pts - lo) / resolution).astype(np.int64)
-        shape = tuple(int(v) + 1 for v in idx.max(axis=0))
         grid = np.zeros(shape, dtype=np.uint8)
         grid[idx[:, 0], idx[:, 1], idx[:, 2]] = st.astype(np.uint8)
         origin = lo - resolution / 2
         return VoxelMap(grid, resolution, (origin[0], origin[1], origin[2]))
     origin = np.floor(lo / resolution) * resolution - resolution
+    span = np.floor((pts.max(axis=0) - origin) / resolution)
+    shape = tuple(int(v) + 2 for v in span)
+    check_grid(shape, f"{len(pts):,} points spanning {_span(pts)} m at {resolution:g} m")
     idx = np.floor((pts - origin) / resolution).astype(np.int64)
-    shape = tuple(int(v) + 2 for v in idx.max(axis=0))
     grid = np.zeros(shape, dtype=np.uint8)
     grid[idx[:, 0], idx[:, 1], idx[:, 2]] = OCCUPIED
     if fill == "unknown":
@@ -175,6 +217,11 @@ def voxelize(
     elif fill == "enclosed":
         _mark_outside_unknown(grid)
     return VoxelMap(grid, resolution, (origin[0], origin[1], origin[2]))
+
+
+def _span(pts: npt.NDArray[np.float64]) -> str:
+    ext = pts.max(axis=0) - pts.min(axis=0)
+    return " × ".join(f"{v:g}" for v in ext)
 
 
 def _mark_outside_unknown(grid: npt.NDArray[np.uint8]) -> None:
@@ -212,8 +259,7 @@ def load_map(path: str | Path, resolution: float | None = None, *, fill: Fill = 
     suffix = p.suffix.lower()
     if suffix not in MAP_SUFFIXES:
         raise MapError(f"{p}: unknown map format '{suffix}' (expected .npz, .ply or .pcd)")
-    if not p.is_file():
-        raise MapError(f"{p}: no such file")
+    require_file(p)
     if suffix == ".npz":
         vm = _load_npz(p)
         if resolution is not None and not np.isclose(resolution, vm.resolution):
@@ -234,7 +280,10 @@ def load_map(path: str | Path, resolution: float | None = None, *, fill: Fill = 
         raise MapError(f"{p}: give the voxel resolution for this point cloud (e.g. 0.5 m)")
     xyz = np.stack([np.asarray(cols[c], dtype=np.float64) for c in "xyz"], axis=1)
     states = cols.get("state")
-    vm = voxelize(xyz, res, states=states, fill=fill)
+    try:
+        vm = voxelize(xyz, res, states=states, fill=fill)
+    except MapError as exc:
+        raise MapError(f"{p}: {exc}") from None
     vm.meta = {"source": str(p), "points": len(xyz)}
     return vm
 
@@ -250,18 +299,130 @@ def _comment_resolution(comments: list[str]) -> float | None:
     return None
 
 
-def read_npz(p: Path) -> dict[str, npt.NDArray[Any]]:
-    """Every array of an ``.npz`` file (no pickles); :class:`MapError` when it cannot be read."""
+@dataclass(frozen=True)
+class NpzField:
+    """What one array of an ``.npz`` file must be, checked from its npy header before any data is
+    decompressed: the dtype kinds accepted (numpy's ``dtype.kind`` letters), the number of
+    dimensions, the length of the last axis, and what to call it in messages."""
+
+    name: str
+    kinds: str
+    ndim: int | None
+    expected: str
+    width: int | None = None
+
+    def problem(self, shape: tuple[int, ...], dtype: np.dtype[Any]) -> str | None:
+        """Why an array of ``shape`` and ``dtype`` cannot be this field (None when it can)."""
+        if dtype.hasobject or dtype.kind not in self.kinds:
+            return f"expected {self.expected}, found {_describe(shape, dtype)}"
+        if (self.ndim is not None and len(shape) != self.ndim) or (
+            self.width is not None and (not shape or shape[-1] != self.width)
+        ):
+            return f"expected {self.expected}, found {_describe(shape, dtype)}"
+        n = math.prod(shape)
+        if dtype.kind == "U":
+            chars = n * (dtype.itemsize // 4)
+            if chars > limits.MAX_TEXT_CHARS.limit:
+                return limits.MAX_TEXT_CHARS.exceeded("its length (characters)", chars)
+        elif n > limits.MAX_VOXELS.limit:
+            dims = " × ".join(f"{d:,}" for d in shape)
+            return limits.MAX_VOXELS.exceeded(f"its size ({dims} values)", n)
+        return None
+
+
+def _describe(shape: tuple[int, ...], dtype: np.dtype[Any]) -> str:
+    one, many = {
+        "U": ("a text", "texts"),
+        "i": ("a whole number", "whole numbers"),
+        "u": ("a whole number", "whole numbers"),
+        "f": ("a number", "numbers"),
+        "b": ("a true/false value", "true/false values"),
+    }.get(dtype.kind, (f"a {dtype} value", f"{dtype} values"))
+    return f"{many} of shape {shape}" if shape else one
+
+
+TEXT = "U"
+NUMBER = "iuf"
+WHOLE = "iu"
+MAP_FIELDS: tuple[NpzField, ...] = (
+    NpzField("format", TEXT, 0, "a text"),
+    NpzField("version", WHOLE, 0, "a whole number"),
+    NpzField("state", WHOLE + "b", 3, "a 3D grid of voxel states (0, 1, 2)"),
+    NpzField("resolution", NUMBER, 0, "a number (m)"),
+    NpzField("origin", NUMBER, 1, "three numbers [x, y, z]", 3),
+    NpzField("meta", TEXT, 0, "a JSON text"),
+)
+MAX_NPZ_MEMBERS = 64
+
+
+def read_npz(p: Path, fields: Sequence[NpzField] = MAP_FIELDS) -> dict[str, npt.NDArray[Any]]:
+    """The arrays ``fields`` of an ``.npz`` file (those present; others are not read).
+
+    Every field's npy header (shape, dtype) is checked before any data is decompressed, against
+    the field and the budgets :data:`~btmission.limits.MAX_VOXELS` (values per array) and
+    :data:`~btmission.limits.MAX_TEXT_CHARS` (texts), so a zip bomb is refused in milliseconds.
+    Raises :class:`MapError` naming the file, the field and what was expected."""
+    import zipfile
+
     try:
-        with p.open("rb") as fh, np.load(fh, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
-    except Exception as exc:  # zipfile.BadZipFile, ValueError, OSError...
-        raise MapError(f"{p}: not a readable .npz file ({exc})") from None
+        with p.open("rb") as fh, zipfile.ZipFile(fh) as zf:
+            infos = zf.infolist()
+            if len(infos) > MAX_NPZ_MEMBERS:
+                raise MapError(f"{p}: {len(infos):,} arrays in the file, expected at most "
+                               f"{MAX_NPZ_MEMBERS}")  # fmt: skip
+            members = {i.filename[: -len(".npy")]: i for i in infos if i.filename.endswith(".npy")}
+            present = [f for f in fields if f.name in members]
+            for f in present:
+                with zf.open(members[f.name]) as stream:
+                    shape, dtype = _npy_header(p, f.name, stream)
+                problem = f.problem(shape, dtype)
+                if problem:
+                    raise MapError(f"{p}: field '{f.name}': {problem}")
+            out: dict[str, npt.NDArray[Any]] = {}
+            for f in present:
+                with zf.open(members[f.name]) as stream:
+                    out[f.name] = np.lib.format.read_array(stream, allow_pickle=False)
+            return out
+    except MapError:
+        raise
+    except Exception as exc:  # zipfile.BadZipFile, ValueError, OSError, EOFError, zlib.error...
+        raise MapError(f"{p}: not a readable .npz file ({exc or type(exc).__name__})") from None
+
+
+def read_npy(p: Path, field: NpzField) -> npt.NDArray[Any]:
+    """The array of a ``.npy`` file, its header checked against ``field`` and the budgets first."""
+    try:
+        with p.open("rb") as fh:
+            shape, dtype = _npy_header(p, field.name, fh)
+            problem = field.problem(shape, dtype)
+            if problem:
+                raise MapError(f"{p}: {problem}")
+            fh.seek(0)
+            return np.load(fh, allow_pickle=False)  # type: ignore[no-any-return]
+    except MapError:
+        raise
+    except Exception as exc:  # ValueError, OSError, EOFError...
+        raise MapError(f"{p}: not a readable .npy file ({exc or type(exc).__name__})") from None
+
+
+def _npy_header(p: Path, name: str, stream: Any) -> tuple[tuple[int, ...], np.dtype[Any]]:
+    fmt = np.lib.format
+    try:
+        version = fmt.read_magic(stream)
+        if version == (1, 0):
+            shape, _, dtype = fmt.read_array_header_1_0(stream)
+        elif version == (2, 0):
+            shape, _, dtype = fmt.read_array_header_2_0(stream)
+        else:
+            raise ValueError(f"npy format version {version} is not supported")
+    except ValueError as exc:
+        raise MapError(f"{p}: field '{name}' is not a readable array ({exc})") from None
+    return tuple(int(d) for d in shape), np.dtype(dtype)
 
 
 def _load_npz(p: Path) -> VoxelMap:
-    data = read_npz(p)
-    fmt = str(data.get("format", ""))
+    data = read_npz(p, MAP_FIELDS)
+    fmt = str(data["format"]) if "format" in data else ""
     if fmt != NPZ_FORMAT:
         raise MapError(f"{p}: not a btmission voxel map (format '{fmt or 'missing'}')")
     version = int(data["version"]) if "version" in data else None
@@ -272,13 +433,28 @@ def _load_npz(p: Path) -> VoxelMap:
     missing = [k for k in ("state", "resolution", "origin") if k not in data]
     if missing:
         raise MapError(f"{p}: the map lacks {', '.join(missing)}")
-    meta = json.loads(str(data["meta"])) if "meta" in data else {}
+    meta = json_field(p, data, "meta")
     origin = np.asarray(data["origin"], dtype=np.float64).ravel()
-    if origin.shape != (3,):
-        raise MapError(f"{p}: origin must hold three numbers")
-    return VoxelMap(
-        data["state"], float(data["resolution"]), (origin[0], origin[1], origin[2]), meta
-    )
+    res = float(data["resolution"])
+    if not (math.isfinite(res) and res > 0):
+        raise MapError(f"{p}: field 'resolution': expected a number > 0 (m), found {res:g}")
+    return VoxelMap(data["state"], res, (origin[0], origin[1], origin[2]), meta)
+
+
+def json_field(p: Path, data: dict[str, npt.NDArray[Any]], name: str) -> dict[str, Any]:
+    """The JSON object in text field ``name`` (``{}`` when absent); :class:`MapError` otherwise."""
+    if name not in data:
+        return {}
+    try:
+        value = json.loads(str(data[name]))
+    except ValueError as exc:  # json.JSONDecodeError, and too deep nesting (RecursionError is not)
+        raise MapError(f"{p}: field '{name}': expected a JSON text ({exc})") from None
+    except RecursionError:
+        raise MapError(f"{p}: field '{name}': the JSON text is nested too deeply") from None
+    if not isinstance(value, dict):
+        raise MapError(f"{p}: field '{name}': expected a JSON object {{...}}, found "
+                       f"{type(value).__name__}")  # fmt: skip
+    return value
 
 
 def save_map(vm: VoxelMap, path: str | Path, *, ascii: bool = False) -> Path:

@@ -18,13 +18,14 @@ the same map, voxel for voxel. Carving works on the bounding box of each tunnel 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
 
-from btmission.world.voxel import FREE, OCCUPIED, UNKNOWN, MapError, VoxelMap
+from btmission.world.voxel import FREE, OCCUPIED, UNKNOWN, MapError, VoxelMap, checked_shape
 
 Vec3 = tuple[float, float, float]
 
@@ -94,13 +95,23 @@ def _check_size(size: Sequence[float], resolution: float) -> tuple[float, float,
         raise MapError(f"size must be three numbers [x, y, z] in metres, got {list(size)}")
     sx, sy, sz = (float(v) for v in size)
     lo = MIN_SIZE_M
+    if not all(math.isfinite(v) for v in (sx, sy, sz)):
+        raise MapError(f"size must be three finite numbers (m), got {sx:g} × {sy:g} × {sz:g}")
     if sx < lo[0] or sy < lo[1] or sz < lo[2]:
         raise MapError(
             f"a mine needs at least {lo[0]:g} × {lo[1]:g} × {lo[2]:g} m (got {sx:g} × {sy:g} × {sz:g})"
         )
     if not 0 < resolution <= 1.0:
         raise MapError(f"mine resolution must be in (0, 1] m, got {resolution:g}")
+    checked_shape((sx, sy, sz), resolution)  # the voxel budget, before anything is laid out
     return sx, sy, sz
+
+
+def check_seed(seed: int) -> int:
+    """A generator seed: a whole number ≥ 0 (numpy's generators refuse negative ones)."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise MapError(f"seed must be a whole number ≥ 0, got {seed!r}")
+    return int(seed)
 
 
 def _spanning_edges(
@@ -377,8 +388,9 @@ def generate_mine(
     Raises :class:`MapError` for a size too small to hold a mine (below 40 × 30 × 6 m) or a
     resolution outside (0, 1] m.
     """
+    seed = check_seed(seed)
     sx, sy, sz = _check_size(size, resolution)
-    rng = np.random.default_rng(int(seed))
+    rng = np.random.default_rng(seed)
     nodes, tunnels, machines, patches, launch = _layout(rng, sx, sy, sz, clutter)
     vm = VoxelMap.empty((sx, sy, sz), resolution, (0.0, 0.0, -FLOOR_ROCK_M), fill=OCCUPIED)
     for t in tunnels:
@@ -457,6 +469,8 @@ def warehouse_world(size: Sequence[float], resolution: float, seed: int = 0) -> 
     runs along each wall (the docks and drop-off area). No floor, walls or roof: the map is the
     free space the robots drive in, standing on z = 0. The same seed gives the same map.
     """
+    seed = check_seed(seed)
+    checked_shape(size, resolution)
     x, y, _ = (float(v) for v in size)
     if x < 8 or y < 8:
         raise MapError(f"a warehouse needs at least 8 × 8 m, got {x:g} × {y:g}")

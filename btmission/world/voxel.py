@@ -33,6 +33,27 @@ class MapError(ValueError):
     """A map or a position on it cannot be used (bad file, point outside the map, ...)."""
 
 
+def checked_shape(size: Sequence[float], resolution: float) -> tuple[int, int, int]:
+    """The grid shape of ``size`` metres at ``resolution`` m, within the voxel budget
+    (:func:`btmission.limits.grid_shape`); :class:`MapError` otherwise, before any allocation."""
+    from btmission.limits import grid_shape
+
+    try:
+        return grid_shape(size, resolution)
+    except (TypeError, ValueError) as exc:
+        raise MapError(str(exc)) from None
+
+
+def check_grid(shape: Sequence[int], what: str) -> None:
+    """:class:`MapError` when a grid of ``shape`` would exceed the voxel budget."""
+    from btmission.limits import check_voxels
+
+    try:
+        check_voxels(shape, what)
+    except ValueError as exc:
+        raise MapError(str(exc)) from None
+
+
 @dataclass(eq=False)
 class VoxelMap:
     """Occupancy voxel grid with its resolution (m) and origin (world corner of voxel 0,0,0)."""
@@ -74,11 +95,7 @@ class VoxelMap:
         fill: int = FREE,
     ) -> VoxelMap:
         """A map of ``size`` metres (rounded up to whole voxels), every voxel ``fill``."""
-        if len(size) != 3 or min(size) <= 0:
-            raise MapError(f"size must be three positive numbers of metres, got {list(size)}")
-        if not resolution > 0:
-            raise MapError(f"resolution must be > 0, got {resolution}")
-        shape = tuple(max(1, int(np.ceil(s / resolution - 1e-9))) for s in size)
+        shape = checked_shape(size, resolution)
         ox, oy, oz = (float(v) for v in origin)
         return cls(np.full(shape, fill, dtype=np.uint8), resolution, (ox, oy, oz))
 
