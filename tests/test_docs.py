@@ -59,6 +59,7 @@ import difflib
 import os
 import re
 import shlex
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -226,14 +227,23 @@ def _trim(lines: list[str]) -> list[str]:
     return lines
 
 
-def _line_matches(expected: str, actual: str) -> bool:
+Line = tuple[str, str]
+"""A line as ``(normalised, as printed)``: a shown line matches a printed one if either matches."""
+
+
+def _matches(expected: str, actual: str) -> bool:
     if ELLIPSIS not in expected:
         return expected == actual
     pattern = ".*".join(re.escape(part) for part in expected.split(ELLIPSIS))
     return re.fullmatch(pattern, actual) is not None
 
 
-def output_matches(expected: list[str], actual: list[str]) -> bool:
+def _line_matches(expected: Line, actual: Line) -> bool:
+    # normalised first; as printed for '...' standing for a normalised part ("time ... ms")
+    return _matches(expected[0], actual[0]) or _matches(expected[1], actual[1])
+
+
+def output_matches(expected: list[Line], actual: list[Line]) -> bool:
     """Whether ``actual`` is what ``expected`` shows, ``...`` lines matching any run of lines."""
     n, m = len(expected), len(actual)
     # ok[i][j]: expected[i:] matches actual[j:]
@@ -241,7 +251,7 @@ def output_matches(expected: list[str], actual: list[str]) -> bool:
     ok[n][m] = True
     for i in range(n - 1, -1, -1):
         for j in range(m, -1, -1):
-            if expected[i].strip() == ELLIPSIS:
+            if expected[i][1].strip() == ELLIPSIS:
                 ok[i][j] = ok[i + 1][j] or (j < m and ok[i][j + 1])
             else:
                 ok[i][j] = j < m and _line_matches(expected[i], actual[j]) and ok[i + 1][j + 1]
@@ -255,8 +265,9 @@ def output_mismatch(example: Example, command: str, output: str, paths: dict[str
     shown = _trim([line.rstrip() for line in output.splitlines()])
     for real, doc in paths.items():
         shown = [line.replace(real, doc) for line in shown]
-    actual = _trim([normalise(line, paths) for line in output.splitlines()])
-    if output_matches(expected, actual):
+    actual = [normalise(line) for line in shown]
+    raw = _trim([line.rstrip() for line in example.output])
+    if output_matches(list(zip(expected, raw)), list(zip(actual, shown))):
         return ""
     first = example.line + 1
     diff = difflib.unified_diff(
@@ -277,6 +288,83 @@ def output_mismatch(example: Example, command: str, output: str, paths: dict[str
             *diff,
         ]
     )
+
+
+@pytest.mark.parametrize(
+    ("printed", "shown"),
+    [
+        (
+            "done in 12.4 s of wall time (65× real time)",
+            "done in <time> of wall time (<speed> real time)",
+        ),
+        ("median 0.26 ms, 775 Hz, 3 min", "median <time>, <rate>, <time>"),
+        (
+            "wrote runs/mission-20261124-031500-seed0.jsonl",
+            "wrote runs/mission-<stamp>-seed0.jsonl",
+        ),
+        ("started 2026-11-24T03:15:00Z", "started <date>"),
+        (f"{ROOT}/missions/a.yaml: OK   ", "missions/a.yaml: OK"),
+        (
+            "3 task(s), 5 actions, cost 1.80, 2 CPU(s), sizes 10,x",
+            "3 task(s), 5 actions, cost 1.80, 2 CPU(s), sizes 10,x",
+        ),
+    ],
+)
+def test_normalise(printed: str, shown: str) -> None:
+    assert normalise(printed) == shown
+
+
+def _lines(text: str) -> list[Line]:
+    return [(normalise(line), line) for line in text.splitlines()]
+
+
+@pytest.mark.parametrize(
+    ("shown", "printed", "matches"),
+    [
+        ("a\nb", "a\nb", True),
+        ("a\nb", "a\nc", False),
+        ("a\nb", "a\nb\nc", False),  # nothing may be left over
+        ("a\n...\nd", "a\nb\nc\nd", True),
+        ("a\n...\nd", "a\nd", True),  # '...' matches no line too
+        ("a\n...\nd", "a\nb\nc", False),
+        ("...\nz", "a\nz", True),
+        ("time ... ms (x ...)", "time 12 ms (x 3, y 4)", True),  # inside a line
+        ("time ... ms", "space 12 ms", False),
+        ("took 3 s", "took 4.5 s", True),  # normalised
+    ],
+)
+def test_output_matching(shown: str, printed: str, matches: bool) -> None:
+    assert output_matches(_lines(shown), _lines(printed)) is matches
+
+
+def test_mismatch_message_says_where_and_what() -> None:
+    example = Example("docs/x.md", 7, ("btmission", "validate"), 0, ("old line", "same"))
+    message = output_mismatch(example, "validate m.yaml", "new line\nsame\n", {})
+    assert message.startswith("docs/x.md:7: the output shown in the page (lines 8-9)")
+    assert "ran: btmission validate m.yaml" in message
+    assert "--- shown in the page:\nold line\nsame\n--- real output:\nnew line\nsame" in message
+    assert "-old line\n+new line" in message
+    assert output_mismatch(example, "validate", "old line\nsame\n\n", {}) == ""
+
+
+def test_examples_are_collected_with_their_output(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    page = tmp_path / "p.md"
+    page.write_text(
+        "```console\n$ btmission a  # exit 2\nout a\n$ btmission b  # slow\n$ btmission c\n```\n"
+        "<!-- output not compared: timings -->\n```console\n$ btmission d\nvaries\n```\n",
+        encoding="utf-8",
+    )
+    monkeypatch.setattr(sys.modules[__name__], "PAGES", [page])
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    got = [(e.line, e.args[1], e.exit_code, e.output, e.slow) for e in collect_examples()]
+    assert got == [
+        (2, "a", 2, ("out a",), False),
+        (4, "b", 0, None, True),
+        (5, "c", 0, None, False),
+        (9, "d", 0, None, False),
+    ]
 
 
 UPDATE_ENV = "BTMISSION_UPDATE_DOCS"
