@@ -12,7 +12,8 @@ Graphviz.
 **Output.** The lines after a ``$`` line, up to the next ``$`` line or the end of the block, are the
 output the page shows for that command, and the command must print exactly that. The comparison is
 against what a terminal shows: stdout and stderr together, in the order they were written
-(``Result.output`` of click's ``CliRunner``). A command followed directly by another ``$`` line (or
+(``Result.output`` of click's ``CliRunner``, which mixes the two since click 8.2, and by default
+before), with the program called ``btmission`` in usage lines. A command followed directly by another ``$`` line (or
 by the end of the block) shows no output, and its output is not compared — use that for lists of
 commands whose output the page shows elsewhere or not at all.
 
@@ -29,9 +30,10 @@ to run does not count (see :func:`normalise`):
   (``2026-11-24T03:15:00Z``) become ``<stamp>`` and ``<date>``.
 
 **Abbreviating.** A line that is exactly ``...`` matches any run of lines (none included); ``...``
-inside a line matches any text within that line (as doctest's ELLIPSIS). Use it for long output
-(show the first and last lines) and for numbers that vary without a unit (benchmark tables, the
-machine's description).
+inside a line matches any text within that line (as doctest's ELLIPSIS), compared both with the
+normalised line and with the line as printed (so ``time ... ms`` works). Use it for long output
+(show the first line or two, then ``...``) and for numbers that vary without a unit (benchmark
+tables, the machine's description).
 
 **Opting out.** A block whose output is truly not reproducible (it depends on the machine or on
 wall-clock timing beyond the rules above, and ``...`` would leave nothing worth showing) is marked
@@ -45,7 +47,9 @@ the fast selection stays fast. Mark a command slow when it takes more than a few
 
 When the output differs, the failure names ``page:line``, the command as run, the block as the page
 shows it, the real output (paths written back as on the page, ready to paste) and a unified diff of
-the two after normalisation.
+the two after normalisation. After a deliberate change of a message, ``BTMISSION_UPDATE_DOCS=1
+pytest tests/test_docs.py`` writes the real output into every failing block that has no ``...``
+(the test still fails, saying so); review the result with ``git diff docs/``.
 
 Python examples
 ---------------
