@@ -397,6 +397,21 @@ def update_page(example: Example, output: str, paths: dict[str, str]) -> bool:
     return True
 
 
+def test_update_page_writes_the_real_output_unless_abbreviated(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    page = tmp_path / "p.md"
+    page.write_text("```console\n$ btmission a\nold\n\n$ btmission b\nx\n...\n```\n", "utf-8")
+    a = Example("p.md", 2, ("btmission", "a"), 0, ("old", ""), source="$ btmission a")
+    assert update_page(a, f"wrote {tmp_path}/f.svg\nnew\n", {f"{tmp_path}/": ""})
+    assert page.read_text("utf-8") == (
+        "```console\n$ btmission a\nwrote f.svg\nnew\n\n$ btmission b\nx\n...\n```\n"
+    )
+    b = Example("p.md", 5, ("btmission", "b"), 0, ("x", "..."), source="$ btmission b")
+    assert not update_page(b, "y\n", {})  # the author's abbreviation is kept
+
+
 def _rewrite_outputs(args: list[str], tmp_path: Path) -> tuple[list[str], dict[str, str]]:
     """Send every output file or directory into ``tmp_path`` (keeping its base name).
 
