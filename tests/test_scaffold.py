@@ -130,6 +130,61 @@ def test_generated_test_passes(pkg: Path) -> None:
     assert "3 passed, 3 skipped" in proc.stdout, _output(proc)  # entry point: not installed
 
 
+REPLACEMENT_LIBRARY = f"""\
+library: {NAME}
+version: 1
+description: Rail-mounted inspection cart
+module: btmission_{NAME}
+variables:
+  home: {{doc: Parking position at the end of the rail}}
+goals:
+  - photo_taken(spot)
+  - at_goal(home)
+conditions:
+  powered: Drive and camera powered
+  at_goal: {{doc: At the position on the rail, params: [goal]}}
+  photo_taken: {{doc: A photo of the spot is stored, params: [spot]}}
+actions:
+  power_on: {{doc: Power the drive and camera, post: [powered]}}
+  move_to: {{doc: Move along the rail, params: [goal], pre: [powered], post: [at_goal(goal)]}}
+  photograph: {{doc: Take a photo, params: [spot], pre: [at_goal(spot)], post: [photo_taken(spot)]}}
+"""
+"""A library with none of the example's names, as a user writes after replacing the example."""
+
+
+def _replace_example(pkg: Path, library: str) -> subprocess.CompletedProcess[str]:
+    """Do what docs/plugins.md says (replace the example library and the example
+    implementation's name), then run the scaffolded tests."""
+    (pkg / f"btmission_{NAME}" / f"{NAME}.yaml").write_text(library, encoding="utf-8")
+    init = pkg / f"btmission_{NAME}" / "__init__.py"
+    text = init.read_text(encoding="utf-8")
+    assert '@IMPLEMENTATIONS.condition("is_ready")' in text
+    init.write_text(text.replace('condition("is_ready")', 'condition("powered")'), encoding="utf-8")
+    return _run([sys.executable, "-m", "pytest", "-q", str(pkg / "tests")], cwd=pkg, pythonpath=pkg)
+
+
+def test_generated_test_passes_after_the_example_is_replaced(pkg: Path) -> None:
+    """The scaffolded tests read the names from the library, so they test the user's library
+    instead of failing on the example's names."""
+    proc = _replace_example(pkg, REPLACEMENT_LIBRARY)
+    assert proc.returncode == 0, _output(proc)
+    # the check once, and a tree and a dry run for each of the two goals; by path only
+    assert "5 passed, 5 skipped" in proc.stdout, _output(proc)
+    assert "is_ready" not in (pkg / "tests" / f"test_{NAME}.py").read_text(encoding="utf-8")
+
+
+@pytest.mark.slow
+def test_generated_test_fails_on_a_broken_replacement(pkg: Path) -> None:
+    """The scaffolded tests can fail: an action whose precondition nothing achieves."""
+    broken = REPLACEMENT_LIBRARY.replace("pre: [powered]", "pre: [powered, docked]").replace(
+        "  powered: Drive and camera powered\n",
+        "  powered: Drive and camera powered\n  docked: At the charger\n",
+    )
+    proc = _replace_example(pkg, broken)
+    assert proc.returncode == 1, _output(proc)
+    assert "'docked' is assumed" in proc.stdout, _output(proc)
+
+
 def test_plugin_is_found_once_installed(pkg: Path, tmp_path: Path) -> None:
     site = tmp_path / "site"
     proc = _run(
