@@ -19,7 +19,7 @@ import py_trees
 from py_trees.common import Status
 
 from btmission.spec.library import Atom, Library
-from btmission.synthesis.pytrees import build_behaviour_tree
+from btmission.synthesis.pytrees import build_behaviour_tree, deep_tree_calls
 from btmission.synthesis.tree import Kind, Node, walk
 
 
@@ -171,14 +171,15 @@ def dry_run(
     root = build_behaviour_tree(tree, leaf)
     status = Status.INVALID
     ticks = 0
-    for _ in range(max_ticks):
-        world.tick = ticks
-        for _node in root.tick():
-            pass
-        ticks += 1
-        status = root.status
-        if status is Status.SUCCESS:
-            break
+    with deep_tree_calls(tree):
+        for _ in range(max_ticks):
+            world.tick = ticks
+            for _node in root.tick():
+                pass
+            ticks += 1
+            status = root.status
+            if status is Status.SUCCESS:
+                break
     return DryRunResult(status is Status.SUCCESS, ticks, world, status)
 
 
