@@ -156,7 +156,15 @@ def synth(
                 click.echo(
                     f"note: --true {cond}: no such condition in this tree (ignored)", err=True
                 )
-        run = dry_run_fn(result.tree, lib, initial, action_ticks=action_ticks, max_ticks=max_ticks)
+        try:
+            run = dry_run_fn(
+                result.tree, lib, initial, action_ticks=action_ticks, max_ticks=max_ticks
+            )
+        except RecursionError:  # py_trees recurses per level; the limit raised for it is capped
+            raise BadInput(
+                f"the tree is too deep to dry-run ({result.size} nodes); "
+                "export it with -o instead"
+            ) from None
         click.echo(run.format_trace(unicode=not ascii_only))
         if output is not None:
             emit_tree(result.tree, fmt, output, lib.name, unicode=not ascii_only)

@@ -303,6 +303,22 @@ def test_chain_dry_run_failing_at_the_bottom(chain: Path) -> None:
     assert "goal NOT reached (root FAILURE) after 2 tick(s)" in r.stdout
 
 
+def test_too_deep_for_the_capped_limit_is_a_clear_message(
+    chain: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Past the cap the dry run stops with RecursionError (never a crash): exit 2, no traceback."""
+    import btmission.recursion
+
+    monkeypatch.setattr(btmission.recursion, "MAX_RECURSION_LIMIT", 1500)
+    before = sys.getrecursionlimit()
+    r = invoke("synth", str(chain / "chain.yaml"), "--goal", GOAL, "--dry-run", "--max-ticks", "1")
+    assert r.exit_code == 2, r.output
+    assert r.stderr.strip().endswith(
+        f"Error: the tree is too deep to dry-run ({4 * CHAIN + 1} nodes); export it with -o instead"
+    )
+    assert sys.getrecursionlimit() == before
+
+
 def test_chain_library_check_and_show(chain: Path) -> None:
     r = invoke("library", "check", str(chain / "chain.yaml"))
     assert r.exit_code == 0, r.output
@@ -552,3 +568,39 @@ def test_python_api_still_imports_by_default(marked: Path) -> None:
     loaded = load_library(str(marked / "marked.yaml"))
     assert not loaded.module_not_imported
     assert (marked / "MARKER").exists()
+
+
+def test_quiet_composites_tick_exactly_like_py_trees(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The dry run's quiet composites give the same trace as plain py_trees ones."""
+    import btmission.synthesis.dryrun as dryrun
+    from btmission.plugins import load_library
+    from btmission.synthesis.backchain import synthesize
+    from btmission.synthesis.pytrees import LeafFactory, build_behaviour_tree
+    from btmission.synthesis.tree import Node
+
+    def traces() -> list[str]:
+        out = []
+        for name, goal, starts in [
+            ("aerial", "at_goal(goal)", [{}, {"is_flying": True}, {"has_home": True}]),
+            ("aerial", "landed_at_home", [{}, {"has_home": True}]),
+            ("ground", "delivered(pickup, dropoff)", [{}, {"is_localized": True}]),
+            ("compra", None, [{}]),
+            (str(REPO / "docs/examples/design.yaml"), "at_goal(goal)", [{}, {"battery_ok": True}]),
+        ]:
+            lib = load_library(name).library
+            goals = [goal] if goal else [str(g) for g in lib.goals[:1]]
+            tree = synthesize(lib, goals).tree
+            for start in starts:
+                for ticks in (1, 2, 3):
+                    r = dryrun.dry_run(tree, lib, start, action_ticks=ticks, max_ticks=60)
+                    out.append(r.format_trace())
+        return out
+
+    quiet = traces()
+    def plain(tree: Node, leaf: LeafFactory, quiet: bool = False) -> object:
+        return build_behaviour_tree(tree, leaf)
+
+    monkeypatch.setattr(dryrun, "build_behaviour_tree", plain)
+    assert traces() == quiet
+    assert any("\ngoal reached" in t for t in quiet)
+    assert any("goal NOT reached" in t for t in quiet)
