@@ -580,13 +580,14 @@ def test_quiet_composites_tick_exactly_like_py_trees(monkeypatch: pytest.MonkeyP
 
     def traces() -> list[str]:
         out = []
-        for name, goal, starts in [
+        cases: list[tuple[str, str | None, list[dict[str, bool]]]] = [
             ("aerial", "at_goal(goal)", [{}, {"is_flying": True}, {"has_home": True}]),
             ("aerial", "landed_at_home", [{}, {"has_home": True}]),
             ("ground", "delivered(pickup, dropoff)", [{}, {"is_localized": True}]),
             ("compra", None, [{}]),
             (str(REPO / "docs/examples/design.yaml"), "at_goal(goal)", [{}, {"battery_ok": True}]),
-        ]:
+        ]
+        for name, goal, starts in cases:
             lib = load_library(name).library
             goals = [goal] if goal else [str(g) for g in lib.goals[:1]]
             tree = synthesize(lib, goals).tree
