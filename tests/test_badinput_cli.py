@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import errno
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -426,6 +427,19 @@ def test_disk_full_while_writing_is_a_clear_message(
     assert sorted(p.name for p in targets.iterdir()) == [
         "dir.txt", "fifo.txt", "link.txt", "plain", "real.txt"
     ]  # fmt: skip  (no temporary file left behind)
+
+
+def test_directory_targets(targets: Path) -> None:
+    """A directory option accepts a directory, a link to one and a new path; nothing else."""
+    (targets / "runs").symlink_to(targets / "dir.txt")
+    for ok in ("dir.txt", "runs", "new/deeper"):
+        assert check_output_target(targets / ok, "dir") == targets / ok
+    for bad, what in (("real.txt", "a file"), ("fifo.txt", "a named pipe (FIFO)")):
+        with pytest.raises(BadInput, match=rf"is {re.escape(what)}, not a directory"):
+            check_output_target(targets / bad, "dir")
+    r = invoke("report", "x.jsonl", "--png", str(targets / "real.txt"))
+    assert r.exit_code == 2
+    assert f"Directory '{targets / 'real.txt'}' is a file." in r.stderr  # click's own check
 
 
 def test_writes_a_regular_file_atomically(targets: Path) -> None:
