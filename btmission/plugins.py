@@ -20,16 +20,23 @@ name on an :class:`Implementations` object called ``IMPLEMENTATIONS``::
     def is_flying(ctx, **args) -> bool: ...
 
 The runtime binds leaves to these by name; synthesis and export never need them.
+
+Checking is not running: inside :func:`implementation_imports` with ``"installed"`` (what
+``library check``/``show``, ``synth`` and ``validate`` use), a library given by *path* is loaded
+without importing its ``module:``, so checking a YAML file never executes code it names. An
+installed library (entry point) is trusted: loading its entry point imports its package anyway.
 """
 
 from __future__ import annotations
 
 import importlib
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Literal, TypeVar
 
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
 from btmission.spec.library import Library, load_library_source
@@ -38,6 +45,23 @@ from btmission.spec.source import parse_yaml, read_yaml
 ENTRY_POINT_GROUP = "btmission.libraries"
 
 T = TypeVar("T")
+
+ImportPolicy = Literal["always", "installed", "never"]
+"""When :func:`load_library` imports a library's implementation module (unless told explicitly):
+``always``; ``installed`` libraries only (entry points: already trusted code), not libraries
+given by path; ``never``."""
+_IMPORT_POLICY: ContextVar[ImportPolicy] = ContextVar("btmission_import_policy", default="always")
+
+
+@contextmanager
+def implementation_imports(policy: ImportPolicy) -> Iterator[None]:
+    """Within the block, :func:`load_library` (also through ``load_mission``) follows ``policy``
+    whenever its ``import_module`` is not given."""
+    token = _IMPORT_POLICY.set(policy)
+    try:
+        yield
+    finally:
+        _IMPORT_POLICY.reset(token)
 
 
 class Implementations:
@@ -161,6 +185,9 @@ class LoadedLibrary:
     implementations: Implementations | None = None
     import_error: str | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    module_not_imported: bool = False
+    """True when ``module:`` was deliberately not imported (checking, see
+    :func:`implementation_imports`): nothing is known about its implementations."""
 
     @property
     def runnable(self) -> bool:
@@ -195,12 +222,14 @@ def load_library(
     ref: str,
     base_dir: Path | None = None,
     *,
-    import_module: bool = True,
+    import_module: bool | None = None,
     where: Location = Location("<command line>"),
 ) -> LoadedLibrary:
     """Find a library by installed name or by path (relative to ``base_dir``) and load it.
 
     ``where`` is where ``ref`` was written, for the message when it cannot be found.
+    ``import_module`` says whether to import the implementation module named by ``module:``;
+    None (the default) follows :func:`implementation_imports` (outside it: import).
 
     Raises :class:`SpecError` when it cannot be found or its file is malformed; semantic findings
     (undefined references, …) are returned in ``diagnostics`` for the caller to judge.
@@ -224,6 +253,7 @@ def load_library(
             ) from None
         src = parse_yaml(text, shown)
         origin = f"entry point {ep.value}"
+        installed_ep = True
     else:
         path = Path(ref)
         if base_dir is not None and not path.is_absolute():
@@ -239,10 +269,17 @@ def load_library(
             raise SpecError([Diagnostic(Severity.ERROR, "unknown-library", message, ref, where)])
         src = read_yaml(path)
         origin = f"file {path}"
+        installed_ep = False
     lib, diags = load_library_source(src)
     loaded = LoadedLibrary(lib, diags, origin)
-    if import_module and lib.module:
-        bind_implementations(loaded)
+    if import_module is None:
+        policy = _IMPORT_POLICY.get()
+        import_module = policy == "always" or (policy == "installed" and installed_ep)
+    if lib.module:
+        if import_module:
+            bind_implementations(loaded)
+        else:
+            loaded.module_not_imported = True
     return loaded
 
 

@@ -10,7 +10,13 @@ from typing import Any, TypeVar
 import click
 
 from btmission.bench.synth import DEFAULT_SHAPES, SHAPES
-from btmission.cli.common import BadInput, file_option, int_option, positive_float_option
+from btmission.cli.common import (
+    BadInput,
+    int_option,
+    output_file_option,
+    output_target,
+    positive_float_option,
+)
 from btmission.cli.map_cmds import mine_resolution_option, size_option
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -23,6 +29,7 @@ def out_option(what: str, *short: str) -> Callable[[F], F]:
         *short,
         type=click.Path(file_okay=False, path_type=Path),
         default=Path("benchmarks/results"),
+        callback=output_target("dir"),
         show_default=True,
         help=f"Directory for {what}.",
     )
@@ -211,7 +218,7 @@ def _size_list(text: str, name: str) -> tuple[tuple[int, int], ...]:
 )
 @seed_option("Instance seed.")
 @out_option("auction.md, auction.csv (and auction.png)", "-o")
-@file_option("--png", help="Where to write the plot. [default: OUT/auction.png]")
+@output_file_option("--png", help="Where to write the plot. [default: OUT/auction.png]")
 def auction_bench(
     agents: str | None,
     tasks: str | None,

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from btmission.cli.common import BadInput, write_output
+from btmission.cli.common import BadInput, output_target, write_output
 
 FIGURE_NAMES = ("nmpc", "apf", "dphr", "unicycle", "compra")
 IMAGE_FORMATS = ("png", "svg", "pdf")
@@ -33,6 +33,7 @@ def control() -> None:
     "--output",
     type=click.Path(dir_okay=False, path_type=Path),
     required=True,
+    callback=output_target("file"),
     help="Image file to write (.png, .svg or .pdf).",
 )
 def plot(name: str, output: Path) -> None:

@@ -9,7 +9,7 @@ from typing import Any
 
 import click
 
-from btmission.cli.common import BadInput, handle_spec_errors, write_output
+from btmission.cli.common import BadInput, handle_spec_errors, output_target, write_output
 
 MAP_HELP = "A built-in map (static_npr, static_spr, mine) or a map YAML file."
 
@@ -77,7 +77,7 @@ def dispatch() -> None:
 @click.argument("map_ref", metavar="MAP")
 @click.option(
     "-o", "--output", type=click.Path(dir_okay=False, path_type=Path),
-    help="Write the map: .yaml (the map file format) or .png (a drawing). Default: YAML to stdout.",
+    callback=output_target("file"), help="Write the map: .yaml (the map file format) or .png (a drawing). Default: YAML to stdout.",
 )  # fmt: skip
 @handle_spec_errors
 def map_cmd(map_ref: str, output: Path | None) -> None:
@@ -149,6 +149,7 @@ delta_option = click.option(
 @seed_option
 @delta_option
 @click.option("--gantt", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              callback=output_target("file"),
               help="Write a Fig. 3-style PNG of the GA plan of one more instance of the last size.")  # fmt: skip
 @handle_spec_errors
 def static_cmd(
@@ -217,6 +218,7 @@ def static_cmd(
 @seed_option
 @delta_option
 @click.option("--gantt", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              callback=output_target("file"),
               help="Write the executed plan of the first run (first hour) as a PNG.")  # fmt: skip
 @handle_spec_errors
 def dynamic_cmd(
@@ -301,6 +303,7 @@ def _clip(tmap: Any, tracks: Any, t_end: float) -> Any:
 @seed_option
 @delta_option
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              callback=output_target("file"),
               help="Write the plan as a Fig. 3-style Gantt PNG.")  # fmt: skip
 @handle_spec_errors
 def plan_cmd(

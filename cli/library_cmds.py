@@ -7,7 +7,14 @@ from pathlib import Path
 
 import click
 
-from btmission.cli.common import ChecksFailed, echo_diagnostics, handle_spec_errors
+from btmission.cli.common import (
+    ChecksFailed,
+    checking_imports,
+    echo_diagnostics,
+    handle_spec_errors,
+    output_target,
+    with_implementations_option,
+)
 from btmission.diagnostics import errors
 from btmission.plugins import library_catalog, load_library
 from btmission.synthesis.checks import check_library
@@ -69,10 +76,16 @@ def list_cmd(as_json: bool) -> None:
 
 @library.command("show")
 @click.argument("ref")
+@with_implementations_option
 @handle_spec_errors
-def show_cmd(ref: str) -> None:
-    """Show a library's conditions, actions (pre → post) and variables."""
-    loaded = load_library(ref)
+def show_cmd(ref: str, with_implementations: bool) -> None:
+    """Show a library's conditions, actions (pre → post) and variables.
+
+    A library given by path is shown without importing its implementation module (checking
+    never runs plugin code); --with-implementations imports it and marks what is implemented.
+    """
+    with checking_imports(with_implementations):
+        loaded = load_library(ref)
     lib = loaded.library
     impl = loaded.implementations
     click.echo(f"library {lib.name} (version {lib.version}) from {loaded.origin}")
@@ -81,6 +94,11 @@ def show_cmd(ref: str) -> None:
     click.echo(
         f"  module: {lib.module or '-'}"
         + (f"  ({loaded.import_error})" if loaded.import_error else "")
+        + (
+            "  (not imported; --with-implementations imports it)"
+            if loaded.module_not_imported
+            else ""
+        )
     )
     if lib.variables:
         click.echo("variables:")
@@ -102,11 +120,14 @@ def show_cmd(ref: str) -> None:
             click.echo(f"  {'':<28} {a.doc}")
     if lib.goals:
         click.echo("goals: " + ", ".join(map(str, lib.goals)))
-    click.echo(
-        "(* = implemented)"
-        if impl and (impl.actions or impl.conditions)
-        else "(no implementations registered: the library synthesises and exports, but cannot run yet)"
-    )
+    if impl and (impl.actions or impl.conditions):
+        click.echo("(* = implemented)")
+    elif loaded.module_not_imported:
+        click.echo("(implementations not loaded: give --with-implementations to mark them)")
+    else:
+        click.echo(
+            "(no implementations registered: the library synthesises and exports, but cannot run yet)"
+        )
     echo_diagnostics(loaded.diagnostics)
 
 
@@ -118,14 +139,19 @@ def show_cmd(ref: str) -> None:
     help="Treat warnings (assumed conditions, ambiguous achievers, unreachable actions) as errors.",
 )
 @click.option("--json", "as_json", is_flag=True, help="Print findings as JSON.")
+@with_implementations_option
 @handle_spec_errors
-def check_cmd(ref: str, strict: bool, as_json: bool) -> None:
+def check_cmd(ref: str, strict: bool, as_json: bool, with_implementations: bool) -> None:
     """Check a library: references, parameters, cycles, assumed conditions, ambiguity, reachability.
+
+    A library given by path is checked without importing its implementation module;
+    --with-implementations imports it and also checks the names it registers.
 
     Exit status 1 when errors are found (with --strict: also warnings), 2 when the file cannot be
     read or does not match the library schema.
     """
-    loaded = load_library(ref)
+    with checking_imports(with_implementations):
+        loaded = load_library(ref)
     report = check_library(loaded.library, loaded.diagnostics, strict=strict)
     if as_json:
         click.echo(
@@ -157,6 +183,7 @@ def check_cmd(ref: str, strict: bool, as_json: bool) -> None:
     "--output",
     type=click.Path(path_type=Path),
     default=None,
+    callback=output_target("dir"),
     help="Directory to create (default: ./btmission-NAME).",
 )
 @click.option("--force", is_flag=True, help="Write into an existing non-empty directory.")

@@ -14,8 +14,8 @@ import click
 from btmission.cli.common import (
     BadInput,
     ChecksFailed,
-    file_option,
     handle_spec_errors,
+    output_file_option,
     write_output,
 )
 
@@ -203,8 +203,12 @@ def map_group() -> None:
 @click.option(
     "--unknown/--no-unknown", default=True, show_default=True, help="A few unknown patches."
 )
-@file_option("-o", "--output", required=True, help="Map file: .npz (recommended), .ply or .pcd.")
-@file_option("--survey", help="Also write the LiDAR survey point cloud (.ply or .pcd).")
+@output_file_option(
+    "-o", "--output", required=True, help="Map file: .npz (recommended), .ply or .pcd."
+)
+@output_file_option(
+    "--survey", help="Also write the LiDAR survey point cloud (.ply or .pcd)."
+)
 @click.option("--ascii", "ascii_", is_flag=True, help="ASCII .ply/.pcd instead of binary.")
 def generate_cmd(
     seed: int,
@@ -263,7 +267,7 @@ def generate_cmd(
 
 @map_group.command("show")
 @map_argument
-@file_option("--png", help="Write a top view with risk shading.")
+@output_file_option("--png", help="Write a top view with risk shading.")
 @click.option(
     "--z",
     type=finite(),
@@ -336,7 +340,7 @@ def _params(risk_radius: float | None, unknown_cost: float | None) -> Any:
     help="Move a start/goal in rock or outside the map to the nearest free voxel.",
 )
 @risk_options
-@file_option("--png", help="Write a top view with the path.")
+@output_file_option("--png", help="Write a top view with the path.")
 @click.option(
     "--json",
     "as_json",

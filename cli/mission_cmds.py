@@ -10,8 +10,10 @@ import click
 from btmission.cli.common import (
     BadInput,
     ChecksFailed,
+    checking_imports,
     echo_diagnostics,
     handle_spec_errors,
+    with_implementations_option,
     write_output,
 )
 from btmission.cli.synth_cmds import emit_tree, format_option, output_option
@@ -25,18 +27,23 @@ from btmission.synthesis.mission_tree import build_mission_tree
 @click.option(
     "--strict", is_flag=True, help="Warnings (e.g. assumed conditions) fail the check (exit 1)."
 )
+@with_implementations_option
 @handle_spec_errors
-def validate(mission_file: Path, strict: bool) -> None:
+def validate(mission_file: Path, strict: bool, with_implementations: bool) -> None:
     """Validate a mission file without running it.
 
     Checks the schema, ids, libraries, task types, task fields, cost expressions, commit
     conditions, that every agent's trees synthesise, and against the world map that agent starts
     and task locations are inside the map, not in rock and reachable from some agent. Every
     problem is reported with file:line:col. Exit status 2 when the mission is invalid.
+
+    Libraries given by path are checked without importing their implementation modules;
+    --with-implementations imports them.
     """
     from btmission.world.checks import check_mission_world
 
-    m = load_mission(mission_file)
+    with checking_imports(with_implementations):
+        m = load_mission(mission_file)
     map_diags = check_mission_world(m)
     if errors(map_diags):
         raise SpecError(
@@ -73,6 +80,7 @@ def mission() -> None:
 @click.option(
     "--strict", is_flag=True, help="Assumed conditions and ambiguous achievers are errors."
 )
+@with_implementations_option
 @handle_spec_errors
 def tree_cmd(
     mission_file: Path,
@@ -81,13 +89,15 @@ def tree_cmd(
     fmt: str | None,
     output: Path | None,
     strict: bool,
+    with_implementations: bool,
 ) -> None:
     """Show an agent's mission tree, as in seed 000 Fig. 7.
 
     The root falls back from one branch per task type (task_assigned(type) → the back-chained
     subtree of the type's goal) to the default behaviour after the idle timeout, then to wait.
     """
-    m = load_mission(mission_file)
+    with checking_imports(with_implementations):
+        m = load_mission(mission_file)
     ids = [a.id for a in m.agents]
     if agent_id not in ids:
         raise BadInput(f"{mission_file}: no agent '{agent_id}' (agents: {', '.join(ids)})")

@@ -11,7 +11,13 @@ from typing import Any
 import click
 import numpy as np
 
-from btmission.cli.common import BadInput, ChecksFailed, file_option, handle_spec_errors
+from btmission.cli.common import (
+    BadInput,
+    ChecksFailed,
+    file_option,
+    handle_spec_errors,
+    output_file_option,
+)
 from btmission.cli.map_cmds import (
     _xyz,
     fill_option,
@@ -262,7 +268,7 @@ def build_options(fn: Any) -> Any:
 
 @reloc.command("build")
 @map_argument
-@file_option("-o", "--output", required=True, help="The database file (.npz).")
+@output_file_option("-o", "--output", required=True, help="The database file (.npz).")
 @file_option(
     "--cloud",
     help="The map's point cloud for ICP (.ply/.pcd/.npy; default: MAP's own points if it is a "
@@ -431,7 +437,7 @@ def _simulate(
 @map_argument
 @_with_options(scan_pose_options)
 @sensor_option
-@file_option(
+@output_file_option(
     "-o",
     "--output",
     required=True,

@@ -12,7 +12,7 @@ from typing import Any
 
 import click
 
-from btmission.cli.common import BadInput, echo_diagnostics, handle_spec_errors
+from btmission.cli.common import BadInput, echo_diagnostics, handle_spec_errors, output_target
 from btmission.diagnostics import Severity, SpecError, errors
 
 EXIT_INTERRUPTED = 130
@@ -61,6 +61,7 @@ def _write_pngs(rep: Any, directory: Path, stem: str) -> list[Path]:
     "log_dir",
     type=click.Path(file_okay=False, path_type=Path),
     default=Path("runs"),
+    callback=output_target("dir"),
     show_default=True,
     help="Directory for the event log (JSON Lines) and the report's PNGs.",
 )
@@ -198,6 +199,7 @@ def _run_with_progress(run: Any, until: float | None, quiet: bool) -> Any:
     "--png",
     "png_dir",
     type=click.Path(file_okay=False, path_type=Path),
+    callback=output_target("dir"),
     help="Also draw the timeline and top view as PNG into this directory.",
 )
 @click.option("--json", "as_json", is_flag=True, help="Print Tables II and III as JSON.")

@@ -9,9 +9,12 @@ import click
 from btmission.cli.common import (
     BadInput,
     ChecksFailed,
+    checking_imports,
     echo_diagnostics,
     handle_spec_errors,
     infer_format,
+    output_target,
+    with_implementations_option,
     write_output,
 )
 from btmission.diagnostics import errors
@@ -35,6 +38,7 @@ output_option = click.option(
     "--output",
     type=click.Path(dir_okay=False, path_type=Path),
     default=None,
+    callback=output_target("file"),
     help="Write to FILE instead of stdout (written atomically).",
 )
 
@@ -102,6 +106,7 @@ def emit_tree(
     help="Dry run: give up after this many ticks.",
 )
 @click.option("--ascii-only", is_flag=True, help="Plain ASCII tree guides and trace marks.")
+@with_implementations_option
 @handle_spec_errors
 def synth(
     ref: str,
@@ -114,6 +119,7 @@ def synth(
     action_ticks: int,
     max_ticks: int,
     ascii_only: bool,
+    with_implementations: bool,
 ) -> None:
     """Synthesise the behaviour tree that achieves --goal from library REF (name or YAML path).
 
@@ -131,7 +137,8 @@ def synth(
     Exit status: 0 ok; 1 synthesis checks failed (cycles; with --strict also assumed or
     ambiguous) or the dry run did not reach the goal; 2 bad input.
     """
-    loaded = load_library(ref)
+    with checking_imports(with_implementations):
+        loaded = load_library(ref)
     lib = require_usable(loaded.library, loaded.diagnostics)
     if not goals:
         hint = f" (this library declares: {', '.join(map(str, lib.goals))})" if lib.goals else ""
@@ -149,7 +156,15 @@ def synth(
                 click.echo(
                     f"note: --true {cond}: no such condition in this tree (ignored)", err=True
                 )
-        run = dry_run_fn(result.tree, lib, initial, action_ticks=action_ticks, max_ticks=max_ticks)
+        try:
+            run = dry_run_fn(
+                result.tree, lib, initial, action_ticks=action_ticks, max_ticks=max_ticks
+            )
+        except RecursionError:  # py_trees recurses per level; the limit raised for it is capped
+            raise BadInput(
+                f"the tree is too deep to dry-run ({result.size} nodes); "
+                "export it with -o instead"
+            ) from None
         click.echo(run.format_trace(unicode=not ascii_only))
         if output is not None:
             emit_tree(result.tree, fmt, output, lib.name, unicode=not ascii_only)

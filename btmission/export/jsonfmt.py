@@ -29,10 +29,10 @@ from __future__ import annotations
 import json
 import json.scanner
 import sys
-from collections.abc import Iterator, Mapping
-from contextlib import contextmanager
+from collections.abc import Mapping
 from typing import Any
 
+from btmission.recursion import recursion_limit
 from btmission.synthesis.tree import Arg, Kind, Node, Role, distinct_postorder
 
 __all__ = [
@@ -251,18 +251,6 @@ def render_json(root: Node, **extra: Any) -> str:
 
 
 # ------------------------------------------------------------------------------ parsing
-@contextmanager
-def _recursion_limit(limit: int) -> Iterator[None]:
-    """Temporarily raise (never lower) the interpreter's recursion limit."""
-    previous = sys.getrecursionlimit()
-    if limit > previous:
-        sys.setrecursionlimit(limit)
-    try:
-        yield
-    finally:
-        sys.setrecursionlimit(previous)
-
-
 def _loads_deep(text: str) -> Any:
     """:func:`json.loads` for documents nested thousands of levels deep.
 
@@ -273,14 +261,14 @@ def _loads_deep(text: str) -> Any:
     """
     nesting_bound = text.count("{") + text.count("[")  # an upper bound on the nesting depth
     try:
-        with _recursion_limit(min(nesting_bound, _MAX_PARSE_NESTING) + 1000):
+        with recursion_limit(min(nesting_bound, _MAX_PARSE_NESTING) + 1000, cap=None):
             return json.loads(text)
     except RecursionError:
         if sys.version_info < (3, 12):
             raise
     decoder = json.JSONDecoder()
     decoder.scan_once = json.scanner.py_make_scanner(decoder)
-    with _recursion_limit(3 * nesting_bound + 1000):
+    with recursion_limit(3 * nesting_bound + 1000, cap=None):
         return decoder.decode(text)
 
 

@@ -19,7 +19,7 @@ import py_trees
 from py_trees.common import Status
 
 from btmission.spec.library import Atom, Library
-from btmission.synthesis.pytrees import build_behaviour_tree
+from btmission.synthesis.pytrees import build_behaviour_tree, call_on_deep_tree
 from btmission.synthesis.tree import Kind, Node, walk
 
 
@@ -168,17 +168,22 @@ def dry_run(
         pre, post = ground_effects(library, node)
         return SymbolicAction(node, world, pre, post)
 
-    root = build_behaviour_tree(tree, leaf)
-    status = Status.INVALID
-    ticks = 0
-    for _ in range(max_ticks):
-        world.tick = ticks
-        for _node in root.tick():
-            pass
-        ticks += 1
-        status = root.status
-        if status is Status.SUCCESS:
-            break
+    root = build_behaviour_tree(tree, leaf, quiet=True)  # nobody visits the yields
+
+    def tick_until_done() -> tuple[int, Status]:
+        status = Status.INVALID
+        ticks = 0
+        for _ in range(max_ticks):
+            world.tick = ticks
+            for _node in root.tick():
+                pass
+            ticks += 1
+            status = root.status
+            if status is Status.SUCCESS:
+                break
+        return ticks, status
+
+    ticks, status = call_on_deep_tree(tree, tick_until_done)
     return DryRunResult(status is Status.SUCCESS, ticks, world, status)
 
 

@@ -8,17 +8,57 @@ a backend — so this module knows nothing about what leaves do.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from typing import TypeVar
 
 import py_trees
 
-from btmission.synthesis.tree import Kind, Node
+from btmission.recursion import call_deep, recursion_for_depth
+from btmission.synthesis.tree import Kind, Node, walk
 
 LeafFactory = Callable[[Node], py_trees.behaviour.Behaviour]
+T = TypeVar("T")
 
 
-def build_behaviour_tree(root: Node, leaf: LeafFactory) -> py_trees.behaviour.Behaviour:
-    """The py_trees behaviour for ``root``; shared abstract subtrees get distinct behaviours."""
+class QuietSelector(py_trees.composites.Selector):
+    """A py_trees ``Selector`` whose ``tick()`` yields only itself, once, at the end.
+
+    A composite's ``tick()`` yields every behaviour ticked below it, and each of those yields
+    passes through every ancestor's generator: a tick of a tree ``d`` levels deep costs O(d) per
+    node, which makes a 1,000-action chain take seconds a tick. A parent composite only acts on
+    the yield of the child itself, which is always the last one, so ticking the subtree to the end
+    and yielding ``self`` once changes nothing but that cost. Use only where nobody visits the
+    yielded behaviours (the dry run; not a ``BehaviourTree`` with visitors).
+    """
+
+    def tick(self) -> Iterator[py_trees.behaviour.Behaviour]:
+        for _ in super().tick():
+            pass
+        yield self
+
+
+class QuietSequence(py_trees.composites.Sequence):
+    """The ``Sequence`` counterpart of :class:`QuietSelector`."""
+
+    def tick(self) -> Iterator[py_trees.behaviour.Behaviour]:
+        for _ in super().tick():
+            pass
+        yield self
+
+
+def build_behaviour_tree(
+    root: Node, leaf: LeafFactory, *, quiet: bool = False
+) -> py_trees.behaviour.Behaviour:
+    """The py_trees behaviour for ``root``; shared abstract subtrees get distinct behaviours.
+
+    ``quiet``: build :class:`QuietSelector`/:class:`QuietSequence` composites (a tick costs
+    O(nodes) instead of O(nodes × depth); ticking yields only the root).
+    """
+    selector, sequence = (
+        (QuietSelector, QuietSequence)
+        if quiet
+        else (py_trees.composites.Selector, py_trees.composites.Sequence)
+    )
     built: list[py_trees.behaviour.Behaviour] = []
     stack: list[tuple[Node, bool]] = [(root, False)]
     while stack:  # iterative post-order: children are built before their composite
@@ -32,11 +72,31 @@ def build_behaviour_tree(root: Node, leaf: LeafFactory) -> py_trees.behaviour.Be
             continue
         kids = built[len(built) - len(node.children) :]
         del built[len(built) - len(node.children) :]
-        cls = (
-            py_trees.composites.Selector
-            if node.kind is Kind.FALLBACK
-            else py_trees.composites.Sequence
-        )
+        cls = selector if node.kind is Kind.FALLBACK else sequence
         built.append(cls(name=node.name, memory=False, children=kids))
     assert len(built) == 1
     return built[0]
+
+
+def behaviour_depth(root: py_trees.behaviour.Behaviour) -> int:
+    """Levels of a py_trees tree (1 for a single leaf); iterative."""
+    deepest = 0
+    stack = [(1, root)]
+    while stack:
+        depth, node = stack.pop()
+        deepest = max(deepest, depth)
+        stack.extend((depth + 1, c) for c in node.children)
+    return deepest
+
+
+def call_on_deep_tree(root: Node | py_trees.behaviour.Behaviour, fn: Callable[[], T]) -> T:
+    """``fn()``, which makes py_trees calls that recurse once per level (``tick``, ``stop``,
+    ``iterate``) on a tree as deep as ``root``: the recursion limit is raised for the call only,
+    by an amount computed from the depth and capped, in a thread with a big enough stack when
+    the tree is deep (:func:`btmission.recursion.call_deep`), instead of patching py_trees."""
+    if isinstance(root, Node):
+        depth = 1 + max(d for d, _ in walk(root))
+    else:
+        depth = behaviour_depth(root)
+    # tick: one generator frame a level (two for quiet composites), plus stop() calls inside it
+    return call_deep(fn, recursion_for_depth(depth, frames_per_level=4))
