@@ -10,7 +10,14 @@ from typing import Any, TypeVar
 import click
 
 from btmission.bench.synth import DEFAULT_SHAPES, SHAPES
-from btmission.cli.common import BadInput, file_option, int_option, positive_float_option
+from btmission.cli.common import (
+    SEED,
+    BadInput,
+    FiniteFloat,
+    file_option,
+    int_option,
+    positive_float_option,
+)
 from btmission.cli.map_cmds import mine_resolution_option, size_option
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -35,7 +42,7 @@ def list_option(name: str, default: str, help: str) -> Callable[[F], F]:
 
 def seed_option(help: str) -> Callable[[F], F]:
     """``--seed`` (an integer, default 0)."""
-    return click.option("--seed", type=int, default=0, show_default=True, help=help)
+    return click.option("--seed", type=SEED, default=0, show_default=True, help=help)
 
 
 def script_main(name: str, script: str, argv: Sequence[str] | None = None) -> int:
@@ -378,7 +385,7 @@ def dispatch_dynamic_bench(
     "--participation",
     default=0.3,
     show_default=True,
-    type=click.FloatRange(0, 1, min_open=True),
+    type=FiniteFloat(0, 1, min_open=True),
     help="Participation of the scaling runs (seed 003 Fig. 4: 0.3, 0.6, 0.9).",
 )
 @positive_float_option("--duration", default=30.0, help="Simulated seconds of each scaling run.")

@@ -11,10 +11,16 @@ from typing import Any, TypeVar
 import click
 
 from btmission.cli.common import (
+    FINITE,
+    NON_NEGATIVE,
+    POSITIVE,
+    SEED,
     BadInput,
     ChecksFailed,
+    FiniteFloat,
     file_option,
     handle_spec_errors,
+    parse_numbers,
     write_output,
 )
 
@@ -27,19 +33,16 @@ def _xyz(
 ) -> tuple[float, float, float] | None:
     if value is None:
         return None
-    parts = [p.strip() for p in value.split(",")]
-    try:
-        x, y, z = (float(p) for p in parts)
-    except ValueError:
-        raise click.BadParameter(
-            f"expected X,Y,Z in metres (three numbers), got '{value}'"
-        ) from None
+    xyz = parse_numbers(value, 3)
+    if xyz is None:
+        raise click.BadParameter(f"expected X,Y,Z in metres (three finite numbers), got '{value}'")
+    x, y, z = xyz
     return x, y, z
 
 
 resolution_option = click.option(
     "--resolution",
-    type=click.FloatRange(min=0, min_open=True),
+    type=POSITIVE,
     default=None,
     help="Voxel size (m) for point clouds without one (default 0.5).",
 )
@@ -70,13 +73,13 @@ def risk_options(fn: F) -> F:
 
     fn = click.option(
         "--unknown-cost",
-        type=click.FloatRange(min=0),
+        type=NON_NEGATIVE,
         default=None,
         help=f"c_u of eq. 3-4 (default {DEFAULT_UNKNOWN_COST:g}).",
     )(fn)
     return click.option(
         "--risk-radius",
-        type=click.FloatRange(min=0),
+        type=NON_NEGATIVE,
         default=None,
         help=f"r of eq. 3 in metres (default {DEFAULT_RADIUS_M:g}).",
     )(fn)
@@ -87,7 +90,7 @@ def size_option(default: tuple[float, float, float]) -> Callable[[F], F]:
     return click.option(
         "--size",
         nargs=3,
-        type=click.FloatRange(min=0, min_open=True),
+        type=POSITIVE,
         default=default,
         show_default=True,
         metavar="X Y Z",
@@ -97,7 +100,7 @@ def size_option(default: tuple[float, float, float]) -> Callable[[F], F]:
 
 mine_resolution_option = click.option(
     "--resolution",
-    type=click.FloatRange(min=0, max=1, min_open=True),
+    type=FiniteFloat(min=0, max=1, min_open=True),
     default=0.5,
     show_default=True,
     help="Voxel size (m).",
@@ -154,7 +157,7 @@ def map_group() -> None:
 
 @map_group.command("generate")
 @click.option(
-    "--seed", type=int, default=0, show_default=True, help="Random seed (same seed, same mine)."
+    "--seed", type=SEED, default=0, show_default=True, help="Random seed (same seed, same mine)."
 )
 @size_option((200.0, 120.0, 12.0))
 @mine_resolution_option
@@ -230,7 +233,7 @@ def generate_cmd(
 @file_option("--png", help="Write a top view with risk shading.")
 @click.option(
     "--z",
-    type=float,
+    type=FINITE,
     default=None,
     help="Show the horizontal slice at this height instead of the whole column.",
 )

@@ -11,7 +11,16 @@ from typing import Any
 import click
 import numpy as np
 
-from btmission.cli.common import BadInput, ChecksFailed, file_option, handle_spec_errors
+from btmission.cli.common import (
+    FINITE,
+    SEED,
+    BadInput,
+    ChecksFailed,
+    FiniteFloat,
+    file_option,
+    handle_spec_errors,
+    parse_numbers,
+)
 from btmission.cli.map_cmds import (
     _xyz,
     fill_option,
@@ -28,13 +37,12 @@ def _pose4(
 ) -> tuple[float, float, float, float] | None:
     if value is None:
         return None
-    parts = [p.strip() for p in value.split(",")]
-    try:
-        x, y, z, yaw = (float(p) for p in parts)
-    except ValueError:
+    pose = parse_numbers(value, 4)
+    if pose is None:
         raise click.BadParameter(
-            f"expected X,Y,Z,YAW (metres and degrees), got '{value}'"
-        ) from None
+            f"expected X,Y,Z,YAW (metres and degrees, four finite numbers), got '{value}'"
+        )
+    x, y, z, yaw = pose
     return x, y, z, yaw
 
 
@@ -232,7 +240,7 @@ def reloc() -> None:
 def _metres(name: str, default: float, text: str, *, positive: bool = True) -> Any:
     return click.option(
         name,
-        type=click.FloatRange(min=0, min_open=positive),
+        type=FiniteFloat(min=0, min_open=positive),
         default=default,
         show_default=True,
         help=text,
@@ -323,7 +331,7 @@ def build_cmd(
 @click.option("--top-k", type=click.IntRange(1), default=None, help="Candidate poses to register.")
 @click.option(
     "--min-confidence",
-    type=click.FloatRange(0, 1),
+    type=FiniteFloat(0, 1),
     default=None,
     help="Below this the scan is 'not localised' (default 0.2).",
 )
@@ -387,15 +395,15 @@ scan_pose_options = [
         metavar="X,Y,Z",
         help="Sensor position in the map (m).",
     ),
-    click.option("--yaw", type=float, default=0.0, show_default=True, help="Heading (degrees)."),
+    click.option("--yaw", type=FINITE, default=0.0, show_default=True, help="Heading (degrees)."),
     click.option(
         "--dust",
-        type=click.FloatRange(0, 1),
+        type=FiniteFloat(0, 1),
         default=0.0,
         show_default=True,
         help="Fraction of the returns replaced by dust.",
     ),
-    click.option("--seed", type=int, default=0, show_default=True, help="Noise seed."),
+    click.option("--seed", type=SEED, default=0, show_default=True, help="Noise seed."),
 ]
 
 

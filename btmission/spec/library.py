@@ -20,7 +20,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator
 
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError, errors
-from btmission.spec.common import DottedName, Identifier, validate_model
+from btmission.spec.common import DottedName, FiniteFloat, Identifier, validate_model
 from btmission.spec.refs import Ref, RefSyntaxError, parse_ref
 from btmission.spec.source import Source, parse_yaml, read_yaml
 
@@ -69,7 +69,7 @@ class ActionSpec(_Strict):
     post: list[str] = Field(
         default_factory=list, description="Conditions the action makes true, e.g. at_goal(goal)."
     )
-    cost: float = Field(
+    cost: FiniteFloat = Field(
         1.0,
         ge=0,
         description="Preference when several actions achieve one condition: the lowest cost wins, "

@@ -1,0 +1,181 @@
+"""What ``btmission run`` needs of a loaded mission beyond its schema, checked in one place.
+
+``btmission validate`` and :class:`~btmission.runtime.runner.MissionRun` both call
+:func:`run_problems`, so that a mission ``validate`` accepts is one ``run`` can start: every
+library has its implementations, and every ``runtime.settings`` entry is a setting someone reads,
+of the type its default has, in its range. Problems are located at the setting (file:line:col)
+and unknown names get a did-you-mean.
+
+Settings come from two places: the navigator's (:class:`~btmission.runtime.navigation.NavConfig`,
+every run has them) and each library's implementations (``Implementations(settings={...})``: the
+default's type is the setting's type). Their ranges are in :data:`SETTING_RANGES`; a setting not
+listed there whose name ends in a unit (``_s``, ``_m``, ``_m_s``, ``_hz``, ``_px``) must be ≥ 0.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
+
+from btmission.diagnostics import Diagnostic, Location, Severity
+from btmission.spec.common import number_problem, shown
+from btmission.spec.source import format_path
+
+if TYPE_CHECKING:
+    from btmission.spec.mission import Mission
+
+SETTING_RANGES: dict[str, tuple[float, bool]] = {
+    # setting: (lower bound, bound excluded)
+    "speed_m_s": (0.0, True),
+    "lookahead_m": (0.0, True),
+    "tolerance_m": (0.0, True),
+    "altitude_m": (0.0, False),
+    "stuck_s": (0.0, True),
+    "replans": (0.0, False),
+    "apf_gain": (0.0, False),
+    "clearance_m": (0.0, False),
+    "dispatch_budget_s": (0.0, True),
+    "dispatch_generations": (1.0, False),
+    "reloc_spacing_m": (0.0, True),
+    "explore_time_s": (0.0, True),
+}
+"""Lower bounds of the settings the built-in libraries and the navigator read."""
+
+UNIT_SUFFIXES = ("_s", "_m", "_m_s", "_hz", "_px")
+"""A setting named with one of these is a physical quantity: it must be ≥ 0 unless listed above."""
+
+
+def known_settings(mission: Mission) -> tuple[dict[str, Any], dict[str, str]]:
+    """Every setting a run of ``mission`` reads → its default, and → who reads it."""
+    from btmission.runtime.navigation import SETTINGS_DOC, NavConfig
+
+    nav = NavConfig()
+    defaults: dict[str, Any] = {name: getattr(nav, name) for name in SETTINGS_DOC}
+    owner = dict.fromkeys(defaults, "the navigator")
+    for loaded in mission.libraries.values():
+        impl = loaded.implementations
+        if impl is None:
+            continue
+        for name, value in impl.settings.items():
+            defaults.setdefault(name, value)
+            owner.setdefault(name, f"library {loaded.library.name}")
+    return defaults, owner
+
+
+def setting_problem(name: str, value: Any, default: Any) -> str | None:
+    """Why ``value`` cannot be used for the setting ``name`` whose default is ``default``."""
+    if isinstance(default, bool):
+        return None if isinstance(value, bool) else f"expected true or false (got {shown(value)})"
+    if isinstance(default, str):
+        return None if isinstance(value, str) else f"expected a string (got {shown(value)})"
+    problem = number_problem(value)
+    if problem:
+        return problem
+    if isinstance(default, int) and not float(value).is_integer():
+        return f"expected a whole number (got {shown(value)})"
+    low, excluded = SETTING_RANGES.get(name, (0.0, False) if name.endswith(UNIT_SUFFIXES) else
+                                       (-math.inf, False))  # fmt: skip
+    if value < low or (excluded and value == low):
+        return f"expected a number {'>' if excluded else '≥'} {low:g} (got {shown(value)})"
+    return None
+
+
+def settings_problems(
+    settings: Mapping[str, Any],
+    defaults: Mapping[str, Any],
+    locate: Any,
+    complete: bool = True,
+) -> list[Diagnostic]:
+    """Unknown names (with a did-you-mean), wrong types and values out of range in ``settings``.
+
+    ``locate(path, key)`` gives the location of ``("runtime", "settings", name)``; ``complete``
+    False means some library's settings are not known (its module was not imported), so unknown
+    names are not judged."""
+    out: list[Diagnostic] = []
+    for name, value in settings.items():
+        path: Sequence[str | int] = ("runtime", "settings", name)
+        if name not in defaults:
+            if not complete:
+                continue
+            close = difflib.get_close_matches(name, list(defaults), n=1)
+            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            known = ", ".join(sorted(defaults))
+            message = f"unknown setting '{name}'{hint}; known: {known}"
+            out.append(Diagnostic(Severity.ERROR, "unknown-setting", message,
+                                  format_path(path), locate(path, True)))  # fmt: skip
+            continue
+        problem = setting_problem(name, value, defaults[name])
+        if problem:
+            out.append(Diagnostic(Severity.ERROR, "bad-setting", problem,
+                                  format_path(path), locate(path, False)))  # fmt: skip
+    return out
+
+
+def implementation_problems(mission: Mission, *, abstract_ok: bool = False) -> list[Diagnostic]:
+    """Libraries that cannot run: no implementation module, missing or unusable leaves.
+
+    ``abstract_ok``: a library without ``module:`` (abstract: it synthesises and exports, by
+    design) is not a problem; ``validate`` accepts it, ``run`` refuses it. A library whose module
+    was not imported (checking without importing) is not judged."""
+    import sys
+
+    from btmission.runtime.leaves import StatefulAction
+
+    out: list[Diagnostic] = []
+
+    def refuse(i: int, message: str) -> None:
+        path = ("agents", i, "library")
+        where = mission.source.locate(path) if mission.source else Location(mission.file)
+        out.append(Diagnostic(Severity.ERROR, "not-runnable", message, format_path(path), where))
+
+    first = {a.library: i for i, a in reversed(list(enumerate(mission.agents)))}
+    for ref, loaded in mission.libraries.items():
+        impl, lib, i = loaded.implementations, loaded.library, first.get(ref, 0)
+        if impl is None:
+            if not lib.module and abstract_ok:
+                continue
+            if lib.module and loaded.import_error is None and lib.module not in sys.modules:
+                continue  # not imported: cannot tell
+            why = loaded.import_error or (
+                f"module '{lib.module}' has no IMPLEMENTATIONS registry"
+                if lib.module
+                else f"library '{lib.name}' has no implementation module (it is abstract: "
+                "synth, export and `mission tree` work without one)"
+            )
+            refuse(i, f"library '{ref}' cannot run: {why}")
+            continue
+        missing = impl.missing(lib)
+        if missing:
+            refuse(i, f"library '{ref}' cannot run: no implementation of {', '.join(missing)}")
+        wrong = sorted(
+            name
+            for name, cls in impl.actions.items()
+            if not (isinstance(cls, type) and issubclass(cls, StatefulAction))
+        )
+        if wrong:
+            refuse(i, f"library '{ref}' cannot run: the implementations of {', '.join(wrong)} "
+                   "are not StatefulAction subclasses (btmission.runtime.leaves.StatefulAction: "
+                   "constructed as cls(node, ctx), see docs/plugins.md)")  # fmt: skip
+    return out
+
+
+def run_problems(mission: Mission, *, abstract_ok: bool = False) -> list[Diagnostic]:
+    """Everything that stops a loaded mission from running (module docstring); ``abstract_ok``
+    as in :func:`implementation_problems` (``validate`` passes True)."""
+    out = implementation_problems(mission, abstract_ok=abstract_ok)
+    settings = mission.spec.runtime.settings
+    if settings:
+        defaults, _ = known_settings(mission)
+        complete = all(
+            lb.implementations is not None or not lb.library.module
+            for lb in mission.libraries.values()
+        )
+        src = mission.source
+
+        def locate(path: Sequence[str | int], key: bool) -> Location:
+            return src.locate(path, key=key) if src else Location(mission.file)
+
+        out.extend(settings_problems(settings, defaults, locate, complete))
+    return out
