@@ -124,13 +124,15 @@ class TaskSpec(BaseModel):
 
 
 def _cost_value(v: Any) -> Any:
-    """A task type's cost: an expression, or a finite number written without quotes."""
+    """A task type's cost: an expression, or a finite number written without quotes (kept as
+    the text of that number)."""
     if isinstance(v, (bool, int, float)):
         problem = number_problem(v)
         if problem:
             raise ValueError(
                 f"{problem}; a cost is an expression such as path_cost(location) or a number ≥ 0"
             )
+        return str(v)  # the expression of a constant, as written (-1, not -1.0)
     return v
 
 
