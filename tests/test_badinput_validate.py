@@ -36,6 +36,16 @@ def invoke(runner: CliRunner, *args: str) -> Result:
     return result
 
 
+def refused_by_validate_and_run(runner: CliRunner, path: Path, logs: Path, *wanted: str) -> None:
+    """``validate`` and ``run`` both exit 2 naming every ``wanted`` text; run writes no log."""
+    for args in (["validate", str(path)], ["run", str(path), "--log", str(logs), *FAST_RUN]):
+        result = invoke(runner, *args)
+        assert result.exit_code == 2, (args, result.output)
+        for text in wanted:
+            assert text in result.output, (args, text, result.output)
+    assert not list(logs.glob("*.jsonl"))
+
+
 def corpus(prefix: str = "") -> list[Path]:
     return sorted(p for p in CORPUS.glob("*.yaml") if p.name.startswith(prefix))
 
@@ -93,13 +103,7 @@ class TestRuntimeSettings:
             f"{path}:15:14: runtime.settings.sped_m_s: unknown setting 'sped_m_s' "
             "(did you mean 'speed_m_s'?); known: "
         )
-        for args in (
-            ["validate", str(path)],
-            ["run", str(path), "--log", str(tmp_path), *FAST_RUN],
-        ):
-            result = invoke(runner, *args)
-            assert result.exit_code == 2 and want in result.output, result.output
-        assert not list(tmp_path.glob("*.jsonl"))
+        refused_by_validate_and_run(runner, path, tmp_path, want)
 
     @pytest.mark.parametrize(
         "name, message",
@@ -141,6 +145,25 @@ class TestRuntimeSettings:
         assert setting_problem("custom_flag", "yes", True) == "expected true or false (got 'yes')"
         assert setting_problem("custom_gain", -3.0, 1.0) is None  # no unit: any finite number
         assert setting_problem("custom_wait_s", -3.0, 1.0) == "expected a number ≥ 0 (got -3.0)"
+
+
+class TestLibraryChecks:
+    """What a library's services or setup hooks refuse at run time, validate finds first."""
+
+    @pytest.mark.parametrize(
+        "name, line, message",
+        [
+            ("haulage_without_topomap", 6, "world.topomap: library 'haulage' needs a topological"),
+            ("haulage_start_off_road", 11, "agents.H2.start: agent 'H2' starts 220 m from"),
+            ("haulage_two_trucks_one_node", 11, "both start at node L1n: one truck per node"),
+            ("reloc_database_missing", 14, "no_such_places.npz: no such file"),
+        ],
+    )
+    def test_validate_and_run_refuse_alike(
+        self, runner: CliRunner, tmp_path: Path, name: str, line: int, message: str
+    ) -> None:
+        path = CORPUS / f"{name}.yaml"
+        refused_by_validate_and_run(runner, path, tmp_path, f"{path}:{line}:", message)
 
 
 # ------------------------------------------------------------------------------ non-finite numbers
@@ -293,14 +316,9 @@ class TestCostExpressions:
         self, runner: CliRunner, tmp_path: Path, name: str, message: str
     ) -> None:
         path = CORPUS / f"{name}.yaml"
-        for args in (
-            ["validate", str(path)],
-            ["run", str(path), "--log", str(tmp_path), *FAST_RUN],
-        ):
-            result = invoke(runner, *args)
-            assert result.exit_code == 2, result.output
-            assert f"{path}:12:" in result.output and "task_types.visit.cost: " in result.output
-            assert message in result.output
+        refused_by_validate_and_run(
+            runner, path, tmp_path, f"{path}:12:", "task_types.visit.cost: ", message
+        )
 
     def test_guarded_evaluator(self) -> None:
         import math
@@ -328,13 +346,7 @@ class TestBackend:
             f"{path}:8:58: agents[0].backend: backend 'mavlink://udp:127.0.0.1:14540': "
             "the MAVLink backend is not supported yet; use backend: sim"
         )
-        for args in (
-            ["validate", str(path)],
-            ["run", str(path), "--log", str(tmp_path), *FAST_RUN],
-        ):
-            result = invoke(runner, *args)
-            assert result.exit_code == 2 and want in result.output, result.output
-        assert not list(tmp_path.glob("*.jsonl"))
+        refused_by_validate_and_run(runner, path, tmp_path, want)
 
     def test_the_url_grammar_is_still_checked(self, runner: CliRunner) -> None:
         result = invoke(runner, "validate", str(CORPUS / "backend_unknown.yaml"))

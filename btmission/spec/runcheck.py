@@ -3,8 +3,9 @@
 ``btmission validate`` and :class:`~btmission.runtime.runner.MissionRun` both call
 :func:`run_problems`, so that a mission ``validate`` accepts is one ``run`` can start: every
 library has its implementations, and every ``runtime.settings`` entry is a setting someone reads,
-of the type its default has, in its range. Problems are located at the setting (file:line:col)
-and unknown names get a did-you-mean.
+of the type its default has, in its range; and what each library's own ``check_mission``
+finds (:func:`library_problems`). Problems are located (file:line:col) and unknown setting names
+get a did-you-mean.
 
 Settings come from two places: the navigator's (:class:`~btmission.runtime.navigation.NavConfig`,
 every run has them) and each library's implementations (``Implementations(settings={...})``: the
@@ -161,10 +162,38 @@ def implementation_problems(mission: Mission, *, abstract_ok: bool = False) -> l
     return out
 
 
+def library_problems(mission: Mission) -> list[Diagnostic]:
+    """What the libraries' own checks find: an implementation module may define
+    ``check_mission(mission) -> list[Diagnostic]`` for what its run-wide services or setup hooks
+    would refuse (the haulage fleet's topological map and truck starts, a place database that
+    is not a file), so that ``validate`` finds it before ``run`` builds anything."""
+    import sys
+
+    out: list[Diagnostic] = []
+    seen: set[str] = set()
+    for loaded in mission.libraries.values():
+        module = loaded.library.module
+        if loaded.implementations is None or not module or module in seen:
+            continue
+        seen.add(module)
+        check = getattr(sys.modules.get(module), "check_mission", None)
+        if not callable(check):
+            continue
+        try:
+            out.extend(check(mission))
+        except Exception as exc:  # a plugin's check must not crash validate
+            out.append(Diagnostic(Severity.ERROR, "plugin-error",
+                                  f"{module}.check_mission failed: {type(exc).__name__}: {exc}",
+                                  "agents", Location(mission.file)))  # fmt: skip
+    return out
+
+
 def run_problems(mission: Mission, *, abstract_ok: bool = False) -> list[Diagnostic]:
     """Everything that stops a loaded mission from running (module docstring); ``abstract_ok``
     as in :func:`implementation_problems` (``validate`` passes True)."""
     out = implementation_problems(mission, abstract_ok=abstract_ok)
+    if not out:
+        out.extend(library_problems(mission))
     settings = mission.spec.runtime.settings
     if settings:
         defaults, _ = known_settings(mission)
