@@ -71,10 +71,10 @@ def test_corpus_file_gets_its_expected_answer(runner: CliRunner, path: Path) -> 
     rel = str(path.relative_to(ROOT))
     with pytest.MonkeyPatch.context() as mp:
         mp.chdir(ROOT)
-        if kind == "mission":
-            result = invoke(runner, "validate", rel)
-        else:
-            result = invoke(runner, "library", "check", rel)
+        command = {"mission": ["validate"], "library": ["library", "check"]}.get(
+            kind, ["dispatch", "map"]
+        )
+        result = invoke(runner, *command, rel)
     assert result.exit_code == code, result.output
     if line is not None:
         assert f"{rel}:{line}:" in result.output, result.output
@@ -89,7 +89,7 @@ def test_corpus_names_say_what_is_wrong() -> None:
     assert len(files) >= 40
     for p in files:
         first = p.read_text().splitlines()[0]
-        assert first.startswith(("# mission; wrong: ", "# library; wrong: ")), p
+        assert first.startswith(tuple(f"# {k}; wrong: " for k in ("mission", "library", "topomap")))
         assert p.stem.startswith("ok_") == (expectation(p)[0] == 0), p
 
 

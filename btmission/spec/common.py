@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from pydantic import AllowInfNan, BaseModel, BeforeValidator, StringConstraints, ValidationError
 
@@ -32,6 +32,16 @@ not a boolean: use it for every float a user writes."""
 
 Int = Annotated[int, BeforeValidator(_not_bool)]
 """An integer that is not a boolean."""
+
+
+def _format_version(v: Any) -> Any:
+    if isinstance(v, bool):  # true == 1 in Python: pydantic's literal check would take it
+        raise ValueError(f"got {shown(v)}, expected 1")
+    return v
+
+
+FormatVersion = Annotated[Literal[1], BeforeValidator(_format_version)]
+"""``version: 1`` of a library or mission file."""
 
 
 def shown(v: Any) -> str:

@@ -28,7 +28,14 @@ from pydantic import (
 
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError, errors
 from btmission.plugins import LoadedLibrary, load_library
-from btmission.spec.common import FiniteFloat, Identifier, Int, number_problem, validate_model
+from btmission.spec.common import (
+    FiniteFloat,
+    FormatVersion,
+    Identifier,
+    Int,
+    number_problem,
+    validate_model,
+)
 from btmission.spec.costexpr import CostExpr, CostExprError, parse_cost
 from btmission.spec.library import Atom, resolve_ref
 from btmission.spec.source import Source, format_path, parse_yaml, read_yaml
@@ -249,7 +256,7 @@ class MissionSpec(_Strict):
     """A mission file (``version: 1``)."""
 
     mission: Identifier
-    version: Literal[1]
+    version: FormatVersion
     description: str = ""
     world: WorldSpec
     agents: list[AgentSpec] = Field(min_length=1)
