@@ -348,6 +348,11 @@ class TestBackend:
         )
         refused_by_validate_and_run(runner, path, tmp_path, want)
 
+    def test_trees_of_a_mavlink_mission_still_build(self, runner: CliRunner) -> None:
+        path = CORPUS / "backend_mavlink.yaml"
+        result = invoke(runner, "mission", "tree", str(path), "--agent", "G1")
+        assert result.exit_code == 0 and "Fallback: mission(G1)" in result.output, result.output
+
     def test_the_url_grammar_is_still_checked(self, runner: CliRunner) -> None:
         result = invoke(runner, "validate", str(CORPUS / "backend_unknown.yaml"))
         assert result.exit_code == 2

@@ -188,10 +188,27 @@ def library_problems(mission: Mission) -> list[Diagnostic]:
     return out
 
 
+def backend_problems(mission: Mission) -> list[Diagnostic]:
+    """Agents whose backend cannot run yet: only ``sim`` can. The MAVLink URL grammar is kept
+    (and checked when the file loads), so trees and exports of such a mission still work."""
+    out: list[Diagnostic] = []
+    for i, agent in enumerate(mission.agents):
+        if agent.backend != "sim":
+            path = ("agents", i, "backend")
+            where = mission.source.locate(path) if mission.source else agent.where
+            message = (
+                f"backend '{agent.backend}': the MAVLink backend is not supported yet; "
+                "use backend: sim"
+            )
+            out.append(Diagnostic(Severity.ERROR, "unsupported-backend", message,
+                                  format_path(path), where))  # fmt: skip
+    return out
+
+
 def run_problems(mission: Mission, *, abstract_ok: bool = False) -> list[Diagnostic]:
     """Everything that stops a loaded mission from running (module docstring); ``abstract_ok``
     as in :func:`implementation_problems` (``validate`` passes True)."""
-    out = implementation_problems(mission, abstract_ok=abstract_ok)
+    out = backend_problems(mission) + implementation_problems(mission, abstract_ok=abstract_ok)
     if not out:
         out.extend(library_problems(mission))
     settings = mission.spec.runtime.settings
