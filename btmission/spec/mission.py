@@ -524,6 +524,10 @@ def compile_mission(spec: MissionSpec, src: Source) -> Mission:
                     "schema",
                     key=True,
                 )
+        limit = spec.runtime.max_duration_s
+        if t.at >= limit:
+            add((*tpath, "at"), f"task '{t.id}' is added at {t.at:g} s, when a run has already "
+                f"stopped (runtime.max_duration_s is {limit:g} s)", "never-added", Severity.WARNING)  # fmt: skip
         prio = t.priority if t.priority is not None else tt2.priority
         tasks.append(Task(t.id, t.type, t.at, prio, task_fields, src.locate(tpath)))
 
