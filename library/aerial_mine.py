@@ -152,8 +152,7 @@ def check_mission(mission: MissionFile) -> list[Diagnostic]:
     database = database_path(mission.spec.runtime.settings.get("reloc_database"), mission)
     if database is None or database.is_file():
         return []
-    path = ("runtime", "settings", "reloc_database")
-    where = mission.source.locate(path) if mission.source else Location(mission.file)
+    where = mission.locate(("runtime", "settings", "reloc_database"))
     return [Diagnostic(Severity.ERROR, "bad-setting",
                        f"cannot make the relocalizer: {database}: no such file",
                        "runtime.settings.reloc_database", where)]  # fmt: skip

@@ -34,7 +34,7 @@ from importlib.resources import files
 import numpy as np
 from py_trees.common import Status
 
-from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
+from btmission.diagnostics import Diagnostic, Severity, SpecError
 from btmission.dispatch.dynamic import DynamicConfig
 from btmission.dispatch.follow import MissionFollower, MissionState
 from btmission.dispatch.ga import GAParams
@@ -167,14 +167,10 @@ def _nearest(tmap: TopoMap, p: tuple[float, float, float]) -> tuple[int, float]:
     return best, dist
 
 
-def _where(mission: MissionFile, path: tuple[str | int, ...]) -> Location:
-    return mission.source.locate(path) if mission.source else Location(mission.file)
-
-
 def _no_topomap(mission: MissionFile) -> Diagnostic:
     return Diagnostic(Severity.ERROR, "no-topomap",
         "library 'haulage' needs a topological map: set world.topomap (e.g. 'mine')",
-        "world.topomap", _where(mission, ("world",)))  # fmt: skip
+        "world.topomap", mission.locate(("world",)))  # fmt: skip
 
 
 def truck_starts(mission: MissionFile, tmap: TopoMap) -> tuple[dict[str, int], list[Diagnostic]]:
@@ -186,7 +182,7 @@ def truck_starts(mission: MissionFile, tmap: TopoMap) -> tuple[dict[str, int], l
         impl = mission.library_of(spec.id).implementations
         if impl is None or impl.services.get("fleet") is not _fleet:
             continue  # not a truck (haulage, or a variant made with extend())
-        where = _where(mission, ("agents", i, "start"))
+        where = mission.locate(("agents", i, "start"))
         node, d = _nearest(tmap, spec.start)
         if d > START_SNAP_M:
             problems.append(Diagnostic(Severity.ERROR, "start-off-road",

@@ -326,6 +326,11 @@ class Mission:
                 return a
         raise KeyError(agent_id)
 
+    def locate(self, path: Sequence[str | int], *, key: bool = False) -> Location:
+        """Where ``path`` (e.g. ``("agents", 0, "start")``) is in the file (the file when the
+        mission was not loaded from one)."""
+        return self.source.locate(path, key=key) if self.source else Location(self.file)
+
     def library_of(self, agent_id: str) -> LoadedLibrary:
         return self.libraries[self.agent(agent_id).library]
 

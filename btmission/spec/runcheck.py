@@ -48,21 +48,19 @@ UNIT_SUFFIXES = ("_s", "_m", "_m_s", "_hz", "_px")
 """A setting named with one of these is a physical quantity: it must be ≥ 0 unless listed above."""
 
 
-def known_settings(mission: Mission) -> tuple[dict[str, Any], dict[str, str]]:
-    """Every setting a run of ``mission`` reads → its default, and → who reads it."""
+def known_settings(mission: Mission) -> dict[str, Any]:
+    """Every setting a run of ``mission`` reads → its default."""
     from btmission.runtime.navigation import SETTINGS_DOC, NavConfig
 
     nav = NavConfig()
     defaults: dict[str, Any] = {name: getattr(nav, name) for name in SETTINGS_DOC}
-    owner = dict.fromkeys(defaults, "the navigator")
     for loaded in mission.libraries.values():
         impl = loaded.implementations
         if impl is None:
             continue
         for name, value in impl.settings.items():
             defaults.setdefault(name, value)
-            owner.setdefault(name, f"library {loaded.library.name}")
-    return defaults, owner
+    return defaults
 
 
 def setting_problem(name: str, value: Any, default: Any) -> str | None:
@@ -91,7 +89,7 @@ def settings_problems(
 ) -> list[Diagnostic]:
     """Unknown names (with a did-you-mean), wrong types and values out of range in ``settings``.
 
-    ``locate(path, key)`` gives the location of ``("runtime", "settings", name)``; ``complete``
+    ``locate(path, key=...)`` gives the location of ``("runtime", "settings", name)``; ``complete``
     False means some library's settings are not known (its module was not imported), so unknown
     names are not judged."""
     out: list[Diagnostic] = []
@@ -105,12 +103,12 @@ def settings_problems(
             known = ", ".join(sorted(defaults))
             message = f"unknown setting '{name}'{hint}; known: {known}"
             out.append(Diagnostic(Severity.ERROR, "unknown-setting", message,
-                                  format_path(path), locate(path, True)))  # fmt: skip
+                                  format_path(path), locate(path, key=True)))  # fmt: skip
             continue
         problem = setting_problem(name, value, defaults[name])
         if problem:
             out.append(Diagnostic(Severity.ERROR, "bad-setting", problem,
-                                  format_path(path), locate(path, False)))  # fmt: skip
+                                  format_path(path), locate(path)))  # fmt: skip
     return out
 
 
@@ -128,8 +126,8 @@ def implementation_problems(mission: Mission, *, abstract_ok: bool = False) -> l
 
     def refuse(i: int, message: str) -> None:
         path = ("agents", i, "library")
-        where = mission.source.locate(path) if mission.source else Location(mission.file)
-        out.append(Diagnostic(Severity.ERROR, "not-runnable", message, format_path(path), where))
+        out.append(Diagnostic(Severity.ERROR, "not-runnable", message, format_path(path),
+                              mission.locate(path)))  # fmt: skip
 
     first = {a.library: i for i, a in reversed(list(enumerate(mission.agents)))}
     for ref, loaded in mission.libraries.items():
@@ -195,13 +193,12 @@ def backend_problems(mission: Mission) -> list[Diagnostic]:
     for i, agent in enumerate(mission.agents):
         if agent.backend != "sim":
             path = ("agents", i, "backend")
-            where = mission.source.locate(path) if mission.source else agent.where
             message = (
                 f"backend '{agent.backend}': the MAVLink backend is not supported yet; "
                 "use backend: sim"
             )
             out.append(Diagnostic(Severity.ERROR, "unsupported-backend", message,
-                                  format_path(path), where))  # fmt: skip
+                                  format_path(path), mission.locate(path)))  # fmt: skip
     return out
 
 
@@ -213,15 +210,10 @@ def run_problems(mission: Mission, *, abstract_ok: bool = False) -> list[Diagnos
         out.extend(library_problems(mission))
     settings = mission.spec.runtime.settings
     if settings:
-        defaults, _ = known_settings(mission)
+        defaults = known_settings(mission)
         complete = all(
             lb.implementations is not None or not lb.library.module
             for lb in mission.libraries.values()
         )
-        src = mission.source
-
-        def locate(path: Sequence[str | int], key: bool) -> Location:
-            return src.locate(path, key=key) if src else Location(mission.file)
-
-        out.extend(settings_problems(settings, defaults, locate, complete))
+        out.extend(settings_problems(settings, defaults, mission.locate, complete))
     return out
