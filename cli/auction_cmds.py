@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from btmission.cli.common import BadInput, handle_spec_errors
+from btmission.cli.common import NON_NEGATIVE, BadInput, handle_spec_errors, parse_numbers
 
 
 def _json_cost(v: float) -> float | str | None:
@@ -38,7 +38,7 @@ def _pair(text: str, option: str, agents: Mapping[str, object]) -> tuple[str, st
 @click.option(
     "--at",
     "at_s",
-    type=click.FloatRange(min=0),
+    type=NON_NEGATIVE,
     default=0.0,
     show_default=True,
     help="Mission time (s) of the round: tasks whose 'at' is later are not announced yet.",
@@ -109,11 +109,8 @@ def auction(
     pool = pool_from_mission(m)
     for text in moves:
         name, value = _pair(text, "--agent-at", agents)
-        try:
-            xyz = tuple(float(v) for v in value.split(","))
-        except ValueError:
-            xyz = ()
-        if len(xyz) != 3:
+        xyz = parse_numbers(value, 3)
+        if xyz is None:
             raise BadInput(f"--agent-at {text}: expected AGENT=X,Y,Z (e.g. R1=60,10,2)")
         agents[name] = replace(agents[name], position=xyz)  # type: ignore[arg-type]
     for option, given, commit in (("--holding", holding, False), ("--committed", committed, True)):

@@ -11,7 +11,9 @@ import click
 
 from btmission.bench.synth import DEFAULT_SHAPES, SHAPES
 from btmission.cli.common import (
+    SEED,
     BadInput,
+    FiniteFloat,
     int_option,
     output_file_option,
     output_target,
@@ -42,7 +44,7 @@ def list_option(name: str, default: str, help: str) -> Callable[[F], F]:
 
 def seed_option(help: str) -> Callable[[F], F]:
     """``--seed`` (an integer, default 0)."""
-    return click.option("--seed", type=int, default=0, show_default=True, help=help)
+    return click.option("--seed", type=SEED, default=0, show_default=True, help=help)
 
 
 def script_main(name: str, script: str, argv: Sequence[str] | None = None) -> int:
@@ -385,7 +387,7 @@ def dispatch_dynamic_bench(
     "--participation",
     default=0.3,
     show_default=True,
-    type=click.FloatRange(0, 1, min_open=True),
+    type=FiniteFloat(0, 1, min_open=True),
     help="Participation of the scaling runs (seed 003 Fig. 4: 0.3, 0.6, 0.9).",
 )
 @positive_float_option("--duration", default=30.0, help="Simulated seconds of each scaling run.")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import functools
+import math
 import os
 import stat
 import sys
@@ -348,7 +349,7 @@ def positive_float_option(*decls: str, default: float, help: str) -> Callable[[F
         *decls,
         default=default,
         show_default=True,
-        type=click.FloatRange(min=0, min_open=True),
+        type=POSITIVE,
         help=help,
     )
 
@@ -362,3 +363,50 @@ def file_option(*decls: str, help: str, required: bool = False) -> Callable[[F],
         default=None,
         help=help,
     )
+
+
+# ------------------------------------------------------------------ finite numbers
+# Every number a command reads is finite: click's float types accept "nan", "inf" and "1e400"
+# (and nan passes any range check), which would reach the algorithms as NaN or inf.
+
+
+class FiniteFloat(click.FloatRange):
+    """A finite float, optionally bounded like :class:`click.FloatRange` (nan, inf refused)."""
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        rv = super().convert(value, param, ctx)
+        if not math.isfinite(rv):
+            self.fail(f"{value!r} is not a finite number.", param, ctx)
+        return rv
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        if (self.min, self.max) == (None, None):
+            self.name = "float"  # unbounded: shown as FLOAT, like type=float
+
+    def _describe_range(self) -> str:
+        return super()._describe_range() if (self.min, self.max) != (None, None) else ""
+
+
+FINITE = FiniteFloat()
+"""Any finite float."""
+
+POSITIVE = FiniteFloat(min=0, min_open=True)
+"""A finite float > 0."""
+
+NON_NEGATIVE = FiniteFloat(min=0)
+"""A finite float ≥ 0."""
+
+SEED = click.IntRange(min=0)
+"""A random seed: an integer ≥ 0 (numpy refuses negative seeds)."""
+
+
+def parse_numbers(text: str, count: int) -> tuple[float, ...] | None:
+    """``"1, 2.5, 3"`` → ``(1.0, 2.5, 3.0)`` when it has ``count`` finite numbers, else None."""
+    try:
+        values = tuple(float(p) for p in text.split(","))
+    except ValueError:
+        return None
+    if len(values) != count or not all(math.isfinite(v) for v in values):
+        return None
+    return values

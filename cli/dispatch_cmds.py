@@ -9,7 +9,16 @@ from typing import Any
 
 import click
 
-from btmission.cli.common import BadInput, handle_spec_errors, output_target, write_output
+from btmission.cli.common import (
+    FINITE,
+    NON_NEGATIVE,
+    POSITIVE,
+    SEED,
+    BadInput,
+    handle_spec_errors,
+    output_target,
+    write_output,
+)
 
 MAP_HELP = "A built-in map (static_npr, static_spr, mine) or a map YAML file."
 
@@ -122,16 +131,16 @@ def _ga_params(budget: float | None, generations: int | None, tau: float = 3.0) 
 
 
 budget_option = click.option(
-    "--budget", type=float, default=None,
+    "--budget", type=FINITE, default=None,
     help="GA time budget per optimisation in s (default: 3 s per vehicle, as in the paper).",
 )  # fmt: skip
 generations_option = click.option(
     "--generations", type=click.IntRange(1), default=None,
     help="Also stop each optimisation after this many generations (reproducible runs).",
 )  # fmt: skip
-seed_option = click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
+seed_option = click.option("--seed", type=SEED, default=0, show_default=True, help="Random seed.")
 delta_option = click.option(
-    "--delta", type=click.FloatRange(0), default=2.0, show_default=True,
+    "--delta", type=NON_NEGATIVE, default=2.0, show_default=True,
     help="Grazing-collision window δ in s.",
 )  # fmt: skip
 
@@ -207,12 +216,12 @@ def static_cmd(
 @dispatch.command("dynamic")
 @click.option("--map", "map_ref", default="mine", show_default=True, help=MAP_HELP)
 @click.option("--vehicles", default="2,3,4,5", show_default=True, help="Fleet sizes, e.g. 2,3,4,5.")
-@click.option("--hours", type=click.FloatRange(min=0, min_open=True), default=4.0, show_default=True,
+@click.option("--hours", type=POSITIVE, default=4.0, show_default=True,
               help="Simulated duration of each run.")  # fmt: skip
 @click.option("--runs", type=click.IntRange(1), default=1, show_default=True, help="Runs per size.")
-@click.option("--budget", type=click.FloatRange(min=0, min_open=True), default=0.5, show_default=True,
+@click.option("--budget", type=POSITIVE, default=0.5, show_default=True,
               help="GA wall-clock budget per optimisation in s.")  # fmt: skip
-@click.option("--opt-time", type=click.FloatRange(min=0, min_open=True), default=3.0, show_default=True,
+@click.option("--opt-time", type=POSITIVE, default=3.0, show_default=True,
               help="Simulated time one optimisation takes (causality: plans apply after it).")  # fmt: skip
 @generations_option
 @seed_option

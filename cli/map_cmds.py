@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -12,10 +11,16 @@ from typing import Any, TypeVar
 import click
 
 from btmission.cli.common import (
+    FINITE,
+    NON_NEGATIVE,
+    POSITIVE,
+    SEED,
     BadInput,
     ChecksFailed,
+    FiniteFloat,
     handle_spec_errors,
     output_file_option,
+    parse_numbers,
     write_output,
 )
 
@@ -23,55 +28,21 @@ F = TypeVar("F", bound=Callable[..., Any])
 MAP_HELP = "A map file (.npz, .ply, .pcd) or a mission file (.yaml: its world)."
 
 
-def _finite(rv: float, t: click.ParamType, value: Any, param: Any, ctx: Any) -> float:
-    if not math.isfinite(rv):
-        t.fail(f"{value!r} is not a finite number", param, ctx)
-    return rv
-
-
-class FiniteFloat(click.types.FloatParamType):
-    """A float option that refuses NaN and ±inf (click's float and FloatRange accept them)."""
-
-    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
-        return _finite(super().convert(value, param, ctx), self, value, param, ctx)
-
-
-class FiniteRange(click.FloatRange):
-    """``click.FloatRange`` that also refuses NaN and ±inf."""
-
-    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
-        return _finite(super().convert(value, param, ctx), self, value, param, ctx)
-
-
-def finite(**bounds: Any) -> click.ParamType:
-    """The type of a finite float option, within ``bounds`` (FloatRange's) when given."""
-    return FiniteRange(**bounds) if bounds else FiniteFloat()
-
-
-def finite_numbers(value: str, count: int, expected: str) -> tuple[float, ...]:
-    """``count`` comma-separated finite numbers, else :class:`click.BadParameter`."""
-    parts = [p.strip() for p in value.split(",")]
-    try:
-        nums = tuple(float(p) for p in parts)
-    except ValueError:
-        nums = ()
-    if len(nums) != count or not all(math.isfinite(v) for v in nums):
-        raise click.BadParameter(f"expected {expected}, got '{value}'")
-    return nums
-
-
 def _xyz(
     ctx: click.Context, param: click.Parameter, value: str | None
 ) -> tuple[float, float, float] | None:
     if value is None:
         return None
-    x, y, z = finite_numbers(value, 3, "X,Y,Z in metres (three finite numbers)")
+    xyz = parse_numbers(value, 3)
+    if xyz is None:
+        raise click.BadParameter(f"expected X,Y,Z in metres (three finite numbers), got '{value}'")
+    x, y, z = xyz
     return x, y, z
 
 
 resolution_option = click.option(
     "--resolution",
-    type=finite(min=0, min_open=True),
+    type=POSITIVE,
     default=None,
     help="Voxel size (m) for point clouds without one (default 0.5).",
 )
@@ -102,13 +73,13 @@ def risk_options(fn: F) -> F:
 
     fn = click.option(
         "--unknown-cost",
-        type=finite(min=0),
+        type=NON_NEGATIVE,
         default=None,
         help=f"c_u of eq. 3-4 (default {DEFAULT_UNKNOWN_COST:g}).",
     )(fn)
     return click.option(
         "--risk-radius",
-        type=finite(min=0),
+        type=NON_NEGATIVE,
         default=None,
         help=f"r of eq. 3 in metres (default {DEFAULT_RADIUS_M:g}).",
     )(fn)
@@ -119,7 +90,7 @@ def size_option(default: tuple[float, float, float]) -> Callable[[F], F]:
     return click.option(
         "--size",
         nargs=3,
-        type=finite(min=0, min_open=True),
+        type=POSITIVE,
         default=default,
         show_default=True,
         metavar="X Y Z",
@@ -129,7 +100,7 @@ def size_option(default: tuple[float, float, float]) -> Callable[[F], F]:
 
 mine_resolution_option = click.option(
     "--resolution",
-    type=finite(min=0, max=1, min_open=True),
+    type=FiniteFloat(min=0, max=1, min_open=True),
     default=0.5,
     show_default=True,
     help="Voxel size (m).",
@@ -186,11 +157,7 @@ def map_group() -> None:
 
 @map_group.command("generate")
 @click.option(
-    "--seed",
-    type=click.IntRange(min=0),
-    default=0,
-    show_default=True,
-    help="Random seed (same seed, same mine).",
+    "--seed", type=SEED, default=0, show_default=True, help="Random seed (same seed, same mine)."
 )
 @size_option((200.0, 120.0, 12.0))
 @mine_resolution_option
@@ -270,7 +237,7 @@ def generate_cmd(
 @output_file_option("--png", help="Write a top view with risk shading.")
 @click.option(
     "--z",
-    type=finite(),
+    type=FINITE,
     default=None,
     help="Show the horizontal slice at this height instead of the whole column.",
 )

@@ -33,17 +33,23 @@ def validate(mission_file: Path, strict: bool, with_implementations: bool) -> No
     """Validate a mission file without running it.
 
     Checks the schema, ids, libraries, task types, task fields, cost expressions, commit
-    conditions, that every agent's trees synthesise, and against the world map that agent starts
+    conditions, that every agent's trees synthesise, that its libraries' implementations load
+    (unless a library is abstract: no `module:`) and its runtime settings are known and in range
+    (as `run` does), and against the world map that agent starts
     and task locations are inside the map, not in rock and reachable from some agent. Every
     problem is reported with file:line:col. Exit status 2 when the mission is invalid.
 
     Libraries given by path are checked without importing their implementation modules;
     --with-implementations imports them.
     """
+    from btmission.spec.runcheck import run_problems
     from btmission.world.checks import check_mission_world
 
     with checking_imports(with_implementations):
         m = load_mission(mission_file)
+        run_errors = run_problems(m, abstract_ok=True)  # what `run` refuses, validate refuses first
+    if run_errors:
+        raise SpecError(run_errors + m.diagnostics)
     map_diags = check_mission_world(m)
     if errors(map_diags):
         raise SpecError(

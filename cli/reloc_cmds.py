@@ -12,17 +12,19 @@ import click
 import numpy as np
 
 from btmission.cli.common import (
+    FINITE,
+    SEED,
     BadInput,
     ChecksFailed,
+    FiniteFloat,
     file_option,
     handle_spec_errors,
     output_file_option,
+    parse_numbers,
 )
 from btmission.cli.map_cmds import (
     _xyz,
     fill_option,
-    finite,
-    finite_numbers,
     load_map_arg,
     map_argument,
     resolution_option,
@@ -36,7 +38,12 @@ def _pose4(
 ) -> tuple[float, float, float, float] | None:
     if value is None:
         return None
-    x, y, z, yaw = finite_numbers(value, 4, "X,Y,Z,YAW (metres and degrees, finite numbers)")
+    pose = parse_numbers(value, 4)
+    if pose is None:
+        raise click.BadParameter(
+            f"expected X,Y,Z,YAW (metres and degrees, four finite numbers), got '{value}'"
+        )
+    x, y, z, yaw = pose
     return x, y, z, yaw
 
 
@@ -243,7 +250,7 @@ def reloc() -> None:
 def _metres(name: str, default: float, text: str, *, positive: bool = True) -> Any:
     return click.option(
         name,
-        type=finite(min=0, min_open=positive),
+        type=FiniteFloat(min=0, min_open=positive),
         default=default,
         show_default=True,
         help=text,
@@ -334,7 +341,7 @@ def build_cmd(
 @click.option("--top-k", type=click.IntRange(1), default=None, help="Candidate poses to register.")
 @click.option(
     "--min-confidence",
-    type=finite(min=0, max=1),
+    type=FiniteFloat(0, 1),
     default=None,
     help="Below this the scan is 'not localised' (default 0.2).",
 )
@@ -398,17 +405,15 @@ scan_pose_options = [
         metavar="X,Y,Z",
         help="Sensor position in the map (m).",
     ),
-    click.option("--yaw", type=finite(), default=0.0, show_default=True, help="Heading (degrees)."),
+    click.option("--yaw", type=FINITE, default=0.0, show_default=True, help="Heading (degrees)."),
     click.option(
         "--dust",
-        type=finite(min=0, max=1),
+        type=FiniteFloat(0, 1),
         default=0.0,
         show_default=True,
         help="Fraction of the returns replaced by dust.",
     ),
-    click.option(
-        "--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Noise seed."
-    ),
+    click.option("--seed", type=SEED, default=0, show_default=True, help="Noise seed."),
 ]
 
 

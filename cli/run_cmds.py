@@ -12,7 +12,14 @@ from typing import Any
 
 import click
 
-from btmission.cli.common import BadInput, echo_diagnostics, handle_spec_errors, output_target
+from btmission.cli.common import (
+    POSITIVE,
+    SEED,
+    BadInput,
+    echo_diagnostics,
+    handle_spec_errors,
+    output_target,
+)
 from btmission.diagnostics import Severity, SpecError, errors
 
 EXIT_INTERRUPTED = 130
@@ -47,13 +54,13 @@ def _write_pngs(rep: Any, directory: Path, stem: str) -> list[Path]:
     "--seed",
     default=0,
     show_default=True,
-    type=int,
+    type=SEED,
     help="Simulator seed (noise, dust, detections).",
 )
 @click.option("--realtime", is_flag=True, help="Pace the simulation to the wall clock.")
 @click.option(
     "--until",
-    type=click.FloatRange(min=0, min_open=True),
+    type=POSITIVE,
     help="Stop at this mission time (s) even if the mission has not ended.",
 )
 @click.option(

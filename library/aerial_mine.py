@@ -66,6 +66,7 @@ from btmission_library import aerial
 if TYPE_CHECKING:
     from btmission.backends.base import LidarScan
     from btmission.localization.relocalize import Relocalization, Relocalizer
+    from btmission.spec.mission import Mission as MissionFile
     from btmission.world.voxel import VoxelMap
 
 SPEC = files(__package__).joinpath("aerial_mine.yaml")
@@ -133,6 +134,30 @@ def shared_relocalizer(
     return reloc
 
 
+def database_path(setting: Any, mission: MissionFile | None) -> Path | None:
+    """The ``reloc_database`` setting as a path (relative to the mission file); None: unset."""
+    name = str(setting or "")
+    if not name:
+        return None
+    database = Path(name)
+    if not database.is_absolute() and mission is not None:
+        database = mission.base_dir / database
+    return database
+
+
+def check_mission(mission: MissionFile) -> list[Diagnostic]:
+    """A ``reloc_database`` that is not a file, found before any run (``validate`` and ``run``
+    call it through :func:`btmission.spec.runcheck.run_problems`); its content is read when the
+    run sets the agents up."""
+    database = database_path(mission.spec.runtime.settings.get("reloc_database"), mission)
+    if database is None or database.is_file():
+        return []
+    where = mission.locate(("runtime", "settings", "reloc_database"))
+    return [Diagnostic(Severity.ERROR, "bad-setting",
+                       f"cannot make the relocalizer: {database}: no such file",
+                       "runtime.settings.reloc_database", where)]  # fmt: skip
+
+
 @IMPLEMENTATIONS.on_setup
 def _setup_relocalizer(ctx: AgentContext) -> None:
     """Give the agent its map's relocalizer (module docstring); a bad setting is a mission
@@ -162,12 +187,7 @@ def _setup_relocalizer(ctx: AgentContext) -> None:
         spacing = float("nan")
     if not spacing > 0:
         raise bad("reloc_spacing_m", f"expected a positive number of metres, got {raw!r}")
-    name = str(ctx.setting("reloc_database", "") or "")
-    database = None
-    if name:
-        database = Path(name)
-        if not database.is_absolute() and mission is not None:
-            database = mission.base_dir / database
+    database = database_path(ctx.setting("reloc_database", ""), mission)
     try:
         ctx.state[RELOCALIZER] = shared_relocalizer(ctx.paths.map, database, spacing_m=spacing)
     except DatabaseError as exc:

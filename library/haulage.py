@@ -34,7 +34,7 @@ from importlib.resources import files
 import numpy as np
 from py_trees.common import Status
 
-from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
+from btmission.diagnostics import Diagnostic, Severity, SpecError
 from btmission.dispatch.dynamic import DynamicConfig
 from btmission.dispatch.follow import MissionFollower, MissionState
 from btmission.dispatch.ga import GAParams
@@ -43,6 +43,7 @@ from btmission.dispatch.service import FleetDispatcher
 from btmission.dispatch.topomap import TopoMap
 from btmission.plugins import Implementations
 from btmission.runtime.leaves import AgentContext, RunContext, StatefulAction, resolve
+from btmission.spec.mission import Mission as MissionFile
 
 SPEC = files(__package__).joinpath("haulage.yaml")
 """The library file; the ``btmission.libraries`` entry point ``haulage`` points here."""
@@ -97,32 +98,11 @@ class HaulageFleet:
 
     def __init__(self, run: RunContext) -> None:
         mission = run.mission
-        where = Location(mission.file)
         if run.topomap is None:
-            raise SpecError([Diagnostic(Severity.ERROR, "no-topomap",
-                "library 'haulage' needs a topological map: set world.topomap (e.g. 'mine')",
-                "world.topomap", where)])  # fmt: skip
+            raise SpecError([_no_topomap(mission)])
         self.tmap: TopoMap = run.topomap
         self.places = run.places
-        starts: dict[str, int] = {}
-        problems = []
-        for spec in mission.agents:
-            impl = mission.library_of(spec.id).implementations
-            if impl is None or impl.services.get("fleet") is not _fleet:
-                continue  # not a truck (haulage, or a variant made with extend())
-            node, d = self._nearest(spec.start)
-            if d > START_SNAP_M:
-                problems.append(Diagnostic(Severity.ERROR, "start-off-road",
-                    f"agent '{spec.id}' starts {d:.0f} m from the nearest node of map "
-                    f"'{self.tmap.name}' ({self.tmap.nodes[node].name}); trucks must start on a "
-                    f"node (within {START_SNAP_M:g} m)", f"agents.{spec.id}.start", where))  # fmt: skip
-            other = next((a for a, n in starts.items() if n == node), None)
-            if other is not None:
-                problems.append(Diagnostic(Severity.ERROR, "same-start",
-                    f"agents '{other}' and '{spec.id}' both start at node "
-                    f"{self.tmap.nodes[node].name}: one truck per node",
-                    f"agents.{spec.id}.start", where))  # fmt: skip
-            starts[spec.id] = node
+        starts, problems = truck_starts(mission, self.tmap)
         if problems:
             raise SpecError(problems)
         ga = GAParams(
@@ -141,15 +121,6 @@ class HaulageFleet:
             for name in starts
         }
         self._followers: dict[str, MissionFollower] = {}
-
-    def _nearest(self, p: tuple[float, float, float]) -> tuple[int, float]:
-        best, dist = 0, math.inf
-        for i, n in enumerate(self.tmap.nodes):
-            if n.xy is not None:
-                d = math.hypot(p[0] - n.xy[0], p[1] - n.xy[1])
-                if d < dist:
-                    best, dist = i, d
-        return best, dist
 
     def state(self, truck: str, now: float) -> MissionState:
         """Where the truck's dispatched schedule puts it at ``now``."""
@@ -184,6 +155,62 @@ class HaulageFleet:
             if truck.ctx is not None:
                 ref, vel = self.reference(self.state(name, now))
                 truck.ctx.navigator.track(ref, vel, now)
+
+
+def _nearest(tmap: TopoMap, p: tuple[float, float, float]) -> tuple[int, float]:
+    best, dist = 0, math.inf
+    for i, n in enumerate(tmap.nodes):
+        if n.xy is not None:
+            d = math.hypot(p[0] - n.xy[0], p[1] - n.xy[1])
+            if d < dist:
+                best, dist = i, d
+    return best, dist
+
+
+def _no_topomap(mission: MissionFile) -> Diagnostic:
+    return Diagnostic(Severity.ERROR, "no-topomap",
+        "library 'haulage' needs a topological map: set world.topomap (e.g. 'mine')",
+        "world.topomap", mission.locate(("world",)))  # fmt: skip
+
+
+def truck_starts(mission: MissionFile, tmap: TopoMap) -> tuple[dict[str, int], list[Diagnostic]]:
+    """Each truck's start node, and the problems: a truck farther than ``START_SNAP_M`` from
+    every node, two trucks on one node."""
+    starts: dict[str, int] = {}
+    problems = []
+    for i, spec in enumerate(mission.agents):
+        impl = mission.library_of(spec.id).implementations
+        if impl is None or impl.services.get("fleet") is not _fleet:
+            continue  # not a truck (haulage, or a variant made with extend())
+        where = mission.locate(("agents", i, "start"))
+        node, d = _nearest(tmap, spec.start)
+        if d > START_SNAP_M:
+            problems.append(Diagnostic(Severity.ERROR, "start-off-road",
+                f"agent '{spec.id}' starts {d:.0f} m from the nearest node of map "
+                f"'{tmap.name}' ({tmap.nodes[node].name}); trucks must start on a "
+                f"node (within {START_SNAP_M:g} m)", f"agents.{spec.id}.start", where))  # fmt: skip
+        other = next((a for a, n in starts.items() if n == node), None)
+        if other is not None:
+            problems.append(Diagnostic(Severity.ERROR, "same-start",
+                f"agents '{other}' and '{spec.id}' both start at node "
+                f"{tmap.nodes[node].name}: one truck per node",
+                f"agents.{spec.id}.start", where))  # fmt: skip
+        starts[spec.id] = node
+    return starts, problems
+
+
+def check_mission(mission: MissionFile) -> list[Diagnostic]:
+    """What :class:`HaulageFleet` would refuse, found before any run (``validate`` and ``run``
+    call it through :func:`btmission.spec.runcheck.run_problems`)."""
+    from btmission.dispatch.maps import topomap_ref
+
+    if mission.spec.world.topomap is None:
+        return [_no_topomap(mission)]
+    try:
+        tmap = topomap_ref(mission.spec.world.topomap, mission.base_dir)
+    except SpecError:
+        return []  # loading the mission reports it
+    return truck_starts(mission, tmap)[1]
 
 
 @IMPLEMENTATIONS.service("fleet")

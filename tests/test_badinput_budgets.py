@@ -365,14 +365,12 @@ def test_point_cloud_spanning_too_many_voxels(runner: CliRunner, tmp_path: Path)
          "m.yaml:5:15: world.resolution: 12 × 8 × 2 m at 0.001 m makes 12,000 × 8,000 × 2,000 "
          "= 192,000,000,000 voxels; the limit is 40,000,000 (set BTMISSION_MAX_VOXELS"),
         ("resolution: 0.5", "resolution: .inf",
-         "m.yaml:5:15: world.resolution: resolution must be a finite number > 0 (m), got inf"),
+         "m.yaml:5:15: world.resolution: expected a finite number (got inf)"),
         ("resolution: 0.5", "resolution: .nan", "m.yaml:5:15: world.resolution: "),
         ("size: [12, 8, 2]", "size: [.nan, 8, 2]",
-         "m.yaml:4:32: world.map.size: every size component must be a finite number, "
-         "got [nan, 8.0, 2.0]"),
+         "m.yaml:4:33: world.map.size[0]: expected a finite number (got nan)"),
         ("size: [12, 8, 2]", "size: [1e400, 8, 2]",
-         "m.yaml:4:32: world.map.size: every size component must be a finite number, "
-         "got [inf, 8.0, 2.0]"),
+         "m.yaml:4:33: world.map.size[0]: expected a finite number (got 1e400)"),
         ("size: [12, 8, 2]", "size: [100000, 100000, 100]",
          "world.resolution: 100000 × 100000 × 100 m at 0.5 m makes 200,000 × 200,000 × 200"),
         ("{generate: empty,", "{generate: mine, seed: -1,",

@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from btmission.diagnostics import SpecError
-from btmission.spec.common import Identifier, validate_model
+from btmission.spec.common import FiniteFloat, Identifier, number_problem, validate_model
 from btmission.spec.source import Source, parse_yaml, read_yaml
 
 TOPOMAP_FORMAT_VERSION = 1
@@ -330,7 +330,9 @@ class _Strict(BaseModel):
 class NodeSpec(_Strict):
     kind: Literal["terminal", "pause", "transit"] = Field(description="Node type (§3.1).")
     prioritized: bool = Field(False, description="Prioritised terminal (T^P), e.g. offloading.")
-    xy: tuple[float, float] | None = Field(None, description="Position for plots, in metres.")
+    xy: tuple[FiniteFloat, FiniteFloat] | None = Field(
+        None, description="Position for plots, in metres."
+    )
     group: str = Field("", description="Free label, e.g. left/right halves of the static map.")
 
 
@@ -338,9 +340,19 @@ class SegmentSpec(_Strict):
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
     a: Identifier = Field(alias="from", description="Start node.")
     b: Identifier = Field(alias="to", description="End node.")
-    time: float | tuple[float, float] = Field(
+    time: FiniteFloat | tuple[FiniteFloat, FiniteFloat] = Field(
         description="Traversal time in s: one number for both directions, or [from→to, to→from]."
     )
+
+    @field_validator("time", mode="before")
+    @classmethod
+    def _number(cls, v: Any) -> Any:
+        """One clear message for a bad single number (not one per form of the union)."""
+        if isinstance(v, (bool, int, float)):
+            problem = number_problem(v)
+            if problem:
+                raise ValueError(problem)
+        return v
 
     @field_validator("time")
     @classmethod

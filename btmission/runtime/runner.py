@@ -38,10 +38,11 @@ from btmission.runtime.bus import InMemoryBus
 from btmission.runtime.clock import Clock, SimClock
 from btmission.runtime.coordinator import Coordinator
 from btmission.runtime.events import LOG_FORMAT, LOG_VERSION, EventStream, Observer
-from btmission.runtime.leaves import RunContext, StatefulAction
-from btmission.runtime.navigation import SETTINGS_DOC, NavConfig, Navigator
+from btmission.runtime.leaves import RunContext
+from btmission.runtime.navigation import NavConfig, Navigator
 from btmission.runtime.paths import PathCosts
 from btmission.spec.mission import Mission
+from btmission.spec.runcheck import run_problems
 from btmission.world.voxel import VoxelMap
 
 if TYPE_CHECKING:
@@ -71,67 +72,8 @@ class RunResult:
 
 
 def runtime_problems(mission: Mission) -> list[Diagnostic]:
-    """What stops a valid mission from running: libraries without implementations, unknown
-    settings. (Bad files are caught by loading; this is what running adds.)"""
-    out: list[Diagnostic] = []
-    known: dict[str, str] = dict(SETTINGS_DOC)
-    for ref, loaded in mission.libraries.items():
-        impl = loaded.implementations
-        lib = loaded.library
-        if impl is None:
-            why = loaded.import_error or f"library '{lib.name}' has no implementation module"
-            out.append(
-                Diagnostic(
-                    Severity.ERROR,
-                    "not-runnable",
-                    f"library '{ref}' cannot run: {why}",
-                    "agents",
-                    Location(mission.file),
-                )
-            )
-            continue
-        missing = impl.missing(lib)
-        if missing:
-            out.append(
-                Diagnostic(
-                    Severity.ERROR,
-                    "not-runnable",
-                    f"library '{ref}' cannot run: no implementation of {', '.join(missing)}",
-                    "agents",
-                    Location(mission.file),
-                )
-            )
-        wrong = sorted(
-            name
-            for name, cls in impl.actions.items()
-            if not (isinstance(cls, type) and issubclass(cls, StatefulAction))
-        )
-        if wrong:
-            out.append(
-                Diagnostic(
-                    Severity.ERROR,
-                    "not-runnable",
-                    f"library '{ref}' cannot run: the implementations of {', '.join(wrong)} are "
-                    "not StatefulAction subclasses (btmission.runtime.leaves.StatefulAction: "
-                    "constructed as cls(node, ctx), see docs/plugins.md)",
-                    "agents",
-                    Location(mission.file),
-                )
-            )
-        for name in impl.settings:
-            known.setdefault(name, f"{lib.name} setting")
-    for name in mission.spec.runtime.settings:
-        if name not in known:
-            out.append(
-                Diagnostic(
-                    Severity.ERROR,
-                    "unknown-setting",
-                    f"unknown setting '{name}' (known: {', '.join(sorted(known))})",
-                    f"runtime.settings.{name}",
-                    Location(mission.file),
-                )
-            )
-    return out
+    """What stops a valid mission from running (the checks ``validate`` makes too)."""
+    return run_problems(mission)
 
 
 class MissionRun:

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+import math
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, StringConstraints, ValidationError
+from pydantic import AllowInfNan, BaseModel, BeforeValidator, StringConstraints, ValidationError
 
 from btmission.diagnostics import Diagnostic, Severity, SpecError
 from btmission.spec.source import Source
@@ -15,6 +16,50 @@ Identifier = Annotated[str, StringConstraints(pattern=r"^[A-Za-z_][A-Za-z0-9_]*$
 DottedName = Annotated[
     str, StringConstraints(pattern=r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
 ]
+
+
+def _not_bool(v: Any) -> Any:
+    """``true``/``false`` are not numbers (pydantic would read them as 1 and 0), and NaN / ±inf
+    are refused before any range check could report them less clearly."""
+    if isinstance(v, bool) or (isinstance(v, float) and not math.isfinite(v)):
+        raise ValueError(number_problem(v))
+    return v
+
+
+FiniteFloat = Annotated[float, BeforeValidator(_not_bool), AllowInfNan(False)]
+"""A number that is finite (NaN, ±inf and out-of-range literals such as 1e400 are refused) and
+not a boolean: use it for every float a user writes."""
+
+Int = Annotated[int, BeforeValidator(_not_bool)]
+"""An integer that is not a boolean."""
+
+
+def _format_version(v: Any) -> Any:
+    if isinstance(v, bool):  # true == 1 in Python: pydantic's literal check would take it
+        raise ValueError(f"got {shown(v)}, expected 1")
+    return v
+
+
+FormatVersion = Annotated[Literal[1], BeforeValidator(_format_version)]
+"""``version: 1`` of a library or mission file."""
+
+
+def shown(v: Any) -> str:
+    """A value as the user wrote it in YAML: ``true``, ``nan``, ``inf``, ``'text'``, ``1.5``."""
+    if isinstance(v, bool):
+        return str(v).lower()
+    if isinstance(v, float) and not math.isfinite(v):
+        return str(v)
+    return repr(v)
+
+
+def number_problem(v: Any) -> str | None:
+    """Why ``v`` is not a usable number (None when it is a finite int or float, not a bool)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return f"expected a number (got {shown(v)})"
+    if not math.isfinite(v):
+        return f"expected a finite number (got {shown(v)})"
+    return None
 
 
 def _explain(err: dict[str, Any]) -> str:
@@ -36,6 +81,8 @@ def _explain(err: dict[str, Any]) -> str:
         return f"expected {_expected_len(err)} (got {err.get('input')!r})"
     if kind == "missing":
         return f"missing required key '{loc[-1]}'" if loc else "missing required key"
+    if kind == "finite_number":
+        return f"expected a finite number (got {err.get('input')})"
     if kind == "string_pattern_mismatch":
         return f"'{err.get('input')}' is not a valid name (letters, digits and _; not starting with a digit)"
     if kind == "literal_error":

@@ -13,6 +13,7 @@ straight lines.
 from __future__ import annotations
 
 import ast
+import math
 import operator
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -56,8 +57,35 @@ class CostExpr:
     def evaluate(
         self, call: Callable[[str, tuple[object, ...]], float], fields: Mapping[str, object]
     ) -> float:
-        """Evaluate with ``call(function_name, argument_values)`` supplying path/straight costs."""
-        return float(_eval(self.tree.body, call, fields))
+        """Evaluate with ``call(function_name, argument_values)`` supplying path/straight costs.
+
+        Raises :class:`CostExprError` on a division by zero or an overflow of finite numbers
+        (an infinite path cost, no path, stays infinite)."""
+        try:
+            return _eval(self.tree.body, call, fields)
+        except CostExprError as exc:
+            raise CostExprError(f"{exc} in '{self.text}'") from None
+
+    def probe(self, fields: Mapping[str, object]) -> str | None:
+        """What goes wrong evaluating on a task's ``fields`` with every path or straight-line
+        cost 1 and then 0 (an agent at the place): a division by zero, an overflow, a field that
+        is not a number, a negative bid. None when nothing does (or a field is missing)."""
+        if any(s not in fields for s in self.symbols):
+            return None
+        has_calls = any(isinstance(n, ast.Call) for n in ast.walk(self.tree))
+        for value in (1.0, 0.0) if has_calls else (1.0,):
+
+            def call(_name: str, _args: tuple[object, ...], v: float = value) -> float:
+                return v
+
+            when = f" when every path cost is {value:g}" if has_calls else ""
+            try:
+                cost = self.evaluate(call, fields)
+            except CostExprError as exc:
+                return f"{exc}{when}"
+            if cost < 0:
+                return f"'{self.text}' is {cost:g}{when}; bids must be ≥ 0"
+        return None
 
 
 def parse_cost(text: str) -> CostExpr:
@@ -103,9 +131,17 @@ def parse_cost(text: str) -> CostExpr:
         elif isinstance(node, ast.Constant):
             if not isinstance(node.value, (int, float)) or isinstance(node.value, bool):
                 raise CostExprError(f"only numbers may appear as constants in '{text}'")
+            if not math.isfinite(node.value):
+                raise CostExprError(f"a number in '{text}' is too large (not finite)")
         elif not isinstance(node, (ast.Expression, ast.Load, ast.operator, ast.unaryop)):
             raise CostExprError(f"'{ast.unparse(node)}' is not allowed in a cost expression")
     return CostExpr(text.strip(), tuple(sorted(symbols)), tree)
+
+
+def _finite(value: float) -> float:
+    if not math.isfinite(value):
+        raise CostExprError(f"overflow (the value is {value})")
+    return value
 
 
 def _eval(
@@ -116,13 +152,17 @@ def _eval(
         return float(node.value)
     if isinstance(node, ast.Name):
         value = fields[node.id]
-        if not isinstance(value, (int, float)):
-            raise CostExprError(f"task field '{node.id}' is not a number")
-        return float(value)
+        if not isinstance(value, (int, float)) or isinstance(value, bool):
+            raise CostExprError(f"task field '{node.id}' is not a number (got {value!r})")
+        return _finite(float(value))
     if isinstance(node, ast.BinOp):
-        return _BINOPS[type(node.op)](
-            _eval(node.left, call, fields), _eval(node.right, call, fields)
-        )
+        left, right = _eval(node.left, call, fields), _eval(node.right, call, fields)
+        if isinstance(node.op, ast.Div) and right == 0:
+            raise CostExprError("division by zero")
+        out = _BINOPS[type(node.op)](left, right)
+        if math.isfinite(left) and math.isfinite(right):
+            _finite(out)
+        return out
     if isinstance(node, ast.UnaryOp):
         v = _eval(node.operand, call, fields)
         return -v if isinstance(node.op, ast.USub) else v

@@ -15,12 +15,12 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator
 
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError, errors
-from btmission.spec.common import DottedName, Identifier, validate_model
+from btmission.spec.common import DottedName, FiniteFloat, FormatVersion, Identifier, validate_model
 from btmission.spec.refs import Ref, RefSyntaxError, parse_ref
 from btmission.spec.source import Source, parse_yaml, read_yaml
 
@@ -69,7 +69,7 @@ class ActionSpec(_Strict):
     post: list[str] = Field(
         default_factory=list, description="Conditions the action makes true, e.g. at_goal(goal)."
     )
-    cost: float = Field(
+    cost: FiniteFloat = Field(
         1.0,
         ge=0,
         description="Preference when several actions achieve one condition: the lowest cost wins, "
@@ -101,7 +101,7 @@ class LibrarySpec(_Strict):
     """A capability library file (``version: 1``)."""
 
     library: Identifier = Field(description="The library's name, used to refer to it.")
-    version: Literal[1] = Field(description="File format version; must be 1.")
+    version: FormatVersion = Field(description="File format version; must be 1.")
     description: str = ""
     module: DottedName | None = Field(
         None,

@@ -10,7 +10,6 @@ expressions, commit conditions, and whether every agent's trees synthesise. Chec
 from __future__ import annotations
 
 import difflib
-import math
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -19,6 +18,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import (
     BaseModel,
+    BeforeValidator,
     ConfigDict,
     Discriminator,
     Field,
@@ -31,14 +31,23 @@ from btmission.diagnostics import Diagnostic, Location, Severity, SpecError, err
 from btmission.limits import grid_shape
 from btmission.plugins import LoadedLibrary, load_library
 from btmission.spec.budgets import check_mission_scale
-from btmission.spec.common import Identifier, validate_model
+from btmission.spec.common import (
+    FiniteFloat,
+    FormatVersion,
+    Identifier,
+    Int,
+    number_problem,
+    validate_model,
+)
 from btmission.spec.costexpr import CostExpr, CostExprError, parse_cost
 from btmission.spec.library import Atom, resolve_ref
 from btmission.spec.source import Source, format_path, parse_yaml, read_yaml
 
 MISSION_FORMAT_VERSION = 1
 
-Vec3 = Annotated[tuple[float, float, float], Field(description="[x, y, z] in metres")]
+Vec3 = Annotated[
+    tuple[FiniteFloat, FiniteFloat, FiniteFloat], Field(description="[x, y, z] in metres")
+]
 BACKEND_RE = r"^(sim|mavlink://(udp|udpin|udpout|tcp|tcpin|serial):.+)$"
 
 
@@ -53,14 +62,14 @@ class GeneratedMap(_Strict):
         description="Generator: an underground mine, free space, or a warehouse floor with "
         "rows of shelves."
     )
-    seed: int = Field(0, ge=0, description="Random seed; the same seed gives the same map.")
-    size: tuple[float, float, float] = Field(description="Extent [x, y, z] in metres.")
+    seed: Int = Field(0, ge=0, description="Random seed; the same seed gives the same map.")
+    size: tuple[FiniteFloat, FiniteFloat, FiniteFloat] = Field(
+        description="Extent [x, y, z] in metres."
+    )
 
     @field_validator("size")
     @classmethod
     def _positive(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
-        if not all(math.isfinite(x) for x in v):
-            raise ValueError(f"every size component must be a finite number, got {list(v)}")
         if min(v) <= 0:
             raise ValueError("every size component must be > 0")
         return v
@@ -81,7 +90,7 @@ class WorldSpec(_Strict):
         Annotated[GeneratedMap, Tag("Generated")] | Annotated[FileMap, Tag("File")],
         Discriminator(_map_kind),
     ] = Field(description="{generate: mine, seed: 7, size: [x, y, z]} or {file: path}")
-    resolution: float = Field(0.5, gt=0, description="Voxel size in metres.")
+    resolution: FiniteFloat = Field(0.5, gt=0, description="Voxel size in metres.")
     topomap: str | None = Field(
         None,
         description="Topological map for GA fleet dispatch (seed 004): a built-in map (mine, "
@@ -115,7 +124,7 @@ class AgentSpec(_Strict):
                 "expected 'sim' or a MAVLink URL such as mavlink://udp:127.0.0.1:14540 "
                 "(udp, udpin, udpout, tcp, tcpin or serial)"
             )
-        return v
+        return v  # only 'sim' runs today: btmission.spec.runcheck refuses the others
 
 
 class TaskSpec(BaseModel):
@@ -124,38 +133,68 @@ class TaskSpec(BaseModel):
     model_config = ConfigDict(extra="allow", frozen=True)
     id: Identifier
     type: Identifier
-    at: float = Field(0.0, ge=0, description="Time (s) the task is added to the pool.")
-    priority: float | None = Field(None, gt=0, description="Overrides the task type's priority.")
+    at: FiniteFloat = Field(0.0, ge=0, description="Time (s) the task is added to the pool.")
+    priority: FiniteFloat | None = Field(
+        None, gt=0, description="Overrides the task type's priority."
+    )
+
+
+def _cost_value(v: Any) -> Any:
+    """A task type's cost: an expression, or a finite number written without quotes (kept as
+    the text of that number)."""
+    if isinstance(v, (bool, int, float)):
+        problem = number_problem(v)
+        if problem:
+            raise ValueError(
+                f"{problem}; a cost is an expression such as path_cost(location) or a number ≥ 0"
+            )
+        return str(v)  # the expression of a constant, as written (-1, not -1.0)
+    return v
+
+
+def _setting_value(v: Any) -> Any:
+    """A ``runtime.settings`` value: a finite number, a string or true/false."""
+    if isinstance(v, (bool, str)):
+        return v
+    if isinstance(v, (int, float)):
+        problem = number_problem(v)
+        if problem:
+            raise ValueError(problem)
+        return v
+    raise ValueError(f"expected a number, a string or true/false (got {v!r})")
+
+
+SettingValue = Annotated[int | float | str | bool, BeforeValidator(_setting_value)]
 
 
 class TaskTypeSpec(_Strict):
     goal: str | list[str] = Field(description="Goal condition(s), e.g. at_goal(location).")
-    cost: str | float = Field(
-        description="Bid cost expression, e.g. path_cost(location), or a number."
+    cost: Annotated[str | float, BeforeValidator(_cost_value)] = Field(
+        description="Bid cost expression, e.g. path_cost(location), or a number ≥ 0."
     )
     commit_after: str | None = Field(
         None, description="Condition after which the agent commits to the task (k_bt = 0)."
     )
-    priority: float = Field(
+    priority: FiniteFloat = Field(
         1.0, gt=0, description="Priority; scaled by coordination.priority_scale."
     )
 
 
 class CoordinationSpec(_Strict):
-    auction_rate_hz: float = Field(10.0, gt=0, description="Auction rounds per second.")
-    participation: float = Field(
+    auction_rate_hz: FiniteFloat = Field(10.0, gt=0, description="Auction rounds per second.")
+    participation: FiniteFloat = Field(
         1.0, gt=0, le=1, description="Fraction of tasks each agent bids on."
     )
-    priority_scale: float = Field(
+    priority_scale: FiniteFloat = Field(
         1000.0, ge=0, description="Weight of task priority in the profit."
     )
     solver: Literal["assignment", "ilp-scip"] = Field(
         "assignment", description="Assignment solver."
     )
-    agent_timeout_s: float = Field(
+    agent_timeout_s: FiniteFloat = Field(
         3.0, gt=0, description="Silence after which an agent is dropped."
     )
-    switch_cost: float = Field(
+    switch_cost: FiniteFloat = Field(
         0.0,
         ge=0,
         description="Added to an agent's bids on tasks other than the one it executes "
@@ -165,7 +204,7 @@ class CoordinationSpec(_Strict):
 
 class DefaultBehaviorSpec(_Strict):
     goal: str | list[str] = Field(description="Goal of the default behaviour, e.g. landed_at_home.")
-    idle_timeout_s: float = Field(
+    idle_timeout_s: FiniteFloat = Field(
         10.0, ge=0, description="Idle time before the default behaviour runs."
     )
 
@@ -175,22 +214,22 @@ class ArtifactSpec(_Strict):
 
     label: Identifier = Field(description="Class of the object, e.g. survivor, backpack.")
     position: Vec3
-    size_m: float = Field(0.5, gt=0, description="Width of the object in metres.")
+    size_m: FiniteFloat = Field(0.5, gt=0, description="Width of the object in metres.")
 
 
 class SimSpec(_Strict):
     """Settings of the embedded simulator (``btmission run``; ignored by other backends)."""
 
-    step_s: float = Field(0.05, gt=0, le=0.2, description="Fixed simulation time step (s).")
-    lidar_range_m: float = Field(
+    step_s: FiniteFloat = Field(0.05, gt=0, le=0.2, description="Fixed simulation time step (s).")
+    lidar_range_m: FiniteFloat = Field(
         2.0,
         gt=0,
         description="Range of the simulated LiDAR (m); the APF only uses points within 1.6 m.",
     )
-    dust_points: int = Field(
+    dust_points: Int = Field(
         0, ge=0, description="Dust outliers added to each LiDAR scan near the vehicle."
     )
-    detection_noise_px: float = Field(
+    detection_noise_px: FiniteFloat = Field(
         2.0, ge=0, description="Standard deviation of artifact detection boxes (pixels)."
     )
     artifacts: list[ArtifactSpec] = Field(
@@ -201,21 +240,21 @@ class SimSpec(_Strict):
 class RuntimeSpec(_Strict):
     """How ``btmission run`` executes the mission (all optional)."""
 
-    tick_hz: float = Field(10.0, gt=0, le=100, description="Behaviour-tree ticks per second.")
+    tick_hz: FiniteFloat = Field(10.0, gt=0, le=100, description="Behaviour-tree ticks per second.")
     controller: Literal["nmpc", "track"] = Field(
         "nmpc",
         description="Path following: nmpc (seed 002/003 NMPC with APF) or track (lightweight "
         "tracking controller, for large fleets).",
     )
-    max_duration_s: float = Field(
+    max_duration_s: FiniteFloat = Field(
         3600.0, gt=0, description="The run stops at this mission time if it has not ended."
     )
-    status_hz: float = Field(
+    status_hz: FiniteFloat = Field(
         2.0, gt=0, le=50, description="Agent status and pose events per second in the log."
     )
-    risk_radius_m: float = Field(1.5, ge=0, description="D*+ risk radius r (eq. 3).")
-    unknown_cost: float = Field(10.0, ge=0, description="D*+ unknown-voxel cost c_u (eq. 4).")
-    settings: dict[Identifier, float | str | bool] = Field(
+    risk_radius_m: FiniteFloat = Field(1.5, ge=0, description="D*+ risk radius r (eq. 3).")
+    unknown_cost: FiniteFloat = Field(10.0, ge=0, description="D*+ unknown-voxel cost c_u (eq. 4).")
+    settings: dict[Identifier, SettingValue] = Field(
         default_factory=dict,
         description="Settings of the libraries' implementations, e.g. {speed_m_s: 1.5}.",
     )
@@ -226,7 +265,7 @@ class MissionSpec(_Strict):
     """A mission file (``version: 1``)."""
 
     mission: Identifier
-    version: Literal[1]
+    version: FormatVersion
     description: str = ""
     world: WorldSpec
     agents: list[AgentSpec] = Field(min_length=1)
@@ -291,12 +330,19 @@ class Mission:
     """Library reference as written in the file → loaded library."""
     diagnostics: list[Diagnostic] = field(default_factory=list)
     """Warnings and infos found while loading (errors raise instead)."""
+    source: Source | None = None
+    """The parsed file, to locate what later checks (:mod:`btmission.spec.runcheck`) find."""
 
     def agent(self, agent_id: str) -> Agent:
         for a in self.agents:
             if a.id == agent_id:
                 return a
         raise KeyError(agent_id)
+
+    def locate(self, path: Sequence[str | int], *, key: bool = False) -> Location:
+        """Where ``path`` (e.g. ``("agents", 0, "start")``) is in the file (the file when the
+        mission was not loaded from one)."""
+        return self.source.locate(path, key=key) if self.source else Location(self.file)
 
     def library_of(self, agent_id: str) -> LoadedLibrary:
         return self.libraries[self.agent(agent_id).library]
@@ -310,21 +356,21 @@ def _goal_list(g: str | list[str]) -> list[str]:
     return [g] if isinstance(g, str) else list(g)
 
 
-_FIELD_OK = (int, float, str)
-
-
 def _check_field_value(v: Any) -> str | None:
-    if isinstance(v, bool):
-        return "expected a position [x, y, z], a number or a name"
-    if isinstance(v, _FIELD_OK):
+    expected = "expected a position [x, y, z], a number or a name"
+    if isinstance(v, str):
+        return None
+    if isinstance(v, (int, float)) and not isinstance(v, bool):
+        return None if number_problem(v) is None else f"{expected}; numbers must be finite"
+    if isinstance(v, list) and len(v) == 3 and all(number_problem(x) is None for x in v):
         return None
     if (
         isinstance(v, list)
         and len(v) == 3
         and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
     ):
-        return None
-    return "expected a position [x, y, z], a number or a name"
+        return f"{expected}; coordinates must be finite numbers"
+    return expected
 
 
 def compile_mission(spec: MissionSpec, src: Source) -> Mission:
@@ -496,8 +542,26 @@ def compile_mission(spec: MissionSpec, src: Source) -> Mission:
                     "schema",
                     key=True,
                 )
+        limit = spec.runtime.max_duration_s
+        if t.at >= limit:
+            add((*tpath, "at"), f"task '{t.id}' is added at {t.at:g} s, when a run has already "
+                f"stopped (runtime.max_duration_s is {limit:g} s)", "never-added", Severity.WARNING)  # fmt: skip
         prio = t.priority if t.priority is not None else tt2.priority
         tasks.append(Task(t.id, t.type, t.at, prio, task_fields, src.locate(tpath)))
+
+    # cost expressions evaluate on the tasks' own values: no division by zero, no overflow,
+    # no negative bid (reported at the task type's cost, naming the task)
+    for tname, tt4 in task_types.items():
+        samples: list[Task | None] = [t for t in tasks if t.type == tname] or [None]
+        for sample in samples:
+            values: Mapping[str, Any] = (
+                sample.fields if sample is not None else dict.fromkeys(tt4.cost.symbols, 1.0)
+            )
+            problem = tt4.cost.probe(values)
+            if problem:
+                whose = f" (task '{sample.id}')" if sample is not None else ""
+                add(("task_types", tname, "cost"), f"{problem}{whose}", "cost-expression")
+                break
 
     # map file exists
     if isinstance(spec.world.map, FileMap):
@@ -537,7 +601,9 @@ def compile_mission(spec: MissionSpec, src: Source) -> Mission:
                 add(fpath, f"task field '{name}': '{v}' is not a node of the topological map "
                     f"'{spec.world.topomap}'{hint}", "unknown-place")  # fmt: skip
 
-    mission = Mission(spec.mission, spec, src.file, agents, tasks, task_types, default, libraries)
+    mission = Mission(
+        spec.mission, spec, src.file, agents, tasks, task_types, default, libraries, source=src
+    )
     if not errors(diags):
         diags.extend(check_agent_trees(mission, src))
     if errors(diags):

@@ -1,0 +1,219 @@
+"""What ``btmission run`` needs of a loaded mission beyond its schema, checked in one place.
+
+``btmission validate`` and :class:`~btmission.runtime.runner.MissionRun` both call
+:func:`run_problems`, so that a mission ``validate`` accepts is one ``run`` can start: every
+library has its implementations, and every ``runtime.settings`` entry is a setting someone reads,
+of the type its default has, in its range; and what each library's own ``check_mission``
+finds (:func:`library_problems`). Problems are located (file:line:col) and unknown setting names
+get a did-you-mean.
+
+Settings come from two places: the navigator's (:class:`~btmission.runtime.navigation.NavConfig`,
+every run has them) and each library's implementations (``Implementations(settings={...})``: the
+default's type is the setting's type). Their ranges are in :data:`SETTING_RANGES`; a setting not
+listed there whose name ends in a unit (``_s``, ``_m``, ``_m_s``, ``_hz``, ``_px``) must be ≥ 0.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
+
+from btmission.diagnostics import Diagnostic, Location, Severity
+from btmission.spec.common import number_problem, shown
+from btmission.spec.source import format_path
+
+if TYPE_CHECKING:
+    from btmission.spec.mission import Mission
+
+SETTING_RANGES: dict[str, tuple[float, bool]] = {
+    # setting: (lower bound, bound excluded)
+    "speed_m_s": (0.0, True),
+    "lookahead_m": (0.0, True),
+    "tolerance_m": (0.0, True),
+    "altitude_m": (0.0, False),
+    "stuck_s": (0.0, True),
+    "replans": (0.0, False),
+    "apf_gain": (0.0, False),
+    "clearance_m": (0.0, False),
+    "dispatch_budget_s": (0.0, True),
+    "dispatch_generations": (1.0, False),
+    "reloc_spacing_m": (0.0, True),
+    "explore_time_s": (0.0, True),
+}
+"""Lower bounds of the settings the built-in libraries and the navigator read."""
+
+UNIT_SUFFIXES = ("_s", "_m", "_m_s", "_hz", "_px")
+"""A setting named with one of these is a physical quantity: it must be ≥ 0 unless listed above."""
+
+
+def known_settings(mission: Mission) -> dict[str, Any]:
+    """Every setting a run of ``mission`` reads → its default."""
+    from btmission.runtime.navigation import SETTINGS_DOC, NavConfig
+
+    nav = NavConfig()
+    defaults: dict[str, Any] = {name: getattr(nav, name) for name in SETTINGS_DOC}
+    for loaded in mission.libraries.values():
+        impl = loaded.implementations
+        if impl is None:
+            continue
+        for name, value in impl.settings.items():
+            defaults.setdefault(name, value)
+    return defaults
+
+
+def setting_problem(name: str, value: Any, default: Any) -> str | None:
+    """Why ``value`` cannot be used for the setting ``name`` whose default is ``default``."""
+    if isinstance(default, bool):
+        return None if isinstance(value, bool) else f"expected true or false (got {shown(value)})"
+    if isinstance(default, str):
+        return None if isinstance(value, str) else f"expected a string (got {shown(value)})"
+    problem = number_problem(value)
+    if problem:
+        return problem
+    if isinstance(default, int) and not float(value).is_integer():
+        return f"expected a whole number (got {shown(value)})"
+    low, excluded = SETTING_RANGES.get(name, (0.0, False) if name.endswith(UNIT_SUFFIXES) else
+                                       (-math.inf, False))  # fmt: skip
+    if value < low or (excluded and value == low):
+        return f"expected a number {'>' if excluded else '≥'} {low:g} (got {shown(value)})"
+    return None
+
+
+def settings_problems(
+    settings: Mapping[str, Any],
+    defaults: Mapping[str, Any],
+    locate: Any,
+    complete: bool = True,
+) -> list[Diagnostic]:
+    """Unknown names (with a did-you-mean), wrong types and values out of range in ``settings``.
+
+    ``locate(path, key=...)`` gives the location of ``("runtime", "settings", name)``; ``complete``
+    False means some library's settings are not known (its module was not imported), so unknown
+    names are not judged."""
+    out: list[Diagnostic] = []
+    for name, value in settings.items():
+        path: Sequence[str | int] = ("runtime", "settings", name)
+        if name not in defaults:
+            if not complete:
+                continue
+            close = difflib.get_close_matches(name, list(defaults), n=1)
+            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            known = ", ".join(sorted(defaults))
+            message = f"unknown setting '{name}'{hint}; known: {known}"
+            out.append(Diagnostic(Severity.ERROR, "unknown-setting", message,
+                                  format_path(path), locate(path, key=True)))  # fmt: skip
+            continue
+        problem = setting_problem(name, value, defaults[name])
+        if problem:
+            out.append(Diagnostic(Severity.ERROR, "bad-setting", problem,
+                                  format_path(path), locate(path)))  # fmt: skip
+    return out
+
+
+def implementation_problems(mission: Mission, *, abstract_ok: bool = False) -> list[Diagnostic]:
+    """Libraries that cannot run: no implementation module, missing or unusable leaves.
+
+    ``abstract_ok``: a library without ``module:`` (abstract: it synthesises and exports, by
+    design) is not a problem; ``validate`` accepts it, ``run`` refuses it. A library whose module
+    was not imported (checking without importing) is not judged."""
+    import sys
+
+    from btmission.runtime.leaves import StatefulAction
+
+    out: list[Diagnostic] = []
+
+    def refuse(i: int, message: str) -> None:
+        path = ("agents", i, "library")
+        out.append(Diagnostic(Severity.ERROR, "not-runnable", message, format_path(path),
+                              mission.locate(path)))  # fmt: skip
+
+    first = {a.library: i for i, a in reversed(list(enumerate(mission.agents)))}
+    for ref, loaded in mission.libraries.items():
+        impl, lib, i = loaded.implementations, loaded.library, first.get(ref, 0)
+        if impl is None:
+            if not lib.module and abstract_ok:
+                continue
+            if lib.module and loaded.import_error is None and lib.module not in sys.modules:
+                continue  # not imported: cannot tell
+            why = loaded.import_error or (
+                f"module '{lib.module}' has no IMPLEMENTATIONS registry"
+                if lib.module
+                else f"library '{lib.name}' has no implementation module (it is abstract: "
+                "synth, export and `mission tree` work without one)"
+            )
+            refuse(i, f"library '{ref}' cannot run: {why}")
+            continue
+        missing = impl.missing(lib)
+        if missing:
+            refuse(i, f"library '{ref}' cannot run: no implementation of {', '.join(missing)}")
+        wrong = sorted(
+            name
+            for name, cls in impl.actions.items()
+            if not (isinstance(cls, type) and issubclass(cls, StatefulAction))
+        )
+        if wrong:
+            refuse(i, f"library '{ref}' cannot run: the implementations of {', '.join(wrong)} "
+                   "are not StatefulAction subclasses (btmission.runtime.leaves.StatefulAction: "
+                   "constructed as cls(node, ctx), see docs/plugins.md)")  # fmt: skip
+    return out
+
+
+def library_problems(mission: Mission) -> list[Diagnostic]:
+    """What the libraries' own checks find: an implementation module may define
+    ``check_mission(mission) -> list[Diagnostic]`` for what its run-wide services or setup hooks
+    would refuse (the haulage fleet's topological map and truck starts, a place database that
+    is not a file), so that ``validate`` finds it before ``run`` builds anything."""
+    import sys
+
+    out: list[Diagnostic] = []
+    seen: set[str] = set()
+    for loaded in mission.libraries.values():
+        module = loaded.library.module
+        if loaded.implementations is None or not module or module in seen:
+            continue
+        seen.add(module)
+        check = getattr(sys.modules.get(module), "check_mission", None)
+        if not callable(check):
+            continue
+        try:
+            out.extend(check(mission))
+        except Exception as exc:  # a plugin's check must not crash validate
+            out.append(Diagnostic(Severity.ERROR, "plugin-error",
+                                  f"{module}.check_mission failed: {type(exc).__name__}: {exc}",
+                                  "agents", Location(mission.file)))  # fmt: skip
+    return out
+
+
+def backend_problems(mission: Mission) -> list[Diagnostic]:
+    """Agents whose backend cannot run yet: only ``sim`` can. The MAVLink URL grammar is kept
+    (and checked when the file loads), so trees and exports of such a mission still work."""
+    out: list[Diagnostic] = []
+    for i, agent in enumerate(mission.agents):
+        if agent.backend != "sim":
+            path = ("agents", i, "backend")
+            message = (
+                f"backend '{agent.backend}': the MAVLink backend is not supported yet; "
+                "use backend: sim"
+            )
+            out.append(Diagnostic(Severity.ERROR, "unsupported-backend", message,
+                                  format_path(path), mission.locate(path)))  # fmt: skip
+    return out
+
+
+def run_problems(mission: Mission, *, abstract_ok: bool = False) -> list[Diagnostic]:
+    """Everything that stops a loaded mission from running (module docstring); ``abstract_ok``
+    as in :func:`implementation_problems` (``validate`` passes True)."""
+    out = backend_problems(mission) + implementation_problems(mission, abstract_ok=abstract_ok)
+    if not out:
+        out.extend(library_problems(mission))
+    settings = mission.spec.runtime.settings
+    if settings:
+        defaults = known_settings(mission)
+        complete = all(
+            lb.implementations is not None or not lb.library.module
+            for lb in mission.libraries.values()
+        )
+        out.extend(settings_problems(settings, defaults, mission.locate, complete))
+    return out
