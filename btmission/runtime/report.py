@@ -102,7 +102,7 @@ class ReportBuilder:
         if kind == "header":
             self.header = dict(ev.data)
         elif kind == "task_added":
-            self.added[ev.get("task")] = (ev.t, str(ev.get("type", "")))
+            self.added[ev.get("task")] = (_when(ev), str(ev.get("type", "")))
             self.fields[ev.get("task")] = dict(ev.get("fields") or {})
             for problem in ev.get("problems") or []:
                 self.warnings.append(f"task {ev.get('task')}: {problem}")
@@ -145,11 +145,11 @@ class ReportBuilder:
             start = None
             for ev in evs[:-1]:  # the allocation of the agent that finished it
                 if ev.get("agent") == agent and ev.get("state") == "assigned":
-                    start = ev.t
+                    start = _when(ev)
                 elif ev.get("agent") != agent:
                     start = None
-            execution = None if start is None else done.t - start
-            return TaskRow(task, ttype, added, done.t, execution, agent, "done")
+            execution = None if start is None else _when(done) - start
+            return TaskRow(task, ttype, added, _when(done), execution, agent, "done")
         agent = evs[-1].get("agent") if evs else None
         return TaskRow(task, ttype, added, None, None, agent, str(state), str(reason))
 
@@ -209,6 +209,13 @@ class ReportBuilder:
         return out
 
 
+def _when(ev: Event) -> float:
+    """When it happened: ``reported_s`` for an event published late (see
+    :meth:`~btmission.runtime.runner.MissionRun.emit`), else its time."""
+    t = ev.get("reported_s")
+    return float(t) if isinstance(t, (int, float)) else ev.t
+
+
 def _path_length(points: np.ndarray) -> float:
     if len(points) < 2:
         return 0.0
@@ -242,7 +249,7 @@ def _f(v: float | None, digits: int = 0) -> str:
 
 
 def format_report(rep: MissionReport) -> str:
-    """Table III and Table II of seed 000 as text."""
+    """Table III and Table II of seed 000 as text (the warnings: :func:`format_warnings`)."""
     h = rep.header
     s = rep.summary
     lines = [
@@ -291,9 +298,13 @@ def format_report(rep: MissionReport) -> str:
                 for o in rep.objects
             ],
         )
-    for w in rep.warnings:
-        lines.append(f"warning: {w}")
     return "\n".join(lines)
+
+
+def format_warnings(rep: MissionReport) -> list[str]:
+    """The report's warnings (a log cut off, unreadable lines, task problems), one line each:
+    the CLI prints them on stderr, apart from the tables."""
+    return [f"warning: {w}" for w in rep.warnings]
 
 
 def _nearest(obj: Mapping[str, Any], truth: Sequence[Mapping[str, Any]]) -> float | None:
