@@ -204,18 +204,11 @@ def test_a_leaf_error_in_a_condition_is_logged_once(tmp_path: Path) -> None:
     def broken(ctx: Any) -> bool:
         raise KeyError("no such frame")
 
+    none: Any = None  # no backend, navigator or paths: the condition touches none of them
     ctx = AgentContext(
-        "A",
-        Blackboard("/a"),
-        None,
-        None,
-        None,
-        None,
-        lambda: 0.0,
-        {},
-        (0.0, 0.0, 0.0),  # type: ignore[arg-type]
+        "A", Blackboard("/a"), none, none, none, none, lambda: 0.0, {}, (0.0, 0.0, 0.0),
         events=lambda kind, **data: seen.append((kind, data)),
-    )
+    )  # fmt: skip
     leaf = ConditionLeaf(Node(Kind.CONDITION, "broken"), broken, ctx)
     for _ in range(5):  # ticked every tick: one event, not five
         leaf.tick_once()
