@@ -97,9 +97,9 @@ def run_cmd(
       btmission run missions/mine_inspection.yaml --controller track --log runs
       btmission report --latest runs
 
-    Exit status: 0 every task done, 1 tasks left open or failed, 2 bad mission file,
-    130 interrupted (Ctrl-C), 143 terminated (SIGTERM): the log and the report cover what
-    happened so far.
+    Exit status: 0 every task done, 1 tasks left open, failed or still to arrive, 2 bad
+    mission file, 130 interrupted (Ctrl-C), 143 terminated (SIGTERM): the log and the report
+    cover what happened so far.
     """
     signals = _Signals()
     with signals:
@@ -287,7 +287,7 @@ def _run(
     click.echo(format_report(rep))
     if reason in _STOPS:
         return _STOPS[reason]
-    return 1 if result is not None and result.open else 0
+    return 1 if result is not None and (result.open or result.pending) else 0
 
 
 def _run_with_progress(run: Any, until: float | None, quiet: bool) -> Any:

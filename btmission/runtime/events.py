@@ -42,7 +42,8 @@ The kinds a run emits (fields in brackets; positions are ``[x, y, z]`` lists in 
 ``warning``        the coordinator refused something, or an action's argument is on nobody's
                    blackboard (``agent``, ``variable``, ``leaf``): ``message``
 ``end``            last event: ``reason`` (completed/time limit/interrupted/terminated/...),
-                   ``wall_s``, ``done``, ``open`` (arrived tasks only)
+                   ``wall_s``, ``done``, ``open`` (arrived tasks only), ``pending`` (still
+                   to arrive)
 
 A run publishes events in time order; one that happened earlier than it is published (an
 agent's report, taken by the next auction round) carries its own time as ``reported_s``.

@@ -63,8 +63,10 @@ class RunResult:
     steps: int
     done: list[str] = field(default_factory=list)
     open: dict[str, str] = field(default_factory=dict)
-    """Tasks not done → state and reason."""
+    """Tasks not done → state and reason (tasks that have arrived)."""
     collisions: int = 0
+    pending: list[str] = field(default_factory=list)
+    """Tasks still to arrive (``at:`` after the end: the run was cut short)."""
 
     @property
     def speedup(self) -> float:
@@ -551,7 +553,8 @@ class MissionRun:
 
     def _result(self, reason: str) -> RunResult:
         now = self.now()
-        pool = [t for t in self.coordinator.state.pool if t.info.arrival_s <= now + 1e-9]
+        everything = self.coordinator.state.pool
+        pool = [t for t in everything if t.info.arrival_s <= now + 1e-9]
         return RunResult(  # tasks still to arrive (``at:`` later) are neither done nor open
             reason,
             now,
@@ -560,6 +563,7 @@ class MissionRun:
             [t.id for t in pool if t.state is TaskState.DONE],
             {t.id: f"{t.state.value}: {t.note}" for t in pool if t.state is not TaskState.DONE},
             self.collisions,
+            [t.id for t in everything if t.info.arrival_s > now + 1e-9],
         )
 
     def end(self, result: RunResult) -> None:
@@ -574,4 +578,5 @@ class MissionRun:
             steps=result.steps,
             done=result.done,
             open=result.open,
+            pending=result.pending,
         )
