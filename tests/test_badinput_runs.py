@@ -65,6 +65,19 @@ if {setup_raises}:
     def broken_setup(ctx):
         raise RuntimeError("no calibration file")
 
+if {service} == "raises":
+    @IMPLEMENTATIONS.service("fleet")
+    def fleet(run):
+        raise OSError("dispatcher database not found")
+
+if {service} == "step raises":
+    class Fleet:
+        def step(self, now):
+            if now > 1.0:
+                raise ZeroDivisionError("no trucks")
+
+    IMPLEMENTATIONS.service("fleet")(lambda run: Fleet())
+
 if {slow_service}:
     @IMPLEMENTATIONS.service("slow")
     def slow(run):
@@ -130,6 +143,7 @@ def plugin_mission(
     set_home: bool = True,
     setup_raises: bool = False,
     slow_service: bool = False,
+    service: str = "",
 ) -> Path:
     """A library + implementation module + mission in ``tmp_path`` (module on sys.path and
     on PYTHONPATH for subprocesses, a fresh module name each time)."""
@@ -140,7 +154,11 @@ def plugin_mission(
     (tmp_path / f"{name}.yaml").write_text(LIBRARY.format(name=name, module=module))
     (tmp_path / f"{module}.py").write_text(
         MODULE.format(
-            name=name, set_home=set_home, setup_raises=setup_raises, slow_service=slow_service
+            name=name,
+            set_home=set_home,
+            setup_raises=setup_raises,
+            slow_service=slow_service,
+            service=repr(service),
         )
     )
     mission = tmp_path / f"{name}_mission.yaml"
@@ -231,6 +249,80 @@ def test_a_setup_hook_that_raises_is_a_clear_error_before_the_run(
         r.output
     )
     assert not list(tmp_path.glob("*.jsonl"))  # nothing ran: no log
+
+
+def test_a_service_that_fails_to_start_is_a_clear_error(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    mission = plugin_mission(tmp_path, monkeypatch, service="raises")
+    r = run_cli(
+        ["run", str(mission), "--until", "5", "--quiet", "--no-png", "--log", str(tmp_path)]
+    )
+    assert r.exit_code == 2, r.output
+    assert "Traceback" not in r.output
+    assert "service 'fleet' failed to start: OSError: dispatcher database not found (at " in (
+        r.output
+    )
+    assert not list(tmp_path.glob("*.jsonl"))
+
+
+def test_a_service_step_that_raises_is_logged_and_the_run_goes_on(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    mission = plugin_mission(
+        tmp_path,
+        monkeypatch,
+        "  - {id: OK, type: scan, location: [3, 2, 0]}",
+        service="step raises",
+    )
+    r = run_cli(
+        ["run", str(mission), "--until", "20", "--quiet", "--no-png", "--log", str(tmp_path)]
+    )
+    assert r.exit_code == 0, r.output  # the task was done all the same
+    evs = events(only_log(tmp_path))
+    errs = [e for e in evs if e["ev"] == "leaf_error"]
+    assert len(errs) == 1  # raised on every step after 1 s: logged once
+    assert errs[0]["leaf"].startswith("service runsplug") and errs[0]["leaf"].endswith(".fleet")
+    assert errs[0]["phase"] == "step" and errs[0]["error"] == "ZeroDivisionError"
+    assert evs[-1]["ev"] == "end" and evs[-1]["done"] == ["OK"]
+
+
+def test_initialise_and_on_halted_that_raise_are_caught() -> None:
+    from py_trees.common import Status
+
+    from btmission.runtime.leaves import AgentContext, Blackboard, StatefulAction
+    from btmission.synthesis.tree import Kind, Node
+
+    class Halting(StatefulAction):
+        def on_start(self) -> Status:
+            return Status.RUNNING
+
+        def on_halted(self) -> None:
+            raise RuntimeError("cannot cancel")
+
+    class BadInit(StatefulAction):
+        def initialise(self) -> None:
+            super().initialise()
+            raise AttributeError("no driver")
+
+    seen: list[dict[str, Any]] = []
+    none: Any = None
+    ctx = AgentContext(
+        "A", Blackboard("/a"), none, none, none, none, lambda: 0.0, {}, (0.0, 0.0, 0.0),
+        events=lambda kind, **data: seen.append({"kind": kind, **data}),
+    )  # fmt: skip
+    halting = Halting(Node(Kind.ACTION, "halting"), ctx)
+    halting.tick_once()
+    assert halting.status is Status.RUNNING
+    halting.stop(Status.INVALID)  # a higher-priority branch took over: on_halted raises
+    assert halting.status is Status.INVALID
+    bad = BadInit(Node(Kind.ACTION, "bad_init"), ctx)
+    bad.tick_once()
+    assert bad.status is Status.FAILURE and bad.reason == "AttributeError: no driver"
+    assert [(e["leaf"], e["phase"], e["error"]) for e in seen if e["kind"] == "leaf_error"] == [
+        ("halting", "terminate", "RuntimeError"),
+        ("bad_init", "initialise", "AttributeError"),
+    ]
 
 
 # ---------------------------------------------------------------------------- library variables
