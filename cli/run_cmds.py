@@ -282,7 +282,7 @@ def _run(
         else:
             for p in pngs:
                 click.echo(f"wrote {p}", err=True)
-    for w in format_warnings(rep):
+    for w in format_warnings(rep, incidents=False):  # the incidents were shown as they came
         click.echo(w, err=True)
     click.echo(format_report(rep))
     if reason in _STOPS:

@@ -211,6 +211,13 @@ def test_a_leaf_that_raises_fails_its_task_and_the_run_goes_on(
     assert ok[-1]["state"] == "done" and ok[-1]["t"] > bad[-1]["t"]
     end = evs[-1]
     assert end["ev"] == "end" and end["done"] == ["OK"] and list(end["open"]) == ["BAD"]
+    # `report` shows it again, on stderr
+    rep = CliRunner().invoke(cli, ["report", str(only_log(tmp_path))])
+    assert rep.exit_code == 0
+    assert rep.stderr == (
+        "warning: agent G1: scan(location) raised ValueError: sensor returned no data "
+        "(traceback in the log)\n"
+    )
 
 
 def test_a_leaf_error_in_a_condition_is_logged_once(tmp_path: Path) -> None:

@@ -74,6 +74,8 @@ class MissionReport:
     warnings: list[str] = field(default_factory=list)
     dispatched: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
     """Truck → its missions adopted by the fleet dispatcher, in order (``dispatch`` events)."""
+    incidents: list[str] = field(default_factory=list)
+    """What went wrong while it ran: ``leaf_error`` and ``warning`` events, each once."""
 
 
 class ReportBuilder:
@@ -95,6 +97,7 @@ class ReportBuilder:
         self.last_t = 0.0
         self.warnings: list[str] = []
         self.dispatched: dict[str, list[dict[str, Any]]] = {}
+        self.incidents: dict[str, None] = {}  # ordered set
 
     def on_event(self, ev: Event) -> None:
         self.last_t = max(self.last_t, ev.t)
@@ -130,6 +133,11 @@ class ReportBuilder:
         elif kind == "dispatch":
             if ev.get("event") == "adopted" and ev.get("mission"):
                 self.dispatched.setdefault(str(ev.get("truck")), []).append(ev.get("mission"))
+        elif kind == "leaf_error":
+            what = f"{ev.get('leaf')} raised {ev.get('error')}: {ev.get('message')}"
+            self.incidents[f"agent {ev.get('agent')}: {what} (traceback in the log)"] = None
+        elif kind == "warning":
+            self.incidents[str(ev.get("message"))] = None
         elif kind == "end":
             self.end = ev
 
@@ -188,6 +196,7 @@ class ReportBuilder:
             dict(self.fields),
             warnings=list(self.warnings),
             dispatched={k: list(v) for k, v in self.dispatched.items()},
+            incidents=list(self.incidents),
         )
 
     def _intervals(self, end: float) -> dict[str, list[tuple[str, float, float, str]]]:
@@ -301,10 +310,11 @@ def format_report(rep: MissionReport) -> str:
     return "\n".join(lines)
 
 
-def format_warnings(rep: MissionReport) -> list[str]:
-    """The report's warnings (a log cut off, unreadable lines, task problems), one line each:
-    the CLI prints them on stderr, apart from the tables."""
-    return [f"warning: {w}" for w in rep.warnings]
+def format_warnings(rep: MissionReport, *, incidents: bool = True) -> list[str]:
+    """The report's warnings (a log cut off, unreadable lines, task problems) and, with
+    ``incidents``, what went wrong during the run (leaf errors, runtime warnings), one line
+    each: the CLI prints them on stderr, apart from the tables."""
+    return [f"warning: {w}" for w in rep.warnings + (rep.incidents if incidents else [])]
 
 
 def _nearest(obj: Mapping[str, Any], truth: Sequence[Mapping[str, Any]]) -> float | None:
