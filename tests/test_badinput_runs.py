@@ -13,6 +13,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -496,12 +497,15 @@ def _report(log: Path) -> Any:
     return CliRunner().invoke(cli, ["report", str(log)])
 
 
-def test_sigterm_mid_run_ends_the_log_and_exits_143(tmp_path: Path, procs: list[Any]) -> None:
-    proc = _spawn(["run", "missions/pick_and_deliver.yaml", "--controller", "track", "--realtime",
-                   "--quiet", "--no-png", "--log", str(tmp_path)])  # fmt: skip
+def test_sigterm_mid_run_ends_the_log_and_exits_143(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, procs: list[Any]
+) -> None:
+    mission = plugin_mission(tmp_path, monkeypatch)
+    logs = tmp_path / "logs"
+    proc = _spawn(["run", str(mission), "--realtime", "--quiet", "--no-png", "--log", str(logs)])
     procs.append(proc)
-    log = _wait_for(tmp_path, '"ev":"pose"', proc)
-    time.sleep(0.5)
+    log = _wait_for(logs, '"ev":"pose"', proc)
+    time.sleep(0.2)
     proc.send_signal(signal.SIGTERM)
     out, err = proc.communicate(timeout=30)
     assert proc.returncode == 143, err
@@ -517,21 +521,36 @@ def test_sigterm_mid_run_ends_the_log_and_exits_143(tmp_path: Path, procs: list[
     [(signal.SIGTERM, 143, "terminated"), (signal.SIGINT, 130, "interrupted")],
 )
 def test_a_signal_while_the_run_is_built_ends_it_cleanly(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, procs: list[Any], sig: int, code: int,
-    reason: str,
-) -> None:  # fmt: skip
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, sig: int, code: int, reason: str
+) -> None:
+    """In this process (the signal comes from a thread once the header is written, while the
+    slow service is being built): Ctrl-C or SIGTERM there ends the command cleanly."""
     mission = plugin_mission(tmp_path, monkeypatch, slow_service=True)
     logs = tmp_path / "logs"
-    proc = _spawn(["run", str(mission), "--quiet", "--no-png", "--log", str(logs)])
-    procs.append(proc)
-    log = _wait_for(logs, '"ev":"header"', proc)
-    time.sleep(0.3)  # inside the service factory's sleep: the build is under way
-    assert '"ev":"built"' not in log.read_text()
-    proc.send_signal(sig)
-    _, err = proc.communicate(timeout=30)
-    assert proc.returncode == code, err
-    assert "Traceback" not in err and "KeyboardInterrupt" not in err
-    assert f"{reason} while building the run" in err
+    seen_build: list[bool] = []
+
+    def signal_during_the_build() -> None:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            for log in logs.glob("*.jsonl"):
+                text = log.read_text()
+                if '"ev":"header"' in text:
+                    time.sleep(0.2)  # inside the service factory's sleep
+                    seen_build.append('"ev":"built"' not in log.read_text())
+                    os.kill(os.getpid(), sig)
+                    return
+            time.sleep(0.02)
+
+    sender = threading.Thread(target=signal_during_the_build)
+    sender.start()
+    r = CliRunner().invoke(cli, ["run", str(mission), "--quiet", "--no-png", "--log", str(logs)])
+    sender.join()
+    assert seen_build == [True]
+    assert r.exit_code == code, r.output
+    assert not isinstance(r.exception, KeyboardInterrupt) and "Traceback" not in r.output
+    assert f"{reason} while building the run" in r.stderr
+    assert f"ended: {reason}" in r.stdout  # the report of what there is
+    log = only_log(logs)
     evs = events(log)
     assert [e["ev"] for e in evs] == ["header", "end"] and evs[-1]["reason"] == reason
     rep = _report(log)
