@@ -313,6 +313,17 @@ def test_initialise_and_on_halted_that_raise_are_caught() -> None:
             super().initialise()
             raise AttributeError("no driver")
 
+    class Mixin:
+        def update(self) -> Status:
+            raise LookupError("from a mixin")
+
+    class Mixed(Mixin, StatefulAction):
+        pass
+
+    class NoStatus(StatefulAction):
+        def on_start(self) -> Status:
+            return True  # type: ignore[return-value]  # a plugin's slip
+
     seen: list[dict[str, Any]] = []
     none: Any = None
     ctx = AgentContext(
@@ -327,10 +338,17 @@ def test_initialise_and_on_halted_that_raise_are_caught() -> None:
     bad = BadInit(Node(Kind.ACTION, "bad_init"), ctx)
     bad.tick_once()
     assert bad.status is Status.FAILURE and bad.reason == "AttributeError: no driver"
+    for cls, name in ((Mixed, "mixed"), (NoStatus, "no_status")):
+        leaf = cls(Node(Kind.ACTION, name), ctx)
+        leaf.tick_once()
+        assert leaf.status is Status.FAILURE
     assert [(e["leaf"], e["phase"], e["error"]) for e in seen if e["kind"] == "leaf_error"] == [
         ("halting", "terminate", "RuntimeError"),
         ("bad_init", "initialise", "AttributeError"),
+        ("mixed", "update", "LookupError"),
+        ("no_status", "update", "TypeError"),
     ]
+    assert seen[-1]["message"] == "returned True, not a py_trees Status"
 
 
 # ---------------------------------------------------------------------------- library variables

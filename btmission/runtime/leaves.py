@@ -193,7 +193,10 @@ def _guard_update(fn: Callable[..., Status]) -> Callable[..., Status]:
             self._init_error = False
             return Status.FAILURE
         try:
-            return fn(self)
+            status = fn(self)
+            if not isinstance(status, Status):
+                raise TypeError(f"returned {status!r}, not a py_trees Status")
+            return status
         except Exception as exc:  # a library's code must not end the run (docs/running.md)
             self._leaf_failed("update", exc)
             return Status.FAILURE
@@ -246,8 +249,8 @@ class GuardedLeaf(py_trees.behaviour.Behaviour):
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
         for name, guard in _GUARDS.items():
-            fn = cls.__dict__.get(name)
-            if fn is not None and not getattr(fn, "__btmission_guarded__", False):
+            fn = getattr(cls, name)  # through the MRO: a mixin's override is guarded too
+            if not getattr(fn, "__btmission_guarded__", False):
                 setattr(cls, name, guard(fn))
 
     def _leaf_failed(self, phase: str, exc: Exception) -> None:
