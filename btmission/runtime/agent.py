@@ -43,7 +43,8 @@ from btmission.runtime.leaves import (
     ConditionLeaf,
     ErrorReporter,
     StatefulAction,
-    exception_event,
+    describe,
+    setup_failed,
 )
 from btmission.runtime.navigation import Navigator
 from btmission.runtime.paths import PathCosts
@@ -53,22 +54,6 @@ from btmission.synthesis.pytrees import build_behaviour_tree
 from btmission.synthesis.tree import Kind, Node, Role
 
 Emit = Callable[..., None]
-
-
-class SetupError(Exception):
-    """A library's ``on_setup`` hook raised for an agent (the run cannot start)."""
-
-    def __init__(self, library: str, agent: str, hook: Callable[..., Any], exc: Exception) -> None:
-        name = getattr(hook, "__qualname__", repr(hook))
-        info = exception_event(exc)
-        where = f" (at {info['where']})" if info["where"] else ""
-        super().__init__(
-            f"library '{library}': setup hook {name} failed for agent {agent}: "
-            f"{type(exc).__name__}: {exc}{where}"
-        )
-        self.library = library
-        self.agent = agent
-        self.info = info
 
 
 class Agent:
@@ -147,8 +132,15 @@ class Agent:
         for hook in implementations.setup_hooks:
             try:
                 hook(self.ctx)
-            except Exception as exc:
-                raise SetupError(implementations.library, agent_id, hook, exc) from exc
+            except Exception as exc:  # the library's code: a clear error, exit 2
+                name = getattr(hook, "__qualname__", repr(hook))
+                raise setup_failed(
+                    "setup-failed",
+                    f"library '{implementations.library}': setup hook {name} failed for agent "
+                    f"{agent_id}: {describe(exc)}",
+                    f"agents.{agent_id}",
+                    mission.file,
+                ) from exc
         bus.connect(agent_id, self.on_announcement, self.on_assignment)
 
     # ---------------------------------------------------------------- tree construction

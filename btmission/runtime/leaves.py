@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING, Any
 import py_trees
 from py_trees.common import Status
 
+from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
 from btmission.synthesis.tree import Node
 
 if TYPE_CHECKING:
@@ -165,6 +166,18 @@ def exception_event(exc: BaseException) -> dict[str, Any]:
         "where": where,
         "traceback": "".join(traceback.format_exception(type(exc), exc, exc.__traceback__)),
     }
+
+
+def describe(exc: BaseException) -> str:
+    """``Type: message (at file:line)`` — an exception of a library's code in one line."""
+    where = exception_event(exc)["where"]
+    return f"{type(exc).__name__}: {exc}" + (f" (at {where})" if where else "")
+
+
+def setup_failed(code: str, message: str, item: str, file: str | None) -> SpecError:
+    """A library's setup code (an ``on_setup`` hook, a service factory) raised before the run
+    started: a clear error naming the mission, the item and the exception (exit status 2)."""
+    return SpecError([Diagnostic(Severity.ERROR, code, message, item, Location(file))])
 
 
 class ErrorReporter:

@@ -33,13 +33,18 @@ from typing import TYPE_CHECKING, Any
 from btmission.allocation.tasks import TaskInfo, TaskState
 from btmission.backends.sim import Artifact, SimConfig, Simulator
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
-from btmission.plugins import Implementations
-from btmission.runtime.agent import Agent, SetupError
+from btmission.runtime.agent import Agent
 from btmission.runtime.bus import InMemoryBus
 from btmission.runtime.clock import Clock, ManualClock, SimClock
 from btmission.runtime.coordinator import Coordinator
 from btmission.runtime.events import LOG_FORMAT, LOG_VERSION, EventStream, Observer
-from btmission.runtime.leaves import ErrorReporter, RunContext, StatefulAction, exception_event
+from btmission.runtime.leaves import (
+    ErrorReporter,
+    RunContext,
+    StatefulAction,
+    describe,
+    setup_failed,
+)
 from btmission.runtime.navigation import SETTINGS_DOC, NavConfig, Navigator
 from btmission.runtime.paths import PathCosts
 from btmission.spec.mission import Mission
@@ -280,19 +285,12 @@ class MissionRun:
                         try:
                             made[id(make)] = make(run)
                         except Exception as exc:  # the library's code: a clear error, exit 2
-                            info = exception_event(exc)
-                            at = f" (at {info['where']})" if info["where"] else ""
-                            raise SpecError(
-                                [
-                                    Diagnostic(
-                                        Severity.ERROR,
-                                        "service-failed",
-                                        f"library '{impl.library}': service '{name}' failed to "
-                                        f"start: {type(exc).__name__}: {exc}{at}",
-                                        "agents",
-                                        Location(self.mission.file),
-                                    )
-                                ]
+                            raise setup_failed(
+                                "service-failed",
+                                f"library '{impl.library}': service '{name}' failed to start: "
+                                f"{describe(exc)}",
+                                "agents",
+                                self.mission.file,
                             ) from exc
                     out[impl.library][name] = made[id(make)]
         return out
@@ -325,39 +323,23 @@ class MissionRun:
                 ground_at=self.map.ground_z,
                 point_area_m2=self.map.resolution**2,
             )
-            try:
-                self.agents[spec.id] = self._agent(spec.id, impl, vehicle, nav)
-            except SetupError as exc:
-                raise SpecError(
-                    [
-                        Diagnostic(
-                            Severity.ERROR,
-                            "setup-failed",
-                            str(exc),
-                            f"agents.{spec.id}",
-                            Location(self.mission.file),
-                        )
-                    ]
-                ) from exc
-
-    def _agent(self, aid: str, impl: Implementations, vehicle: Any, nav: Navigator) -> Agent:
-        return Agent(
-            self.mission,
-            aid,
-            impl,
-            vehicle,
-            vehicle,
-            nav,
-            self.paths,
-            self.bus,
-            self.now,
-            settings=self.settings,
-            emit=self.emit,
-            namespace=self._namespace,
-            services=self.services[impl.library],
-            places=self.places,
-            provider=self.roads if impl.vehicle == "ground" else None,  # drones fly
-        )
+            self.agents[spec.id] = Agent(
+                self.mission,
+                spec.id,
+                impl,
+                vehicle,
+                vehicle,
+                nav,
+                self.paths,
+                self.bus,
+                self.now,
+                settings=self.settings,
+                emit=self.emit,
+                namespace=self._namespace,
+                services=self.services[impl.library],
+                places=self.places,
+                provider=self.roads if impl.vehicle == "ground" else None,  # drones fly
+            )
 
     def _emit_header(self) -> None:
         """The log's first event, from the mission alone (nothing built yet)."""
