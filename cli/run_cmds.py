@@ -203,7 +203,7 @@ def _run(
     """The run command's body; returns the exit status."""
     import time
 
-    from btmission.runtime.events import Event, JsonlEventLog
+    from btmission.runtime.events import JsonlEventLog
     from btmission.runtime.report import format_report, format_warnings, report_from_log
     from btmission.runtime.runner import MissionRun
     from btmission.spec.mission import load_mission
@@ -246,7 +246,7 @@ def _run(
     except _Stopped as stop:  # a signal while the run was being built
         signals.run = _Ignore()  # a second one must not cut the end event short
         if run is not None:
-            result = run._result(stop.reason)
+            result = run.result(stop.reason)
             run.end(result)
         else:
             result = None
@@ -255,13 +255,7 @@ def _run(
                 log_path.unlink(missing_ok=True)
                 raise
             wall_s = time.perf_counter() - wall0
-            log.on_event(
-                Event(
-                    0.0,
-                    "end",
-                    {"reason": stop.reason, "wall_s": wall_s, "steps": 0, "done": [], "open": {}},
-                )
-            )
+            log.on_event(MissionRun.end_before_build(mission, stop.reason, wall_s))
             click.echo(f"{stop.reason} while building the run ({wall_s:.1f} s)", err=True)
     finally:
         log.close()
@@ -276,7 +270,7 @@ def _run(
         )
     click.echo(f"log: {log_path}", err=True)
     reason = result.reason if result is not None else rep.summary.end
-    if not no_png and reason != "terminated":  # SIGTERM: end promptly
+    if not no_png and result is not None and reason != "terminated":  # SIGTERM: end promptly
         try:
             pngs = _write_pngs(rep, log_dir, log_path.stem)
         except Exception as exc:  # a figure must never hide the report

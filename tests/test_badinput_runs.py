@@ -561,7 +561,7 @@ def test_a_signal_while_the_run_is_built_ends_it_cleanly(
 
     sender = threading.Thread(target=signal_during_the_build)
     sender.start()
-    r = CliRunner().invoke(cli, ["run", str(mission), "--quiet", "--no-png", "--log", str(logs)])
+    r = CliRunner().invoke(cli, ["run", str(mission), "--quiet", "--log", str(logs)])
     sender.join()
     assert seen_build == [True]
     assert r.exit_code == code, r.output
@@ -571,6 +571,8 @@ def test_a_signal_while_the_run_is_built_ends_it_cleanly(
     log = only_log(logs)
     evs = events(log)
     assert [e["ev"] for e in evs] == ["header", "end"] and evs[-1]["reason"] == reason
+    assert evs[-1]["pending"] == ["BAD", "OK"] and not evs[-1]["open"]
+    assert not list(logs.glob("*.png"))  # no figures of a run that never ran
     rep = _report(log)
     assert rep.exit_code == 0 and f"ended: {reason}" in rep.stdout
 

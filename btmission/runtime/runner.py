@@ -37,7 +37,7 @@ from btmission.runtime.agent import Agent
 from btmission.runtime.bus import InMemoryBus
 from btmission.runtime.clock import Clock, ManualClock, SimClock
 from btmission.runtime.coordinator import Coordinator
-from btmission.runtime.events import LOG_FORMAT, LOG_VERSION, EventStream, Observer
+from btmission.runtime.events import LOG_FORMAT, LOG_VERSION, Event, EventStream, Observer
 from btmission.runtime.leaves import (
     ErrorReporter,
     RunContext,
@@ -531,9 +531,10 @@ class MissionRun:
                         time.sleep(lag)
         finally:
             self._wall_used += time.perf_counter() - wall0
-        return self._result(reason)
+        return self.result(reason)
 
-    def _result(self, reason: str) -> RunResult:
+    def result(self, reason: str) -> RunResult:
+        """How the run stands now, ended for ``reason`` (what :meth:`run` returns)."""
         now = self.now()
         everything = self.coordinator.state.pool
         pool = [t for t in everything if t.info.arrival_s <= now + 1e-9]
@@ -546,6 +547,23 @@ class MissionRun:
             {t.id: f"{t.state.value}: {t.note}" for t in pool if t.state is not TaskState.DONE},
             self.collisions,
             [t.id for t in everything if t.info.arrival_s > now + 1e-9],
+        )
+
+    @staticmethod
+    def end_before_build(mission: Mission, reason: str, wall_s: float) -> Event:
+        """The ``end`` event of a run stopped while it was being built (after its header):
+        nothing ran, every task is still to arrive."""
+        return Event(
+            0.0,
+            "end",
+            {
+                "reason": reason,
+                "wall_s": wall_s,
+                "steps": 0,
+                "done": [],
+                "open": {},
+                "pending": [t.id for t in mission.tasks],
+            },
         )
 
     def end(self, result: RunResult) -> None:
