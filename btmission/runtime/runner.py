@@ -17,7 +17,8 @@ and goes as fast as the machine allows; ``realtime=True`` paces it against the w
 
 The run ends when every task is done (or failed, or unreachable by any agent), nothing is left
 to arrive and every agent has finished its default behaviour (or waits, if it has none); or at
-``runtime.max_duration_s`` / ``until``; or when :meth:`MissionRun.stop` is called (Ctrl-C).
+``runtime.max_duration_s`` / ``until``; or when :meth:`MissionRun.stop` is called (Ctrl-C,
+SIGTERM).
 """
 
 from __future__ import annotations
