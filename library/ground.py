@@ -2,8 +2,9 @@
 
 A TurtleBot-class robot (seed 003): D*+ paths, tracked by the unicycle NMPC with the other robots'
 shared predictions (eq. 11-12) or by pure pursuit; pick and place take a fixed time. The object
-picked up is recorded on the blackboard (``holding``), which is the commit condition of
-``pick_and_deliver`` tasks (k_bt = 0 once it holds, eq. 8-10).
+picked up is recorded on the blackboard (``holding``: the task's id and pick-up point), which is
+the commit condition of ``pick_and_deliver`` tasks (k_bt = 0 once it holds, eq. 8-10); deliveries
+are recorded per task too (``delivered``).
 
 Settings (``runtime.settings`` of a mission): ``pick_time_s``, ``place_time_s`` and the
 navigator's (``speed_m_s``, ``tolerance_m``…), with defaults for a TurtleBot.
@@ -49,14 +50,21 @@ def is_localized(ctx: AgentContext) -> bool:
     return bool(ctx.blackboard.get("localized", False))
 
 
+def _load(ctx: AgentContext, *where: Any) -> tuple[Any, ...]:
+    """The object of the current task: its id (the blackboard's ``task``) and places. State is
+    kept per task, not per place: a second task with the same pick-up and drop-off is a new
+    object to pick up, not one already delivered (issue #12, warehouse P7)."""
+    return (ctx.blackboard.get("task"), *(A.point(p) for p in where))
+
+
 @IMPLEMENTATIONS.condition("holding")
 def holding(ctx: AgentContext, pickup: Any) -> bool:
-    return bool(ctx.blackboard.get("holding") == A.point(pickup))
+    return bool(ctx.blackboard.get("holding") == _load(ctx, pickup))
 
 
 @IMPLEMENTATIONS.condition("delivered")
 def delivered(ctx: AgentContext, pickup: Any, dropoff: Any) -> bool:
-    return (A.point(pickup), A.point(dropoff)) in ctx.blackboard.get("delivered", ())
+    return _load(ctx, pickup, dropoff) in ctx.blackboard.get("delivered", ())
 
 
 @IMPLEMENTATIONS.action("localize")
@@ -75,7 +83,7 @@ class Pick(A.Timed):
     setting = "pick_time_s"
 
     def finish(self) -> None:
-        self.ctx.blackboard.set("holding", A.point(self.args["pickup"]))
+        self.ctx.blackboard.set("holding", _load(self.ctx, self.args["pickup"]))
 
 
 @IMPLEMENTATIONS.action("place")
@@ -87,7 +95,7 @@ class Place(A.Timed):
     def finish(self) -> None:
         bb = self.ctx.blackboard
         done = set(bb.get("delivered", ()))
-        done.add((A.point(self.args["pickup"]), A.point(self.args["dropoff"])))
+        done.add(_load(self.ctx, self.args["pickup"], self.args["dropoff"]))
         bb.set("delivered", frozenset(done))
         bb.unset("holding")
 

@@ -302,7 +302,7 @@ def test_mine_haulage_runs_every_haul_on_schedule(tmp_path: Path) -> None:
             ref, _ = fleet.reference(fleet.state(a, run.now()))
             pos = run.sim.backends[a].telemetry().position
             errors.append(float(np.hypot(*(pos[:2] - ref[:2]))))
-    result = run._result(run.finished() or "time limit")
+    result = run.result(run.finished() or "time limit")
     assert result.reason == "completed" and len(result.done) == 6 and result.collisions == 0
     hauled = {k: v for t in fleet.trucks.values() for k, v in t.hauled.items()}
     assert hauled == {t.id: (t.fields["pickup"], t.fields["dropoff"]) for t in run.mission.tasks}

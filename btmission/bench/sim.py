@@ -106,7 +106,7 @@ def run_mission(path: Path, controller: str) -> MissionPoint:
         res.time_s,
         res.wall_s,
         len(res.done),
-        len(res.done) + len(res.open),
+        len(res.done) + len(res.open) + len(res.pending),
         res.collisions,
         res.reason,
     )

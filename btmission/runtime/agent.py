@@ -41,7 +41,10 @@ from btmission.runtime.leaves import (
     AgentContext,
     Blackboard,
     ConditionLeaf,
+    ErrorReporter,
     StatefulAction,
+    describe,
+    setup_failed,
 )
 from btmission.runtime.navigation import Navigator
 from btmission.runtime.paths import PathCosts
@@ -82,6 +85,9 @@ class Agent:
         self.clock = clock
         self.navigator = navigator
         self._emit = emit
+        self.errors = ErrorReporter(self._leaf_event)
+        """Exceptions raised by the library's leaves → ``leaf_error`` events (once each)."""
+        self._warned: set[str] = set()
         self.blackboard = Blackboard(f"{namespace}/agents/{agent_id}")
         self.ctx = AgentContext(
             agent_id=agent_id,
@@ -124,7 +130,17 @@ class Agent:
         self.ticks = 0
         self.last_announcement: Announcement | None = None
         for hook in implementations.setup_hooks:
-            hook(self.ctx)
+            try:
+                hook(self.ctx)
+            except Exception as exc:  # the library's code: a clear error, exit 2
+                name = getattr(hook, "__qualname__", repr(hook))
+                raise setup_failed(
+                    "setup-failed",
+                    f"library '{implementations.library}': setup hook {name} failed for agent "
+                    f"{agent_id}: {describe(exc)}",
+                    f"agents.{agent_id}",
+                    mission.file,
+                ) from exc
         bus.connect(agent_id, self.on_announcement, self.on_assignment)
 
     # ---------------------------------------------------------------- tree construction
@@ -259,8 +275,25 @@ class Agent:
         """Called by a failing action: the reason reported if the task fails."""
         self._failure = f"{action}: {reason}" if reason else action
 
+    def unset_variables(self, leaf: str, names: list[str]) -> None:
+        """An action could not start because ``names`` are not on the blackboard: a library
+        variable (e.g. ``home``) nobody set. Warn once per variable (``warning`` event)."""
+        for name in names:
+            if name in self._warned:
+                continue
+            self._warned.add(name)
+            self._emit(
+                "warning",
+                agent=self.id,
+                variable=name,
+                leaf=leaf,
+                message=f"'{name}' is not on the blackboard, so {leaf} cannot run: nothing "
+                f"sets this library variable (an on_setup hook or an action of the library must "
+                "set it; see docs/plugins.md, 'Library variables')",
+            )
+
     def _leaf_event(self, kind: str, **data: Any) -> None:
-        if kind == "stage":
+        if kind in ("stage", "leaf_error"):
             self.action = str(data.get("action", ""))
             data = {"task": self.task.id if self.task else None, **data}
         self._emit(kind, agent=self.id, **data)

@@ -212,13 +212,14 @@ class Coordinator:
             for ev in t.history[seen:]:
                 if seen == 0 and ev.reason == "added":
                     continue  # the task_added event said it
-                self._emit(
-                    "task",
-                    t=ev.time_s,
+                late = {"reported_s": ev.time_s} if ev.time_s < now - 1e-9 else {}
+                self._emit(  # at the round's time (the log is in time order); when the
+                    "task",  # change was reported earlier (an agent's progress), that time too
                     task=t.id,
                     state=ev.state.value,
                     agent=ev.agent,
                     reason=ev.reason,
+                    **late,
                 )
             self._history_len[t.id] = len(t.history)
         for msg in result.progress_problems:

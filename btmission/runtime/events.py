@@ -7,9 +7,11 @@ item 8: logging, viewing and test checks are all observers; nodes never import t
 The kinds a run emits (fields in brackets; positions are ``[x, y, z]`` lists in metres):
 
 =================  =======================================================================
-``header``         first event of a log: ``format``, ``version``, ``mission``, ``file``, ``seed``,
-                   ``controller``, ``world`` (the mission's world spec), ``agents``
-                   (``[{id, library, start}]``), ``tasks`` (``[{id, type, at, fields}]``)
+``header``         first event of a log, written before anything is built: ``format``,
+                   ``version``, ``mission``, ``file``, ``seed``, ``controller``, ``world`` (the
+                   mission's world spec), ``agents`` (``[{id, library, vehicle, start}]``),
+                   ``tasks`` (``[{id, type, at, fields}]``)
+``built``          the run is built: ``map`` (shape, resolution, origin), ``build_s``
 ``task_added``     a task entered the pool: ``task``, ``type``, ``fields``, ``by`` (mission/api)
 ``task``           a task changed state or agent (the auction pool's history): ``task``,
                    ``state`` (open/assigned/committed/done/failed/unreachable), ``agent``,
@@ -34,7 +36,17 @@ The kinds a run emits (fields in brackets; positions are ``[x, y, z]`` lists in 
                    ``fitness``, ``reason``, ``points``, ``sensor``, ``time_ms``, ``truth`` (the
                    telemetry pose ``{x, y, z, yaw_deg}``: the true pose in the simulator) and,
                    when localised, ``estimate`` and its ``error_m``, ``error_deg``
-``end``            last event: ``reason`` (completed/time limit/interrupted/...), ``wall_s``
+``leaf_error``     a library's leaf (or service) raised; it failed and the run went on:
+                   ``agent``, ``task``, ``leaf``, ``phase``, ``error``, ``message``, ``where``,
+                   ``traceback``
+``warning``        the coordinator refused something, or an action's argument is on nobody's
+                   blackboard (``agent``, ``variable``, ``leaf``): ``message``
+``end``            last event: ``reason`` (completed/time limit/interrupted/terminated/...),
+                   ``wall_s``, ``done``, ``open`` (arrived tasks only), ``pending`` (still
+                   to arrive)
+
+A run publishes events in time order; one that happened earlier than it is published (an
+agent's report, taken by the next auction round) carries its own time as ``reported_s``.
 =================  =======================================================================
 
 :class:`JsonlEventLog` writes them as JSON Lines, one event per line, flushed as written, so a

@@ -21,6 +21,8 @@ The leaves of the mission tree itself (seed 000 Fig. 7) are built in: ``task_ass
 
 from __future__ import annotations
 
+import functools
+import traceback
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -28,6 +30,7 @@ from typing import TYPE_CHECKING, Any
 import py_trees
 from py_trees.common import Status
 
+from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
 from btmission.synthesis.tree import Node
 
 if TYPE_CHECKING:
@@ -152,7 +155,131 @@ def resolve(ctx: AgentContext, node: Node) -> dict[str, Any] | None:
     return out
 
 
-class ConditionLeaf(py_trees.behaviour.Behaviour):
+def exception_event(exc: BaseException) -> dict[str, Any]:
+    """The fields of a ``leaf_error`` event for ``exc``: its type, message, where it was raised
+    (the innermost frame, ``file:line``) and the full traceback."""
+    frames = traceback.extract_tb(exc.__traceback__)
+    where = f"{frames[-1].filename}:{frames[-1].lineno}" if frames else ""
+    return {
+        "error": type(exc).__name__,
+        "message": str(exc),
+        "where": where,
+        "traceback": "".join(traceback.format_exception(type(exc), exc, exc.__traceback__)),
+    }
+
+
+def describe(exc: BaseException) -> str:
+    """``Type: message (at file:line)`` — an exception of a library's code in one line."""
+    where = exception_event(exc)["where"]
+    return f"{type(exc).__name__}: {exc}" + (f" (at {where})" if where else "")
+
+
+def setup_failed(code: str, message: str, item: str, file: str | None) -> SpecError:
+    """A library's setup code (an ``on_setup`` hook, a service factory) raised before the run
+    started: a clear error naming the mission, the item and the exception (exit status 2)."""
+    return SpecError([Diagnostic(Severity.ERROR, code, message, item, Location(file))])
+
+
+class ErrorReporter:
+    """Turns exceptions raised by library code (leaves, services) into ``leaf_error`` events,
+    each distinct error (leaf, phase, type, message) once, so a condition that raises on every
+    tick does not flood the log."""
+
+    def __init__(self, emit: Callable[..., None]) -> None:
+        self._emit = emit
+        self._seen: set[tuple[str, str, str, str]] = set()
+
+    def report(self, leaf: str, phase: str, exc: BaseException, **extra: Any) -> str:
+        """Emit the event (first time) and return the short reason ``Type: message``."""
+        reason = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+        key = (leaf, phase, type(exc).__name__, str(exc))
+        if key not in self._seen:
+            self._seen.add(key)
+            self._emit("leaf_error", leaf=leaf, phase=phase, **extra, **exception_event(exc))
+        return reason
+
+
+def _guard_update(fn: Callable[..., Status]) -> Callable[..., Status]:
+    @functools.wraps(fn)
+    def update(self: GuardedLeaf) -> Status:
+        if self._init_error:  # initialise() raised: this tick fails
+            self._init_error = False
+            return Status.FAILURE
+        try:
+            status = fn(self)
+            if not isinstance(status, Status):
+                raise TypeError(f"returned {status!r}, not a py_trees Status")
+            return status
+        except Exception as exc:  # a library's code must not end the run (docs/running.md)
+            self._leaf_failed("update", exc)
+            return Status.FAILURE
+
+    update.__btmission_guarded__ = True  # type: ignore[attr-defined]
+    return update
+
+
+def _guard_initialise(fn: Callable[..., None]) -> Callable[..., None]:
+    @functools.wraps(fn)
+    def initialise(self: GuardedLeaf) -> None:
+        self._init_error = False
+        try:
+            fn(self)
+        except Exception as exc:
+            self._leaf_failed("initialise", exc)
+            self._init_error = True
+
+    initialise.__btmission_guarded__ = True  # type: ignore[attr-defined]
+    return initialise
+
+
+def _guard_terminate(fn: Callable[..., None]) -> Callable[..., None]:
+    @functools.wraps(fn)
+    def terminate(self: GuardedLeaf, new_status: Status) -> None:
+        try:
+            fn(self, new_status)
+        except Exception as exc:
+            self._leaf_failed("terminate", exc)
+
+    terminate.__btmission_guarded__ = True  # type: ignore[attr-defined]
+    return terminate
+
+
+_GUARDS: dict[str, Callable[[Any], Any]] = {
+    "update": _guard_update,
+    "initialise": _guard_initialise,
+    "terminate": _guard_terminate,
+}
+
+
+class GuardedLeaf(py_trees.behaviour.Behaviour):
+    """A leaf whose ``initialise`` / ``update`` / ``terminate`` — its own and any subclass's
+    overrides — never raise: an exception becomes FAILURE for that tick and a ``leaf_error``
+    event (type, message, traceback) through the agent's context, and the run goes on."""
+
+    ctx: AgentContext
+    _init_error = False
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        for name, guard in _GUARDS.items():
+            fn = getattr(cls, name)  # through the MRO: a mixin's override is guarded too
+            if not getattr(fn, "__btmission_guarded__", False):
+                setattr(cls, name, guard(fn))
+
+    def _leaf_failed(self, phase: str, exc: Exception) -> None:
+        ctx = self.ctx
+        agent = ctx.agent
+        reporter = getattr(agent, "errors", None)
+        if reporter is None:
+            reporter = ctx.state.setdefault("_errors", ErrorReporter(ctx.events))
+        reason = reporter.report(self.name, phase, exc)
+        if isinstance(self, StatefulAction):
+            self.reason = reason
+        if agent is not None:
+            agent.note_failure(self.name, reason)
+
+
+class ConditionLeaf(GuardedLeaf):
     """A condition: SUCCESS iff its implementation says it holds (FAILURE if an argument is
     not on the blackboard yet)."""
 
@@ -169,14 +296,15 @@ class ConditionLeaf(py_trees.behaviour.Behaviour):
         return Status.SUCCESS if self.fn(self.ctx, **args) else Status.FAILURE
 
 
-class StatefulAction(py_trees.behaviour.Behaviour):
+class StatefulAction(GuardedLeaf):
     """Base class of action implementations (STYLE.md item 5).
 
     Override :meth:`on_start` (first tick: send the request; return RUNNING, or SUCCESS/FAILURE
     at once), :meth:`on_running` (later ticks: poll) and :meth:`on_halted` (a higher-priority
     branch took over: cancel). ``self.args`` are the bound arguments, ``self.ctx`` the agent's
     :class:`AgentContext`. Set ``self.reason`` when returning FAILURE: it is reported with the
-    task.
+    task. An exception raised by any of them fails the action (its reason is the exception's
+    type and message) and is logged as a ``leaf_error`` event: the run goes on.
     """
 
     def __init__(self, node: Node, ctx: AgentContext) -> None:
@@ -196,8 +324,14 @@ class StatefulAction(py_trees.behaviour.Behaviour):
         if not self._started:
             args = resolve(self.ctx, self.node)
             if args is None:
-                missing = [a.value for a in self.node.args if not a.literal]
+                missing = [
+                    a.value
+                    for a in self.node.args
+                    if not a.literal and a.value not in self.ctx.blackboard
+                ]
                 self.reason = f"{self.name}: {', '.join(missing)} not on the blackboard"
+                if self.ctx.agent is not None:
+                    self.ctx.agent.unset_variables(self.name, missing)
                 return Status.FAILURE
             self.args = args
             self._started = True

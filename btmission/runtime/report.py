@@ -74,6 +74,8 @@ class MissionReport:
     warnings: list[str] = field(default_factory=list)
     dispatched: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
     """Truck → its missions adopted by the fleet dispatcher, in order (``dispatch`` events)."""
+    incidents: list[str] = field(default_factory=list)
+    """What went wrong while it ran: ``leaf_error`` and ``warning`` events, each once."""
 
 
 class ReportBuilder:
@@ -95,6 +97,7 @@ class ReportBuilder:
         self.last_t = 0.0
         self.warnings: list[str] = []
         self.dispatched: dict[str, list[dict[str, Any]]] = {}
+        self.incidents: dict[str, None] = {}  # ordered set
 
     def on_event(self, ev: Event) -> None:
         self.last_t = max(self.last_t, ev.t)
@@ -102,7 +105,7 @@ class ReportBuilder:
         if kind == "header":
             self.header = dict(ev.data)
         elif kind == "task_added":
-            self.added[ev.get("task")] = (ev.t, str(ev.get("type", "")))
+            self.added[ev.get("task")] = (_when(ev), str(ev.get("type", "")))
             self.fields[ev.get("task")] = dict(ev.get("fields") or {})
             for problem in ev.get("problems") or []:
                 self.warnings.append(f"task {ev.get('task')}: {problem}")
@@ -130,6 +133,11 @@ class ReportBuilder:
         elif kind == "dispatch":
             if ev.get("event") == "adopted" and ev.get("mission"):
                 self.dispatched.setdefault(str(ev.get("truck")), []).append(ev.get("mission"))
+        elif kind == "leaf_error":
+            what = f"{ev.get('leaf')} raised {ev.get('error')}: {ev.get('message')}"
+            self.incidents[f"agent {ev.get('agent')}: {what} (traceback in the log)"] = None
+        elif kind == "warning":
+            self.incidents[str(ev.get("message"))] = None
         elif kind == "end":
             self.end = ev
 
@@ -145,11 +153,11 @@ class ReportBuilder:
             start = None
             for ev in evs[:-1]:  # the allocation of the agent that finished it
                 if ev.get("agent") == agent and ev.get("state") == "assigned":
-                    start = ev.t
+                    start = _when(ev)
                 elif ev.get("agent") != agent:
                     start = None
-            execution = None if start is None else done.t - start
-            return TaskRow(task, ttype, added, done.t, execution, agent, "done")
+            execution = None if start is None else _when(done) - start
+            return TaskRow(task, ttype, added, _when(done), execution, agent, "done")
         agent = evs[-1].get("agent") if evs else None
         return TaskRow(task, ttype, added, None, None, agent, str(state), str(reason))
 
@@ -188,6 +196,7 @@ class ReportBuilder:
             dict(self.fields),
             warnings=list(self.warnings),
             dispatched={k: list(v) for k, v in self.dispatched.items()},
+            incidents=list(self.incidents),
         )
 
     def _intervals(self, end: float) -> dict[str, list[tuple[str, float, float, str]]]:
@@ -207,6 +216,13 @@ class ReportBuilder:
                 spans.append((str(task), t0, nxt[0], outcome))
             out[agent] = spans
         return out
+
+
+def _when(ev: Event) -> float:
+    """When it happened: ``reported_s`` for an event published late (see
+    :meth:`~btmission.runtime.runner.MissionRun.emit`), else its time."""
+    t = ev.get("reported_s")
+    return float(t) if isinstance(t, (int, float)) else ev.t
 
 
 def _path_length(points: np.ndarray) -> float:
@@ -242,7 +258,7 @@ def _f(v: float | None, digits: int = 0) -> str:
 
 
 def format_report(rep: MissionReport) -> str:
-    """Table III and Table II of seed 000 as text."""
+    """Table III and Table II of seed 000 as text (the warnings: :func:`format_warnings`)."""
     h = rep.header
     s = rep.summary
     lines = [
@@ -291,9 +307,14 @@ def format_report(rep: MissionReport) -> str:
                 for o in rep.objects
             ],
         )
-    for w in rep.warnings:
-        lines.append(f"warning: {w}")
     return "\n".join(lines)
+
+
+def format_warnings(rep: MissionReport, *, incidents: bool = True) -> list[str]:
+    """The report's warnings (a log cut off, unreadable lines, task problems) and, with
+    ``incidents``, what went wrong during the run (leaf errors, runtime warnings), one line
+    each: the CLI prints them on stderr, apart from the tables."""
+    return [f"warning: {w}" for w in rep.warnings + (rep.incidents if incidents else [])]
 
 
 def _nearest(obj: Mapping[str, Any], truth: Sequence[Mapping[str, Any]]) -> float | None:

@@ -17,7 +17,8 @@ and goes as fast as the machine allows; ``realtime=True`` paces it against the w
 
 The run ends when every task is done (or failed, or unreachable by any agent), nothing is left
 to arrive and every agent has finished its default behaviour (or waits, if it has none); or at
-``runtime.max_duration_s`` / ``until``; or when :meth:`MissionRun.stop` is called (Ctrl-C).
+``runtime.max_duration_s`` / ``until``; or when :meth:`MissionRun.stop` is called (Ctrl-C,
+SIGTERM).
 """
 
 from __future__ import annotations
@@ -35,10 +36,15 @@ from btmission.backends.sim import Artifact, SimConfig, Simulator
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
 from btmission.runtime.agent import Agent
 from btmission.runtime.bus import InMemoryBus
-from btmission.runtime.clock import Clock, SimClock
+from btmission.runtime.clock import Clock, ManualClock, SimClock
 from btmission.runtime.coordinator import Coordinator
-from btmission.runtime.events import LOG_FORMAT, LOG_VERSION, EventStream, Observer
-from btmission.runtime.leaves import RunContext
+from btmission.runtime.events import LOG_FORMAT, LOG_VERSION, Event, EventStream, Observer
+from btmission.runtime.leaves import (
+    ErrorReporter,
+    RunContext,
+    describe,
+    setup_failed,
+)
 from btmission.runtime.navigation import NavConfig, Navigator
 from btmission.runtime.paths import PathCosts
 from btmission.spec.mission import Mission
@@ -63,8 +69,10 @@ class RunResult:
     steps: int
     done: list[str] = field(default_factory=list)
     open: dict[str, str] = field(default_factory=dict)
-    """Tasks not done → state and reason."""
+    """Tasks not done → state and reason (tasks that have arrived)."""
     collisions: int = 0
+    pending: list[str] = field(default_factory=list)
+    """Tasks still to arrive (``at:`` after the end: the run was cut short)."""
 
     @property
     def speedup(self) -> float:
@@ -101,6 +109,12 @@ class MissionRun:
         self.controller = controller or rt.controller
         self.realtime = realtime
         self.events = EventStream(observers)
+        self._last_t = 0.0
+        self.clock: Clock = ManualClock(0.0)  # until the simulator is built
+        build0 = time.perf_counter()
+        # the header first: building the map and the planners can take long, and a run killed
+        # meanwhile must still leave a log that `btmission report` reads (docs/running.md)
+        self._emit_header()
         self.map = (
             voxel_map
             if voxel_map is not None
@@ -124,7 +138,7 @@ class MissionRun:
             seed=seed,
             artifacts=[Artifact(a.label, a.position, a.size_m) for a in sim_spec.artifacts],
         )
-        self.clock: Clock = SimClock(self.sim)
+        self.clock = SimClock(self.sim)
         self.paths = PathCosts(
             self.map,
             RiskParams(rt.risk_radius_m, rt.unknown_cost),
@@ -155,9 +169,16 @@ class MissionRun:
         self._wall0: float | None = None
         self._wall_used = 0.0
         self._ended: RunResult | None = None
+        self.errors = ErrorReporter(self.emit)
+        """Exceptions raised by services' ``step`` → ``leaf_error`` events (once each)."""
         self.services: dict[str, dict[str, Any]] = self._build_services()
         self._build_agents()
-        self._emit_header()
+        vm = self.map
+        self.emit(
+            "built",
+            map={"shape": list(vm.shape), "resolution": vm.resolution, "origin": list(vm.origin)},
+            build_s=time.perf_counter() - build0,
+        )
 
     # ---------------------------------------------------------------- construction
     def _roads(self) -> RoadCosts | None:
@@ -203,7 +224,16 @@ class MissionRun:
                 out[impl.library] = {}
                 for name, make in impl.services.items():
                     if id(make) not in made:
-                        made[id(make)] = make(run)
+                        try:
+                            made[id(make)] = make(run)
+                        except Exception as exc:  # the library's code: a clear error, exit 2
+                            raise setup_failed(
+                                "service-failed",
+                                f"library '{impl.library}': service '{name}' failed to start: "
+                                f"{describe(exc)}",
+                                "agents",
+                                self.mission.file,
+                            ) from exc
                     out[impl.library][name] = made[id(make)]
         return out
 
@@ -254,9 +284,14 @@ class MissionRun:
             )
 
     def _emit_header(self) -> None:
+        """The log's first event, from the mission alone (nothing built yet)."""
         m = self.mission
         world = m.spec.world.model_dump(mode="json")
-        vm = self.map
+
+        def vehicle(agent: str) -> str:
+            impl = m.library_of(agent).implementations
+            return "ground" if impl is not None and impl.vehicle == "ground" else "multirotor"
+
         self.emit(
             "header",
             format=LOG_FORMAT,
@@ -267,14 +302,13 @@ class MissionRun:
             seed=self.seed,
             controller=self.controller,
             world=world,
-            map={"shape": list(vm.shape), "resolution": vm.resolution, "origin": list(vm.origin)},
-            step_s=self.dt,
+            step_s=m.spec.runtime.sim.step_s,
             auction_rate_hz=m.spec.coordination.auction_rate_hz,
             agents=[
                 {
                     "id": a.id,
                     "library": m.library_of(a.id).library.name,
-                    "vehicle": self.sim.backends[a.id].kind.value,
+                    "vehicle": vehicle(a.id),
                     "start": list(a.start),
                 }
                 for a in m.agents
@@ -294,7 +328,15 @@ class MissionRun:
         return self.clock.now()
 
     def emit(self, kind: str, t: float | None = None, **data: Any) -> None:
-        self.events.emit(self.now() if t is None else t, kind, **data)
+        """Publish an event at mission time ``t`` (default: now). Events go out in time order:
+        one stamped earlier than the last published (something reported late) goes out at the
+        last time, with its own time as ``reported_s``."""
+        when = self.now() if t is None else t
+        if when < self._last_t - 1e-9:
+            data["reported_s"] = when
+            when = self._last_t
+        self._last_t = when
+        self.events.emit(when, kind, **data)
 
     def add_task(self, task: Mapping[str, Any] | TaskInfo) -> TaskInfo:
         """Add a task while the mission runs (thread-safe): ``{"id": "T8", "type": "inspect",
@@ -338,11 +380,14 @@ class MissionRun:
         while self._schedule and self._schedule[0][0] <= now + 1e-9:
             _, _, fn = self._schedule.pop(0)
             fn(self)
-        for services in self.services.values():
-            for service in services.values():
+        for library, services in self.services.items():
+            for name, service in services.items():
                 step = getattr(service, "step", None)
                 if step is not None:
-                    step(now)
+                    try:
+                        step(now)
+                    except Exception as exc:  # a library's code must not end the run
+                        self.errors.report(f"service {library}.{name}", "step", exc)
         self.coordinator.step(now)
         if now + 1e-9 >= self._next_tick:
             for a in self.agents.values():
@@ -428,18 +473,39 @@ class MissionRun:
                         time.sleep(lag)
         finally:
             self._wall_used += time.perf_counter() - wall0
-        return self._result(reason)
+        return self.result(reason)
 
-    def _result(self, reason: str) -> RunResult:
-        pool = self.coordinator.state.pool
-        return RunResult(
+    def result(self, reason: str) -> RunResult:
+        """How the run stands now, ended for ``reason`` (what :meth:`run` returns)."""
+        now = self.now()
+        everything = self.coordinator.state.pool
+        pool = [t for t in everything if t.info.arrival_s <= now + 1e-9]
+        return RunResult(  # tasks still to arrive (``at:`` later) are neither done nor open
             reason,
-            self.now(),
+            now,
             self._wall_used,
             self.sim.steps,
             [t.id for t in pool if t.state is TaskState.DONE],
             {t.id: f"{t.state.value}: {t.note}" for t in pool if t.state is not TaskState.DONE},
             self.collisions,
+            [t.id for t in everything if t.info.arrival_s > now + 1e-9],
+        )
+
+    @staticmethod
+    def end_before_build(mission: Mission, reason: str, wall_s: float) -> Event:
+        """The ``end`` event of a run stopped while it was being built (after its header):
+        nothing ran, every task is still to arrive."""
+        return Event(
+            0.0,
+            "end",
+            {
+                "reason": reason,
+                "wall_s": wall_s,
+                "steps": 0,
+                "done": [],
+                "open": {},
+                "pending": [t.id for t in mission.tasks],
+            },
         )
 
     def end(self, result: RunResult) -> None:
@@ -454,4 +520,5 @@ class MissionRun:
             steps=result.steps,
             done=result.done,
             open=result.open,
+            pending=result.pending,
         )
