@@ -41,21 +41,29 @@ class ChecksFailed(click.ClickException):
 
 # ------------------------------------------------------------------ last-resort error report
 ErrorSink = Callable[[BaseException, str], "str | None"]
-_ERROR_SINKS: list[ErrorSink] = []
+_ALSO_IN = "_btmission_traceback_also_in"  # where sinks wrote an exception's traceback
 
 
 @contextlib.contextmanager
 def internal_error_sink(sink: ErrorSink) -> Iterator[None]:
-    """While the block runs, an internal error is also given to ``sink(exc, traceback_text)``.
+    """An unexpected exception leaving the block is given to ``sink(exc, traceback_text)`` at once.
 
-    ``run`` uses this to put the traceback in the open event log; the sink returns where it
-    wrote it (named in the one-line message) or None. A sink that fails is ignored.
+    ``run`` uses this to put the traceback in its event log while the log is still open; the
+    sink returns where it wrote it (named in the one-line message) or None. Expected ends (bad
+    input, click's exits, signals) pass untouched, and a sink that fails is ignored.
     """
-    _ERROR_SINKS.append(sink)
     try:
         yield
-    finally:
-        _ERROR_SINKS.remove(sink)
+    except (click.exceptions.ClickException, click.exceptions.Exit, click.Abort, SpecError):
+        raise
+    except Exception as exc:
+        try:
+            shown = sink(exc, "".join(traceback.format_exception(exc)))
+        except Exception:  # the report must not fail because a sink did
+            shown = None
+        if shown:
+            setattr(exc, _ALSO_IN, [*getattr(exc, _ALSO_IN, []), shown])
+        raise
 
 
 def crash_dir() -> Path:
@@ -95,14 +103,7 @@ def report_internal_error(exc: BaseException, *, debug: bool = False) -> int:
     if debug:
         click.echo(trace.rstrip("\n"), err=True)
         return EXIT_INTERNAL_ERROR
-    where: list[str] = []
-    for sink in list(_ERROR_SINKS):
-        try:
-            shown = sink(exc, trace)
-        except Exception:  # the report must not fail because a sink did
-            continue
-        if shown:
-            where.append(shown)
+    where: list[str] = list(getattr(exc, _ALSO_IN, []))
     header = (
         f"btmission {__version__} internal error\n"
         f"command: {' '.join(sys.argv)}\n"
@@ -254,9 +255,7 @@ def check_output_target(path: Path | None, kind: OutputKind = "file") -> Path | 
                     "not a directory"
                 )
         else:
-            what: str | None = (
-                "a directory" if stat.S_ISDIR(st.st_mode) else _what_is(st.st_mode)
-            )
+            what: str | None = "a directory" if stat.S_ISDIR(st.st_mode) else _what_is(st.st_mode)
             if what is not None:
                 raise BadInput(
                     f"refusing to write {path}: it is {what}, not a regular file "

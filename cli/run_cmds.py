@@ -19,6 +19,7 @@ from btmission.cli.common import (
     BadInput,
     echo_diagnostics,
     handle_spec_errors,
+    internal_error_sink,
     output_target,
 )
 from btmission.diagnostics import Severity, SpecError, errors
@@ -211,7 +212,7 @@ def _run(
     """The run command's body; returns the exit status."""
     import time
 
-    from btmission.runtime.events import JsonlEventLog
+    from btmission.runtime.events import Event, JsonlEventLog
     from btmission.runtime.report import format_report, format_warnings, report_from_log
     from btmission.runtime.runner import MissionRun
     from btmission.spec.mission import load_mission
@@ -228,29 +229,44 @@ def _run(
     log = JsonlEventLog(log_path)
     run: Any = None
     wall0 = time.perf_counter()
+
+    def on_internal_error(exc: BaseException, trace: str) -> str | None:
+        """A bug (ours or a plugin's) ends the run: its traceback and the end go into the log."""
+        if log.count == 0:  # not even the header: the crash file alone tells
+            return None
+        info = {"type": type(exc).__name__, "message": str(exc), "traceback": trace}
+        log.on_event(Event(run.now() if run is not None else 0.0, "internal_error", info))
+        if run is not None:
+            run.end(run.result("internal error"))
+        else:
+            wall_s = time.perf_counter() - wall0
+            log.on_event(MissionRun.end_before_build(mission, "internal error", wall_s))
+        return str(log_path)
+
     try:
-        try:
-            run = MissionRun(
-                mission,
-                seed=seed,
-                controller=controller,
-                observers=[log, _StderrNotes()],
-                realtime=realtime,
-            )
-        except SpecError:
-            log.close()
-            log_path.unlink(missing_ok=True)
-            raise
-        signals.run = run
-        if not quiet:
-            click.echo(
-                f"running {mission.name}: {len(mission.agents)} agent(s), "
-                f"{len(mission.tasks)} task(s), controller {run.controller}, seed {seed}; "
-                f"log {log_path}",
-                err=True,
-            )
-        result = _run_with_progress(run, until, quiet)
-        run.end(result)
+        with internal_error_sink(on_internal_error):
+            try:
+                run = MissionRun(
+                    mission,
+                    seed=seed,
+                    controller=controller,
+                    observers=[log, _StderrNotes()],
+                    realtime=realtime,
+                )
+            except SpecError:
+                log.close()
+                log_path.unlink(missing_ok=True)
+                raise
+            signals.run = run
+            if not quiet:
+                click.echo(
+                    f"running {mission.name}: {len(mission.agents)} agent(s), "
+                    f"{len(mission.tasks)} task(s), controller {run.controller}, seed {seed}; "
+                    f"log {log_path}",
+                    err=True,
+                )
+            result = _run_with_progress(run, until, quiet)
+            run.end(result)
     except _Stopped as stop:  # a signal while the run was being built
         signals.run = _Ignore()  # a second one must not cut the end event short
         if run is not None:

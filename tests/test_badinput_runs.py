@@ -608,3 +608,40 @@ def test_run_help_documents_sigterm() -> None:
     assert "143 terminated (SIGTERM)" in r.output
     r = run_cli(["report", "--help"])
     assert "--latest" in r.output and "btmission report --latest runs" in r.output
+
+
+# ------------------------------------------------------------------------ internal errors
+def test_an_internal_error_mid_run_ends_the_log_with_its_traceback(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A bug outside any leaf: exit 70, one line naming the log, and a log `report` accepts."""
+    from btmission.runtime.runner import MissionRun
+
+    mission = plugin_mission(tmp_path, monkeypatch)
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "state"))
+    calls = {"n": 0}
+    real_step = MissionRun.step
+
+    def failing_step(self: MissionRun, *args: Any, **kwargs: Any) -> Any:
+        calls["n"] += 1
+        if calls["n"] == 20:
+            raise ZeroDivisionError("a bug in the loop")
+        return real_step(self, *args, **kwargs)
+
+    monkeypatch.setattr(MissionRun, "step", failing_step)
+    log_dir = tmp_path / "logs"
+    r = run_cli(["run", str(mission), "--until", "30", "--quiet", "--no-png", "--log", str(log_dir)])
+    assert r.exit_code == 70, r.output
+    log = only_log(log_dir)
+    assert "Traceback" not in r.output
+    assert r.stderr.strip().splitlines()[-1].startswith(
+        "internal error: ZeroDivisionError: a bug in the loop; details in "
+    )
+    assert r.stderr.rstrip().endswith(f" and {log}")
+    evs = events(log)
+    crash = [e for e in evs if e["ev"] == "internal_error"]
+    assert len(crash) == 1 and crash[0]["type"] == "ZeroDivisionError"
+    assert 'raise ZeroDivisionError("a bug in the loop")' in crash[0]["traceback"]
+    assert evs[-1]["ev"] == "end" and evs[-1]["reason"] == "internal error"
+    rep = run_cli(["report", str(log)])
+    assert rep.exit_code == 0, rep.output
