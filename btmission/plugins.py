@@ -30,6 +30,9 @@ installed library (entry point) is trusted: loading its entry point imports its 
 from __future__ import annotations
 
 import importlib
+import importlib.machinery
+import importlib.util
+import sys
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from contextvars import ContextVar
@@ -280,7 +283,51 @@ def load_library(
             bind_implementations(loaded)
         else:
             loaded.module_not_imported = True
+            if not module_can_be_found(lib.module):  # found without running any of its code
+                _import_failed(loaded, f"ModuleNotFoundError: No module named '{lib.module}'")
     return loaded
+
+
+def module_can_be_found(name: str) -> bool:
+    """Whether ``import name`` would find a module, without executing any code (no parent
+    package is imported: each level is looked up on the finders' paths)."""
+    search: Any = None
+    parts = name.split(".")
+    for k in range(len(parts)):
+        full = ".".join(parts[: k + 1])
+        module = sys.modules.get(full)
+        if module is not None:
+            search = getattr(module, "__path__", None)
+        else:
+            try:
+                spec = (
+                    importlib.util.find_spec(full)
+                    if k == 0
+                    else importlib.machinery.PathFinder.find_spec(full, search)
+                )
+            except (ImportError, ValueError):
+                return False
+            if spec is None:
+                return False
+            search = spec.submodule_search_locations
+        if search is None and k < len(parts) - 1:
+            return False  # a plain module has no submodules
+    return True
+
+
+def _import_failed(loaded: LoadedLibrary, error: str) -> None:
+    """Record that the library's module cannot be imported (it still synthesises and exports)."""
+    loaded.import_error = error
+    loaded.diagnostics.append(
+        Diagnostic(
+            Severity.WARNING,
+            "module-import",
+            f"cannot import implementation module '{loaded.library.module}' ({error}); "
+            "the library synthesises and exports but cannot run",
+            "module",
+            Location(loaded.library.file),
+        )
+    )
 
 
 def bind_implementations(loaded: LoadedLibrary) -> None:
@@ -290,17 +337,7 @@ def bind_implementations(loaded: LoadedLibrary) -> None:
     try:
         mod = importlib.import_module(lib.module)
     except Exception as exc:  # report, don't crash: the library still synthesises
-        loaded.import_error = f"{type(exc).__name__}: {exc}"
-        loaded.diagnostics.append(
-            Diagnostic(
-                Severity.WARNING,
-                "module-import",
-                f"cannot import implementation module '{lib.module}' ({loaded.import_error}); "
-                "the library synthesises and exports but cannot run",
-                "module",
-                Location(lib.file),
-            )
-        )
+        _import_failed(loaded, f"{type(exc).__name__}: {exc}")
         return
     impl = getattr(mod, "IMPLEMENTATIONS", None)
     if isinstance(impl, Implementations):

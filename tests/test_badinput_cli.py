@@ -625,3 +625,28 @@ def test_quiet_composites_tick_exactly_like_py_trees(monkeypatch: pytest.MonkeyP
     assert traces() == quiet
     assert any("\ngoal reached" in t for t in quiet)
     assert any("goal NOT reached" in t for t in quiet)
+
+
+def test_a_module_that_does_not_exist_is_found_missing_without_importing(
+    marked: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """validate says what run would: the module is looked up, not executed."""
+    lib = (marked / "marked.yaml").read_text()
+    (marked / "marked.yaml").write_text(lib.replace("module: marker_impl", "module: no_such_mod"))
+    r = invoke("validate", str(marked / "mission.yaml"))
+    assert r.exit_code == 2, r.output
+    assert "library 'marked.yaml' cannot run: ModuleNotFoundError: No module named 'no_such_mod'" in r.output
+    # a module inside a package is found without running the package's __init__ either
+    pkg = marked / "markpkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text(MARKER_MODULE)
+    (pkg / "impl.py").write_text(MARKER_MODULE)
+    (marked / "marked.yaml").write_text(lib.replace("module: marker_impl", "module: markpkg.impl"))
+    r = invoke("validate", str(marked / "mission.yaml"))
+    assert r.exit_code == 0, r.output
+    assert not (marked / "MARKER").exists()
+    assert "markpkg" not in sys.modules
+    (marked / "marked.yaml").write_text(lib.replace("module: marker_impl", "module: markpkg.nope"))
+    r = invoke("validate", str(marked / "mission.yaml"))
+    assert r.exit_code == 2 and "No module named 'markpkg.nope'" in r.output, r.output
+    assert not (marked / "MARKER").exists()
