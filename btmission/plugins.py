@@ -283,8 +283,6 @@ def load_library(
             bind_implementations(loaded)
         else:
             loaded.module_not_imported = True
-            if not module_can_be_found(lib.module):  # found without running any of its code
-                _import_failed(loaded, f"ModuleNotFoundError: No module named '{lib.module}'")
     return loaded
 
 

@@ -338,3 +338,12 @@ def test_shipped_files_validate_against_the_published_json_schemas() -> None:
         for f in files:
             errs = [e.message for e in validator.iter_errors(yaml.safe_load(f.read_text()))]
             assert errs == [], f"{f.name}: {errs}"
+
+
+def test_exponent_numbers_read_as_numbers_as_in_yaml_1_2() -> None:
+    """PyYAML (YAML 1.1) would read 1e5 as the string '1e5'; btmission reads it as a number."""
+    from btmission.spec.source import parse_yaml
+
+    data = parse_yaml("a: [1e5, 2.5e-3, -1E+2, .5e1, 12, 1.5, '1e5', 1e, e5]").data
+    assert data == {"a": [1e5, 2.5e-3, -100.0, 5.0, 12, 1.5, "1e5", "1e", "e5"]}
+    assert type(data["a"][4]) is int

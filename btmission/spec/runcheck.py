@@ -117,9 +117,10 @@ def implementation_problems(mission: Mission, *, abstract_ok: bool = False) -> l
 
     ``abstract_ok``: a library without ``module:`` (abstract: it synthesises and exports, by
     design) is not a problem; ``validate`` accepts it, ``run`` refuses it. A library whose module
-    was not imported (checking without importing) is not judged."""
+    was not imported (checking without importing) is only looked up: it must exist."""
     import sys
 
+    from btmission.plugins import module_can_be_found
     from btmission.runtime.leaves import StatefulAction
 
     out: list[Diagnostic] = []
@@ -135,9 +136,12 @@ def implementation_problems(mission: Mission, *, abstract_ok: bool = False) -> l
         if impl is None:
             if not lib.module and abstract_ok:
                 continue
-            if lib.module and loaded.import_error is None and lib.module not in sys.modules:
-                continue  # not imported: cannot tell
-            why = loaded.import_error or (
+            why = loaded.import_error
+            if lib.module and why is None and lib.module not in sys.modules:
+                if module_can_be_found(lib.module):  # looked up without running any of it
+                    continue  # not imported: its registry cannot be judged
+                why = f"ModuleNotFoundError: No module named '{lib.module}'"
+            why = why or (
                 f"module '{lib.module}' has no IMPLEMENTATIONS registry"
                 if lib.module
                 else f"library '{lib.name}' has no implementation module (it is abstract: "

@@ -8,6 +8,7 @@ Duplicate keys, which PyYAML silently overwrites, are reported as errors here.
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import stat
@@ -216,7 +217,38 @@ def _check_flow_depth(text: str, file: str) -> None:
             depth = max(0, depth - 1)
 
 
-_FAST_LOADER: Any = getattr(yaml, "CSafeLoader", None)  # libyaml's, when PyYAML was built with it
+# YAML 1.1 (PyYAML) reads ``1e5`` and ``2.5e-3`` as strings (it wants ``1.0e+5``); users of a
+# robotics tool write them as numbers, as YAML 1.2 does. Both loaders resolve them as floats.
+_EXPONENT_FLOAT = re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$")
+
+
+class _SafeLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, reading ``1e5`` as a number."""
+
+
+_SafeLoader.add_implicit_resolver("tag:yaml.org,2002:float", _EXPONENT_FLOAT, list("-+0123456789."))
+
+
+def _construct_float(loader: yaml.SafeLoader, node: yaml.ScalarNode) -> float | str:
+    """A float; a literal too large for one (``1e400``) stays text, so that the check that
+    refuses it quotes what the user wrote rather than ``inf``."""
+    value = yaml.SafeLoader.construct_yaml_float(loader, node)
+    text = str(node.value)
+    return text if math.isinf(value) and "inf" not in text.lower() else value
+
+
+_SafeLoader.add_constructor("tag:yaml.org,2002:float", _construct_float)
+
+_FAST_LOADER: Any = None
+if hasattr(yaml, "CSafeLoader"):  # libyaml's, when PyYAML was built with it
+
+    class _FastLoader(yaml.CSafeLoader):  # type: ignore[misc, name-defined]
+        """libyaml's safe loader, reading ``1e5`` as a number."""
+
+    _FastLoader.add_implicit_resolver(
+        "tag:yaml.org,2002:float", _EXPONENT_FLOAT, list("-+0123456789.")
+    )
+    _FAST_LOADER = _FastLoader
 
 
 def _compose(text: str) -> yaml.Node | None:
@@ -228,7 +260,7 @@ def _compose(text: str) -> yaml.Node | None:
             return yaml.compose(text, Loader=_FAST_LOADER)  # type: ignore[no-any-return]
         except yaml.YAMLError:
             pass  # PyYAML says what is wrong
-    return yaml.compose(text, Loader=yaml.SafeLoader)
+    return yaml.compose(text, Loader=_SafeLoader)  # type: ignore[no-any-return]
 
 
 def parse_yaml(text: str, file: str = "<input>") -> Source:
@@ -259,7 +291,7 @@ def parse_yaml(text: str, file: str = "<input>") -> Source:
     _check_graph(node, file)
     problems: list[Diagnostic] = []
     try:
-        src.data = _convert(node, (), src, problems, yaml.SafeLoader(""))
+        src.data = _convert(node, (), src, problems, _SafeLoader(""))
     except RecursionError:  # only when BTMISSION_MAX_YAML_DEPTH was raised very high
         raise _too_deep(file) from None
     if problems:
