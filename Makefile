@@ -30,7 +30,7 @@ demo: install
 	$(VENV)/bin/btmission run missions/mine_inspection.yaml --controller track --log runs
 
 test: install
-	$(VENV)/bin/pytest -q
+	$(VENV)/bin/pytest -q --durations=15
 
 test-all: install
 	$(VENV)/bin/pytest -q -m ""

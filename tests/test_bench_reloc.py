@@ -20,6 +20,7 @@ def cached_databases(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(database, "build_database", lambda vm: small_database(vm.meta["seed"]))
 
 
+@pytest.mark.slow  # a benchmark end to end (~15 s); `make test-all` runs it
 def test_runner_counts_every_scan_and_writes_the_tables(
     tmp_path: Path, cached_databases: None
 ) -> None:

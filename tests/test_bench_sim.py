@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 from click.testing import CliRunner
 
 from btmission.bench.sim import scale_mission_text
@@ -13,6 +14,7 @@ from btmission.spec.mission import load_mission_text
 ROOT = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow  # a benchmark end to end (~13 s); `make test-all` runs it
 def test_bench_sim_writes_its_tables(runner: CliRunner, tmp_path: Path) -> None:
     result = runner.invoke(
         cli,
