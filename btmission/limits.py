@@ -97,6 +97,9 @@ MIN_STEP_S = Budget(
 MAX_TEXT_CHARS = Budget(
     "BTMISSION_MAX_TEXT_CHARS", 1_000_000, "characters of a text field in a .npz file (meta...)"
 )
+MAX_LOG_BYTES = Budget(
+    "BTMISSION_MAX_LOG_BYTES", 1_000_000_000, "size of an event log that `report` reads"
+)
 
 BUDGETS: tuple[Budget, ...] = (
     MAX_FILE_BYTES,
@@ -108,6 +111,7 @@ BUDGETS: tuple[Budget, ...] = (
     MAX_TASKS,
     MIN_STEP_S,
     MAX_TEXT_CHARS,
+    MAX_LOG_BYTES,
 )
 
 

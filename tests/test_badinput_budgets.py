@@ -17,12 +17,17 @@ import pytest
 from click.testing import CliRunner
 
 from btmission import limits
+from btmission.cli.main import cli
 from btmission.diagnostics import SpecError
 from btmission.spec.budgets import check_mission_scale
 from btmission.spec.source import Source, parse_yaml
 from tests.test_cli import run
 
 ROOT = Path(__file__).resolve().parents[1]
+REFUSED_BEFORE_S = 10.0
+"""Not a speed test (those are benchmarks): a bound far above a refusal's time (milliseconds) and
+far below what expanding or allocating the input would take (minutes, or the machine's memory),
+so the test tells "refused before the work" from "did the work", however loaded the host."""
 MISSION = """\
 mission: m
 version: 1
@@ -111,7 +116,7 @@ def test_billion_laughs_is_refused_in_well_under_a_second(
     p = mission(tmp_path, laughs(9), "laughs.yaml")
     t0 = time.perf_counter()
     out = refused(runner, *command, p)
-    assert time.perf_counter() - t0 < 0.5
+    assert time.perf_counter() - t0 < REFUSED_BEFORE_S
     assert (
         "laughs.yaml:6:5: alias expansion (items repeated through *aliases) is 597,851, the limit "
         "is 100,000 (set BTMISSION_MAX_YAML_ALIAS_NODES to change it)"
@@ -137,7 +142,7 @@ def test_deep_nesting_is_refused(runner: CliRunner, tmp_path: Path, text: str, w
     p = mission(tmp_path, text)
     t0 = time.perf_counter()
     out = refused(runner, "validate", p)
-    assert time.perf_counter() - t0 < 1.0
+    assert time.perf_counter() - t0 < REFUSED_BEFORE_S
     assert (
         f"m.yaml:{where}: nesting depth is 101, the limit is 100 levels "
         "(set BTMISSION_MAX_YAML_DEPTH to change it)"
@@ -216,7 +221,7 @@ def test_npz_zip_bomb_map_is_refused_in_milliseconds(runner: CliRunner, tmp_path
     p = write_npz(tmp_path / "bomb.npz", fields, {"state": (3000, 1000, 1000)})
     t0 = time.perf_counter()
     out = refused(runner, "map", "show", str(p))
-    assert time.perf_counter() - t0 < 0.5
+    assert time.perf_counter() - t0 < REFUSED_BEFORE_S
     assert (
         f"{p}: field 'state': its size (3,000 × 1,000 × 1,000 values) is 3,000,000,000, the "
         "limit is 40,000,000 (set BTMISSION_MAX_VOXELS to change it)"
@@ -230,7 +235,7 @@ def test_npz_zip_bomb_place_database_is_refused(runner: CliRunner, tmp_path: Pat
     np.save(scan, np.zeros((10, 3)))
     t0 = time.perf_counter()
     out = refused(runner, "reloc", "query", str(p), str(scan))
-    assert time.perf_counter() - t0 < 0.5
+    assert time.perf_counter() - t0 < REFUSED_BEFORE_S
     assert f"{p}: field 'polar': its size (100,000 × 20 × 60 values) is 120,000,000" in out
 
 
@@ -245,7 +250,7 @@ def test_npy_cloud_bomb_is_refused(runner: CliRunner, tmp_path: Path) -> None:
     out = refused(
         runner, "reloc", "build", str(vm), "--cloud", str(cloud), "-o", str(tmp_path / "d.npz")
     )
-    assert time.perf_counter() - t0 < 0.5
+    assert time.perf_counter() - t0 < REFUSED_BEFORE_S
     assert (
         f"{cloud}: its size (10,000,000,000 × 3 values) is 30,000,000,000, the limit is "
         "40,000,000 (set BTMISSION_MAX_VOXELS to change it)"
@@ -352,7 +357,7 @@ def test_point_cloud_spanning_too_many_voxels(runner: CliRunner, tmp_path: Path)
     write_cloud(p, {"x": np.array([0.0, 1e6]), "y": np.array([0.0, 1e6]), "z": np.zeros(2)})
     t0 = time.perf_counter()
     out = refused(runner, "map", "show", str(p), "--resolution", "0.5")
-    assert time.perf_counter() - t0 < 1.0
+    assert time.perf_counter() - t0 < REFUSED_BEFORE_S
     assert f"{p}: 2 points spanning 1e+06 × 1e+06 × 0 m at 0.5 m makes " in out
     assert "voxels; the limit is 40,000,000 (set BTMISSION_MAX_VOXELS to change it)" in out
 
@@ -383,7 +388,7 @@ def test_mission_map_sizes(
     assert old in MISSION
     t0 = time.perf_counter()
     out = refused(runner, "validate", mission(tmp_path, MISSION.replace(old, new)))
-    assert time.perf_counter() - t0 < 1.0
+    assert time.perf_counter() - t0 < REFUSED_BEFORE_S
     assert message in out
 
 
@@ -406,7 +411,7 @@ def test_map_generate_sizes(
     out_file = tmp_path / "m.npz"
     t0 = time.perf_counter()
     out = refused(runner, "map", "generate", *args, "-o", str(out_file))
-    assert time.perf_counter() - t0 < 1.0
+    assert time.perf_counter() - t0 < REFUSED_BEFORE_S
     assert message in out and not out_file.exists()
 
 
@@ -480,7 +485,7 @@ def test_mission_scale_limits_on_the_command_line(
     monkeypatch.setenv("BTMISSION_MAX_TASKS", "1")
     t0 = time.perf_counter()
     out = refused(runner, "validate", p)
-    assert time.perf_counter() - t0 < 1.0
+    assert time.perf_counter() - t0 < REFUSED_BEFORE_S
     assert (
         "m.yaml:6:1: agents: the number of agents is 2, the limit is 1 "
         "(set BTMISSION_MAX_AGENTS to change it)"
@@ -495,3 +500,23 @@ def test_sim_step_has_a_lower_bound(runner: CliRunner, tmp_path: Path) -> None:
         "m.yaml:13:17: runtime.sim.step_s: step_s is 1e-05 s, below the smallest step 0.001 s "
         "(set BTMISSION_MIN_STEP_S to change it)"
     ) in out
+
+
+# ------------------------------------------------------------------------------ event logs
+def test_report_reads_only_a_regular_log_within_its_budget(
+    runner: CliRunner, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    out = refused(runner, "report", "/dev/urandom")
+    assert "/dev/urandom: not a regular file but a character device" in out
+    fifo = tmp_path / "run.jsonl"
+    os.mkfifo(fifo)
+    out = _in_thread(lambda: refused(runner, "report", str(fifo)))
+    assert "not a regular file but a FIFO (named pipe)" in out
+    log = Path(__file__).resolve().parents[1] / "docs" / "examples" / "pick_and_deliver.jsonl"
+    monkeypatch.setenv("BTMISSION_MAX_LOG_BYTES", "1000")
+    out = refused(runner, "report", str(log))
+    assert f"{log}: file too large: {log.stat().st_size:,} bytes, the limit is 1,000 bytes" in out
+    assert "(set BTMISSION_MAX_LOG_BYTES to change it)" in out
+    monkeypatch.delenv("BTMISSION_MAX_LOG_BYTES")
+    r = runner.invoke(cli, ["report", str(log)])
+    assert r.exit_code == 0 and "Tasks done              3 of 3" in r.output

@@ -56,9 +56,10 @@ line — the process died while writing it — is skipped and reported).
 
 from __future__ import annotations
 
+import io
 import json
 import math
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any, Protocol, runtime_checkable
@@ -191,17 +192,23 @@ class LogContents:
     """Line numbers of other unreadable lines."""
 
 
-def iter_lines(path: Path) -> Iterator[tuple[int, str]]:
-    with path.open("r", encoding="utf-8", errors="replace") as fh:
-        yield from enumerate(fh, start=1)
-
-
 def read_events(path: str | Path) -> LogContents:
-    """Read a JSON Lines event log. Raises :class:`LogError` if it is not one."""
+    """Read a JSON Lines event log. Raises :class:`LogError` if it is not one (or is not a
+    regular file, or is over :data:`~btmission.limits.MAX_LOG_BYTES`)."""
+    from btmission import limits
+    from btmission.spec.source import FileRefused, read_regular_file
+
     p = Path(path)
-    if not p.is_file():
-        raise LogError(f"{p}: no such log file")
-    lines = list(iter_lines(p))
+    try:
+        data = read_regular_file(p, limits.MAX_LOG_BYTES)
+    except FileNotFoundError:
+        raise LogError(f"{p}: no such log file") from None
+    except FileRefused as exc:
+        raise LogError(f"{p}: {exc}") from None
+    except OSError as exc:
+        raise LogError(f"{p}: cannot read: {exc.strerror or exc}") from None
+    text = data.decode("utf-8", errors="replace")
+    lines = list(enumerate(io.StringIO(text, newline=None), start=1))  # as a text-mode file reads
     events: list[Event] = []
     skipped: list[int] = []
     truncated = False
