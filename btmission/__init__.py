@@ -8,16 +8,65 @@ The public API, one import away::
     print(export_tree(tree, "ascii"))
 """
 
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
 from btmission._version import __version__
-from btmission.diagnostics import Diagnostic, Severity, SpecError
-from btmission.plugins import Implementations, LoadedLibrary, installed_libraries, load_library
-from btmission.spec.library import Atom, Library, load_library_file, load_library_text
-from btmission.spec.mission import Mission, load_mission, load_mission_text
-from btmission.synthesis.backchain import Synthesis, Synthesizer, synthesize
-from btmission.synthesis.checks import check_library
-from btmission.synthesis.dryrun import dry_run
-from btmission.synthesis.mission_tree import build_mission_tree
-from btmission.synthesis.tree import Kind, Node, Role
+
+# The API is imported on first use (PEP 562), so that `import btmission` (and so the start of the
+# `btmission` command, before its Ctrl-C handling exists) costs milliseconds, not half a second.
+_LAZY: dict[str, str] = {
+    "Diagnostic": "btmission.diagnostics",
+    "Severity": "btmission.diagnostics",
+    "SpecError": "btmission.diagnostics",
+    "Implementations": "btmission.plugins",
+    "LoadedLibrary": "btmission.plugins",
+    "installed_libraries": "btmission.plugins",
+    "load_library": "btmission.plugins",
+    "Atom": "btmission.spec.library",
+    "Library": "btmission.spec.library",
+    "load_library_file": "btmission.spec.library",
+    "load_library_text": "btmission.spec.library",
+    "Mission": "btmission.spec.mission",
+    "load_mission": "btmission.spec.mission",
+    "load_mission_text": "btmission.spec.mission",
+    "Synthesis": "btmission.synthesis.backchain",
+    "Synthesizer": "btmission.synthesis.backchain",
+    "synthesize": "btmission.synthesis.backchain",
+    "check_library": "btmission.synthesis.checks",
+    "dry_run": "btmission.synthesis.dryrun",
+    "build_mission_tree": "btmission.synthesis.mission_tree",
+    "Kind": "btmission.synthesis.tree",
+    "Node": "btmission.synthesis.tree",
+    "Role": "btmission.synthesis.tree",
+}
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'btmission' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
+
+
+if TYPE_CHECKING:
+    from btmission.diagnostics import Diagnostic, Severity, SpecError
+    from btmission.plugins import Implementations, LoadedLibrary, installed_libraries, load_library
+    from btmission.spec.library import Atom, Library, load_library_file, load_library_text
+    from btmission.spec.mission import Mission, load_mission, load_mission_text
+    from btmission.synthesis.backchain import Synthesis, Synthesizer, synthesize
+    from btmission.synthesis.checks import check_library
+    from btmission.synthesis.dryrun import dry_run
+    from btmission.synthesis.mission_tree import build_mission_tree
+    from btmission.synthesis.tree import Kind, Node, Role
 
 
 def export_tree(tree: Node, fmt: str, **kwargs: object) -> str | bytes:

@@ -1,6 +1,6 @@
 """``python -m btmission``: the same as the ``btmission`` command."""
 
-from btmission.cli.main import main
+from btmission.cli.launch import main
 
 if __name__ == "__main__":
     main()

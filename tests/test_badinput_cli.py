@@ -650,3 +650,34 @@ def test_a_module_that_does_not_exist_is_found_missing_without_importing(
     r = invoke("validate", str(marked / "mission.yaml"))
     assert r.exit_code == 2 and "No module named 'markpkg.nope'" in r.output, r.output
     assert not (marked / "MARKER").exists()
+
+
+# ------------------------------------------------------------------------- start-up
+def test_import_btmission_is_light() -> None:
+    """The API is imported on first use, so the command's Ctrl-C handling starts in milliseconds."""
+    code = "import sys, btmission; print(sorted({'numpy', 'pydantic', 'py_trees', 'click'} & set(sys.modules)))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and out.stdout.strip() == "[]", out.stdout + out.stderr
+    import btmission
+
+    assert btmission.synthesize.__module__ == "btmission.synthesis.backchain"
+    with pytest.raises(AttributeError, match="no attribute 'nope'"):
+        btmission.nope  # noqa: B018
+
+
+def test_ctrl_c_while_the_commands_are_imported_is_exit_130_without_traceback(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import types
+
+    from btmission.cli import launch
+
+    class Interrupted(types.ModuleType):
+        def __getattr__(self, name: str) -> object:
+            raise KeyboardInterrupt
+
+    monkeypatch.setitem(sys.modules, "btmission.cli.main", Interrupted("btmission.cli.main"))
+    with pytest.raises(SystemExit) as stop:
+        launch.main()
+    assert stop.value.code == 130
+    assert capsys.readouterr().err == "\ninterrupted\n"
