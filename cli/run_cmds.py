@@ -140,14 +140,18 @@ class _Stopped(BaseException):
 
 
 class _Signals:
-    """SIGINT (Ctrl-C) and SIGTERM for the whole command: while the run loop runs, they ask it
-    to stop after the current step (the log gets its ``end`` event, the report is printed);
-    before it exists (loading, building) or after it has ended, they raise :class:`_Stopped`."""
+    """SIGINT (Ctrl-C) and SIGTERM for the whole command: while the run loop runs, the first asks
+    it to stop after the current step (the log gets its ``end`` event, the report is printed) and
+    a second stops it at once, mid-step (a first step of a very large mission can take minutes);
+    before the loop exists (loading, building) or after it has ended, they raise
+    :class:`_Stopped`."""
 
     def __init__(self) -> None:
         self.run: Any = None
         self.log: Path | None = None
         """The run's log, once it is complete."""
+        self.asked = False
+        """A stop was asked of the run loop (a second signal stops at once)."""
         self._previous: dict[int, Any] = {}
 
     def __enter__(self) -> _Signals:
@@ -158,9 +162,13 @@ class _Signals:
 
     def _handle(self, signum: int, frame: FrameType | None) -> None:
         reason = "terminated" if signum == signal.SIGTERM else "interrupted"
-        if self.run is None:
+        if isinstance(self.run, _Ignore):
+            return
+        if self.run is None or self.asked:  # a second one: the current step may be a long one
             raise _Stopped(reason)
+        self.asked = True
         self.run.stop(reason)
+        sys.stderr.write(f"\n{reason}: stopping after the current step (again to stop at once)\n")
 
     def __exit__(self, *exc: object) -> None:
         for sig, handler in self._previous.items():
@@ -267,7 +275,7 @@ def _run(
                 )
             result = _run_with_progress(run, until, quiet)
             run.end(result)
-    except _Stopped as stop:  # a signal while the run was being built
+    except _Stopped as stop:  # a signal while the run was being built, or a second one mid-step
         signals.run = _Ignore()  # a second one must not cut the end event short
         if run is not None:
             result = run.result(stop.reason)

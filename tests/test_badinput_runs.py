@@ -645,3 +645,45 @@ def test_an_internal_error_mid_run_ends_the_log_with_its_traceback(
     assert evs[-1]["ev"] == "end" and evs[-1]["reason"] == "internal error"
     rep = run_cli(["report", str(log)])
     assert rep.exit_code == 0, rep.output
+
+
+def test_a_second_signal_stops_a_long_step_at_once(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The first Ctrl-C asks the loop to stop after the step; when that step is long (the first
+    auction of a huge mission), the second one stops it mid-step, with the end event logged."""
+    from btmission.runtime.runner import MissionRun
+
+    mission = plugin_mission(tmp_path, monkeypatch)
+    real_step = MissionRun.step
+    in_long_step = threading.Event()
+
+    def step(self: MissionRun) -> None:
+        real_step(self)
+        if self.now() > 1.0:  # a step that would take minutes
+            in_long_step.set()
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline:
+                time.sleep(0.01)
+
+    monkeypatch.setattr(MissionRun, "step", step)
+
+    def press_ctrl_c_twice() -> None:
+        assert in_long_step.wait(30)
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.3)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    sender = threading.Thread(target=press_ctrl_c_twice)
+    sender.start()
+    t0 = time.monotonic()
+    logs = tmp_path / "logs"
+    r = CliRunner().invoke(cli, ["run", str(mission), "--quiet", "--no-png", "--log", str(logs)])
+    sender.join()
+    assert time.monotonic() - t0 < 30  # not the 60 s the step would have taken
+    assert r.exit_code == 130, r.output
+    assert "interrupted: stopping after the current step (again to stop at once)" in r.stderr
+    assert "Traceback" not in r.output
+    evs = events(only_log(logs))
+    assert evs[-1]["ev"] == "end" and evs[-1]["reason"] == "interrupted"
+    assert _report(only_log(logs)).exit_code == 0
