@@ -323,7 +323,15 @@ def _run_with_progress(run: Any, until: float | None, quiet: bool) -> Any:
     if quiet:
         return run.run(until)
     from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import BarColumn, Progress, ProgressColumn, TextColumn, TimeElapsedColumn
+    from rich.text import Text
+
+    class Searches(ProgressColumn):
+        """D*+ searches so far, read live by the display's own refresh: it moves even while one
+        long step (the first auction of a large mission) holds the loop."""
+
+        def render(self, task: Any) -> Text:
+            return Text(f"D*+ {getattr(run.paths, 'searches', 0):,}", style="dim")
 
     limit = until if until is not None else run.mission.spec.runtime.max_duration_s
     console = Console(stderr=True)
@@ -332,6 +340,7 @@ def _run_with_progress(run: Any, until: float | None, quiet: bool) -> Any:
         BarColumn(),
         TextColumn("t = {task.completed:>6.1f} s"),
         TextColumn("{task.fields[counts]}"),
+        Searches(),
         TimeElapsedColumn(),
         console=console,
         transient=True,
