@@ -130,6 +130,11 @@ def grid_shape(size: Sequence[float], resolution: float) -> tuple[int, int, int]
     res = float(resolution)
     if not (math.isfinite(res) and res > 0):
         raise ValueError(f"resolution must be a finite number > 0 (m), got {res:g}")
+    if not all(math.isfinite(v / res) for v in vals):  # 1e300 m at 1e-300 m
+        raise ValueError(
+            f"{_nums(vals)} m at {res:g} m makes more voxels than can be counted; the limit is "
+            f"{MAX_VOXELS.show()} (set {MAX_VOXELS.env} to change it)"
+        )
     shape = tuple(max(1, math.ceil(v / res - 1e-9)) for v in vals)
     check_voxels(shape, f"{_nums(vals)} m at {res:g} m")
     return shape[0], shape[1], shape[2]

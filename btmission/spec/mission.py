@@ -139,6 +139,16 @@ class TaskSpec(BaseModel):
     )
 
 
+def _goal_value(v: Any) -> Any:
+    """A goal: one condition, or a non-empty list of them (an empty list has nothing to do)."""
+    if isinstance(v, str) or (isinstance(v, list) and v):
+        return v
+    raise ValueError(f"expected a goal condition or a non-empty list of them (got {v!r})")
+
+
+GoalValue = Annotated[str | list[str], BeforeValidator(_goal_value)]
+
+
 def _cost_value(v: Any) -> Any:
     """A task type's cost: an expression, or a finite number written without quotes (kept as
     the text of that number)."""
@@ -168,7 +178,7 @@ SettingValue = Annotated[int | float | str | bool, BeforeValidator(_setting_valu
 
 
 class TaskTypeSpec(_Strict):
-    goal: str | list[str] = Field(description="Goal condition(s), e.g. at_goal(location).")
+    goal: GoalValue = Field(description="Goal condition(s), e.g. at_goal(location).")
     cost: Annotated[str | float, BeforeValidator(_cost_value)] = Field(
         description="Bid cost expression, e.g. path_cost(location), or a number ≥ 0."
     )
@@ -203,7 +213,7 @@ class CoordinationSpec(_Strict):
 
 
 class DefaultBehaviorSpec(_Strict):
-    goal: str | list[str] = Field(description="Goal of the default behaviour, e.g. landed_at_home.")
+    goal: GoalValue = Field(description="Goal of the default behaviour, e.g. landed_at_home.")
     idle_timeout_s: FiniteFloat = Field(
         10.0, ge=0, description="Idle time before the default behaviour runs."
     )

@@ -1,0 +1,108 @@
+"""Bad inputs found by a review sweep after issue #12 landed (each ended in a traceback, a hang
+or silent acceptance). Every one is refused with exit 2 and one message naming the file:line:col
+and the item, without a traceback."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from tests.test_cli import run
+
+MISSION = """\
+mission: m
+version: 1
+world:
+  map: {generate: empty, size: [12, 8, 2]}
+  resolution: 0.5
+agents:
+  - {id: G1, library: ground, start: [1, 1, 0]}
+tasks:
+  - {id: T1, type: inspect, location: [4, 3, 0]}
+task_types:
+  inspect: {goal: at_goal(location), cost: path_cost(location)}
+default_behavior: {goal: at_goal(home), idle_timeout_s: 5}
+"""
+
+
+@pytest.fixture
+def runner() -> CliRunner:
+    return CliRunner()
+
+
+def mission(tmp_path: Path, old: str = "", new: str = "", extra: str = "") -> str:
+    assert old in MISSION
+    p = tmp_path / "m.yaml"
+    p.write_text(MISSION.replace(old, new, 1) + extra, encoding="utf-8")
+    return str(p)
+
+
+def refused(runner: CliRunner, *args: str) -> str:
+    """Run the CLI; assert exit 2 and no traceback; the combined output."""
+    code, out, err = run(runner, *args)
+    assert code == 2, out + err
+    assert "internal error" not in out + err, out + err
+    return out + err
+
+
+# ------------------------------------------------------------------------------ YAML values
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        ("!foo bar", "1:10: mission: cannot read this value: could not determine a constructor "
+                     "for the tag '!foo'"),
+        ("1" + "0" * 5000, "1:10: mission: cannot read this value: exceeds the limit (4300 "
+                           "digits) for integer string conversion"),
+    ],
+)  # fmt: skip
+def test_yaml_values_that_cannot_be_constructed(
+    runner: CliRunner, tmp_path: Path, value: str, message: str
+) -> None:
+    p = tmp_path / "m.yaml"
+    p.write_text(f"mission: {value}\n", encoding="utf-8")
+    assert f"{p}:{message}" in refused(runner, "validate", str(p))
+
+
+# ------------------------------------------------------------------------------ cost expressions
+def test_a_very_long_cost_expression_is_refused(runner: CliRunner, tmp_path: Path) -> None:
+    cost = "+".join(["1"] * 20000)
+    out = refused(runner, "validate", mission(tmp_path, "path_cost(location)}", cost + "}"))
+    assert "m.yaml:11:44: task_types.inspect.cost: the expression is 39,999 " \
+        "characters long; the limit is 10,000" in out  # fmt: skip
+
+
+def test_a_deeply_nested_cost_expression_is_refused(runner: CliRunner, tmp_path: Path) -> None:
+    cost = "+".join(["1"] * 2000)
+    out = refused(runner, "validate", mission(tmp_path, "path_cost(location)}", cost + "}"))
+    assert "task_types.inspect.cost: '1+1+1+" in out
+    assert "nests more than 200 operations deep" in out
+
+
+# ------------------------------------------------------------------------------ goals
+@pytest.mark.parametrize(
+    ("old", "new", "where"),
+    [
+        ("goal: at_goal(location),", "goal: [],", "11:19:"),
+        ("goal: at_goal(home),", "goal: [],", "12:26:"),
+    ],
+)
+def test_an_empty_goal_list_is_refused(
+    runner: CliRunner, tmp_path: Path, old: str, new: str, where: str
+) -> None:
+    out = refused(runner, "validate", mission(tmp_path, old, new))
+    assert f"m.yaml:{where}" in out
+    assert "goal: expected a goal condition or a non-empty list of them (got [])" in out
+    assert "Input should be" not in out
+
+
+# ------------------------------------------------------------------------------ map sizes
+def test_a_size_resolution_ratio_that_overflows_is_refused(
+    runner: CliRunner, tmp_path: Path
+) -> None:
+    p = mission(tmp_path, "size: [12, 8, 2]}\n  resolution: 0.5",
+                "size: [1e300, 8, 2]}\n  resolution: 1e-300")  # fmt: skip
+    out = refused(runner, "validate", p)
+    assert "m.yaml:5:15: world.resolution: 1e+300 × 8 × 2 m at 1e-300 m makes more voxels than " \
+        "can be counted; the limit is 40,000,000" in out  # fmt: skip
