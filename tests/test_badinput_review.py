@@ -106,3 +106,32 @@ def test_a_size_resolution_ratio_that_overflows_is_refused(
     out = refused(runner, "validate", p)
     assert "m.yaml:5:15: world.resolution: 1e+300 × 8 × 2 m at 1e-300 m makes more voxels than " \
         "can be counted; the limit is 40,000,000" in out  # fmt: skip
+
+
+# ------------------------------------------------------------------------------ priorities
+def test_a_priority_that_overflows_the_auction_is_refused(
+    runner: CliRunner, tmp_path: Path
+) -> None:
+    p = mission(tmp_path, "location: [4, 3, 0]}", "location: [4, 3, 0], priority: 1e308}")
+    for command in ("validate", "auction"):
+        out = refused(runner, command, p)
+        assert "m.yaml:9:60: tasks[0].priority: task 'T1': priority 1e+308 × " \
+            "coordination.priority_scale 1000 is inf; the auction takes at most 1e+12" in out  # fmt: skip
+
+
+def test_a_huge_priority_scale_is_blamed_once(runner: CliRunner, tmp_path: Path) -> None:
+    extra = "coordination: {priority_scale: 1e300}\n"
+    text = MISSION.replace("  - {id: T1,", "  - {id: T0, type: inspect, location: [5, 3, 0]}\n"
+                           "  - {id: T1,")  # fmt: skip
+    p = tmp_path / "m.yaml"
+    p.write_text(text + extra, encoding="utf-8")
+    out = refused(runner, "validate", str(p))
+    assert out.count("coordination.priority_scale: task") == 1
+    assert "m.yaml:14:32: coordination.priority_scale: task 'T0': priority 1 × " in out
+
+
+def test_the_priority_bound_is_the_solvers() -> None:
+    from btmission.allocation.solvers import MAX_COST
+    from btmission.spec.mission import MAX_PRIORITY_WEIGHT
+
+    assert MAX_PRIORITY_WEIGHT == MAX_COST

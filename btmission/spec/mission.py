@@ -139,6 +139,11 @@ class TaskSpec(BaseModel):
     )
 
 
+MAX_PRIORITY_WEIGHT = 1e12
+"""Largest priority × priority_scale: the auction's bound on bids and bonuses
+(btmission.allocation.solvers.MAX_COST); beyond it the profits overflow or swamp the costs."""
+
+
 def _goal_value(v: Any) -> Any:
     """A goal: one condition, or a non-empty list of them (an empty list has nothing to do)."""
     if isinstance(v, str) or (isinstance(v, list) and v):
@@ -509,6 +514,7 @@ def compile_mission(spec: MissionSpec, src: Source) -> Mission:
     # tasks: unique ids, known types, the fields their type needs and nothing else
     tasks: list[Task] = []
     tseen: dict[str, int] = {}
+    heavy: set[tuple[str | int, ...]] = set()  # priorities reported as too large
     for i, t in enumerate(spec.tasks):
         tpath: tuple[str | int, ...] = ("tasks", i)
         if t.id in tseen:
@@ -557,6 +563,17 @@ def compile_mission(spec: MissionSpec, src: Source) -> Mission:
             add((*tpath, "at"), f"task '{t.id}' is added at {t.at:g} s, when a run has already "
                 f"stopped (runtime.max_duration_s is {limit:g} s)", "never-added", Severity.WARNING)  # fmt: skip
         prio = t.priority if t.priority is not None else tt2.priority
+        weight = prio * spec.coordination.priority_scale
+        ppath: tuple[str | int, ...] = (*tpath, "priority")
+        if t.priority is None:  # the type's priority, else the default 1: blame the scale
+            ppath = ("task_types", t.type, "priority")
+            if ppath not in src.key_positions:
+                ppath = ("coordination", "priority_scale")
+        if weight > MAX_PRIORITY_WEIGHT and ppath not in heavy:
+            heavy.add(ppath)
+            add(ppath, f"task '{t.id}': priority {prio:g} × coordination.priority_scale "
+                f"{spec.coordination.priority_scale:g} is {weight:g}; the auction takes at most "
+                f"{MAX_PRIORITY_WEIGHT:g}", "schema")  # fmt: skip
         tasks.append(Task(t.id, t.type, t.at, prio, task_fields, src.locate(tpath)))
 
     # cost expressions evaluate on the tasks' own values: no division by zero, no overflow,
