@@ -135,3 +135,49 @@ def test_the_priority_bound_is_the_solvers() -> None:
     from btmission.spec.mission import MAX_PRIORITY_WEIGHT
 
     assert MAX_PRIORITY_WEIGHT == MAX_COST
+
+
+# ------------------------------------------------------------------------------ event logs
+LOG = Path(__file__).resolve().parents[1] / "docs" / "examples" / "pick_and_deliver.jsonl"
+
+
+def test_a_deeply_nested_log_line_is_an_unreadable_line(runner: CliRunner, tmp_path: Path) -> None:
+    p = tmp_path / "deep.jsonl"
+    p.write_text("[" * 100_000 + "]" * 100_000 + "\n", encoding="utf-8")
+    out = refused(runner, "report", str(p))
+    assert (
+        f"{p}: not a btmission event log (the first line must be a 'btmission-log' header)" in out
+    )
+
+
+def test_log_events_with_fields_of_the_wrong_type_are_skipped(
+    runner: CliRunner, tmp_path: Path
+) -> None:
+    lines = LOG.read_text(encoding="utf-8").splitlines()
+    pose = next(i for i, line in enumerate(lines) if '"ev":"pose"' in line)
+    added = next(i for i, line in enumerate(lines) if '"ev":"task_added"' in line)
+    lines[pose] = lines[pose].replace('"odometer_m":', '"odometer_m":"far","x":')
+    lines[added] = lines[added].replace('"problems":[]', '"problems":7')
+    assert '"problems":7' in lines[added]
+    p = tmp_path / "bad.jsonl"
+    p.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    code, out, err = run(runner, "report", str(p), "--png", str(tmp_path))
+    assert code == 0, out + err
+    assert f"warning: unreadable lines skipped: {sorted([added + 1, pose + 1])}" in err
+
+
+@pytest.mark.parametrize(
+    ("field", "value"), [("agents", '"x"'), ("agents", "null"), ("world", "[]"), ("tasks", "3")]
+)
+def test_a_log_header_with_a_field_of_the_wrong_type_is_refused(
+    runner: CliRunner, tmp_path: Path, field: str, value: str
+) -> None:
+    import json
+
+    lines = LOG.read_text(encoding="utf-8").splitlines()
+    header = json.loads(lines[0])
+    header[field] = json.loads(value)
+    p = tmp_path / "bad.jsonl"
+    p.write_text("\n".join([json.dumps(header), *lines[1:]]) + "\n", encoding="utf-8")
+    out = refused(runner, "report", str(p))
+    assert f"{p}:1: header: field '{field}' has the wrong type (got {value})" in out
