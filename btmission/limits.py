@@ -44,7 +44,7 @@ class Budget:
             _warn_once(f"btmission: ignoring {self.env}={text!r} (expected a positive "
                        f"{'whole ' if self.integer else ''}number); using {self.show(self.default)}")  # fmt: skip
             return self.default
-        return int(v) if self.integer else v
+        return int(min(v, _LARGEST)) if self.integer else v
 
     @property
     def limit(self) -> int:
@@ -60,6 +60,9 @@ class Budget:
         shown = f"{int(got):,}" if self.integer and got == int(got) else f"{got:g}"
         return f"{what} is {shown}, the limit is {self.show()} (set {self.env} to change it)"
 
+
+_LARGEST = 2**62
+"""Integer budgets are capped here: "no limit" in effect, and still a valid size for read()."""
 
 _warned: set[str] = set()
 

@@ -334,9 +334,11 @@ def dispatch_bench(vehicles: str, runs: int, tau: float, seed: int, out: Path) -
       btmission bench dispatch --vehicles 2,10 --runs 3
     """
     from btmission.bench.dispatch import run_dispatch_benchmark
-    from btmission.cli.dispatch_cmds import int_list, progress_bar
+    from btmission.cli.dispatch_cmds import check_static_sizes, int_list, progress_bar
+    from btmission.dispatch.maps import static_map
 
     sizes = int_list(vehicles, "--vehicles")
+    check_static_sizes(sizes, static_map("npr"), static_map("spr"))
     with progress_bar(2 * len(sizes) * runs, "NPR + SPR: GA + push and swap") as advance:
         run_dispatch_benchmark(
             sizes, runs, tau, seed, out, echo=click.echo, on_run=lambda *_: advance(1)

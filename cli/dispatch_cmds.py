@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
@@ -19,6 +19,9 @@ from btmission.cli.common import (
     output_target,
     write_output,
 )
+
+if TYPE_CHECKING:
+    from btmission.dispatch.topomap import TopoMap
 
 MAP_HELP = "A built-in map (static_npr, static_spr, mine) or a map YAML file."
 
@@ -45,6 +48,21 @@ def int_list(text: str, option: str) -> list[int]:
     if not values or min(values) < 1:
         raise BadInput(f"{option}: expected positive integers, got '{text}'")
     return values
+
+
+def check_static_sizes(sizes: Sequence[int], *tmaps: TopoMap) -> None:
+    """Every fleet size can make a static-batch instance on every map, else :class:`BadInput`
+    (before any optimisation runs)."""
+    import numpy as np
+
+    from btmission.dispatch.static import random_instance
+
+    for tmap in tmaps:
+        for size in sizes:
+            try:
+                random_instance(tmap, size, np.random.default_rng(0))
+            except ValueError as exc:
+                raise BadInput(f"--vehicles: {exc} (map {tmap.name})") from None
 
 
 @contextlib.contextmanager
@@ -181,6 +199,7 @@ def static_cmd(
 
     tmap = resolve_map(map_ref)
     sizes = int_list(vehicles, "--vehicles")
+    check_static_sizes(sizes, tmap)
     params = _ga_params(budget, generations)
     try:
         with progress_bar(len(sizes) * runs, f"{tmap.name}: GA + push and swap") as advance:

@@ -181,3 +181,52 @@ def test_a_log_header_with_a_field_of_the_wrong_type_is_refused(
     p.write_text("\n".join([json.dumps(header), *lines[1:]]) + "\n", encoding="utf-8")
     out = refused(runner, "report", str(p))
     assert f"{p}:1: header: field '{field}' has the wrong type (got {value})" in out
+
+
+# ------------------------------------------------------------------------------ budgets
+def test_a_budget_beyond_any_file_size_reads_files_as_usual(
+    runner: CliRunner, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("BTMISSION_MAX_FILE_BYTES", "9" * 26)  # was OverflowError in read()
+    code, out, err = run(runner, "validate", mission(tmp_path))
+    assert code == 0, out + err
+    assert "mission 'm' OK" in out
+
+
+def test_a_large_budget_does_not_allocate_it(tmp_path: Path) -> None:
+    """read(limit + 1) allocated the whole budget: a 5 GB log budget was a MemoryError under a
+    4 GB address-space cap for a 20 kB log."""
+    import subprocess
+    import sys
+
+    code = (
+        "import resource, sys\n"
+        "resource.setrlimit(resource.RLIMIT_AS, (3_000_000_000, 3_000_000_000))\n"
+        "from btmission import limits\n"
+        "from btmission.spec.source import read_regular_file\n"
+        "from pathlib import Path\n"
+        "print(len(read_regular_file(Path(sys.argv[1]), limits.MAX_LOG_BYTES)))\n"
+    )
+    env = {**__import__("os").environ, "BTMISSION_MAX_LOG_BYTES": "5000000000"}
+    r = subprocess.run(
+        [sys.executable, "-c", code, str(LOG)], capture_output=True, text=True, env=env, timeout=60
+    )
+    assert r.returncode == 0, r.stderr
+    assert int(r.stdout) == LOG.stat().st_size
+
+
+@pytest.mark.parametrize(
+    ("vehicles", "message"),
+    [
+        ("3", "--vehicles: the static batch needs an even number of vehicles >= 2, got 3 "
+              "(map static_npr)"),
+        ("40", "--vehicles: map 'static_npr' has 6 left and 6 right terminals (group: "
+               "left/right); 40 vehicles need 20 on each side (map static_npr)"),
+    ],
+)  # fmt: skip
+def test_bench_dispatch_checks_fleet_sizes_first(
+    runner: CliRunner, tmp_path: Path, vehicles: str, message: str
+) -> None:
+    out = refused(runner, "bench", "dispatch", "--vehicles", vehicles, "--out", str(tmp_path))
+    assert message in out
+    assert not list(tmp_path.iterdir())

@@ -366,7 +366,10 @@ def read_regular_file(path: Path, budget: limits.Budget) -> bytes:
         if st.st_size > limit:
             raise FileRefused(_too_large(st.st_size, budget), "too-large")
         with os.fdopen(fd, "rb", closefd=False) as fh:
-            data = fh.read(limit + 1)
+            # read what stat said (+1: did it grow?), not limit + 1: read(n) allocates n bytes
+            data = fh.read(min(limit, st.st_size) + 1)
+            while len(data) <= limit and (more := fh.read(min(1 << 20, limit + 1 - len(data)))):
+                data += more
     finally:
         os.close(fd)
     if len(data) > limit:  # grew while we read it
