@@ -230,3 +230,30 @@ def test_bench_dispatch_checks_fleet_sizes_first(
     out = refused(runner, "bench", "dispatch", "--vehicles", vehicles, "--out", str(tmp_path))
     assert message in out
     assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (("auction", "--scale", "100000x100000", "--quick"),
+         "Invalid value for --scale: the number of agents is 100,000, the limit is 1,000 (set "
+         "BTMISSION_MAX_AGENTS to change it)"),
+        (("auction", "--tasks", "20000"),
+         "Invalid value for --tasks: the number of tasks is 20,000, the limit is 10,000 (set "
+         "BTMISSION_MAX_TASKS to change it)"),
+        (("sim", "--scale", "1000000x1"),
+         "Invalid value for --scale: the number of agents is 1,000,000, the limit is 1,000"),
+        (("dispatch-dynamic", "--hours", "1e9"),
+         "Invalid value for '--hours': 1000000000.0 is not in the range 0<x<=1000."),
+    ],
+)  # fmt: skip
+def test_bench_sizes_beyond_the_budgets_are_refused_before_building(
+    runner: CliRunner, tmp_path: Path, args: tuple[str, ...], message: str
+) -> None:
+    out = refused(runner, "bench", *args, "--out", str(tmp_path))
+    assert message in out
+
+
+def test_dispatch_dynamic_hours_are_bounded(runner: CliRunner) -> None:
+    out = refused(runner, "dispatch", "dynamic", "--hours", "1e9")
+    assert "Invalid value for '--hours': 1000000000.0 is not in the range 0<x<=1000." in out
