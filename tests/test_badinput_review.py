@@ -257,3 +257,33 @@ def test_bench_sizes_beyond_the_budgets_are_refused_before_building(
 def test_dispatch_dynamic_hours_are_bounded(runner: CliRunner) -> None:
     out = refused(runner, "dispatch", "dynamic", "--hours", "1e9")
     assert "Invalid value for '--hours': 1000000000.0 is not in the range 0<x<=1000." in out
+
+
+# ------------------------------------------------------------------------------ maps
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (("--z", "1e300", "--png", "PNG"), "--z 1e+300 is outside the map (z from 0 to 2 m)"),
+        (("--z", "-5", "--png", "PNG"), "--z -5 is outside the map (z from 0 to 2 m)"),
+        (("--z", "1"), "--z selects the slice drawn by --png; give --png FILE too"),
+    ],
+)
+def test_map_show_z_must_be_a_slice_of_the_map(
+    runner: CliRunner, tmp_path: Path, args: tuple[str, ...], message: str
+) -> None:
+    png = tmp_path / "top.png"
+    argv = [str(png) if a == "PNG" else a for a in args]
+    out = refused(runner, "map", "show", mission(tmp_path), *argv)
+    assert message in out
+    assert not png.exists()
+
+
+def test_a_cut_off_ascii_pcd_is_refused(runner: CliRunner, tmp_path: Path) -> None:
+    p = tmp_path / "cut.pcd"
+    p.write_text(
+        "# .PCD\nVERSION .7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 5\n"
+        "HEIGHT 1\nPOINTS 5\nDATA ascii\n1 2 3\n4 5 6\n",
+        encoding="ascii",
+    )
+    out = refused(runner, "map", "show", str(p), "--resolution", "0.5")
+    assert f"{p}: the header declares 5 points but the file holds 2 (cut off?)" in out

@@ -131,6 +131,12 @@ def _read_pcd(p: Path) -> tuple[Columns, list[str]]:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise MapError(f"{p}: not a readable PCD file ({first})") from None
     cols: Columns = {name: np.asarray(pc.pc_data[name]).ravel() for name in pc.fields}
+    held = min((len(v) for v in cols.values()), default=0)
+    if held != pc.metadata.points:  # pypcd4 reads a cut-off ASCII body without a word
+        raise MapError(
+            f"{p}: the header declares {pc.metadata.points:,} points but the file holds {held:,} "
+            "(cut off?)"
+        )
     return cols, []
 
 
