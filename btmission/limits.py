@@ -147,11 +147,19 @@ def check_voxels(shape: Sequence[int], what: str = "the map") -> None:
     """Raise :class:`ValueError` when a grid of ``shape`` exceeds :data:`MAX_VOXELS`."""
     n = math.prod(int(s) for s in shape)
     if n > MAX_VOXELS.limit:
-        dims = " × ".join(f"{int(s):,}" for s in shape)
+        dims = " × ".join(_count(int(s)) for s in shape)
         raise ValueError(
-            f"{what} makes {dims} = {n:,} voxels; the limit is {MAX_VOXELS.show()} "
+            f"{what} makes {dims} = {_count(n)} voxels; the limit is {MAX_VOXELS.show()} "
             f"(set {MAX_VOXELS.env} to change it)"
         )
+
+
+def _count(n: int) -> str:
+    """``1,234,567``; past 10^15 ``1.23e+301`` (a 300-digit count helps nobody)."""
+    if n < 10**15:
+        return f"{n:,}"
+    digits = str(n)  # not float(n): it overflows past 1e308
+    return f"{digits[0]}.{digits[1:3]}e+{len(digits) - 1}"
 
 
 def _nums(vals: Sequence[float]) -> str:

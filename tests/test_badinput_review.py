@@ -287,3 +287,54 @@ def test_a_cut_off_ascii_pcd_is_refused(runner: CliRunner, tmp_path: Path) -> No
     )
     out = refused(runner, "map", "show", str(p), "--resolution", "0.5")
     assert f"{p}: the header declares 5 points but the file holds 2 (cut off?)" in out
+
+
+def test_a_cost_that_is_a_list_gets_one_message(runner: CliRunner, tmp_path: Path) -> None:
+    out = refused(runner, "validate", mission(tmp_path, "path_cost(location)}", "[1]}"))
+    assert "m.yaml:11:44: task_types.inspect.cost: expected a cost expression such as " \
+        "path_cost(location) or a number ≥ 0 (got [1])" in out  # fmt: skip
+    assert ".str:" not in out
+
+
+def test_a_cost_error_quotes_a_long_expression_shortened(runner: CliRunner, tmp_path: Path) -> None:
+    cost = "(" * 300 + "1" + ")" * 300
+    out = refused(runner, "validate", mission(tmp_path, "path_cost(location)}", cost + "}"))
+    assert "task_types.inspect.cost: '" + "(" * 60 + "…' is not a valid expression " \
+        "(too many nested parentheses)" in out  # fmt: skip
+
+
+def test_a_voxel_count_past_1e15_is_shown_in_scientific_notation(
+    runner: CliRunner, tmp_path: Path
+) -> None:
+    p = mission(tmp_path, "resolution: 0.5", "resolution: 1e-300")
+    out = refused(runner, "validate", p)
+    assert "world.resolution: 12 × 8 × 2 m at 1e-300 m makes 1.20e+301 × 7.99e+300 × " \
+        "1.99e+300 = 1.91e+902 voxels; the limit is 40,000,000" in out  # fmt: skip
+
+
+# ------------------------------------------------------------------------------ place databases
+def test_a_place_database_with_nan_positions_is_refused(runner: CliRunner, tmp_path: Path) -> None:
+    import numpy as np
+
+    from btmission.localization.database import PlaceDatabase, save_database
+    from btmission.localization.descriptor import DescriptorParams
+    from btmission.world.voxel import VoxelMap
+
+    params = DescriptorParams()
+    db = PlaceDatabase(
+        positions=np.array([[1.0, 1.0, 1.0]]),
+        floor_z=np.array([0.0]),
+        ring_keys=np.zeros((1, params.key_size), np.float32),
+        polar=np.zeros((1, params.rings, params.sectors), np.float32),
+        cloud=np.zeros((4, 3), np.float32),
+        voxel_map=VoxelMap(np.zeros((4, 4, 4), np.uint8), 0.5),
+    )
+    good = save_database(db, tmp_path / "db.npz")
+    arrays = dict(np.load(good))
+    arrays["positions"] = np.array([[np.nan, 1.0, 1.0]])
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, **arrays)
+    scan = tmp_path / "scan.npy"
+    np.save(scan, np.ones((10, 3)))
+    out = refused(runner, "reloc", "query", str(bad), str(scan))
+    assert f"{bad}: inconsistent place database: positions has NaN or infinite values" in out

@@ -124,7 +124,7 @@ def parse_cost(text: str) -> CostExpr:
     try:
         tree = ast.parse(text.strip(), mode="eval")
     except SyntaxError as exc:
-        raise CostExprError(f"'{text}' is not a valid expression ({exc.msg})") from None
+        raise CostExprError(f"'{_short(text)}' is not a valid expression ({exc.msg})") from None
     except (RecursionError, MemoryError, ValueError):  # nesting the parser cannot hold; NUL
         raise CostExprError(f"'{_short(text)}' is not a valid expression") from None
     if _depth(tree) > MAX_COST_DEPTH:

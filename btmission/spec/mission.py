@@ -164,6 +164,10 @@ def _cost_value(v: Any) -> Any:
                 f"{problem}; a cost is an expression such as path_cost(location) or a number ≥ 0"
             )
         return str(v)  # the expression of a constant, as written (-1, not -1.0)
+    if not isinstance(v, str):
+        raise ValueError(
+            f"expected a cost expression such as path_cost(location) or a number ≥ 0 (got {v!r})"
+        )
     return v
 
 
