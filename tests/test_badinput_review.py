@@ -338,3 +338,23 @@ def test_a_place_database_with_nan_positions_is_refused(runner: CliRunner, tmp_p
     np.save(scan, np.ones((10, 3)))
     out = refused(runner, "reloc", "query", str(bad), str(scan))
     assert f"{bad}: inconsistent place database: positions has NaN or infinite values" in out
+
+
+def test_a_point_far_outside_the_map_is_outside_without_a_numpy_warning(
+    runner: CliRunner, tmp_path: Path
+) -> None:
+    import warnings
+
+    import numpy as np
+
+    from btmission.world.voxel import VoxelMap
+
+    vm = VoxelMap(np.zeros((4, 4, 4), np.uint8), 0.5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the float → int64 cast of 1e301 warned
+        inside = vm.contains([[1e300, 0, 0], [np.nan, 0, 0], [-np.inf, 1, 1], [1, 1, 1]])
+    assert inside.tolist() == [False, False, False, True]
+    code, out, err = run(runner, "plan", mission(tmp_path), "--from", "1e300,1,0", "--to", "2,2,0")
+    assert code == 2
+    assert "RuntimeWarning" not in out + err
+    assert "start (1e+300, 1, 0) is outside the map (x 0..12, y 0..8, z 0..2)" in out + err
