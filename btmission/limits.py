@@ -92,6 +92,12 @@ MAX_VOXELS = Budget(
 MAX_POINTS = Budget(
     "BTMISSION_MAX_POINTS", 20_000_000, "points of a point cloud (.ply, .pcd, place database)"
 )
+MAX_TOPOMAP_NODES = Budget(
+    "BTMISSION_MAX_TOPOMAP_NODES",
+    2_000,
+    "nodes of a topological map (the path matrix is nodes × nodes: 3,000 nodes took 12 s and "
+    "320 MB, 20,000 would need 1.5 GB for one of its arrays)",
+)
 MAX_AGENTS = Budget("BTMISSION_MAX_AGENTS", 1_000, "agents of a mission")
 MAX_TASKS = Budget("BTMISSION_MAX_TASKS", 10_000, "tasks of a mission")
 MIN_STEP_S = Budget(
@@ -110,6 +116,7 @@ BUDGETS: tuple[Budget, ...] = (
     MAX_YAML_DEPTH,
     MAX_VOXELS,
     MAX_POINTS,
+    MAX_TOPOMAP_NODES,
     MAX_AGENTS,
     MAX_TASKS,
     MIN_STEP_S,

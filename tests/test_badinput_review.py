@@ -358,3 +358,41 @@ def test_a_point_far_outside_the_map_is_outside_without_a_numpy_warning(
     assert code == 2
     assert "RuntimeWarning" not in out + err
     assert "start (1e+300, 1, 0) is outside the map (x 0..12, y 0..8, z 0..2)" in out + err
+
+
+# ------------------------------------------------------------------------------ topological maps
+TOPO = """\
+topomap: tiny
+version: 1
+nodes:
+  A: {kind: terminal, prioritized: true, xy: [0, 0]}
+  X: {kind: transit, xy: [100, 0]}
+  P: {kind: pause, xy: [100, 30]}
+  B: {kind: terminal, xy: [200, 0], group: right}
+segments:
+  - {from: A, to: X, time: 12}
+  - {from: X, to: B, time: [12, 18]}
+  - {from: X, to: P, time: 5}
+"""
+
+
+def test_a_topological_map_over_the_node_budget_is_refused(
+    runner: CliRunner, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """20,000 nodes in a 1.3 MB file needed 1.5 GB for one n × n array of the path matrix."""
+    p = tmp_path / "t.yaml"
+    p.write_text(TOPO, encoding="utf-8")
+    code, out, err = run(runner, "dispatch", "map", str(p))
+    assert code == 0 and "4 nodes" in err
+    monkeypatch.setenv("BTMISSION_MAX_TOPOMAP_NODES", "3")
+    out = refused(runner, "dispatch", "map", str(p))
+    assert f"{p}:4:3: nodes: the number of nodes is 4, the limit is 3 (set " \
+        "BTMISSION_MAX_TOPOMAP_NODES to change it)" in out  # fmt: skip
+
+
+def test_a_trajectory_that_is_a_device_is_not_called_missing(
+    runner: CliRunner, tmp_path: Path
+) -> None:
+    out = refused(runner, "reloc", "build", mission(tmp_path), "-o", str(tmp_path / "db.npz"),
+                  "--trajectory", "/dev/zero")  # fmt: skip
+    assert "/dev/zero: not a regular file" in out
