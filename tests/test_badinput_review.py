@@ -396,3 +396,14 @@ def test_a_trajectory_that_is_a_device_is_not_called_missing(
     out = refused(runner, "reloc", "build", mission(tmp_path), "-o", str(tmp_path / "db.npz"),
                   "--trajectory", "/dev/zero")  # fmt: skip
     assert "/dev/zero: not a regular file" in out
+
+
+def test_the_schema_says_a_goal_list_is_not_empty(runner: CliRunner) -> None:
+    import json
+
+    code, out, _ = run(runner, "schema", "mission")
+    assert code == 0
+    defs = json.loads(out)["$defs"]
+    for model in ("TaskTypeSpec", "DefaultBehaviorSpec"):
+        branches = defs[model]["properties"]["goal"]["anyOf"]
+        assert {"items": {"type": "string"}, "minItems": 1, "type": "array"} in branches

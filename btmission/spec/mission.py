@@ -151,7 +151,9 @@ def _goal_value(v: Any) -> Any:
     raise ValueError(f"expected a goal condition or a non-empty list of them (got {v!r})")
 
 
-GoalValue = Annotated[str | list[str], BeforeValidator(_goal_value)]
+GoalValue = Annotated[
+    str | Annotated[list[str], Field(min_length=1)], BeforeValidator(_goal_value)
+]  # min_length: the JSON Schema says it too
 
 
 def _cost_value(v: Any) -> Any:
