@@ -407,3 +407,31 @@ def test_the_schema_says_a_goal_list_is_not_empty(runner: CliRunner) -> None:
     for model in ("TaskTypeSpec", "DefaultBehaviorSpec"):
         branches = defs[model]["properties"]["goal"]["anyOf"]
         assert {"items": {"type": "string"}, "minItems": 1, "type": "array"} in branches
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ("origin", "origin must be three finite numbers, got (nan, 0, 0)"),
+        ("state", "voxel state 77 is not one of 0 (free), 1 (occupied), 2 (unknown)"),
+    ],
+)
+def test_a_npz_map_refused_by_the_grid_checks_names_the_file(
+    runner: CliRunner, tmp_path: Path, change: str, message: str
+) -> None:
+    import numpy as np
+
+    from btmission.world.io import save_map
+    from btmission.world.voxel import VoxelMap
+
+    good = tmp_path / "good.npz"
+    save_map(VoxelMap(np.zeros((4, 4, 4), np.uint8), 0.5), good)
+    arrays = dict(np.load(good))
+    if change == "origin":
+        arrays["origin"] = np.array([np.nan, 0.0, 0.0])
+    else:
+        arrays["state"] = np.full((4, 4, 4), 77, np.uint8)
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, **arrays)
+    out = refused(runner, "plan", str(bad), "--from", "0.2,0.2,0.2", "--to", "1,1,1")
+    assert f"{bad}: {message}" in out

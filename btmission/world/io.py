@@ -444,7 +444,10 @@ def _load_npz(p: Path) -> VoxelMap:
     res = float(data["resolution"])
     if not (math.isfinite(res) and res > 0):
         raise MapError(f"{p}: field 'resolution': expected a number > 0 (m), found {res:g}")
-    return VoxelMap(data["state"], res, (origin[0], origin[1], origin[2]), meta)
+    try:
+        return VoxelMap(data["state"], res, (origin[0], origin[1], origin[2]), meta)
+    except MapError as exc:  # the grid's own checks (origin, empty grid, states): name the file
+        raise MapError(f"{p}: {exc}") from None
 
 
 def json_field(p: Path, data: dict[str, npt.NDArray[Any]], name: str) -> dict[str, Any]:

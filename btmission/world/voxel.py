@@ -85,7 +85,8 @@ class VoxelMap:
             raise MapError(f"resolution must be a positive number of metres, got {self.resolution}")
         self.resolution = float(self.resolution)
         if len(self.origin) != 3 or not all(np.isfinite(self.origin)):
-            raise MapError(f"origin must be three finite numbers, got {self.origin}")
+            shown = ", ".join(f"{float(v):g}" for v in self.origin)
+            raise MapError(f"origin must be three finite numbers, got ({shown})")
         self.origin = (float(self.origin[0]), float(self.origin[1]), float(self.origin[2]))
 
     # ---------------------------------------------------------------- construction
