@@ -435,3 +435,11 @@ def test_a_npz_map_refused_by_the_grid_checks_names_the_file(
     np.savez(bad, **arrays)
     out = refused(runner, "plan", str(bad), "--from", "0.2,0.2,0.2", "--to", "1,1,1")
     assert f"{bad}: {message}" in out
+
+
+def test_an_empty_library_reference_is_named_as_such(runner: CliRunner, tmp_path: Path) -> None:
+    out = refused(runner, "library", "show", "")
+    assert "<command line>: empty library reference: give an installed library (" in out
+    assert "not a regular file" not in out
+    out = refused(runner, "validate", mission(tmp_path, "library: ground", "library: ''"))
+    assert "m.yaml:7:23: agents[0].library: empty library reference" in out
