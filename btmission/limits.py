@@ -44,7 +44,7 @@ class Budget:
             _warn_once(f"btmission: ignoring {self.env}={text!r} (expected a positive "
                        f"{'whole ' if self.integer else ''}number); using {self.show(self.default)}")  # fmt: skip
             return self.default
-        return int(v) if self.integer else v
+        return int(min(v, _LARGEST)) if self.integer else v
 
     @property
     def limit(self) -> int:
@@ -60,6 +60,9 @@ class Budget:
         shown = f"{int(got):,}" if self.integer and got == int(got) else f"{got:g}"
         return f"{what} is {shown}, the limit is {self.show()} (set {self.env} to change it)"
 
+
+_LARGEST = 2**62
+"""Integer budgets are capped here: "no limit" in effect, and still a valid size for read()."""
 
 _warned: set[str] = set()
 
@@ -89,6 +92,12 @@ MAX_VOXELS = Budget(
 MAX_POINTS = Budget(
     "BTMISSION_MAX_POINTS", 20_000_000, "points of a point cloud (.ply, .pcd, place database)"
 )
+MAX_TOPOMAP_NODES = Budget(
+    "BTMISSION_MAX_TOPOMAP_NODES",
+    2_000,
+    "nodes of a topological map (the path matrix is nodes × nodes: 3,000 nodes took 12 s and "
+    "320 MB, 20,000 would need 1.5 GB for one of its arrays)",
+)
 MAX_AGENTS = Budget("BTMISSION_MAX_AGENTS", 1_000, "agents of a mission")
 MAX_TASKS = Budget("BTMISSION_MAX_TASKS", 10_000, "tasks of a mission")
 MIN_STEP_S = Budget(
@@ -107,6 +116,7 @@ BUDGETS: tuple[Budget, ...] = (
     MAX_YAML_DEPTH,
     MAX_VOXELS,
     MAX_POINTS,
+    MAX_TOPOMAP_NODES,
     MAX_AGENTS,
     MAX_TASKS,
     MIN_STEP_S,
@@ -130,6 +140,11 @@ def grid_shape(size: Sequence[float], resolution: float) -> tuple[int, int, int]
     res = float(resolution)
     if not (math.isfinite(res) and res > 0):
         raise ValueError(f"resolution must be a finite number > 0 (m), got {res:g}")
+    if not all(math.isfinite(v / res) for v in vals):  # 1e300 m at 1e-300 m
+        raise ValueError(
+            f"{_nums(vals)} m at {res:g} m makes more voxels than can be counted; the limit is "
+            f"{MAX_VOXELS.show()} (set {MAX_VOXELS.env} to change it)"
+        )
     shape = tuple(max(1, math.ceil(v / res - 1e-9)) for v in vals)
     check_voxels(shape, f"{_nums(vals)} m at {res:g} m")
     return shape[0], shape[1], shape[2]
@@ -139,11 +154,19 @@ def check_voxels(shape: Sequence[int], what: str = "the map") -> None:
     """Raise :class:`ValueError` when a grid of ``shape`` exceeds :data:`MAX_VOXELS`."""
     n = math.prod(int(s) for s in shape)
     if n > MAX_VOXELS.limit:
-        dims = " × ".join(f"{int(s):,}" for s in shape)
+        dims = " × ".join(_count(int(s)) for s in shape)
         raise ValueError(
-            f"{what} makes {dims} = {n:,} voxels; the limit is {MAX_VOXELS.show()} "
+            f"{what} makes {dims} = {_count(n)} voxels; the limit is {MAX_VOXELS.show()} "
             f"(set {MAX_VOXELS.env} to change it)"
         )
+
+
+def _count(n: int) -> str:
+    """``1,234,567``; past 10^15 ``1.23e+301`` (a 300-digit count helps nobody)."""
+    if n < 10**15:
+        return f"{n:,}"
+    digits = str(n)  # not float(n): it overflows past 1e308
+    return f"{digits[0]}.{digits[1:3]}e+{len(digits) - 1}"
 
 
 def _nums(vals: Sequence[float]) -> str:

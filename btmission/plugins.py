@@ -258,6 +258,10 @@ def load_library(
         origin = f"entry point {ep.value}"
         installed_ep = True
     else:
+        if not ref.strip():  # Path("") is the current directory
+            known = ", ".join(installed) or "none"
+            message = f"empty library reference: give an installed library ({known}) or a path"
+            raise SpecError([Diagnostic(Severity.ERROR, "unknown-library", message, ref, where)])
         path = Path(ref)
         if base_dir is not None and not path.is_absolute():
             path = base_dir / path

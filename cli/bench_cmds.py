@@ -19,7 +19,9 @@ from btmission.cli.common import (
     output_target,
     positive_float_option,
 )
+from btmission.cli.dispatch_cmds import HOURS
 from btmission.cli.map_cmds import mine_resolution_option, size_option
+from btmission.limits import MAX_AGENTS, MAX_TASKS, Budget
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -156,6 +158,13 @@ def _fraction_list(text: str, name: str) -> tuple[float, ...]:
     return tuple(out)
 
 
+def _within_budget(values: Sequence[int], budget: Budget, what: str, name: str) -> None:
+    """Refuse a count over the mission budget for ``what`` (agents or tasks) before building."""
+    for v in values:
+        if v > budget.limit:
+            raise click.BadParameter(budget.exceeded(f"the number of {what}", v), param_hint=name)
+
+
 def _size_list(text: str, name: str) -> tuple[tuple[int, int], ...]:
     sizes: list[tuple[int, int]] = []
     for s in (s.strip().lower() for s in text.split(",")):
@@ -170,6 +179,8 @@ def _size_list(text: str, name: str) -> tuple[tuple[int, int], ...]:
             raise click.BadParameter(
                 f"'{s}' is not AGENTSxTASKS (e.g. 1000x10000)", param_hint=name
             )
+        _within_budget([na], MAX_AGENTS, "agents", name)
+        _within_budget([nt], MAX_TASKS, "tasks", name)
         sizes.append((na, nt))
     return tuple(sizes)
 
@@ -259,9 +270,11 @@ def auction_bench(
         "seed": seed,
     }
     if agents is not None:
-        overrides["agents"] = _int_list(agents, "--agents")
+        overrides["agents"] = counts = _int_list(agents, "--agents")
+        _within_budget(counts, MAX_AGENTS, "agents", "--agents")
     if tasks is not None:
-        overrides["tasks"] = _int_list(tasks, "--tasks")
+        overrides["tasks"] = counts = _int_list(tasks, "--tasks")
+        _within_budget(counts, MAX_TASKS, "tasks", "--tasks")
     if participation is not None:
         overrides["participation"] = _fraction_list(participation, "--participation")
     if repeat is not None:
@@ -334,9 +347,11 @@ def dispatch_bench(vehicles: str, runs: int, tau: float, seed: int, out: Path) -
       btmission bench dispatch --vehicles 2,10 --runs 3
     """
     from btmission.bench.dispatch import run_dispatch_benchmark
-    from btmission.cli.dispatch_cmds import int_list, progress_bar
+    from btmission.cli.dispatch_cmds import check_static_sizes, int_list, progress_bar
+    from btmission.dispatch.maps import static_map
 
     sizes = int_list(vehicles, "--vehicles")
+    check_static_sizes(sizes, static_map("npr"), static_map("spr"))
     with progress_bar(2 * len(sizes) * runs, "NPR + SPR: GA + push and swap") as advance:
         run_dispatch_benchmark(
             sizes, runs, tau, seed, out, echo=click.echo, on_run=lambda *_: advance(1)
@@ -346,7 +361,8 @@ def dispatch_bench(vehicles: str, runs: int, tau: float, seed: int, out: Path) -
 @bench.command("dispatch-dynamic")
 @list_option("--vehicles", default="2,3,4,5", help="Fleet sizes.")
 @int_option("--runs", default=5, help="Runs per size.")
-@positive_float_option("--hours", default=4.0, help="Simulated hours per run.")
+@click.option("--hours", type=HOURS, default=4.0, show_default=True,
+              help="Simulated hours per run.")  # fmt: skip
 @positive_float_option("--budget", default=0.5, help="GA wall-clock budget per optimisation (s).")
 @seed_option("Random seed.")
 @out_option("dispatch_dynamic.md and .csv")
@@ -415,6 +431,8 @@ def sim_bench(
         a, sep, t = item.partition("x")
         if not sep or not a.isdigit() or not t.isdigit() or int(a) < 1 or int(t) < 1:
             raise click.BadParameter(f"expected AGENTSxTASKS, got '{item}'", param_hint="--scale")
+        _within_budget([int(a)], MAX_AGENTS, "agents", "--scale")
+        _within_budget([int(t)], MAX_TASKS, "tasks", "--scale")
         points.append((int(a), int(t), participation))
     run_sim_benchmark(ctrls, points, duration, out, click.echo)
 

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
@@ -15,10 +15,18 @@ from btmission.cli.common import (
     POSITIVE,
     SEED,
     BadInput,
+    FiniteFloat,
     handle_spec_errors,
     output_target,
     write_output,
 )
+
+if TYPE_CHECKING:
+    from btmission.dispatch.topomap import TopoMap
+
+HOURS = FiniteFloat(min=0, min_open=True, max=1000)
+"""Simulated hours of a dynamic-dispatch run: about 0.5 s of computing each at 2 trucks, and
+the run shows no progress until it ends; 1000 h (six weeks) is far beyond the paper's 4 h."""
 
 MAP_HELP = "A built-in map (static_npr, static_spr, mine) or a map YAML file."
 
@@ -45,6 +53,21 @@ def int_list(text: str, option: str) -> list[int]:
     if not values or min(values) < 1:
         raise BadInput(f"{option}: expected positive integers, got '{text}'")
     return values
+
+
+def check_static_sizes(sizes: Sequence[int], *tmaps: TopoMap) -> None:
+    """Every fleet size can make a static-batch instance on every map, else :class:`BadInput`
+    (before any optimisation runs)."""
+    import numpy as np
+
+    from btmission.dispatch.static import random_instance
+
+    for tmap in tmaps:
+        for size in sizes:
+            try:
+                random_instance(tmap, size, np.random.default_rng(0))
+            except ValueError as exc:
+                raise BadInput(f"--vehicles: {exc} (map {tmap.name})") from None
 
 
 @contextlib.contextmanager
@@ -181,6 +204,7 @@ def static_cmd(
 
     tmap = resolve_map(map_ref)
     sizes = int_list(vehicles, "--vehicles")
+    check_static_sizes(sizes, tmap)
     params = _ga_params(budget, generations)
     try:
         with progress_bar(len(sizes) * runs, f"{tmap.name}: GA + push and swap") as advance:
@@ -216,7 +240,7 @@ def static_cmd(
 @dispatch.command("dynamic")
 @click.option("--map", "map_ref", default="mine", show_default=True, help=MAP_HELP)
 @click.option("--vehicles", default="2,3,4,5", show_default=True, help="Fleet sizes, e.g. 2,3,4,5.")
-@click.option("--hours", type=POSITIVE, default=4.0, show_default=True,
+@click.option("--hours", type=HOURS, default=4.0, show_default=True,
               help="Simulated duration of each run.")  # fmt: skip
 @click.option("--runs", type=click.IntRange(1), default=1, show_default=True, help="Runs per size.")
 @click.option("--budget", type=POSITIVE, default=0.5, show_default=True,

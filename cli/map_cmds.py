@@ -267,6 +267,12 @@ def show_cmd(
     from btmission.planning.risk import CostMap
 
     vm, markers = load_map_arg(map_file, resolution, fill)
+    if z is not None:
+        (_, _, z0), (_, _, z1) = vm.bounds
+        if png is None:
+            raise BadInput("--z selects the slice drawn by --png; give --png FILE too")
+        if not z0 <= z < z1:
+            raise BadInput(f"--z {z:g} is outside the map (z from {z0:g} to {z1:g} m)")
     cm = CostMap(vm, _params(risk_radius, unknown_cost))
     click.echo(f"{map_file}: {vm.describe()}")
     vc = cm.voxel_cost[np.isfinite(cm.voxel_cost)]

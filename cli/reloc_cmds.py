@@ -69,7 +69,7 @@ def read_points(path: Path, what: str = "scan") -> np.ndarray:
 
     suffix = path.suffix.lower()
     if not path.is_file():
-        raise BadInput(f"{path}: no such file")
+        raise BadInput(f"{path}: not a regular file" if path.exists() else f"{path}: no such file")
     if suffix == ".npy":
         from btmission.world.io import NUMBER, NpzField, read_npy
 

@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from btmission import limits
 from btmission.diagnostics import SpecError
 from btmission.spec.common import FiniteFloat, Identifier, number_problem, validate_model
 from btmission.spec.source import Source, parse_yaml, read_yaml
@@ -134,6 +135,9 @@ class TopoMap:
         Checks: at least two nodes, unique names, segment ends exist, no self-loop or repeated
         segment, times > 0, connected, loop-free (the loop's nodes are named).
         """
+        budget = limits.MAX_TOPOMAP_NODES
+        if len(nodes) > budget.limit:  # Π0 is n × n: time and memory grow with n²
+            raise TopoMapError(budget.exceeded("the number of nodes", len(nodes)), ("nodes",))
         if len(nodes) < 2:
             raise TopoMapError("a map needs at least two nodes", ("nodes",))
         index: dict[str, int] = {}

@@ -179,6 +179,10 @@ class PlaceDatabase:
             (n > 0, "no places"),
             (len(self.cloud) > 0, "an empty map cloud"),
         ]
+        for name in ("positions", "floor_z", "ring_keys", "polar", "cloud"):
+            values = getattr(self, name)
+            if values.dtype.kind == "f" and not np.isfinite(values).all():
+                checks.append((False, f"{name} has NaN or infinite values"))
         bad = [msg for ok, msg in checks if not ok]
         if bad:
             raise DatabaseError("inconsistent place database: " + "; ".join(bad))

@@ -177,6 +177,63 @@ class JsonlEventLog:
         self.close()
 
 
+def _number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _text(v: Any) -> bool:
+    return isinstance(v, str)
+
+
+def _point(v: Any) -> bool:
+    return isinstance(v, list) and len(v) == 3 and all(_number(x) for x in v)
+
+
+def _list_of(check: Any) -> Any:
+    return lambda v: isinstance(v, list) and all(check(x) for x in v)
+
+
+def _or_none(check: Any) -> Any:
+    return lambda v: v is None or check(v)
+
+
+def _agent_entry(v: Any) -> bool:
+    return isinstance(v, dict) and _text(v.get("id")) and _point(v.get("start", [0, 0, 0]))
+
+
+def _placed(v: Any) -> bool:  # an artifact or a detected object
+    return isinstance(v, dict) and _point(v.get("p"))
+
+
+_EVENT_FIELDS: dict[str, dict[str, Any]] = {
+    "header": {"agents": _list_of(_agent_entry),
+               "tasks": _or_none(_list_of(lambda v: isinstance(v, dict))),
+               "world": _or_none(lambda v: isinstance(v, dict)), "artifacts": _or_none(_list_of(
+                   _placed))},
+    "task_added": {"task": _text, "fields": lambda v: isinstance(v, dict),
+                   "problems": _list_of(_text)},
+    "task": {"task": _text, "state": _text, "agent": _or_none(_text)},
+    "pose": {"agent": _text, "p": _point, "odometer_m": _or_none(_number),
+             "clearance_m": _or_none(_number)},
+    "agent_task": {"agent": _text, "task": _or_none(_text)},
+    "objects": {"objects": _list_of(_placed)},
+}  # fmt: skip
+"""What ``report`` reads of each kind of event (a field may be absent, unless noted)."""
+
+
+def event_problem(ev: Event) -> str | None:
+    """What is wrong with the shape of an event read from a log (None when it can be reported):
+    a time that is not a finite number, or a field the report reads of the wrong type."""
+    if not math.isfinite(ev.t):
+        return f"time {ev.t} is not a finite number"
+    if "reported_s" in ev.data and not _number(ev.data["reported_s"]):
+        return "field 'reported_s' has the wrong type"
+    for name, check in _EVENT_FIELDS.get(ev.kind, {}).items():
+        if name in ev.data and not check(ev.data[name]):
+            return f"field '{name}' has the wrong type (got {json.dumps(ev.data[name])[:60]})"
+    return None
+
+
 class LogError(ValueError):
     """A file that is not a btmission event log (or an unreadable one)."""
 
@@ -216,8 +273,16 @@ def read_events(path: str | Path) -> LogContents:
         if not line.strip():
             continue
         try:
-            events.append(Event.from_json(line))
-        except (ValueError, TypeError):
+            ev = Event.from_json(line)
+            problem = event_problem(ev)
+            if problem:
+                if ev.kind == "header":
+                    raise LogError(f"{p}:{number}: header: {problem}")
+                raise ValueError(problem)
+            events.append(ev)
+        except LogError:
+            raise
+        except (ValueError, TypeError, RecursionError):  # RecursionError: [[[[... nested
             if i == len(lines) - 1 and not line.endswith("\n"):
                 truncated = True
             else:

@@ -42,6 +42,27 @@ _OP_TEXT: dict[type[ast.operator], str] = {
 }
 
 
+MAX_COST_CHARS = 10_000
+"""Longest cost expression read (a real one is a few dozen characters)."""
+MAX_COST_DEPTH = 200
+"""Deepest operator nesting of a cost expression (``1+1+...`` nests once per ``+``); evaluation
+recurses once per level."""
+
+
+def _short(text: str, n: int = 60) -> str:
+    return text if len(text) <= n else text[:n] + "…"
+
+
+def _depth(tree: ast.AST) -> int:
+    """Nesting depth of ``tree``, computed without recursion."""
+    deepest, stack = 0, [(tree, 1)]
+    while stack:
+        node, d = stack.pop()
+        deepest = max(deepest, d)
+        stack.extend((child, d + 1) for child in ast.iter_child_nodes(node))
+    return deepest
+
+
 class CostExprError(ValueError):
     """The expression is not in the allowed grammar."""
 
@@ -96,10 +117,21 @@ def parse_cost(text: str) -> CostExpr:
     """
     if not isinstance(text, str) or not text.strip():
         raise CostExprError("expected a cost expression such as path_cost(location)")
+    if len(text) > MAX_COST_CHARS:
+        raise CostExprError(
+            f"the expression is {len(text):,} characters long; the limit is {MAX_COST_CHARS:,}"
+        )
     try:
         tree = ast.parse(text.strip(), mode="eval")
     except SyntaxError as exc:
-        raise CostExprError(f"'{text}' is not a valid expression ({exc.msg})") from None
+        raise CostExprError(f"'{_short(text)}' is not a valid expression ({exc.msg})") from None
+    except (RecursionError, MemoryError, ValueError):  # nesting the parser cannot hold; NUL
+        raise CostExprError(f"'{_short(text)}' is not a valid expression") from None
+    if _depth(tree) > MAX_COST_DEPTH:
+        raise CostExprError(
+            f"'{_short(text)}' nests more than {MAX_COST_DEPTH} operations deep; split the sum "
+            "into fewer, larger terms"
+        )
     symbols: set[str] = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.Call):

@@ -139,6 +139,23 @@ class TaskSpec(BaseModel):
     )
 
 
+MAX_PRIORITY_WEIGHT = 1e12
+"""Largest priority × priority_scale: the auction's bound on bids and bonuses
+(btmission.allocation.solvers.MAX_COST); beyond it the profits overflow or swamp the costs."""
+
+
+def _goal_value(v: Any) -> Any:
+    """A goal: one condition, or a non-empty list of them (an empty list has nothing to do)."""
+    if isinstance(v, str) or (isinstance(v, list) and v):
+        return v
+    raise ValueError(f"expected a goal condition or a non-empty list of them (got {v!r})")
+
+
+GoalValue = Annotated[
+    str | Annotated[list[str], Field(min_length=1)], BeforeValidator(_goal_value)
+]  # min_length: the JSON Schema says it too
+
+
 def _cost_value(v: Any) -> Any:
     """A task type's cost: an expression, or a finite number written without quotes (kept as
     the text of that number)."""
@@ -149,6 +166,10 @@ def _cost_value(v: Any) -> Any:
                 f"{problem}; a cost is an expression such as path_cost(location) or a number ≥ 0"
             )
         return str(v)  # the expression of a constant, as written (-1, not -1.0)
+    if not isinstance(v, str):
+        raise ValueError(
+            f"expected a cost expression such as path_cost(location) or a number ≥ 0 (got {v!r})"
+        )
     return v
 
 
@@ -168,7 +189,7 @@ SettingValue = Annotated[int | float | str | bool, BeforeValidator(_setting_valu
 
 
 class TaskTypeSpec(_Strict):
-    goal: str | list[str] = Field(description="Goal condition(s), e.g. at_goal(location).")
+    goal: GoalValue = Field(description="Goal condition(s), e.g. at_goal(location).")
     cost: Annotated[str | float, BeforeValidator(_cost_value)] = Field(
         description="Bid cost expression, e.g. path_cost(location), or a number ≥ 0."
     )
@@ -203,7 +224,7 @@ class CoordinationSpec(_Strict):
 
 
 class DefaultBehaviorSpec(_Strict):
-    goal: str | list[str] = Field(description="Goal of the default behaviour, e.g. landed_at_home.")
+    goal: GoalValue = Field(description="Goal of the default behaviour, e.g. landed_at_home.")
     idle_timeout_s: FiniteFloat = Field(
         10.0, ge=0, description="Idle time before the default behaviour runs."
     )
@@ -499,6 +520,7 @@ def compile_mission(spec: MissionSpec, src: Source) -> Mission:
     # tasks: unique ids, known types, the fields their type needs and nothing else
     tasks: list[Task] = []
     tseen: dict[str, int] = {}
+    heavy: set[tuple[str | int, ...]] = set()  # priorities reported as too large
     for i, t in enumerate(spec.tasks):
         tpath: tuple[str | int, ...] = ("tasks", i)
         if t.id in tseen:
@@ -547,6 +569,17 @@ def compile_mission(spec: MissionSpec, src: Source) -> Mission:
             add((*tpath, "at"), f"task '{t.id}' is added at {t.at:g} s, when a run has already "
                 f"stopped (runtime.max_duration_s is {limit:g} s)", "never-added", Severity.WARNING)  # fmt: skip
         prio = t.priority if t.priority is not None else tt2.priority
+        weight = prio * spec.coordination.priority_scale
+        ppath: tuple[str | int, ...] = (*tpath, "priority")
+        if t.priority is None:  # the type's priority, else the default 1: blame the scale
+            ppath = ("task_types", t.type, "priority")
+            if ppath not in src.key_positions:
+                ppath = ("coordination", "priority_scale")
+        if weight > MAX_PRIORITY_WEIGHT and ppath not in heavy:
+            heavy.add(ppath)
+            add(ppath, f"task '{t.id}': priority {prio:g} × coordination.priority_scale "
+                f"{spec.coordination.priority_scale:g} is {weight:g}; the auction takes at most "
+                f"{MAX_PRIORITY_WEIGHT:g}", "schema")  # fmt: skip
         tasks.append(Task(t.id, t.type, t.at, prio, task_fields, src.locate(tpath)))
 
     # cost expressions evaluate on the tasks' own values: no division by zero, no overflow,

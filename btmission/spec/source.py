@@ -180,7 +180,17 @@ def _convert(
         return out
     if isinstance(node, yaml.SequenceNode):
         return [_convert(v, (*path, i), src, problems, loader) for i, v in enumerate(node.value)]
-    return loader.construct_object(node, deep=True)
+    try:
+        return loader.construct_object(node, deep=True)
+    except yaml.constructor.ConstructorError as exc:  # a tag: !foo, !!python/...
+        message = f"cannot read this value: {exc.problem}"
+    except ValueError as exc:  # an integer over Python's 4,300-digit limit
+        message = f"cannot read this value: {str(exc).split(';')[0].lower()}"
+    problems.append(
+        Diagnostic(Severity.ERROR, "yaml-value", message, format_path(path),
+                   Location(src.file, mark.line + 1, mark.column + 1))
+    )  # fmt: skip
+    return None
 
 
 def _too_deep(file: str, line: int = 1, col: int = 1, depth: int | None = None) -> SpecError:
@@ -356,7 +366,10 @@ def read_regular_file(path: Path, budget: limits.Budget) -> bytes:
         if st.st_size > limit:
             raise FileRefused(_too_large(st.st_size, budget), "too-large")
         with os.fdopen(fd, "rb", closefd=False) as fh:
-            data = fh.read(limit + 1)
+            # read what stat said (+1: did it grow?), not limit + 1: read(n) allocates n bytes
+            data = fh.read(min(limit, st.st_size) + 1)
+            while len(data) <= limit and (more := fh.read(min(1 << 20, limit + 1 - len(data)))):
+                data += more
     finally:
         os.close(fd)
     if len(data) > limit:  # grew while we read it

@@ -131,6 +131,12 @@ def _read_pcd(p: Path) -> tuple[Columns, list[str]]:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise MapError(f"{p}: not a readable PCD file ({first})") from None
     cols: Columns = {name: np.asarray(pc.pc_data[name]).ravel() for name in pc.fields}
+    held = min((len(v) for v in cols.values()), default=0)
+    if held != pc.metadata.points:  # pypcd4 reads a cut-off ASCII body without a word
+        raise MapError(
+            f"{p}: the header declares {pc.metadata.points:,} points but the file holds {held:,} "
+            "(cut off?)"
+        )
     return cols, []
 
 
@@ -438,7 +444,10 @@ def _load_npz(p: Path) -> VoxelMap:
     res = float(data["resolution"])
     if not (math.isfinite(res) and res > 0):
         raise MapError(f"{p}: field 'resolution': expected a number > 0 (m), found {res:g}")
-    return VoxelMap(data["state"], res, (origin[0], origin[1], origin[2]), meta)
+    try:
+        return VoxelMap(data["state"], res, (origin[0], origin[1], origin[2]), meta)
+    except MapError as exc:  # the grid's own checks (origin, empty grid, states): name the file
+        raise MapError(f"{p}: {exc}") from None
 
 
 def json_field(p: Path, data: dict[str, npt.NDArray[Any]], name: str) -> dict[str, Any]:

@@ -28,6 +28,9 @@ STATE_NAMES: dict[int, str] = {FREE: "free", OCCUPIED: "occupied", UNKNOWN: "unk
 IntArray = npt.NDArray[np.int64]
 FloatArray = npt.NDArray[np.float64]
 
+_FAR_INDEX = float(2**62)
+"""Voxel index given to points too far away for an int64 index (never inside a grid)."""
+
 
 class MapError(ValueError):
     """A map or a position on it cannot be used (bad file, point outside the map, ...)."""
@@ -82,7 +85,8 @@ class VoxelMap:
             raise MapError(f"resolution must be a positive number of metres, got {self.resolution}")
         self.resolution = float(self.resolution)
         if len(self.origin) != 3 or not all(np.isfinite(self.origin)):
-            raise MapError(f"origin must be three finite numbers, got {self.origin}")
+            shown = ", ".join(f"{float(v):g}" for v in self.origin)
+            raise MapError(f"origin must be three finite numbers, got ({shown})")
         self.origin = (float(self.origin[0]), float(self.origin[1]), float(self.origin[2]))
 
     # ---------------------------------------------------------------- construction
@@ -130,7 +134,13 @@ class VoxelMap:
     def world_to_index(self, points: npt.ArrayLike) -> IntArray:
         """Voxel indices ``(..., 3)`` containing ``points`` (no bounds check; see :meth:`contains`)."""
         p = np.asarray(points, dtype=np.float64)
-        out: IntArray = np.floor((p - np.asarray(self.origin)) / self.resolution).astype(np.int64)
+        with np.errstate(over="ignore", invalid="ignore"):  # 1e300 / 0.1: inf, clamped below
+            f = np.floor((p - np.asarray(self.origin)) / self.resolution)
+        # far-away, infinite or NaN points get an index far outside the grid instead of an
+        # undefined (and warned about) float → int64 cast; fmin/fmax also replace NaN
+        np.fmin(f, _FAR_INDEX, out=f)
+        np.fmax(f, -_FAR_INDEX, out=f)
+        out: IntArray = f.astype(np.int64)
         return out
 
     def index_to_world(self, index: npt.ArrayLike) -> FloatArray:
