@@ -357,7 +357,7 @@ def test_a_point_far_outside_the_map_is_outside_without_a_numpy_warning(
     code, out, err = run(runner, "plan", mission(tmp_path), "--from", "1e300,1,0", "--to", "2,2,0")
     assert code == 2
     assert "RuntimeWarning" not in out + err
-    assert "start (1e+300, 1, 0) is outside the map (x 0..12, y 0..8, z 0..2)" in out + err
+    assert "start (1e+300, 1, 0) is outside the map (x [0, 12), y [0, 8), z [0, 2))" in out + err
 
 
 # ------------------------------------------------------------------------------ topological maps

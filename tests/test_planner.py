@@ -364,7 +364,7 @@ def test_bad_endpoints_and_snapping() -> None:
     vm = _corridor()
     p = Planner(CostMap(vm))
     inside = vm.index_to_world((5, 5, 3))
-    with pytest.raises(PlanningError, match=r"goal \(100, 0, 0\) is outside the map \(x 0..21"):
+    with pytest.raises(PlanningError, match=r"goal \(100, 0, 0\) is outside the map \(x \[0, 21\)"):
         p.plan(inside, (100.0, 0.0, 0.0))
     rock = vm.index_to_world((0, 5, 3))
     with pytest.raises(PlanningError, match=r"start \(.*\) is inside rock .* use snap"):

@@ -312,7 +312,7 @@ def test_check_mission_map_reports_each_problem_with_file_line(tmp_path: Path) -
         in text
     )
     assert (
-        "agent A3 starts at [1.5, 1.5, 9.5] is outside the map (x 0..10, y 0..10, z 0..1)" in text
+        "agent A3 starts at [1.5, 1.5, 9.5] is outside the map (x [0, 10), y [0, 10), z [0, 1))" in text
     )
     assert (
         "task T4: location [5.5, 5.5, 0.5] is inside rock (an occupied voxel); the nearest free voxel"

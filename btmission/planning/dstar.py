@@ -250,11 +250,7 @@ class Planner:
         inside = bool(vm.in_bounds(idx))
         problem = None
         if not inside:
-            lo, hi = vm.bounds
-            problem = (
-                f"{what} ({_fmt(p)}) is outside the map (x {lo[0]:g}..{hi[0]:g}, "
-                f"y {lo[1]:g}..{hi[1]:g}, z {lo[2]:g}..{hi[2]:g})"
-            )
+            problem = f"{what} ({_fmt(p)}) is outside the map ({vm.bounds_text()})"
         elif not np.isfinite(self.cost_map.voxel_cost[tuple(idx)]):
             problem = f"{what} ({_fmt(p)}) is inside rock (an occupied voxel)"
         if problem is None:

@@ -202,11 +202,7 @@ class PathCosts:
         vm = self.map
         p = np.asarray(point, dtype=np.float64)
         if not bool(vm.contains(p[None, :])[0]):
-            lo, hi = vm.bounds
-            return (
-                f"outside the map (x {lo[0]:g}..{hi[0]:g}, y {lo[1]:g}..{hi[1]:g}, "
-                f"z {lo[2]:g}..{hi[2]:g})"
-            )
+            return f"outside the map ({vm.bounds_text()})"
         if vm.state_at(p) == OCCUPIED:
             return "inside rock"
         return None

@@ -37,12 +37,7 @@ def _where_problem(vm: VoxelMap, p: tuple[float, float, float]) -> tuple[str, st
     """(code, message) when ``p`` cannot be used: outside the map or inside rock."""
     state = vm.state_at(p)
     if state is None:
-        lo, hi = vm.bounds
-        return (
-            "outside-map",
-            f"{_fmt(p)} is outside the map (x {lo[0]:g}..{hi[0]:g}, y {lo[1]:g}..{hi[1]:g}, "
-            f"z {lo[2]:g}..{hi[2]:g})",
-        )
+        return "outside-map", f"{_fmt(p)} is outside the map ({vm.bounds_text()})"
     if state == OCCUPIED:
         near = vm.nearest_free(p, 10.0)
         hint = (

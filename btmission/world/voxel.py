@@ -131,6 +131,12 @@ class VoxelMap:
         lo = self.origin
         return lo, (lo[0] + ex[0], lo[1] + ex[1], lo[2] + ex[2])
 
+    def bounds_text(self) -> str:
+        """The map's extent for messages, as half-open intervals: a point exactly on an upper
+        edge is outside (``x [0, 12), y [0, 8), z [0, 2)``)."""
+        lo, hi = self.bounds
+        return ", ".join(f"{a} [{lo[i]:g}, {hi[i]:g})" for i, a in enumerate("xyz"))
+
     def world_to_index(self, points: npt.ArrayLike) -> IntArray:
         """Voxel indices ``(..., 3)`` containing ``points`` (no bounds check; see :meth:`contains`)."""
         p = np.asarray(points, dtype=np.float64)
