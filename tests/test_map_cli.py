@@ -141,6 +141,6 @@ def test_validate_reports_map_problems(runner: CliRunner, tmp_path: Path) -> Non
         f"{bad}:13:5: agents[0].start: agent R1 starts at [4, 5, -0.5] is inside rock (an occupied voxel); "
         "the nearest free voxel is at [3.75, 4.75, 0.25]",
         f"{bad}:18:5: tasks[1].location: task T2: location [91.7, 44.8, 40] is outside the map "
-        "(x 0..200, y 0..120, z -1..11)",
+        "(x [0, 200), y [0, 120), z [-1, 11))",
         f"{bad}:20:5: tasks[3].location: task T4: location [33, 60, 2] is inside rock (an occupied voxel)",
     ]
