@@ -687,3 +687,78 @@ def test_a_second_signal_stops_a_long_step_at_once(
     evs = events(only_log(logs))
     assert evs[-1]["ev"] == "end" and evs[-1]["reason"] == "interrupted"
     assert _report(only_log(logs)).exit_code == 0
+
+
+# ----------------------------------------------------------------------------- deep trees
+CHAIN_MODULE = """\
+from py_trees.common import Status
+from btmission.plugins import Implementations
+from btmission.runtime.leaves import StatefulAction
+IMPLEMENTATIONS = Implementations("{name}", vehicle="ground")
+
+
+def _condition(i):
+    return lambda ctx: i == 0 or bool(ctx.blackboard.get(f"c{{i}}", False))
+
+
+def _action(i):
+    class Step(StatefulAction):
+        def on_start(self):
+            self.ctx.blackboard.set(f"c{{i}}", True)
+            return Status.SUCCESS
+    return Step
+
+
+for i in range({n} + 1):
+    IMPLEMENTATIONS.condition(f"c{{i}}")(_condition(i))
+for i in range(1, {n} + 1):
+    IMPLEMENTATIONS.action(f"a{{i}}")(_action(i))
+"""
+
+
+def chain_mission(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, n: int) -> Path:
+    """A library whose goal c{n} back-chains through n actions (a tree ~2n levels deep)."""
+    global _count
+    _count += 1
+    name, module = f"chain{_count}", f"chain_impl_{os.getpid()}_{_count}"
+    conds = "\n".join(f"  c{i}: {{doc: step {i}}}" for i in range(n + 1))
+    acts = "\n".join(f"  a{i}: {{pre: [c{i - 1}], post: [c{i}]}}" for i in range(1, n + 1))
+    (tmp_path / f"{name}.yaml").write_text(
+        f"library: {name}\nversion: 1\nmodule: {module}\nconditions:\n{conds}\nactions:\n{acts}\n"
+    )
+    (tmp_path / f"{module}.py").write_text(CHAIN_MODULE.format(name=name, n=n))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    mission = tmp_path / "deep.yaml"
+    mission.write_text(
+        "mission: deep\nversion: 1\nworld:\n  map: {generate: empty, size: [10, 10, 4]}\n"
+        f"agents:\n  - {{id: R1, library: {name}.yaml, start: [1, 1, 0]}}\n"
+        "tasks:\n  - {id: T1, type: job}\n"
+        f"task_types:\n  job: {{goal: c{n}, cost: 1}}\n"
+    )
+    return mission
+
+
+def test_a_1000_action_chain_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """py_trees ticks recurse once per level: the agent raises the limit its tree needs."""
+    mission = chain_mission(tmp_path, monkeypatch, 1000)
+    r = run_cli(["run", str(mission), "--until", "5", "--quiet", "--no-png", "--log", str(tmp_path)])
+    assert r.exit_code == 0, r.output
+    assert "Tasks done              1 of 1" in r.stdout
+    assert sys.getrecursionlimit() < 5000  # raised around the ticks only
+
+
+def test_a_tree_too_deep_for_the_stack_is_refused_before_the_run(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Past what the main thread's C stack takes, the process would crash (SIGSEGV): exit 2."""
+    import btmission.runtime.agent as agent_module
+
+    mission = chain_mission(tmp_path, monkeypatch, 300)
+    monkeypatch.setattr(agent_module, "main_thread_limit", lambda: 1500)
+    r = run_cli(["run", str(mission), "--quiet", "--no-png", "--log", str(tmp_path / "logs")])
+    assert r.exit_code == 2, r.output
+    assert (
+        f"{mission}:6:5: agents[0]: agent R1's mission tree is 603 levels deep; a run ticks "
+        "trees up to about 125 levels with this stack (ulimit -s)"
+    ) in r.stderr
+    assert not list((tmp_path / "logs").glob("*.jsonl"))  # nothing ran, no log left

@@ -22,6 +22,7 @@ task, the idle timer runs and the default branch (e.g. return home and land) tak
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -33,7 +34,9 @@ from btmission.allocation.bidder import AgentState, Bidder, CostProvider
 from btmission.allocation.loop import Progress
 from btmission.allocation.tasks import TaskInfo
 from btmission.backends.base import Backend, Sensors
+from btmission.diagnostics import Diagnostic, Severity, SpecError
 from btmission.plugins import Implementations
+from btmission.recursion import main_thread_limit, recursion_for_depth, recursion_limit
 from btmission.runtime.bus import AgentStatus, Assignment, InMemoryBus
 from btmission.runtime.leaves import (
     BUILTIN_ACTIONS,
@@ -49,8 +52,9 @@ from btmission.runtime.leaves import (
 from btmission.runtime.navigation import Navigator
 from btmission.runtime.paths import PathCosts
 from btmission.spec.mission import Mission
+from btmission.spec.source import format_path
 from btmission.synthesis.mission_tree import build_mission_tree
-from btmission.synthesis.pytrees import build_behaviour_tree
+from btmission.synthesis.pytrees import behaviour_depth, build_behaviour_tree
 from btmission.synthesis.tree import Kind, Node, Role
 
 Emit = Callable[..., None]
@@ -113,6 +117,19 @@ class Agent:
         }
         self._commit_leaves = self._find_commit_leaves()
         self._default = next((c for c in self.root.children if c.name == "default"), None)
+        depth = behaviour_depth(self.root)
+        need = recursion_for_depth(depth, frames_per_level=4)
+        self._recursion: int | None = need if need > sys.getrecursionlimit() else None
+        """py_trees ticks and stops recurse once per level: a deep tree (a long chain library)
+        gets the recursion limit it needs around those calls (see btmission.recursion)."""
+        if need > main_thread_limit():  # the process would crash (SIGSEGV), not raise
+            path = ("agents", next(i for i, a in enumerate(mission.agents) if a.id == agent_id))
+            raise SpecError([Diagnostic(
+                Severity.ERROR, "tree-too-deep",
+                f"agent {agent_id}'s mission tree is {depth:,} levels deep; a run ticks trees up "
+                f"to about {(main_thread_limit() - sys.getrecursionlimit()) // 4:,} levels with "
+                "this stack (ulimit -s); synth, the exports and the dry run take deeper ones",
+                format_path(path), mission.locate(path))])  # fmt: skip
         self.bidder = Bidder.for_agent(
             mission,
             agent_id,
@@ -228,16 +245,24 @@ class Agent:
             self.blackboard.set("task", info.id)
         else:
             self.blackboard.unset("task")
-        self.root.stop(Status.INVALID)
+        self._deep(lambda: self.root.stop(Status.INVALID))
         self._emit("agent_task", agent=self.id, task=info.id if info else None)
 
     # ---------------------------------------------------------------- ticking
+    def _deep(self, fn: Callable[[], None]) -> None:
+        """``fn()`` (a py_trees call that recurses per level) with the limit this tree needs."""
+        if self._recursion is None:
+            fn()
+            return
+        with recursion_limit(self._recursion):
+            fn()
+
     def tick(self, now: float) -> Status:
         """Tick the mission tree once; report commit points, completions and failures."""
         if not self.alive:
             return Status.INVALID
         self._failure = ""
-        self.root.tick_once()
+        self._deep(self.root.tick_once)
         self.ticks += 1
         task = self.task
         if task is not None:
