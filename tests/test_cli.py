@@ -348,3 +348,23 @@ def test_validate_strict_does_not_claim_ok(runner: CliRunner, tmp_path: Path) ->
     assert code == 0 and "OK" in out and "'ok' is assumed" in err
     code, out, err = run(runner, "validate", str(m), "--strict")
     assert code == 1 and "OK" not in out and "warnings are errors under --strict" in err
+
+
+def test_library_check_warns_of_a_leaf_named_like_a_btcpp_node_type(
+    runner: CliRunner, tmp_path: Path
+) -> None:
+    """`-f xml` refuses such a leaf (exit 2); `library check` says so before anyone exports."""
+    lib = tmp_path / "nap.yaml"
+    lib.write_text(
+        "library: nap\nversion: 1\nconditions: {rested: Rested}\n"
+        "actions:\n  Sleep: {post: [rested]}\n"
+    )
+    code, _, err = run(runner, "library", "check", str(lib))
+    assert code == 0
+    assert (
+        f"{lib}:5:3: warning: actions.Sleep: action 'Sleep' has the name of one of "
+        "BehaviorTree.CPP's own node types or XML elements: the tree synthesises but cannot be "
+        "exported with -f xml"
+    ) in err
+    code, _, err = run(runner, "synth", str(lib), "--goal", "rested", "-f", "xml")
+    assert code == 2 and "'Sleep' is the name of one of BehaviorTree.CPP's own node types" in err

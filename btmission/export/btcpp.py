@@ -61,6 +61,7 @@ import re
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 
+from btmission.spec.library import BTCPP_BUILTIN_NODES
 from btmission.synthesis.tree import Arg, Kind, Node, Role, walk
 
 __all__ = [
@@ -85,25 +86,6 @@ MAX_PARSED_NODES = 2_000_000
 more distinct nodes than this (a few kilobytes of XML can reference a subtree 2**40 times with
 different port remappings)."""
 
-BTCPP_BUILTIN_NODES = frozenset(
-    {
-        # node types BT.CPP 4.x registers itself (bt_factory.cpp); a leaf cannot reuse them
-        "AlwaysFailure", "AlwaysSuccess", "AsyncFallback", "AsyncSequence", "Delay",
-        "Fallback", "ForceFailure", "ForceSuccess", "IfThenElse", "Inverter",
-        "KeepRunningUntilFailure", "LoopBool", "LoopDouble", "LoopInt", "LoopString",
-        "Parallel", "ParallelAll", "Precondition", "ReactiveFallback", "ReactiveSequence",
-        "Repeat", "RetryUntilSuccessful", "RunOnce", "Script", "ScriptCondition",
-        "SequenceWithMemory", "SequenceStar", "Sequence", "SetBlackboard", "SkipUnlessUpdated",
-        "Sleep", "SubTree", "Switch2", "Switch3", "Switch4", "Switch5", "Switch6", "Timeout",
-        "TryCatch", "UnsetBlackboard", "WaitValueUpdate", "WasEntryUpdated", "WhileDoElse",
-        "BlackboardCheckBool", "BlackboardCheckDouble", "BlackboardCheckInt",
-        "BlackboardCheckString", "ManualSelector",
-        # element names with a meaning of their own in the XML
-        "Action", "Condition", "Control", "Decorator", "BehaviorTree", "TreeNodesModel",
-        "include", "root",
-    }
-)  # fmt: skip
-"""IDs a leaf may not have: BT.CPP's own node types and the XML format's special elements."""
 
 _INDENT = "  "
 _COMPOSITE_TAG = {Kind.FALLBACK: "ReactiveFallback", Kind.SEQUENCE: "ReactiveSequence"}

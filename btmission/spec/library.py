@@ -27,6 +27,25 @@ from btmission.spec.source import Source, parse_yaml, read_yaml
 LIBRARY_FORMAT_VERSION = 1
 
 BTCPP_RESERVED_PARAMS = frozenset({"name", "ID"})
+BTCPP_BUILTIN_NODES = frozenset(
+    {
+        # node types BT.CPP 4.x registers itself (bt_factory.cpp); a leaf cannot reuse them
+        "AlwaysFailure", "AlwaysSuccess", "AsyncFallback", "AsyncSequence", "Delay",
+        "Fallback", "ForceFailure", "ForceSuccess", "IfThenElse", "Inverter",
+        "KeepRunningUntilFailure", "LoopBool", "LoopDouble", "LoopInt", "LoopString",
+        "Parallel", "ParallelAll", "Precondition", "ReactiveFallback", "ReactiveSequence",
+        "Repeat", "RetryUntilSuccessful", "RunOnce", "Script", "ScriptCondition",
+        "SequenceWithMemory", "SequenceStar", "Sequence", "SetBlackboard", "SkipUnlessUpdated",
+        "Sleep", "SubTree", "Switch2", "Switch3", "Switch4", "Switch5", "Switch6", "Timeout",
+        "TryCatch", "UnsetBlackboard", "WaitValueUpdate", "WasEntryUpdated", "WhileDoElse",
+        "BlackboardCheckBool", "BlackboardCheckDouble", "BlackboardCheckInt",
+        "BlackboardCheckString", "ManualSelector",
+        # element names with a meaning of their own in the XML
+        "Action", "Condition", "Control", "Decorator", "BehaviorTree", "TreeNodesModel",
+        "include", "root",
+    }
+)  # fmt: skip
+"""IDs a leaf may not have: BT.CPP's own node types and the XML format's special elements."""
 """Attribute names BehaviorTree.CPP keeps for itself (as are names starting with '_')."""
 
 RESERVED_NAMES = frozenset({"task_assigned", "idle_timeout", "wait"})
@@ -297,10 +316,22 @@ def compile_library(
     conditions: dict[str, Condition] = {}
 
     def warn_btcpp(path: tuple[str | int, ...], params: Sequence[str]) -> None:
+        from btmission.spec.source import format_path
+
+        kind, leaf = str(path[0])[:-1], str(path[1])
+        if leaf in BTCPP_BUILTIN_NODES:
+            diags.append(
+                Diagnostic(
+                    Severity.WARNING,
+                    "btcpp-reserved",
+                    f"{kind} '{leaf}' has the name of one of BehaviorTree.CPP's own node types or "
+                    "XML elements: the tree synthesises but cannot be exported with -f xml",
+                    format_path(path[:2]),
+                    loc(*path[:2]),
+                )
+            )
         bad = [p for p in params if p in BTCPP_RESERVED_PARAMS or p.startswith("_")]
         if bad:
-            from btmission.spec.source import format_path
-
             diags.append(
                 Diagnostic(
                     Severity.WARNING,
