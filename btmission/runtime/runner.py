@@ -32,8 +32,10 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from btmission.allocation.tasks import TaskInfo, TaskState
+from btmission.backends.base import VehicleKind
 from btmission.backends.sim import Artifact, SimConfig, Simulator
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
+from btmission.plugins import Implementations
 from btmission.runtime.agent import Agent
 from btmission.runtime.bus import InMemoryBus
 from btmission.runtime.clock import Clock, ManualClock, SimClock
@@ -79,9 +81,9 @@ class RunResult:
         return self.time_s / self.wall_s if self.wall_s > 0 else math.inf
 
 
-def runtime_problems(mission: Mission) -> list[Diagnostic]:
-    """What stops a valid mission from running (the checks ``validate`` makes too)."""
-    return run_problems(mission)
+def vehicle_kind(impl: Implementations) -> VehicleKind:
+    """What the simulator builds for an agent whose library has these implementations."""
+    return VehicleKind.GROUND if impl.vehicle == "ground" else VehicleKind.MULTIROTOR
 
 
 class MissionRun:
@@ -100,7 +102,7 @@ class MissionRun:
         from btmission.planning.risk import RiskParams
         from btmission.world.build import world_from_spec
 
-        problems = runtime_problems(mission)
+        problems = run_problems(mission)  # the checks `validate` makes too
         if problems:
             raise SpecError(problems)
         self.mission = mission
@@ -241,8 +243,9 @@ class MissionRun:
         for spec in self.mission.agents:
             loaded = self.mission.library_of(spec.id)
             impl = loaded.implementations
-            assert impl is not None  # runtime_problems() checked it
-            if impl.vehicle == "ground":
+            assert impl is not None  # run_problems() checked it
+            ground = vehicle_kind(impl) is VehicleKind.GROUND
+            if ground:
                 vehicle = self.sim.add_ground(spec.id, spec.start, v_max=self.nav_config.speed_m_s)
                 control_dt = 0.1
             else:
@@ -280,7 +283,7 @@ class MissionRun:
                 namespace=self._namespace,
                 services=self.services[impl.library],
                 places=self.places,
-                provider=self.roads if impl.vehicle == "ground" else None,  # drones fly
+                provider=self.roads if ground else None,  # drones fly
             )
 
     def _emit_header(self) -> None:
@@ -290,7 +293,8 @@ class MissionRun:
 
         def vehicle(agent: str) -> str:
             impl = m.library_of(agent).implementations
-            return "ground" if impl is not None and impl.vehicle == "ground" else "multirotor"
+            assert impl is not None  # run_problems() checked it
+            return vehicle_kind(impl).value
 
         self.emit(
             "header",
