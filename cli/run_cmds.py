@@ -3,12 +3,8 @@
 from __future__ import annotations
 
 import json
-import signal
 import sys
-import threading
-from datetime import datetime
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
 import click
@@ -22,21 +18,6 @@ from btmission.cli.common import (
     internal_error_sink,
     output_target,
 )
-from btmission.diagnostics import Severity, SpecError, errors
-
-EXIT_INTERRUPTED = 130
-EXIT_TERMINATED = 143
-"""Exit status of a run ended by SIGTERM (128 + 15, as a shell reports it)."""
-
-
-def _log_path(directory: Path, mission: str, seed: int) -> Path:
-    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
-    path = directory / f"{mission}-{stamp}-seed{seed}.jsonl"
-    n = 1
-    while path.exists():
-        n += 1
-        path = directory / f"{mission}-{stamp}-seed{seed}-{n}.jsonl"
-    return path
 
 
 def _write_pngs(rep: Any, directory: Path, stem: str) -> list[Path]:
@@ -111,75 +92,32 @@ def run_cmd(
     mission file, 130 interrupted (Ctrl-C), 143 terminated (SIGTERM): the log and the report
     cover what happened so far.
     """
-    signals = _Signals()
-    with signals:
-        try:
-            code = _run(
-                signals, mission_file, seed, realtime, until, log_dir, quiet, controller, no_png
-            )
-        except _Stopped as stop:  # before the log existed, or after the run had ended
-            if signals.log is None:
-                click.echo(f"{stop.reason} before the run started: nothing was run", err=True)
-            else:
-                click.echo(f"{stop.reason}; the log is complete: {signals.log}", err=True)
-            code = stop.code
+    from btmission.runtime.session import RunSession, RunStopped
+
+    def note(text: str) -> None:
+        click.echo(f"\n{text}", err=True)
+
+    session = RunSession(
+        mission_file,
+        seed=seed,
+        controller=controller,
+        realtime=realtime,
+        log_dir=log_dir,
+        observers=[_StderrNotes()],
+        handle_signals=True,
+        notify=note,
+    )
+    try:
+        with session:
+            code = _run(session, until, quiet, no_png)
+    except RunStopped as stop:  # before the log existed, or after the run had ended
+        if session.ended and session.log_path is not None:
+            click.echo(f"{stop.reason}; the log is complete: {session.log_path}", err=True)
+        else:
+            click.echo(f"{stop.reason} before the run started: nothing was run", err=True)
+        code = stop.code
     if code:
         sys.exit(code)
-
-
-_STOPS = {"interrupted": EXIT_INTERRUPTED, "terminated": EXIT_TERMINATED}
-
-
-class _Stopped(BaseException):
-    """Ctrl-C or SIGTERM while there was no run loop to take it (building, reporting)."""
-
-    def __init__(self, reason: str) -> None:
-        super().__init__(reason)
-        self.reason = reason
-        self.code = _STOPS[reason]
-
-
-class _Signals:
-    """SIGINT (Ctrl-C) and SIGTERM for the whole command: while the run loop runs, the first asks
-    it to stop after the current step (the log gets its ``end`` event, the report is printed) and
-    a second stops it at once, mid-step (a first step of a very large mission can take minutes);
-    before the loop exists (loading, building) or after it has ended, they raise
-    :class:`_Stopped`."""
-
-    def __init__(self) -> None:
-        self.run: Any = None
-        self.log: Path | None = None
-        """The run's log, once it is complete."""
-        self.asked = False
-        """A stop was asked of the run loop (a second signal stops at once)."""
-        self._previous: dict[int, Any] = {}
-
-    def __enter__(self) -> _Signals:
-        if threading.current_thread() is threading.main_thread():  # (only there can they be set)
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                self._previous[sig] = signal.signal(sig, self._handle)
-        return self
-
-    def _handle(self, signum: int, frame: FrameType | None) -> None:
-        reason = "terminated" if signum == signal.SIGTERM else "interrupted"
-        if isinstance(self.run, _Ignore):
-            return
-        if self.run is None or self.asked:  # a second one: the current step may be a long one
-            raise _Stopped(reason)
-        self.asked = True
-        self.run.stop(reason)
-        sys.stderr.write(f"\n{reason}: stopping after the current step (again to stop at once)\n")
-
-    def __exit__(self, *exc: object) -> None:
-        for sig, handler in self._previous.items():
-            signal.signal(sig, handler)
-
-
-class _Ignore:
-    """Takes the place of the run while the end event is written."""
-
-    def stop(self, reason: str) -> None:
-        pass
 
 
 class _StderrNotes:
@@ -206,94 +144,37 @@ class _StderrNotes:
             click.echo(line, err=True)
 
 
-def _run(
-    signals: _Signals,
-    mission_file: Path,
-    seed: int,
-    realtime: bool,
-    until: float | None,
-    log_dir: Path,
-    quiet: bool,
-    controller: str | None,
-    no_png: bool,
-) -> int:
-    """The run command's body; returns the exit status."""
-    import time
+def _run(session: Any, until: float | None, quiet: bool, no_png: bool) -> int:
+    """The run command's body (a :class:`~btmission.runtime.session.RunSession` does the
+    work; this prints); returns the exit status."""
+    from btmission.runtime.report import format_report, format_warnings
 
-    from btmission.runtime.events import Event, JsonlEventLog
-    from btmission.runtime.report import format_report, format_warnings, report_from_log
-    from btmission.runtime.runner import MissionRun
-    from btmission.spec.mission import load_mission
-    from btmission.world.checks import check_mission_world
-
-    mission = load_mission(mission_file)
-    map_diags = check_mission_world(mission)
-    if errors(map_diags):
-        raise SpecError(
-            errors(map_diags) + [d for d in map_diags if d.severity is Severity.WARNING]
-        )
-    echo_diagnostics([d for d in mission.diagnostics + map_diags if d.severity is Severity.WARNING])
-    log_path = _log_path(log_dir, mission.name, seed)
-    log = JsonlEventLog(log_path)
-    run: Any = None
-    wall0 = time.perf_counter()
-
-    def on_internal_error(exc: BaseException, trace: str) -> str | None:
-        """A bug (ours or a plugin's) ends the run: its traceback and the end go into the log."""
-        if log.count == 0:  # not even the header: the crash file alone tells
-            return None
-        info = {"type": type(exc).__name__, "message": str(exc), "traceback": trace}
-        log.on_event(Event(run.now() if run is not None else 0.0, "internal_error", info))
+    with internal_error_sink(session.record_internal_error):
+        mission = session.load()
+        echo_diagnostics(session.warnings)
+        run = session.start()
         if run is not None:
-            run.end(run.result("internal error"))
-        else:
-            wall_s = time.perf_counter() - wall0
-            log.on_event(MissionRun.end_before_build(mission, "internal error", wall_s))
-        return str(log_path)
-
-    try:
-        with internal_error_sink(on_internal_error):
-            try:
-                run = MissionRun(
-                    mission,
-                    seed=seed,
-                    controller=controller,
-                    observers=[log, _StderrNotes()],
-                    realtime=realtime,
-                )
-            except SpecError:
-                log.close()
-                log_path.unlink(missing_ok=True)
-                raise
-            signals.run = run
             if not quiet:
                 click.echo(
                     f"running {mission.name}: {len(mission.agents)} agent(s), "
-                    f"{len(mission.tasks)} task(s), controller {run.controller}, seed {seed}; "
-                    f"log {log_path}",
+                    f"{len(mission.tasks)} task(s), controller {run.controller}, seed "
+                    f"{session.seed}; log {session.log_path}",
                     err=True,
                 )
-            result = _run_with_progress(run, until, quiet)
-            run.end(result)
-    except _Stopped as stop:  # a signal while the run was being built, or a second one mid-step
-        signals.run = _Ignore()  # a second one must not cut the end event short
-        if run is not None:
-            result = run.result(stop.reason)
-            run.end(result)
+            if quiet:
+                session.run(until)
+            else:
+                with _ProgressDisplay(run, until) as display:
+                    session.run(until, progress=display)
         else:
-            result = None
-            if log.count == 0:  # not even the header: nothing to report
-                log.close()
-                log_path.unlink(missing_ok=True)
-                raise
-            wall_s = time.perf_counter() - wall0
-            log.on_event(MissionRun.end_before_build(mission, stop.reason, wall_s))
-            click.echo(f"{stop.reason} while building the run ({wall_s:.1f} s)", err=True)
-    finally:
-        log.close()
-        signals.run = None  # from here a signal stops the command at once (the log is whole)
-    signals.log = log_path
-    rep = report_from_log(log_path)  # the report comes from the log alone
+            click.echo(
+                f"{session.stopped_while_building} while building the run "
+                f"({session.build_s:.1f} s)",
+                err=True,
+            )
+    result = session.result
+    log_path = session.log_path
+    rep = session.report()  # the report comes from the log alone
     if not quiet and result is not None:
         click.echo(
             f"{result.reason}: {result.time_s:.1f} s simulated in {result.wall_s:.1f} s "
@@ -301,10 +182,9 @@ def _run(
             err=True,
         )
     click.echo(f"log: {log_path}", err=True)
-    reason = result.reason if result is not None else rep.summary.end
-    if not no_png and result is not None and reason != "terminated":  # SIGTERM: end promptly
+    if not no_png and result is not None and result.reason != "terminated":  # SIGTERM: be quick
         try:
-            pngs = _write_pngs(rep, log_dir, log_path.stem)
+            pngs = _write_pngs(rep, log_path.parent, log_path.stem)
         except Exception as exc:  # a figure must never hide the report
             click.echo(f"note: could not draw the PNGs ({exc})", err=True)
         else:
@@ -313,49 +193,52 @@ def _run(
     for w in format_warnings(rep, incidents=False):  # the incidents were shown as they came
         click.echo(w, err=True)
     click.echo(format_report(rep))
-    if reason in _STOPS:
-        return _STOPS[reason]
-    return 1 if result is not None and (result.open or result.pending) else 0
+    return int(session.exit_code)
 
 
-def _run_with_progress(run: Any, until: float | None, quiet: bool) -> Any:
-    """Run with a live line: mission time, speed, and task counts (rich)."""
-    if quiet:
-        return run.run(until)
-    from rich.console import Console
-    from rich.progress import BarColumn, Progress, ProgressColumn, TextColumn, TimeElapsedColumn
-    from rich.text import Text
+class _ProgressDisplay:
+    """The live line while the run goes: mission time, task counts, D*+ searches (rich); the
+    run calls it every second of mission time and it reads the run's snapshot."""
 
-    class Searches(ProgressColumn):
-        """D*+ searches so far, read live by the display's own refresh: it moves even while one
-        long step (the first auction of a large mission) holds the loop."""
+    def __init__(self, run: Any, until: float | None) -> None:
+        self.run = run
+        self.limit = until if until is not None else run.mission.spec.runtime.max_duration_s
 
-        def render(self, task: Any) -> Text:
-            return Text(f"D*+ {getattr(run.paths, 'searches', 0):,}", style="dim")
+    def __call__(self, run: Any) -> None:
+        snap = run.snapshot
+        counts = "  ".join(f"{k} {v}" for k, v in sorted(snap.counts().items()))
+        self._progress.update(self._bar, completed=snap.time_s, counts=counts)
 
-    limit = until if until is not None else run.mission.spec.runtime.max_duration_s
-    console = Console(stderr=True)
-    with Progress(
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        TextColumn("t = {task.completed:>6.1f} s"),
-        TextColumn("{task.fields[counts]}"),
-        Searches(),
-        TimeElapsedColumn(),
-        console=console,
-        transient=True,
-    ) as progress:
-        bar = progress.add_task(run.mission.name, total=limit, counts="")
+    def __enter__(self) -> _ProgressDisplay:
+        from rich.console import Console
+        from rich.progress import BarColumn, Progress, ProgressColumn, TextColumn, TimeElapsedColumn
+        from rich.text import Text
 
-        def update(r: Any) -> None:
-            states: dict[str, int] = {}
-            for t in r.coordinator.state.pool:
-                if t.info.arrival_s <= r.now():
-                    states[t.state.value] = states.get(t.state.value, 0) + 1
-            counts = "  ".join(f"{k} {v}" for k, v in sorted(states.items()))
-            progress.update(bar, completed=r.now(), counts=counts)
+        run = self.run
 
-        return run.run(until, progress=update)
+        class Searches(ProgressColumn):
+            """D*+ searches so far, read live by the display's own refresh: it moves even while
+            one long step (the first auction of a large mission) holds the loop."""
+
+            def render(self, task: Any) -> Text:
+                return Text(f"D*+ {getattr(run.paths, 'searches', 0):,}", style="dim")
+
+        self._progress = Progress(
+            TextColumn("[bold]{task.description}"),
+            BarColumn(),
+            TextColumn("t = {task.completed:>6.1f} s"),
+            TextColumn("{task.fields[counts]}"),
+            Searches(),
+            TimeElapsedColumn(),
+            console=Console(stderr=True),
+            transient=True,
+        )
+        self._progress.__enter__()
+        self._bar = self._progress.add_task(run.mission.name, total=self.limit, counts="")
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._progress.__exit__(None, None, None)
 
 
 @click.command("report")

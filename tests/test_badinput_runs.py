@@ -593,14 +593,15 @@ def test_a_kill_during_the_build_leaves_a_log_report_accepts(
 
 def test_a_signal_before_the_log_exists_is_clean(tmp_path: Path) -> None:
     """The handlers are in place from the start: a stop while loading writes no log."""
-    from btmission.cli import run_cmds
+    from btmission.runtime.session import RunSession, RunStopped
 
-    signals = run_cmds._Signals()
-    with signals, pytest.raises(run_cmds._Stopped) as stopped:
+    session = RunSession("missions/pick_and_deliver.yaml", log_dir=tmp_path, handle_signals=True)
+    with session, pytest.raises(RunStopped) as stopped:
         os.kill(os.getpid(), signal.SIGTERM)
         time.sleep(1)  # the handler raises first
     assert stopped.value.code == 143 and stopped.value.reason == "terminated"
     assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # restored
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_run_help_documents_sigterm() -> None:

@@ -15,6 +15,8 @@ history::
      │  agent lost / stopped reporting
      └── unreachable (no agent can reach it; announced again every round)
 
+    any state but done and failed ──► cancelled   (by the operator)
+
 The pool is immutable: every operation returns a new :class:`TaskPool` (sharing the unchanged
 tasks), so the auctioneer's step function stays pure and any earlier state can be kept for
 replay or inspection.
@@ -40,10 +42,11 @@ class TaskState(str, enum.Enum):
     DONE = "done"
     FAILED = "failed"
     UNREACHABLE = "unreachable"
+    CANCELLED = "cancelled"
 
     @property
     def terminal(self) -> bool:
-        return self in (TaskState.DONE, TaskState.FAILED)
+        return self in (TaskState.DONE, TaskState.FAILED, TaskState.CANCELLED)
 
     @property
     def announced(self) -> bool:
@@ -229,6 +232,25 @@ class TaskPool:
         if t.state.terminal:
             raise PoolError(f"task '{task_id}' is already {t.state.value}")
         return self.with_tasks({task_id: t.moved(now, TaskState.OPEN, None, reason)})
+
+    def cancel(self, task_id: str, now: float, reason: str) -> TaskPool:
+        """The operator takes the task out (state ``cancelled``; its agent is unassigned at
+        the next round)."""
+        t = self[task_id]
+        if t.state.terminal:
+            raise PoolError(f"cannot cancel task '{task_id}': it is already {t.state.value}")
+        return self.with_tasks({task_id: t.moved(now, TaskState.CANCELLED, None, reason)})
+
+    def reprioritised(self, task_id: str, priority: float) -> TaskPool:
+        """The task with a new priority (announced again with it); same state, agent and
+        history (the run logs the change as a ``command`` event)."""
+        t = self[task_id]
+        if t.state.terminal:
+            raise PoolError(
+                f"cannot change the priority of task '{task_id}': it is already {t.state.value}"
+            )
+        info = replace(t.info, priority=priority)  # TaskInfo checks it (> 0, finite)
+        return self.with_tasks({task_id: replace(t, info=info)})
 
     def _held(self, task_id: str, agent: str, verb: str) -> PoolTask:
         t = self[task_id]

@@ -22,6 +22,7 @@ task, the idle timer runs and the default branch (e.g. return home and land) tak
 
 from __future__ import annotations
 
+import math
 import sys
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -144,6 +145,7 @@ class Agent:
         self.action = ""
         self._failure = ""
         self.alive = True
+        self.recalled = False
         self.ticks = 0
         self.last_announcement: Announcement | None = None
         for hook in implementations.setup_hooks:
@@ -201,7 +203,7 @@ class Agent:
     # ---------------------------------------------------------------- messages
     def on_announcement(self, ann: Announcement) -> None:
         """Bid on the announced tasks (stage 2 of the auction)."""
-        if not self.alive:
+        if not self.alive or self.recalled:
             return
         self.last_announcement = ann
         now = self.clock()
@@ -355,6 +357,14 @@ class Agent:
         if default is not None:
             return default.status is Status.SUCCESS
         return self.root.children[-1].status is Status.RUNNING
+
+    def recall(self, now: float) -> None:
+        """The operator recalled the agent: it drops its task, bids no more and runs its
+        default behaviour (e.g. return home and land) at once, without the idle timeout."""
+        self.recalled = True
+        if self.task is not None:
+            self._switch(None, now)
+        self.idle_since = -math.inf
 
     def kill(self) -> None:
         """The agent stops: no more ticks, bids, setpoints or messages."""

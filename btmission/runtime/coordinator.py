@@ -24,11 +24,12 @@ import math
 import queue
 import time
 from collections.abc import Callable, Mapping
+from dataclasses import replace
 from typing import Any
 
 from btmission.allocation.auction import Announcement, AuctionConfig, AuctionState
 from btmission.allocation.loop import AuctionLoop, Inbox, RoundResult
-from btmission.allocation.tasks import TaskInfo, TaskState, pool_from_mission
+from btmission.allocation.tasks import PoolError, TaskInfo, TaskState, pool_from_mission
 from btmission.runtime.bus import AgentStatus, Assignment, InMemoryBus
 from btmission.spec.mission import Mission
 
@@ -83,6 +84,8 @@ class Coordinator:
         """Wall time (s) of each round's bidding stage (every agent's bid, in this process)."""
         self.last: RoundResult | None = None
         self._last_assignments: dict[str, str] = {}
+        self.recalled: set[str] = set()
+        """Agents the operator recalled: their bids are no longer taken."""
 
     # ---------------------------------------------------------------- operator API
     @property
@@ -145,6 +148,34 @@ class Coordinator:
         self._pending.put((info, by))
         return info
 
+    def cancel_task(self, task_id: str, now: float, reason: str) -> None:
+        """Take a task out of the pool (state ``cancelled``); its agent is told at the next
+        round. Raises :class:`TaskError` if it is unknown or already over."""
+        try:
+            self.loop.state = replace(self.state, pool=self.state.pool.cancel(task_id, now, reason))
+        except (KeyError, PoolError) as exc:
+            raise TaskError(str(exc).strip("'\"")) from None
+
+    def set_priority(self, task_id: str, priority: float, now: float) -> None:
+        """Change a task's priority (announced again from the next round)."""
+        try:
+            pool = self.state.pool.reprioritised(task_id, priority)
+        except (KeyError, PoolError, ValueError) as exc:
+            raise TaskError(str(exc).strip("'\"")) from None
+        self.loop.state = replace(self.state, pool=pool)
+
+    def recall(self, agent: str, now: float) -> None:
+        """The operator recalled ``agent``: it leaves the auction (its last bid is dropped, so
+        it wins nothing more) and the task it holds goes back to the pool."""
+        state = self.state
+        held = state.holders().get(agent)
+        pool = state.pool
+        if held is not None:
+            pool = pool.release(held, now, f"agent {agent} recalled by the operator")
+        board = {a: b for a, b in state.board.items() if a != agent}
+        self.recalled.add(agent)
+        self.loop.state = replace(state, pool=pool, board=board)
+
     # ---------------------------------------------------------------- stepping
     def step(self, now: float) -> RoundResult | None:
         """Take queued tasks, report arrivals, and run a round if one is due."""
@@ -196,6 +227,8 @@ class Coordinator:
         self.bus.announce(ann)  # in one process, every agent computes its bid right here
         self.bid_times.append(time.perf_counter() - t0)
         inbox = self.bus.drain()
+        if self.recalled:
+            inbox.bids = [b for b in inbox.bids if b.agent not in self.recalled]
         for s in inbox.statuses:
             self.statuses[s.agent] = s
         return inbox

@@ -3,14 +3,20 @@
 :class:`MissionRun` builds everything from a validated :class:`~btmission.spec.mission.Mission`
 and advances it in fixed steps of simulated time (``runtime.sim.step_s``). One step, at time t:
 
-1. callbacks scheduled for t run (:meth:`MissionRun.at`), tasks added through the API enter
-   the pool;
-2. the coordinator runs an auction round if one is due (``coordination.auction_rate_hz``):
-   announce → every agent bids → allocate → every agent gets its assignment;
-3. agents whose tick is due tick their mission tree (``runtime.tick_hz``);
-4. every agent's navigator streams this period's setpoints;
-5. status reports go to the coordinator and pose events to the observers (``runtime.status_hz``);
-6. the simulator advances every vehicle by one step and reports collisions.
+1. callbacks scheduled for t run (:meth:`MissionRun.at`), then every command queued since the
+   last step is applied (:mod:`btmission.runtime.commands`: add or cancel a task, change its
+   priority, recall or kill an agent, cut a link, stop), each logged as a ``command`` event;
+2. the coordinator's side (:class:`~btmission.runtime.loops.CoordinatorRuntime`) steps the
+   libraries' run-wide services and runs an auction round if one is due
+   (``coordination.auction_rate_hz``): announce → every agent bids → allocate → every agent
+   gets its assignment;
+3. the agents' sides (:class:`~btmission.runtime.loops.AgentRuntime`): agents whose tick is due
+   tick their mission tree (``runtime.tick_hz``); every agent's navigator streams this period's
+   setpoints; status reports go to the coordinator and pose events to the observers
+   (``runtime.status_hz``);
+4. the simulator advances every vehicle by one step and reports collisions;
+5. an immutable :class:`~btmission.runtime.snapshot.RunSnapshot` of the run is published
+   (:attr:`MissionRun.snapshot`) for readers on other threads.
 
 Time comes from the simulator, never from the wall clock, so a run is deterministic for a seed
 and goes as fast as the machine allows; ``realtime=True`` paces it against the wall clock.
@@ -29,6 +35,7 @@ import time
 import uuid
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
 
 from btmission.allocation.tasks import TaskInfo, TaskState
@@ -39,7 +46,20 @@ from btmission.plugins import Implementations
 from btmission.runtime.agent import Agent
 from btmission.runtime.bus import InMemoryBus
 from btmission.runtime.clock import Clock, ManualClock, SimClock
-from btmission.runtime.coordinator import Coordinator
+from btmission.runtime.commands import (
+    AddTask,
+    CancelTask,
+    Command,
+    CommandError,
+    CommandQueue,
+    KillAgent,
+    RecallAgent,
+    SetLink,
+    SetPriority,
+    Signal,
+    Stop,
+)
+from btmission.runtime.coordinator import Coordinator, TaskError
 from btmission.runtime.events import LOG_FORMAT, LOG_VERSION, Event, EventStream, Observer
 from btmission.runtime.leaves import (
     ErrorReporter,
@@ -47,8 +67,10 @@ from btmission.runtime.leaves import (
     describe,
     setup_failed,
 )
+from btmission.runtime.loops import AgentRuntime, CoordinatorRuntime
 from btmission.runtime.navigation import NavConfig, Navigator
 from btmission.runtime.paths import PathCosts
+from btmission.runtime.snapshot import AgentSnapshot, RunSnapshot
 from btmission.spec.mission import Mission
 from btmission.spec.runcheck import run_problems
 from btmission.world.voxel import VoxelMap
@@ -75,6 +97,8 @@ class RunResult:
     collisions: int = 0
     pending: list[str] = field(default_factory=list)
     """Tasks still to arrive (``at:`` after the end: the run was cut short)."""
+    cancelled: list[str] = field(default_factory=list)
+    """Tasks the operator cancelled (not counted as open)."""
 
     @property
     def speedup(self) -> float:
@@ -160,13 +184,11 @@ class MissionRun:
         self._namespace = f"/run-{uuid.uuid4().hex[:8]}"
         self.agents: dict[str, Agent] = {}
         self._schedule: list[tuple[float, int, Callable[[MissionRun], None]]] = []
+        self.commands = CommandQueue()
+        """Commands waiting for the next step (:meth:`submit`)."""
         self._stop = threading.Event()
         self._stop_reason = "interrupted"
         self.dt = sim_spec.step_s
-        self._tick_period = 1.0 / rt.tick_hz
-        self._status_period = 1.0 / rt.status_hz
-        self._next_tick = 0.0
-        self._next_status = 0.0
         self.collisions = 0
         self._wall0: float | None = None
         self._wall_used = 0.0
@@ -174,7 +196,14 @@ class MissionRun:
         self.errors = ErrorReporter(self.emit)
         """Exceptions raised by services' ``step`` → ``leaf_error`` events (once each)."""
         self.services: dict[str, dict[str, Any]] = self._build_services()
+        self.coordinator_side = CoordinatorRuntime(self.coordinator, self.services, self.errors)
         self._build_agents()
+        self.agent_sides = [
+            AgentRuntime(a, tick_period_s=1.0 / rt.tick_hz, status_period_s=1.0 / rt.status_hz)
+            for a in self.agents.values()
+        ]
+        self.snapshot: RunSnapshot = self._snapshot()
+        """The run as it stands after the last step (immutable; any thread may read it)."""
         vm = self.map
         self.emit(
             "built",
@@ -342,40 +371,149 @@ class MissionRun:
         self._last_t = when
         self.events.emit(when, kind, **data)
 
-    def add_task(self, task: Mapping[str, Any] | TaskInfo) -> TaskInfo:
+    # ---------------------------------------------------------------- commands
+    def submit(self, command: Command) -> None:
+        """Queue a command for the next step (thread-safe; :mod:`btmission.runtime.commands`).
+        Raises :class:`~btmission.runtime.commands.CommandError` at once for a command that
+        names an unknown agent or task, and :class:`~btmission.runtime.coordinator.TaskError`
+        for a task that cannot be added (it is checked, and its id reserved, right here)."""
+        self._check_command(command)
+        if isinstance(command, AddTask):
+            self.coordinator.add_task(command.task, self.now(), command.by)
+        self.commands.put(command)
+
+    def _check_command(self, command: Command, *, tasks: bool = True) -> None:
+        """Refuse a command naming an unknown agent (or, with ``tasks``, an unknown task)."""
+        agent = getattr(command, "agent", None)
+        if agent is not None and agent not in self.agents:
+            raise CommandError(
+                f"{command.name}: unknown agent '{agent}' (agents: {', '.join(self.agents)})"
+            )
+        if tasks and isinstance(command, (CancelTask, SetPriority)):
+            if command.task not in self.coordinator.state.pool:
+                raise CommandError(f"{command.name}: unknown task '{command.task}'")
+        if isinstance(command, SetPriority):
+            p = command.priority
+            if not (isinstance(p, (int, float)) and math.isfinite(p) and p > 0):
+                raise CommandError(f"set_priority: priority must be a number > 0, got {p!r}")
+
+    def add_task(self, task: Mapping[str, Any] | TaskInfo, *, by: str = "api") -> TaskInfo:
         """Add a task while the mission runs (thread-safe): ``{"id": "T8", "type": "inspect",
         "location": [x, y, z]}``, optionally with ``priority`` and ``at``. Raises
-        :class:`~btmission.runtime.coordinator.TaskError` when it cannot be used."""
-        return self.coordinator.add_task(task, self.now())
+        :class:`~btmission.runtime.coordinator.TaskError` when it cannot be used; it enters the
+        pool at the next step."""
+        info = self.coordinator.add_task(task, self.now(), by)
+        data = dict(task) if isinstance(task, Mapping) else {
+            "id": info.id, "type": info.type, **info.fields, "priority": info.priority,
+            "at": info.arrival_s,
+        }  # fmt: skip
+        self.commands.put(AddTask(data, by=by))
+        return info
 
-    def at(self, t: float, fn: Callable[[MissionRun], None]) -> None:
-        """Call ``fn(run)`` at mission time ``t`` (before that step's auction round)."""
-        self._schedule.append((t, len(self._schedule), fn))
-        self._schedule.sort()
+    def cancel_task(self, task: str, reason: str = "cancelled by the operator") -> None:
+        """Take a task out of the pool (state ``cancelled``); its agent stops executing it."""
+        self.submit(CancelTask(task, reason))
+
+    def set_priority(self, task: str, priority: float) -> None:
+        """Change a task's priority (it is announced again with it)."""
+        self.submit(SetPriority(task, priority))
+
+    def recall_agent(self, agent: str) -> None:
+        """The agent gives up its task, stops bidding and runs its default behaviour now."""
+        self.submit(RecallAgent(agent))
+
+    def at(self, t: float, fn: Callable[[MissionRun], None] | Command) -> None:
+        """At mission time ``t`` (before that step's auction round), call ``fn(run)`` — or
+        submit the command ``fn``."""
+        call: Callable[[MissionRun], None]
+        if isinstance(fn, Command):
+            command = fn
+            self._check_command(command, tasks=False)  # its task may be added before then
+
+            def call(run: MissionRun) -> None:
+                try:
+                    run.submit(command)
+                except (CommandError, TaskError) as exc:  # e.g. a task id taken meanwhile
+                    run.emit(
+                        "command", ok=False, error=str(exc), command=command.name,
+                        by=command.by, **command.to_data(),
+                    )  # fmt: skip
+
+        else:
+            call = fn
+        self._schedule.append((t, len(self._schedule), call))
+        self._schedule.sort(key=lambda x: (x[0], x[1]))
 
     def kill_agent(self, agent: str, reason: str = "killed") -> None:
         """The agent's computer stops: no more ticks, bids or setpoints (its vehicle's
         autopilot falls back to HOLD when the setpoints stop)."""
-        a = self.agents[agent]
-        if a.alive:
-            a.kill()
-            self.emit("agent_lost", agent=agent, reason=reason)
+        self.submit(KillAgent(agent, reason))
 
     def signal(self, agent: str, name: str, value: Any = True) -> None:
         """Set a supervisor signal on an agent (its leaves read ``ctx.state[name]``), e.g. the
-        COMPRA library's ``stop``. Thread-safe enough: one dict assignment."""
-        self.agents[agent].ctx.state[name] = value
-        self.emit("signal", agent=agent, name=name, value=value)
+        COMPRA library's ``stop``."""
+        self.submit(Signal(agent, name, value))
 
     def set_link(self, agent: str, up: bool) -> None:
         """Cut or restore an agent's link to the coordinator; the agent keeps executing."""
-        self.bus.set_link(agent, up)
-        self.emit("link", agent=agent, up=up)
+        self.submit(SetLink(agent, up))
 
-    def stop(self, reason: str = "interrupted") -> None:
-        """Ask the run to end after the current step (thread-safe; what Ctrl-C does)."""
+    def stop(self, reason: str = "interrupted", *, by: str = "api") -> None:
+        """Ask the run to end after the current step (thread-safe, and safe in a signal
+        handler: what Ctrl-C does)."""
         self._stop_reason = reason
         self._stop.set()
+        self.commands.put(Stop(reason, by=by))
+
+    def _apply_commands(self) -> None:
+        """Apply every queued command, in order, each logged as a ``command`` event."""
+        for command in self.commands.take():
+            error = ""
+            try:
+                self._apply(command)
+            except (CommandError, TaskError) as exc:
+                error = str(exc)
+            data: dict[str, Any] = {"command": command.name, "by": command.by}
+            data.update(command.to_data())
+            if isinstance(command, AddTask):
+                data["task"] = dict(command.task).get("id")
+            data["ok"] = not error
+            if error:
+                data["error"] = error
+            self.emit("command", **data)
+
+    def _apply(self, command: Command) -> None:
+        now = self.now()
+        coord = self.coordinator
+        if isinstance(command, AddTask):
+            return  # queued with the coordinator when submitted (checked, its id reserved)
+        if isinstance(command, Stop):
+            self._stop_reason = command.reason
+            self._stop.set()
+        elif isinstance(command, CancelTask):
+            coord.cancel_task(command.task, now, command.reason)
+        elif isinstance(command, SetPriority):
+            coord.set_priority(command.task, float(command.priority), now)
+        elif isinstance(command, RecallAgent):
+            a = self.agents[command.agent]
+            if not a.alive:
+                raise CommandError(f"recall_agent: agent {command.agent} is not running")
+            coord.recall(command.agent, now)
+            a.recall(now)
+        elif isinstance(command, KillAgent):
+            a = self.agents[command.agent]
+            if a.alive:
+                a.kill()
+                self.emit("agent_lost", agent=command.agent, reason=command.reason)
+        elif isinstance(command, SetLink):
+            self.bus.set_link(command.agent, command.up)
+            self.emit("link", agent=command.agent, up=command.up)
+        elif isinstance(command, Signal):
+            self.agents[command.agent].ctx.state[command.signal] = command.value
+            self.emit("signal", agent=command.agent, name=command.signal, value=command.value)
+        else:  # pragma: no cover - every command of commands.COMMANDS is handled above
+            raise CommandError(f"unknown command {command!r}")
+        return None
 
     # ---------------------------------------------------------------- running
     def step(self) -> None:
@@ -384,46 +522,61 @@ class MissionRun:
         while self._schedule and self._schedule[0][0] <= now + 1e-9:
             _, _, fn = self._schedule.pop(0)
             fn(self)
-        for library, services in self.services.items():
-            for name, service in services.items():
-                step = getattr(service, "step", None)
-                if step is not None:
-                    try:
-                        step(now)
-                    except Exception as exc:  # a library's code must not end the run
-                        self.errors.report(f"service {library}.{name}", "step", exc)
-        self.coordinator.step(now)
-        if now + 1e-9 >= self._next_tick:
-            for a in self.agents.values():
-                a.tick(now)
-            self._next_tick += self._tick_period
-        for a in self.agents.values():
-            a.control_step(now)
-        if now + 1e-9 >= self._next_status:
-            self._report(now)
-            self._next_status += self._status_period
+        self._apply_commands()
+        self.coordinator_side.step(now)
+        sides = self.agent_sides
+        for side in sides:
+            side.tick(now)
+        for side in sides:
+            side.control(now)
+        for side in sides:
+            if side.report(now):
+                self._pose(side.id)
         for ev in self.sim.step():
             self.collisions += 1
             self.emit("collision", agent=ev.vehicle, other=ev.other, p=list(ev.position))
+        self.snapshot = self._snapshot()
 
-    def _report(self, now: float) -> None:
+    def _pose(self, aid: str) -> None:
+        """A ``pose`` event: the agent's telemetry and the simulator's ground truth."""
+        tel = self.sim.backends[aid].telemetry()
+        v = self.sim.vehicle(aid)
+        self.emit(
+            "pose",
+            agent=aid,
+            p=tel.position,
+            v=tel.velocity,
+            yaw=tel.yaw,
+            mode=tel.mode.value,
+            armed=tel.armed,
+            flying=not tel.landed,
+            odometer_m=v.odometer_m,
+            clearance_m=self.sim.take_clearance(aid),
+        )
+
+    def _snapshot(self, ended: str | None = None) -> RunSnapshot:
+        agents = []
         for aid, a in self.agents.items():
-            if a.alive:
-                self.bus.send_status(a.status(now))
-            tel = self.sim.backends[aid].telemetry()
-            v = self.sim.vehicle(aid)
-            self.emit(
-                "pose",
-                agent=aid,
-                p=tel.position,
-                v=tel.velocity,
-                yaw=tel.yaw,
-                mode=tel.mode.value,
-                armed=tel.armed,
-                flying=not tel.landed,
-                odometer_m=v.odometer_m,
-                clearance_m=self.sim.take_clearance(aid),
+            tel = a.ctx.telemetry()
+            p = tel.position
+            tree = getattr(a, "tree_status", None)
+            agents.append(
+                AgentSnapshot(
+                    aid,
+                    (float(p[0]), float(p[1]), float(p[2])),
+                    float(tel.yaw),
+                    tel.mode.value,
+                    bool(tel.armed),
+                    a.alive,
+                    self.bus.link_up(aid),
+                    a.task.id if a.task is not None else None,
+                    a.action,
+                    MappingProxyType(dict(tree)) if tree else MappingProxyType({}),
+                )
             )
+        return RunSnapshot(
+            self.now(), self.sim.steps, tuple(agents), self.coordinator.state.pool, ended
+        )
 
     def finished(self) -> str | None:
         """Why the run should end now (None: go on)."""
@@ -435,8 +588,8 @@ class MissionRun:
             return None
         if not all(a.at_rest for a in live):
             return None
-        if all(t.state is TaskState.DONE for t in pool):
-            return "completed"
+        if all(t.state in (TaskState.DONE, TaskState.CANCELLED) for t in pool):
+            return "completed"  # (what the operator cancelled is not left open)
         return "finished with open tasks"
 
     def run(
@@ -457,6 +610,7 @@ class MissionRun:
         self._stop.clear()
         try:
             while True:
+                self._apply_commands()  # a stop asked between steps is logged
                 if self._stop.is_set():
                     reason = self._stop_reason
                     break
@@ -490,9 +644,18 @@ class MissionRun:
             self._wall_used,
             self.sim.steps,
             [t.id for t in pool if t.state is TaskState.DONE],
-            {t.id: f"{t.state.value}: {t.note}" for t in pool if t.state is not TaskState.DONE},
+            {
+                t.id: f"{t.state.value}: {t.note}"
+                for t in pool
+                if t.state not in (TaskState.DONE, TaskState.CANCELLED)
+            },
             self.collisions,
-            [t.id for t in everything if t.info.arrival_s > now + 1e-9],
+            [
+                t.id
+                for t in everything
+                if t.info.arrival_s > now + 1e-9 and t.state is not TaskState.CANCELLED
+            ],
+            [t.id for t in everything if t.state is TaskState.CANCELLED],
         )
 
     @staticmethod
@@ -512,17 +675,35 @@ class MissionRun:
             },
         )
 
+    def close(self) -> None:
+        """Release what the run holds: every run-wide service that has a ``close()`` (its
+        errors are logged as ``leaf_error`` events, they do not stop the others)."""
+        seen: set[int] = set()
+        for library, services in self.services.items():
+            for name, service in services.items():
+                close = getattr(service, "close", None)
+                if close is None or id(service) in seen:
+                    continue
+                seen.add(id(service))
+                try:
+                    close()
+                except Exception as exc:  # a library's code
+                    self.errors.report(f"service {library}.{name}", "close", exc)
+
     def end(self, result: RunResult) -> None:
         """Publish the ``end`` event (once): the run is over."""
         if self._ended is not None:
             return
         self._ended = result
-        self.emit(
-            "end",
-            reason=result.reason,
-            wall_s=result.wall_s,
-            steps=result.steps,
-            done=result.done,
-            open=result.open,
-            pending=result.pending,
-        )
+        self.snapshot = self._snapshot(result.reason)
+        data: dict[str, Any] = {
+            "reason": result.reason,
+            "wall_s": result.wall_s,
+            "steps": result.steps,
+            "done": result.done,
+            "open": result.open,
+            "pending": result.pending,
+        }
+        if result.cancelled:
+            data["cancelled"] = result.cancelled
+        self.emit("end", **data)

@@ -1,0 +1,148 @@
+"""Commands: the one way anything changes a running mission from outside its loop.
+
+An operator (the CLI, a test, the web console of a later issue, a scripted
+:meth:`~btmission.runtime.runner.MissionRun.at` callback) never reaches into the coordinator or
+an agent while the loop runs. It *submits* a :class:`Command` to the run's
+:class:`CommandQueue` — from any thread — and the loop applies every queued command between two
+steps, in the order they were submitted. Each applied command is logged as a ``command`` event
+(``by`` whom, ``command``, its arguments, ``ok`` and, if it was refused, ``error``) so the report
+and the log show operator actions next to what they caused.
+
+=====================  =====================================================================
+:class:`AddTask`       a new task enters the pool (checked when submitted: unknown type,
+                       missing fields, duplicate id are refused at once)
+:class:`CancelTask`    a task leaves the pool (state ``cancelled``); its agent stops it
+:class:`SetPriority`   a task's priority changes (it is announced again)
+:class:`RecallAgent`   an agent gives up its task, stops bidding and runs its default
+                       behaviour now (e.g. return home and land)
+:class:`KillAgent`     an agent's computer stops: no ticks, bids or setpoints
+:class:`SetLink`       an agent's link to the coordinator is cut or restored
+:class:`Signal`        a supervisor signal its leaves read (``ctx.state[name]``)
+:class:`Stop`          the run ends after the current step
+=====================  =====================================================================
+
+Commands are plain frozen dataclasses (the wire form of a later operator console is their
+:meth:`Command.to_data`); what each one *does* lives with the run that applies it.
+"""
+
+from __future__ import annotations
+
+import queue
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+from typing import Any, ClassVar
+
+
+class CommandError(ValueError):
+    """A command that cannot be applied (the message says why)."""
+
+
+@dataclass(frozen=True)
+class Command:
+    """Something an operator asks of a running mission (module docstring)."""
+
+    name: ClassVar[str] = ""
+    by: str = field(default="api", kw_only=True)
+    """Who asked (``api``, ``mission``, ``console:<user>`` ...): logged with the command."""
+
+    def to_data(self) -> dict[str, Any]:
+        """The command's fields as plain data (for the ``command`` event)."""
+        data = asdict(self)
+        data.pop("by", None)
+        return data
+
+
+@dataclass(frozen=True)
+class AddTask(Command):
+    name: ClassVar[str] = "add_task"
+    task: Mapping[str, Any]
+    """``{"id": "T8", "type": "inspect", "location": [x, y, z]}``, optionally ``priority``,
+    ``at``."""
+
+
+@dataclass(frozen=True)
+class CancelTask(Command):
+    name: ClassVar[str] = "cancel_task"
+    task: str
+    reason: str = "cancelled by the operator"
+
+
+@dataclass(frozen=True)
+class SetPriority(Command):
+    name: ClassVar[str] = "set_priority"
+    task: str
+    priority: float
+
+
+@dataclass(frozen=True)
+class RecallAgent(Command):
+    name: ClassVar[str] = "recall_agent"
+    agent: str
+
+
+@dataclass(frozen=True)
+class KillAgent(Command):
+    name: ClassVar[str] = "kill_agent"
+    agent: str
+    reason: str = "killed"
+
+
+@dataclass(frozen=True)
+class SetLink(Command):
+    name: ClassVar[str] = "set_link"
+    agent: str
+    up: bool
+
+
+@dataclass(frozen=True)
+class Signal(Command):
+    name: ClassVar[str] = "signal"
+    agent: str
+    signal: str
+    value: Any = True
+
+
+@dataclass(frozen=True)
+class Stop(Command):
+    name: ClassVar[str] = "stop"
+    reason: str = "interrupted"
+
+
+COMMANDS: dict[str, type[Command]] = {
+    c.name: c
+    for c in (AddTask, CancelTask, SetPriority, RecallAgent, KillAgent, SetLink, Signal, Stop)
+}
+"""Every command by name (what an operator console sends)."""
+
+
+def command_from_data(name: str, data: Mapping[str, Any], by: str = "api") -> Command:
+    """A command from its name and plain-data arguments; :class:`CommandError` if it is not one."""
+    cls = COMMANDS.get(name)
+    if cls is None:
+        raise CommandError(f"unknown command '{name}' (commands: {', '.join(COMMANDS)})")
+    try:
+        return cls(**dict(data), by=by)
+    except TypeError as exc:
+        raise CommandError(f"command '{name}': {exc}") from None
+
+
+class CommandQueue:
+    """Commands waiting for the next step (thread-safe; first in, first applied)."""
+
+    def __init__(self) -> None:
+        self._q: queue.SimpleQueue[Command] = queue.SimpleQueue()
+
+    def put(self, command: Command) -> None:
+        self._q.put(command)
+
+    def take(self) -> list[Command]:
+        """Everything queued so far, in order (empties the queue)."""
+        out: list[Command] = []
+        while True:
+            try:
+                out.append(self._q.get_nowait())
+            except queue.Empty:
+                return out
+
+    def empty(self) -> bool:
+        return self._q.empty()

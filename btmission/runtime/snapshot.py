@@ -1,0 +1,102 @@
+"""Immutable snapshots of a running mission, for readers on other threads.
+
+The run loop owns every mutable object (agents, coordinator, vehicles); a viewer, an operator
+console or a progress display on another thread must not read them while a step changes them.
+Instead, after each step the loop publishes a :class:`RunSnapshot` — frozen dataclasses and
+tuples, built from plain values — by replacing one reference (atomic in CPython). A reader takes
+:attr:`~btmission.runtime.runner.MissionRun.snapshot` and may keep it as long as it likes: it
+never changes.
+
+The task pool is immutable already (:class:`~btmission.allocation.tasks.TaskPool`), so a
+snapshot's tasks are read from the pool it was taken with, only when asked for
+(:attr:`RunSnapshot.tasks`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from functools import cached_property
+from types import MappingProxyType
+
+from btmission.allocation.tasks import TaskPool
+from btmission.backends.base import Vec3
+
+
+@dataclass(frozen=True)
+class TaskSnapshot:
+    """One task as it stands: state, holder, priority, and why (the pool's note)."""
+
+    id: str
+    type: str
+    state: str
+    agent: str | None
+    priority: float
+    arrival_s: float
+    note: str
+
+
+@dataclass(frozen=True)
+class AgentSnapshot:
+    """One agent as it stands."""
+
+    id: str
+    position: Vec3
+    yaw: float
+    mode: str
+    armed: bool
+    alive: bool
+    link_up: bool
+    task: str | None
+    action: str
+    """The action its tree started last (``stage`` event)."""
+    tree: Mapping[str, str] = field(default_factory=lambda: MappingProxyType({}))
+    """Node → status (``SUCCESS``, ``FAILURE``, ``RUNNING``, ``INVALID``) after its last tick."""
+
+
+@dataclass(frozen=True)
+class RunSnapshot:
+    """The whole run after one step (module docstring)."""
+
+    time_s: float
+    steps: int
+    agents: tuple[AgentSnapshot, ...]
+    pool: TaskPool = field(repr=False, compare=False)
+    ended: str | None = None
+    """Why the run ended (None while it runs)."""
+
+    @cached_property
+    def tasks(self) -> tuple[TaskSnapshot, ...]:
+        """The tasks that have arrived, in the pool's order."""
+        return tuple(
+            TaskSnapshot(
+                t.id,
+                t.info.type,
+                t.state.value,
+                t.agent,
+                t.info.priority,
+                t.info.arrival_s,
+                t.note,
+            )
+            for t in self.pool
+            if t.info.arrival_s <= self.time_s + 1e-9
+        )
+
+    def agent(self, agent_id: str) -> AgentSnapshot:
+        for a in self.agents:
+            if a.id == agent_id:
+                return a
+        raise KeyError(agent_id)
+
+    def task(self, task_id: str) -> TaskSnapshot:
+        for t in self.tasks:
+            if t.id == task_id:
+                return t
+        raise KeyError(task_id)
+
+    def counts(self) -> dict[str, int]:
+        """Arrived tasks per state (what a progress line shows)."""
+        out: dict[str, int] = {}
+        for t in self.tasks:
+            out[t.state] = out.get(t.state, 0) + 1
+        return out

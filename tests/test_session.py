@@ -1,0 +1,317 @@
+"""The run session, the command queue and the run's snapshots (issue #13 §2)."""
+
+from __future__ import annotations
+
+import dataclasses
+import textwrap
+import threading
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from btmission.diagnostics import SpecError
+from btmission.runtime.commands import (
+    COMMANDS,
+    AddTask,
+    CancelTask,
+    CommandError,
+    KillAgent,
+    RecallAgent,
+    SetLink,
+    SetPriority,
+    Stop,
+    command_from_data,
+)
+from btmission.runtime.coordinator import TaskError
+from btmission.runtime.events import Event, Recorder, read_events
+from btmission.runtime.loops import AgentRuntime
+from btmission.runtime.runner import MissionRun
+from btmission.runtime.session import RunSession
+from btmission.spec.mission import load_mission_text
+from tests.test_runtime import ROBOTS as ROBOTS_OF_TEST_RUNTIME
+
+ROBOTS = ROBOTS_OF_TEST_RUNTIME.replace(  # two ground robots, one task more, arriving at 30 s
+    "  - {id: A, type: inspect, location: [12, 2, 0]}\n",
+    "  - {id: A, type: inspect, location: [12, 2, 0]}\n"
+    "  - {id: B, type: inspect, location: [12, 6, 0], at: 30}\n",
+).replace("runtime: {controller: track}", "runtime: {controller: track, max_duration_s: 120}")
+
+
+def robots(tmp_path: Path) -> Path:
+    path = tmp_path / "robots.yaml"
+    path.write_text(textwrap.dedent(ROBOTS).lstrip("\n"))
+    return path
+
+
+def commands_in(events: list[Event]) -> list[dict[str, Any]]:
+    return [dict(e.data, t=e.t) for e in events if e.kind == "command"]
+
+
+def last_state(events: list[Event], task: str) -> tuple[str | None, str | None]:
+    evs = [e for e in events if e.kind == "task" and e.get("task") == task]
+    return (evs[-1].get("state"), evs[-1].get("agent")) if evs else (None, None)
+
+
+# ------------------------------------------------------------------------ the session
+def test_a_session_runs_logs_reports_and_closes(tmp_path: Path) -> None:
+    logs = tmp_path / "logs"
+    with RunSession(robots(tmp_path), log_dir=logs) as s:
+        run = s.start()
+        assert run is not None and s.log_path is not None and s.log_path.parent == logs
+        result = s.run()
+        rep = s.report()
+    assert result is not None and result.reason == "completed" and s.exit_code == 0
+    assert rep.summary.tasks_done == 2 and rep.summary.end == "completed"
+    events = read_events(s.log_path).events
+    assert events[0].kind == "header" and events[-1].kind == "end"
+    assert s.log is not None and s.log._fh is None  # closed by the with block
+
+
+def test_a_mission_the_run_refuses_leaves_no_log(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(textwrap.dedent(ROBOTS).replace("library: ground", "library: nowhere"))
+    logs = tmp_path / "logs"
+    with RunSession(bad, log_dir=logs) as s, pytest.raises(SpecError) as err:
+        s.start()
+    assert "nowhere" in str(err.value)
+    assert not logs.exists() or list(logs.iterdir()) == []
+
+
+def test_the_session_closes_the_runs_services(tmp_path: Path) -> None:
+    closed: list[str] = []
+
+    class Service:
+        def close(self) -> None:
+            closed.append("closed")
+
+    with RunSession(robots(tmp_path), log_dir=None) as s:
+        run = s.start()
+        assert run is not None
+        run.services["ground"] = {"svc": Service(), "again": run.services.get("x", Service())}
+        s.run(until=1.0)
+    assert closed == ["closed", "closed"]  # two instances, each closed once
+
+
+# ------------------------------------------------------------------------ commands
+def test_commands_round_trip_as_plain_data() -> None:
+    for name, cls in COMMANDS.items():
+        fields = {f.name: f.type for f in dataclasses.fields(cls) if f.name != "by"}
+        sample: dict[str, Any] = {}
+        for f in fields:
+            sample[f] = {"task": "T1", "agent": "R1", "priority": 2.0, "up": False}.get(f, "x")
+        if name == "add_task":
+            sample["task"] = {"id": "T9", "type": "inspect", "location": [1, 2, 0]}
+        cmd = command_from_data(name, sample, by="console:ana")
+        assert cmd.name == name and cmd.by == "console:ana" and cmd.to_data() == sample
+    with pytest.raises(CommandError, match="unknown command 'fly'"):
+        command_from_data("fly", {})
+    with pytest.raises(CommandError, match="cancel_task"):
+        command_from_data("cancel_task", {"tsk": "T1"})
+
+
+def test_bad_commands_are_refused_when_submitted(tmp_path: Path) -> None:
+    m = load_mission_text(textwrap.dedent(ROBOTS), str(tmp_path / "m.yaml"))
+    run = MissionRun(m)
+    with pytest.raises(CommandError, match=r"kill_agent: unknown agent 'R9' \(agents: G1, G2\)"):
+        run.submit(KillAgent("R9"))
+    with pytest.raises(CommandError, match="cancel_task: unknown task 'Z'"):
+        run.submit(CancelTask("Z"))
+    with pytest.raises(CommandError, match="priority must be a number > 0, got -1"):
+        run.submit(SetPriority("A", -1))
+    with pytest.raises(TaskError, match="duplicate task id 'A'"):
+        run.submit(AddTask({"id": "A", "type": "inspect", "location": [2, 2, 0]}))
+    with pytest.raises(CommandError, match="unknown agent"):
+        run.at(3.0, RecallAgent("nobody"))
+    assert run.commands.empty()
+
+
+def test_commands_are_applied_between_steps_and_logged(tmp_path: Path) -> None:
+    m = load_mission_text(textwrap.dedent(ROBOTS), str(tmp_path / "m.yaml"))
+    rec = Recorder()
+    run = MissionRun(m, observers=[rec])
+    run.at(2.0, CancelTask("B", by="console:ana"))  # before it arrives
+    run.at(2.0, AddTask({"id": "C", "type": "inspect", "location": [6, 4, 0]}, by="console:ana"))
+    run.at(3.0, SetPriority("C", 5.0, by="console:ana"))
+    run.at(3.0, CancelTask("B"))  # already cancelled: refused when applied, and logged
+    result = run.run()
+    run.end(result)
+    cmds = commands_in(rec.events)
+    assert [(c["command"], c["ok"], c["t"]) for c in cmds] == [
+        ("cancel_task", True, 2.0),
+        ("add_task", True, 2.0),
+        ("set_priority", True, 3.0),
+        ("cancel_task", False, 3.0),
+    ]
+    assert cmds[0]["by"] == "console:ana" and cmds[1]["task"] == "C"
+    assert cmds[3]["error"] == "cannot cancel task 'B': it is already cancelled"
+    assert last_state(rec.events, "B")[0] == "cancelled"
+    assert last_state(rec.events, "C")[0] == "done"
+    assert result.reason == "completed" and result.cancelled == ["B"] and "B" not in result.open
+    end = rec.of("end")[0]
+    assert end.get("cancelled") == ["B"]
+    pool = run.coordinator.state.pool
+    assert pool["C"].info.priority == 5.0
+
+
+def test_cancelling_a_held_task_stops_its_agent(tmp_path: Path) -> None:
+    m = load_mission_text(textwrap.dedent(ROBOTS), str(tmp_path / "m.yaml"))
+    rec = Recorder()
+    run = MissionRun(m, observers=[rec])
+    run.run(until=3.0)
+    holder = run.coordinator.state.pool["A"].agent
+    assert holder in ("G1", "G2") and run.agents[holder].task is not None
+    run.cancel_task("A", "not needed any more")
+    run.run(until=4.0)
+    assert run.agents[holder].task is None
+    state, agent = last_state(rec.events, "A")
+    assert state == "cancelled" and agent is None
+    switched = [e for e in rec.of("agent_task") if e.get("agent") == holder]
+    assert switched[-1].get("task") is None and 3.0 <= switched[-1].t <= 3.2
+
+
+def test_recall_sends_an_agent_home_at_once(tmp_path: Path) -> None:
+    m = load_mission_text(textwrap.dedent(ROBOTS), str(tmp_path / "m.yaml"))
+    rec = Recorder()
+    run = MissionRun(m, observers=[rec])
+    run.run(until=4.0)
+    holder = run.coordinator.state.pool["A"].agent
+    assert holder is not None
+    far = run.snapshot.agent(holder).position
+    run.recall_agent(holder)
+    run.run(until=40.0)
+    # its task went back to the pool and to the other robot; it took nothing more
+    other = {"G1": "G2", "G2": "G1"}[holder]
+    state, agent = last_state(rec.events, "A")
+    assert (state, agent) == ("done", other)
+    assert not [
+        e
+        for e in rec.of("task")
+        if e.t > 4.0 and e.get("agent") == holder and e.get("state") == "assigned"
+    ]
+    # and went home (its start) straight away: no idle timeout
+    start = m.agent(holder).start
+    home = run.snapshot.agent(holder).position
+    assert abs(home[0] - start[0]) < 0.5 and abs(home[1] - start[1]) < 0.5
+    assert abs(far[0] - start[0]) > 1.0
+    cmd = commands_in(rec.events)[0]
+    assert cmd["command"] == "recall_agent" and cmd["agent"] == holder and cmd["ok"]
+
+
+def test_link_and_kill_commands_keep_their_events(tmp_path: Path) -> None:
+    m = load_mission_text(textwrap.dedent(ROBOTS), str(tmp_path / "m.yaml"))
+    rec = Recorder()
+    run = MissionRun(m, observers=[rec])
+    run.at(1.0, SetLink("G2", False))
+    run.at(2.0, SetLink("G2", True))
+    run.at(3.0, KillAgent("G2", "battery"))
+    run.run(until=5.0)
+    assert [(e.t, e.get("up")) for e in rec.of("link")] == [(1.0, False), (2.0, True)]
+    assert [(e.t, e.get("reason")) for e in rec.of("agent_lost")] == [(3.0, "battery")]
+    assert not run.agents["G2"].alive and not run.snapshot.agent("G2").alive
+
+
+# ------------------------------------------------------------------------ snapshots
+def test_snapshots_are_immutable_and_follow_the_run(tmp_path: Path) -> None:
+    m = load_mission_text(textwrap.dedent(ROBOTS), str(tmp_path / "m.yaml"))
+    run = MissionRun(m)
+    first = run.snapshot
+    assert first.time_s == 0.0 and first.steps == 0 and first.ended is None
+    run.run(until=5.0)
+    snap = run.snapshot
+    assert snap is not first and snap.time_s == pytest.approx(run.now())
+    assert first.time_s == 0.0  # the old one did not change
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        snap.time_s = 1.0  # type: ignore[misc]
+    a = snap.task("A")
+    held = run.coordinator.state.pool["A"]
+    assert (a.state, a.agent) == (held.state.value, held.agent)
+    with pytest.raises(KeyError):
+        snap.task("B")  # not arrived yet
+    g1 = snap.agent("G1")
+    tel = run.agents["G1"].ctx.telemetry()
+    assert g1.position == pytest.approx(tuple(tel.position)) and g1.link_up and g1.alive
+    assert g1.mode == tel.mode.value
+    result = run.run()
+    run.end(result)
+    assert run.snapshot.ended == "completed" and run.snapshot.counts() == {"done": 2}
+
+
+def test_a_reader_thread_steers_the_run_through_snapshots_and_commands(tmp_path: Path) -> None:
+    """Another thread reads snapshots while the loop runs and stops it with a command."""
+    seen: list[float] = []
+    errors: list[BaseException] = []
+    with RunSession(robots(tmp_path), log_dir=tmp_path / "logs") as s:
+        run = s.start()
+        assert run is not None
+
+        def console() -> None:
+            try:
+                while True:
+                    snap = s.snapshot
+                    assert snap is not None
+                    seen.append(snap.time_s)
+                    if snap.time_s >= 8.0:
+                        s.submit(Stop("stopped by the operator", by="console:ana"))
+                        return
+                    if snap.ended:
+                        return
+                    threading.Event().wait(0.001)
+            except BaseException as exc:
+                errors.append(exc)
+
+        reader = threading.Thread(target=console)
+        reader.start()
+        result = s.run()
+        reader.join(timeout=30)
+    assert not errors and not reader.is_alive()
+    assert seen == sorted(seen) and len(seen) > 1
+    assert result is not None and result.reason == "stopped by the operator"
+    assert 8.0 <= result.time_s < 9.0
+    events = read_events(s.log_path).events  # type: ignore[arg-type]
+    stop = commands_in(events)[-1]
+    assert stop["command"] == "stop" and stop["by"] == "console:ana"
+    assert events[-1].kind == "end" and events[-1].get("reason") == "stopped by the operator"
+
+
+# ------------------------------------------------------------------------ the two sides
+def test_an_agent_side_steps_like_the_phases(tmp_path: Path) -> None:
+    """AgentRuntime.step (what a process per agent runs) gives the same run, for one agent, as
+    the in-process phases."""
+    one = textwrap.dedent(ROBOTS).replace("  - {id: G2, library: ground, start: [1, 7, 0]}\n", "")
+
+    def run_with(stepper: str) -> list[tuple[float, str, str]]:
+        m = load_mission_text(one, str(tmp_path / "m.yaml"))
+        rec = Recorder()
+        run = MissionRun(m, observers=[rec])
+        if stepper == "step":
+            side: AgentRuntime = run.agent_sides[0]
+            real = MissionRun.step
+
+            def step(self: MissionRun) -> None:
+                # run everything but the agents' phases, and the agent's side in one call
+                phases = (side.tick, side.control, side.report)
+                side.tick = side.control = lambda now: None  # type: ignore[method-assign]
+                side.report = lambda now: False  # type: ignore[method-assign]
+                try:
+                    real(self)
+                finally:
+                    side.tick, side.control, side.report = phases  # type: ignore[method-assign]
+
+            # the agent's side runs before the provider steps, like the phases
+            sim_step = run.sim.step
+
+            def sim_then(*a: Any) -> Any:
+                side.step(run.now())
+                return sim_step(*a)
+
+            run.sim.step = sim_then  # type: ignore[method-assign]
+            run.step = step.__get__(run)  # type: ignore[method-assign]
+        run.run(until=20.0)
+        return [
+            (e.t, e.kind, str(e.get("task")))
+            for e in rec.events
+            if e.kind in ("task", "agent_task")
+        ]
+
+    assert run_with("phases") == run_with("step")
