@@ -315,3 +315,20 @@ def test_an_agent_side_steps_like_the_phases(tmp_path: Path) -> None:
         ]
 
     assert run_with("phases") == run_with("step")
+
+
+def test_leaves_see_a_narrow_view_of_their_agent(tmp_path: Path) -> None:
+    """ctx.agent is an AgentView: the task and the reporting hooks, not the runtime's Agent."""
+    from btmission.runtime.leaves import AgentView
+
+    m = load_mission_text(textwrap.dedent(ROBOTS), str(tmp_path / "m.yaml"))
+    run = MissionRun(m)
+    run.run(until=2.0)
+    agent = run.agents["G1"]
+    view = agent.ctx.agent
+    assert isinstance(view, AgentView)
+    assert view.id == "G1" and view.mission is m and view.task is agent.task
+    for private in ("tick", "kill", "recall", "bus", "root", "bidder", "control_step"):
+        assert not hasattr(view, private), private
+    with pytest.raises(AttributeError):
+        view.task = None  # type: ignore[misc]

@@ -43,6 +43,7 @@ from btmission.runtime.leaves import (
     BUILTIN_ACTIONS,
     BUILTIN_CONDITIONS,
     AgentContext,
+    AgentView,
     Blackboard,
     ConditionLeaf,
     ErrorReporter,
@@ -104,7 +105,7 @@ class Agent:
             clock=clock,
             settings=settings,
             start=spec.start,
-            agent=self,
+            agent=AgentView(self),
             events=self._leaf_event,
             services=services if services is not None else {},
         )

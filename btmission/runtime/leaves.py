@@ -36,6 +36,7 @@ from btmission.synthesis.tree import Node
 if TYPE_CHECKING:
     from btmission.backends.base import Backend, Sensors, Telemetry
     from btmission.dispatch.topomap import TopoMap
+    from btmission.allocation.tasks import TaskInfo
     from btmission.runtime.agent import Agent
     from btmission.runtime.navigation import Navigator
     from btmission.runtime.paths import PathCosts
@@ -106,6 +107,56 @@ class RunContext:
         return self.settings.get(name, default)
 
 
+class AgentView:
+    """The narrow, read-mostly view of an agent that leaves and plugins get (``ctx.agent``).
+
+    Leaves must not tick, kill or re-wire their agent: the runtime does that. They may read
+    which task it executes and since when it is idle, and report why an action failed or which
+    library variable nobody set. The agent itself stays private to the runtime, so its
+    internals can change without breaking libraries."""
+
+    __slots__ = ("_agent",)
+
+    def __init__(self, agent: Agent) -> None:
+        self._agent = agent
+
+    @property
+    def id(self) -> str:
+        return self._agent.id
+
+    @property
+    def mission(self) -> Mission:
+        return self._agent.mission
+
+    @property
+    def task(self) -> TaskInfo | None:
+        """The task the agent executes now (None: no task; its default behaviour may run)."""
+        return self._agent.task
+
+    @property
+    def committed(self) -> bool:
+        """It has passed its task's commit point (k_bt = 0)."""
+        return self._agent.committed
+
+    @property
+    def idle_since(self) -> float:
+        """Mission time its last task ended (−inf once recalled: idle for ever)."""
+        return self._agent.idle_since
+
+    @property
+    def errors(self) -> ErrorReporter:
+        """Where the leaves' exceptions are reported (``leaf_error`` events)."""
+        return self._agent.errors
+
+    def note_failure(self, action: str, reason: str) -> None:
+        """The reason reported if the task fails (a failing action calls it)."""
+        self._agent.note_failure(action, reason)
+
+    def unset_variables(self, leaf: str, names: list[str]) -> None:
+        """Warn once that ``names`` are on nobody's blackboard (``warning`` events)."""
+        self._agent.unset_variables(leaf, names)
+
+
 @dataclass
 class AgentContext:
     """Everything a leaf may use, passed explicitly at setup (no process-wide singletons)."""
@@ -119,7 +170,8 @@ class AgentContext:
     clock: Callable[[], float]
     settings: Mapping[str, Any]
     start: tuple[float, float, float]
-    agent: Agent | None = None
+    agent: AgentView | None = None
+    """What a leaf may know of its agent (:class:`AgentView`), None outside a run."""
     events: Callable[..., None] = field(default=lambda kind, **data: None)
     """``events(kind, **data)`` publishes an event for observers (log, report, viewer)."""
     state: dict[str, Any] = field(default_factory=dict)
