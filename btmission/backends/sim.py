@@ -55,16 +55,14 @@ from btmission.backends.base import (
     ACCEPTED,
     Ack,
     CameraFrame,
-    FloatArray,
     LidarScan,
     Mode,
     Telemetry,
-    Vec3,
     VehicleKind,
 )
-from btmission.control.compra import CameraIntrinsics, Detection
 from btmission.control.mav_model import MavParams, mav_dynamics, rk4_step, world_to_yaw_frame
 from btmission.localization.scan import OS1_32, LidarSensor, pose_matrix, simulate_scan
+from btmission.types import CameraIntrinsics, Detection, FloatArray, Vec3
 from btmission.world.voxel import OCCUPIED, VoxelMap
 
 G = 9.81
