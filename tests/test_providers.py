@@ -109,9 +109,17 @@ def replay_installed(monkeypatch: pytest.MonkeyPatch) -> None:
 
 # ------------------------------------------------------------------------------ the registry
 def test_the_sim_provider_is_an_installed_entry_point() -> None:
-    eps = installed_providers()
-    assert "sim" in eps
-    assert eps["sim"].value == "btmission.backends.sim:sim_provider"
+    [ep] = {ep.value for ep in metadata.entry_points(group=ENTRY_POINT_GROUP) if ep.name == "sim"}
+    assert ep == "btmission.backends.sim:sim_provider"
+    assert installed_providers()["sim"].value == ep
+    assert provider_factory("sim") is sim_provider
+
+
+def test_sim_is_found_by_an_install_without_the_entry_point(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(metadata, "entry_points", lambda group: [])
+    assert list(installed_providers()) == ["sim"]
     assert provider_factory("sim") is sim_provider
 
 
