@@ -2,7 +2,8 @@
 
 ``btmission validate`` and :class:`~btmission.runtime.runner.MissionRun` both call
 :func:`run_problems`, so that a mission ``validate`` accepts is one ``run`` can start: every
-library has its implementations, and every ``runtime.settings`` entry is a setting someone reads,
+agent's ``backend:`` names an installed vehicle provider, the same for the whole fleet
+(:func:`backend_problems`), every library has its implementations, and every ``runtime.settings`` entry is a setting someone reads,
 of the type its default has, in its range; and what each library's own ``check_mission``
 finds (:func:`library_problems`). Problems are located (file:line:col) and unknown setting names
 get a did-you-mean.
