@@ -344,7 +344,8 @@ class TestBackend:
         path = CORPUS / "backend_mavlink.yaml"
         want = (
             f"{path}:8:58: agents[0].backend: backend 'mavlink://udp:127.0.0.1:14540': "
-            "the MAVLink backend is not supported yet; use backend: sim"
+            "no vehicle provider for scheme 'mavlink' is installed (issue #14 adds it); "
+            "installed: 'sim'"
         )
         refused_by_validate_and_run(runner, path, tmp_path, want)
 
@@ -353,10 +354,27 @@ class TestBackend:
         result = invoke(runner, "mission", "tree", str(path), "--agent", "G1")
         assert result.exit_code == 0 and "Fallback: mission(G1)" in result.output, result.output
 
-    def test_the_url_grammar_is_still_checked(self, runner: CliRunner) -> None:
-        result = invoke(runner, "validate", str(CORPUS / "backend_unknown.yaml"))
-        assert result.exit_code == 2
-        assert "agents[0].backend: expected 'sim' or a MAVLink URL" in result.output
+    def test_an_unknown_scheme_is_refused_by_validate_and_run(
+        self, runner: CliRunner, tmp_path: Path
+    ) -> None:
+        path = CORPUS / "backend_unknown.yaml"
+        want = (
+            f"{path}:8:58: agents[0].backend: backend 'gazebo': no vehicle provider for scheme "
+            "'gazebo' is installed; installed: 'sim' (entry-point group 'btmission.providers')"
+        )
+        refused_by_validate_and_run(runner, path, tmp_path, want)
+
+    def test_the_url_grammar_is_still_checked(self, runner: CliRunner, tmp_path: Path) -> None:
+        text = (CORPUS / "backend_unknown.yaml").read_text()
+        for bad, want in (
+            ("Gazebo sim", "expected 'sim' or a vehicle provider's URL <scheme>://<address>"),
+            ("mavlink://127.0.0.1:14540", "expected 'sim' or a MAVLink URL"),
+        ):
+            path = tmp_path / "m.yaml"
+            path.write_text(text.replace("backend: gazebo", f"backend: '{bad}'"))
+            result = invoke(runner, "validate", str(path))
+            assert result.exit_code == 2
+            assert f"{path}:8:58: agents[0].backend: {want}" in result.output, result.output
 
 
 # ------------------------------------------------------------------------------ docs agree
@@ -382,7 +400,7 @@ class TestDocsAgree:
 
     def test_mavlink_is_documented_as_refused(self) -> None:
         doc = (ROOT / "docs" / "mission-format.md").read_text()
-        assert "the MAVLink backend is not supported yet; use backend: sim" in doc
+        assert "no vehicle provider for scheme 'mavlink' is installed" in doc
         assert "Only the syntax is checked today" not in doc
 
 

@@ -296,11 +296,11 @@ def test_mine_haulage_runs_every_haul_on_schedule(tmp_path: Path) -> None:
     errors: list[float] = []
     while run.finished() is None and run.now() < 7200:
         run.step()
-        if run.sim.steps % 5:
+        if run.steps % 5:
             continue  # compare once a second of mission time
         for a in run.agents:
             ref, _ = fleet.reference(fleet.state(a, run.now()))
-            pos = run.sim.backends[a].telemetry().position
+            pos = run.vehicles[a].backend.telemetry().position
             errors.append(float(np.hypot(*(pos[:2] - ref[:2]))))
     result = run.result(run.finished() or "time limit")
     assert result.reason == "completed" and len(result.done) == 6 and result.collisions == 0

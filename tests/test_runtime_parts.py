@@ -143,7 +143,7 @@ def test_compra_explores_localises_returns_and_lands(tmp_path: Path) -> None:
     far = max(float(np.linalg.norm(np.array(p) - start)) for p in poses)
     assert far > 6.0  # it explored...
     assert float(np.linalg.norm(np.array(poses[-1][:2]) - start[:2])) < 1.5  # ...and came back
-    tel = run.sim.backends["M1"].telemetry()
+    tel = run.vehicles["M1"].backend.telemetry()
     assert tel.landed and not tel.armed
     objects = rec.of("objects")[0].get("objects")
     assert [o["label"] for o in objects] == ["survivor"]
@@ -155,8 +155,8 @@ def test_compra_stop_lands_and_holds_until_cleared(tmp_path: Path) -> None:
     run = MissionRun(load_mission_text(text, str(tmp_path / "m.yaml")))
     run.at(6.0, lambda r: r.signal("M1", "stop", True))
     run.run(until=16.0)
-    tel = run.sim.backends["M1"].telemetry()
+    tel = run.vehicles["M1"].backend.telemetry()
     assert tel.landed and run.agents["M1"].action == "emergency_land"
     run.signal("M1", "stop", False)
     run.run(until=24.0)
-    assert not run.sim.backends["M1"].telemetry().landed  # back in the air, exploring again
+    assert not run.vehicles["M1"].backend.telemetry().landed  # back in the air, exploring again

@@ -299,13 +299,13 @@ def test_an_agent_side_steps_like_the_phases(tmp_path: Path) -> None:
                     side.tick, side.control, side.report = phases  # type: ignore[method-assign]
 
             # the agent's side runs before the provider steps, like the phases
-            sim_step = run.sim.step
+            provider_step = run.provider.step
 
-            def sim_then(*a: Any) -> Any:
+            def sides_then(*a: Any) -> Any:
                 side.step(run.now())
-                return sim_step(*a)
+                return provider_step(*a)
 
-            run.sim.step = sim_then  # type: ignore[method-assign]
+            run.provider.step = sides_then  # type: ignore[method-assign]
             run.step = step.__get__(run)  # type: ignore[method-assign]
         run.run(until=20.0)
         return [

@@ -36,10 +36,10 @@ from btmission.allocation.solvers import (
     MAX_COST,
     MISSION_SOLVERS,
     AssignmentProblem,
-    FloatArray,
     solve,
 )
 from btmission.allocation.tasks import PoolTask, TaskInfo, TaskPool, TaskState
+from btmission.types import FloatArray
 
 SOLVERS: tuple[str, ...] = ("assignment", "ilp-scip", "dense", "sparse")
 """``AuctionConfig.solver``: a mission's ``assignment`` (dense or sparse chosen automatically) or

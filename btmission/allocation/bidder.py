@@ -34,9 +34,9 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from btmission.allocation.auction import Announcement, Bid, cheapest, participation_k
-from btmission.allocation.solvers import FloatArray
 from btmission.allocation.tasks import TaskInfo
 from btmission.spec.mission import Mission, TaskType
+from btmission.types import FloatArray
 
 Point = tuple[float, float, float]
 

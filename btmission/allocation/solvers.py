@@ -51,7 +51,8 @@ from typing import Any, Literal, cast
 import numpy as np
 from numpy.typing import NDArray
 
-FloatArray = NDArray[np.float64]
+from btmission.types import FloatArray
+
 IntArray = NDArray[np.intp]
 
 Method = Literal["auto", "dense", "sparse", "ilp-scip"]

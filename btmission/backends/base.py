@@ -24,13 +24,7 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import Protocol, runtime_checkable
 
-import numpy as np
-from numpy.typing import NDArray
-
-from btmission.control.compra import CameraIntrinsics, Detection
-
-FloatArray = NDArray[np.float64]
-Vec3 = tuple[float, float, float]
+from btmission.types import CameraIntrinsics, Detection, FloatArray, Vec3
 
 
 class Mode(str, Enum):

@@ -48,6 +48,8 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import partial
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -55,17 +57,19 @@ from btmission.backends.base import (
     ACCEPTED,
     Ack,
     CameraFrame,
-    FloatArray,
     LidarScan,
     Mode,
     Telemetry,
-    Vec3,
     VehicleKind,
 )
-from btmission.control.compra import CameraIntrinsics, Detection
+from btmission.backends.provider import Vehicle, VehicleEvent
 from btmission.control.mav_model import MavParams, mav_dynamics, rk4_step, world_to_yaw_frame
 from btmission.localization.scan import OS1_32, LidarSensor, pose_matrix, simulate_scan
+from btmission.types import CameraIntrinsics, Detection, FloatArray, Vec3
 from btmission.world.voxel import OCCUPIED, VoxelMap
+
+if TYPE_CHECKING:
+    from btmission.spec.mission import Mission
 
 G = 9.81
 STREAM_MIN_HZ = 2.0
@@ -125,15 +129,8 @@ class Artifact:
     size_m: float = 0.5
 
 
-@dataclass(frozen=True)
-class SimEvent:
-    """Something the simulator detected: a collision (with ``rock`` or another vehicle's id)."""
-
-    time_s: float
-    vehicle: str
-    kind: str
-    other: str
-    position: tuple[float, float, float]
+SimEvent = VehicleEvent
+"""Something the simulator detected: a collision (with ``rock`` or another vehicle's id)."""
 
 
 class SimWorld:
@@ -834,3 +831,67 @@ def _ray_sphere(origin: FloatArray, dirs: FloatArray, centre: FloatArray, r: flo
     disc = b * b - c
     t = -b - np.sqrt(np.maximum(disc, 0.0))
     return np.where((disc >= 0) & (t > 0), t, math.inf)
+
+
+class SimProvider:
+    """The embedded simulator as the run's
+    :class:`~btmission.backends.provider.VehicleProvider` (scheme ``sim``): vehicles are spawned
+    at their start, time is the simulator's (:class:`~btmission.runtime.clock.SimClock`), and
+    :meth:`step` integrates the physics. Wrapping changes nothing: the same seed gives the same
+    run as driving the :class:`Simulator` directly."""
+
+    realtime = False
+
+    def __init__(self, sim: Simulator) -> None:
+        from btmission.runtime.clock import SimClock
+
+        self.sim = sim
+        self.clock = SimClock(sim)
+
+    def attach(
+        self, agent_id: str, kind: VehicleKind, start: Vec3, *, url: str = "", **options: Any
+    ) -> Vehicle:
+        """Spawn ``agent_id``'s vehicle at ``start``. Options: ``yaw`` (rad), and ``v_max``
+        (m/s) for a ground robot (:meth:`Simulator.add_ground`)."""
+        yaw = float(options.get("yaw", 0.0))
+        if kind is VehicleKind.GROUND:
+            backend = self.sim.add_ground(agent_id, start, yaw, v_max=options.get("v_max"))
+        else:
+            backend = self.sim.add_multirotor(agent_id, start, yaw)
+        truth = self.sim.vehicle(agent_id)
+        return Vehicle(
+            agent_id,
+            kind,
+            backend,
+            backend,
+            odometer_m=lambda: truth.odometer_m,
+            clearance_m=partial(self.sim.take_clearance, agent_id),
+        )
+
+    def step(self, dt: float) -> list[VehicleEvent]:
+        """Advance by ``dt``: a whole number of the simulator's fixed steps."""
+        step_s = self.sim.config.step_s
+        n = round(dt / step_s)
+        if n < 1 or abs(n * step_s - dt) > 1e-9:
+            raise ValueError(f"dt must be a multiple of the simulator's step {step_s} s, got {dt}")
+        out: list[VehicleEvent] = []
+        for _ in range(n):
+            out.extend(self.sim.step())
+        return out
+
+    def close(self) -> None:
+        """Nothing to release: the simulator lives in this process."""
+
+
+def sim_provider(mission: Mission, voxel_map: VoxelMap, seed: int) -> SimProvider:
+    """The ``sim`` entry point of ``btmission.providers``: a simulator of the mission's world
+    with its ``runtime.sim`` settings and artifacts, seeded with the run's seed."""
+    spec = mission.spec.runtime.sim
+    config = SimConfig(
+        step_s=spec.step_s,
+        lidar_range_m=spec.lidar_range_m,
+        dust_points=spec.dust_points,
+        detection_noise_px=spec.detection_noise_px,
+    )
+    artifacts = [Artifact(a.label, a.position, a.size_m) for a in spec.artifacts]
+    return SimProvider(Simulator(voxel_map, config, seed=seed, artifacts=artifacts))

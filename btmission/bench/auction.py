@@ -42,7 +42,6 @@ from btmission.allocation.auction import AuctionConfig, AuctionState, Bid, parti
 from btmission.allocation.loop import AuctionLoop, ManualClock, RoundResult
 from btmission.allocation.solvers import (
     AssignmentProblem,
-    FloatArray,
     build_ilp,
     evaluate,
     solve,
@@ -51,6 +50,7 @@ from btmission.allocation.solvers import (
 from btmission.allocation.tasks import TaskInfo, TaskPool
 from btmission.bench.synth import _median_ms as median_ms
 from btmission.bench.synth import environment, header_lines
+from btmission.types import FloatArray
 
 T = TypeVar("T")
 

@@ -32,12 +32,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
+
+from btmission.types import FloatArray, Vec3
 
 __all__ = ["ApfConfig", "ApfResult", "PotentialField", "repulsive_force", "shape_force"]
-
-FloatArray = NDArray[np.float64]
-Vec3 = tuple[float, float, float]
 
 
 @dataclass(frozen=True)

@@ -35,9 +35,10 @@ from dataclasses import dataclass, field
 from enum import Enum
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from btmission.control.mav_model import wrap_angle
+from btmission.types import CameraIntrinsics, Detection, FloatArray  # re-exported (__all__)
 
 __all__ = [
     "Breadcrumb",
@@ -54,8 +55,6 @@ __all__ = [
     "altitude_from_range",
     "carrot_waypoint",
 ]
-
-FloatArray = NDArray[np.float64]
 
 
 def altitude_from_range(range_m: float, roll: float, pitch: float) -> float:
@@ -238,30 +237,6 @@ class CompraExplorer:
 # ----------------------------------------------------------------------------------------------
 # Object localisation (seed 002 §3.3.1)
 # ----------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class CameraIntrinsics:
-    """Pinhole intrinsics of the depth image the boxes are aligned to (pixels)."""
-
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-
-    def __post_init__(self) -> None:
-        if self.fx <= 0 or self.fy <= 0:
-            raise ValueError("focal lengths must be positive")
-
-
-@dataclass(frozen=True)
-class Detection:
-    """One detector output: class, probability Pr_CL and BB = (x_min, y_min, Wd, Ht) in pixels."""
-
-    t: float
-    label: str
-    probability: float
-    bbox: tuple[float, float, float, float]
-
-
 @dataclass(frozen=True)
 class LocalizerConfig:
     """Object-localiser parameters (seed 002 §3.3.1; the 5 m sphere is the paper's)."""

@@ -33,9 +33,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["DphrConfig", "DphrResult", "deepest_point_heading"]
+from btmission.types import FloatArray
 
-FloatArray = NDArray[np.float64]
+__all__ = ["DphrConfig", "DphrResult", "deepest_point_heading"]
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from btmission.types import FloatArray
+
 __all__ = [
     "CorridorLog",
     "ExplorationLog",
@@ -30,8 +32,6 @@ __all__ = [
     "head_on",
     "waypoint_flight",
 ]
-
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

@@ -31,7 +31,9 @@ from dataclasses import dataclass
 from typing import Any, TypeVar
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
+
+from btmission.types import FloatArray
 
 __all__ = [
     "NU",
@@ -52,7 +54,6 @@ NX = 8
 NU = 3
 """Number of model inputs ``[T, φ_ref, θ_ref]``."""
 
-FloatArray = NDArray[np.float64]
 _S = TypeVar("_S")
 
 

@@ -35,10 +35,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from btmission.control.mav_model import NU, NX, MavParams, mav_dynamics_casadi, rk4_step
 from btmission.control.ocp import OcpSolution, StagewiseOcp, check_solver
+from btmission.types import FloatArray, Vec3
 
 __all__ = [
     "MavNmpc",
@@ -47,9 +48,6 @@ __all__ = [
     "adaptive_position_weight",
     "hold_position_command",
 ]
-
-FloatArray = NDArray[np.float64]
-Vec3 = tuple[float, float, float]
 
 
 @dataclass(frozen=True)

@@ -30,11 +30,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
+
+from btmission.types import FloatArray
 
 __all__ = ["SOLVERS", "OcpSolution", "StagewiseOcp", "check_solver"]
 
-FloatArray = NDArray[np.float64]
 SOLVERS = ("fatrop", "ipopt")
 """NLP solvers the OCP can use (both ship in CasADi's PyPI wheel)."""
 

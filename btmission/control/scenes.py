@@ -18,7 +18,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
+
+from btmission.types import FloatArray
 
 __all__ = [
     "DepthCamera",
@@ -28,8 +30,6 @@ __all__ = [
     "lidar_scan",
     "straight_corridor",
 ]
-
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

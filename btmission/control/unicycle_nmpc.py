@@ -33,10 +33,11 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from btmission.control.mav_model import rk4_step, wrap_angle
 from btmission.control.ocp import OcpSolution, StagewiseOcp, check_solver
+from btmission.types import FloatArray
 
 __all__ = [
     "UnicycleConfig",
@@ -48,7 +49,6 @@ __all__ = [
     "unicycle_step",
 ]
 
-FloatArray = NDArray[np.float64]
 NX = 3
 NU = 2
 FAR = 1e4

@@ -50,6 +50,7 @@ from btmission.localization.scan import (
     record,
     simulate_scan,
 )
+from btmission.types import FloatArray
 from btmission.world.io import (
     MAP_FIELDS,
     NUMBER,
@@ -64,7 +65,6 @@ from btmission.world.voxel import FREE, OCCUPIED, MapError, VoxelMap
 DB_FORMAT = "btmission-reloc-db"
 DB_VERSION = 1
 
-FloatArray = npt.NDArray[np.float64]
 F32Array = npt.NDArray[np.float32]
 
 

@@ -43,7 +43,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-FloatArray = npt.NDArray[np.float64]
+from btmission.types import FloatArray
+
 F32Array = npt.NDArray[np.float32]
 
 

@@ -51,8 +51,8 @@ from btmission.localization.scan import (
     transform_points,
     yaw_of,
 )
+from btmission.types import FloatArray
 
-FloatArray = npt.NDArray[np.float64]
 REGISTRATIONS = ("GICP", "ICP", "PLANE_ICP")
 
 

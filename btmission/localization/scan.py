@@ -28,9 +28,8 @@ from typing import Any, TypeVar
 import numpy as np
 import numpy.typing as npt
 
+from btmission.types import FloatArray
 from btmission.world.voxel import OCCUPIED, MapError, VoxelMap
-
-FloatArray = npt.NDArray[np.float64]
 
 
 @dataclass(frozen=True)

@@ -34,7 +34,7 @@ import numpy as np
 
 from btmission.allocation.auction import Announcement, Bid
 from btmission.allocation.loop import Inbox, Progress
-from btmission.backends.base import FloatArray
+from btmission.types import FloatArray
 
 
 @dataclass(frozen=True)

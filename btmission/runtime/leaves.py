@@ -34,9 +34,9 @@ from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
 from btmission.synthesis.tree import Node
 
 if TYPE_CHECKING:
+    from btmission.allocation.tasks import TaskInfo
     from btmission.backends.base import Backend, Sensors, Telemetry
     from btmission.dispatch.topomap import TopoMap
-    from btmission.allocation.tasks import TaskInfo
     from btmission.runtime.agent import Agent
     from btmission.runtime.navigation import Navigator
     from btmission.runtime.paths import PathCosts

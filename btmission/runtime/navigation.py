@@ -34,9 +34,10 @@ from enum import Enum
 import numpy as np
 from numpy.typing import ArrayLike
 
-from btmission.backends.base import Backend, FloatArray, Mode, Sensors, Telemetry, VehicleKind
+from btmission.backends.base import Backend, Mode, Sensors, Telemetry, VehicleKind
 from btmission.control.apf import ApfConfig, PotentialField, repulsive_force, shape_force
 from btmission.control.mav_model import world_to_yaw_frame, wrap_angle, yaw_frame_to_world
+from btmission.types import FloatArray
 
 CONTROLLERS = ("nmpc", "track")
 KEEP_RIGHT_M = 1.2

@@ -14,7 +14,8 @@ and advances it in fixed steps of simulated time (``runtime.sim.step_s``). One s
    tick their mission tree (``runtime.tick_hz``); every agent's navigator streams this period's
    setpoints; status reports go to the coordinator and pose events to the observers
    (``runtime.status_hz``);
-4. the simulator advances every vehicle by one step and reports collisions;
+4. the vehicle provider advances (the simulator: every vehicle by one step) and reports
+   collisions;
 5. an immutable :class:`~btmission.runtime.snapshot.RunSnapshot` of the run is published
    (:attr:`MissionRun.snapshot`) for readers on other threads.
 
@@ -39,13 +40,13 @@ from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
 
 from btmission.allocation.tasks import TaskInfo, TaskState
-from btmission.backends.base import VehicleKind
-from btmission.backends.sim import Artifact, SimConfig, Simulator
+from btmission.backends.base import Backend, VehicleKind
+from btmission.backends.provider import Vehicle, VehicleProvider, provider_factory, scheme_of
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
 from btmission.plugins import Implementations
 from btmission.runtime.agent import Agent
 from btmission.runtime.bus import InMemoryBus
-from btmission.runtime.clock import Clock, ManualClock, SimClock
+from btmission.runtime.clock import Clock, ManualClock
 from btmission.runtime.commands import (
     AddTask,
     CancelTask,
@@ -136,7 +137,7 @@ class MissionRun:
         self.realtime = realtime
         self.events = EventStream(observers)
         self._last_t = 0.0
-        self.clock: Clock = ManualClock(0.0)  # until the simulator is built
+        self.clock: Clock = ManualClock(0.0)  # until the vehicle provider is built
         build0 = time.perf_counter()
         # the header first: building the map and the planners can take long, and a run killed
         # meanwhile must still leave a log that `btmission report` reads (docs/running.md)
@@ -153,18 +154,13 @@ class MissionRun:
         self.settings.update(rt.settings)
         self.nav_config = NavConfig.from_settings(self.settings)
         sim_spec = rt.sim
-        self.sim = Simulator(
-            self.map,
-            SimConfig(
-                step_s=sim_spec.step_s,
-                lidar_range_m=sim_spec.lidar_range_m,
-                dust_points=sim_spec.dust_points,
-                detection_noise_px=sim_spec.detection_noise_px,
-            ),
-            seed=seed,
-            artifacts=[Artifact(a.label, a.position, a.size_m) for a in sim_spec.artifacts],
-        )
-        self.clock = SimClock(self.sim)
+        # one provider for every agent (run_problems refused mixed fleets: one run, one clock)
+        scheme = scheme_of(mission.agents[0].backend) if mission.agents else "sim"
+        self.provider: VehicleProvider = provider_factory(scheme)(mission, self.map, seed)
+        self.clock = self.provider.clock
+        self.realtime = realtime or self.provider.realtime  # real vehicles: the wall clock
+        self.vehicles: dict[str, Vehicle] = {}
+        self.steps = 0
         self.paths = PathCosts(
             self.map,
             RiskParams(rt.risk_radius_m, rt.unknown_cost),
@@ -273,23 +269,21 @@ class MissionRun:
             loaded = self.mission.library_of(spec.id)
             impl = loaded.implementations
             assert impl is not None  # run_problems() checked it
-            ground = vehicle_kind(impl) is VehicleKind.GROUND
-            if ground:
-                vehicle = self.sim.add_ground(spec.id, spec.start, v_max=self.nav_config.speed_m_s)
-                control_dt = 0.1
-            else:
-                vehicle = self.sim.add_multirotor(spec.id, spec.start)
-                control_dt = self.dt
-            aid = spec.id
+            kind = vehicle_kind(impl)
+            ground = kind is VehicleKind.GROUND
+            options = {"v_max": self.nav_config.speed_m_s} if ground else {}
+            vehicle = self.provider.attach(spec.id, kind, spec.start, url=spec.backend, **options)
+            self.vehicles[spec.id] = vehicle
+            control_dt = 0.1 if ground else self.dt
 
-            def predictions(agent: str, _aid: str = aid) -> list[Any]:
-                pos = self.sim.backends[_aid].telemetry().position
+            def predictions(agent: str, _backend: Backend = vehicle.backend) -> list[Any]:
+                pos = _backend.telemetry().position
                 return self.bus.predictions(agent, self.now(), 0.1, pos, NEIGHBOUR_RANGE_M)
 
             nav = Navigator(
                 spec.id,
-                vehicle,
-                vehicle,
+                vehicle.backend,
+                vehicle.sensors,
                 self.controller,
                 self.nav_config,
                 control_dt=control_dt,
@@ -301,8 +295,8 @@ class MissionRun:
                 self.mission,
                 spec.id,
                 impl,
-                vehicle,
-                vehicle,
+                vehicle.backend,
+                vehicle.sensors,
                 nav,
                 self.paths,
                 self.bus,
@@ -532,15 +526,17 @@ class MissionRun:
         for side in sides:
             if side.report(now):
                 self._pose(side.id)
-        for ev in self.sim.step():
+        self.steps += 1
+        for ev in self.provider.step(self.dt):
             self.collisions += 1
             self.emit("collision", agent=ev.vehicle, other=ev.other, p=list(ev.position))
         self.snapshot = self._snapshot()
 
     def _pose(self, aid: str) -> None:
-        """A ``pose`` event: the agent's telemetry and the simulator's ground truth."""
-        tel = self.sim.backends[aid].telemetry()
-        v = self.sim.vehicle(aid)
+        """A ``pose`` event: the vehicle's telemetry, and the provider's ground truth (the
+        simulator's odometer and clearance; null on real vehicles)."""
+        vehicle = self.vehicles[aid]
+        tel = vehicle.backend.telemetry()
         self.emit(
             "pose",
             agent=aid,
@@ -550,8 +546,8 @@ class MissionRun:
             mode=tel.mode.value,
             armed=tel.armed,
             flying=not tel.landed,
-            odometer_m=v.odometer_m,
-            clearance_m=self.sim.take_clearance(aid),
+            odometer_m=vehicle.odometer_m() if vehicle.odometer_m else None,
+            clearance_m=vehicle.clearance_m() if vehicle.clearance_m else None,
         )
 
     def _snapshot(self, ended: str | None = None) -> RunSnapshot:
@@ -575,7 +571,7 @@ class MissionRun:
                 )
             )
         return RunSnapshot(
-            self.now(), self.sim.steps, tuple(agents), self.coordinator.state.pool, ended
+            self.now(), self.steps, tuple(agents), self.coordinator.state.pool, ended
         )
 
     def finished(self) -> str | None:
@@ -642,7 +638,7 @@ class MissionRun:
             reason,
             now,
             self._wall_used,
-            self.sim.steps,
+            self.steps,
             [t.id for t in pool if t.state is TaskState.DONE],
             {
                 t.id: f"{t.state.value}: {t.note}"
@@ -677,7 +673,8 @@ class MissionRun:
 
     def close(self) -> None:
         """Release what the run holds: every run-wide service that has a ``close()`` (its
-        errors are logged as ``leaf_error`` events, they do not stop the others)."""
+        errors are logged as ``leaf_error`` events, they do not stop the others), then the
+        vehicle provider (sockets, threads of real vehicles). Idempotent."""
         seen: set[int] = set()
         for library, services in self.services.items():
             for name, service in services.items():
@@ -689,6 +686,7 @@ class MissionRun:
                     close()
                 except Exception as exc:  # a library's code
                     self.errors.report(f"service {library}.{name}", "close", exc)
+        self.provider.close()
 
     def end(self, result: RunResult) -> None:
         """Publish the ``end`` event (once): the run is over."""

@@ -2,7 +2,8 @@
 
 ``btmission validate`` and :class:`~btmission.runtime.runner.MissionRun` both call
 :func:`run_problems`, so that a mission ``validate`` accepts is one ``run`` can start: every
-library has its implementations, and every ``runtime.settings`` entry is a setting someone reads,
+agent's ``backend:`` names an installed vehicle provider, the same for the whole fleet
+(:func:`backend_problems`), every library has its implementations, and every ``runtime.settings`` entry is a setting someone reads,
 of the type its default has, in its range; and what each library's own ``check_mission``
 finds (:func:`library_problems`). Problems are located (file:line:col) and unknown setting names
 get a did-you-mean.
@@ -191,18 +192,35 @@ def library_problems(mission: Mission) -> list[Diagnostic]:
 
 
 def backend_problems(mission: Mission) -> list[Diagnostic]:
-    """Agents whose backend cannot run yet: only ``sim`` can. The MAVLink URL grammar is kept
-    (and checked when the file loads), so trees and exports of such a mission still work."""
+    """Agents whose ``backend:`` no installed vehicle provider serves (its URL scheme is not in
+    the ``btmission.providers`` entry-point group), and fleets that mix providers: a run has one
+    clock, and simulated time cannot be mixed with the wall clock. Entry points are looked up,
+    not loaded (:mod:`btmission.backends.provider`)."""
+    from btmission.backends.provider import installed_providers, scheme_of, unknown_scheme_message
+
+    installed = list(installed_providers())
     out: list[Diagnostic] = []
+
+    def refuse(i: int, code: str, message: str) -> None:
+        path = ("agents", i, "backend")
+        out.append(Diagnostic(Severity.ERROR, code, message, format_path(path),
+                              mission.locate(path)))  # fmt: skip
+
     for i, agent in enumerate(mission.agents):
-        if agent.backend != "sim":
-            path = ("agents", i, "backend")
-            message = (
-                f"backend '{agent.backend}': the MAVLink backend is not supported yet; "
-                "use backend: sim"
-            )
-            out.append(Diagnostic(Severity.ERROR, "unsupported-backend", message,
-                                  format_path(path), mission.locate(path)))  # fmt: skip
+        scheme = scheme_of(agent.backend)
+        if scheme not in installed:
+            refuse(i, "unknown-backend",
+                   f"backend '{agent.backend}': {unknown_scheme_message(scheme, installed)}")  # fmt: skip
+    if out or not mission.agents:
+        return out
+    first = mission.agents[0]
+    for i, agent in enumerate(mission.agents):
+        if scheme_of(agent.backend) != scheme_of(first.backend):
+            refuse(i, "mixed-backends",
+                   f"backend '{agent.backend}': agent '{first.id}' uses '{first.backend}', and a "
+                   "run has one clock (simulated time for a simulator, the wall clock for real "
+                   "vehicles): every agent of a mission must use the same vehicle provider")  # fmt: skip
+            break
     return out
 
 

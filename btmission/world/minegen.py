@@ -25,9 +25,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from btmission.types import Vec3
 from btmission.world.voxel import FREE, OCCUPIED, UNKNOWN, MapError, VoxelMap, checked_shape
-
-Vec3 = tuple[float, float, float]
 
 FLOOR_ROCK_M = 1.0
 """Rock below the main level's floor (the map starts at z = -FLOOR_ROCK_M)."""

@@ -20,13 +20,14 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from btmission.types import FloatArray
+
 FREE: int = 0
 OCCUPIED: int = 1
 UNKNOWN: int = 2
 STATE_NAMES: dict[int, str] = {FREE: "free", OCCUPIED: "occupied", UNKNOWN: "unknown"}
 
 IntArray = npt.NDArray[np.int64]
-FloatArray = npt.NDArray[np.float64]
 
 _FAR_INDEX = float(2**62)
 """Voxel index given to points too far away for an int64 index (never inside a grid)."""
