@@ -332,3 +332,22 @@ def test_leaves_see_a_narrow_view_of_their_agent(tmp_path: Path) -> None:
         assert not hasattr(view, private), private
     with pytest.raises(AttributeError):
         view.task = None  # type: ignore[misc]
+
+
+def test_realtime_paces_one_step_per_step_of_wall_time(tmp_path: Path) -> None:
+    """--realtime (and every real-vehicle provider) steps once per `runtime.sim.step_s` of wall
+    time; a stop cuts the wait short."""
+    import time
+
+    m = load_mission_text(textwrap.dedent(ROBOTS), str(tmp_path / "m.yaml"))
+    run = MissionRun(m, realtime=True)
+    t0 = time.perf_counter()
+    result = run.run(until=0.5)
+    wall = time.perf_counter() - t0
+    assert result.reason == "until" and result.steps == 10
+    assert wall >= 0.45  # ten steps of 0.05 s; never faster than the wall clock
+    threading.Timer(0.2, run.stop, args=("stopped",)).start()
+    t0 = time.perf_counter()
+    result = run.run(until=60.0)
+    assert result.reason == "stopped" and time.perf_counter() - t0 < 5.0
+    assert 0.1 <= result.time_s - 0.5 <= 1.0

@@ -600,7 +600,7 @@ class MissionRun:
         limit = self.mission.spec.runtime.max_duration_s
         stop_at = limit if until is None else min(until, limit)
         wall0 = time.perf_counter()
-        sim0 = self.now()
+        steps0 = self.steps
         next_progress = self.now()
         reason = ""
         self._stop.clear()
@@ -621,10 +621,10 @@ class MissionRun:
                 if progress is not None and self.now() >= next_progress:
                     progress(self)
                     next_progress += progress_every_s
-                if self.realtime:
-                    lag = (self.now() - sim0) - (time.perf_counter() - wall0)
-                    if lag > 0:
-                        time.sleep(lag)
+                if self.realtime:  # one step per ``dt`` of wall time (simulated or real vehicles)
+                    ahead = wall0 + (self.steps - steps0) * self.dt - time.perf_counter()
+                    if ahead > 0:
+                        self._stop.wait(ahead)  # a stop cuts the wait short
         finally:
             self._wall_used += time.perf_counter() - wall0
         return self.result(reason)
