@@ -344,7 +344,7 @@ class TestBackend:
         path = CORPUS / "backend_mavlink.yaml"
         want = (
             f"{path}:8:58: agents[0].backend: backend 'mavlink://udp:127.0.0.1:14540': "
-            "no vehicle provider for scheme 'mavlink' is installed (issue #14 adds it); "
+            "no vehicle provider for scheme 'mavlink' is installed (MAVLink vehicles are not supported yet); "
             "installed: 'sim'"
         )
         refused_by_validate_and_run(runner, path, tmp_path, want)

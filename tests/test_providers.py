@@ -165,7 +165,7 @@ def test_validate_refuses_mavlink_until_its_provider_exists(tmp_path: Path) -> N
     for line, port in ((6, 14540), (7, 14541)):
         assert (
             f"{path}:{line}:58: agents[{line - 6}].backend: backend 'mavlink://udp:127.0.0.1:"
-            f"{port}': no vehicle provider for scheme 'mavlink' is installed (issue #14 adds it)"
+            f"{port}': no vehicle provider for scheme 'mavlink' is installed (MAVLink vehicles are not supported yet)"
         ) in out
     assert "2 problem(s) found" in out
 

@@ -139,7 +139,7 @@ class ProviderError(LookupError):
 
 def unknown_scheme_message(scheme: str, installed: Sequence[str]) -> str:
     known = ", ".join(f"'{s}'" for s in installed) or "none"
-    hint = " (issue #14 adds it)" if scheme == "mavlink" else ""
+    hint = " (MAVLink vehicles are not supported yet)" if scheme == "mavlink" else ""
     return (
         f"no vehicle provider for scheme '{scheme}' is installed{hint}; "
         f"installed: {known} (entry-point group '{ENTRY_POINT_GROUP}')"
