@@ -276,7 +276,7 @@ class MissionRun:
                 vehicle,
                 nav,
                 self.paths,
-                self.bus,
+                self.bus.agent_link(spec.id),
                 self.now,
                 settings=self.settings,
                 emit=self.emit,
