@@ -3,7 +3,6 @@ acknowledgement and deduplication (issue #13 §4-5)."""
 
 from __future__ import annotations
 
-import textwrap
 from pathlib import Path
 from typing import Any
 
@@ -21,29 +20,20 @@ from btmission.runtime.bus import (
     ProgressAck,
 )
 from btmission.runtime.coordinator import Coordinator
-from btmission.spec.mission import Mission, load_mission_text
+from btmission.spec.mission import Mission
+from tests.test_runtime import ROBOTS, mission_text
 
-MISSION = """
-mission: window
-version: 1
-world:
-  map: {generate: empty, size: [14, 8, 1]}
-  resolution: 0.25
-agents:
-  - {id: G1, library: ground, start: [1, 1, 0]}
-  - {id: G2, library: ground, start: [1, 7, 0]}
-tasks:
-  - {id: A, type: inspect, location: [12, 2, 0]}
-  - {id: B, type: inspect, location: [12, 6, 0]}
-task_types:
-  inspect: {goal: at_goal(location), cost: path_cost(location)}
-coordination: {auction_rate_hz: 2, agent_timeout_s: 1.0, bid_window_s: WINDOW}
-"""
+MISSION = ROBOTS.replace(
+    "  - {id: A, type: inspect, location: [12, 2, 0]}",
+    "  - {id: A, type: inspect, location: [12, 2, 0]}\n  - {id: B, type: inspect, location: [12, 6, 0]}",
+).replace(
+    "coordination: {auction_rate_hz: 10, agent_timeout_s: 1.0}",
+    "coordination: {auction_rate_hz: 2, agent_timeout_s: 1.0, bid_window_s: WINDOW}",
+)
 
 
 def mission(tmp_path: Path, window: float) -> Mission:
-    text = textwrap.dedent(MISSION).lstrip("\n").replace("WINDOW", str(window))
-    return load_mission_text(text, str(tmp_path / "m.yaml"))
+    return mission_text(MISSION.replace("WINDOW", str(window)), tmp_path)
 
 
 class FakeLink:
@@ -122,7 +112,9 @@ def test_window_zero_allocates_in_the_announcing_step(tmp_path: Path) -> None:
     link.on_announce = answer
     result = c.step(0.0)
     assert result is not None and result.assignments == {"G1": "A", "G2": "B"}
-    assert ev.of("round")[0].get("late_bids") is None and ev.of("round")[0].get("stale_bids") is None
+    assert (
+        ev.of("round")[0].get("late_bids") is None and ev.of("round")[0].get("stale_bids") is None
+    )
 
 
 def test_a_round_collects_bids_for_its_window(tmp_path: Path) -> None:
@@ -154,14 +146,14 @@ def test_an_agent_whose_bids_never_arrive_in_time_times_out(tmp_path: Path) -> N
     link.inbox.bids += [bid("G1", 0.1, 1, 1, 5), bid("G2", 0.1, 1, 5, 1)]
     c.step(0.2)
     t = 0.5
-    dropped: tuple[str, ...] = ()
-    while t < 2.0 and not dropped:
+    result = None
+    while t < 2.0 and (result is None or not result.report.dropped):
         c.step(t)  # opens
         link.inbox.bids.append(bid("G1", t + 0.1, 1, 1, 5))  # G1 answers in time, G2 never
         result = c.step(t + 0.2)
-        assert result is not None
-        dropped = result.report.dropped
         t += 0.5
+    assert result is not None
+    dropped = result.report.dropped
     # dropped at the first round closing more than agent_timeout_s (1 s) after its last bid
     assert dropped == ("G2",) and result.report.time_s == pytest.approx(1.2)
     assert result.assignments == {"G1": "A"}

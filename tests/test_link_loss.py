@@ -4,40 +4,24 @@ other holder is withdrawn in the same round; a dead agent never delivers."""
 
 from __future__ import annotations
 
-import textwrap
 from pathlib import Path
 
 import pytest
 
 from btmission.runtime.events import Event, Recorder
 from btmission.runtime.runner import MissionRun
-from btmission.spec.mission import Mission, load_mission, load_mission_text
+from btmission.spec.mission import Mission, load_mission
+from tests.test_runtime import ROBOTS, mission_text
 
 ROOT = Path(__file__).resolve().parents[1]
 MISSIONS = ROOT / "missions"
 
-ROBOTS = """
-mission: robots
-version: 1
-world:
-  map: {generate: empty, size: [14, 8, 1]}
-  resolution: 0.25
-agents:
-  - {id: G1, library: ground, start: [1, 1, 0]}
-  - {id: G2, library: ground, start: [1, 7, 0]}
-tasks:
-  - {id: A, type: inspect, location: [12, 2, 0]}
-task_types:
-  inspect: {goal: at_goal(location), cost: path_cost(location)}
-coordination: {auction_rate_hz: 10, agent_timeout_s: 1.0}
-default_behavior: {goal: at_goal(home), idle_timeout_s: 2}
-runtime: {controller: track}
-"""
 # G1 (closer) wins A at t=0 and, with its link up, reaches it at t=27.6 s; G2 would at ~34 s.
 
 
 def robots(tmp_path: Path) -> Mission:
-    return load_mission_text(textwrap.dedent(ROBOTS).lstrip("\n"), str(tmp_path / "m.yaml"))
+    """Two ground robots, one task A (tests/test_runtime.py)."""
+    return mission_text(ROBOTS, tmp_path)
 
 
 def outage(
@@ -53,11 +37,7 @@ def outage(
 
 
 def task_states(rec: Recorder, task: str) -> list[tuple[float, str, str | None]]:
-    return [
-        (e.t, e.get("state"), e.get("agent"))
-        for e in rec.of("task")
-        if e.get("task") == task
-    ]
+    return [(e.t, e.get("state"), e.get("agent")) for e in rec.of("task") if e.get("task") == task]
 
 
 def done_events(rec: Recorder, task: str) -> list[Event]:
@@ -143,10 +123,12 @@ def test_pick_and_deliver_commit_point_passed_during_an_outage(tmp_path: Path) -
     """Cut off 20-35 s, the robot passes P1's commit point (picks the item) at ~25 s: on its
     return the task is committed to it again, and it delivers."""
     m = load_mission(MISSIONS / "pick_and_deliver.yaml")
-    run, rec = outage(m, "G1", 20.0, 35.0, until=50, controller="track")
+    _, rec = outage(m, "G1", 20.0, 35.0, until=50, controller="track")
     p1 = [(s, a) for _, s, a in task_states(rec, "P1")]
     assert p1[-3:] == [("open", None), ("committed", "G1"), ("done", "G1")]
-    committed = [e for e in rec.of("task") if e.get("task") == "P1" and e.get("state") == "committed"]
+    committed = [
+        e for e in rec.of("task") if e.get("task") == "P1" and e.get("state") == "committed"
+    ]
     assert committed[-1].t == pytest.approx(35.0) and 20 < committed[-1].get("reported_s") < 35
     assert "reported late by G1" in committed[-1].get("reason")
     assert rec.of("warning") == []
@@ -158,7 +140,7 @@ def test_mine_inspection_r2_finishes_t3_while_cut_off() -> None:
     83.4 s, R1 (which got T3 at 43 s) would at 83.7 s. R2's completion arrives when its link
     returns at 83.5 s: T3 is done once, for R2, and R1 stops flying T3 in the same round."""
     m = load_mission(MISSIONS / "mine_inspection.yaml")
-    run, rec = outage(m, "R2", 40.0, 83.5, until=86, controller="track")
+    _, rec = outage(m, "R2", 40.0, 83.5, until=86, controller="track")
     (done,) = done_events(rec, "T3")
     assert done.get("agent") == "R2" and done.t == pytest.approx(83.5)
     assert done.get("reported_s") == pytest.approx(83.4)

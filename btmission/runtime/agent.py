@@ -17,7 +17,8 @@ An :class:`Agent` holds (seed 000 §IV-C, Fig. 3-4, Fig. 7; seed 003 §V):
 When the task branch's goal holds (the branch returns SUCCESS) the agent reports the task done;
 when the branch fails it reports it failed, with the reason of the action that failed. Without a
 task, the idle timer runs and the default branch (e.g. return home and land) takes over after
-``idle_timeout_s``.
+``idle_timeout_s``. Progress reports are kept until the coordinator acknowledges them, so one
+made while the agent's link is down is delivered when the link returns.
 """
 
 from __future__ import annotations
