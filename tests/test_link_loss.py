@@ -4,10 +4,15 @@ other holder is withdrawn in the same round; a dead agent never delivers."""
 
 from __future__ import annotations
 
+from itertools import pairwise
 from pathlib import Path
 
 import pytest
 
+from btmission.allocation.auction import AuctionConfig, AuctionState, Bid, auction_round
+from btmission.allocation.loop import Progress, Withdrawal, apply_progress
+from btmission.allocation.tasks import TaskInfo, TaskPool, TaskState
+from btmission.runtime.bus import ProgressAck
 from btmission.runtime.events import Event, Recorder
 from btmission.runtime.runner import MissionRun
 from btmission.spec.mission import Mission, load_mission
@@ -153,3 +158,84 @@ def test_mine_inspection_r2_finishes_t3_while_cut_off() -> None:
     after = [(t, task) for t, task in r1 if t > t3_start]
     assert after and after[0][0] == pytest.approx(83.5) and after[0][1] != "T3"
     assert not [e for e in rec.of("progress") if e.get("task") == "T3" and e.get("agent") == "R1"]
+
+
+def test_lost_acknowledgements_the_agent_resends_and_copies_are_ignored(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A lossy transport: every acknowledgement is lost until 30 s. G1 resends its completion
+    (27.6 s) every second until one gets through; the coordinator takes it once."""
+    rec = Recorder()
+    run = MissionRun(robots(tmp_path), observers=[rec])
+    bus = run.bus
+    received: list[tuple[float, Progress]] = []
+    send, acknowledge = bus.send_progress, bus.acknowledge
+
+    def counted(p: Progress) -> None:
+        received.append((run.now(), p))
+        send(p)
+
+    def lossy(ack: ProgressAck) -> None:
+        if run.now() >= 30.0:
+            acknowledge(ack)
+
+    monkeypatch.setattr(bus, "send_progress", counted)
+    monkeypatch.setattr(bus, "acknowledge", lossy)
+    run.run(until=32)
+    sent = [t for t, p in received if (p.agent, p.task, p.event) == ("G1", "A", "done")]
+    # sent at 27.6 s, then every ~1 s (at the next tick) until the first ack after 30 s
+    assert sent[0] == pytest.approx(27.6) and len(sent) == 4 and 30 < sent[-1] < 31
+    assert all(1.0 <= b - a <= 1.1 + 1e-9 for a, b in pairwise(sent))
+    assert len({(p.task, p.event, p.time_s) for _, p in received}) == 1
+    assert [e.get("agent") for e in done_events(rec, "A")] == ["G1"]
+    assert rec.of("warning") == [] and run.agents["G1"].unacknowledged == []
+
+
+def two_holders() -> AuctionState:
+    """G1 held A and G3 held P (multi-stage) until they went silent; now G2 holds A, G4 P."""
+    tasks = [TaskInfo("A", "inspect", {}), TaskInfo("P", "pick", {}, multi_stage=True)]
+    s = AuctionState(AuctionConfig(agent_timeout_s=3.0), TaskPool().add_all(tasks))
+    _, s, _ = auction_round(s, [Bid.of("G1", 0, {"A": 1.0}), Bid.of("G3", 0, {"P": 1.0})], 0)
+    assert s.holders() == {"G1": "A", "G3": "P"}
+    _, s, r = auction_round(s, [Bid.of("G2", 5, {"A": 3.0}), Bid.of("G4", 5, {"P": 2.0})], 5)
+    assert r.dropped == ("G1", "G3") and s.holders() == {"G2": "A", "G4": "P"}
+    return s
+
+
+def test_a_late_report_counts_only_from_a_former_holder() -> None:
+    withdrawn: list[Withdrawal] = []
+    late, problems = apply_progress(
+        two_holders(),
+        [
+            Progress("G5", "A", "done", 5.5),  # never held A: refused
+            Progress("G1", "A", "done", 4.5),  # G1 held A before G2: the first completion wins
+            Progress("G2", "A", "done", 5.6),  # too late: counted once, for G1
+            Progress("G3", "P", "failed", 4.6, "blocked"),  # a late failure is not taken
+        ],
+        withdrawn,
+    )
+    a = late.pool["A"]
+    assert (a.state, a.agent, a.history[-1].time_s) == (TaskState.DONE, "G1", 4.5)
+    assert a.note == "completed (reported late by G1, which had lost it while silent; G2 withdrawn)"
+    assert withdrawn == [Withdrawal("G2", "A", "G1", "done")]
+    assert problems == [
+        "agent 'G5' cannot complete task 'A': it is held by G2",
+        "G2 reports 'A' done (t=5.6s), but G1 completed it first (t=4.5s): counted once, for G1",
+        "agent 'G3' cannot fail task 'P': it is held by G4",
+    ]
+    assert late.pool["P"].state is TaskState.ASSIGNED and late.pool["P"].agent == "G4"
+
+
+def test_a_late_commit_point_takes_the_task_back_unless_another_committed() -> None:
+    withdrawn: list[Withdrawal] = []
+    back, problems = apply_progress(
+        two_holders(), [Progress("G3", "P", "committed", 4.5)], withdrawn
+    )
+    assert problems == [] and withdrawn == [Withdrawal("G4", "P", "G3", "committed")]
+    assert (back.pool["P"].state, back.pool["P"].agent) == (TaskState.COMMITTED, "G3")
+    assert withdrawn[0].reason == "G3 committed to 'P' first (reported after its link returned)"
+    _, problems = apply_progress(
+        two_holders(),
+        [Progress("G4", "P", "committed", 5.5), Progress("G3", "P", "committed", 4.5)],
+    )
+    assert problems == ["agent 'G3' cannot commit to task 'P': it is held by G4"]

@@ -81,8 +81,8 @@ class Coordinator:
         self.mission = mission
         self.link = link
         self.bid_window_s = float(getattr(mission.spec.coordination, "bid_window_s", 0.0))
-        self._open: tuple[int, float, float, CoordinatorInbox] | None = None
-        """The round collecting bids: (serial, closes at, perf_counter at opening, inbox)."""
+        self._open: tuple[int, float, CoordinatorInbox] | None = None
+        """The round collecting bids: (serial, closes at, what arrived so far)."""
         self._seen: dict[str, set[ProgressKey]] = {}
         """Progress reports taken, per agent (copies of them are ignored)."""
         self._acks: dict[str, list[ProgressKey]] = {}
@@ -184,12 +184,12 @@ class Coordinator:
             if t.id not in self._added and t.info.arrival_s <= now:
                 self._emit_added(t.info, t.info.arrival_s, "mission")
         if self._open is not None:  # a round is collecting bids (bid window)
-            serial, closes, t0, inbox = self._open
+            serial, closes, inbox = self._open
             self._take(self.link.drain(), inbox)
             if now + 1e-9 < closes:
                 return None
             self._open = None
-            return self.loop.close_round(inbox, now, serial, t0)
+            return self.loop.close_round(inbox, now, serial)
         if now + 1e-9 < self.next_round:
             return None
         self.next_round = self.next_round + self.period_s
@@ -197,11 +197,10 @@ class Coordinator:
             self.next_round = (math.floor(now / self.period_s) + 1) * self.period_s
         if self.bid_window_s <= 0:
             return self.loop.step()  # announce, collect (_collect) and allocate now
-        t0 = time.perf_counter()
         early = self._collect_early()
         ann = self.loop.open_round(now)
         self._announce(ann)
-        self._open = (ann.serial, now + self.bid_window_s, t0, early)
+        self._open = (ann.serial, now + self.bid_window_s, early)
         return None
 
     def _emit_added(self, info: TaskInfo, t: float, by: str) -> None:
