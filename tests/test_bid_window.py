@@ -20,6 +20,8 @@ from btmission.runtime.bus import (
     ProgressAck,
 )
 from btmission.runtime.coordinator import Coordinator
+from btmission.runtime.events import Recorder
+from btmission.runtime.runner import MissionRun
 from btmission.spec.mission import Mission
 from tests.test_runtime import ROBOTS, mission_text
 
@@ -177,3 +179,20 @@ def test_progress_is_acknowledged_and_copies_are_ignored(tmp_path: Path) -> None
     assert link.acks[-1] == ProgressAck("G1", (("A", "done", 0.3),))
     assert ev.of("warning") == []  # a copy is not a problem
     assert [d["state"] for d in ev.of("task") if d["task"] == "A"] == ["assigned", "done"]
+
+
+def test_a_run_with_a_bid_window_allocates_after_it(tmp_path: Path) -> None:
+    """The in-memory bus answers at once; with a 0.15 s window each round still waits for it."""
+    m = mission_text(
+        ROBOTS.replace("agent_timeout_s: 1.0}", "agent_timeout_s: 1.0, bid_window_s: 0.15}"),
+        tmp_path,
+    )
+    rec = Recorder()
+    run = MissionRun(m, observers=[rec])
+    result = run.run(until=35)
+    assert result.done == ["A"]
+    first = rec.of("task")[0]
+    assert (first.get("state"), first.get("agent"), first.t) == ("assigned", "G1", 0.15)
+    rounds = rec.of("round")
+    assert [r.t for r in rounds[:3]] == pytest.approx([0.15, 0.35, 0.55])  # window + 1 step
+    assert not [r for r in rounds if r.get("late_bids") or r.get("stale_bids")]
