@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import py_trees
@@ -38,7 +39,14 @@ from btmission.backends.base import Backend, Sensors
 from btmission.diagnostics import Diagnostic, Severity, SpecError
 from btmission.plugins import Implementations
 from btmission.recursion import main_thread_limit, recursion_for_depth, recursion_limit
-from btmission.runtime.bus import AgentLink, AgentStatus, Assignment, ProgressAck, progress_key
+from btmission.runtime.bus import (
+    AgentLink,
+    AgentStatus,
+    Assignment,
+    ProgressAck,
+    ProgressKey,
+    progress_key,
+)
 from btmission.runtime.leaves import (
     BUILTIN_ACTIONS,
     BUILTIN_CONDITIONS,
@@ -63,6 +71,15 @@ Emit = Callable[..., None]
 PROGRESS_RESEND_S = 1.0
 """A progress report the coordinator has not acknowledged after this long is sent again (the
 coordinator ignores copies it has seen)."""
+
+
+@dataclass
+class _Outgoing:
+    """A progress report waiting for the coordinator's acknowledgement."""
+
+    report: Progress
+    sent_s: float | None = None
+    """Mission time it was last sent (None: not yet: the link was down)."""
 
 
 class Agent:
@@ -163,8 +180,8 @@ class Agent:
                     f"agents.{agent_id}",
                     mission.file,
                 ) from exc
-        self._outbox: dict[tuple[str, str, float], list[Any]] = {}
-        """Progress reports not yet acknowledged → [report, mission time last sent or None]."""
+        self._outbox: dict[ProgressKey, _Outgoing] = {}
+        """Progress reports not acknowledged yet, oldest first."""
         link.connect(self.on_announcement, self.on_assignment, self.on_ack)
 
     # ---------------------------------------------------------------- tree construction
@@ -303,7 +320,7 @@ class Agent:
 
     def _progress(self, task: str, event: str, now: float, reason: str = "") -> None:
         p = Progress(self.id, task, event, now, reason)  # type: ignore[arg-type]
-        self._outbox[progress_key(p)] = [p, None]
+        self._outbox[progress_key(p)] = _Outgoing(p)
         self._send_progress(now)
         self._emit("progress", agent=self.id, task=task, event=event, reason=reason)
 
@@ -312,10 +329,10 @@ class Agent:
         ``PROGRESS_RESEND_S`` (a lossy transport); nothing while the link is down (they wait)."""
         if not self._outbox or not self.link.up:
             return
-        for entry in self._outbox.values():
-            if entry[1] is None or now - entry[1] >= PROGRESS_RESEND_S:
-                self.link.send_progress(entry[0])
-                entry[1] = now
+        for out in self._outbox.values():
+            if out.sent_s is None or now - out.sent_s >= PROGRESS_RESEND_S:
+                self.link.send_progress(out.report)
+                out.sent_s = now
 
     def on_ack(self, ack: ProgressAck) -> None:
         """The coordinator took these reports: forget them."""
@@ -326,7 +343,7 @@ class Agent:
     def unacknowledged(self) -> list[Progress]:
         """Progress reports the coordinator has not acknowledged yet (queued while the link
         is down, or in flight)."""
-        return [entry[0] for entry in self._outbox.values()]
+        return [out.report for out in self._outbox.values()]
 
     def note_failure(self, action: str, reason: str) -> None:
         """Called by a failing action: the reason reported if the task fails."""
