@@ -109,6 +109,12 @@ MAX_TEXT_CHARS = Budget(
 MAX_LOG_BYTES = Budget(
     "BTMISSION_MAX_LOG_BYTES", 1_000_000_000, "size of an event log that `report` reads"
 )
+MAX_MESSAGE_BYTES = Budget(
+    "BTMISSION_MAX_MESSAGE_BYTES",
+    16_000_000,
+    "size of one coordinator/agent message on the wire (an announcement of 10,000 tasks is "
+    "about 1.5 MB)",
+)
 
 BUDGETS: tuple[Budget, ...] = (
     MAX_FILE_BYTES,
@@ -122,6 +128,7 @@ BUDGETS: tuple[Budget, ...] = (
     MIN_STEP_S,
     MAX_TEXT_CHARS,
     MAX_LOG_BYTES,
+    MAX_MESSAGE_BYTES,
 )
 
 

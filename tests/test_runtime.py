@@ -14,14 +14,14 @@ from btmission.runtime.coordinator import TaskError
 from btmission.runtime.events import Event, JsonlEventLog, Recorder, read_events
 from btmission.runtime.report import build_report
 from btmission.runtime.runner import MissionRun
-from btmission.spec.mission import load_mission, load_mission_text
+from btmission.spec.mission import Mission, load_mission, load_mission_text
 from btmission.world.voxel import OCCUPIED, VoxelMap
 
 ROOT = Path(__file__).resolve().parents[1]
 MISSIONS = ROOT / "missions"
 
 
-def mission_text(body: str, tmp_path: Path) -> object:
+def mission_text(body: str, tmp_path: Path) -> Mission:
     return load_mission_text(textwrap.dedent(body).lstrip("\n"), str(tmp_path / "m.yaml"))
 
 

@@ -163,7 +163,10 @@ class Bid:
     ``costs[i]`` is the cost for ``tasks[i]``: finite ≥ 0 = a bid, NaN = no bid (the agent does
     not take part for that task), ``inf`` = it cannot reach it. ``committed_to`` is the task the
     agent has passed the commit point of (its behaviour tree's k_bt = 0), if any. A bid is also
-    the agent's heartbeat: ``time_s`` is when it was made.
+    the agent's heartbeat: ``time_s`` is when it was made. ``serial`` is the serial of the
+    announcement it answers (None: unknown, e.g. a bid made by hand); a round ignores bids that
+    answer an older announcement than the one it collected bids for
+    (:meth:`btmission.allocation.loop.AuctionLoop.close_round`).
     """
 
     agent: str
@@ -171,6 +174,7 @@ class Bid:
     tasks: tuple[str, ...]
     costs: FloatArray
     committed_to: str | None = None
+    serial: int | None = None
 
     @classmethod
     def of(
@@ -179,6 +183,7 @@ class Bid:
         time_s: float,
         costs: Mapping[str, float],
         committed_to: str | None = None,
+        serial: int | None = None,
     ) -> Bid:
         """From a task id → cost mapping (tasks left out are not bid on)."""
         return cls(
@@ -187,6 +192,7 @@ class Bid:
             tuple(costs),
             np.fromiter(costs.values(), dtype=np.float64, count=len(costs)),
             committed_to,
+            serial,
         )
 
     @classmethod
@@ -198,9 +204,15 @@ class Bid:
         costs: FloatArray | Sequence[float],
         committed_to: str | None = None,
     ) -> Bid:
-        """Costs in announcement order (the fast path: no id lookups in the auctioneer)."""
+        """Costs in announcement order (the fast path: no id lookups in the auctioneer); the
+        bid answers the announcement's serial."""
         return cls(
-            agent, time_s, announcement.ids, np.asarray(costs, dtype=np.float64), committed_to
+            agent,
+            time_s,
+            announcement.ids,
+            np.asarray(costs, dtype=np.float64),
+            committed_to,
+            announcement.serial,
         )
 
     def cost_of(self, task_id: str) -> float:
@@ -269,6 +281,10 @@ class RoundReport:
     """(agent, task) bids considered by the solver."""
     total_cost: float
     """Σ bid costs of the pairs the solver assigned (pinned committed pairs excluded)."""
+    late_bids: int = 0
+    """Bids that arrived while no round was collecting (after the last one closed): ignored."""
+    stale_bids: int = 0
+    """Bids that answered an older announcement than this round's: ignored."""
 
 
 @dataclass(frozen=True)

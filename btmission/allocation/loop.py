@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal, Protocol
 
 from btmission.allocation.auction import (
@@ -28,7 +28,7 @@ from btmission.allocation.auction import (
     announce,
     auction_round,
 )
-from btmission.allocation.tasks import PoolError
+from btmission.allocation.tasks import PoolError, TaskState
 
 
 class Clock(Protocol):
@@ -81,11 +81,62 @@ class Progress:
     reason: str = ""
 
 
+@dataclass(frozen=True)
+class Withdrawal:
+    """A holder loses its task because another agent's report settled it first: ``by`` reported
+    it ``event`` (done, or passed its commit point) while it no longer held it (it had been
+    released or reassigned while ``by`` was silent). ``agent`` must stop executing it."""
+
+    agent: str
+    task: str
+    by: str
+    event: str
+
+    @property
+    def reason(self) -> str:
+        what = "completed" if self.event == "done" else "committed to"
+        return f"{self.by} {what} '{self.task}' first (reported after its link returned)"
+
+
+def _take_over(
+    state: AuctionState, p: Progress, withdrawn: list[Withdrawal]
+) -> AuctionState | None:
+    """A report of ``p.agent`` on a task it no longer holds (it lost it while silent): the first
+    completion wins, and so does a commit point on a task nobody else has committed to; the
+    holder, if any, is withdrawn. None when the report cannot be used that way."""
+    t = state.pool.get(p.task)
+    if t is None or t.state.terminal or t.agent == p.agent:
+        return None
+    if not any(e.agent == p.agent for e in t.history):  # it never held it: not a late report
+        return None
+    late = f"reported late by {p.agent}, which had lost it while silent"
+    if t.agent is not None:
+        late += f"; {t.agent} withdrawn"
+    if p.event == "done":
+        st, reason = TaskState.DONE, f"completed ({late})"
+    elif p.event == "committed" and t.info.multi_stage and t.state is not TaskState.COMMITTED:
+        st, reason = TaskState.COMMITTED, f"commit point ({late})"
+    else:
+        return None
+    if t.agent is not None:
+        withdrawn.append(Withdrawal(t.agent, t.id, p.agent, p.event))
+    return replace(state, pool=state.pool.take_over(p.task, p.agent, p.time_s, st, reason))
+
+
 def apply_progress(
-    state: AuctionState, reports: Iterable[Progress]
+    state: AuctionState,
+    reports: Iterable[Progress],
+    withdrawn: list[Withdrawal] | None = None,
 ) -> tuple[AuctionState, list[str]]:
-    """Apply progress reports in order; reports the pool refuses are returned as messages."""
+    """Apply progress reports in order; reports the pool refuses are returned as messages.
+
+    A report from an agent that no longer holds the task — it finished (or passed the commit
+    point of) a task that was released or reassigned while its link was down — is accepted when
+    it comes first: the task becomes done (committed) with that agent and the other holder is
+    appended to ``withdrawn``. A later completion of a task already done is refused (it is
+    never counted twice)."""
     problems: list[str] = []
+    taken: list[Withdrawal] = [] if withdrawn is None else withdrawn
     for p in reports:
         try:
             if p.event == "committed":
@@ -97,7 +148,19 @@ def apply_progress(
             else:
                 problems.append(f"unknown progress event '{p.event}' from {p.agent}")
         except PoolError as exc:
-            problems.append(str(exc))
+            took = _take_over(state, p, taken)
+            if took is not None:
+                state = took
+                continue
+            t = state.pool.get(p.task)
+            if p.event == "done" and t is not None and t.state is TaskState.DONE:
+                problems.append(
+                    f"{p.agent} reports '{p.task}' done (t={p.time_s:.1f}s), but {t.agent} "
+                    f"completed it first (t={t.history[-1].time_s:.1f}s): counted once, for "
+                    f"{t.agent}"
+                )
+            else:
+                problems.append(str(exc))
     return state, problems
 
 
@@ -107,6 +170,8 @@ class Inbox:
 
     bids: list[Bid] = field(default_factory=list)
     progress: list[Progress] = field(default_factory=list)
+    late_bids: int = 0
+    """Bids that arrived while no round was collecting them (already left out of ``bids``)."""
 
 
 @dataclass(frozen=True)
@@ -120,6 +185,8 @@ class RoundResult:
     step_s: float
     """Wall time of the round (announce, collect, allocate), measured by the loop."""
     progress_problems: tuple[str, ...] = ()
+    withdrawn: tuple[Withdrawal, ...] = ()
+    """Holders that lost their task this round to another agent's late report."""
 
 
 Collect = Callable[[Announcement, float], Inbox | Sequence[Bid]]
@@ -161,17 +228,43 @@ class AuctionLoop:
         """One round now: announce, collect, allocate, publish."""
         t_start = time.perf_counter()
         now = self.clock.now()
-        state = announce(self.state, now)
-        got = self.collect(state.announcement, now)
+        ann = self.open_round(now)
+        got = self.collect(ann, now)
         inbox = got if isinstance(got, Inbox) else Inbox(list(got))
-        state, problems = apply_progress(state, inbox.progress)
-        assignments, state, report = auction_round(state, inbox.bids, now)
-        step_s = time.perf_counter() - t_start
+        return self.close_round(inbox, now, ann.serial, t_start)
+
+    def open_round(self, now: float) -> Announcement:
+        """Stage 1 of a round whose bids arrive later (a bid window): the announcement to
+        publish now. :meth:`close_round` allocates with what arrived."""
+        self.state = announce(self.state, now)
+        return self.state.announcement
+
+    def close_round(
+        self, inbox: Inbox, now: float, serial: int, t_start: float | None = None
+    ) -> RoundResult:
+        """Stages 2-3: apply the progress reports, then allocate with the bids that answer the
+        announcement of ``serial`` (bids for an older one are stale: ignored and counted), and
+        publish. ``t_start`` (``time.perf_counter()``) is when the round's work began."""
+        t0 = time.perf_counter() if t_start is None else t_start
+        fresh = [b for b in inbox.bids if b.serial is None or b.serial >= serial]
+        withdrawn: list[Withdrawal] = []
+        state, problems = apply_progress(self.state, inbox.progress, withdrawn)
+        assignments, state, report = auction_round(state, fresh, now)
+        stale = len(inbox.bids) - len(fresh)
+        if stale or inbox.late_bids:
+            report = replace(report, stale_bids=stale, late_bids=inbox.late_bids)
+        step_s = time.perf_counter() - t0
         self.state = state
         self.stats.rounds += 1
         self.stats.step_s.append(step_s)
         result = RoundResult(
-            assignments, report, state.announcement, state, step_s, tuple(problems)
+            assignments,
+            report,
+            state.announcement,
+            state,
+            step_s,
+            tuple(problems),
+            tuple(withdrawn),
         )
         if self.publish is not None:
             self.publish(result)

@@ -226,6 +226,17 @@ class TaskPool:
         why = reason or "reported failed"
         return self.with_tasks({task_id: t.moved(now, TaskState.FAILED, agent, why)})
 
+    def take_over(
+        self, task_id: str, agent: str, now: float, state: TaskState, reason: str
+    ) -> TaskPool:
+        """``agent`` reports a task it no longer holds (it lost it while its link was down) as
+        ``state`` (done or committed): the task is its, whoever held it (the caller withdraws
+        the other holder)."""
+        t = self[task_id]
+        if t.state.terminal:
+            raise PoolError(f"task '{task_id}' is already {t.state.value}")
+        return self.with_tasks({task_id: t.moved(now, state, agent, reason)})
+
     def release(self, task_id: str, now: float, reason: str) -> TaskPool:
         """Back to the pool (open, no agent), e.g. when its agent was lost."""
         t = self[task_id]

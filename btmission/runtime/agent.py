@@ -17,7 +17,8 @@ An :class:`Agent` holds (seed 000 §IV-C, Fig. 3-4, Fig. 7; seed 003 §V):
 When the task branch's goal holds (the branch returns SUCCESS) the agent reports the task done;
 when the branch fails it reports it failed, with the reason of the action that failed. Without a
 task, the idle timer runs and the default branch (e.g. return home and land) takes over after
-``idle_timeout_s``.
+``idle_timeout_s``. Progress reports are kept until the coordinator acknowledges them, so one
+made while the agent's link is down is delivered when the link returns.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from __future__ import annotations
 import math
 import sys
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import py_trees
@@ -38,7 +40,14 @@ from btmission.backends.base import Backend, Sensors
 from btmission.diagnostics import Diagnostic, Severity, SpecError
 from btmission.plugins import Implementations
 from btmission.recursion import main_thread_limit, recursion_for_depth, recursion_limit
-from btmission.runtime.bus import AgentStatus, Assignment, InMemoryBus
+from btmission.runtime.bus import (
+    AgentLink,
+    AgentStatus,
+    Assignment,
+    ProgressAck,
+    ProgressKey,
+    progress_key,
+)
 from btmission.runtime.leaves import (
     BUILTIN_ACTIONS,
     BUILTIN_CONDITIONS,
@@ -61,6 +70,19 @@ from btmission.synthesis.tree import Kind, Node, Role
 
 Emit = Callable[..., None]
 
+PROGRESS_RESEND_S = 1.0
+"""A progress report the coordinator has not acknowledged after this long is sent again (the
+coordinator ignores copies it has seen)."""
+
+
+@dataclass
+class _Outgoing:
+    """A progress report waiting for the coordinator's acknowledgement."""
+
+    report: Progress
+    sent_s: float | None = None
+    """Mission time it was last sent (None: not yet: the link was down)."""
+
 
 class Agent:
     """One agent (module docstring). The runtime calls :meth:`tick` and :meth:`control_step`."""
@@ -74,7 +96,7 @@ class Agent:
         sensors: Sensors | None,
         navigator: Navigator,
         paths: PathCosts,
-        bus: InMemoryBus,
+        link: AgentLink,
         clock: Callable[[], float],
         *,
         settings: Mapping[str, Any],
@@ -87,7 +109,7 @@ class Agent:
         spec = mission.agent(agent_id)
         self.id = agent_id
         self.mission = mission
-        self.bus = bus
+        self.link = link
         self.clock = clock
         self.navigator = navigator
         self._emit = emit
@@ -161,7 +183,9 @@ class Agent:
                     f"agents.{agent_id}",
                     mission.file,
                 ) from exc
-        bus.connect(agent_id, self.on_announcement, self.on_assignment)
+        self._outbox: dict[ProgressKey, _Outgoing] = {}
+        """Progress reports not acknowledged yet, oldest first."""
+        link.connect(self.on_announcement, self.on_assignment, self.on_ack)
 
     # ---------------------------------------------------------------- tree construction
     @property
@@ -208,6 +232,7 @@ class Agent:
             return
         self.last_announcement = ann
         now = self.clock()
+        self._send_progress(now)  # the coordinator is reachable: reports queued go first
         tel = self.ctx.telemetry()
         p = tel.position
         state = AgentState(
@@ -216,7 +241,7 @@ class Agent:
             self.task.id if self.task is not None else None,
             self.committed,
         )
-        self.bus.send_bid(self.bidder.bid(ann, state, now))
+        self.link.send_bid(self.bidder.bid(ann, state, now))
 
     def on_assignment(self, msg: Assignment) -> None:
         if not self.alive or self.id not in msg.tasks:
@@ -265,6 +290,7 @@ class Agent:
         if not self.alive:
             return Status.INVALID
         self._failure = ""
+        self._send_progress(now)
         self._deep(self.root.tick_once)
         self.ticks += 1
         task = self.task
@@ -296,8 +322,31 @@ class Agent:
         return self.root.status
 
     def _progress(self, task: str, event: str, now: float, reason: str = "") -> None:
-        self.bus.send_progress(Progress(self.id, task, event, now, reason))  # type: ignore[arg-type]
+        p = Progress(self.id, task, event, now, reason)  # type: ignore[arg-type]
+        self._outbox[progress_key(p)] = _Outgoing(p)
+        self._send_progress(now)
         self._emit("progress", agent=self.id, task=task, event=event, reason=reason)
+
+    def _send_progress(self, now: float) -> None:
+        """Send the progress reports not sent yet, and resend those unacknowledged for
+        ``PROGRESS_RESEND_S`` (a lossy transport); nothing while the link is down (they wait)."""
+        if not self._outbox or not self.link.up:
+            return
+        for out in self._outbox.values():
+            if out.sent_s is None or now - out.sent_s >= PROGRESS_RESEND_S:
+                self.link.send_progress(out.report)
+                out.sent_s = now
+
+    def on_ack(self, ack: ProgressAck) -> None:
+        """The coordinator took these reports: forget them."""
+        for key in ack.keys:
+            self._outbox.pop(key, None)
+
+    @property
+    def unacknowledged(self) -> list[Progress]:
+        """Progress reports the coordinator has not acknowledged yet (queued while the link
+        is down, or in flight)."""
+        return [out.report for out in self._outbox.values()]
 
     def note_failure(self, action: str, reason: str) -> None:
         """Called by a failing action: the reason reported if the task fails."""
@@ -330,7 +379,7 @@ class Agent:
         if self.alive:
             self.navigator.step(now)
             if self.navigator.prediction is not None:
-                self.bus.share_prediction(self.id, now, self.navigator.prediction)
+                self.link.share_prediction(now, self.navigator.prediction)
 
     def status(self, now: float) -> AgentStatus:
         tel = self.ctx.telemetry()
@@ -370,4 +419,4 @@ class Agent:
     def kill(self) -> None:
         """The agent stops: no more ticks, bids, setpoints or messages."""
         self.alive = False
-        self.bus.disconnect(self.id)
+        self.link.disconnect()

@@ -11,17 +11,25 @@ message              direction              content
 ``Assignment``       coordinator → agents   who executes what after the round
 ``AgentStatus``      agent → coordinator    pose, mode, battery, current task and action
 ``Progress``         agent → coordinator    commit point passed, task done, task failed
+``ProgressAck``      coordinator → agent    the progress reports it has taken
 ===================  =====================  =============================================
 
 plus, between agents, the predicted trajectories the seed 003 distributed NMPC shares
-(:meth:`InMemoryBus.share_prediction`).
+(:class:`Prediction`). :mod:`btmission.runtime.wire` turns each into versioned JSON.
+
+The coordinator sees the transport only through :class:`CoordinatorLink`, an agent only through
+its :class:`AgentLink` (one per agent), so a network transport can replace this bus without
+touching either. :class:`InMemoryBus` implements both (:meth:`InMemoryBus.agent_link` gives an
+agent's end).
 
 Delivery is synchronous and lossless while an agent's link is up: an announcement reaches every
 connected agent at once and their bids are back in the coordinator's inbox before the round
-allocates. :meth:`InMemoryBus.set_link` cuts an agent off (messages both ways are dropped), which
-is how tests and the operator simulate a lost link: the agent keeps executing its current task
-(seed 000 §I, §V-C) while the coordinator, hearing nothing, drops it after
-``coordination.agent_timeout_s``.
+allocates (a bid window of 0). :meth:`InMemoryBus.set_link` cuts an agent off (messages both
+ways are dropped), which is how tests and the operator simulate a lost link: the agent keeps
+executing its current task (seed 000 §I, §V-C) while the coordinator, hearing nothing, drops it
+after ``coordination.agent_timeout_s``. The agent keeps its progress reports until the
+coordinator acknowledges them (:class:`ProgressAck`), so a completion made while it was cut off
+is delivered when the link returns.
 """
 
 from __future__ import annotations
@@ -29,6 +37,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
@@ -61,15 +70,27 @@ class AgentStatus:
     action: str
 
 
-@dataclass
-class _Endpoint:
-    on_announcement: Callable[[Announcement], None]
-    on_assignment: Callable[[Assignment], None]
-    up: bool = True
+ProgressKey = tuple[str, str, float]
+"""What identifies one progress report of an agent: (task, event, time_s)."""
 
 
-@dataclass
-class _Prediction:
+def progress_key(p: Progress) -> ProgressKey:
+    return (p.task, p.event, p.time_s)
+
+
+@dataclass(frozen=True)
+class ProgressAck:
+    """The coordinator has taken these progress reports of ``agent``: it stops resending them."""
+
+    agent: str
+    keys: tuple[ProgressKey, ...]
+
+
+@dataclass(frozen=True, eq=False)
+class Prediction:
+    """An agent's predicted positions, (N+1, 2) or (N+1, 3), made at ``time_s`` (seed 003 §VI)."""
+
+    agent: str
     time_s: float
     positions: FloatArray
 
@@ -79,24 +100,98 @@ class CoordinatorInbox(Inbox):
     statuses: list[AgentStatus] = field(default_factory=list)
 
 
+OnAnnouncement = Callable[[Announcement], None]
+OnAssignment = Callable[[Assignment], None]
+OnAck = Callable[[ProgressAck], None]
+
+
+class CoordinatorLink(Protocol):
+    """The coordinator's side of the transport."""
+
+    def announce(self, announcement: Announcement) -> None:
+        """To every reachable agent."""
+
+    def assign(self, assignment: Assignment) -> None:
+        """To every reachable agent."""
+
+    def acknowledge(self, ack: ProgressAck) -> None:
+        """To ``ack.agent``."""
+
+    def drain(self) -> CoordinatorInbox:
+        """Bids, progress and statuses that arrived since the last call."""
+        ...
+
+
+class AgentLink(Protocol):
+    """One agent's side of the transport."""
+
+    @property
+    def agent(self) -> str: ...
+
+    @property
+    def up(self) -> bool:
+        """Whether the coordinator can be reached now (as far as this end can tell)."""
+        ...
+
+    def connect(
+        self, on_announcement: OnAnnouncement, on_assignment: OnAssignment, on_ack: OnAck
+    ) -> None:
+        """Receive the coordinator's messages through these callbacks."""
+
+    def disconnect(self) -> None: ...
+
+    def send_bid(self, bid: Bid) -> None: ...
+
+    def send_progress(self, progress: Progress) -> None: ...
+
+    def send_status(self, status: AgentStatus) -> None: ...
+
+    def share_prediction(self, time_s: float, positions: FloatArray) -> None:
+        """Publish this agent's predicted positions to the other agents."""
+
+    def predictions(
+        self,
+        time_s: float,
+        step_s: float,
+        near: FloatArray | None = None,
+        within_m: float = math.inf,
+    ) -> list[FloatArray]:
+        """The other agents' predictions (:meth:`InMemoryBus.predictions`)."""
+        ...
+
+
+@dataclass
+class _Endpoint:
+    on_announcement: OnAnnouncement
+    on_assignment: OnAssignment
+    on_ack: OnAck | None = None
+    up: bool = True
+
+
 class InMemoryBus:
-    """Synchronous in-process transport (module docstring)."""
+    """Synchronous in-process transport (module docstring): a :class:`CoordinatorLink`, and
+    through :meth:`agent_link` every agent's :class:`AgentLink`."""
 
     def __init__(self) -> None:
         self._agents: dict[str, _Endpoint] = {}
         self._inbox = CoordinatorInbox()
-        self._predictions: dict[str, _Prediction] = {}
+        self._predictions: dict[str, Prediction] = {}
         self.dropped = 0
         """Messages lost on cut links."""
 
     # ---------------------------------------------------------------- connections
+    def agent_link(self, agent: str) -> InMemoryAgentLink:
+        """``agent``'s end of the bus."""
+        return InMemoryAgentLink(self, agent)
+
     def connect(
         self,
         agent: str,
-        on_announcement: Callable[[Announcement], None],
-        on_assignment: Callable[[Assignment], None],
+        on_announcement: OnAnnouncement,
+        on_assignment: OnAssignment,
+        on_ack: OnAck | None = None,
     ) -> None:
-        self._agents[agent] = _Endpoint(on_announcement, on_assignment)
+        self._agents[agent] = _Endpoint(on_announcement, on_assignment, on_ack)
 
     def disconnect(self, agent: str) -> None:
         self._agents.pop(agent, None)
@@ -126,6 +221,13 @@ class InMemoryBus:
             else:
                 self.dropped += 1
 
+    def acknowledge(self, ack: ProgressAck) -> None:
+        ep = self._agents.get(ack.agent)
+        if ep is None or not ep.up:
+            self.dropped += 1
+        elif ep.on_ack is not None:
+            ep.on_ack(ack)
+
     # ---------------------------------------------------------------- agents → coordinator
     def send_bid(self, bid: Bid) -> None:
         if self.link_up(bid.agent):
@@ -153,7 +255,7 @@ class InMemoryBus:
     # ---------------------------------------------------------------- agent ↔ agent
     def share_prediction(self, agent: str, time_s: float, positions: FloatArray) -> None:
         """Publish an agent's predicted (N+1, 2) positions (seed 003 §VI)."""
-        self._predictions[agent] = _Prediction(time_s, np.asarray(positions, dtype=float))
+        self._predictions[agent] = Prediction(agent, time_s, np.asarray(positions, dtype=float))
 
     def predictions(
         self,
@@ -184,3 +286,48 @@ class InMemoryBus:
             out.append((d, pts))
         out.sort(key=lambda x: x[0])
         return [p for _, p in out]
+
+
+class InMemoryAgentLink:
+    """One agent's end of an :class:`InMemoryBus` (an :class:`AgentLink`)."""
+
+    def __init__(self, bus: InMemoryBus, agent: str) -> None:
+        self._bus = bus
+        self._agent = agent
+
+    @property
+    def agent(self) -> str:
+        return self._agent
+
+    @property
+    def up(self) -> bool:
+        return self._bus.link_up(self._agent)
+
+    def connect(
+        self, on_announcement: OnAnnouncement, on_assignment: OnAssignment, on_ack: OnAck
+    ) -> None:
+        self._bus.connect(self._agent, on_announcement, on_assignment, on_ack)
+
+    def disconnect(self) -> None:
+        self._bus.disconnect(self._agent)
+
+    def send_bid(self, bid: Bid) -> None:
+        self._bus.send_bid(bid)
+
+    def send_progress(self, progress: Progress) -> None:
+        self._bus.send_progress(progress)
+
+    def send_status(self, status: AgentStatus) -> None:
+        self._bus.send_status(status)
+
+    def share_prediction(self, time_s: float, positions: FloatArray) -> None:
+        self._bus.share_prediction(self._agent, time_s, positions)
+
+    def predictions(
+        self,
+        time_s: float,
+        step_s: float,
+        near: FloatArray | None = None,
+        within_m: float = math.inf,
+    ) -> list[FloatArray]:
+        return self._bus.predictions(self._agent, time_s, step_s, near, within_m)

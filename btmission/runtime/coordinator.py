@@ -15,7 +15,15 @@ Around that it
 * leaves tasks no agent can reach open (state ``unreachable``) with the reason, and says at once
   when an added task's location is outside the map or inside rock;
 * publishes every change of a task's state as an event (``task``), every round (``round``) and
-  every arrival (``task_added``).
+  every arrival (``task_added``);
+* collects bids for ``coordination.bid_window_s`` after each announcement (0: in the same step,
+  which the in-process bus gives); bids for an older announcement, or arriving when no round is
+  collecting, are ignored and counted in the ``round`` event (``stale_bids``, ``late_bids``);
+* acknowledges every progress report (:class:`~btmission.runtime.bus.ProgressAck`) and ignores
+  copies of one it has seen, so an agent can resend until acknowledged. A completion (or commit
+  point) reported late by an agent that lost the task while its link was down wins if it is the
+  first: the task is credited to that agent, and the agent that held it meanwhile is withdrawn
+  in the same round (``withdrawn`` event; its assignment no longer names the task).
 """
 
 from __future__ import annotations
@@ -28,9 +36,17 @@ from dataclasses import replace
 from typing import Any
 
 from btmission.allocation.auction import Announcement, AuctionConfig, AuctionState
-from btmission.allocation.loop import AuctionLoop, Inbox, RoundResult
+from btmission.allocation.loop import AuctionLoop, Inbox, Progress, RoundResult
 from btmission.allocation.tasks import PoolError, TaskInfo, TaskState, pool_from_mission
-from btmission.runtime.bus import AgentStatus, Assignment, InMemoryBus
+from btmission.runtime.bus import (
+    AgentStatus,
+    Assignment,
+    CoordinatorInbox,
+    CoordinatorLink,
+    ProgressAck,
+    ProgressKey,
+    progress_key,
+)
 from btmission.spec.mission import Mission
 
 Emit = Callable[..., None]
@@ -56,7 +72,7 @@ class Coordinator:
     def __init__(
         self,
         mission: Mission,
-        bus: InMemoryBus,
+        link: CoordinatorLink,
         clock: Callable[[], float],
         emit: Emit,
         *,
@@ -64,7 +80,13 @@ class Coordinator:
         places: Mapping[str, tuple[float, float, float]] | None = None,
     ) -> None:
         self.mission = mission
-        self.bus = bus
+        self.link = link
+        self.bid_window_s = float(getattr(mission.spec.coordination, "bid_window_s", 0.0))
+        self._open: tuple[int, float, CoordinatorInbox] | None = None
+        """The round collecting bids: (serial, closes at, what arrived so far)."""
+        self._seen: dict[str, set[ProgressKey]] = {}
+        """Progress reports taken, per agent (copies of them are ignored)."""
+        self._acks: dict[str, list[ProgressKey]] = {}
         self._emit = emit
         self._check = check_location
         self._places = dict(places or {})
@@ -192,13 +214,25 @@ class Coordinator:
         for t in self.state.pool:
             if t.id not in self._added and t.info.arrival_s <= now:
                 self._emit_added(t.info, t.info.arrival_s, "mission")
+        if self._open is not None:  # a round is collecting bids (bid window)
+            serial, closes, inbox = self._open
+            self._take(self.link.drain(), inbox)
+            if now + 1e-9 < closes:
+                return None
+            self._open = None
+            return self.loop.close_round(inbox, now, serial)
         if now + 1e-9 < self.next_round:
             return None
-        result = self.loop.step()
         self.next_round = self.next_round + self.period_s
         if self.next_round <= now:  # a long step: skip to the next slot
             self.next_round = (math.floor(now / self.period_s) + 1) * self.period_s
-        return result
+        if self.bid_window_s <= 0:
+            return self.loop.step()  # announce, collect (_collect) and allocate now
+        early = self._collect_early()
+        ann = self.loop.open_round(now)
+        self._announce(ann)
+        self._open = (ann.serial, now + self.bid_window_s, early)
+        return None
 
     def _emit_added(self, info: TaskInfo, t: float, by: str) -> None:
         self._added.add(info.id)
@@ -223,15 +257,51 @@ class Coordinator:
         )
 
     def _collect(self, ann: Announcement, now: float) -> Inbox:
-        t0 = time.perf_counter()
-        self.bus.announce(ann)  # in one process, every agent computes its bid right here
-        self.bid_times.append(time.perf_counter() - t0)
-        inbox = self.bus.drain()
-        if self.recalled:
-            inbox.bids = [b for b in inbox.bids if b.agent not in self.recalled]
-        for s in inbox.statuses:
-            self.statuses[s.agent] = s
+        """A round without a bid window: announce, and take what is back at once."""
+        inbox = self._collect_early()
+        self._announce(ann)  # in one process, every agent computes its bid right here
+        self._take(self.link.drain(), inbox)
         return inbox
+
+    def _announce(self, ann: Announcement) -> None:
+        t0 = time.perf_counter()
+        self.link.announce(ann)
+        self.bid_times.append(time.perf_counter() - t0)
+
+    def _collect_early(self) -> CoordinatorInbox:
+        """What arrived between rounds: progress and statuses are kept; bids are late (the
+        round they answered has closed)."""
+        inbox = CoordinatorInbox()
+        got = self.link.drain()
+        inbox.late_bids += len(got.bids)
+        got.bids = []
+        self._take(got, inbox)
+        return inbox
+
+    def _take(self, got: CoordinatorInbox, into: CoordinatorInbox) -> None:
+        """Add what arrived to the round's inbox: progress reports not seen before (every one
+        is acknowledged after the round), bids, statuses."""
+        if self.recalled:  # the operator recalled them: out of the auction
+            into.bids.extend(b for b in got.bids if b.agent not in self.recalled)
+        else:
+            into.bids.extend(got.bids)
+        into.late_bids += got.late_bids
+        for p in got.progress:
+            if self._first(p):
+                into.progress.append(p)
+        for s in got.statuses:
+            self.statuses[s.agent] = s
+        into.statuses.extend(got.statuses)
+
+    def _first(self, p: Progress) -> bool:
+        """Whether ``p`` is new (not a resent copy); it will be acknowledged either way."""
+        key = progress_key(p)
+        self._acks.setdefault(p.agent, []).append(key)
+        seen = self._seen.setdefault(p.agent, set())
+        if key in seen:
+            return False
+        seen.add(key)
+        return True
 
     def _publish(self, result: RoundResult) -> None:
         self.last = result
@@ -257,6 +327,8 @@ class Coordinator:
             self._history_len[t.id] = len(t.history)
         for msg in result.progress_problems:
             self._emit("warning", message=msg)
+        for w in result.withdrawn:
+            self._emit("withdrawn", agent=w.agent, task=w.task, by=w.by, reason=w.reason)
         data: dict[str, Any] = {
             "round": rep.round,
             "announced": rep.announced,
@@ -270,8 +342,15 @@ class Coordinator:
             data["assignments"] = self._last_assignments
         if rep.dropped:
             data["dropped"] = list(rep.dropped)
+        if rep.late_bids:
+            data["late_bids"] = rep.late_bids
+        if rep.stale_bids:
+            data["stale_bids"] = rep.stale_bids
         self._emit("round", **data)
-        self.bus.assign(Assignment(now, rep.round, result.assignments, result.announcement))
+        self.link.assign(Assignment(now, rep.round, result.assignments, result.announcement))
+        acks, self._acks = self._acks, {}
+        for agent, keys in acks.items():
+            self.link.acknowledge(ProgressAck(agent, tuple(keys)))
 
     # ---------------------------------------------------------------- queries
     def open_tasks(self) -> list[str]:
@@ -281,6 +360,8 @@ class Coordinator:
         """Nothing left to allocate: every arrived task is done, failed or unreachable, nothing
         is held, nothing is queued and no task is still to arrive."""
         if not self._pending.empty() or self.state.pool.next_arrival(now) is not None:
+            return False
+        if self._open is not None:
             return False
         for t in self.state.pool:
             if t.state.terminal:

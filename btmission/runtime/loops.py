@@ -73,7 +73,7 @@ class AgentRuntime:
             return False
         a = self.agent
         if a.alive:
-            a.bus.send_status(a.status(now))
+            a.link.send_status(a.status(now))
         return True
 
     def step(self, now: float) -> None:

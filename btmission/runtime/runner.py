@@ -45,7 +45,7 @@ from btmission.backends.provider import Vehicle, VehicleProvider, provider_facto
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
 from btmission.plugins import Implementations
 from btmission.runtime.agent import Agent
-from btmission.runtime.bus import InMemoryBus
+from btmission.runtime.bus import AgentLink, InMemoryBus
 from btmission.runtime.clock import Clock, ManualClock
 from btmission.runtime.commands import (
     AddTask,
@@ -275,10 +275,13 @@ class MissionRun:
             vehicle = self.provider.attach(spec.id, kind, spec.start, url=spec.backend, **options)
             self.vehicles[spec.id] = vehicle
             control_dt = 0.1 if ground else self.dt
+            link = self.bus.agent_link(spec.id)  # the agent's end of the coordinator link
 
-            def predictions(agent: str, _backend: Backend = vehicle.backend) -> list[Any]:
+            def predictions(
+                agent: str, _backend: Backend = vehicle.backend, _link: AgentLink = link
+            ) -> list[Any]:
                 pos = _backend.telemetry().position
-                return self.bus.predictions(agent, self.now(), 0.1, pos, NEIGHBOUR_RANGE_M)
+                return _link.predictions(self.now(), 0.1, pos, NEIGHBOUR_RANGE_M)
 
             nav = Navigator(
                 spec.id,
@@ -299,7 +302,7 @@ class MissionRun:
                 vehicle.sensors,
                 nav,
                 self.paths,
-                self.bus,
+                link,
                 self.now,
                 settings=self.settings,
                 emit=self.emit,

@@ -226,6 +226,12 @@ class CoordinationSpec(_Strict):
     agent_timeout_s: FiniteFloat = Field(
         3.0, gt=0, description="Silence after which an agent is dropped."
     )
+    bid_window_s: FiniteFloat = Field(
+        0.0,
+        ge=0,
+        description="How long a round collects bids after its announcement (0: in the same "
+        "step, as the in-process bus delivers them); later bids are ignored and counted.",
+    )
     switch_cost: FiniteFloat = Field(
         0.0,
         ge=0,

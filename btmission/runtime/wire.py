@@ -1,0 +1,396 @@
+"""The wire form of the coordinator/agent messages: versioned plain dicts, as JSON bytes.
+
+Every message of :mod:`btmission.runtime.bus` — :class:`~btmission.allocation.auction.Announcement`,
+:class:`~btmission.allocation.auction.Bid`, :class:`~btmission.runtime.bus.Assignment`,
+:class:`~btmission.runtime.bus.AgentStatus`, :class:`~btmission.allocation.loop.Progress`,
+:class:`~btmission.runtime.bus.ProgressAck` and :class:`~btmission.runtime.bus.Prediction` —
+becomes a JSON object with the format version ``v`` and the message ``kind``, then its fields::
+
+    {"v": 1, "kind": "bid", "agent": "R1", "time_s": 2.5, "tasks": ["T1", "T2"],
+     "costs": [12.5, "nan"], "committed_to": null, "serial": 3}
+
+Arrays are lists. JSON has no NaN or infinity, so a non-finite number in a float field is the
+string ``"nan"``, ``"inf"`` or ``"-inf"`` (a bid's "no bid" and "unreachable"). Decoding checks
+everything — the version, the kind, every field's presence and type, and the size of the bytes
+against ``BTMISSION_MAX_MESSAGE_BYTES`` before parsing — and raises :class:`WireError`, with the
+message kind and the field, for anything else; a transport can drop (and count) such a message
+without knowing the format.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable, Mapping
+from typing import Any, TypeAlias
+
+import numpy as np
+
+from btmission.allocation.auction import Announcement, Bid
+from btmission.allocation.loop import Progress
+from btmission.allocation.tasks import TaskInfo
+from btmission.limits import MAX_MESSAGE_BYTES
+from btmission.runtime.bus import AgentStatus, Assignment, Prediction, ProgressAck
+
+WIRE_VERSION = 1
+
+Message: TypeAlias = (
+    Announcement | Bid | Assignment | AgentStatus | Progress | ProgressAck | Prediction
+)
+
+PROGRESS_EVENTS = ("committed", "done", "failed")
+
+
+class WireError(ValueError):
+    """A message that cannot be decoded (or encoded): the text says which kind and field."""
+
+
+# ------------------------------------------------------------------------------------ encoding
+def _num(x: float) -> float | str:
+    x = float(x)
+    if math.isfinite(x):
+        return x
+    return "nan" if math.isnan(x) else ("inf" if x > 0 else "-inf")
+
+
+def _nums(xs: Any) -> list[float | str]:
+    return [_num(x) for x in np.asarray(xs, dtype=np.float64).ravel()]
+
+
+def _plain(v: Any, where: str) -> Any:
+    """A task field as JSON: tuples and arrays as lists, finite numbers only."""
+    if v is None or isinstance(v, (str, bool)):
+        return v
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        if not math.isfinite(v):
+            raise WireError(f"{where}: {v} is not a finite number")
+        return float(v)
+    if isinstance(v, np.ndarray):
+        v = v.tolist()
+    if isinstance(v, (list, tuple)):
+        return [_plain(x, where) for x in v]
+    if isinstance(v, Mapping):
+        return {str(k): _plain(x, f"{where}.{k}") for k, x in v.items()}
+    raise WireError(f"{where}: {type(v).__name__} cannot be sent")
+
+
+def _task(t: TaskInfo) -> dict[str, Any]:
+    return {
+        "id": t.id,
+        "type": t.type,
+        "fields": _plain(dict(t.fields), f"task '{t.id}' fields"),
+        "priority": t.priority,
+        "arrival_s": t.arrival_s,
+        "multi_stage": t.multi_stage,
+    }
+
+
+def _announcement(a: Announcement) -> dict[str, Any]:
+    return {"serial": a.serial, "time_s": a.time_s, "tasks": [_task(t) for t in a.tasks]}
+
+
+def to_dict(msg: Message) -> dict[str, Any]:
+    """The message as a plain, JSON-ready dict (``v``, ``kind``, then its fields)."""
+    body: dict[str, Any]
+    if isinstance(msg, Announcement):
+        kind, body = "announcement", _announcement(msg)
+    elif isinstance(msg, Bid):
+        kind = "bid"
+        body = {
+            "agent": msg.agent,
+            "time_s": _num(msg.time_s),
+            "tasks": list(msg.tasks),
+            "costs": _nums(msg.costs),
+            "committed_to": msg.committed_to,
+            "serial": msg.serial,
+        }
+    elif isinstance(msg, Assignment):
+        kind = "assignment"
+        body = {
+            "time_s": msg.time_s,
+            "round": msg.round,
+            "tasks": dict(msg.tasks),
+            "announcement": _announcement(msg.announcement),
+        }
+    elif isinstance(msg, AgentStatus):
+        kind = "status"
+        body = {
+            "agent": msg.agent,
+            "time_s": msg.time_s,
+            "position": _nums(msg.position),
+            "mode": msg.mode,
+            "armed": msg.armed,
+            "battery": _num(msg.battery),
+            "task": msg.task,
+            "action": msg.action,
+        }
+    elif isinstance(msg, Progress):
+        kind = "progress"
+        body = {
+            "agent": msg.agent,
+            "task": msg.task,
+            "event": msg.event,
+            "time_s": msg.time_s,
+            "reason": msg.reason,
+        }
+    elif isinstance(msg, ProgressAck):
+        kind = "ack"
+        body = {"agent": msg.agent, "keys": [[t, e, s] for t, e, s in msg.keys]}
+    elif isinstance(msg, Prediction):
+        kind = "prediction"
+        pos = np.asarray(msg.positions, dtype=np.float64)
+        body = {
+            "agent": msg.agent,
+            "time_s": msg.time_s,
+            "positions": [_nums(row) for row in pos],
+        }
+    else:
+        raise WireError(f"{type(msg).__name__} is not a message")
+    return {"v": WIRE_VERSION, "kind": kind, **body}
+
+
+def encode(msg: Message) -> bytes:
+    """The message as JSON bytes (UTF-8). Raises :class:`WireError` past the size budget."""
+    data = json.dumps(to_dict(msg), allow_nan=False, separators=(",", ":")).encode()
+    if len(data) > MAX_MESSAGE_BYTES.limit:
+        raise WireError(
+            MAX_MESSAGE_BYTES.exceeded(f"the {to_dict(msg)['kind']} message", len(data))
+        )
+    return data
+
+
+# ------------------------------------------------------------------------------------ decoding
+class _Fields:
+    """Typed access to a message's fields; every problem names the kind and the field."""
+
+    def __init__(self, kind: str, data: Mapping[str, Any]) -> None:
+        self.kind = kind
+        self.data = data
+
+    def fail(self, name: str, expected: str, got: Any = None) -> WireError:
+        shown = "" if got is None else f" (got {_show(got)})"
+        return WireError(f"{self.kind} message: field '{name}' must be {expected}{shown}")
+
+    def raw(self, name: str) -> Any:
+        if name not in self.data:
+            raise WireError(f"{self.kind} message: missing field '{name}'")
+        return self.data[name]
+
+    def text(self, name: str, optional: bool = False) -> Any:
+        v = self.raw(name)
+        if (v is None and optional) or isinstance(v, str):
+            return v
+        raise self.fail(name, "a string" + (" or null" if optional else ""), v)
+
+    def integer(self, name: str, optional: bool = False) -> Any:
+        v = self.raw(name)
+        if (v is None and optional) or (isinstance(v, int) and not isinstance(v, bool)):
+            return v
+        raise self.fail(name, "an integer" + (" or null" if optional else ""), v)
+
+    def flag(self, name: str) -> bool:
+        v = self.raw(name)
+        if isinstance(v, bool):
+            return v
+        raise self.fail(name, "true or false", v)
+
+    def number(self, name: str, finite: bool = True) -> float:
+        v = self.raw(name)
+        return _number(v, finite, lambda: self.fail(name, _NUM[finite], v))
+
+    def numbers(self, name: str, v: Any = None, finite: bool = True) -> list[float]:
+        v = self.raw(name) if v is None else v
+        expected = "a list of " + _NUMS[finite]
+        if not isinstance(v, list):
+            raise self.fail(name, expected, v)
+        return [_number(x, finite, lambda: self.fail(name, expected, v)) for x in v]
+
+    def texts(self, name: str) -> list[str]:
+        v = self.raw(name)
+        if isinstance(v, list) and all(isinstance(x, str) for x in v):
+            return v
+        raise self.fail(name, "a list of strings", v)
+
+    def mapping(self, name: str) -> Mapping[str, Any]:
+        v = self.raw(name)
+        if isinstance(v, dict):
+            return v
+        raise self.fail(name, "an object", v)
+
+
+_NUM = {True: "a finite number", False: 'a number ("nan", "inf" and "-inf" included)'}
+_NUMS = {True: "finite numbers", False: 'numbers ("nan", "inf" and "-inf" included)'}
+_NONFINITE = {"nan": math.nan, "inf": math.inf, "-inf": -math.inf}
+
+
+def _number(v: Any, finite: bool, error: Callable[[], WireError]) -> float:
+    if isinstance(v, (int, float)) and not isinstance(v, bool):
+        x = float(v)
+    elif isinstance(v, str) and v in _NONFINITE and not finite:
+        x = _NONFINITE[v]
+    else:
+        raise error()
+    if finite and not math.isfinite(x):
+        raise error()
+    return x
+
+
+def _no_constant(name: str) -> Any:
+    raise ValueError(f'{name} is not JSON (a message writes "nan", "inf" or "-inf")')
+
+
+def _show(v: Any) -> str:
+    text = json.dumps(v) if isinstance(v, (str, int, float, bool, type(None))) else type(v).__name__
+    text = "list" if isinstance(v, list) else ("object" if isinstance(v, dict) else text)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _task_from(kind: str, data: Any, i: int) -> TaskInfo:
+    if not isinstance(data, dict):
+        raise WireError(f"{kind} message: task {i} must be an object (got {_show(data)})")
+    f = _Fields(f"{kind}", data)
+    try:
+        return TaskInfo(
+            f.text("id"),
+            f.text("type"),
+            dict(f.mapping("fields")),
+            f.number("priority"),
+            f.number("arrival_s"),
+            f.flag("multi_stage"),
+        )
+    except WireError as exc:
+        raise WireError(str(exc).replace(" message:", f" message, task {i}:", 1)) from None
+    except ValueError as exc:  # TaskInfo's own checks (priority > 0 ...)
+        raise WireError(f"{kind} message, task {i}: {exc}") from None
+
+
+def _announcement_from(kind: str, data: Any) -> Announcement:
+    if not isinstance(data, dict):
+        raise WireError(f"{kind} message: field 'announcement' must be an object")
+    f = _Fields(kind, data)
+    tasks = f.raw("tasks")
+    if not isinstance(tasks, list):
+        raise f.fail("tasks", "a list of tasks", tasks)
+    serial = f.integer("serial")
+    return Announcement(
+        serial, f.number("time_s"), tuple(_task_from(kind, t, i) for i, t in enumerate(tasks))
+    )
+
+
+def _bid(f: _Fields) -> Bid:
+    tasks = f.texts("tasks")
+    costs = f.numbers("costs", finite=False)
+    if len(costs) != len(tasks):
+        raise WireError(f"bid message: {len(costs)} costs for {len(tasks)} task(s)")
+    return Bid(
+        f.text("agent"),
+        f.number("time_s"),
+        tuple(tasks),
+        np.array(costs, dtype=np.float64),
+        f.text("committed_to", optional=True),
+        f.integer("serial", optional=True),
+    )
+
+
+def _assignment(f: _Fields) -> Assignment:
+    tasks = f.mapping("tasks")
+    for agent, task in tasks.items():
+        if task is not None and not isinstance(task, str):
+            raise f.fail(f"tasks.{agent}", "a task id or null", task)
+    return Assignment(
+        f.number("time_s"),
+        f.integer("round"),
+        dict(tasks),
+        _announcement_from(f.kind, f.raw("announcement")),
+    )
+
+
+def _status(f: _Fields) -> AgentStatus:
+    pos = f.numbers("position")
+    if len(pos) != 3:
+        raise f.fail("position", "[x, y, z]", f.raw("position"))
+    return AgentStatus(
+        f.text("agent"),
+        f.number("time_s"),
+        (pos[0], pos[1], pos[2]),
+        f.text("mode"),
+        f.flag("armed"),
+        f.number("battery", finite=False),
+        f.text("task", optional=True),
+        f.text("action"),
+    )
+
+
+def _progress(f: _Fields) -> Progress:
+    event = f.text("event")
+    if event not in PROGRESS_EVENTS:
+        raise f.fail("event", " or ".join(PROGRESS_EVENTS), event)
+    return Progress(f.text("agent"), f.text("task"), event, f.number("time_s"), f.text("reason"))
+
+
+def _ack(f: _Fields) -> ProgressAck:
+    keys = f.raw("keys")
+    expected = "a list of [task, event, time_s]"
+    if not isinstance(keys, list):
+        raise f.fail("keys", expected, keys)
+    out: list[tuple[str, str, float]] = []
+    for k in keys:
+        if not (isinstance(k, list) and len(k) == 3 and isinstance(k[0], str) and isinstance(k[1], str)):  # fmt: skip
+            raise f.fail("keys", expected, keys)
+        out.append((k[0], k[1], _number(k[2], True, lambda: f.fail("keys", expected, keys))))
+    return ProgressAck(f.text("agent"), tuple(out))
+
+
+def _prediction(f: _Fields) -> Prediction:
+    rows = f.raw("positions")
+    expected = "a list of [x, y] or [x, y, z] rows, all the same length"
+    if not isinstance(rows, list) or not rows:
+        raise f.fail("positions", expected, rows)
+    pts = [f.numbers("positions", row) for row in rows]
+    if len({len(p) for p in pts}) != 1 or len(pts[0]) not in (2, 3):
+        raise f.fail("positions", expected)
+    return Prediction(f.text("agent"), f.number("time_s"), np.array(pts, dtype=np.float64))
+
+
+_DECODERS: dict[str, Callable[[_Fields], Message]] = {
+    "announcement": lambda f: _announcement_from(f.kind, f.data),
+    "bid": _bid,
+    "assignment": _assignment,
+    "status": _status,
+    "progress": _progress,
+    "ack": _ack,
+    "prediction": _prediction,
+}
+KINDS: tuple[str, ...] = tuple(_DECODERS)
+
+
+def from_dict(data: Any) -> Message:
+    """The message of a plain dict (:func:`to_dict`). Raises :class:`WireError`."""
+    if not isinstance(data, dict):
+        raise WireError(f"a message must be a JSON object (got {_show(data)})")
+    if "v" not in data:
+        raise WireError("message without a version 'v'")
+    v = data["v"]
+    if v != WIRE_VERSION or isinstance(v, bool):
+        raise WireError(f"message version {_show(v)} is not supported (expected {WIRE_VERSION})")
+    kind = data.get("kind")
+    if kind not in _DECODERS:
+        raise WireError(f"unknown message kind {_show(kind)} (expected one of: {', '.join(KINDS)})")
+    return _DECODERS[kind](_Fields(kind, data))
+
+
+def decode(data: bytes | bytearray | memoryview | str) -> Message:
+    """The message in JSON ``data`` (:func:`encode`). Raises :class:`WireError` for bytes over
+    the size budget, bad JSON, or a bad message."""
+    size = len(data.encode() if isinstance(data, str) else data)
+    if size > MAX_MESSAGE_BYTES.limit:
+        raise WireError(MAX_MESSAGE_BYTES.exceeded("the message", size))
+    try:
+        parsed = json.loads(
+            bytes(data) if not isinstance(data, str) else data, parse_constant=_no_constant
+        )
+    except (ValueError, RecursionError) as exc:
+        raise WireError(f"the message is not JSON: {exc}") from None
+    return from_dict(parsed)

@@ -1,0 +1,165 @@
+"""The wire codec of the coordinator/agent messages: round trips and bad input."""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+
+from btmission.allocation.auction import Announcement, Bid
+from btmission.allocation.loop import Progress
+from btmission.allocation.tasks import TaskInfo
+from btmission.runtime.bus import AgentStatus, Assignment, Prediction, ProgressAck
+from btmission.runtime.wire import KINDS, WIRE_VERSION, WireError, decode, encode, to_dict
+
+ANN = Announcement(
+    3,
+    1.5,
+    (
+        TaskInfo("T1", "inspect", {"location": [1.0, 2.5, 0.0]}, 2.0, 0.0),
+        TaskInfo(
+            "P1", "pick_and_deliver", {"pickup": "dock", "dropoff": [4, 5, 0]}, 1.0, 1.5, True
+        ),
+    ),
+)
+
+
+def roundtrip(msg: Any) -> Any:
+    data = encode(msg)
+    json.loads(data)  # strict JSON: no NaN / Infinity tokens
+    assert b"NaN" not in data and b"Infinity" not in data
+    return decode(data)
+
+
+def test_announcement_and_assignment_round_trip() -> None:
+    assert roundtrip(ANN) == ANN
+    msg = Assignment(1.6, 17, {"R1": "T1", "R2": None}, ANN)
+    back = roundtrip(msg)
+    assert back == msg and back.announcement.tasks[1].multi_stage
+    assert to_dict(msg)["v"] == WIRE_VERSION and to_dict(msg)["kind"] == "assignment"
+
+
+def test_bid_round_trips_nan_and_inf_costs() -> None:
+    bid = Bid.aligned("R1", 1.5, ANN, [12.25, math.nan], committed_to="T1")
+    assert bid.serial == 3
+    back = roundtrip(bid)
+    assert (back.agent, back.time_s, back.tasks, back.committed_to, back.serial) == (
+        "R1", 1.5, ("T1", "P1"), "T1", 3,
+    )  # fmt: skip
+    np.testing.assert_array_equal(back.costs, bid.costs)  # NaN == NaN here
+    inf = roundtrip(Bid.of("R2", 2.0, {"T1": math.inf, "P1": 0.0}))
+    assert inf.costs[0] == math.inf and inf.serial is None
+    assert to_dict(bid)["costs"] == [12.25, "nan"]
+
+
+def test_status_progress_ack_and_prediction_round_trip() -> None:
+    st = AgentStatus("R1", 3.0, (1.0, 2.0, 0.5), "OFFBOARD", True, 0.87, "T1", "fly_to")
+    assert roundtrip(st) == st
+    idle = AgentStatus("R2", 3.0, (0.0, 0.0, 0.0), "HOLD", False, math.nan, None, "")
+    back = roundtrip(idle)
+    assert back.task is None and math.isnan(back.battery)
+    for p in (Progress("R1", "T1", "done", 84.3), Progress("R1", "P1", "failed", 9.0, "blocked")):
+        assert roundtrip(p) == p
+    ack = ProgressAck("R1", (("T1", "done", 84.3), ("P1", "committed", 20.1)))
+    assert roundtrip(ack) == ack
+    for shape in ((11, 2), (1, 3)):
+        pred = Prediction("R3", 4.2, np.arange(math.prod(shape), dtype=float).reshape(shape) / 3)
+        out = roundtrip(pred)
+        assert out.agent == "R3" and out.time_s == 4.2
+        np.testing.assert_array_equal(out.positions, pred.positions)
+
+
+def test_every_kind_has_a_round_trip_test() -> None:
+    assert set(KINDS) == {
+        "announcement", "bid", "assignment", "status", "progress", "ack", "prediction",
+    }  # fmt: skip
+
+
+def good_bid() -> dict[str, Any]:
+    return to_dict(Bid.aligned("R1", 1.5, ANN, [1.0, math.inf]))
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"v": 2}, "message version 2 is not supported (expected 1)"),
+        ({"v": None}, "message version null is not supported"),
+        ({"kind": "hello"}, 'unknown message kind "hello" (expected one of: announcement, bid,'),
+        ({"agent": 7}, "bid message: field 'agent' must be a string (got 7)"),
+        ({"costs": [1.0]}, "bid message: 1 costs for 2 task(s)"),
+        (
+            {"costs": [1.0, "lots"]},
+            'bid message: field \'costs\' must be a list of numbers ("nan", "inf" and',
+        ),
+        (
+            {"costs": [1.0, True]},
+            'bid message: field \'costs\' must be a list of numbers ("nan", "inf" and',
+        ),
+        ({"time_s": "nan"}, "bid message: field 'time_s' must be a finite number (got \"nan\")"),
+        ({"serial": 1.5}, "bid message: field 'serial' must be an integer or null (got 1.5)"),
+        ({"tasks": "T1"}, "bid message: field 'tasks' must be a list of strings"),
+    ],
+)
+def test_a_bad_field_is_one_clear_error(change: dict[str, Any], message: str) -> None:
+    data = {**good_bid(), **change}
+    with pytest.raises(WireError) as err:
+        decode(json.dumps(data).encode())
+    assert message in str(err.value)
+
+
+def test_missing_fields_and_bad_nested_tasks() -> None:
+    data = good_bid()
+    del data["committed_to"]
+    with pytest.raises(WireError, match=r"^bid message: missing field 'committed_to'$"):
+        decode(json.dumps(data))
+    ann = to_dict(ANN)
+    ann["tasks"][1]["priority"] = -1
+    with pytest.raises(WireError, match="announcement message, task 1: task 'P1': priority"):
+        decode(json.dumps(ann))
+    ann["tasks"][1] = {"id": "P1"}
+    with pytest.raises(WireError, match="announcement message, task 1: missing field 'type'"):
+        decode(json.dumps(ann))
+    prog = to_dict(Progress("R1", "T1", "done", 1.0))
+    with pytest.raises(WireError, match="field 'event' must be committed or done or failed"):
+        decode(json.dumps({**prog, "event": "finished"}))
+    pred = to_dict(Prediction("R1", 0.0, np.zeros((3, 2))))
+    pred["positions"][1] = [0.0, 0.0, 0.0]
+    with pytest.raises(WireError, match="field 'positions' must be a list of"):
+        decode(json.dumps(pred))
+
+
+def test_bytes_that_are_not_a_message() -> None:
+    for data, message in [
+        (b"{not json", "the message is not JSON"),
+        (b'{"v": 1, "kind": "bid", "costs": [NaN]}', "NaN is not JSON"),
+        (b"[1, 2]", "a message must be a JSON object (got list)"),
+        (b'{"kind": "bid"}', "message without a version 'v'"),
+        (b"[" * 100_000 + b"]" * 100_000, "the message is not JSON"),
+        (b"\xff\xfe", "the message is not JSON"),
+    ]:
+        with pytest.raises(WireError, match=message.replace("(", r"\(").replace(")", r"\)")):
+            decode(data)
+
+
+def test_oversized_messages_are_refused_before_parsing(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("BTMISSION_MAX_MESSAGE_BYTES", "100")
+    with pytest.raises(WireError) as err:
+        decode(b" " * 101)
+    assert str(err.value) == (
+        "the message is 101, the limit is 100 (set BTMISSION_MAX_MESSAGE_BYTES to change it)"
+    )
+    with pytest.raises(WireError, match=r"the announcement message is \d+, the limit is 100"):
+        encode(ANN)
+    monkeypatch.delenv("BTMISSION_MAX_MESSAGE_BYTES")
+    assert decode(encode(ANN)) == ANN
+
+
+def test_a_task_field_that_cannot_be_sent() -> None:
+    bad = Announcement(1, 0.0, (TaskInfo("T1", "inspect", {"location": [math.nan, 0, 0]}),))
+    with pytest.raises(WireError, match=r"task 'T1' fields.location: nan is not a finite number"):
+        encode(bad)
+    with pytest.raises(WireError, match="object is not a message"):
+        to_dict(object())  # type: ignore[arg-type]
