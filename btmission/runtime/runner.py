@@ -40,7 +40,14 @@ from btmission.runtime.agent import Agent
 from btmission.runtime.bus import InMemoryBus
 from btmission.runtime.clock import Clock, ManualClock, SimClock
 from btmission.runtime.coordinator import Coordinator
-from btmission.runtime.events import LOG_FORMAT, LOG_VERSION, Event, EventStream, Observer
+from btmission.runtime.events import (
+    LOG_FORMAT,
+    LOG_VERSION,
+    Event,
+    EventStream,
+    Observer,
+    world_reference,
+)
 from btmission.runtime.leaves import (
     ErrorReporter,
     RunContext,
@@ -306,6 +313,7 @@ class MissionRun:
             seed=self.seed,
             controller=self.controller,
             world=world,
+            world_ref=world_reference(world, m.base_dir),
             step_s=m.spec.runtime.sim.step_s,
             auction_rate_hz=m.spec.coordination.auction_rate_hz,
             agents=[
@@ -517,6 +525,8 @@ class MissionRun:
         if self._ended is not None:
             return
         self._ended = result
+        for a in self.agents.values():
+            a.flush_tree_events()
         self.emit(
             "end",
             reason=result.reason,
