@@ -540,3 +540,20 @@ def test_an_agents_tree_events_replay_to_its_tree_status(ran: Ran) -> None:
         assert agent.tree_status[0] == agent.root.status.value == "SUCCESS"
     with pytest.raises(TypeError):
         ran.run.agents["G1"].tree_status[0] = "FAILURE"  # type: ignore[index]  # read-only
+
+
+@pytest.mark.parametrize(
+    ("value", "problem"),
+    [("-1", "runtime.settings.tree_event_s: expected a number ≥ 0 (got -1)"),
+     ("soon", "runtime.settings.tree_event_s: expected a number (got 'soon')")],
+)  # fmt: skip
+def test_tree_event_s_is_a_setting_validate_checks(
+    runner: CliRunner, tmp_path: Path, value: str, problem: str
+) -> None:
+    mission = tmp_path / "m.yaml"
+    mission.write_text(SMALL.lstrip("\n").replace("tree_event_s: 1.0", f"tree_event_s: {value}"))
+    r = runner.invoke(cli, ["validate", str(mission)])
+    assert r.exit_code == 2 and f"{mission}:15:55: {problem}" in r.output, r.output
+    mission.write_text(SMALL.lstrip("\n"))
+    r = runner.invoke(cli, ["validate", str(mission)])
+    assert r.exit_code == 0, r.output

@@ -2,7 +2,9 @@
 
 Everything that happens in a run is an :class:`Event` — a time, a kind and plain-data fields —
 published to every :class:`Observer` subscribed to an :class:`EventStream` (DESIGN.md §6, STYLE.md
-item 8: logging, viewing and test checks are all observers; nodes never import them).
+item 8: logging, viewing and test checks are all observers; nodes never import them). Observers
+are called on the run's thread: a slow one (a live viewer) goes behind a
+:class:`~btmission.runtime.observers.QueuedObserver`, which never holds the run up.
 
 The kinds a run emits (fields in brackets; positions are ``[x, y, z]`` lists in metres). Each
 has a typed class below (:class:`TypedEvent` subclasses, frozen dataclasses; ``Event.typed()``):
