@@ -42,6 +42,7 @@ from btmission.dispatch.missions import Mission
 from btmission.dispatch.service import FleetDispatcher
 from btmission.dispatch.topomap import TopoMap
 from btmission.plugins import Implementations
+from btmission.runtime.events import TypedEvent, register_event
 from btmission.runtime.leaves import AgentContext, RunContext, StatefulAction, resolve
 from btmission.spec.mission import Mission as MissionFile
 
@@ -360,6 +361,26 @@ class WaitAtPause(_Haulage):
         if not d.waiting(self.truck) and g not in d.planner.targets(k):
             d.request(self.truck, g)
         return Status.RUNNING
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class LoadEvent(TypedEvent):
+    """This library's own event: a truck started loading at its pickup, ``until`` (mission time)."""
+
+    KIND = "load"
+    agent: str
+    until: float
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class OffloadEvent(TypedEvent):
+    """A truck started offloading at its dropoff, ``until`` (mission time)."""
+
+    KIND = "offload"
+    agent: str
+    until: float
 
 
 class _Process(_Haulage):

@@ -232,6 +232,8 @@ def test_snapshots_are_immutable_and_follow_the_run(tmp_path: Path) -> None:
     tel = run.agents["G1"].ctx.telemetry()
     assert g1.position == pytest.approx(tuple(tel.position)) and g1.link_up and g1.alive
     assert g1.mode == tel.mode.value
+    assert dict(g1.tree) == dict(run.agents["G1"].tree_status) and g1.tree[0] == "RUNNING"
+    assert len(g1.tree) == len(run.agents["G1"].tree_nodes)
     result = run.run()
     run.end(result)
     assert run.snapshot.ended == "completed" and run.snapshot.counts() == {"done": 2}

@@ -14,6 +14,12 @@ An :class:`Agent` holds (seed 000 §IV-C, Fig. 3-4, Fig. 7; seed 003 §V):
   task, no bids on anything else) and says so to the coordinator;
 * its :class:`~btmission.runtime.navigation.Navigator`, stepped every control period.
 
+The tree is ticked through a py_trees ``BehaviourTree``
+(:class:`~btmission.runtime.treestatus.LeanBehaviourTree`) whose
+:class:`~btmission.runtime.treestatus.TreeStatusLogger` publishes the nodes whose status changed
+(``tree`` events, throttled by the ``tree_event_s`` setting; :attr:`Agent.tree_status` is the
+current status of every node); every new path the navigator adopts is a ``route`` event.
+
 When the task branch's goal holds (the branch returns SUCCESS) the agent reports the task done;
 when the branch fails it reports it failed, with the reason of the action that failed. Without a
 task, the idle timer runs and the default branch (e.g. return home and land) takes over after
@@ -60,8 +66,9 @@ from btmission.runtime.leaves import (
     describe,
     setup_failed,
 )
-from btmission.runtime.navigation import Navigator
+from btmission.runtime.navigation import Navigator, route_points
 from btmission.runtime.paths import PathCosts
+from btmission.runtime.treestatus import TREE_EVENT_S, LeanBehaviourTree, TreeStatusLogger
 from btmission.spec.mission import Mission
 from btmission.spec.source import format_path
 from btmission.synthesis.mission_tree import build_mission_tree
@@ -141,6 +148,15 @@ class Agent:
         }
         self._commit_leaves = self._find_commit_leaves()
         self._default = next((c for c in self.root.children if c.name == "default"), None)
+        self.tree = LeanBehaviourTree(self.root)
+        """The root in py_trees' tree custodian: ticks run its visitors and post-tick handlers."""
+        self._tree_log = TreeStatusLogger(
+            self.tree,
+            self._tree_event,
+            clock,
+            float(settings.get("tree_event_s", TREE_EVENT_S)),
+        )
+        navigator.on_route = self._route_event
         depth = behaviour_depth(self.root)
         need = recursion_for_depth(depth, frames_per_level=4)
         self._recursion: int | None = need if need > sys.getrecursionlimit() else None
@@ -274,6 +290,7 @@ class Agent:
         else:
             self.blackboard.unset("task")
         self._deep(lambda: self.root.stop(Status.INVALID))
+        self._tree_log.collect()
         self._emit("agent_task", agent=self.id, task=info.id if info else None)
 
     # ---------------------------------------------------------------- ticking
@@ -291,7 +308,7 @@ class Agent:
             return Status.INVALID
         self._failure = ""
         self._send_progress(now)
-        self._deep(self.root.tick_once)
+        self._deep(self.tree.tick)
         self.ticks += 1
         task = self.task
         if task is not None:
@@ -374,6 +391,31 @@ class Agent:
             self.action = str(data.get("action", ""))
             data = {"task": self.task.id if self.task else None, **data}
         self._emit(kind, agent=self.id, **data)
+
+    def _tree_event(self, changes: list[list[Any]], nodes: list[list[Any]] | None) -> None:
+        self._emit("tree", agent=self.id, changes=changes, **({"nodes": nodes} if nodes else {}))
+
+    def _route_event(self, points: Any, length_m: float) -> None:
+        task = self.task.id if self.task is not None else None
+        self._emit(
+            "route", agent=self.id, task=task, points=route_points(points), length_m=length_m
+        )
+
+    @property
+    def tree_status(self) -> Mapping[int, str]:
+        """Node uid (pre-order index in :attr:`tree`) → its status as of the last tick
+        (``INVALID``, ``RUNNING``, ``SUCCESS``, ``FAILURE``): a read-only copy, for snapshots.
+        :attr:`tree_nodes` names the nodes."""
+        return self._tree_log.status
+
+    @property
+    def tree_nodes(self) -> list[list[Any]]:
+        """``[name, parent uid, kind]`` per node, by uid (the root's parent is -1)."""
+        return self._tree_log.nodes
+
+    def flush_tree_events(self) -> None:
+        """Publish the tree's status changes not published yet (the run ends)."""
+        self._tree_log.flush()
 
     def control_step(self, now: float) -> None:
         if self.alive:

@@ -2,17 +2,23 @@
 
 Everything that happens in a run is an :class:`Event` — a time, a kind and plain-data fields —
 published to every :class:`Observer` subscribed to an :class:`EventStream` (DESIGN.md §6, STYLE.md
-item 8: logging, viewing and test checks are all observers; nodes never import them).
+item 8: logging, viewing and test checks are all observers; nodes never import them). Observers
+are called on the run's thread: a slow one (a live viewer) goes behind a
+:class:`~btmission.runtime.observers.QueuedObserver`, which never holds the run up.
 
-The kinds a run emits (fields in brackets; positions are ``[x, y, z]`` lists in metres):
+The kinds a run emits (fields in brackets; positions are ``[x, y, z]`` lists in metres). Each
+has a typed class below (:class:`TypedEvent` subclasses, frozen dataclasses; ``Event.typed()``):
 
 =================  =======================================================================
 ``header``         first event of a log, written before anything is built: ``format``,
-                   ``version``, ``mission``, ``file``, ``seed``, ``controller``, ``world`` (the
-                   mission's world spec), ``agents`` (``[{id, library, vehicle, start}]``),
-                   ``tasks`` (``[{id, type, at, fields}]``)
+                   ``version``, ``mission``, ``description``, ``file``, ``seed``,
+                   ``controller``, ``world`` (the mission's world spec), ``world_ref`` (where
+                   the map is: :func:`world_reference`; version 2), ``step_s``,
+                   ``auction_rate_hz``, ``agents`` (``[{id, library, vehicle, start}]``),
+                   ``tasks`` (``[{id, type, at, fields}]``), ``artifacts``
 ``built``          the run is built: ``map`` (shape, resolution, origin), ``build_s``
-``task_added``     a task entered the pool: ``task``, ``type``, ``fields``, ``by`` (mission/api)
+``task_added``     a task entered the pool: ``task``, ``type``, ``fields``, ``priority``,
+                   ``by`` (mission/api), ``problems``
 ``task``           a task changed state or agent (the auction pool's history): ``task``,
                    ``state`` (open/assigned/committed/done/failed/unreachable), ``agent``,
                    ``reason``
@@ -22,36 +28,55 @@ The kinds a run emits (fields in brackets; positions are ``[x, y, z]`` lists in 
 ``agent_task``     an agent started or stopped executing a task: ``agent``, ``task`` (or null)
 ``stage``          an agent's tree started an action: ``agent``, ``task``, ``action``
 ``committed``      an agent passed its task's commit point (k_bt = 0): ``agent``, ``task``
-``progress``       an agent reported ``done`` / ``failed`` for ``task`` (``reason``)
+``progress``       an agent reported ``event`` done / failed / committed for ``task``
+                   (``reason``)
+``route``          an agent adopted a new planned path (D*+): ``agent``, ``task``, ``points``
+                   (at most a few hundred), ``length_m``; version 2
+``tree``           an agent's behaviour-tree nodes whose status changed: ``agent``,
+                   ``changes`` (``[[uid, old, new], ...]``) and, in its first one, ``nodes``;
+                   at most one per agent per ``tree_event_s`` setting; version 2
 ``pose``           ground truth from the simulator: ``agent``, ``p``, ``v``, ``yaw``, ``mode``,
                    ``armed``, ``flying``, ``odometer_m``, ``clearance_m`` (the smallest
                    distance to rock since the previous pose event, null when not measured)
-``collision``      the simulator detected a collision: ``agent``, ``with`` (rock/agent id),
+``collision``      the simulator detected a collision: ``agent``, ``other`` (rock/agent id),
                    ``p``
 ``agent_lost``     an agent stopped (killed, link lost): ``agent``, ``reason``
+``link``           an agent's link to the coordinator was cut or restored: ``agent``, ``up``
+``signal``         a supervisor signal was set on an agent: ``agent``, ``name``, ``value``
 ``objects``        an agent reported localised objects: ``agent``, ``objects``
-                   (``[{label, p, observations}]``), ``truth`` (``[{label, p}]``)
+                   (``[{label, p, observations}]``), ``rejected``
 ``relocalized``    an agent localised itself in the map from one LiDAR scan (library
                    ``aerial_mine``): ``agent``, ``task``, ``localized``, ``confidence``,
                    ``fitness``, ``reason``, ``points``, ``sensor``, ``time_ms``, ``truth`` (the
                    telemetry pose ``{x, y, z, yaw_deg}``: the true pose in the simulator) and,
                    when localised, ``estimate`` and its ``error_m``, ``error_deg``
+``dispatch``       the fleet dispatcher (seed 004) handled a truck: ``truck``, ``event``,
+                   ``goal`` and, when adopted, ``to``, ``items``, ``depart``, ``arrive``,
+                   ``mission``
 ``leaf_error``     a library's leaf (or service) raised; it failed and the run went on:
                    ``agent``, ``task``, ``leaf``, ``phase``, ``error``, ``message``, ``where``,
                    ``traceback``
 ``warning``        the coordinator refused something, or an action's argument is on nobody's
                    blackboard (``agent``, ``variable``, ``leaf``): ``message``
+``internal_error`` a bug outside any leaf ended the run: ``type``, ``message``, ``traceback``
 ``end``            last event: ``reason`` (completed/time limit/interrupted/terminated/...),
-                   ``wall_s``, ``done``, ``open`` (arrived tasks only), ``pending`` (still
-                   to arrive)
+                   ``wall_s``, ``steps``, ``done``, ``open`` (arrived tasks only), ``pending``
+                   (still to arrive)
+=================  =======================================================================
 
 A run publishes events in time order; one that happened earlier than it is published (an
 agent's report, taken by the next auction round) carries its own time as ``reported_s``.
-=================  =======================================================================
 
-:class:`JsonlEventLog` writes them as JSON Lines, one event per line, flushed as written, so a
+Libraries may publish kinds of their own (``ctx.events(kind, **fields)``; ``haulage``'s ``load``
+and ``offload``): they are logged and reported like any other. A library that wants them typed
+registers a class with :func:`register_event`; a kind nobody registered reads as a
+:class:`GenericEvent` (its fields in ``extra``).
+
+:class:`JsonlEventLog` writes events as JSON Lines, one event per line, flushed as written, so a
 crash loses nothing already logged; :func:`read_events` reads such a log back (a truncated last
-line — the process died while writing it — is skipped and reported).
+line — the process died while writing it — is skipped and reported; a line whose fields do not
+have its kind's types is skipped too). Version 1 logs (before ``world_ref``, ``route`` and
+``tree``) read the same; a log of an unknown version is refused.
 """
 
 from __future__ import annotations
@@ -59,13 +84,31 @@ from __future__ import annotations
 import io
 import json
 import math
-from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+import types
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import IO, Any, Protocol, runtime_checkable
+from typing import (
+    IO,
+    Annotated,
+    Any,
+    ClassVar,
+    Protocol,
+    Self,
+    TypeVar,
+    Union,
+    get_args,
+    get_origin,
+    get_type_hints,
+    runtime_checkable,
+)
 
 LOG_FORMAT = "btmission-log"
-LOG_VERSION = 1
+LOG_VERSION = 2
+"""The version this btmission writes. 2: the header's ``world_ref``, ``tree`` and ``route``
+events (version 1 logs have neither and read the same)."""
+READS_VERSIONS = (1, 2)
+"""Log versions ``btmission report`` reads."""
 
 
 @dataclass(frozen=True)
@@ -86,6 +129,12 @@ class Event:
             separators=(",", ":"),
             allow_nan=False,
         )
+
+    def typed(self) -> TypedEvent:
+        """This event as its kind's typed class (:func:`event_class`; :class:`GenericEvent` for
+        a kind nobody registered), with the values its JSON form has. Raises
+        :class:`EventError` if a field has the wrong type."""
+        return typed_event(self.t, self.kind, _plain(self.data))
 
     @classmethod
     def from_json(cls, line: str) -> Event:
@@ -177,6 +226,7 @@ class JsonlEventLog:
         self.close()
 
 
+# ---------------------------------------------------------------------------- typed events
 def _number(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
@@ -189,14 +239,6 @@ def _point(v: Any) -> bool:
     return isinstance(v, list) and len(v) == 3 and all(_number(x) for x in v)
 
 
-def _list_of(check: Any) -> Any:
-    return lambda v: isinstance(v, list) and all(check(x) for x in v)
-
-
-def _or_none(check: Any) -> Any:
-    return lambda v: v is None or check(v)
-
-
 def _agent_entry(v: Any) -> bool:
     return isinstance(v, dict) and _text(v.get("id")) and _point(v.get("start", [0, 0, 0]))
 
@@ -205,33 +247,592 @@ def _placed(v: Any) -> bool:  # an artifact or a detected object
     return isinstance(v, dict) and _point(v.get("p"))
 
 
-_EVENT_FIELDS: dict[str, dict[str, Any]] = {
-    "header": {"agents": _list_of(_agent_entry),
-               "tasks": _or_none(_list_of(lambda v: isinstance(v, dict))),
-               "world": _or_none(lambda v: isinstance(v, dict)), "artifacts": _or_none(_list_of(
-                   _placed))},
-    "task_added": {"task": _text, "fields": lambda v: isinstance(v, dict),
-                   "problems": _list_of(_text)},
-    "task": {"task": _text, "state": _text, "agent": _or_none(_text)},
-    "pose": {"agent": _text, "p": _point, "odometer_m": _or_none(_number),
-             "clearance_m": _or_none(_number)},
-    "agent_task": {"agent": _text, "task": _or_none(_text)},
-    "objects": {"objects": _list_of(_placed)},
-}  # fmt: skip
-"""What ``report`` reads of each kind of event (a field may be absent, unless noted)."""
+def _change(v: Any) -> bool:  # [node, old status, new status]
+    return (
+        isinstance(v, list)
+        and len(v) == 3
+        and isinstance(v[0], (int, str))
+        and not isinstance(v[0], bool)
+        and _text(v[1])
+        and _text(v[2])
+    )
+
+
+def _tree_node(v: Any) -> bool:  # [name, parent uid (-1: the root), kind]
+    return isinstance(v, list) and len(v) == 3 and _text(v[0]) and isinstance(v[1], int)
+
+
+Point = Annotated[list[float], _point]
+"""A position ``[x, y, z]`` in metres."""
+AgentEntry = Annotated[dict[str, Any], _agent_entry]
+"""An agent of the header: ``{id, library, vehicle, start}``."""
+Placed = Annotated[dict[str, Any], _placed]
+"""Something at a place: ``{label, p, ...}`` (an artifact, a localised object)."""
+StatusChange = Annotated[list[Any], _change]
+"""``[node uid, old status, new status]`` (a ``tree`` event)."""
+TreeNode = Annotated[list[Any], _tree_node]
+"""``[name, parent uid, kind]`` (a ``tree`` event's ``nodes``)."""
+
+Check = Callable[[Any], bool]
+
+
+def _checker(tp: Any) -> Check:
+    """The check of a JSON value against a field's type: ``str``, ``int``, ``float`` (finite),
+    ``bool``, ``Any``, ``X | None``, ``list[X]``, ``dict[str, X]``, or ``Annotated[T, check]``
+    (the check given)."""
+    if tp is Any:
+        return lambda v: True
+    origin = get_origin(tp)
+    args = get_args(tp)
+    if origin is Annotated:
+        check: Check = args[1]
+        return check
+    if origin in (Union, types.UnionType):
+        checks = [_checker(a) for a in args]
+        return lambda v: any(c(v) for c in checks)
+    if tp is type(None):
+        return lambda v: v is None
+    if tp is bool:
+        return lambda v: isinstance(v, bool)
+    if tp is int:
+        return lambda v: isinstance(v, int) and not isinstance(v, bool)
+    if tp is float:
+        return _number
+    if tp is str:
+        return _text
+    if origin is list:
+        item = _checker(args[0]) if args else _checker(Any)
+        return lambda v: isinstance(v, list) and all(item(x) for x in v)
+    if origin is dict or tp is dict:
+        value = _checker(args[1]) if args else _checker(Any)
+        return lambda v: isinstance(v, dict) and all(value(x) for x in v.values())
+    raise TypeError(f"no JSON check for an event field of type {tp!r}")
+
+
+_OPTIONAL = {"optional": True}
+
+
+def optional() -> Any:
+    """An event field that is left out of the JSON when it is None (it is absent from most
+    events of its kind), e.g. ``round.assignments``."""
+    return field(default=None, metadata=_OPTIONAL)
+
+
+class EventError(ValueError):
+    """An event whose fields do not have the types of its kind's class."""
+
+
+_BASE_FIELDS = frozenset({"t", "reported_s", "extra", "_absent"})
+
+
+@dataclass(frozen=True, kw_only=True)
+class TypedEvent:
+    """Base of the typed events: one frozen dataclass per kind (module docstring), registered
+    with :func:`register_event`. Field values are plain JSON data (lists, dicts, numbers,
+    strings), exactly what the log holds.
+
+    Its JSON form is the :class:`Event`'s: ``{"t", "ev", <fields in class order>, <extra>,
+    "reported_s"}``. An event read from a log keeps which fields it lacked (they stay out), so
+    JSON → typed → JSON gives the same bytes; a field declared with :func:`optional` is also left
+    out when it is None.
+    """
+
+    KIND: ClassVar[str] = ""
+    _FIELDS: ClassVar[tuple[tuple[str, Check, bool], ...]] = ()
+    """(name, check, optional) of the kind's own fields, in order (set by register_event)."""
+
+    t: float
+    """Mission time (s) at which the event was published."""
+    reported_s: float | None = None
+    """When it happened, if earlier than published (an agent's report, taken by the next
+    round)."""
+    extra: Mapping[str, Any] = field(default_factory=dict)
+    """Fields the class does not declare (a newer log, a library's additions), in log order."""
+    _absent: frozenset[str] | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def kind(self) -> str:
+        return self.KIND
+
+    @classmethod
+    def problem(cls, data: Mapping[str, Any]) -> str | None:
+        """What is wrong with ``data`` as this kind's fields (None: nothing): the first field
+        present with a value of the wrong type. Fields may be absent."""
+        if "reported_s" in data and not _number(data["reported_s"]):
+            return "field 'reported_s' has the wrong type"
+        for name, check, _ in cls._FIELDS:
+            if name in data and not check(data[name]):
+                return f"field '{name}' has the wrong type (got {json.dumps(data[name])[:60]})"
+        return None
+
+    @classmethod
+    def from_data(cls, t: float, data: Mapping[str, Any]) -> Self:
+        """The typed event of plain fields (JSON data). Raises :class:`EventError`."""
+        problem = cls.problem(data)
+        if problem:
+            raise EventError(f"{cls.KIND or 'event'}: {problem}")
+        own = {name for name, _, _ in cls._FIELDS}
+        kw = {name: data.get(name) for name in own}
+        extra = {k: v for k, v in data.items() if k not in own and k != "reported_s"}
+        return cls(
+            t=t,
+            reported_s=data.get("reported_s"),
+            extra=extra,
+            _absent=frozenset(name for name in own if name not in data),
+            **kw,
+        )
+
+    def to_data(self) -> dict[str, Any]:
+        """The fields, in their JSON order."""
+        out: dict[str, Any] = {}
+        for name, _, is_optional in self._FIELDS:
+            value = getattr(self, name)
+            if self._absent is not None:
+                if name in self._absent:
+                    continue
+            elif is_optional and value is None:
+                continue
+            out[name] = value
+        out.update(self.extra)
+        if self.reported_s is not None:
+            out["reported_s"] = self.reported_s
+        return out
+
+    def to_event(self) -> Event:
+        return Event(self.t, self.kind, self.to_data())
+
+    def to_json(self) -> str:
+        return self.to_event().to_json()
+
+
+@dataclass(frozen=True, kw_only=True)
+class GenericEvent(TypedEvent):
+    """An event of a kind no class is registered for — a library's own kind, such as
+    ``haulage``'s ``load`` before its module is imported: all its fields are in ``extra``."""
+
+    name: str
+    """The event's kind."""
+
+    @property
+    def kind(self) -> str:
+        return self.name
+
+
+EVENT_CLASSES: dict[str, type[TypedEvent]] = {}
+"""Kind → its typed class (:func:`register_event`)."""
+
+E = TypeVar("E", bound=type[TypedEvent])
+
+
+def register_event(cls: E) -> E:
+    """Class decorator (above ``@dataclass(frozen=True, kw_only=True)``): ``cls`` is the typed
+    class of the kind ``cls.KIND``. Libraries register their own kinds the same way::
+
+        @register_event
+        @dataclass(frozen=True, kw_only=True)
+        class Loaded(TypedEvent):
+            KIND = "load"
+            agent: str
+            until: float
+
+    A kind is registered once; registering it again with a class of another name is an error
+    (two libraries cannot give one kind different fields)."""
+    kind = cls.KIND
+    if not kind:
+        raise ValueError(f"{cls.__qualname__}: set KIND to the event's kind")
+    old = EVENT_CLASSES.get(kind)
+    if old is not None and (old.__module__, old.__qualname__) != (cls.__module__, cls.__qualname__):
+        raise ValueError(
+            f"event kind '{kind}' is already {old.__module__}.{old.__qualname__}; "
+            f"{cls.__module__}.{cls.__qualname__} cannot register it again"
+        )
+    hints = get_type_hints(cls, include_extras=True)
+    cls._FIELDS = tuple(
+        (f.name, _checker(hints[f.name]), bool(f.metadata.get("optional")))
+        for f in fields(cls)
+        if f.name not in _BASE_FIELDS
+    )
+    EVENT_CLASSES[kind] = cls
+    return cls
+
+
+def event_class(kind: str) -> type[TypedEvent]:
+    """The typed class of ``kind`` (:class:`GenericEvent` for a kind nobody registered)."""
+    return EVENT_CLASSES.get(kind, GenericEvent)
+
+
+def typed_event(t: float, kind: str, data: Mapping[str, Any]) -> TypedEvent:
+    """The typed event of ``kind`` with plain ``data`` (JSON data). Raises :class:`EventError`."""
+    cls = EVENT_CLASSES.get(kind)
+    if cls is not None:
+        return cls.from_data(t, data)
+    problem = TypedEvent.problem(data)
+    if problem:
+        raise EventError(f"{kind}: {problem}")
+    return GenericEvent(
+        t=t,
+        name=kind,
+        reported_s=data.get("reported_s"),
+        extra={k: v for k, v in data.items() if k != "reported_s"},
+        _absent=frozenset(),
+    )
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class HeaderEvent(TypedEvent):
+    """The first event of a log, from the mission alone (nothing is built yet)."""
+
+    KIND = "header"
+    format: str
+    """``btmission-log``."""
+    version: int
+    """The log format version (:data:`LOG_VERSION`; 1: no ``world_ref``, no ``tree`` /
+    ``route`` events)."""
+    mission: str
+    description: str | None
+    file: str | None
+    """The mission file, as given on the command line."""
+    seed: int
+    controller: str
+    world: dict[str, Any] | None
+    """The mission's ``world`` spec (map generator or file, resolution, topomap)."""
+    world_ref: dict[str, Any] | None = optional()
+    """Where to find the world from the log alone (:func:`world_reference`; version 2)."""
+    map: dict[str, Any] | None = optional()
+    """Early version 1 logs: the voxel map's shape, resolution, origin (now in ``built``)."""
+    step_s: float | None = optional()
+    auction_rate_hz: float | None = optional()
+    agents: list[AgentEntry]
+    """``[{id, library, vehicle, start}]``."""
+    tasks: list[dict[str, Any]] | None
+    """``[{id, type, at, fields}]``: the mission file's tasks."""
+    artifacts: list[Placed] | None = optional()
+    """``[{label, p, size_m}]``: objects placed in the simulator."""
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class BuiltEvent(TypedEvent):
+    KIND = "built"
+    map: dict[str, Any]
+    """``{shape, resolution, origin}`` of the voxel map."""
+    build_s: float
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class TaskAddedEvent(TypedEvent):
+    KIND = "task_added"
+    task: str
+    type: str
+    fields: dict[str, Any]
+    priority: float | None = optional()
+    by: str | None = optional()
+    """``mission`` or ``api``."""
+    problems: list[str] = field(default_factory=list)
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class TaskStateEvent(TypedEvent):
+    """A task changed state or agent (the auction pool's history)."""
+
+    KIND = "task"
+    task: str
+    state: str
+    """open, assigned, committed, done, failed, unreachable."""
+    agent: str | None
+    reason: str
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class RoundEvent(TypedEvent):
+    KIND = "round"
+    round: int
+    announced: int
+    agents: int
+    method: str
+    bids: int
+    step_ms: float
+    assignments: dict[str, str | None] | None = optional()
+    """Agent → task, when they changed."""
+    dropped: list[str] | None = optional()
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class AgentTaskEvent(TypedEvent):
+    KIND = "agent_task"
+    agent: str
+    task: str | None
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class StageEvent(TypedEvent):
+    KIND = "stage"
+    agent: str
+    task: str | None
+    action: str
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class CommittedEvent(TypedEvent):
+    KIND = "committed"
+    agent: str
+    task: str
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class ProgressEvent(TypedEvent):
+    KIND = "progress"
+    agent: str
+    task: str
+    event: str
+    """done, failed or committed."""
+    reason: str
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class PoseEvent(TypedEvent):
+    KIND = "pose"
+    agent: str
+    p: Point
+    v: Point | None = optional()
+    yaw: float | None = optional()
+    mode: str | None = optional()
+    armed: bool | None = optional()
+    flying: bool | None = optional()
+    odometer_m: float | None = optional()
+    clearance_m: float | None
+    """The smallest distance to rock since the previous pose (null: not measured)."""
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class CollisionEvent(TypedEvent):
+    KIND = "collision"
+    agent: str
+    other: str
+    """``rock`` or another agent's id."""
+    p: Point
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class AgentLostEvent(TypedEvent):
+    KIND = "agent_lost"
+    agent: str
+    reason: str
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class SignalEvent(TypedEvent):
+    KIND = "signal"
+    agent: str
+    name: str
+    value: Any
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class LinkEvent(TypedEvent):
+    KIND = "link"
+    agent: str
+    up: bool
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class ObjectsEvent(TypedEvent):
+    KIND = "objects"
+    agent: str
+    objects: list[Placed]
+    """``[{label, p, observations}]``."""
+    rejected: dict[str, Any] | None = optional()
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class RelocalizedEvent(TypedEvent):
+    """An agent localised itself in the map from one LiDAR scan (library ``aerial_mine``)."""
+
+    KIND = "relocalized"
+    agent: str
+    task: str | None
+    localized: bool
+    confidence: float | None
+    fitness: float | None
+    reason: str
+    points: int
+    sensor: str | None
+    time_ms: float | None
+    truth: dict[str, Any]
+    """The telemetry pose ``{x, y, z, yaw_deg}`` (the true pose in the simulator)."""
+    estimate: dict[str, Any] | None = optional()
+    error_m: float | None = optional()
+    error_deg: float | None = optional()
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class LeafErrorEvent(TypedEvent):
+    KIND = "leaf_error"
+    agent: str | None = optional()
+    task: str | None = optional()
+    leaf: str
+    """The leaf (e.g. ``scan(location)``) or ``service <library>.<name>``."""
+    phase: str
+    error: str
+    message: str
+    where: str
+    traceback: str
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class WarningEvent(TypedEvent):
+    KIND = "warning"
+    agent: str | None = optional()
+    variable: str | None = optional()
+    leaf: str | None = optional()
+    message: str
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class InternalErrorEvent(TypedEvent):
+    KIND = "internal_error"
+    type: str
+    message: str
+    traceback: str
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class EndEvent(TypedEvent):
+    KIND = "end"
+    reason: str
+    wall_s: float | None
+    steps: int | None = optional()
+    done: list[str] = field(default_factory=list)
+    open: dict[str, str] = field(default_factory=dict)
+    pending: list[str] = field(default_factory=list)
+    cancelled: list[str] | None = optional()
+    """Tasks the operator cancelled (only when there are any)."""
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class DispatchEvent(TypedEvent):
+    """What the fleet dispatcher (seed 004) did for a truck."""
+
+    KIND = "dispatch"
+    truck: str
+    event: str
+    """requested, withdrawn, failed, deferred, adopted."""
+    goal: str | None
+    reason: str | None = optional()
+    to: str | None = optional()
+    items: int | None = optional()
+    depart: float | None = optional()
+    arrive: float | None = optional()
+    mission: dict[str, Any] | None = optional()
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class RouteEvent(TypedEvent):
+    """An agent adopted a new planned path (D*+), decimated to at most
+    :data:`~btmission.runtime.navigation.ROUTE_EVENT_POINTS` points."""
+
+    KIND = "route"
+    agent: str
+    task: str | None
+    points: list[Point]
+    length_m: float
+    """The whole path's length (before decimation)."""
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class TreeEvent(TypedEvent):
+    """Behaviour-tree nodes of an agent whose status changed (the net change since the agent's
+    previous ``tree`` event; BehaviorTree.CPP's StatusChangeLogger)."""
+
+    KIND = "tree"
+    agent: str
+    changes: list[StatusChange]
+    """``[[uid, old, new], ...]``: uid is the node's pre-order index (the root is 0), statuses
+    are py_trees' (``INVALID``, ``RUNNING``, ``SUCCESS``, ``FAILURE``)."""
+    nodes: list[TreeNode] | None = optional()
+    """In an agent's first ``tree`` event only: the tree, ``[[name, parent uid, kind], ...]`` in
+    uid order (the root's parent is -1; kind: fallback, sequence, condition, action)."""
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class CommandEvent(TypedEvent):
+    """An operator's command, applied between two steps (:mod:`btmission.runtime.commands`):
+    who sent it, what it was, and whether it was refused (``error``). Its arguments follow as
+    fields of their own (``task``, ``agent``, ``priority``, ``up``, ``reason`` ...)."""
+
+    KIND = "command"
+    command: str
+    by: str
+    ok: bool
+    error: str | None = optional()
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class WithdrawnEvent(TypedEvent):
+    """An agent's assignment was withdrawn: another agent's earlier completion (or commit
+    point) of the same task reached the coordinator late (a link that was down)."""
+
+    KIND = "withdrawn"
+    agent: str
+    task: str
+    by: str
+    """The agent whose report took the task."""
+    reason: str
+
+
+def world_reference(world: Mapping[str, Any] | None, base_dir: str | Path) -> dict[str, Any]:
+    """What a viewer needs, besides the header's ``world``, to load the map from the log alone:
+    ``base_dir`` (the mission's directory, absolute: ``world_from_spec(world, base_dir)``
+    rebuilds the map), ``map`` (the map file's absolute path; None for a generated map: the
+    generator's parameters are in ``world.map``) and ``topomap`` (a built-in map's name or the
+    file's absolute path; None without one)."""
+    base = Path(base_dir).resolve()
+    w = world or {}
+    spec = w.get("map") or {}
+    map_file = spec.get("file") if isinstance(spec, Mapping) else None
+    topo = w.get("topomap")
+    if topo is not None:
+        from btmission.dispatch.maps import BUILTIN_MAPS
+
+        if topo not in BUILTIN_MAPS:
+            topo = str(base / str(topo))
+    return {
+        "base_dir": str(base),
+        "map": str(base / str(map_file)) if map_file is not None else None,
+        "topomap": topo,
+    }
 
 
 def event_problem(ev: Event) -> str | None:
     """What is wrong with the shape of an event read from a log (None when it can be reported):
-    a time that is not a finite number, or a field the report reads of the wrong type."""
+    a time that is not a finite number, or a field of the wrong type for its kind's class."""
     if not math.isfinite(ev.t):
         return f"time {ev.t} is not a finite number"
-    if "reported_s" in ev.data and not _number(ev.data["reported_s"]):
-        return "field 'reported_s' has the wrong type"
-    for name, check in _EVENT_FIELDS.get(ev.kind, {}).items():
-        if name in ev.data and not check(ev.data[name]):
-            return f"field '{name}' has the wrong type (got {json.dumps(ev.data[name])[:60]})"
-    return None
+    return event_class(ev.kind).problem(ev.data)
 
 
 class LogError(ValueError):
@@ -274,6 +875,8 @@ def read_events(path: str | Path) -> LogContents:
             continue
         try:
             ev = Event.from_json(line)
+            if ev.kind == "header" and not events:
+                _check_format(p, ev)  # before the fields: a newer version may have other ones
             problem = event_problem(ev)
             if problem:
                 if ev.kind == "header":
@@ -287,11 +890,22 @@ def read_events(path: str | Path) -> LogContents:
                 truncated = True
             else:
                 skipped.append(number)
-    if not events or events[0].kind != "header" or events[0].get("format") != LOG_FORMAT:
-        raise LogError(
-            f"{p}: not a btmission event log (the first line must be a '{LOG_FORMAT}' header)"
-        )
-    version = events[0].get("version")
-    if version != LOG_VERSION:
-        raise LogError(f"{p}: log format version {version!r}; this btmission reads {LOG_VERSION}")
+    if not events or events[0].kind != "header":
+        raise _not_a_log(p)
     return LogContents(events, truncated, skipped)
+
+
+def _not_a_log(p: Path) -> LogError:
+    return LogError(
+        f"{p}: not a btmission event log (the first line must be a '{LOG_FORMAT}' header)"
+    )
+
+
+def _check_format(p: Path, header: Event) -> None:
+    """Raise :class:`LogError` unless ``header`` heads a log of a version this btmission reads."""
+    if header.get("format") != LOG_FORMAT:
+        raise _not_a_log(p)
+    version = header.get("version")
+    if isinstance(version, bool) or version not in READS_VERSIONS:
+        known = " and ".join(str(v) for v in READS_VERSIONS)
+        raise LogError(f"{p}: log format version {version!r}; this btmission reads {known}")

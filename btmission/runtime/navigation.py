@@ -53,6 +53,8 @@ HEADING_GAIN = 1.0
 """Gain of the autopilot's heading loop (rad/s per rad), to turn a yaw rate into a heading."""
 POSITION_GAIN = 1.0
 """Gain of the autopilot's position loop (1/s): velocity = gain · position error."""
+ROUTE_EVENT_POINTS = 200
+"""A ``route`` event carries at most this many points of the path (:func:`route_points`)."""
 
 
 class NavState(str, Enum):
@@ -154,6 +156,23 @@ class Polyline:
         frac = float((s - self.arc[j]) / self.seg_len[j]) if self.seg_len[j] > 0 else 0.0
         out: FloatArray = pts[j] + frac * self.seg[j]
         return out
+
+
+def route_points(points: ArrayLike, max_points: int = ROUTE_EVENT_POINTS) -> list[list[float]]:
+    """A path's points for a ``route`` event: without the interior points where it goes
+    straight on (a D*+ path steps voxel by voxel), then, if still more than ``max_points``,
+    evenly spaced ones; the ends kept; in mm."""
+    pts = np.asarray(points, dtype=float).reshape(-1, 3)
+    if len(pts) > 2:
+        d = np.diff(pts, axis=0)
+        n = np.linalg.norm(d, axis=1)
+        u = d / np.where(n > 0, n, 1.0)[:, None]
+        bend = np.linalg.norm(np.diff(u, axis=0), axis=1) > 1e-6  # interior point i+1 turns
+        keep = np.concatenate([[True], bend, [True]])
+        pts = pts[keep]
+    if len(pts) > max_points >= 2:
+        pts = pts[np.unique(np.linspace(0, len(pts) - 1, max_points).round().astype(int))]
+    return [[round(float(v), 3) for v in p] for p in pts]
 
 
 class _Command:
@@ -308,6 +327,10 @@ class Navigator:
         self._last_uni_t = -math.inf
         self._uni_u = np.zeros(2)
         self.solve_times: list[float] = []
+        self.on_route: Callable[[FloatArray, float], None] | None = None
+        """Called with the points and the length (m) of every route :meth:`follow` adopts that
+        differs from the last one (the agent publishes it: ``route`` events)."""
+        self._last_route: FloatArray | None = None
         g = cfg.apf_gain * point_area_m2
         if self.kind is VehicleKind.MULTIROTOR:
             self._apf = PotentialField(ApfConfig(gain=(g, g, g)))
@@ -361,7 +384,12 @@ class Navigator:
             ground_goal = tgt[2] < self.ground_under(tgt) + 0.5
         if len(pts) == 0 or not np.allclose(pts[-1], tgt):
             pts = np.vstack([pts, tgt]) if len(pts) else tgt[None, :]
-        self._set(_Follow(Polyline(pts), tgt, ground_goal, progress_t=now))
+        line = Polyline(pts)
+        self._set(_Follow(line, tgt, ground_goal, progress_t=now))
+        last = self._last_route
+        if self.on_route is not None and (last is None or not np.array_equal(last, pts)):
+            self._last_route = pts
+            self.on_route(pts, line.length)
 
     def goto(
         self, waypoint: Sequence[float], yaw: float | None = None, yaw_rate: float = 0.0

@@ -414,13 +414,22 @@ def dispatch_png(rep: MissionReport, path: str | Path) -> Path:
     ref = (rep.header.get("world") or {}).get("topomap")
     if not ref or not rep.dispatched:
         raise ValueError("the log has no dispatched missions")
-    tmap = topomap_ref(str(ref), Path(str(rep.header.get("file", "."))).parent)
+    tmap = topomap_ref(str(ref), _mission_dir(rep.header))
     trucks = sorted(rep.dispatched)
     fleet = [missions_from_records(tmap, rep.dispatched[t]) for t in trucks]
     title = f"{rep.header.get('mission', '')}: dispatched schedule on map {tmap.name}"
     out = Path(path)
     out.write_bytes(gantt_png(tmap, fleet, title, labels=trucks))
     return out
+
+
+def _mission_dir(header: Mapping[str, Any]) -> Path:
+    """The directory the mission's map files are relative to: ``world_ref.base_dir`` (version 2
+    logs; absolute), else the mission file's directory (relative to where ``report`` runs)."""
+    ref = header.get("world_ref")
+    if isinstance(ref, Mapping) and isinstance(ref.get("base_dir"), str):
+        return Path(ref["base_dir"])
+    return Path(str(header.get("file", "."))).parent
 
 
 def _world_from_header(header: Mapping[str, Any]) -> Any:
@@ -430,8 +439,7 @@ def _world_from_header(header: Mapping[str, Any]) -> Any:
         from btmission.world.build import world_from_spec
 
         world = WorldSpec.model_validate(header["world"])
-        base = Path(str(header.get("file", "."))).parent
-        return world_from_spec(world, base)
+        return world_from_spec(world, _mission_dir(header))
     except Exception:
         return None
 

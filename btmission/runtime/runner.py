@@ -36,7 +36,6 @@ import time
 import uuid
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
-from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
 
 from btmission.allocation.tasks import TaskInfo, TaskState
@@ -61,7 +60,14 @@ from btmission.runtime.commands import (
     Stop,
 )
 from btmission.runtime.coordinator import Coordinator, TaskError
-from btmission.runtime.events import LOG_FORMAT, LOG_VERSION, Event, EventStream, Observer
+from btmission.runtime.events import (
+    LOG_FORMAT,
+    LOG_VERSION,
+    Event,
+    EventStream,
+    Observer,
+    world_reference,
+)
 from btmission.runtime.leaves import (
     ErrorReporter,
     RunContext,
@@ -198,6 +204,7 @@ class MissionRun:
             AgentRuntime(a, tick_period_s=1.0 / rt.tick_hz, status_period_s=1.0 / rt.status_hz)
             for a in self.agents.values()
         ]
+        self._trees: dict[str, tuple[tuple[int, Any], Mapping[int, str]]] = {}
         self.snapshot: RunSnapshot = self._snapshot()
         """The run as it stands after the last step (immutable; any thread may read it)."""
         vm = self.map
@@ -332,6 +339,7 @@ class MissionRun:
             seed=self.seed,
             controller=self.controller,
             world=world,
+            world_ref=world_reference(world, m.base_dir),
             step_s=m.spec.runtime.sim.step_s,
             auction_rate_hz=m.spec.coordination.auction_rate_hz,
             agents=[
@@ -558,7 +566,11 @@ class MissionRun:
         for aid, a in self.agents.items():
             tel = a.ctx.telemetry()
             p = tel.position
-            tree = getattr(a, "tree_status", None)
+            key = (a.ticks, a.task)  # a tree changes when it ticks, or stops for a new task
+            cached = self._trees.get(aid)
+            if cached is None or cached[0] != key:
+                cached = self._trees[aid] = (key, a.tree_status)
+            tree = cached[1]
             agents.append(
                 AgentSnapshot(
                     aid,
@@ -570,7 +582,7 @@ class MissionRun:
                     self.bus.link_up(aid),
                     a.task.id if a.task is not None else None,
                     a.action,
-                    MappingProxyType(dict(tree)) if tree else MappingProxyType({}),
+                    tree,
                 )
             )
         return RunSnapshot(
@@ -697,6 +709,8 @@ class MissionRun:
             return
         self._ended = result
         self.snapshot = self._snapshot(result.reason)
+        for a in self.agents.values():
+            a.flush_tree_events()
         data: dict[str, Any] = {
             "reason": result.reason,
             "wall_s": result.wall_s,

@@ -50,8 +50,9 @@ class AgentSnapshot:
     task: str | None
     action: str
     """The action its tree started last (``stage`` event)."""
-    tree: Mapping[str, str] = field(default_factory=lambda: MappingProxyType({}))
-    """Node → status (``SUCCESS``, ``FAILURE``, ``RUNNING``, ``INVALID``) after its last tick."""
+    tree: Mapping[int, str] = field(default_factory=lambda: MappingProxyType({}))
+    """Node uid (pre-order index, as in ``tree`` events; ``Agent.tree_nodes`` names them) →
+    status (``SUCCESS``, ``FAILURE``, ``RUNNING``, ``INVALID``) after its last tick."""
 
 
 @dataclass(frozen=True)

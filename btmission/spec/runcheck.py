@@ -52,9 +52,11 @@ UNIT_SUFFIXES = ("_s", "_m", "_m_s", "_hz", "_px")
 def known_settings(mission: Mission) -> dict[str, Any]:
     """Every setting a run of ``mission`` reads → its default."""
     from btmission.runtime.navigation import SETTINGS_DOC, NavConfig
+    from btmission.runtime.treestatus import TREE_EVENT_S
 
     nav = NavConfig()
     defaults: dict[str, Any] = {name: getattr(nav, name) for name in SETTINGS_DOC}
+    defaults["tree_event_s"] = TREE_EVENT_S  # the agent's tree status events (runtime/agent.py)
     for loaded in mission.libraries.values():
         impl = loaded.implementations
         if impl is None:
