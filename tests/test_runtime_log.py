@@ -229,5 +229,10 @@ def test_ctrl_c_ends_the_run_cleanly_with_the_report(tmp_path: Path) -> None:
     assert proc.returncode == 130, err
     assert "Tasks (seed 000 Table III)" in out and "ended: interrupted" in out
     log = next(logs.glob("*.jsonl"))
-    last = json.loads(log.read_text().splitlines()[-1])
+    lines = [json.loads(x) for x in log.read_text().splitlines()]
+    last = lines[-1]
     assert last["ev"] == "end" and last["reason"] == "interrupted"
+    stops = [x for x in lines if x["ev"] == "command"]  # the operator's action is in the log
+    assert [(x["command"], x["by"], x["reason"], x["ok"]) for x in stops] == [
+        ("stop", "signal", "interrupted", True)
+    ]
