@@ -36,7 +36,7 @@ from btmission.backends.provider import (
 from btmission.spec.mission import load_mission_text
 from btmission.world.build import world_from_spec
 
-PROVIDERS = [pytest.param("sim", id="sim")]
+PROVIDERS = [pytest.param("sim", id="sim"), pytest.param("fake", id="fake")]
 """Backend URLs of the providers under test; each gets the same mission (below)."""
 
 MISSION = """
