@@ -31,7 +31,6 @@ Use it in a mission with ``backend: fake`` on every agent, or with
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -410,4 +409,4 @@ def fake_provider(mission: Mission, voxel_map: VoxelMap, seed: int) -> FakeProvi
     return FakeProvider(voxel_map)
 
 
-__all__: Sequence[str] = ("FakeProvider", "FakeVehicle", "fake_provider")
+__all__ = ["FakeProvider", "FakeVehicle", "fake_provider"]
