@@ -259,3 +259,11 @@ def test_benchmarks_collect_only_their_own_garbage() -> None:
     with own_heap():
         assert gc.get_freeze_count() >= len(held)
     assert gc.get_freeze_count() == 0
+    gc.freeze()  # a caller that freezes objects itself keeps them frozen
+    try:
+        frozen = gc.get_freeze_count()
+        with own_heap():
+            pass
+        assert gc.get_freeze_count() == frozen
+    finally:
+        gc.unfreeze()

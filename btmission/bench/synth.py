@@ -221,7 +221,11 @@ def own_heap() -> Iterator[None]:
     collections would scan every object the caller holds, and a quick benchmark would take
     many seconds: the caller's objects are collected once on entry and frozen
     (:func:`gc.freeze`) until the block ends. Measurements are unchanged: the benchmark's own
-    garbage is collected as before. Used as a decorator on the ``run_*_benchmark`` functions."""
+    garbage is collected as before. Used as a decorator on the ``run_*_benchmark`` functions.
+    A caller that froze objects itself keeps them frozen (nothing is done then)."""
+    if gc.get_freeze_count():
+        yield
+        return
     gc.collect()
     gc.freeze()
     try:
