@@ -14,16 +14,30 @@ SIZE = (60.0, 40.0, 8.0)
 OTHER_SEED = 2
 
 
-@cache
 def small_mine(seed: int = SEED) -> GeneratedMine:
+    return _mine(seed)
+
+
+def small_database(seed: int = SEED) -> PlaceDatabase:
+    return _database(seed)
+
+
+def small_relocalizer(seed: int = SEED) -> Relocalizer:
+    return _relocalizer(seed)
+
+
+# (cached by the seed alone: ``functools.cache`` on the functions above would keep
+# ``small_database()`` and ``small_database(1)`` apart and build the same database twice)
+@cache
+def _mine(seed: int) -> GeneratedMine:
     return generate_mine(seed, SIZE, 0.5)
 
 
 @cache
-def small_database(seed: int = SEED) -> PlaceDatabase:
-    return build_database(small_mine(seed).map)
+def _database(seed: int) -> PlaceDatabase:
+    return build_database(_mine(seed).map)
 
 
 @cache
-def small_relocalizer(seed: int = SEED) -> Relocalizer:
-    return Relocalizer(small_database(seed))
+def _relocalizer(seed: int) -> Relocalizer:
+    return Relocalizer(_database(seed))

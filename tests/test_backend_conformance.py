@@ -4,9 +4,10 @@ Leaves are written against :class:`~btmission.backends.base.Backend`, so a behav
 the simulator must work on a real autopilot. These tests go through the provider API only
 (:mod:`btmission.backends.provider`: the registry, ``attach``, ``step``, ``clock``), never through
 a provider's internals, so that any provider can be held to them: add its backend URL to
-:data:`PROVIDERS` (issue #14 adds the MAVLink provider against PX4 SITL). Time is driven with
-:func:`advance`, which steps the provider and lets the provider's clock pass (the simulator's
-``sleep_until`` returns at once, the wall clock really waits).
+:data:`PROVIDERS` (the simulator and the fake provider are there; issue #14 adds the MAVLink
+provider against PX4 SITL). Time is driven with :func:`advance`, which steps the provider and
+lets the provider's clock pass (the simulator's ``sleep_until`` returns at once, the wall clock
+really waits).
 
 What each test holds a provider to is PX4's behaviour (DESIGN.md §8): OFFBOARD only after
 setpoints have streamed (> 2 Hz for 1 s), HOLD when they stop in OFFBOARD (COM_OF_LOSS_T 1 s),
@@ -36,7 +37,7 @@ from btmission.backends.provider import (
 from btmission.spec.mission import load_mission_text
 from btmission.world.build import world_from_spec
 
-PROVIDERS = [pytest.param("sim", id="sim")]
+PROVIDERS = [pytest.param("sim", id="sim"), pytest.param("fake", id="fake")]
 """Backend URLs of the providers under test; each gets the same mission (below)."""
 
 MISSION = """

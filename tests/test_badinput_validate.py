@@ -360,7 +360,7 @@ class TestBackend:
         path = CORPUS / "backend_unknown.yaml"
         want = (
             f"{path}:8:58: agents[0].backend: backend 'gazebo': no vehicle provider for scheme "
-            "'gazebo' is installed; installed: 'sim' (entry-point group 'btmission.providers')"
+            "'gazebo' is installed; installed: 'sim', 'fake' (entry-point group 'btmission.providers')"
         )
         refused_by_validate_and_run(runner, path, tmp_path, want)
 

@@ -246,3 +246,24 @@ def test_run_rejects_bad_arguments(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="unknown shape"):
         run_synth_benchmark([5], repeat=1, out_dir=tmp_path, echo=lambda *_: None, shapes=("star",))
     assert not (tmp_path / "synth.csv").exists()
+
+
+def test_benchmarks_collect_only_their_own_garbage() -> None:
+    """Inside a benchmark the caller's objects are frozen (collected once, then left out of the
+    collections before each timed call), and released after it."""
+    import gc
+
+    from btmission.bench.synth import own_heap
+
+    held = [object() for _ in range(1000)]
+    with own_heap():
+        assert gc.get_freeze_count() >= len(held)
+    assert gc.get_freeze_count() == 0
+    gc.freeze()  # a caller that freezes objects itself keeps them frozen
+    try:
+        frozen = gc.get_freeze_count()
+        with own_heap():
+            pass
+        assert gc.get_freeze_count() == frozen
+    finally:
+        gc.unfreeze()

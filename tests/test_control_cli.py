@@ -22,6 +22,25 @@ def test_plot_writes_an_image(runner: CliRunner, tmp_path: Path) -> None:
     assert "<svg" in svg.read_text(encoding="utf-8")
 
 
+def test_the_closed_loop_figures_draw_short_runs() -> None:
+    """docs/control.md draws the apf, unicycle and compra figures from the full scenarios
+    (marked slow there); here the same plotting code draws short runs of the same scenarios."""
+    import matplotlib.pyplot as plt
+
+    from btmission.control.examples import corridor_flight, explore_tunnel, head_on
+    from btmission.control.plots import FIGURES, plot_corridor, plot_exploration, plot_head_on
+
+    assert {"apf", "unicycle", "compra"} <= set(FIGURES)
+    figures = [
+        (plot_corridor(corridor_flight(steps=20)), 3),
+        (plot_head_on(head_on(steps=20)), 2),
+        (plot_exploration(explore_tunnel(mission_time_s=2.0, max_time_s=6.0)), 1),
+    ]
+    for fig, axes in figures:
+        assert len(fig.axes) == axes and all(ax.lines for ax in fig.axes)
+        plt.close(fig)
+
+
 def test_plot_bad_inputs_exit_2(runner: CliRunner, tmp_path: Path) -> None:
     result = runner.invoke(cli, ["control", "plot", "dphr", "-o", str(tmp_path / "x.gif")])
     assert result.exit_code == 2

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import re
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -14,6 +15,8 @@ from click.testing import CliRunner
 
 from btmission.allocation.bidder import AgentState, Bidder, BidError, StraightLine
 from btmission.allocation.tasks import TaskInfo
+from btmission.backends.fake import FakeProvider
+from btmission.backends.sim import SimConfig
 from btmission.cli.main import cli
 from btmission.diagnostics import SpecError
 from btmission.dispatch.dynamic import DynamicConfig, executed_tracks
@@ -289,21 +292,31 @@ def test_track_unicycle_keeps_to_a_moving_reference() -> None:
 
 # ----------------------------------------------------------------------------- the mission
 def test_mine_haulage_runs_every_haul_on_schedule(tmp_path: Path) -> None:
+    """The whole mission, on fake vehicles (the simulator's unicycle kinematics without its
+    physics: this test is about the dispatching and the schedule; ``docs/dispatch.md`` runs the
+    mission in the simulator). The simulator's collision check is made here: the trucks' body
+    spheres never overlap (the map is open ground: there is no rock to hit)."""
     events = Recorder()
-    run = MissionRun(load_mission(MISSION), seed=0, observers=[events])
+    run = MissionRun(load_mission(_variant(tmp_path, _fake(MISSION.read_text()))), seed=0,
+                     observers=[events])  # fmt: skip
+    assert isinstance(run.provider, FakeProvider)
     fleet = run.services["haulage"]["fleet"]
     tmap = fleet.tmap
     errors: list[float] = []
+    closest = math.inf
     while run.finished() is None and run.now() < 7200:
         run.step()
+        pos = {a: run.vehicles[a].backend.telemetry().position for a in run.agents}
+        closest = min(closest, *(float(np.linalg.norm(pos[a] - pos[b]))
+                                 for a, b in itertools.combinations(pos, 2)))  # fmt: skip
         if run.steps % 5:
             continue  # compare once a second of mission time
         for a in run.agents:
             ref, _ = fleet.reference(fleet.state(a, run.now()))
-            pos = run.vehicles[a].backend.telemetry().position
-            errors.append(float(np.hypot(*(pos[:2] - ref[:2]))))
+            errors.append(float(np.hypot(*(pos[a][:2] - ref[:2]))))
     result = run.result(run.finished() or "time limit")
     assert result.reason == "completed" and len(result.done) == 6 and result.collisions == 0
+    assert closest > 2 * SimConfig().ground_radius_m  # no two trucks ever touched
     hauled = {k: v for t in fleet.trucks.values() for k, v in t.hauled.items()}
     assert hauled == {t.id: (t.fields["pickup"], t.fields["dropoff"]) for t in run.mission.tasks}
     # the trucks kept to the dispatched schedule (turns on the spot at pause bays lag most)
@@ -405,12 +418,21 @@ def _with_tasks(*tasks: str) -> str:
     )
 
 
+def _fake(text: str) -> str:
+    """The mission with every truck on the fake vehicle provider (btmission.backends.fake):
+    the same kinematic unicycles and cmd_vel rules, without the simulator's physics and
+    collision checks — for tests of the dispatching and the trees, not of the driving."""
+    agent = r"(  - \{id: H\d, library: haulage, start: \[[^]]*\])\}"
+    return re.sub(agent, r"\1, backend: fake}", text)
+
+
 def test_an_idle_truck_moves_out_of_the_way_without_a_default_behaviour(tmp_path: Path) -> None:
     text = _with_tasks(
         "{id: C1, type: haul, pickup: L1n, dropoff: O}",
         "{id: C2, type: haul, pickup: L2n, dropoff: O}",
     ).replace("default_behavior: {goal: parked, idle_timeout_s: 60}\n", "")
-    run = MissionRun(load_mission(_variant(tmp_path, text)), seed=0)
+    run = MissionRun(load_mission(_variant(tmp_path, _fake(text))), seed=0)
+    assert isinstance(run.provider, FakeProvider)
     result = run.run()
     assert result.reason == "completed" and sorted(result.done) == ["C1", "C2"]
 
@@ -422,7 +444,8 @@ def test_a_repeated_haul_is_hauled_again(tmp_path: Path) -> None:
     ).replace("  - {id: H2, library: haulage, start: [1350, 480, 0]}    # L2n\n", "")
     text = text.replace("  - {id: H3, library: haulage, start: [1850, 480, 0]}    # L3n\n", "")
     events = Recorder()
-    run = MissionRun(load_mission(_variant(tmp_path, text)), seed=0, observers=[events])
+    run = MissionRun(load_mission(_variant(tmp_path, _fake(text))), seed=0, observers=[events])
+    assert isinstance(run.provider, FakeProvider)
     result = run.run()
     assert result.reason == "completed" and sorted(result.done) == ["C1", "C2"]
     loads = [e for e in events.of("load")]

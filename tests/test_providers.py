@@ -16,6 +16,7 @@ from click.testing import CliRunner
 
 from btmission.backends import provider as registry
 from btmission.backends.base import VehicleKind
+from btmission.backends.fake import fake_provider
 from btmission.backends.provider import (
     ENTRY_POINT_GROUP,
     ProviderError,
@@ -115,12 +116,20 @@ def test_the_sim_provider_is_an_installed_entry_point() -> None:
     assert provider_factory("sim") is sim_provider
 
 
+def test_the_fake_provider_is_declared_next_to_sim() -> None:
+    toml = (Path(__file__).resolve().parents[1] / "pyproject.toml").read_text()
+    group = toml.split('[project.entry-points."btmission.providers"]')[1].split("\n[")[0]
+    assert 'fake = "btmission.backends.fake:fake_provider"' in group
+    assert installed_providers()["fake"].value == "btmission.backends.fake:fake_provider"
+
+
 def test_sim_is_found_by_an_install_without_the_entry_point(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     monkeypatch.setattr(metadata, "entry_points", lambda group: [])
-    assert list(installed_providers()) == ["sim"]
+    assert list(installed_providers()) == ["sim", "fake"]
     assert provider_factory("sim") is sim_provider
+    assert provider_factory("fake") is fake_provider
 
 
 def test_a_scheme_installed_twice_counts_once(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -131,7 +140,7 @@ def test_a_scheme_installed_twice_counts_once(monkeypatch: pytest.MonkeyPatch) -
         return [ep, ep] if group == ENTRY_POINT_GROUP else []
 
     monkeypatch.setattr(metadata, "entry_points", twice)
-    assert list(installed_providers()) == ["sim"]
+    assert list(installed_providers()) == ["sim", "fake"]
 
 
 def test_an_unknown_scheme_has_no_factory() -> None:
@@ -154,7 +163,7 @@ def test_validate_refuses_an_unknown_scheme_at_its_line(tmp_path: Path) -> None:
     assert code == 2
     assert (
         f"{path}:7:58: agents[1].backend: backend 'gz://127.0.0.1:11345': no vehicle provider "
-        "for scheme 'gz' is installed; installed: 'sim' (entry-point group 'btmission.providers')"
+        "for scheme 'gz' is installed; installed: 'sim', 'fake' (entry-point group 'btmission.providers')"
     ) in out
 
 

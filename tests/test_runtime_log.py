@@ -190,12 +190,18 @@ def _start_run(logs: Path, cwd: Path, *extra: str, **popen: object) -> subproces
     )
 
 
-def _wait_for_poses(logs: Path, timeout_s: float = 60.0) -> Path | None:
+def _wait_for_poses(logs: Path, timeout_s: float = 60.0, after_s: float = -1.0) -> Path | None:
+    """The run's log once it holds a pose event later than ``after_s`` of mission time."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         found = list(logs.glob("*.jsonl")) if logs.exists() else []
-        if found and '"ev":"pose"' in found[0].read_text():
-            return found[0]
+        lines = found[0].read_text().splitlines() if found else []
+        poses = [line for line in lines if '"ev":"pose"' in line]
+        try:
+            if poses and json.loads(poses[-1])["t"] > after_s:
+                return found[0]
+        except ValueError:  # the line being written
+            pass
         time.sleep(0.2)
     return None
 
@@ -205,9 +211,8 @@ def test_a_killed_run_leaves_a_log_the_report_reads(tmp_path: Path) -> None:
     logs = tmp_path / "logs"
     proc = _start_run(logs, tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        log = _wait_for_poses(logs)
+        log = _wait_for_poses(logs, after_s=1.5)  # let it run a few (real-time) seconds
         assert log is not None, "the run never started logging"
-        time.sleep(3.0)  # let it run a few (real-time) seconds
     finally:
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait()

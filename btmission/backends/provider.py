@@ -114,15 +114,18 @@ ProviderFactory = Callable[["Mission", "VoxelMap", int], VehicleProvider]
 """What a ``btmission.providers`` entry point names: ``factory(mission, voxel_map, seed)``."""
 
 
-BUILT_IN = {"sim": "btmission.backends.sim:sim_provider"}
+BUILT_IN = {
+    "sim": "btmission.backends.sim:sim_provider",
+    "fake": "btmission.backends.fake:fake_provider",
+}
 """Providers of the core package, found even by an install made before the entry-point group
 existed (an editable install is not re-read until it is reinstalled); also declared in
 pyproject.toml."""
 
 
 def installed_providers() -> dict[str, metadata.EntryPoint]:
-    """Every provider by scheme (not loaded): the built-in ``sim`` and the ``btmission.providers``
-    entry points. A scheme registered twice (the same distribution seen from two paths, or a
+    """Every provider by scheme (not loaded): the built-in ``sim`` and ``fake``, and the
+    ``btmission.providers`` entry points. A scheme registered twice (the same distribution seen from two paths, or a
     plugin claiming ``sim``) counts once: the first one found."""
     out = {
         name: metadata.EntryPoint(name, value, ENTRY_POINT_GROUP)

@@ -49,7 +49,7 @@ from btmission.allocation.solvers import (
 )
 from btmission.allocation.tasks import TaskInfo, TaskPool
 from btmission.bench.synth import _median_ms as median_ms
-from btmission.bench.synth import environment, header_lines
+from btmission.bench.synth import environment, header_lines, own_heap
 from btmission.types import FloatArray
 
 T = TypeVar("T")
@@ -689,6 +689,7 @@ def plot(b: AuctionBench, path: Path) -> None:
     plt.close(fig)
 
 
+@own_heap()
 def run_auction_benchmark(
     cfg: BenchConfig,
     out_dir: Path | str = Path("benchmarks/results"),

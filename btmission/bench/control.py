@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from btmission.bench.synth import environment, header_lines
+from btmission.bench.synth import environment, header_lines, own_heap
 
 __all__ = [
     "CSV_HEADER",
@@ -214,6 +214,7 @@ def _table_head() -> list[str]:
     ]
 
 
+@own_heap()
 def run_control_benchmark(
     parts: Sequence[str] = PARTS,
     *,

@@ -68,6 +68,7 @@ from btmission.runtime.leaves import (
 )
 from btmission.runtime.navigation import Navigator, route_points
 from btmission.runtime.paths import PathCosts
+from btmission.runtime.substitution import Substitutions
 from btmission.runtime.treestatus import TREE_EVENT_S, LeanBehaviourTree, TreeStatusLogger
 from btmission.spec.mission import Mission
 from btmission.spec.source import format_path
@@ -112,6 +113,7 @@ class Agent:
         services: Mapping[str, Any] | None = None,
         places: Mapping[str, tuple[float, float, float]] | None = None,
         provider: CostProvider | None = None,
+        substitutions: Substitutions | None = None,
     ) -> None:
         spec = mission.agent(agent_id)
         self.id = agent_id
@@ -141,7 +143,7 @@ class Agent:
         self.blackboard.set("start", spec.start)
         self.mission_tree = build_mission_tree(mission, agent_id)
         self.root = build_behaviour_tree(
-            self.mission_tree.tree, self._leaf_factory(implementations)
+            self.mission_tree.tree, self._leaf_factory(implementations, substitutions)
         )
         self._branches = {
             child.name: child for child in self.root.children if child.name.startswith("task(")
@@ -210,11 +212,15 @@ class Agent:
         return list(self.mission_tree.branches.keys() - {"default"})
 
     def _leaf_factory(
-        self, impl: Implementations
+        self, impl: Implementations, substitutions: Substitutions | None = None
     ) -> Callable[[Node], py_trees.behaviour.Behaviour]:
         ctx = self.ctx
 
         def leaf(node: Node) -> py_trees.behaviour.Behaviour:
+            if substitutions:  # a test replaces this leaf (btmission.runtime.substitution)
+                substitute = substitutions.leaf(self.id, node, ctx)
+                if substitute is not None:
+                    return substitute
             builtin = node.role is Role.BUILTIN
             if node.kind is Kind.CONDITION:
                 fn = BUILTIN_CONDITIONS[node.name] if builtin else impl.conditions[node.name]

@@ -78,6 +78,7 @@ from btmission.runtime.loops import AgentRuntime, CoordinatorRuntime
 from btmission.runtime.navigation import NavConfig, Navigator
 from btmission.runtime.paths import PathCosts
 from btmission.runtime.snapshot import AgentSnapshot, RunSnapshot
+from btmission.runtime.substitution import SubstitutionRules, Substitutions
 from btmission.spec.mission import Mission
 from btmission.spec.runcheck import run_problems
 from btmission.world.voxel import VoxelMap
@@ -129,13 +130,21 @@ class MissionRun:
         observers: Iterable[Observer] = (),
         voxel_map: VoxelMap | None = None,
         realtime: bool = False,
+        substitutions: Substitutions | SubstitutionRules | None = None,
     ) -> None:
+        """``substitutions``: leaves of the agents' trees to replace, for tests
+        (:mod:`btmission.runtime.substitution`; a rule that replaces no leaf raises
+        :class:`~btmission.runtime.substitution.SubstitutionError` before anything is
+        published)."""
         from btmission.planning.risk import RiskParams
         from btmission.world.build import world_from_spec
 
         problems = run_problems(mission)  # the checks `validate` makes too
         if problems:
             raise SpecError(problems)
+        self.substitutions = Substitutions.of(substitutions)
+        if self.substitutions is not None:
+            self.substitutions.check(mission)
         self.mission = mission
         rt = mission.spec.runtime
         self.seed = seed
@@ -317,6 +326,7 @@ class MissionRun:
                 services=self.services[impl.library],
                 places=self.places,
                 provider=self.roads if ground else None,  # drones fly
+                substitutions=self.substitutions,
             )
 
     def _emit_header(self) -> None:

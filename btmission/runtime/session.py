@@ -44,6 +44,7 @@ from typing import TYPE_CHECKING, Any
 from btmission.diagnostics import Diagnostic, Severity, SpecError, errors
 from btmission.runtime.commands import Command
 from btmission.runtime.events import Event, JsonlEventLog, Observer
+from btmission.runtime.substitution import SubstitutionRules, Substitutions
 
 if TYPE_CHECKING:
     from btmission.runtime.report import MissionReport
@@ -126,11 +127,13 @@ class RunSession:
         observers: Iterable[Observer] = (),
         handle_signals: bool = False,
         notify: Callable[[str], None] | None = None,
+        substitutions: Substitutions | SubstitutionRules | None = None,
     ) -> None:
         """``mission``: a mission file or a loaded :class:`~btmission.spec.mission.Mission`.
         The log goes to ``log_path``, else to a new file in ``log_dir``; with neither, no log
         is written (then :meth:`report` is not available). ``notify(text)`` receives the
-        session's notes for a person (a signal was taken); default: none."""
+        session's notes for a person (a signal was taken); default: none. ``substitutions``:
+        leaves to replace, for tests (:mod:`btmission.runtime.substitution`)."""
         self._source = mission
         self.seed = seed
         self.controller = controller
@@ -139,6 +142,7 @@ class RunSession:
         self.log_path: Path | None = Path(log_path) if log_path is not None else None
         self._observers = list(observers)
         self._notify = notify
+        self.substitutions = Substitutions.of(substitutions)
         self._signals = _Signals(self) if handle_signals else None
         self.mission: Mission | None = None
         self.warnings: list[Diagnostic] = []
@@ -208,6 +212,8 @@ class RunSession:
         if self.run_loop is not None:
             return self.run_loop
         mission = self.load()
+        if self.substitutions is not None:  # a rule that replaces nothing: before any log
+            self.substitutions.check(mission)
         observers = list(self._observers)
         if self.log_path is None and self.log_dir is not None:
             self.log_path = log_path_for(self.log_dir, mission.name, self.seed)
@@ -222,6 +228,7 @@ class RunSession:
                 controller=self.controller,
                 observers=observers,
                 realtime=self.realtime,
+                substitutions=self.substitutions,
             )
         except SpecError:
             self._drop_log()

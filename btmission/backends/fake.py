@@ -1,0 +1,412 @@
+"""A fake vehicle provider (scheme ``fake``): kinematic vehicles for behaviour tests.
+
+Tests of the auction, the commands or a library's tree check what the agents decide, not how they
+fly. The ``fake`` provider gives them vehicles that cost next to nothing to step:
+
+* a **multirotor** moves at the velocity its setpoint asks for, capped (horizontal
+  ``max_speed_m_s``, vertical ``max_climb_m_s``): no attitude dynamics, no RK4. A position
+  setpoint asks for ``velocity + (position − p)`` (the autopilot's position loop, gain 1/s),
+  a velocity setpoint for itself; an attitude setpoint (the NMPC's output) is turned into the
+  acceleration it would give and integrated once per step;
+* a **ground robot** is a unicycle driven by its ``cmd_vel`` (the component of the velocity
+  setpoint along its heading, and the yaw rate), like the simulator's, stopping 0.5 s after its
+  last command; like the simulator's, it stays at the height of the floor it started on;
+* the **autopilot rules** are the simulator's (:mod:`btmission.backends.sim`), so leaves behave
+  the same: OFFBOARD only after setpoints have streamed at > 2 Hz for 1 s, HOLD when they stop
+  for 1 s, no arming change in the air, take-off only when armed, LAND descends at 0.7 m/s and
+  disarms 2 s after touch-down, an armed vehicle that never takes off disarms after 10 s;
+* **no sensors** (``Vehicle.sensors`` is None: no LiDAR, camera or detections), **no
+  collisions** (vehicles pass through rock and each other; :meth:`FakeProvider.step` reports
+  nothing). The floor under a vehicle is the map's ground, so it lands where the simulator's would.
+
+Its time is simulated like the simulator's (:class:`~btmission.runtime.clock.SimClock`; a run
+goes as fast as the machine allows) and it keeps the odometer as ground truth (the clearance
+is never measured: ``None``). For tests, :meth:`FakeVehicle.teleport` puts a vehicle anywhere
+(e.g. from a :class:`~btmission.runtime.substitution.TestLeaf` effect).
+
+Use it in a mission with ``backend: fake`` on every agent, or with
+:func:`fake_provider` / :class:`FakeProvider` directly (docs/providers.md).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from btmission.backends.base import ACCEPTED, Ack, Mode, Telemetry, VehicleKind
+from btmission.backends.provider import Vehicle, VehicleEvent
+from btmission.backends.sim import (
+    CMD_VEL_TIMEOUT_S,
+    DISARM_LAND_S,
+    DISARM_PREFLIGHT_S,
+    HEADING_P,
+    LAND_SPEED,
+    OFFBOARD_LOSS_S,
+    STREAM_MIN_HZ,
+    STREAM_MIN_S,
+    YAW_RATE_MAX,
+    SimConfig,
+)
+from btmission.types import FloatArray, Vec3
+
+if TYPE_CHECKING:
+    from btmission.spec.mission import Mission
+    from btmission.world.voxel import VoxelMap
+
+G = 9.81
+VELOCITY_GAIN = 1.2
+"""1/s: the velocity approaches the commanded one as in the simulator's velocity loop."""
+
+
+@dataclass
+class _State:
+    id: str
+    kind: VehicleKind
+    p: FloatArray
+    yaw: float = 0.0
+    v: FloatArray = field(default_factory=lambda: np.zeros(3))
+    yaw_rate: float = 0.0
+    armed: bool = False
+    mode: Mode = Mode.MANUAL
+    landed: bool = True
+    battery: float = 1.0
+    ground: float = 0.0
+    odometer_m: float = 0.0
+    v_max: float | None = None
+    # setpoints and autopilot state (as in the simulator)
+    sp_kind: str = ""
+    sp_pos: FloatArray = field(default_factory=lambda: np.zeros(3))
+    sp_vel: FloatArray = field(default_factory=lambda: np.zeros(3))
+    sp_yaw: float | None = None
+    sp_yaw_rate: float = 0.0
+    sp_att: FloatArray = field(default_factory=lambda: np.array([G, 0.0, 0.0]))
+    sp_time: float = -math.inf
+    stream_since: float = math.inf
+    hold: FloatArray = field(default_factory=lambda: np.zeros(3))
+    armed_at: float = -math.inf
+    landed_at: float = -math.inf
+    took_off: bool = False
+    failsafe: str = ""
+
+
+class FakeProvider:
+    """Kinematic vehicles (module docstring): a
+    :class:`~btmission.backends.provider.VehicleProvider` with simulated time."""
+
+    realtime = False
+
+    def __init__(self, voxel_map: VoxelMap | None = None, config: SimConfig | None = None) -> None:
+        from btmission.runtime.clock import SimClock
+
+        self.map = voxel_map
+        self.config = config or SimConfig()
+        self.time_s = 0.0
+        self.clock = SimClock(self)
+        self.vehicles: dict[str, FakeVehicle] = {}
+
+    def ground_z(self, p: FloatArray) -> float:
+        """The floor under ``p`` (0 without a map)."""
+        return 0.0 if self.map is None else float(self.map.ground_z(p))
+
+    def attach(
+        self, agent_id: str, kind: VehicleKind, start: Vec3, *, url: str = "", **options: Any
+    ) -> Vehicle:
+        """A vehicle at ``start`` (on the ground under it). Options: ``yaw`` (rad), and
+        ``v_max`` (m/s) for a ground robot."""
+        if agent_id in self.vehicles:
+            raise ValueError(f"vehicle '{agent_id}' exists already")
+        p = np.asarray(start, dtype=float).copy()
+        g = self.ground_z(p + np.array([0.0, 0.0, 0.01]))
+        p[2] = max(float(p[2]), g) if kind is VehicleKind.MULTIROTOR else g
+        v_max = options.get("v_max")
+        state = _State(agent_id, kind, p, yaw=float(options.get("yaw", 0.0)), ground=g,
+                       v_max=None if v_max is None else float(v_max))  # fmt: skip
+        state.hold = p.copy()
+        state.armed = kind is VehicleKind.GROUND  # a ground robot drives when commanded
+        vehicle = self.vehicles[agent_id] = FakeVehicle(self, state)
+        return Vehicle(agent_id, kind, vehicle, None, lambda: state.odometer_m, lambda: None)
+
+    def step(self, dt: float) -> list[VehicleEvent]:
+        """Move every vehicle by ``dt`` seconds; nothing ever collides."""
+        if not dt > 0:
+            raise ValueError(f"dt must be > 0 s, got {dt}")
+        t = self.time_s
+        for vehicle in self.vehicles.values():
+            vehicle._step(t, dt)
+        self.time_s = round(t + dt, 9)
+        return []
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+
+class FakeVehicle:
+    """One fake vehicle: the :class:`~btmission.backends.base.Backend` interface, plus
+    :meth:`teleport` for tests."""
+
+    def __init__(self, provider: FakeProvider, state: _State) -> None:
+        self._provider = provider
+        self._s = state
+        self.id = state.id
+        self.kind = state.kind
+
+    # ------------------------------------------------------------------ commands (as sim.py)
+    def arm(self) -> Ack:
+        s = self._s
+        if s.kind is VehicleKind.GROUND or s.armed:
+            return ACCEPTED
+        if not s.landed:
+            return Ack(False, "cannot arm in the air")
+        if s.battery < 0.1:
+            return Ack(False, f"battery too low ({s.battery:.0%})")
+        s.armed, s.armed_at, s.took_off, s.failsafe = True, self._provider.time_s, False, ""
+        return ACCEPTED
+
+    def disarm(self) -> Ack:
+        s = self._s
+        if s.kind is VehicleKind.GROUND:
+            return ACCEPTED
+        if not s.landed:
+            return Ack(False, "cannot disarm in the air")
+        s.armed, s.mode = False, Mode.MANUAL
+        return ACCEPTED
+
+    def set_mode(self, mode: Mode) -> Ack:
+        s = self._s
+        t = self._provider.time_s
+        if s.kind is VehicleKind.GROUND:
+            s.mode = mode
+            return ACCEPTED
+        if mode is Mode.OFFBOARD:
+            if not (t - s.sp_time <= 1.0 / STREAM_MIN_HZ and t - s.stream_since >= STREAM_MIN_S):
+                return Ack(False, f"offboard refused: stream setpoints at > {STREAM_MIN_HZ:g} Hz "
+                                  f"for {STREAM_MIN_S:g} s first")  # fmt: skip
+        if mode is Mode.TAKEOFF:
+            return self.takeoff(2.0)
+        if mode is Mode.LAND:
+            return self.land()
+        if mode is Mode.HOLD:
+            s.hold = s.p.copy()
+        s.mode = mode
+        return ACCEPTED
+
+    def takeoff(self, altitude_m: float) -> Ack:
+        s = self._s
+        if s.kind is VehicleKind.GROUND:
+            return Ack(False, "a ground robot cannot take off")
+        if not s.armed:
+            return Ack(False, "takeoff refused: not armed")
+        if not altitude_m > 0:
+            return Ack(False, f"takeoff altitude must be > 0, got {altitude_m:g}")
+        s.hold = s.p.copy()
+        s.hold[2] = s.ground + altitude_m
+        s.mode = Mode.TAKEOFF
+        return ACCEPTED
+
+    def land(self) -> Ack:
+        s = self._s
+        if s.kind is VehicleKind.GROUND:
+            return Ack(False, "a ground robot cannot land")
+        if not s.armed:
+            return Ack(False, "land refused: not armed")
+        s.hold = s.p.copy()
+        s.mode = Mode.LAND
+        return ACCEPTED
+
+    # ------------------------------------------------------------------ setpoints
+    def _stream(self, kind: str) -> None:
+        s = self._s
+        t = self._provider.time_s
+        if t - s.sp_time > 1.0 / STREAM_MIN_HZ:
+            s.stream_since = t
+        s.sp_time, s.sp_kind = t, kind
+
+    def set_position_setpoint(
+        self,
+        position: Vec3 | FloatArray,
+        velocity: Vec3 | FloatArray | None = None,
+        yaw: float | None = None,
+    ) -> None:
+        s = self._s
+        self._stream("position")
+        s.sp_pos = np.array(position, dtype=float)
+        s.sp_vel = np.zeros(3) if velocity is None else np.array(velocity, dtype=float)
+        s.sp_yaw = yaw
+
+    def set_velocity_setpoint(self, velocity: Vec3 | FloatArray, yaw_rate: float = 0.0) -> None:
+        s = self._s
+        self._stream("velocity")
+        s.sp_vel = np.array(velocity, dtype=float)
+        s.sp_yaw_rate = float(yaw_rate)
+
+    def set_attitude_setpoint(
+        self, thrust: float, roll: float, pitch: float, yaw_rate: float = 0.0
+    ) -> None:
+        s = self._s
+        if s.kind is VehicleKind.GROUND:
+            raise ValueError("a ground robot takes velocity setpoints, not attitude setpoints")
+        self._stream("attitude")
+        s.sp_att = np.array([float(thrust), float(roll), float(pitch)])
+        s.sp_yaw_rate = float(yaw_rate)
+
+    # ------------------------------------------------------------------ telemetry
+    def telemetry(self) -> Telemetry:
+        s = self._s
+        return Telemetry(
+            time_s=self._provider.time_s,
+            position=s.p.copy(),
+            velocity=s.v.copy(),
+            yaw=s.yaw,
+            roll=0.0,
+            pitch=0.0,
+            yaw_rate=s.yaw_rate,
+            mode=s.mode,
+            armed=s.armed,
+            landed=s.landed,
+            battery=s.battery,
+            ground_z=s.ground,
+        )
+
+    @property
+    def failsafe(self) -> str:
+        """The last failsafe the autopilot triggered ("" if none)."""
+        return self._s.failsafe
+
+    def teleport(self, position: Vec3 | FloatArray, yaw: float | None = None) -> None:
+        """Put the vehicle at ``position`` at rest (a test's shortcut; the odometer does not
+        count it). A multirotor in the air holds there."""
+        s = self._s
+        s.p = np.array(position, dtype=float)
+        s.ground = self._provider.ground_z(s.p + np.array([0.0, 0.0, 0.05]))
+        if s.kind is VehicleKind.GROUND:
+            s.p[2] = s.ground  # (it stays on this floor, as in the simulator)
+        s.p[2] = max(float(s.p[2]), s.ground)
+        s.v = np.zeros(3)
+        s.hold = s.p.copy()
+        if yaw is not None:
+            s.yaw = float(yaw)
+        if s.kind is VehicleKind.MULTIROTOR:
+            s.landed = s.p[2] - s.ground < 0.05
+            s.took_off = s.took_off or not s.landed
+
+    # ------------------------------------------------------------------ stepping
+    def _step(self, t: float, dt: float) -> None:
+        if self._s.kind is VehicleKind.MULTIROTOR:
+            self._step_multirotor(t, dt)
+        else:
+            self._step_ground(t, dt)
+
+    def _autopilot(self, t: float) -> None:
+        """The simulator's mode logic: the offboard-loss failsafe and automatic disarming."""
+        s = self._s
+        if s.mode is Mode.OFFBOARD and t - s.sp_time > OFFBOARD_LOSS_S:
+            s.mode = Mode.HOLD if not s.landed else Mode.MANUAL
+            s.hold = s.p.copy()
+            s.failsafe = f"offboard setpoints lost for more than {OFFBOARD_LOSS_S:g} s"
+        if s.armed and s.landed:
+            if not s.took_off and t - s.armed_at > DISARM_PREFLIGHT_S:
+                s.armed = False
+                s.failsafe = f"disarmed: no take-off within {DISARM_PREFLIGHT_S:g} s of arming"
+            elif s.took_off and t - s.landed_at > DISARM_LAND_S:
+                s.armed, s.took_off = False, False
+                if s.mode in (Mode.LAND, Mode.HOLD, Mode.TAKEOFF):
+                    s.mode = Mode.MANUAL
+
+    def _velocity_command(self, dt: float) -> FloatArray | None:
+        """The velocity the active mode and setpoint ask for (None: none, at rest)."""
+        s = self._s
+        if s.mode is Mode.OFFBOARD and s.sp_kind == "position":
+            return s.sp_vel + (s.sp_pos - s.p)
+        if s.mode is Mode.OFFBOARD and s.sp_kind == "velocity":
+            return s.sp_vel.copy()
+        if s.mode is Mode.OFFBOARD and s.sp_kind == "attitude":
+            thrust, roll, pitch = s.sp_att
+            c, sn = math.cos(s.yaw), math.sin(s.yaw)
+            ax = thrust * math.cos(roll) * math.sin(pitch)
+            ay = -thrust * math.sin(roll)
+            acc = np.array([c * ax - sn * ay, sn * ax + c * ay,
+                            thrust * math.cos(roll) * math.cos(pitch) - G])  # fmt: skip
+            return s.v + acc * dt
+        if s.mode in (Mode.TAKEOFF, Mode.HOLD):
+            return s.hold - s.p
+        if s.mode is Mode.LAND:
+            v = np.zeros(3)
+            v[:2] = s.hold[:2] - s.p[:2]
+            v[2] = -LAND_SPEED
+            return v
+        return None
+
+    def _step_multirotor(self, t: float, dt: float) -> None:
+        s = self._s
+        cfg = self._provider.config
+        self._autopilot(t)
+        v = self._velocity_command(dt) if s.armed else None
+        if v is None:
+            v = np.zeros(3) if s.landed else np.array([0.0, 0.0, -LAND_SPEED])  # unpowered
+        h = math.hypot(v[0], v[1])
+        if h > cfg.max_speed_m_s:
+            v[:2] *= cfg.max_speed_m_s / h
+        v[2] = min(max(v[2], -cfg.max_climb_m_s), cfg.max_climb_m_s)
+        if not (s.mode is Mode.OFFBOARD and s.sp_kind == "attitude"):
+            v = s.v + (v - s.v) * min(1.0, VELOCITY_GAIN * dt)  # the velocity loop's lag
+        if s.landed and v[2] <= 0.0:
+            v[:] = 0.0  # resting on the ground
+        old = s.p.copy()
+        s.p = s.p + v * dt
+        s.ground = self._provider.ground_z(s.p + np.array([0.0, 0.0, 0.05]))
+        if s.p[2] <= s.ground:
+            s.p[2] = s.ground
+            v[2] = max(v[2], 0.0)
+        s.v = v
+        # yaw: the commanded rate, or the heading loop on a position setpoint's yaw
+        if s.mode is Mode.OFFBOARD and s.sp_kind in ("velocity", "attitude"):
+            rate = s.sp_yaw_rate
+        elif s.mode is Mode.OFFBOARD and s.sp_yaw is not None:
+            err = (s.sp_yaw - s.yaw + math.pi) % (2 * math.pi) - math.pi
+            rate = min(max(HEADING_P * err, -YAW_RATE_MAX), YAW_RATE_MAX)
+        else:
+            rate = 0.0
+        s.yaw_rate = 0.0 if s.landed else rate
+        s.yaw = (s.yaw + s.yaw_rate * dt + math.pi) % (2 * math.pi) - math.pi
+        was_landed = s.landed
+        s.landed = s.p[2] - s.ground < 0.05 and v[2] <= 0.0
+        if s.landed and not was_landed:
+            s.landed_at = t
+        if not s.landed:
+            s.took_off = True
+        if s.mode is Mode.TAKEOFF and abs(s.p[2] - s.hold[2]) < 0.1:
+            s.mode = Mode.HOLD
+        if s.armed:
+            s.battery = max(0.0, s.battery - dt / cfg.battery_s)
+        s.odometer_m += float(np.linalg.norm(s.p - old))
+
+    def _step_ground(self, t: float, dt: float) -> None:
+        s = self._s
+        cfg = self._provider.config
+        if t - s.sp_time > CMD_VEL_TIMEOUT_S or s.sp_kind != "velocity":
+            uv = uw = 0.0
+        else:
+            heading = (math.cos(s.yaw), math.sin(s.yaw))
+            uv = float(s.sp_vel[0] * heading[0] + s.sp_vel[1] * heading[1])
+            v_max = cfg.ground_v_max if s.v_max is None else s.v_max
+            uv = min(max(uv, cfg.ground_v_min), v_max)
+            uw = min(max(s.sp_yaw_rate, -cfg.ground_omega_max), cfg.ground_omega_max)
+        old = s.p.copy()
+        s.p[0] += uv * math.cos(s.yaw) * dt
+        s.p[1] += uv * math.sin(s.yaw) * dt
+        s.yaw = (s.yaw + uw * dt + math.pi) % (2 * math.pi) - math.pi
+        s.v = np.array([uv * math.cos(s.yaw), uv * math.sin(s.yaw), 0.0])
+        s.yaw_rate = uw
+        s.odometer_m += float(math.hypot(s.p[0] - old[0], s.p[1] - old[1]))
+
+
+def fake_provider(mission: Mission, voxel_map: VoxelMap, seed: int) -> FakeProvider:
+    """The ``fake`` entry point of ``btmission.providers``: fake vehicles on the mission's
+    map (its ground), with the speed limits of the simulator's defaults."""
+    return FakeProvider(voxel_map)
+
+
+__all__ = ["FakeProvider", "FakeVehicle", "fake_provider"]
