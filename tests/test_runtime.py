@@ -259,5 +259,6 @@ def test_mine_inspection_seed_000_field_mission(tmp_path: Path) -> None:
             and e["state"] == "assigned"
             and e["agent"] == ev["agent"]
         ]
-        assert rows[task]["finished_s"] == ev["t"] and rows[task]["agent"] == ev["agent"]
-        assert rows[task]["execution_s"] == pytest.approx(ev["t"] - assigned[-1])
+        finished = ev.get("reported_s", ev["t"])  # when the agent finished, not the round after
+        assert rows[task]["finished_s"] == finished and rows[task]["agent"] == ev["agent"]
+        assert rows[task]["execution_s"] == pytest.approx(finished - assigned[-1])
