@@ -87,6 +87,23 @@ def test_a_stuck_observer_does_not_hold_the_run_and_loses_only_poses_and_old_rou
     assert got[-1].kind == "end" and queued.delivered == len(got)
 
 
+def test_a_stuck_observer_does_not_make_the_queue_grow_with_dropped_poses() -> None:
+    """Memory stays bounded: dropped events do not stay behind in the queue."""
+    slow = Gated()
+    queued = QueuedObserver(slow, maxsize=10)
+    stream = EventStream([queued])
+    stream.emit(0.0, "header", format="btmission-log", version=2)
+    assert slow.entered.wait(WAIT_S)
+    for k in range(50_000):
+        stream.emit(k * 0.05, "pose", agent=f"G{k % 3}", p=[k, 0, 0])
+    assert queued.queued <= 10 and len(queued._queue) <= 2 * 10 + 1
+    slow.gate.set()
+    queued.close(timeout=WAIT_S)
+    last = {e.get("agent"): e.get("p")[0] for e in slow.events if e.kind == "pose"}
+    assert last == {"G0": 49_998, "G1": 49_999, "G2": 49_997}  # each agent's newest pose
+    assert queued.dropped["pose"] + len(slow.events) - 1 == 50_000
+
+
 def test_a_fast_observer_gets_everything_in_order() -> None:
     rec = Recorder()
     with QueuedObserver(rec, maxsize=10_000) as queued:

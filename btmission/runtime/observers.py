@@ -88,6 +88,8 @@ class QueuedObserver:
             slot = _Slot(event)
             self._queue.append(slot)
             self._size += 1
+            if len(self._queue) > 2 * max(self._size, self.maxsize):  # mostly dropped slots
+                self._queue = deque(s for s in self._queue if s.event is not None)
             if key is not None:
                 same = self._by_key.setdefault(key, deque())
                 same.append(slot)
