@@ -196,3 +196,19 @@ def test_a_run_with_a_bid_window_allocates_after_it(tmp_path: Path) -> None:
     rounds = rec.of("round")
     assert [r.t for r in rounds[:3]] == pytest.approx([0.15, 0.35, 0.55])  # window + 1 step
     assert not [r for r in rounds if r.get("late_bids") or r.get("stale_bids")]
+
+
+def test_a_bid_window_as_long_as_the_agent_timeout_is_refused(tmp_path: Path) -> None:
+    """Every bid would be stale when the round allocates: validate says so, at the line."""
+    from btmission.diagnostics import SpecError
+
+    body = ROBOTS.replace(
+        "coordination: {auction_rate_hz: 10, agent_timeout_s: 1.0}",
+        "coordination: {auction_rate_hz: 10, agent_timeout_s: 1.0, bid_window_s: 1.0}",
+    )
+    assert body != ROBOTS
+    with pytest.raises(SpecError) as err:
+        mission_text(body, tmp_path)
+    (diag,) = err.value.diagnostics
+    assert diag.item == "coordination.bid_window_s" and diag.where.line == 13
+    assert "must be shorter than agent_timeout_s (1 s)" in diag.message

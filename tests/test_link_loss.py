@@ -95,7 +95,10 @@ def test_long_silence_the_completion_arrives_late_and_is_counted_once(tmp_path: 
     assert run.agents["G1"].unacknowledged == []  # delivered and acknowledged at 50 s
     (warning,) = rec.of("warning")
     assert warning.t == pytest.approx(50.0)
-    assert warning.get("message").startswith("G1 reports 'A' done (t=27.6s), but G2 completed")
+    assert warning.get("message").startswith(
+        "G1 reports 'A' done (finished at t=27.6s), but G2's completion (finished at t=34.4s) "
+        "reached the coordinator first"
+    )
     assert warning.get("message").endswith("counted once, for G2")
 
 
@@ -220,7 +223,8 @@ def test_a_late_report_counts_only_from_a_former_holder() -> None:
     assert withdrawn == [Withdrawal("G2", "A", "G1", "done")]
     assert problems == [
         "agent 'G5' cannot complete task 'A': it is held by G2",
-        "G2 reports 'A' done (t=5.6s), but G1 completed it first (t=4.5s): counted once, for G1",
+        "G2 reports 'A' done (finished at t=5.6s), but G1's completion (finished at t=4.5s) "
+        "reached the coordinator first: counted once, for G1",
         "agent 'G3' cannot fail task 'P': it is held by G4",
     ]
     assert late.pool["P"].state is TaskState.ASSIGNED and late.pool["P"].agent == "G4"

@@ -353,3 +353,104 @@ def test_realtime_paces_one_step_per_step_of_wall_time(tmp_path: Path) -> None:
     result = run.run(until=60.0)
     assert result.reason == "stopped" and time.perf_counter() - t0 < 5.0
     assert 0.1 <= result.time_s - 0.5 <= 1.0
+
+
+def test_a_task_added_can_be_steered_in_the_same_step(tmp_path: Path) -> None:
+    """AddTask then SetPriority / CancelTask of it at the same time: both apply, in order."""
+    m = load_mission_text(textwrap.dedent(ROBOTS), str(tmp_path / "m.yaml"))
+    rec = Recorder()
+    run = MissionRun(m, observers=[rec])
+    run.at(1.0, AddTask({"id": "C", "type": "inspect", "location": [6, 4, 0]}))
+    run.at(1.0, SetPriority("C", 4.0))
+    run.at(1.0, AddTask({"id": "D", "type": "inspect", "location": [7, 4, 0]}))
+    run.at(1.0, CancelTask("D"))
+    run.run(until=2.0)
+    cmds = commands_in(rec.events)
+    assert [(c["command"], c["task"], c["ok"]) for c in cmds] == [
+        ("add_task", "C", True),
+        ("set_priority", "C", True),
+        ("add_task", "D", True),
+        ("cancel_task", "D", True),
+    ]
+    assert run.coordinator.state.pool["C"].info.priority == 4.0
+    assert run.coordinator.state.pool["D"].state.value == "cancelled"
+    run.submit(SetPriority("C", 2.0))  # known to the coordinator, not yet stepped: accepted
+
+
+def test_commands_after_the_end_are_refused_and_leftovers_are_logged(tmp_path: Path) -> None:
+    m = load_mission_text(textwrap.dedent(ROBOTS), str(tmp_path / "m.yaml"))
+    rec = Recorder()
+    run = MissionRun(m, observers=[rec])
+    run.run(until=1.0)
+    run.kill_agent("G2")  # queued; the run ends before its step
+    run.stop("enough")
+    run.end(run.result("enough"))
+    cmds = commands_in(rec.events)
+    assert [(c["command"], c["ok"], c.get("error")) for c in cmds] == [
+        ("kill_agent", False, "not applied: the run had ended"),
+        ("stop", True, None),
+    ]
+    assert run.agents["G2"].alive
+    with pytest.raises(CommandError, match=r"kill_agent: the run has ended \(enough\)"):
+        run.kill_agent("G2")
+    with pytest.raises(CommandError, match="add_task: the run has ended"):
+        run.add_task({"id": "Z", "type": "inspect", "location": [6, 4, 0]})
+
+
+def test_a_run_whose_agents_are_all_recalled_ends_once_they_are_home(tmp_path: Path) -> None:
+    m = load_mission_text(textwrap.dedent(ROBOTS), str(tmp_path / "m.yaml"))
+    run = MissionRun(m)
+    run.at(3.0, RecallAgent("G1"))
+    run.at(3.0, RecallAgent("G2"))
+    result = run.run()
+    assert result.reason == "no agents left" and result.time_s < 60.0
+    assert set(result.open) == {"A"} and result.pending == ["B"]
+    for aid in ("G1", "G2"):
+        start = m.agent(aid).start
+        p = run.snapshot.agent(aid).position
+        assert abs(p[0] - start[0]) < 0.5 and abs(p[1] - start[1]) < 0.5
+
+
+def test_two_threads_adding_one_id_one_is_refused(tmp_path: Path) -> None:
+    m = load_mission_text(textwrap.dedent(ROBOTS), str(tmp_path / "m.yaml"))
+    run = MissionRun(m)
+    for k in range(30):
+        barrier = threading.Barrier(2)
+        outcomes: list[str] = []
+
+        def add(k: int = k, barrier: threading.Barrier = barrier) -> None:
+            barrier.wait()
+            try:
+                run.add_task({"id": f"X{k}", "type": "inspect", "location": [6, 4, 0]})
+                outcomes.append("ok")
+            except TaskError as exc:
+                outcomes.append(str(exc))
+
+        threads = [threading.Thread(target=add) for _ in range(2)]
+        for th in threads:
+            th.start()
+        for th in threads:
+            th.join(timeout=10)
+        assert sorted(outcomes) == [f"duplicate task id 'X{k}'", "ok"]
+
+
+def test_the_report_shows_operator_commands(tmp_path: Path) -> None:
+    from btmission.runtime.report import format_report, report_json
+
+    with RunSession(robots(tmp_path), log_dir=tmp_path / "logs") as s:
+        run = s.start()
+        assert run is not None
+        run.at(2.0, CancelTask("B", "not needed", by="console:ana"))
+        run.at(3.0, CancelTask("B", by="console:bo"))  # refused: already cancelled
+        s.run()
+        rep = s.report()
+    text = format_report(rep)
+    table = text[text.index("Operator commands (2)") :].splitlines()
+    assert table[1].split() == ["Time", "[s]", "By", "Command", "Arguments", "Result"]
+    assert table[3].split() == ["2.0", "console:ana", "cancel_task", "task=B,", "reason=not",
+                                "needed", "ok"]  # fmt: skip
+    assert table[4].startswith("3.0") and table[4].endswith(
+        "refused: cannot cancel task 'B': it is already cancelled"
+    )
+    assert [c["result"] for c in report_json(rep)["commands"]][0] == "ok"
+    assert "B" in text and "cancelled: not needed" in text  # the task's row says why

@@ -155,9 +155,9 @@ def apply_progress(
             t = state.pool.get(p.task)
             if p.event == "done" and t is not None and t.state is TaskState.DONE:
                 problems.append(
-                    f"{p.agent} reports '{p.task}' done (t={p.time_s:.1f}s), but {t.agent} "
-                    f"completed it first (t={t.history[-1].time_s:.1f}s): counted once, for "
-                    f"{t.agent}"
+                    f"{p.agent} reports '{p.task}' done (finished at t={p.time_s:.1f}s), but "
+                    f"{t.agent}'s completion (finished at t={t.history[-1].time_s:.1f}s) "
+                    f"reached the coordinator first: counted once, for {t.agent}"
                 )
             else:
                 problems.append(str(exc))

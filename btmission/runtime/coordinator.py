@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 import queue
+import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import replace
@@ -96,6 +97,7 @@ class Coordinator:
         self.period_s = self.loop.period_s
         self.next_round = 0.0
         self._pending: queue.SimpleQueue[tuple[TaskInfo, str]] = queue.SimpleQueue()
+        self._adding = threading.Lock()
         self._added: set[str] = set()
         self._queued: set[str] = set()
         self._history_len: dict[str, int] = {}
@@ -165,10 +167,15 @@ class Coordinator:
         """Queue a task for the pool (thread-safe); it is announced from the next round at or
         after its arrival. Raises :class:`TaskError` for an unknown type, missing fields, a
         duplicate id or a bad priority."""
-        info = self.task_info(task, now)
-        self._queued.add(info.id)
-        self._pending.put((info, by))
+        with self._adding:  # two threads adding the same id: one of them is refused
+            info = self.task_info(task, now)
+            self._queued.add(info.id)
+            self._pending.put((info, by))
         return info
+
+    def knows(self, task_id: str) -> bool:
+        """Whether ``task_id`` is in the pool or queued to enter it."""
+        return task_id in self.state.pool or task_id in self._queued
 
     def cancel_task(self, task_id: str, now: float, reason: str) -> None:
         """Take a task out of the pool (state ``cancelled``); its agent is told at the next
@@ -199,8 +206,8 @@ class Coordinator:
         self.loop.state = replace(state, pool=pool, board=board)
 
     # ---------------------------------------------------------------- stepping
-    def step(self, now: float) -> RoundResult | None:
-        """Take queued tasks, report arrivals, and run a round if one is due."""
+    def intake(self, now: float) -> None:
+        """Queued tasks enter the pool now (each a ``task_added`` event)."""
         while True:
             try:
                 info, by = self._pending.get_nowait()
@@ -211,6 +218,10 @@ class Coordinator:
                 continue
             self.loop.state = self.state.add_task(info, now)
             self._emit_added(info, now, by)
+
+    def step(self, now: float) -> RoundResult | None:
+        """Take queued tasks, report arrivals, and run a round if one is due."""
+        self.intake(now)
         for t in self.state.pool:
             if t.id not in self._added and t.info.arrival_s <= now:
                 self._emit_added(t.info, t.info.arrival_s, "mission")

@@ -16,6 +16,7 @@ short by a crash still gives the report of what happened until then.
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -76,6 +77,21 @@ class MissionReport:
     """Truck → its missions adopted by the fleet dispatcher, in order (``dispatch`` events)."""
     incidents: list[str] = field(default_factory=list)
     """What went wrong while it ran: ``leaf_error`` and ``warning`` events, each once."""
+    commands: list[CommandRow] = field(default_factory=list)
+    """What operators did while it ran (``command`` events), in order."""
+
+
+@dataclass(frozen=True)
+class CommandRow:
+    """One operator command (a ``command`` event)."""
+
+    time_s: float
+    by: str
+    command: str
+    args: str
+    """Its arguments, as ``name=value`` pairs."""
+    result: str
+    """``ok``, or ``refused: <why>``."""
 
 
 class ReportBuilder:
@@ -98,6 +114,7 @@ class ReportBuilder:
         self.warnings: list[str] = []
         self.dispatched: dict[str, list[dict[str, Any]]] = {}
         self.incidents: dict[str, None] = {}  # ordered set
+        self.commands: list[CommandRow] = []
 
     def on_event(self, ev: Event) -> None:
         self.last_t = max(self.last_t, ev.t)
@@ -138,6 +155,14 @@ class ReportBuilder:
             self.incidents[f"agent {ev.get('agent')}: {what} (traceback in the log)"] = None
         elif kind == "warning":
             self.incidents[str(ev.get("message"))] = None
+        elif kind == "command":
+            skip = {"command", "by", "ok", "error", "reported_s"}
+            args = ", ".join(f"{k}={_plain_text(v)}" for k, v in ev.data.items() if k not in skip)
+            ok = bool(ev.get("ok", True))
+            result = "ok" if ok else f"refused: {ev.get('error', '')}".rstrip(": ")
+            self.commands.append(
+                CommandRow(ev.t, str(ev.get("by", "")), str(ev.get("command")), args, result)
+            )
         elif kind == "end":
             self.end = ev
 
@@ -197,6 +222,7 @@ class ReportBuilder:
             warnings=list(self.warnings),
             dispatched={k: list(v) for k, v in self.dispatched.items()},
             incidents=list(self.incidents),
+            commands=list(self.commands),
         )
 
     def _intervals(self, end: float) -> dict[str, list[tuple[str, float, float, str]]]:
@@ -307,6 +333,12 @@ def format_report(rep: MissionReport) -> str:
                 for o in rep.objects
             ],
         )
+    if rep.commands:  # what operators did (a run without commands shows nothing here)
+        lines += ["", f"Operator commands ({len(rep.commands)})"]
+        lines += _table(
+            ("Time [s]", "By", "Command", "Arguments", "Result"),
+            [(_f(c.time_s, 1), c.by, c.command, c.args, c.result) for c in rep.commands],
+        )
     return "\n".join(lines)
 
 
@@ -315,6 +347,13 @@ def format_warnings(rep: MissionReport, *, incidents: bool = True) -> list[str]:
     ``incidents``, what went wrong during the run (leaf errors, runtime warnings), one line
     each: the CLI prints them on stderr, apart from the tables."""
     return [f"warning: {w}" for w in rep.warnings + (rep.incidents if incidents else [])]
+
+
+def _plain_text(value: Any) -> str:
+    """A command argument as the report shows it (mappings and lists as compact JSON)."""
+    if isinstance(value, (dict, list)):
+        return json.dumps(value, separators=(",", ":"))
+    return str(value)
 
 
 def _nearest(obj: Mapping[str, Any], truth: Sequence[Mapping[str, Any]]) -> float | None:
@@ -354,6 +393,7 @@ def report_json(rep: MissionReport) -> dict[str, Any]:
         },
         "tasks": [r.__dict__ for r in rep.rows],
         "objects": rep.objects,
+        "commands": [c.__dict__ for c in rep.commands],
         "truncated": rep.truncated,
     }
 

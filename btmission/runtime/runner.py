@@ -197,8 +197,10 @@ class MissionRun:
         self._schedule: list[tuple[float, int, Callable[[MissionRun], None]]] = []
         self.commands = CommandQueue()
         """Commands waiting for the next step (:meth:`submit`)."""
-        self._stop = threading.Event()
-        self._stop_reason = "interrupted"
+        self._schedule_lock = threading.Lock()
+        self._stop_asked: str | None = None
+        """Why the loop must end after the current step (a plain attribute: :meth:`stop` runs
+        in signal handlers, where taking a lock could deadlock)."""
         self.dt = sim_spec.step_s
         self.collisions = 0
         self._wall0: float | None = None
@@ -397,15 +399,21 @@ class MissionRun:
             self.coordinator.add_task(command.task, self.now(), command.by)
         self.commands.put(command)
 
+    def _refuse_after_end(self, name: str) -> None:
+        if self._ended is not None:
+            raise CommandError(f"{name}: the run has ended ({self._ended.reason})")
+
     def _check_command(self, command: Command, *, tasks: bool = True) -> None:
-        """Refuse a command naming an unknown agent (or, with ``tasks``, an unknown task)."""
+        """Refuse a command naming an unknown agent (or, with ``tasks``, an unknown task), and
+        any command once the run has ended."""
+        self._refuse_after_end(command.name)
         agent = getattr(command, "agent", None)
         if agent is not None and agent not in self.agents:
             raise CommandError(
                 f"{command.name}: unknown agent '{agent}' (agents: {', '.join(self.agents)})"
             )
         if tasks and isinstance(command, (CancelTask, SetPriority)):
-            if command.task not in self.coordinator.state.pool:
+            if not self.coordinator.knows(command.task):
                 raise CommandError(f"{command.name}: unknown task '{command.task}'")
         if isinstance(command, SetPriority):
             p = command.priority
@@ -417,6 +425,7 @@ class MissionRun:
         "location": [x, y, z]}``, optionally with ``priority`` and ``at``. Raises
         :class:`~btmission.runtime.coordinator.TaskError` when it cannot be used; it enters the
         pool at the next step."""
+        self._refuse_after_end("add_task")
         info = self.coordinator.add_task(task, self.now(), by)
         data = dict(task) if isinstance(task, Mapping) else {
             "id": info.id, "type": info.type, **info.fields, "priority": info.priority,
@@ -449,15 +458,13 @@ class MissionRun:
                 try:
                     run.submit(command)
                 except (CommandError, TaskError) as exc:  # e.g. a task id taken meanwhile
-                    run.emit(
-                        "command", ok=False, error=str(exc), command=command.name,
-                        by=command.by, **command.to_data(),
-                    )  # fmt: skip
+                    run._log_command(command, str(exc))
 
         else:
             call = fn
-        self._schedule.append((t, len(self._schedule), call))
-        self._schedule.sort(key=lambda x: (x[0], x[1]))
+        with self._schedule_lock:  # any thread may schedule
+            self._schedule.append((t, len(self._schedule), call))
+            self._schedule.sort(key=lambda x: (x[0], x[1]))
 
     def kill_agent(self, agent: str, reason: str = "killed") -> None:
         """The agent's computer stops: no more ticks, bids or setpoints (its vehicle's
@@ -476,8 +483,7 @@ class MissionRun:
     def stop(self, reason: str = "interrupted", *, by: str = "api") -> None:
         """Ask the run to end after the current step (thread-safe, and safe in a signal
         handler: what Ctrl-C does)."""
-        self._stop_reason = reason
-        self._stop.set()
+        self._stop_asked = reason
         self.commands.put(Stop(reason, by=by))
 
     def _apply_commands(self) -> None:
@@ -488,23 +494,27 @@ class MissionRun:
                 self._apply(command)
             except (CommandError, TaskError) as exc:
                 error = str(exc)
-            data: dict[str, Any] = {"command": command.name, "by": command.by}
-            data.update(command.to_data())
-            if isinstance(command, AddTask):
-                data["task"] = dict(command.task).get("id")
-            data["ok"] = not error
-            if error:
-                data["error"] = error
-            self.emit("command", **data)
+            self._log_command(command, error)
+
+    def _log_command(self, command: Command, error: str) -> None:
+        """The ``command`` event: who, what, its arguments, and whether it was refused."""
+        data: dict[str, Any] = {"command": command.name, "by": command.by}
+        data.update(command.to_data())
+        if isinstance(command, AddTask):
+            data["task"] = dict(command.task).get("id")
+        data["ok"] = not error
+        if error:
+            data["error"] = error
+        self.emit("command", **data)
 
     def _apply(self, command: Command) -> None:
         now = self.now()
         coord = self.coordinator
-        if isinstance(command, AddTask):
-            return  # queued with the coordinator when submitted (checked, its id reserved)
+        if isinstance(command, AddTask):  # checked and queued with the coordinator when
+            coord.intake(now)  # submitted: it enters the pool now (later commands may name it)
+            return
         if isinstance(command, Stop):
-            self._stop_reason = command.reason
-            self._stop.set()
+            self._stop_asked = command.reason
         elif isinstance(command, CancelTask):
             coord.cancel_task(command.task, now, command.reason)
         elif isinstance(command, SetPriority):
@@ -534,8 +544,11 @@ class MissionRun:
     def step(self) -> None:
         """One fixed step (module docstring)."""
         now = self.now()
-        while self._schedule and self._schedule[0][0] <= now + 1e-9:
-            _, _, fn = self._schedule.pop(0)
+        while True:
+            with self._schedule_lock:
+                if not self._schedule or self._schedule[0][0] > now + 1e-9:
+                    break
+                _, _, fn = self._schedule.pop(0)
             fn(self)
         self._apply_commands()
         self.coordinator_side.step(now)
@@ -604,7 +617,12 @@ class MissionRun:
         live = [a for a in self.agents.values() if a.alive]
         pool = self.coordinator.state.pool
         if not self.coordinator.settled(self.now()):
-            if not live and any(not t.state.terminal for t in pool):
+            bidding = [a for a in live if not a.recalled]
+            if (
+                not bidding  # killed or recalled: nobody can take the open tasks any more
+                and any(not t.state.terminal for t in pool)
+                and all(a.at_rest for a in live)  # the recalled ones are home
+            ):
                 return "no agents left"
             return None
         if not all(a.at_rest for a in live):
@@ -628,12 +646,12 @@ class MissionRun:
         steps0 = self.steps
         next_progress = self.now()
         reason = ""
-        self._stop.clear()
+        self._stop_asked = None  # (a stop asked before is still queued as a command)
         try:
             while True:
                 self._apply_commands()  # a stop asked between steps is logged
-                if self._stop.is_set():
-                    reason = self._stop_reason
+                if self._stop_asked is not None:
+                    reason = self._stop_asked
                     break
                 done = self.finished()
                 if done:
@@ -649,7 +667,7 @@ class MissionRun:
                 if self.realtime:  # one step per ``dt`` of wall time (simulated or real vehicles)
                     ahead = wall0 + (self.steps - steps0) * self.dt - time.perf_counter()
                     if ahead > 0:
-                        self._stop.wait(ahead)  # a stop cuts the wait short
+                        time.sleep(ahead)  # (at most about one step: a stop waits that long)
         finally:
             self._wall_used += time.perf_counter() - wall0
         return self.result(reason)
@@ -718,6 +736,10 @@ class MissionRun:
         if self._ended is not None:
             return
         self._ended = result
+        for command in self.commands.take():  # the run ended before their step came
+            self._log_command(
+                command, "" if isinstance(command, Stop) else "not applied: the run had ended"
+            )
         self.snapshot = self._snapshot(result.reason)
         for a in self.agents.values():
             a.flush_tree_events()

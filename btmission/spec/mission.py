@@ -239,6 +239,17 @@ class CoordinationSpec(_Strict):
         "(hysteresis against swapping on near-equal bids; 0 = the paper's auction).",
     )
 
+    @field_validator("bid_window_s")
+    @classmethod
+    def _window_within_timeout(cls, v: float, info: ValidationInfo) -> float:
+        timeout = info.data.get("agent_timeout_s")
+        if isinstance(timeout, float) and v >= timeout:
+            raise ValueError(
+                f"must be shorter than agent_timeout_s ({timeout:g} s): every bid would be "
+                "older than the timeout when the round allocates, so no agent would get a task"
+            )
+        return v
+
 
 class DefaultBehaviorSpec(_Strict):
     goal: GoalValue = Field(description="Goal of the default behaviour, e.g. landed_at_home.")
