@@ -418,7 +418,9 @@ def test_two_threads_adding_one_id_one_is_refused(tmp_path: Path) -> None:
         barrier = threading.Barrier(2)
         outcomes: list[str] = []
 
-        def add(k: int = k, barrier: threading.Barrier = barrier) -> None:
+        def add(
+            k: int = k, barrier: threading.Barrier = barrier, outcomes: list[str] = outcomes
+        ) -> None:
             barrier.wait()
             try:
                 run.add_task({"id": f"X{k}", "type": "inspect", "location": [6, 4, 0]})
