@@ -454,5 +454,5 @@ def test_the_report_shows_operator_commands(tmp_path: Path) -> None:
     assert table[4].startswith("3.0") and table[4].endswith(
         "refused: cannot cancel task 'B': it is already cancelled"
     )
-    assert [c["result"] for c in report_json(rep)["commands"]][0] == "ok"
+    assert [c["result"][:7] for c in report_json(rep)["commands"]] == ["ok", "refused"]
     assert "B" in text and "cancelled: not needed" in text  # the task's row says why
