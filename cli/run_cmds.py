@@ -1,4 +1,5 @@
-"""``btmission run`` (a mission in the embedded simulator) and ``btmission report`` (from its log)."""
+"""``btmission run`` (a mission, in the embedded simulator by default) and ``btmission report``
+(from its log)."""
 
 from __future__ import annotations
 
@@ -42,7 +43,9 @@ def _write_pngs(rep: Any, directory: Path, stem: str) -> list[Path]:
     type=SEED,
     help="Simulator seed (noise, dust, detections).",
 )
-@click.option("--realtime", is_flag=True, help="Pace the simulation to the wall clock.")
+@click.option(
+    "--realtime", is_flag=True, help="Pace the run to the wall clock (one step per step_s)."
+)
 @click.option(
     "--until",
     type=POSITIVE,
@@ -76,10 +79,13 @@ def run_cmd(
     controller: str | None,
     no_png: bool,
 ) -> None:
-    """Run a mission in the embedded simulator and print its report.
+    """Run a mission and print its report.
 
-    Every agent ticks its mission tree (seed 000 Fig. 7), bids in the auction with D*+ path
-    costs and flies (or drives) with NMPC + APF; the coordinator allocates tasks as they arrive.
+    Each agent's vehicle comes from the provider its backend: names (sim: the embedded
+    simulator; fake: kinematic test vehicles). Every agent ticks its mission tree (seed 000
+    Fig. 7), bids in the auction with D*+ path costs and flies (or drives) with NMPC + APF; the
+    coordinator allocates tasks as they arrive. Ctrl-C or SIGTERM stops after the current step
+    (again: at once), and the log still ends properly.
     Every event goes to an append-only JSON Lines log in --log; at the end the report (seed 000
     Tables II and III) is computed from that log and a timeline and a top view are drawn.
 

@@ -192,9 +192,9 @@ def test_validate_refuses_a_mixed_fleet(tmp_path: Path, replay_installed: None) 
     code, out = validate(path)
     assert code == 2
     assert (
-        f"{path}:7:58: agents[1].backend: backend 'replay://log-1': agent 'G1' uses 'sim', and a "
-        "run has one clock (simulated time for a simulator, the wall clock for real vehicles): "
-        "every agent of a mission must use the same vehicle provider"
+        f"{path}:7:58: agents[1].backend: backend 'replay://log-1': agent 'G1' uses 'sim'; every "
+        "agent of a mission must use the same vehicle provider (a run steps one provider, on one "
+        "clock: simulated time, or the wall clock for real vehicles)"
     ) in out
 
 

@@ -233,7 +233,8 @@ def test_snapshots_are_immutable_and_follow_the_run(tmp_path: Path) -> None:
     assert g1.position == pytest.approx(tuple(tel.position)) and g1.link_up and g1.alive
     assert g1.mode == tel.mode.value
     assert dict(g1.tree) == dict(run.agents["G1"].tree_status) and g1.tree[0] == "RUNNING"
-    assert len(g1.tree) == len(run.agents["G1"].tree_nodes)
+    assert len(g1.tree) == len(g1.tree_nodes) == len(run.agents["G1"].tree_nodes)
+    assert g1.tree_nodes[0][1] == -1 and g1.tree_nodes[0][0] == "mission(G1)"
     result = run.run()
     run.end(result)
     assert run.snapshot.ended == "completed" and run.snapshot.counts() == {"done": 2}

@@ -112,7 +112,7 @@ class Agent:
         namespace: str = "",
         services: Mapping[str, Any] | None = None,
         places: Mapping[str, tuple[float, float, float]] | None = None,
-        provider: CostProvider | None = None,
+        cost_provider: CostProvider | None = None,
         substitutions: Substitutions | None = None,
     ) -> None:
         spec = mission.agent(agent_id)
@@ -175,7 +175,7 @@ class Agent:
         self.bidder = Bidder.for_agent(
             mission,
             agent_id,
-            provider=provider if provider is not None else paths,
+            provider=cost_provider if cost_provider is not None else paths,
             types=self.task_types,
             places=places,
         )

@@ -5,7 +5,8 @@ coordinator ↔ agent link, :mod:`btmission.runtime.bus`):
 
 * :class:`AgentRuntime` — what runs on a robot's computer: tick its mission tree every
   ``1 / runtime.tick_hz`` s, stream this control period's setpoints, and send its status (also
-  its heartbeat) every ``1 / runtime.status_hz`` s;
+  pose, mode, battery, task and action: what an operator's display shows) every
+  ``1 / runtime.status_hz`` s (its bids, answering the announcements, are its heartbeat);
 * :class:`CoordinatorRuntime` — what runs at the base station: the run-wide services of the
   libraries (e.g. the GA fleet dispatcher) and the auction (:class:`~btmission.runtime.
   coordinator.Coordinator`): announcements, bids, allocation, assignments.
@@ -68,7 +69,7 @@ class AgentRuntime:
         self.agent.control_step(now)
 
     def report(self, now: float) -> bool:
-        """Send the agent's status (its heartbeat) if one is due; True when it was due."""
+        """Send the agent's status if one is due; True when it was due."""
         if not self._status.due(now):
             return False
         a = self.agent

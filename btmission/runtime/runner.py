@@ -1,4 +1,4 @@
-"""Run a mission end to end in the embedded simulator: coordinator, agents, vehicles, events.
+"""Run a mission end to end: coordinator, agents, the vehicles of a provider, events.
 
 :class:`MissionRun` builds everything from a validated :class:`~btmission.spec.mission.Mission`
 and advances it in fixed steps of simulated time (``runtime.sim.step_s``). One step, at time t:
@@ -19,8 +19,10 @@ and advances it in fixed steps of simulated time (``runtime.sim.step_s``). One s
 5. an immutable :class:`~btmission.runtime.snapshot.RunSnapshot` of the run is published
    (:attr:`MissionRun.snapshot`) for readers on other threads.
 
-Time comes from the simulator, never from the wall clock, so a run is deterministic for a seed
-and goes as fast as the machine allows; ``realtime=True`` paces it against the wall clock.
+Time comes from the vehicle provider's clock: the simulator's (or the fake provider's) fixed
+steps, never the wall clock, so a simulated run is deterministic for a seed and goes as fast as
+the machine allows; ``realtime=True`` — always, with real vehicles, whose provider's clock is the
+wall clock — steps once per ``runtime.sim.step_s`` of wall time.
 
 The run ends when every task is done (or failed, or unreachable by any agent), nothing is left
 to arrive and every agent has finished its default behaviour (or waits, if it has none); or at
@@ -119,7 +121,7 @@ def vehicle_kind(impl: Implementations) -> VehicleKind:
 
 
 class MissionRun:
-    """A mission running in the embedded simulator (module docstring)."""
+    """A mission running on the vehicles of its provider (module docstring)."""
 
     def __init__(
         self,
@@ -216,6 +218,7 @@ class MissionRun:
             for a in self.agents.values()
         ]
         self._trees: dict[str, tuple[tuple[int, Any], Mapping[int, str]]] = {}
+        self._nodes: dict[str, tuple[tuple[str, int, str], ...]] = {}
         self.snapshot: RunSnapshot = self._snapshot()
         """The run as it stands after the last step (immutable; any thread may read it)."""
         vm = self.map
@@ -327,7 +330,7 @@ class MissionRun:
                 namespace=self._namespace,
                 services=self.services[impl.library],
                 places=self.places,
-                provider=self.roads if ground else None,  # drones fly
+                cost_provider=self.roads if ground else None,  # road costs; drones fly
                 substitutions=self.substitutions,
             )
 
@@ -584,6 +587,15 @@ class MissionRun:
             clearance_m=vehicle.clearance_m() if vehicle.clearance_m else None,
         )
 
+    def _tree_nodes(self, agent: Agent) -> tuple[tuple[str, int, str], ...]:
+        """The agent's tree nodes as immutable tuples (built once: the tree never changes)."""
+        nodes = self._nodes.get(agent.id)
+        if nodes is None:
+            nodes = self._nodes[agent.id] = tuple(
+                (str(n[0]), int(n[1]), str(n[2])) for n in agent.tree_nodes
+            )
+        return nodes
+
     def _snapshot(self, ended: str | None = None) -> RunSnapshot:
         agents = []
         for aid, a in self.agents.items():
@@ -606,6 +618,7 @@ class MissionRun:
                     a.task.id if a.task is not None else None,
                     a.action,
                     tree,
+                    self._tree_nodes(a),
                 )
             )
         return RunSnapshot(

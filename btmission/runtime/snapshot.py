@@ -51,8 +51,11 @@ class AgentSnapshot:
     action: str
     """The action its tree started last (``stage`` event)."""
     tree: Mapping[int, str] = field(default_factory=lambda: MappingProxyType({}))
-    """Node uid (pre-order index, as in ``tree`` events; ``Agent.tree_nodes`` names them) →
-    status (``SUCCESS``, ``FAILURE``, ``RUNNING``, ``INVALID``) after its last tick."""
+    """Node uid (pre-order index, as in ``tree`` events) → status (``SUCCESS``, ``FAILURE``,
+    ``RUNNING``, ``INVALID``) after its last tick."""
+    tree_nodes: tuple[tuple[str, int, str], ...] = ()
+    """``(name, parent uid, kind)`` by uid (the root's parent is -1): what names the statuses of
+    :attr:`tree`, for a reader that did not see the agent's first ``tree`` event."""
 
 
 @dataclass(frozen=True)

@@ -107,8 +107,7 @@ class Rule:
 
 
 class TestAction(StatefulAction):
-    """The leaf a :class:`TestLeaf` builds in an action's (or an asynchronous condition's)
-    place."""
+    """The leaf a :class:`TestLeaf` builds in an action's place."""
 
     __test__ = False
 

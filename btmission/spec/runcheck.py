@@ -219,9 +219,9 @@ def backend_problems(mission: Mission) -> list[Diagnostic]:
     for i, agent in enumerate(mission.agents):
         if scheme_of(agent.backend) != scheme_of(first.backend):
             refuse(i, "mixed-backends",
-                   f"backend '{agent.backend}': agent '{first.id}' uses '{first.backend}', and a "
-                   "run has one clock (simulated time for a simulator, the wall clock for real "
-                   "vehicles): every agent of a mission must use the same vehicle provider")  # fmt: skip
+                   f"backend '{agent.backend}': agent '{first.id}' uses '{first.backend}'; "
+                   "every agent of a mission must use the same vehicle provider (a run steps one "
+                   "provider, on one clock: simulated time, or the wall clock for real vehicles)")  # fmt: skip
             break
     return out
 
