@@ -239,5 +239,5 @@ def test_ctrl_c_ends_the_run_cleanly_with_the_report(tmp_path: Path) -> None:
     assert last["ev"] == "end" and last["reason"] == "interrupted"
     stops = [x for x in lines if x["ev"] == "command"]  # the operator's action is in the log
     assert [(x["command"], x["by"], x["reason"], x["ok"]) for x in stops] == [
-        ("stop", "signal", "interrupted", True)
+        ("stop", "SIGINT", "interrupted", True)
     ]

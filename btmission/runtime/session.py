@@ -108,7 +108,7 @@ class _Signals:
         if run is None or self.asked or self.session.ended:
             raise RunStopped(reason)  # building (or a second one: the step may be a long one)
         self.asked = True
-        run.stop(reason, by="signal")
+        run.stop(reason, by=signal.Signals(signum).name)  # SIGINT or SIGTERM
         self.session.notify(f"{reason}: stopping after the current step (again to stop at once)")
 
 
