@@ -6,10 +6,13 @@ STAMP  := $(VENV)/.installed
 
 .PHONY: demo test test-all install system-deps bench lint clean
 
+# After installing, compile the numba kernels (D*+, GA, ray casting) once: ~25 s here, instead
+# of in the middle of the first mission or test run (btmission/warmup.py).
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e ".[test]"
+	$(PY) -m btmission.warmup
 	@touch $(STAMP)
 
 install: $(STAMP) system-deps

@@ -1,0 +1,80 @@
+"""Compile btmission's numba kernels ahead of their first use (``make install`` runs this).
+
+The D*+ planner, the GA dispatcher's evaluator and the LiDAR ray casters are numba functions
+compiled on their first call and cached on disk (``cache=True``, next to their modules). On a
+fresh install the first mission, planner query or dispatch would otherwise pay that compilation
+(about half a minute on a 2-core machine) in the middle of its work. This module runs each of
+them once, on tiny inputs, through the same code paths a run uses, so that the argument types —
+and so the compiled signatures — are exactly those of real use::
+
+    python -m btmission.warmup          # prints what it compiled and how long it took
+
+It needs no network, writes only into the numba cache and a temporary directory, and is safe to
+run again (it then takes a second or two: everything is cached).
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+
+def _commands(tmp: Path) -> list[tuple[str, list[str]]]:
+    root = Path(__file__).resolve().parents[1]
+    missions = root / "missions"
+    steps = [
+        ("D*+ planner", ["bench", "planner", "--size", "60", "40", "6", "--repeat", "1",
+                         "--queries", "2", "--no-peers", "--out", str(tmp / "bench")]),
+        ("GA dispatch", ["dispatch", "static", "--map", "static_npr", "--vehicles", "2",
+                         "--runs", "1", "--budget", "0.2"]),
+    ]  # fmt: skip
+    if (missions / "pick_and_deliver.yaml").is_file():  # a source checkout (make install)
+        steps.append(
+            ("simulator LiDAR", ["run", str(missions / "pick_and_deliver.yaml"), "--controller",
+                                 "track", "--until", "2", "--quiet", "--no-png", "--log",
+                                 str(tmp / "runs")]),
+        )  # fmt: skip
+        steps.append(
+            ("simulator depth camera", ["run", str(missions / "compra_sar.yaml"), "--until", "4",
+                                        "--quiet", "--no-png", "--log", str(tmp / "runs")]),
+        )  # fmt: skip
+        reloc = root / "docs" / "examples" / "reloc_mine.yaml"
+        if reloc.is_file():
+            steps.append(("relocalization ray casting",
+                          ["reloc", "try", str(reloc), "--at", "32,15,2", "--yaw", "40"]))  # fmt: skip
+    return steps
+
+
+def warm_up(echo: Callable[[str], None] = print) -> float:
+    """Run every kernel once (module docstring); returns the seconds it took."""
+    from click.testing import CliRunner
+
+    from btmission.cli.main import cli
+
+    t0 = time.perf_counter()
+    runner = CliRunner()
+    with tempfile.TemporaryDirectory(prefix="btmission-warmup-") as tmp:
+        for name, args in _commands(Path(tmp)):
+            t = time.perf_counter()
+            result = runner.invoke(cli, args, catch_exceptions=True)
+            took = time.perf_counter() - t
+            if result.exit_code not in (0, 1):  # 1: a run with open tasks (cut at 2 s)
+                echo(
+                    f"warm-up: {name}: exit {result.exit_code} (skipped; it compiles on first use)"
+                )
+            else:
+                echo(f"warm-up: {name} compiled in {took:.1f} s")
+    return time.perf_counter() - t0
+
+
+def main() -> int:
+    total = warm_up(lambda text: print(text, file=sys.stderr))
+    print(f"warm-up: numba kernels ready ({total:.1f} s)", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
