@@ -9,10 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from btmission.backends.autopilot import DISARM_LAND_S, OFFBOARD_LOSS_S
 from btmission.backends.base import Backend, Mode, Sensors
 from btmission.backends.sim import (
-    DISARM_LAND_S,
-    OFFBOARD_LOSS_S,
     Artifact,
     SimConfig,
     Simulator,

@@ -11,8 +11,8 @@ fly. The ``fake`` provider gives them vehicles that cost next to nothing to step
 * a **ground robot** is a unicycle driven by its ``cmd_vel`` (the component of the velocity
   setpoint along its heading, and the yaw rate), like the simulator's, stopping 0.5 s after its
   last command; like the simulator's, it stays at the height of the floor it started on;
-* the **autopilot rules** are the simulator's (:mod:`btmission.backends.sim`), so leaves behave
-  the same: OFFBOARD only after setpoints have streamed at > 2 Hz for 1 s, HOLD when they stop
+* the **autopilot rules** are the simulator's — the same code, :mod:`btmission.backends.autopilot`
+  — so leaves behave the same: OFFBOARD only after setpoints have streamed at > 2 Hz for 1 s, HOLD when they stop
   for 1 s, no arming change in the air, take-off only when armed, LAND descends at 0.7 m/s and
   disarms 2 s after touch-down, an armed vehicle that never takes off disarms after 10 s;
 * **no sensors** (``Vehicle.sensors`` is None: no LiDAR, camera or detections), **no
@@ -36,17 +36,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from btmission.backends.base import ACCEPTED, Ack, Mode, Telemetry, VehicleKind
+from btmission.backends.autopilot import AutopilotFields, OffboardCommands, autopilot_rules
+from btmission.backends.base import Mode, Telemetry, VehicleKind
 from btmission.backends.provider import Vehicle, VehicleEvent
 from btmission.backends.sim import (
     CMD_VEL_TIMEOUT_S,
-    DISARM_LAND_S,
-    DISARM_PREFLIGHT_S,
     HEADING_P,
     LAND_SPEED,
-    OFFBOARD_LOSS_S,
-    STREAM_MIN_HZ,
-    STREAM_MIN_S,
     YAW_RATE_MAX,
     SimConfig,
 )
@@ -62,34 +58,17 @@ VELOCITY_GAIN = 1.2
 
 
 @dataclass
-class _State:
+class _State(AutopilotFields):
+    """A fake vehicle's state (its autopilot's part, as in the simulator: AutopilotFields)."""
+
     id: str
     kind: VehicleKind
     p: FloatArray
     yaw: float = 0.0
     v: FloatArray = field(default_factory=lambda: np.zeros(3))
     yaw_rate: float = 0.0
-    armed: bool = False
-    mode: Mode = Mode.MANUAL
-    landed: bool = True
-    battery: float = 1.0
-    ground: float = 0.0
     odometer_m: float = 0.0
     v_max: float | None = None
-    # setpoints and autopilot state (as in the simulator)
-    sp_kind: str = ""
-    sp_pos: FloatArray = field(default_factory=lambda: np.zeros(3))
-    sp_vel: FloatArray = field(default_factory=lambda: np.zeros(3))
-    sp_yaw: float | None = None
-    sp_yaw_rate: float = 0.0
-    sp_att: FloatArray = field(default_factory=lambda: np.array([G, 0.0, 0.0]))
-    sp_time: float = -math.inf
-    stream_since: float = math.inf
-    hold: FloatArray = field(default_factory=lambda: np.zeros(3))
-    armed_at: float = -math.inf
-    landed_at: float = -math.inf
-    took_off: bool = False
-    failsafe: str = ""
 
 
 class FakeProvider:
@@ -143,114 +122,23 @@ class FakeProvider:
         """Nothing to release."""
 
 
-class FakeVehicle:
+class FakeVehicle(OffboardCommands):
     """One fake vehicle: the :class:`~btmission.backends.base.Backend` interface, plus
     :meth:`teleport` for tests."""
 
     def __init__(self, provider: FakeProvider, state: _State) -> None:
         self._provider = provider
         self._s = state
+        self._ap = state
         self.id = state.id
         self.kind = state.kind
 
-    # ------------------------------------------------------------------ commands (as sim.py)
-    def arm(self) -> Ack:
-        s = self._s
-        if s.kind is VehicleKind.GROUND or s.armed:
-            return ACCEPTED
-        if not s.landed:
-            return Ack(False, "cannot arm in the air")
-        if s.battery < 0.1:
-            return Ack(False, f"battery too low ({s.battery:.0%})")
-        s.armed, s.armed_at, s.took_off, s.failsafe = True, self._provider.time_s, False, ""
-        return ACCEPTED
+    # ---------------------------------------------- commands and setpoints: OffboardCommands
+    def _ap_time(self) -> float:
+        return self._provider.time_s
 
-    def disarm(self) -> Ack:
-        s = self._s
-        if s.kind is VehicleKind.GROUND:
-            return ACCEPTED
-        if not s.landed:
-            return Ack(False, "cannot disarm in the air")
-        s.armed, s.mode = False, Mode.MANUAL
-        return ACCEPTED
-
-    def set_mode(self, mode: Mode) -> Ack:
-        s = self._s
-        t = self._provider.time_s
-        if s.kind is VehicleKind.GROUND:
-            s.mode = mode
-            return ACCEPTED
-        if mode is Mode.OFFBOARD:
-            if not (t - s.sp_time <= 1.0 / STREAM_MIN_HZ and t - s.stream_since >= STREAM_MIN_S):
-                return Ack(False, f"offboard refused: stream setpoints at > {STREAM_MIN_HZ:g} Hz "
-                                  f"for {STREAM_MIN_S:g} s first")  # fmt: skip
-        if mode is Mode.TAKEOFF:
-            return self.takeoff(2.0)
-        if mode is Mode.LAND:
-            return self.land()
-        if mode is Mode.HOLD:
-            s.hold = s.p.copy()
-        s.mode = mode
-        return ACCEPTED
-
-    def takeoff(self, altitude_m: float) -> Ack:
-        s = self._s
-        if s.kind is VehicleKind.GROUND:
-            return Ack(False, "a ground robot cannot take off")
-        if not s.armed:
-            return Ack(False, "takeoff refused: not armed")
-        if not altitude_m > 0:
-            return Ack(False, f"takeoff altitude must be > 0, got {altitude_m:g}")
-        s.hold = s.p.copy()
-        s.hold[2] = s.ground + altitude_m
-        s.mode = Mode.TAKEOFF
-        return ACCEPTED
-
-    def land(self) -> Ack:
-        s = self._s
-        if s.kind is VehicleKind.GROUND:
-            return Ack(False, "a ground robot cannot land")
-        if not s.armed:
-            return Ack(False, "land refused: not armed")
-        s.hold = s.p.copy()
-        s.mode = Mode.LAND
-        return ACCEPTED
-
-    # ------------------------------------------------------------------ setpoints
-    def _stream(self, kind: str) -> None:
-        s = self._s
-        t = self._provider.time_s
-        if t - s.sp_time > 1.0 / STREAM_MIN_HZ:
-            s.stream_since = t
-        s.sp_time, s.sp_kind = t, kind
-
-    def set_position_setpoint(
-        self,
-        position: Vec3 | FloatArray,
-        velocity: Vec3 | FloatArray | None = None,
-        yaw: float | None = None,
-    ) -> None:
-        s = self._s
-        self._stream("position")
-        s.sp_pos = np.array(position, dtype=float)
-        s.sp_vel = np.zeros(3) if velocity is None else np.array(velocity, dtype=float)
-        s.sp_yaw = yaw
-
-    def set_velocity_setpoint(self, velocity: Vec3 | FloatArray, yaw_rate: float = 0.0) -> None:
-        s = self._s
-        self._stream("velocity")
-        s.sp_vel = np.array(velocity, dtype=float)
-        s.sp_yaw_rate = float(yaw_rate)
-
-    def set_attitude_setpoint(
-        self, thrust: float, roll: float, pitch: float, yaw_rate: float = 0.0
-    ) -> None:
-        s = self._s
-        if s.kind is VehicleKind.GROUND:
-            raise ValueError("a ground robot takes velocity setpoints, not attitude setpoints")
-        self._stream("attitude")
-        s.sp_att = np.array([float(thrust), float(roll), float(pitch)])
-        s.sp_yaw_rate = float(yaw_rate)
+    def _ap_here(self) -> FloatArray:
+        return self._s.p.copy()
 
     # ------------------------------------------------------------------ telemetry
     def telemetry(self) -> Telemetry:
@@ -301,19 +189,7 @@ class FakeVehicle:
 
     def _autopilot(self, t: float) -> None:
         """The simulator's mode logic: the offboard-loss failsafe and automatic disarming."""
-        s = self._s
-        if s.mode is Mode.OFFBOARD and t - s.sp_time > OFFBOARD_LOSS_S:
-            s.mode = Mode.HOLD if not s.landed else Mode.MANUAL
-            s.hold = s.p.copy()
-            s.failsafe = f"offboard setpoints lost for more than {OFFBOARD_LOSS_S:g} s"
-        if s.armed and s.landed:
-            if not s.took_off and t - s.armed_at > DISARM_PREFLIGHT_S:
-                s.armed = False
-                s.failsafe = f"disarmed: no take-off within {DISARM_PREFLIGHT_S:g} s of arming"
-            elif s.took_off and t - s.landed_at > DISARM_LAND_S:
-                s.armed, s.took_off = False, False
-                if s.mode in (Mode.LAND, Mode.HOLD, Mode.TAKEOFF):
-                    s.mode = Mode.MANUAL
+        autopilot_rules(self._s, t, self._ap_here)
 
     def _velocity_command(self, dt: float) -> FloatArray | None:
         """The velocity the active mode and setpoint ask for (None: none, at rest)."""

@@ -53,9 +53,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from btmission.backends.autopilot import AutopilotFields, OffboardCommands, autopilot_rules
 from btmission.backends.base import (
-    ACCEPTED,
-    Ack,
     CameraFrame,
     LidarScan,
     Mode,
@@ -72,11 +71,6 @@ if TYPE_CHECKING:
     from btmission.spec.mission import Mission
 
 G = 9.81
-STREAM_MIN_HZ = 2.0
-STREAM_MIN_S = 1.0
-OFFBOARD_LOSS_S = 1.0
-DISARM_PREFLIGHT_S = 10.0
-DISARM_LAND_S = 2.0
 LAND_SPEED = 0.7
 TILT_MAX = 0.35
 IMPACT_SPEED = 2.0
@@ -217,7 +211,9 @@ class SimWorld:
 
 
 @dataclass
-class _Vehicle:
+class _Vehicle(AutopilotFields):
+    """A simulated vehicle's state (its autopilot's part: :class:`AutopilotFields`)."""
+
     id: str
     kind: VehicleKind
     x: FloatArray
@@ -226,31 +222,11 @@ class _Vehicle:
     """Ground robot height (its floor)."""
     yaw: float = 0.0
     yaw_rate: float = 0.0
-    armed: bool = False
-    mode: Mode = Mode.MANUAL
-    landed: bool = True
-    battery: float = 1.0
     odometer_m: float = 0.0
-    ground: float = 0.0
-    # setpoints
-    sp_kind: str = ""
-    sp_pos: FloatArray = field(default_factory=lambda: np.zeros(3))
-    sp_vel: FloatArray = field(default_factory=lambda: np.zeros(3))
-    sp_yaw: float | None = None
-    sp_yaw_rate: float = 0.0
-    sp_att: FloatArray = field(default_factory=lambda: np.array([G, 0.0, 0.0]))
-    sp_time: float = -math.inf
-    stream_since: float = math.inf
-    # autopilot state
-    hold: FloatArray = field(default_factory=lambda: np.zeros(3))
-    armed_at: float = -math.inf
-    landed_at: float = -math.inf
-    took_off: bool = False
     thrust: float = 0.0
     contact: dict[str, bool] = field(default_factory=dict)
     touching: dict[str, float] = field(default_factory=dict)
     """Other party (rock or a vehicle id) → last time they touched."""
-    failsafe: str = ""
     clearance_min: float = math.inf
     frozen: bool = False
 
@@ -358,19 +334,7 @@ class Simulator:
     # ---- multirotor
     def _autopilot(self, v: _Vehicle, t: float) -> None:
         """PX4-like mode logic: failsafes and automatic disarming."""
-        if v.mode is Mode.OFFBOARD and t - v.sp_time > OFFBOARD_LOSS_S:
-            v.mode = Mode.HOLD if not v.landed else Mode.MANUAL
-            v.hold = v.x[:3].copy()
-            v.failsafe = f"offboard setpoints lost for more than {OFFBOARD_LOSS_S:g} s"
-        if v.armed and v.landed:
-            if not v.took_off and t - v.armed_at > DISARM_PREFLIGHT_S:
-                v.armed = False
-                v.failsafe = f"disarmed: no take-off within {DISARM_PREFLIGHT_S:g} s of arming"
-            elif v.took_off and t - v.landed_at > DISARM_LAND_S:
-                v.armed = False
-                v.took_off = False
-                if v.mode in (Mode.LAND, Mode.HOLD, Mode.TAKEOFF):
-                    v.mode = Mode.MANUAL
+        autopilot_rules(v, t, lambda: v.x[:3].copy())
 
     def _attitude_command(self, v: _Vehicle) -> FloatArray:
         """[T, φ_ref, θ_ref] from the active mode and setpoint."""
@@ -569,126 +533,26 @@ def _wrap(a: float) -> float:
     return (a + math.pi) % (2 * math.pi) - math.pi
 
 
-class SimVehicle:
-    """One simulated vehicle as its agent sees it: :class:`Backend` and :class:`Sensors`."""
+class SimVehicle(OffboardCommands):
+    """One simulated vehicle as its agent sees it: :class:`Backend` and :class:`Sensors` (the
+    commands and setpoints, with PX4's rules, are :class:`~btmission.backends.autopilot.
+    OffboardCommands`)."""
 
     def __init__(self, sim: Simulator, vehicle: _Vehicle) -> None:
         self._sim = sim
         self._v = vehicle
+        self._ap = vehicle
         self.id = vehicle.id
         self.kind = vehicle.kind
         self._camera_cache: tuple[float, CameraFrame] | None = None
         self._scan_cache: LidarScan | None = None
 
-    # ------------------------------------------------------------------ commands
-    def arm(self) -> Ack:
-        v = self._v
-        if v.kind is VehicleKind.GROUND:
-            return ACCEPTED
-        if v.armed:
-            return ACCEPTED
-        if not v.landed:
-            return Ack(False, "cannot arm in the air")
-        if v.battery < 0.1:
-            return Ack(False, f"battery too low ({v.battery:.0%})")
-        v.armed = True
-        v.armed_at = self._sim.time_s
-        v.took_off = False
-        v.failsafe = ""
-        return ACCEPTED
+    # ---------------------------------------------- commands and setpoints: OffboardCommands
+    def _ap_time(self) -> float:
+        return self._sim.time_s
 
-    def disarm(self) -> Ack:
-        v = self._v
-        if v.kind is VehicleKind.GROUND:
-            return ACCEPTED
-        if not v.landed:
-            return Ack(False, "cannot disarm in the air")
-        v.armed = False
-        v.mode = Mode.MANUAL
-        return ACCEPTED
-
-    def set_mode(self, mode: Mode) -> Ack:
-        v = self._v
-        t = self._sim.time_s
-        if v.kind is VehicleKind.GROUND:
-            v.mode = mode
-            return ACCEPTED
-        if mode is Mode.OFFBOARD:
-            streaming = t - v.sp_time <= 1.0 / STREAM_MIN_HZ and t - v.stream_since >= STREAM_MIN_S
-            if not streaming:
-                return Ack(
-                    False,
-                    f"offboard refused: stream setpoints at > {STREAM_MIN_HZ:g} Hz for "
-                    f"{STREAM_MIN_S:g} s first",
-                )
-        if mode is Mode.TAKEOFF:
-            return self.takeoff(2.0)
-        if mode is Mode.LAND:
-            return self.land()
-        if mode is Mode.HOLD:
-            v.hold = v.x[:3].copy()
-        v.mode = mode
-        return ACCEPTED
-
-    def takeoff(self, altitude_m: float) -> Ack:
-        v = self._v
-        if v.kind is VehicleKind.GROUND:
-            return Ack(False, "a ground robot cannot take off")
-        if not v.armed:
-            return Ack(False, "takeoff refused: not armed")
-        if not altitude_m > 0:
-            return Ack(False, f"takeoff altitude must be > 0, got {altitude_m:g}")
-        v.hold = v.x[:3].copy()
-        v.hold[2] = v.ground + altitude_m
-        v.mode = Mode.TAKEOFF
-        return ACCEPTED
-
-    def land(self) -> Ack:
-        v = self._v
-        if v.kind is VehicleKind.GROUND:
-            return Ack(False, "a ground robot cannot land")
-        if not v.armed:
-            return Ack(False, "land refused: not armed")
-        v.hold = v.x[:3].copy()
-        v.mode = Mode.LAND
-        return ACCEPTED
-
-    # ------------------------------------------------------------------ setpoints
-    def _stream(self, kind: str) -> None:
-        v = self._v
-        t = self._sim.time_s
-        if t - v.sp_time > 1.0 / STREAM_MIN_HZ:
-            v.stream_since = t
-        v.sp_time = t
-        v.sp_kind = kind
-
-    def set_position_setpoint(
-        self,
-        position: Vec3 | FloatArray,
-        velocity: Vec3 | FloatArray | None = None,
-        yaw: float | None = None,
-    ) -> None:
-        v = self._v
-        self._stream("position")
-        v.sp_pos = np.asarray(position, dtype=float).copy()
-        v.sp_vel = np.zeros(3) if velocity is None else np.asarray(velocity, dtype=float).copy()
-        v.sp_yaw = yaw
-
-    def set_velocity_setpoint(self, velocity: Vec3 | FloatArray, yaw_rate: float = 0.0) -> None:
-        v = self._v
-        self._stream("velocity")
-        v.sp_vel = np.asarray(velocity, dtype=float).copy()
-        v.sp_yaw_rate = float(yaw_rate)
-
-    def set_attitude_setpoint(
-        self, thrust: float, roll: float, pitch: float, yaw_rate: float = 0.0
-    ) -> None:
-        v = self._v
-        if v.kind is VehicleKind.GROUND:
-            raise ValueError("a ground robot takes velocity setpoints, not attitude setpoints")
-        self._stream("attitude")
-        v.sp_att = np.array([float(thrust), float(roll), float(pitch)])
-        v.sp_yaw_rate = float(yaw_rate)
+    def _ap_here(self) -> FloatArray:
+        return self._v.x[:3].copy()
 
     # ------------------------------------------------------------------ telemetry
     def telemetry(self) -> Telemetry:

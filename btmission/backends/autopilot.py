@@ -1,0 +1,235 @@
+"""The PX4-like autopilot rules every simulated vehicle obeys (the simulator's and the fake one's).
+
+:mod:`btmission.backends.sim` integrates physics and :mod:`btmission.backends.fake` moves
+vehicles kinematically, but both answer commands and take setpoints the way PX4's offboard
+interface does (DESIGN.md §8), so a behaviour that works on one works on the other and, later,
+on a real autopilot (the backend conformance suite, ``tests/test_backend_conformance.py``, holds
+them all to it):
+
+* arming is refused in the air and with the battery below 10 %; disarming in the air is refused;
+* OFFBOARD is refused until setpoints have been streaming at more than ``STREAM_MIN_HZ`` for
+  ``STREAM_MIN_S``; TAKEOFF and LAND need the vehicle armed; a ground robot takes any mode and
+  cannot take off or land;
+* in OFFBOARD, setpoints that stop for more than ``OFFBOARD_LOSS_S`` switch to HOLD (the
+  failsafe); an armed vehicle that does not take off within ``DISARM_PREFLIGHT_S`` disarms, and
+  one that has landed disarms after ``DISARM_LAND_S``.
+
+:class:`OffboardCommands` is the command and setpoint half of the
+:class:`~btmission.backends.base.Backend` interface on a vehicle's :class:`AutopilotState`;
+:func:`autopilot_rules` is the per-step half (failsafe and automatic disarming).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from btmission.backends.base import ACCEPTED, Ack, Mode, VehicleKind
+from btmission.types import FloatArray, Vec3
+
+STREAM_MIN_HZ = 2.0
+STREAM_MIN_S = 1.0
+OFFBOARD_LOSS_S = 1.0
+DISARM_PREFLIGHT_S = 10.0
+DISARM_LAND_S = 2.0
+G = 9.81
+
+
+@dataclass(kw_only=True)
+class AutopilotFields:
+    """The autopilot's part of a simulated vehicle's state (base of the simulator's and the fake
+    provider's vehicle records, keyword-only so they keep their own positional fields)."""
+
+    armed: bool = False
+    mode: Mode = Mode.MANUAL
+    landed: bool = True
+    battery: float = 1.0
+    ground: float = 0.0
+    """Height of the ground under the vehicle (world z)."""
+    # setpoints
+    sp_kind: str = ""
+    sp_pos: FloatArray = field(default_factory=lambda: np.zeros(3))
+    sp_vel: FloatArray = field(default_factory=lambda: np.zeros(3))
+    sp_yaw: float | None = None
+    sp_yaw_rate: float = 0.0
+    sp_att: FloatArray = field(default_factory=lambda: np.array([G, 0.0, 0.0]))
+    sp_time: float = -math.inf
+    stream_since: float = math.inf
+    # mode logic
+    hold: FloatArray = field(default_factory=lambda: np.zeros(3))
+    armed_at: float = -math.inf
+    landed_at: float = -math.inf
+    took_off: bool = False
+    failsafe: str = ""
+
+
+class AutopilotState(Protocol):
+    """What the rules read and write of a vehicle (its provider keeps more)."""
+
+    kind: VehicleKind
+    armed: bool
+    mode: Mode
+    landed: bool
+    battery: float
+    ground: float
+    sp_kind: str
+    sp_pos: FloatArray
+    sp_vel: FloatArray
+    sp_yaw: float | None
+    sp_yaw_rate: float
+    sp_att: FloatArray
+    sp_time: float
+    stream_since: float
+    hold: FloatArray
+    armed_at: float
+    landed_at: float
+    took_off: bool
+    failsafe: str
+
+
+class OffboardCommands:
+    """Commands and setpoints with PX4's offboard rules (module docstring), for a vehicle class
+    that sets ``_ap`` (its :class:`AutopilotState`) and implements :meth:`_ap_time` and
+    :meth:`_ap_here`."""
+
+    _ap: AutopilotState
+
+    def _ap_time(self) -> float:
+        """The provider's time now (s)."""
+        raise NotImplementedError
+
+    def _ap_here(self) -> FloatArray:
+        """A copy of where the vehicle is (the point HOLD, TAKEOFF and LAND start from)."""
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ commands
+    def arm(self) -> Ack:
+        v = self._ap
+        if v.kind is VehicleKind.GROUND:
+            return ACCEPTED
+        if v.armed:
+            return ACCEPTED
+        if not v.landed:
+            return Ack(False, "cannot arm in the air")
+        if v.battery < 0.1:
+            return Ack(False, f"battery too low ({v.battery:.0%})")
+        v.armed = True
+        v.armed_at = self._ap_time()
+        v.took_off = False
+        v.failsafe = ""
+        return ACCEPTED
+
+    def disarm(self) -> Ack:
+        v = self._ap
+        if v.kind is VehicleKind.GROUND:
+            return ACCEPTED
+        if not v.landed:
+            return Ack(False, "cannot disarm in the air")
+        v.armed = False
+        v.mode = Mode.MANUAL
+        return ACCEPTED
+
+    def set_mode(self, mode: Mode) -> Ack:
+        v = self._ap
+        t = self._ap_time()
+        if v.kind is VehicleKind.GROUND:
+            v.mode = mode
+            return ACCEPTED
+        if mode is Mode.OFFBOARD:
+            streaming = t - v.sp_time <= 1.0 / STREAM_MIN_HZ and t - v.stream_since >= STREAM_MIN_S
+            if not streaming:
+                return Ack(
+                    False,
+                    f"offboard refused: stream setpoints at > {STREAM_MIN_HZ:g} Hz for "
+                    f"{STREAM_MIN_S:g} s first",
+                )
+        if mode is Mode.TAKEOFF:
+            return self.takeoff(2.0)
+        if mode is Mode.LAND:
+            return self.land()
+        if mode is Mode.HOLD:
+            v.hold = self._ap_here()
+        v.mode = mode
+        return ACCEPTED
+
+    def takeoff(self, altitude_m: float) -> Ack:
+        v = self._ap
+        if v.kind is VehicleKind.GROUND:
+            return Ack(False, "a ground robot cannot take off")
+        if not v.armed:
+            return Ack(False, "takeoff refused: not armed")
+        if not altitude_m > 0:
+            return Ack(False, f"takeoff altitude must be > 0, got {altitude_m:g}")
+        v.hold = self._ap_here()
+        v.hold[2] = v.ground + altitude_m
+        v.mode = Mode.TAKEOFF
+        return ACCEPTED
+
+    def land(self) -> Ack:
+        v = self._ap
+        if v.kind is VehicleKind.GROUND:
+            return Ack(False, "a ground robot cannot land")
+        if not v.armed:
+            return Ack(False, "land refused: not armed")
+        v.hold = self._ap_here()
+        v.mode = Mode.LAND
+        return ACCEPTED
+
+    # ------------------------------------------------------------------ setpoints
+    def _stream(self, kind: str) -> None:
+        v = self._ap
+        t = self._ap_time()
+        if t - v.sp_time > 1.0 / STREAM_MIN_HZ:
+            v.stream_since = t
+        v.sp_time = t
+        v.sp_kind = kind
+
+    def set_position_setpoint(
+        self,
+        position: Vec3 | FloatArray,
+        velocity: Vec3 | FloatArray | None = None,
+        yaw: float | None = None,
+    ) -> None:
+        v = self._ap
+        self._stream("position")
+        v.sp_pos = np.asarray(position, dtype=float).copy()
+        v.sp_vel = np.zeros(3) if velocity is None else np.asarray(velocity, dtype=float).copy()
+        v.sp_yaw = yaw
+
+    def set_velocity_setpoint(self, velocity: Vec3 | FloatArray, yaw_rate: float = 0.0) -> None:
+        v = self._ap
+        self._stream("velocity")
+        v.sp_vel = np.asarray(velocity, dtype=float).copy()
+        v.sp_yaw_rate = float(yaw_rate)
+
+    def set_attitude_setpoint(
+        self, thrust: float, roll: float, pitch: float, yaw_rate: float = 0.0
+    ) -> None:
+        v = self._ap
+        if v.kind is VehicleKind.GROUND:
+            raise ValueError("a ground robot takes velocity setpoints, not attitude setpoints")
+        self._stream("attitude")
+        v.sp_att = np.array([float(thrust), float(roll), float(pitch)])
+        v.sp_yaw_rate = float(yaw_rate)
+
+
+def autopilot_rules(v: AutopilotState, t: float, here: Callable[[], FloatArray]) -> None:
+    """One step of the mode logic at time ``t``: the offboard-loss failsafe (HOLD at ``here()``)
+    and automatic disarming (module docstring)."""
+    if v.mode is Mode.OFFBOARD and t - v.sp_time > OFFBOARD_LOSS_S:
+        v.mode = Mode.HOLD if not v.landed else Mode.MANUAL
+        v.hold = here()
+        v.failsafe = f"offboard setpoints lost for more than {OFFBOARD_LOSS_S:g} s"
+    if v.armed and v.landed:
+        if not v.took_off and t - v.armed_at > DISARM_PREFLIGHT_S:
+            v.armed = False
+            v.failsafe = f"disarmed: no take-off within {DISARM_PREFLIGHT_S:g} s of arming"
+        elif v.took_off and t - v.landed_at > DISARM_LAND_S:
+            v.armed = False
+            v.took_off = False
+            if v.mode in (Mode.LAND, Mode.HOLD, Mode.TAKEOFF):
+                v.mode = Mode.MANUAL
