@@ -343,7 +343,7 @@ class TestBackend:
     ) -> None:
         path = CORPUS / "backend_mavlink.yaml"
         want = (
-            f"{path}:8:58: agents[0].backend: backend 'mavlink://udp:127.0.0.1:14540': "
+            f"{path}:8:58: agents[0].backend: backend 'mavlink+udp://127.0.0.1:14540': "
             "no vehicle provider for scheme 'mavlink' is installed (MAVLink vehicles are not supported yet); "
             "installed: 'sim'"
         )
@@ -368,7 +368,10 @@ class TestBackend:
         text = (CORPUS / "backend_unknown.yaml").read_text()
         for bad, want in (
             ("Gazebo sim", "expected 'sim' or a vehicle provider's URL <scheme>://<address>"),
-            ("mavlink://127.0.0.1:14540", "expected 'sim' or a MAVLink URL"),
+            (
+                "mavlink://127.0.0.1:14540",
+                "MAVLink URL 'mavlink://127.0.0.1:14540': say the transport in the scheme",
+            ),
         ):
             path = tmp_path / "m.yaml"
             path.write_text(text.replace("backend: gazebo", f"backend: '{bad}'"))

@@ -150,7 +150,12 @@ def test_an_unknown_scheme_has_no_factory() -> None:
 
 @pytest.mark.parametrize(
     ("url", "scheme"),
-    [("sim", "sim"), ("mavlink://udp:127.0.0.1:14540", "mavlink"), ("gz://world/x", "gz")],
+    [
+        ("sim", "sim"),
+        ("mavlink+udp://127.0.0.1:14540", "mavlink"),
+        ("mavlink+serial:///dev/ttyACM0", "mavlink"),
+        ("gz://world/x", "gz"),
+    ],
 )
 def test_the_scheme_is_the_part_before_the_address(url: str, scheme: str) -> None:
     assert scheme_of(url) == scheme
@@ -168,12 +173,12 @@ def test_validate_refuses_an_unknown_scheme_at_its_line(tmp_path: Path) -> None:
 
 
 def test_validate_refuses_mavlink_until_its_provider_exists(tmp_path: Path) -> None:
-    path = write(tmp_path, "'mavlink://udp:127.0.0.1:14540'", "'mavlink://udp:127.0.0.1:14541'")
+    path = write(tmp_path, "'mavlink+udp://127.0.0.1:14540'", "'mavlink+udp://127.0.0.1:14541'")
     code, out = validate(path)
     assert code == 2
     for line, port in ((6, 14540), (7, 14541)):
         assert (
-            f"{path}:{line}:58: agents[{line - 6}].backend: backend 'mavlink://udp:127.0.0.1:"
+            f"{path}:{line}:58: agents[{line - 6}].backend: backend 'mavlink+udp://127.0.0.1:"
             f"{port}': no vehicle provider for scheme 'mavlink' is installed (MAVLink vehicles are not supported yet)"
         ) in out
     assert "2 problem(s) found" in out

@@ -1,7 +1,7 @@
 """Where vehicles come from: the :class:`VehicleProvider` interface and its registry.
 
 A run never builds vehicles itself. Each agent's ``backend:`` in the mission is a URL (``sim``,
-``mavlink://udp:127.0.0.1:14540`` ...); its **scheme** (``sim``, ``mavlink``) names a provider,
+``mavlink+udp://127.0.0.1:14540`` ...); its **scheme** (``sim``, ``mavlink``) names a provider,
 registered in the ``btmission.providers`` entry-point group like capability libraries are in
 ``btmission.libraries`` (docs/providers.md)::
 
@@ -47,9 +47,10 @@ ENTRY_POINT_GROUP = "btmission.providers"
 
 
 def scheme_of(backend: str) -> str:
-    """The provider scheme of an agent's ``backend:`` URL: ``mavlink://udp:…`` → ``mavlink``,
+    """The provider scheme of an agent's ``backend:`` URL: ``mavlink+udp://…`` → ``mavlink`` (a
+    ``+transport`` suffix picks the provider's transport, not another provider),
     ``sim`` → ``sim``."""
-    return backend.split("://", 1)[0]
+    return backend.split("://", 1)[0].split("+", 1)[0]
 
 
 @dataclass(frozen=True)

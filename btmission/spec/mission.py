@@ -48,10 +48,9 @@ MISSION_FORMAT_VERSION = 1
 Vec3 = Annotated[
     tuple[FiniteFloat, FiniteFloat, FiniteFloat], Field(description="[x, y, z] in metres")
 ]
-MAVLINK_RE = r"^mavlink://(udp|udpin|udpout|tcp|tcpin|serial):.+$"
-BACKEND_RE = r"^(mavlink://(udp|udpin|udpout|tcp|tcpin|serial):.+|(?!mavlink(:|$))[a-z][a-z0-9+.-]*(://.+)?)$"
+BACKEND_RE = r"^(mavlink\+(udp|udpout|tcp|tcpin|serial)://.+|(?!mavlink)[a-z][a-z0-9+.-]*(://.+)?)$"
 """An agent's ``backend:``: a vehicle provider's scheme alone (``sim``) or ``<scheme>://<address>``;
-a MAVLink URL must follow the MAVLink grammar. Which schemes are installed is checked later
+a MAVLink URL must follow the MAVLink grammar (:mod:`btmission.backends.mavlink_url`). Which schemes are installed is checked later
 (:func:`btmission.spec.runcheck.backend_problems`), so that trees and exports of a mission for
 vehicles this machine cannot reach still work."""
 
@@ -118,22 +117,25 @@ class AgentSpec(_Strict):
     backend: str = Field(
         "sim",
         description="The vehicle provider: 'sim' (embedded simulator) or <scheme>://<address> "
-        "of an installed provider, such as mavlink://udp:127.0.0.1:14540",
+        "of an installed provider, such as mavlink+udp://127.0.0.1:14540",
         json_schema_extra={"pattern": BACKEND_RE},
     )
 
     @field_validator("backend")
     @classmethod
     def _backend(cls, v: str) -> str:
-        if v.startswith("mavlink") and not re.match(MAVLINK_RE, v):
-            raise ValueError(
-                "expected 'sim' or a MAVLink URL such as mavlink://udp:127.0.0.1:14540 "
-                "(udp, udpin, udpout, tcp, tcpin or serial)"
-            )
+        from btmission.backends.mavlink_url import is_mavlink_url, parse_mavlink_url
+
+        if is_mavlink_url(v):
+            try:
+                parse_mavlink_url(v)
+            except ValueError as exc:
+                raise ValueError(f"MAVLink URL '{v}': {exc}") from None
+            return v
         if not re.match(BACKEND_RE, v):
             raise ValueError(
                 "expected 'sim' or a vehicle provider's URL <scheme>://<address> such as "
-                "mavlink://udp:127.0.0.1:14540 (scheme: lower-case letters, digits, + . -)"
+                "mavlink+udp://127.0.0.1:14540 (scheme: lower-case letters, digits, + . -)"
             )
         return v  # btmission.spec.runcheck refuses a scheme no installed provider serves
 
