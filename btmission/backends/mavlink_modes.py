@@ -1,0 +1,162 @@
+"""Flight modes and command results on MAVLink autopilots, as the backend's :class:`Mode` and
+:class:`Ack` (pure functions over pymavlink's tables; no link).
+
+The backend speaks PX4's vocabulary (:class:`~btmission.backends.base.Mode`: MANUAL, HOLD,
+TAKEOFF, OFFBOARD, LAND). On the wire, a mode is a HEARTBEAT's ``base_mode`` and
+``custom_mode``, whose meaning depends on the autopilot (``HEARTBEAT.autopilot``) and, for
+ArduPilot, on the vehicle type:
+
+==========  =====================================  ==========================  =================
+``Mode``    PX4 (``custom_mode`` = main << 16 |     ArduCopter                  ArduRover
+            sub << 24)
+==========  =====================================  ==========================  =================
+MANUAL      MANUAL (1)                             STABILIZE (0)               MANUAL (0)
+HOLD        AUTO.LOITER (4, 3)                     LOITER (5)                  HOLD (4)
+TAKEOFF     AUTO.TAKEOFF (4, 2)                    GUIDED (4) + NAV_TAKEOFF    —
+OFFBOARD    OFFBOARD (6)                           GUIDED (4)                  GUIDED (15)
+LAND        AUTO.LAND (4, 6)                       LAND (9)                    —
+==========  =====================================  ==========================  =================
+
+A COMMAND_ACK's ``MAV_RESULT`` becomes an :class:`~btmission.backends.base.Ack`: accepted, or
+refused with the result's name and the autopilot's last STATUSTEXT (the reason a pre-arm check
+gave); TEMPORARILY_REJECTED and IN_PROGRESS are worth waiting for (:func:`retry_wanted`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import common as mavlink
+
+from btmission.backends.base import ACCEPTED, Ack, Mode, VehicleKind
+
+
+class Autopilot(str, Enum):
+    PX4 = "px4"
+    ARDUPILOT = "ardupilot"
+
+
+def autopilot_of(heartbeat_autopilot: int) -> Autopilot | None:
+    """The autopilot family of a HEARTBEAT's ``autopilot`` field (None: neither, e.g. a GCS)."""
+    if heartbeat_autopilot == mavlink.MAV_AUTOPILOT_PX4:
+        return Autopilot.PX4
+    if heartbeat_autopilot == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA:
+        return Autopilot.ARDUPILOT
+    return None
+
+
+_PX4_NAMES = {
+    Mode.MANUAL: "MANUAL",
+    Mode.HOLD: "LOITER",
+    Mode.TAKEOFF: "TAKEOFF",
+    Mode.OFFBOARD: "OFFBOARD",
+    Mode.LAND: "LAND",
+}
+_COPTER_NAMES = {
+    Mode.MANUAL: "STABILIZE",
+    Mode.HOLD: "LOITER",
+    Mode.TAKEOFF: "GUIDED",
+    Mode.OFFBOARD: "GUIDED",
+    Mode.LAND: "LAND",
+}
+_ROVER_NAMES = {Mode.MANUAL: "MANUAL", Mode.HOLD: "HOLD", Mode.OFFBOARD: "GUIDED"}
+
+
+@dataclass(frozen=True)
+class ModeRequest:
+    """How to ask an autopilot for a mode: MAV_CMD_DO_SET_MODE with these parameters, and
+    whether MAV_CMD_NAV_TAKEOFF must follow (ArduPilot takes off from GUIDED)."""
+
+    base_mode: int
+    custom_mode: int
+    name: str
+    """The autopilot's own name of the mode (``AUTO.LOITER``, ``GUIDED`` ...)."""
+    then_takeoff: bool = False
+
+
+class UnsupportedMode(ValueError):
+    """A mode this autopilot and vehicle type do not have (e.g. LAND on a rover)."""
+
+
+def _px4_custom(main: int, sub: int) -> int:
+    return (main << 16) | (sub << 24)
+
+
+def mode_request(autopilot: Autopilot, kind: VehicleKind, mode: Mode) -> ModeRequest:
+    """The DO_SET_MODE parameters for ``mode`` (module docstring's table). Raises
+    :class:`UnsupportedMode`."""
+    custom = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+    if autopilot is Autopilot.PX4:
+        name = _PX4_NAMES[mode]
+        _, main, sub = mavutil.px4_map[name]
+        shown = f"AUTO.{name}" if main == mavutil.PX4_CUSTOM_MAIN_MODE_AUTO else name
+        return ModeRequest(custom, _px4_custom(main, sub), shown)
+    names = _COPTER_NAMES if kind is VehicleKind.MULTIROTOR else _ROVER_NAMES
+    table = (
+        mavutil.mode_mapping_acm if kind is VehicleKind.MULTIROTOR else mavutil.mode_mapping_rover
+    )
+    if mode not in names:
+        vehicle = "ArduCopter" if kind is VehicleKind.MULTIROTOR else "ArduRover"
+        raise UnsupportedMode(f"{vehicle} has no {mode.value} mode")
+    name = names[mode]
+    number = next(n for n, m in table.items() if m == name)
+    return ModeRequest(custom, number, name, then_takeoff=mode is Mode.TAKEOFF)
+
+
+def mode_of(autopilot: Autopilot, kind: VehicleKind, custom_mode: int) -> Mode | str:
+    """The backend :class:`Mode` a HEARTBEAT's ``custom_mode`` means, or the autopilot's own
+    name of a mode that is none of them (``ALTCTL``, ``RTL`` ...; ``custom mode 99`` if
+    unknown). ArduPilot's GUIDED reads as OFFBOARD (a take-off is GUIDED too)."""
+    if autopilot is Autopilot.PX4:
+        main, sub = (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
+        for mode, name in _PX4_NAMES.items():
+            _, m, s = mavutil.px4_map[name]
+            if m == main and (s == sub or main != mavutil.PX4_CUSTOM_MAIN_MODE_AUTO):
+                return mode
+        for name, (_, m, s) in mavutil.px4_map.items():
+            if m == main and (s == sub or main != mavutil.PX4_CUSTOM_MAIN_MODE_AUTO):
+                return str(name)
+        return f"custom mode {custom_mode}"
+    names = _COPTER_NAMES if kind is VehicleKind.MULTIROTOR else _ROVER_NAMES
+    table = (
+        mavutil.mode_mapping_acm if kind is VehicleKind.MULTIROTOR else mavutil.mode_mapping_rover
+    )
+    name = table.get(custom_mode)
+    if name is None:
+        return f"custom mode {custom_mode}"
+    for mode in (Mode.OFFBOARD, Mode.MANUAL, Mode.HOLD, Mode.LAND):
+        if names.get(mode) == name:
+            return mode
+    return str(name)
+
+
+def result_name(result: int) -> str:
+    """``MAV_RESULT_DENIED`` ... for a COMMAND_ACK's ``result``."""
+    entry = mavlink.enums["MAV_RESULT"].get(result)
+    return entry.name if entry is not None else f"MAV_RESULT {result}"
+
+
+def command_name(command: int) -> str:
+    """``MAV_CMD_COMPONENT_ARM_DISARM`` ... for a command id."""
+    entry = mavlink.enums["MAV_CMD"].get(command)
+    return entry.name if entry is not None else f"MAV_CMD {command}"
+
+
+def ack_of(command: int, result: int, statustext: str = "") -> Ack:
+    """A COMMAND_ACK as an :class:`Ack`: accepted, or refused naming the command, the result
+    and the autopilot's reason (its last STATUSTEXT), e.g. ``MAV_CMD_COMPONENT_ARM_DISARM:
+    MAV_RESULT_DENIED (PreArm: EKF3 waiting for GPS config data)``."""
+    if result == mavlink.MAV_RESULT_ACCEPTED:
+        return ACCEPTED
+    reason = f"{command_name(command)}: {result_name(result)}"
+    if statustext:
+        reason += f" ({statustext})"
+    return Ack(False, reason)
+
+
+def retry_wanted(result: int) -> bool:
+    """Whether a command answered with ``result`` should be sent again after a while
+    (TEMPORARILY_REJECTED: e.g. the EKF is not ready yet) or waited for (IN_PROGRESS)."""
+    return result in (mavlink.MAV_RESULT_TEMPORARILY_REJECTED, mavlink.MAV_RESULT_IN_PROGRESS)

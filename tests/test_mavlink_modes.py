@@ -1,0 +1,88 @@
+"""Backend modes and command results on PX4 and ArduPilot (btmission.backends.mavlink_modes)."""
+
+from __future__ import annotations
+
+import pytest
+from pymavlink.dialects.v20 import common as mavlink
+
+from btmission.backends.base import Mode, VehicleKind
+from btmission.backends.mavlink_modes import (
+    Autopilot,
+    UnsupportedMode,
+    ack_of,
+    autopilot_of,
+    mode_of,
+    mode_request,
+    retry_wanted,
+)
+
+MULTI, GROUND = VehicleKind.MULTIROTOR, VehicleKind.GROUND
+
+
+def test_the_autopilot_comes_from_the_heartbeat() -> None:
+    assert autopilot_of(mavlink.MAV_AUTOPILOT_PX4) is Autopilot.PX4
+    assert autopilot_of(mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA) is Autopilot.ARDUPILOT
+    assert autopilot_of(mavlink.MAV_AUTOPILOT_INVALID) is None  # a ground station
+
+
+@pytest.mark.parametrize(
+    ("mode", "custom", "name"),
+    [
+        (Mode.MANUAL, 1 << 16, "MANUAL"),
+        (Mode.HOLD, (4 << 16) | (3 << 24), "AUTO.LOITER"),
+        (Mode.TAKEOFF, (4 << 16) | (2 << 24), "AUTO.TAKEOFF"),
+        (Mode.OFFBOARD, 6 << 16, "OFFBOARD"),  # main mode 6 in bits 16-23
+        (Mode.LAND, (4 << 16) | (6 << 24), "AUTO.LAND"),
+    ],
+)
+def test_px4_modes_are_main_and_sub_modes(mode: Mode, custom: int, name: str) -> None:
+    req = mode_request(Autopilot.PX4, MULTI, mode)
+    assert (req.custom_mode, req.name, req.then_takeoff) == (custom, name, False)
+    assert req.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+    assert mode_of(Autopilot.PX4, MULTI, custom) is mode  # and the heartbeat reads back
+
+
+@pytest.mark.parametrize(
+    ("mode", "custom", "name", "takeoff"),
+    [
+        (Mode.MANUAL, 0, "STABILIZE", False),
+        (Mode.HOLD, 5, "LOITER", False),
+        (Mode.TAKEOFF, 4, "GUIDED", True),  # GUIDED, then MAV_CMD_NAV_TAKEOFF
+        (Mode.OFFBOARD, 4, "GUIDED", False),  # GUIDED = custom mode 4
+        (Mode.LAND, 9, "LAND", False),
+    ],
+)
+def test_ardupilot_copter_modes(mode: Mode, custom: int, name: str, takeoff: bool) -> None:
+    req = mode_request(Autopilot.ARDUPILOT, MULTI, mode)
+    assert (req.custom_mode, req.name, req.then_takeoff) == (custom, name, takeoff)
+    expected = Mode.OFFBOARD if mode is Mode.TAKEOFF else mode
+    assert mode_of(Autopilot.ARDUPILOT, MULTI, custom) is expected
+
+
+def test_ardurover_modes_and_what_a_rover_cannot_do() -> None:
+    assert mode_request(Autopilot.ARDUPILOT, GROUND, Mode.OFFBOARD).custom_mode == 15
+    assert mode_request(Autopilot.ARDUPILOT, GROUND, Mode.HOLD).custom_mode == 4
+    assert mode_of(Autopilot.ARDUPILOT, GROUND, 15) is Mode.OFFBOARD
+    for mode in (Mode.TAKEOFF, Mode.LAND):
+        with pytest.raises(UnsupportedMode, match=f"ArduRover has no {mode.value} mode"):
+            mode_request(Autopilot.ARDUPILOT, GROUND, mode)
+
+
+def test_other_modes_read_as_the_autopilots_names() -> None:
+    assert mode_of(Autopilot.PX4, MULTI, 3 << 16) == "POSCTL"
+    assert mode_of(Autopilot.PX4, MULTI, (4 << 16) | (5 << 24)) == "RTL"
+    assert mode_of(Autopilot.ARDUPILOT, MULTI, 6) == "RTL"
+    assert mode_of(Autopilot.ARDUPILOT, MULTI, 99) == "custom mode 99"
+
+
+def test_command_acks_become_acks_with_the_reason() -> None:
+    arm = mavlink.MAV_CMD_COMPONENT_ARM_DISARM
+    assert ack_of(arm, mavlink.MAV_RESULT_ACCEPTED)
+    denied = ack_of(arm, mavlink.MAV_RESULT_DENIED, "PreArm: EKF3 waiting for GPS config data")
+    assert not denied and denied.reason == (
+        "MAV_CMD_COMPONENT_ARM_DISARM: MAV_RESULT_DENIED (PreArm: EKF3 waiting for GPS config data)"
+    )
+    assert ack_of(400, 99).reason == "MAV_CMD_COMPONENT_ARM_DISARM: MAV_RESULT 99"
+    assert retry_wanted(mavlink.MAV_RESULT_TEMPORARILY_REJECTED)
+    assert retry_wanted(mavlink.MAV_RESULT_IN_PROGRESS)
+    assert not retry_wanted(mavlink.MAV_RESULT_DENIED)
