@@ -37,6 +37,7 @@ OFFBOARD_LOSS_S = 1.0
 DISARM_PREFLIGHT_S = 10.0
 DISARM_LAND_S = 2.0
 G = 9.81
+"""Gravity (m/s²): the hover thrust of the mass-less models, and the default attitude setpoint."""
 
 
 @dataclass(kw_only=True)

@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from btmission.backends.autopilot import AutopilotFields, OffboardCommands, autopilot_rules
+from btmission.backends.autopilot import AutopilotFields, G, OffboardCommands, autopilot_rules
 from btmission.backends.base import Mode, Telemetry, VehicleKind
 from btmission.backends.provider import Vehicle, VehicleEvent
 from btmission.backends.sim import (
@@ -52,7 +52,6 @@ if TYPE_CHECKING:
     from btmission.spec.mission import Mission
     from btmission.world.voxel import VoxelMap
 
-G = 9.81
 VELOCITY_GAIN = 1.2
 """1/s: the velocity approaches the commanded one as in the simulator's velocity loop."""
 

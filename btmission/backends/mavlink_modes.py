@@ -84,6 +84,22 @@ def _px4_custom(main: int, sub: int) -> int:
     return (main << 16) | (sub << 24)
 
 
+def _ardupilot(kind: VehicleKind) -> tuple[dict[Mode, str], dict[int, str], str]:
+    """Our modes → ArduPilot's names, its number → name table, and the firmware's name."""
+    if kind is VehicleKind.MULTIROTOR:
+        return _COPTER_NAMES, mavutil.mode_mapping_acm, "ArduCopter"
+    return _ROVER_NAMES, mavutil.mode_mapping_rover, "ArduRover"
+
+
+def _mode_by_name(names: dict[Mode, str], name: str) -> Mode | str:
+    """The backend mode an autopilot's mode name stands for (OFFBOARD before TAKEOFF: both are
+    ArduPilot's GUIDED), else the name itself."""
+    for mode in (Mode.OFFBOARD, Mode.MANUAL, Mode.HOLD, Mode.LAND, Mode.TAKEOFF):
+        if names.get(mode) == name:
+            return mode
+    return name
+
+
 def mode_request(autopilot: Autopilot, kind: VehicleKind, mode: Mode) -> ModeRequest:
     """The DO_SET_MODE parameters for ``mode`` (module docstring's table). Raises
     :class:`UnsupportedMode`."""
@@ -93,13 +109,9 @@ def mode_request(autopilot: Autopilot, kind: VehicleKind, mode: Mode) -> ModeReq
         _, main, sub = mavutil.px4_map[name]
         shown = f"AUTO.{name}" if main == mavutil.PX4_CUSTOM_MAIN_MODE_AUTO else name
         return ModeRequest(custom, _px4_custom(main, sub), shown)
-    names = _COPTER_NAMES if kind is VehicleKind.MULTIROTOR else _ROVER_NAMES
-    table = (
-        mavutil.mode_mapping_acm if kind is VehicleKind.MULTIROTOR else mavutil.mode_mapping_rover
-    )
+    names, table, firmware = _ardupilot(kind)
     if mode not in names:
-        vehicle = "ArduCopter" if kind is VehicleKind.MULTIROTOR else "ArduRover"
-        raise UnsupportedMode(f"{vehicle} has no {mode.value} mode")
+        raise UnsupportedMode(f"{firmware} has no {mode.value} mode")
     name = names[mode]
     number = next(n for n, m in table.items() if m == name)
     return ModeRequest(custom, number, name, then_takeoff=mode is Mode.TAKEOFF)
@@ -111,25 +123,13 @@ def mode_of(autopilot: Autopilot, kind: VehicleKind, custom_mode: int) -> Mode |
     unknown). ArduPilot's GUIDED reads as OFFBOARD (a take-off is GUIDED too)."""
     if autopilot is Autopilot.PX4:
         main, sub = (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
-        for mode, name in _PX4_NAMES.items():
-            _, m, s = mavutil.px4_map[name]
-            if m == main and (s == sub or main != mavutil.PX4_CUSTOM_MAIN_MODE_AUTO):
-                return mode
         for name, (_, m, s) in mavutil.px4_map.items():
             if m == main and (s == sub or main != mavutil.PX4_CUSTOM_MAIN_MODE_AUTO):
-                return str(name)
+                return _mode_by_name(_PX4_NAMES, str(name))
         return f"custom mode {custom_mode}"
-    names = _COPTER_NAMES if kind is VehicleKind.MULTIROTOR else _ROVER_NAMES
-    table = (
-        mavutil.mode_mapping_acm if kind is VehicleKind.MULTIROTOR else mavutil.mode_mapping_rover
-    )
+    names, table, _ = _ardupilot(kind)
     name = table.get(custom_mode)
-    if name is None:
-        return f"custom mode {custom_mode}"
-    for mode in (Mode.OFFBOARD, Mode.MANUAL, Mode.HOLD, Mode.LAND):
-        if names.get(mode) == name:
-            return mode
-    return str(name)
+    return f"custom mode {custom_mode}" if name is None else _mode_by_name(names, str(name))
 
 
 def result_name(result: int) -> str:

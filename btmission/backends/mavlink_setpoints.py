@@ -21,10 +21,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from btmission.backends.autopilot import G
 from btmission.backends.mavlink_frames import LocalFrame
 from btmission.types import FloatArray, Vec3
-
-G = 9.81
 
 X_IGNORE, Y_IGNORE, Z_IGNORE = 1, 2, 4
 VX_IGNORE, VY_IGNORE, VZ_IGNORE = 8, 16, 32

@@ -53,7 +53,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from btmission.backends.autopilot import AutopilotFields, OffboardCommands, autopilot_rules
+from btmission.backends.autopilot import AutopilotFields, G, OffboardCommands, autopilot_rules
 from btmission.backends.base import (
     CameraFrame,
     LidarScan,
@@ -70,7 +70,6 @@ from btmission.world.voxel import OCCUPIED, VoxelMap
 if TYPE_CHECKING:
     from btmission.spec.mission import Mission
 
-G = 9.81
 LAND_SPEED = 0.7
 TILT_MAX = 0.35
 IMPACT_SPEED = 2.0

@@ -515,8 +515,7 @@ class MissionRun:
         coord = self.coordinator
         if isinstance(command, AddTask):  # checked and queued with the coordinator when
             coord.intake(now)  # submitted: it enters the pool now (later commands may name it)
-            return
-        if isinstance(command, Stop):
+        elif isinstance(command, Stop):
             self._stop_asked = command.reason
         elif isinstance(command, CancelTask):
             coord.cancel_task(command.task, now, command.reason)
@@ -541,7 +540,6 @@ class MissionRun:
             self.emit("signal", agent=command.agent, name=command.signal, value=command.value)
         else:  # pragma: no cover - every command of commands.COMMANDS is handled above
             raise CommandError(f"unknown command {command!r}")
-        return None
 
     # ---------------------------------------------------------------- running
     def step(self) -> None:
