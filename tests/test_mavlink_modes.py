@@ -11,9 +11,11 @@ from btmission.backends.mavlink_modes import (
     UnsupportedMode,
     ack_of,
     autopilot_of,
+    custom_mode_of_command,
     mode_of,
     mode_request,
     retry_wanted,
+    set_mode_params,
 )
 
 MULTI, GROUND = VehicleKind.MULTIROTOR, VehicleKind.GROUND
@@ -86,3 +88,23 @@ def test_command_acks_become_acks_with_the_reason() -> None:
     assert retry_wanted(mavlink.MAV_RESULT_TEMPORARILY_REJECTED)
     assert retry_wanted(mavlink.MAV_RESULT_IN_PROGRESS)
     assert not retry_wanted(mavlink.MAV_RESULT_DENIED)
+
+
+@pytest.mark.parametrize(
+    ("autopilot", "kind", "mode", "params"),
+    [
+        (Autopilot.PX4, VehicleKind.MULTIROTOR, Mode.OFFBOARD, (1.0, 6.0, 0.0)),
+        (Autopilot.PX4, VehicleKind.MULTIROTOR, Mode.HOLD, (1.0, 4.0, 3.0)),
+        (Autopilot.PX4, VehicleKind.MULTIROTOR, Mode.LAND, (1.0, 4.0, 6.0)),
+        (Autopilot.ARDUPILOT, VehicleKind.MULTIROTOR, Mode.OFFBOARD, (1.0, 4.0, 0.0)),
+        (Autopilot.ARDUPILOT, VehicleKind.GROUND, Mode.HOLD, (1.0, 4.0, 0.0)),
+    ],
+)
+def test_do_set_mode_parameters_round_trip_to_the_heartbeat_mode(
+    autopilot: Autopilot, kind: VehicleKind, mode: Mode, params: tuple[float, float, float]
+) -> None:
+    request = mode_request(autopilot, kind, mode)
+    assert set_mode_params(autopilot, request) == params
+    custom = custom_mode_of_command(autopilot, params[1], params[2])
+    assert custom == request.custom_mode
+    assert mode_of(autopilot, kind, custom) is mode

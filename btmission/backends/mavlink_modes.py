@@ -76,6 +76,24 @@ class ModeRequest:
     then_takeoff: bool = False
 
 
+def set_mode_params(autopilot: Autopilot, request: ModeRequest) -> tuple[float, float, float]:
+    """Parameters 1-3 of MAV_CMD_DO_SET_MODE for ``request``: the base mode, then ArduPilot's
+    mode number, or PX4's main and sub mode (the HEARTBEAT packs them into ``custom_mode``;
+    the command takes them apart, as pymavlink's ``set_mode_px4`` and MAVSDK send them)."""
+    if autopilot is Autopilot.PX4:
+        main, sub = (request.custom_mode >> 16) & 0xFF, (request.custom_mode >> 24) & 0xFF
+        return float(request.base_mode), float(main), float(sub)
+    return float(request.base_mode), float(request.custom_mode), 0.0
+
+
+def custom_mode_of_command(autopilot: Autopilot, param2: float, param3: float) -> int:
+    """The HEARTBEAT ``custom_mode`` a DO_SET_MODE command asks for (the vehicle's side of
+    :func:`set_mode_params`)."""
+    if autopilot is Autopilot.PX4:
+        return _px4_custom(int(param2), int(param3))
+    return int(param2)
+
+
 class UnsupportedMode(ValueError):
     """A mode this autopilot and vehicle type do not have (e.g. LAND on a rover)."""
 
