@@ -14,11 +14,13 @@ from btmission.cli.common import (
     POSITIVE,
     SEED,
     BadInput,
+    ChecksFailed,
     echo_diagnostics,
     handle_spec_errors,
     internal_error_sink,
     output_target,
 )
+from btmission.backends.provider import VehicleUnavailable
 
 
 def _write_pngs(rep: Any, directory: Path, stem: str) -> list[Path]:
@@ -158,7 +160,10 @@ def _run(session: Any, until: float | None, quiet: bool, no_png: bool) -> int:
     with internal_error_sink(session.record_internal_error):
         mission = session.load()
         echo_diagnostics(session.warnings)
-        run = session.start()
+        try:
+            run = session.start()
+        except VehicleUnavailable as exc:  # nothing answers at an agent's backend URL
+            raise ChecksFailed(f"{exc}; nothing was run") from None
         if run is not None:
             if not quiet:
                 click.echo(

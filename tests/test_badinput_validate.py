@@ -338,19 +338,8 @@ class TestCostExpressions:
 
 # ------------------------------------------------------------------------------ backends
 class TestBackend:
-    def test_mavlink_is_refused_by_validate_and_run(
-        self, runner: CliRunner, tmp_path: Path
-    ) -> None:
-        path = CORPUS / "backend_mavlink.yaml"
-        want = (
-            f"{path}:8:58: agents[0].backend: backend 'mavlink+udp://127.0.0.1:14540': "
-            "no vehicle provider for scheme 'mavlink' is installed (MAVLink vehicles are not supported yet); "
-            "installed: 'sim'"
-        )
-        refused_by_validate_and_run(runner, path, tmp_path, want)
-
     def test_trees_of_a_mavlink_mission_still_build(self, runner: CliRunner) -> None:
-        path = CORPUS / "backend_mavlink.yaml"
+        path = CORPUS.parent / "mavlink_ground.yaml"
         result = invoke(runner, "mission", "tree", str(path), "--agent", "G1")
         assert result.exit_code == 0 and "Fallback: mission(G1)" in result.output, result.output
 
@@ -360,7 +349,7 @@ class TestBackend:
         path = CORPUS / "backend_unknown.yaml"
         want = (
             f"{path}:8:58: agents[0].backend: backend 'gazebo': no vehicle provider for scheme "
-            "'gazebo' is installed; installed: 'sim', 'fake' (entry-point group 'btmission.providers')"
+            "'gazebo' is installed; installed: 'sim', 'fake', 'mavlink' (entry-point group 'btmission.providers')"
         )
         refused_by_validate_and_run(runner, path, tmp_path, want)
 
@@ -401,10 +390,10 @@ class TestDocsAgree:
             in (result.output)
         )
 
-    def test_mavlink_is_documented_as_refused(self) -> None:
+    def test_mavlink_is_documented_as_flown(self) -> None:
         doc = (ROOT / "docs" / "mission-format.md").read_text()
-        assert "no vehicle provider for scheme 'mavlink' is installed" in doc
-        assert "Only the syntax is checked today" not in doc
+        assert "no vehicle provider for scheme 'mavlink' is installed" not in doc
+        assert "[MAVLink vehicles](mavlink.md)" in doc
 
 
 # ------------------------------------------------------------------------------ validate ⇒ run

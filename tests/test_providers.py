@@ -127,7 +127,7 @@ def test_sim_is_found_by_an_install_without_the_entry_point(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     monkeypatch.setattr(metadata, "entry_points", lambda group: [])
-    assert list(installed_providers()) == ["sim", "fake"]
+    assert list(installed_providers()) == ["sim", "fake", "mavlink"]
     assert provider_factory("sim") is sim_provider
     assert provider_factory("fake") is fake_provider
 
@@ -140,7 +140,7 @@ def test_a_scheme_installed_twice_counts_once(monkeypatch: pytest.MonkeyPatch) -
         return [ep, ep] if group == ENTRY_POINT_GROUP else []
 
     monkeypatch.setattr(metadata, "entry_points", twice)
-    assert list(installed_providers()) == ["sim", "fake"]
+    assert list(installed_providers()) == ["sim", "fake", "mavlink"]
 
 
 def test_an_unknown_scheme_has_no_factory() -> None:
@@ -168,20 +168,22 @@ def test_validate_refuses_an_unknown_scheme_at_its_line(tmp_path: Path) -> None:
     assert code == 2
     assert (
         f"{path}:7:58: agents[1].backend: backend 'gz://127.0.0.1:11345': no vehicle provider "
-        "for scheme 'gz' is installed; installed: 'sim', 'fake' (entry-point group 'btmission.providers')"
+        "for scheme 'gz' is installed; installed: 'sim', 'fake', 'mavlink' (entry-point group 'btmission.providers')"
     ) in out
 
 
-def test_validate_refuses_mavlink_until_its_provider_exists(tmp_path: Path) -> None:
+def test_validate_accepts_mavlink_vehicles(tmp_path: Path) -> None:
     path = write(tmp_path, "'mavlink+udp://127.0.0.1:14540'", "'mavlink+udp://127.0.0.1:14541'")
     code, out = validate(path)
+    assert code == 0, out
+
+
+def test_validate_refuses_mixing_mavlink_and_sim(tmp_path: Path) -> None:
+    path = write(tmp_path, "sim", "'mavlink+udp://127.0.0.1:14541'")
+    code, out = validate(path)
     assert code == 2
-    for line, port in ((6, 14540), (7, 14541)):
-        assert (
-            f"{path}:{line}:58: agents[{line - 6}].backend: backend 'mavlink+udp://127.0.0.1:"
-            f"{port}': no vehicle provider for scheme 'mavlink' is installed (MAVLink vehicles are not supported yet)"
-        ) in out
-    assert "2 problem(s) found" in out
+    assert f"{path}:7:58: agents[1].backend: backend 'mavlink+udp://127.0.0.1:14541'" in out
+    assert "uses 'sim'" in out
 
 
 def test_validate_accepts_an_installed_plugin_scheme(

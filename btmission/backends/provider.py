@@ -118,6 +118,7 @@ ProviderFactory = Callable[["Mission", "VoxelMap", int], VehicleProvider]
 BUILT_IN = {
     "sim": "btmission.backends.sim:sim_provider",
     "fake": "btmission.backends.fake:fake_provider",
+    "mavlink": "btmission.backends.mavlink:mavlink_provider",
 }
 """Providers of the core package, found even by an install made before the entry-point group
 existed (an editable install is not re-read until it is reinstalled); also declared in
@@ -125,7 +126,7 @@ pyproject.toml."""
 
 
 def installed_providers() -> dict[str, metadata.EntryPoint]:
-    """Every provider by scheme (not loaded): the built-in ``sim`` and ``fake``, and the
+    """Every provider by scheme (not loaded): the built-in ``sim``, ``fake`` and ``mavlink``, and the
     ``btmission.providers`` entry points. A scheme registered twice (the same distribution seen from two paths, or a
     plugin claiming ``sim``) counts once: the first one found."""
     out = {
@@ -137,15 +138,19 @@ def installed_providers() -> dict[str, metadata.EntryPoint]:
     return out
 
 
+class VehicleUnavailable(RuntimeError):
+    """A provider could not give an agent its vehicle (nothing answers at its URL, a vehicle of
+    the wrong type ...). ``run`` reports it at the agent's ``backend:`` line (exit 2)."""
+
+
 class ProviderError(LookupError):
     """No provider is installed for a scheme."""
 
 
 def unknown_scheme_message(scheme: str, installed: Sequence[str]) -> str:
     known = ", ".join(f"'{s}'" for s in installed) or "none"
-    hint = " (MAVLink vehicles are not supported yet)" if scheme == "mavlink" else ""
     return (
-        f"no vehicle provider for scheme '{scheme}' is installed{hint}; "
+        f"no vehicle provider for scheme '{scheme}' is installed; "
         f"installed: {known} (entry-point group '{ENTRY_POINT_GROUP}')"
     )
 

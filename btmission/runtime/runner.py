@@ -42,7 +42,13 @@ from typing import TYPE_CHECKING, Any
 
 from btmission.allocation.tasks import TaskInfo, TaskState
 from btmission.backends.base import Backend, VehicleKind
-from btmission.backends.provider import Vehicle, VehicleProvider, provider_factory, scheme_of
+from btmission.backends.provider import (
+    Vehicle,
+    VehicleProvider,
+    VehicleUnavailable,
+    provider_factory,
+    scheme_of,
+)
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
 from btmission.plugins import Implementations
 from btmission.runtime.agent import Agent
@@ -83,6 +89,7 @@ from btmission.runtime.snapshot import AgentSnapshot, RunSnapshot
 from btmission.runtime.substitution import SubstitutionRules, Substitutions
 from btmission.spec.mission import Mission
 from btmission.spec.runcheck import run_problems
+from btmission.spec.source import format_path
 from btmission.world.voxel import VoxelMap
 
 if TYPE_CHECKING:
@@ -212,7 +219,11 @@ class MissionRun:
         """Exceptions raised by services' ``step`` → ``leaf_error`` events (once each)."""
         self.services: dict[str, dict[str, Any]] = self._build_services()
         self.coordinator_side = CoordinatorRuntime(self.coordinator, self.services, self.errors)
-        self._build_agents()
+        try:
+            self._build_agents()
+        except BaseException:  # a vehicle that would not connect, Ctrl-C while connecting
+            self.provider.close()
+            raise
         self.agent_sides = [
             AgentRuntime(a, tick_period_s=1.0 / rt.tick_hz, status_period_s=1.0 / rt.status_hz)
             for a in self.agents.values()
@@ -293,7 +304,17 @@ class MissionRun:
             kind = vehicle_kind(impl)
             ground = kind is VehicleKind.GROUND
             options = {"v_max": self.nav_config.speed_m_s} if ground else {}
-            vehicle = self.provider.attach(spec.id, kind, spec.start, url=spec.backend, **options)
+            try:
+                vehicle = self.provider.attach(
+                    spec.id, kind, spec.start, url=spec.backend, **options
+                )
+            except VehicleUnavailable as exc:
+                path = ("agents", self.mission.agents.index(spec), "backend")
+                where = self.mission.locate(path)
+                problem = Diagnostic(
+                    Severity.ERROR, "vehicle-unavailable", str(exc), format_path(path), where
+                )
+                raise VehicleUnavailable(problem.format()) from None
             self.vehicles[spec.id] = vehicle
             control_dt = 0.1 if ground else self.dt
             link = self.bus.agent_link(spec.id)  # the agent's end of the coordinator link

@@ -41,6 +41,7 @@ from pathlib import Path
 from types import FrameType, TracebackType
 from typing import TYPE_CHECKING, Any
 
+from btmission.backends.provider import VehicleUnavailable
 from btmission.diagnostics import Diagnostic, Severity, SpecError, errors
 from btmission.runtime.commands import Command
 from btmission.runtime.events import Event, JsonlEventLog, Observer
@@ -230,7 +231,7 @@ class RunSession:
                 realtime=self.realtime,
                 substitutions=self.substitutions,
             )
-        except SpecError:
+        except (SpecError, VehicleUnavailable):  # nothing ran: no log
             self._drop_log()
             raise
         except RunStopped as stop:

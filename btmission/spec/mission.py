@@ -288,6 +288,46 @@ class SimSpec(_Strict):
     )
 
 
+class MavlinkSpec(_Strict):
+    """How the ``mavlink`` provider talks to the agents' autopilots (docs/mavlink.md; ignored
+    by other providers). The signing key never goes here: ``run --mavlink-key-file`` or the
+    environment (``BTMISSION_MAVLINK_KEY_FILE``, ``BTMISSION_MAVLINK_KEY``)."""
+
+    connect_timeout_s: FiniteFloat = Field(
+        30.0, gt=0, le=600,
+        description="Wall time to wait for each vehicle's first heartbeat and position estimate.",
+    )
+    setpoint_hz: FiniteFloat = Field(
+        20.0, gt=2, le=200,
+        description="Setpoints streamed per second to each vehicle (PX4 needs > 2 Hz).",
+    )
+    telemetry_hz: FiniteFloat = Field(
+        50.0, gt=0, le=200,
+        description="Position and attitude messages asked of each vehicle per second.",
+    )
+    heartbeat_timeout_s: FiniteFloat = Field(
+        3.0, gt=0, le=60, description="Without a heartbeat for this long a vehicle's link is lost."
+    )
+    ack_timeout_s: FiniteFloat = Field(
+        1.0, gt=0, le=30, description="Wall time to wait for a COMMAND_ACK before sending again."
+    )
+    hover_thrust: FiniteFloat = Field(
+        0.5, gt=0, le=1,
+        description="Normalised hover throttle of attitude setpoints (PX4 MPC_THR_HOVER, "
+        "ArduPilot MOT_THST_HOVER).",
+    )
+    time_scale: FiniteFloat = Field(
+        1.0, gt=0, le=50,
+        description="How much faster than real time the vehicles run (mavsim --speed, ArduPilot "
+        "SITL --speedup, PX4_SIM_SPEED_FACTOR); 1 for real vehicles.",
+    )
+    map_sensors: bool = Field(
+        False,
+        description="Give agents simulated sensors by ray-casting the mission map at the pose "
+        "each vehicle reports (for SITL and tests; real sensors come from drivers).",
+    )
+
+
 class RuntimeSpec(_Strict):
     """How ``btmission run`` executes the mission (all optional)."""
 
@@ -310,6 +350,7 @@ class RuntimeSpec(_Strict):
         description="Settings of the libraries' implementations, e.g. {speed_m_s: 1.5}.",
     )
     sim: SimSpec = SimSpec()
+    mavlink: MavlinkSpec = MavlinkSpec()
 
 
 class MissionSpec(_Strict):
