@@ -10,6 +10,7 @@ from typing import Any
 
 import click
 
+from btmission.backends.provider import VehicleUnavailable
 from btmission.cli.common import (
     POSITIVE,
     SEED,
@@ -20,7 +21,6 @@ from btmission.cli.common import (
     internal_error_sink,
     output_target,
 )
-from btmission.backends.provider import VehicleUnavailable
 
 
 def _write_pngs(rep: Any, directory: Path, stem: str) -> list[Path]:

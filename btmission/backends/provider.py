@@ -78,6 +78,9 @@ class Vehicle:
     clearance_m: Callable[[], float | None] | None = None
     """Ground truth: smallest clearance to the rock since the last call (None: nothing near).
     None (no hook) on a real robot."""
+    link_ok: Callable[[], bool] | None = None
+    """Whether the vehicle is heard (its autopilot's heartbeats arrive); None when the link
+    cannot fail (a simulator in this process). While it is False the agent's tree pauses."""
 
 
 @runtime_checkable

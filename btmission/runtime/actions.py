@@ -60,6 +60,13 @@ def landed(ctx: AgentContext) -> bool:
     return tel.landed and not tel.armed
 
 
+def vehicle_link_ok(ctx: AgentContext) -> bool:
+    """The vehicle's autopilot is heard (always true in the simulator): libraries may branch on
+    it, e.g. a ground robot that keeps a local plan going. The runtime pauses the whole tree
+    while the link is lost, so this is False only in a tree ticked by other means (tests)."""
+    return bool(ctx.blackboard.get("vehicle_link", True))
+
+
 def has_path(ctx: AgentContext, goal: Any) -> bool:
     planned = ctx.blackboard.get("path")
     return isinstance(planned, PlannedPath) and planned.goal == point(goal)

@@ -42,7 +42,7 @@ from btmission.allocation.auction import Announcement
 from btmission.allocation.bidder import AgentState, Bidder, CostProvider
 from btmission.allocation.loop import Progress
 from btmission.allocation.tasks import TaskInfo
-from btmission.backends.base import Backend, Sensors
+from btmission.backends.base import Backend, Mode, Sensors
 from btmission.diagnostics import Diagnostic, Severity, SpecError
 from btmission.plugins import Implementations
 from btmission.recursion import main_thread_limit, recursion_for_depth, recursion_limit
@@ -114,6 +114,7 @@ class Agent:
         places: Mapping[str, tuple[float, float, float]] | None = None,
         cost_provider: CostProvider | None = None,
         substitutions: Substitutions | None = None,
+        vehicle_link: Callable[[], bool] | None = None,
     ) -> None:
         spec = mission.agent(agent_id)
         self.id = agent_id
@@ -141,6 +142,11 @@ class Agent:
             services=services if services is not None else {},
         )
         self.blackboard.set("start", spec.start)
+        self._vehicle_link = vehicle_link
+        self.vehicle_link_up = True
+        """The vehicle is heard (:attr:`Vehicle.link_ok`); the tree pauses while it is not."""
+        self._resume_offboard_until: float | None = None
+        self._mode_before_loss: Mode | None = None
         self.mission_tree = build_mission_tree(mission, agent_id)
         self.root = build_behaviour_tree(
             self.mission_tree.tree, self._leaf_factory(implementations, substitutions)
@@ -314,6 +320,8 @@ class Agent:
             return Status.INVALID
         self._failure = ""
         self._send_progress(now)
+        if not self._vehicle_heard(now):
+            return Status.RUNNING  # paused: nothing the tree does can reach the vehicle
         self._deep(self.tree.tick)
         self.ticks += 1
         task = self.task
@@ -423,6 +431,38 @@ class Agent:
         """Publish the tree's status changes not published yet (the run ends)."""
         self._tree_log.flush()
 
+    # ------------------------------------------------------------------ vehicle link
+    RESUME_OFFBOARD_S = 5.0
+    """After a vehicle link loss, how long the agent tries to take OFFBOARD back from the
+    failsafe HOLD (PX4 needs a second of setpoints first)."""
+
+    def _vehicle_heard(self, now: float) -> bool:
+        """Follow the vehicle link (:attr:`vehicle_link_up`): on loss, log it and pause the tree;
+        when it returns, resume the route where it was and, if the autopilot fell back from
+        OFFBOARD to HOLD meanwhile (its offboard-loss failsafe), switch back to OFFBOARD. A
+        vehicle the pilot has put in another mode is left alone."""
+        if self._vehicle_link is None:
+            return True
+        up = bool(self._vehicle_link())
+        if up != self.vehicle_link_up:
+            self.vehicle_link_up = up
+            self.blackboard.set("vehicle_link", up)
+            tel = self.ctx.telemetry()
+            if up:
+                self._emit("vehicle_link", agent=self.id, up=True, mode=tel.mode.value)
+                self.navigator.resume(now)
+                if self._mode_before_loss is Mode.OFFBOARD and tel.mode is Mode.HOLD:
+                    self._resume_offboard_until = now + self.RESUME_OFFBOARD_S
+            else:
+                self._mode_before_loss = tel.mode
+                self._emit("vehicle_link", agent=self.id, up=False)
+        if up and self._resume_offboard_until is not None:
+            if now > self._resume_offboard_until or self.ctx.telemetry().mode is not Mode.HOLD:
+                self._resume_offboard_until = None
+            else:
+                self.ctx.backend.set_mode(Mode.OFFBOARD)
+        return up
+
     def control_step(self, now: float) -> None:
         if self.alive:
             self.navigator.step(now)
@@ -441,6 +481,7 @@ class Agent:
             tel.battery,
             self.task.id if self.task else None,
             self.action,
+            self.vehicle_link_up,
         )
 
     @property

@@ -68,6 +68,8 @@ class AgentStatus:
     battery: float
     task: str | None
     action: str
+    vehicle_link: bool = True
+    """The agent hears its vehicle (its autopilot's heartbeats); False while that link is lost."""
 
 
 ProgressKey = tuple[str, str, float]

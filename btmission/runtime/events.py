@@ -650,6 +650,18 @@ class LinkEvent(TypedEvent):
 
 @register_event
 @dataclass(frozen=True, kw_only=True)
+class VehicleLinkEvent(TypedEvent):
+    """The agent lost (``up`` false) or heard again its vehicle's autopilot."""
+
+    KIND = "vehicle_link"
+    agent: str
+    up: bool
+    mode: str = optional()
+    """The vehicle's mode when its link came back (the failsafe it took meanwhile)."""
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
 class ObjectsEvent(TypedEvent):
     KIND = "objects"
     agent: str

@@ -416,6 +416,12 @@ class Navigator:
     def land(self) -> None:
         self._set(_Land())
 
+    def resume(self, now: float) -> None:
+        """The vehicle is heard again after its link was lost: the time without it does not
+        count as a route without progress."""
+        if isinstance(self._cmd, _Follow):
+            self._cmd.progress_t = now
+
     # ---------------------------------------------------------------- geometry
     def ground_under(self, p: FloatArray) -> float:
         """Ground height under ``p`` from the agent's map (its telemetry's without one)."""

@@ -353,6 +353,7 @@ class MissionRun:
                 places=self.places,
                 cost_provider=self.roads if ground else None,  # road costs; drones fly
                 substitutions=self.substitutions,
+                vehicle_link=vehicle.link_ok,
             )
 
     def _emit_header(self) -> None:

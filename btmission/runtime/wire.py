@@ -125,6 +125,7 @@ def to_dict(msg: Message) -> dict[str, Any]:
             "battery": _num(msg.battery),
             "task": msg.task,
             "action": msg.action,
+            "vehicle_link": msg.vehicle_link,
         }
     elif isinstance(msg, Progress):
         kind = "progress"
@@ -320,6 +321,7 @@ def _status(f: _Fields) -> AgentStatus:
         f.number("battery", finite=False),
         f.text("task", optional=True),
         f.text("action"),
+        f.flag("vehicle_link") if "vehicle_link" in f.data else True,
     )
 
 
