@@ -38,7 +38,6 @@ import collections
 import math
 import os
 import select
-import socket
 import threading
 import time
 from collections.abc import Callable
@@ -60,6 +59,7 @@ from btmission.backends.mavlink_modes import (
     set_mode_params,
 )
 from btmission.backends.mavlink_setpoints import attitude_target, position_target, velocity_target
+from btmission.backends.mavlink_signing import enable_signing, load_key, signing_counters
 from btmission.backends.mavlink_url import MavlinkAddress, parse_mavlink_url
 from btmission.backends.provider import Vehicle, VehicleEvent, VehicleUnavailable
 from btmission.types import FloatArray, Vec3
@@ -99,9 +99,7 @@ ESTIMATOR_STREAM = {
     Autopilot.PX4: mavlink.MAVLINK_MSG_ID_ESTIMATOR_STATUS,
 }
 
-EKF_POSITION_OK = (
-    mavlink.EKF_ATTITUDE | mavlink.EKF_VELOCITY_HORIZ | mavlink.EKF_POS_HORIZ_REL
-)
+EKF_POSITION_OK = mavlink.EKF_ATTITUDE | mavlink.EKF_VELOCITY_HORIZ | mavlink.EKF_POS_HORIZ_REL
 """EKF_STATUS_REPORT flags ArduPilot needs before it arms in GUIDED (a relative position)."""
 
 
@@ -138,8 +136,15 @@ class MavlinkOptions:
     """MAVLink 2 signing key (32 bytes): outgoing signed, unsigned incoming refused."""
 
     def __post_init__(self) -> None:
-        for name in ("connect_timeout_s", "ack_timeout_s", "setpoint_hz", "telemetry_hz",
-                     "setpoint_stale_s", "heartbeat_timeout_s", "time_scale"):
+        for name in (
+            "connect_timeout_s",
+            "ack_timeout_s",
+            "setpoint_hz",
+            "telemetry_hz",
+            "setpoint_stale_s",
+            "heartbeat_timeout_s",
+            "time_scale",
+        ):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {value!r}")
@@ -234,25 +239,18 @@ def _open(address: MavlinkAddress, options: MavlinkOptions, deadline: float) -> 
     if address.transport == "serial":
         kwargs["baud"] = address.baud
     if address.transport == "tcp":
-        while True:  # wait for the vehicle to listen (pymavlink's own retries print)
-            try:
-                with socket.create_connection((address.host, address.port), timeout=1.0):
-                    pass
-                break
-            except OSError as exc:
-                if time.monotonic() > deadline:
-                    raise MavlinkError(
-                        f"cannot connect to {address.url()}: {exc.strerror or exc}"
-                    ) from None
-                time.sleep(0.2)
-        kwargs["retries"] = 0
-    try:
-        conn = mavutil.mavlink_connection(device, **kwargs)
-    except OSError as exc:
-        raise MavlinkError(f"cannot open {address.url()}: {exc.strerror or exc}") from None
+        kwargs["retries"] = 0  # retried here, quietly, until the deadline
+    while True:
+        try:
+            conn = mavutil.mavlink_connection(device, **kwargs)
+            break
+        except OSError as exc:
+            if address.transport != "tcp" or time.monotonic() > deadline:
+                raise MavlinkError(f"cannot open {address.url()}: {exc.strerror or exc}") from None
+            time.sleep(0.2)
     conn.WIRE_PROTOCOL_VERSION = "2.0"
     if options.signing_key is not None:
-        conn.setup_signing(options.signing_key, sign_outgoing=True, allow_unsigned_callback=None)
+        enable_signing(conn, options.signing_key)
     return conn
 
 
@@ -336,7 +334,10 @@ class _LinkIO:
                 link.next_heartbeat_wall = wall + 1.0 / opts.time_scale
                 link.send(
                     lambda mav: mav.heartbeat_send(
-                        mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0,
+                        mavlink.MAV_TYPE_GCS,
+                        mavlink.MAV_AUTOPILOT_INVALID,
+                        0,
+                        0,
                         mavlink.MAV_STATE_ACTIVE,
                     )
                 )
@@ -504,9 +505,7 @@ class MavlinkVehicle:
         st = self.state
         p = list(params) + [0.0] * (7 - len(params))
         self.link.send(
-            lambda mav: mav.command_long_send(
-                st.sysid, st.compid, command, confirmation, *p
-            )
+            lambda mav: mav.command_long_send(st.sysid, st.compid, command, confirmation, *p)
         )
         self.commands_sent += 1
 
@@ -702,8 +701,18 @@ class MavlinkVehicle:
         st = self.state
         self._stream(
             lambda mav: mav.set_position_target_local_ned_send(
-                0, st.sysid, st.compid, mavlink.MAV_FRAME_LOCAL_NED, target.type_mask,
-                *target.position, *target.velocity, 0.0, 0.0, 0.0, target.yaw, target.yaw_rate,
+                0,
+                st.sysid,
+                st.compid,
+                mavlink.MAV_FRAME_LOCAL_NED,
+                target.type_mask,
+                *target.position,
+                *target.velocity,
+                0.0,
+                0.0,
+                0.0,
+                target.yaw,
+                target.yaw_rate,
             ),
             float(np.asarray(position, dtype=float)[2]),
         )
@@ -715,8 +724,18 @@ class MavlinkVehicle:
         climb = self._ground_z() + self.options.takeoff_alt_m if v[2] > 0.2 else None
         self._stream(
             lambda mav: mav.set_position_target_local_ned_send(
-                0, st.sysid, st.compid, mavlink.MAV_FRAME_LOCAL_NED, target.type_mask,
-                *target.position, *target.velocity, 0.0, 0.0, 0.0, target.yaw, target.yaw_rate,
+                0,
+                st.sysid,
+                st.compid,
+                mavlink.MAV_FRAME_LOCAL_NED,
+                target.type_mask,
+                *target.position,
+                *target.velocity,
+                0.0,
+                0.0,
+                0.0,
+                target.yaw,
+                target.yaw_rate,
             ),
             climb,
         )
@@ -734,8 +753,15 @@ class MavlinkVehicle:
         climb = self._ground_z() + self.options.takeoff_alt_m if thrust > 1.05 * 9.81 else None
         self._stream(
             lambda mav: mav.set_attitude_target_send(
-                0, st.sysid, st.compid, target.type_mask, list(target.q), 0.0, 0.0,
-                target.body_yaw_rate, target.thrust,
+                0,
+                st.sysid,
+                st.compid,
+                target.type_mask,
+                list(target.q),
+                0.0,
+                0.0,
+                target.body_yaw_rate,
+                target.thrust,
             ),
             climb,
         )
@@ -902,8 +928,9 @@ class MavlinkProvider:
                 who = f"sysid {address.sysid}" if address.sysid is not None else "an autopilot"
                 seen = sorted(link.vehicles)
                 hint = (
-                    f" (heard sysids {', '.join(map(str, seen))}, all taken)" if seen else
-                    " (is the vehicle on, and is its MAVLink output sent here?)"
+                    f" (heard sysids {', '.join(map(str, seen))}, all taken)"
+                    if seen
+                    else " (is the vehicle on, and is its MAVLink output sent here?)"
                 )
                 raise MavlinkError(
                     f"{agent_id}: no heartbeat from {who} at {address.url()} within "
@@ -933,11 +960,16 @@ class MavlinkProvider:
         return []
 
     def rejected(self) -> dict[str, int]:
-        """Messages refused on every link (bad signature, bad data), by reason."""
+        """Messages refused on every link, by reason: unsigned, a bad signature or a replay
+        (with signing on), bad data."""
         out: collections.Counter[str] = collections.Counter()
         for link in self._io.links.values():
             out.update(link.rejected)
-        return dict(out)
+            if self.options.signing_key is not None:
+                counts = signing_counters(link.conn)
+                counts.pop("signed_ok")
+                out.update(counts)
+        return {k: v for k, v in out.items() if v}
 
     def close(self) -> None:
         if self._closed:
@@ -966,6 +998,7 @@ def mavlink_provider(mission: Mission, voxel_map: VoxelMap, seed: int) -> Mavlin
         heartbeat_timeout_s=spec.heartbeat_timeout_s,
         hover_thrust=spec.hover_thrust,
         time_scale=spec.time_scale,
+        signing_key=load_key(),
     )
     world = SimWorld(voxel_map)
     return MavlinkProvider(options, ground_at=world.ground_z)

@@ -1,0 +1,746 @@
+# mypy: disable-error-code="no-any-return"
+"""A MAVLink vehicle simulator: the embedded simulator's vehicles served as PX4 or ArduPilot
+autopilots on 127.0.0.1 (``btmission mavsim``), so the MAVLink provider is tested end to end
+without hardware.
+
+Each vehicle is a :class:`~btmission.backends.sim.Simulator` vehicle (the same physics as
+``backend: sim``) behind a MAVLink 2 endpoint that behaves, as seen over the link, like the real
+firmware's SITL:
+
+* **transports** as the SITLs have them: PX4 sends to a client that listens on UDP
+  (``mavlink+udp://127.0.0.1:14540`` + i), ArduPilot listens on TCP (5760 + 10 i);
+* **HEARTBEAT** at 1 Hz with the firmware's ``autopilot``, ``type``, armed flag and
+  ``custom_mode`` (:mod:`btmission.backends.mavlink_modes`); other messages only when asked
+  (``MAV_CMD_SET_MESSAGE_INTERVAL``, ``MAV_CMD_REQUEST_MESSAGE``): LOCAL_POSITION_NED (in the
+  vehicle's NED frame, origin where it was spawned), ATTITUDE, EXTENDED_SYS_STATE, SYS_STATUS,
+  BATTERY_STATUS, DISTANCE_SENSOR (downward), HOME_POSITION, EKF_STATUS_REPORT /
+  ESTIMATOR_STATUS;
+* every COMMAND_LONG answered by a COMMAND_ACK, a refusal preceded by a STATUSTEXT saying why;
+* **PX4 rules**: OFFBOARD only after setpoints have streamed at more than 2 Hz for a second
+  (DENIED otherwise), HOLD when they stop for ``COM_OF_LOSS_T`` (1 s), LAND when the ground
+  station's heartbeats stop for ``COM_DL_LOSS_T`` (10 s) while armed (``NAV_DLL_ACT`` = land),
+  NAV_TAKEOFF to an AMSL altitude, automatic disarming (the embedded simulator's rules,
+  :mod:`btmission.backends.autopilot`);
+* **ArduPilot rules**: GUIDED (copter 4, rover 15) takes targets that do not time out (position)
+  or stop after 3 s (velocity) or 1 s (attitude, ``GUID_TIMEOUT``); a landed copter leaves the
+  ground only with NAV_TAKEOFF (altitude above home, in GUIDED, armed); arming needs the EKF;
+  the GCS failsafe (``FS_GCS_ENABLE``: no GCS heartbeat for 5 s while flying) lands;
+* faults for tests: an EKF that is not ready for a while (arming refused with the pre-arm
+  message, TEMPORARILY_REJECTED on PX4), a pre-arm check that always fails, a link that drops,
+  MAVLink 2 signing (unsigned or badly signed messages dropped and counted).
+
+Time runs ``speed`` times faster than the wall clock (``--speed``; PX4_SIM_SPEED_FACTOR and
+ArduPilot's ``--speedup`` do the same); every timeout and message rate is in simulated time.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from btmission.backends._pymavlink import mavlink, mavutil
+from btmission.backends.base import Mode, VehicleKind
+from btmission.backends.mavlink_frames import LocalFrame
+from btmission.backends.mavlink_modes import (
+    Autopilot,
+    custom_mode_of_command,
+    mode_of,
+    mode_request,
+)
+from btmission.backends.mavlink_setpoints import (
+    POSITION_IGNORE,
+    VELOCITY_IGNORE,
+    YAW_IGNORE,
+    YAW_RATE_IGNORE,
+)
+from btmission.backends.mavlink_signing import enable_signing, signing_counters
+from btmission.backends.mavlink_url import MavlinkAddress
+from btmission.backends.sim import SimConfig, Simulator, SimVehicle
+from btmission.world.voxel import VoxelMap
+
+G = 9.81
+PX4_UDP_BASE = 14540
+ARDUPILOT_TCP_BASE = 5760
+BOOT_EPOCH_S = 0.0
+
+
+@dataclass(frozen=True)
+class VehicleSpec:
+    """One simulated vehicle: the agent it serves, where it is spawned, where it is served."""
+
+    agent_id: str
+    kind: VehicleKind
+    start: tuple[float, float, float]
+    address: MavlinkAddress
+    sysid: int
+
+
+@dataclass(frozen=True)
+class MavSimConfig:
+    vehicles: tuple[VehicleSpec, ...]
+    voxel_map: VoxelMap
+    autopilot: Autopilot = Autopilot.PX4
+    speed: float = 1.0
+    step_s: float = 0.02
+    ekf_delay_s: float = 0.0
+    """The estimator is not ready for this long after start (simulated seconds)."""
+    refuse_arm: str = ""
+    """A pre-arm check that always fails with this text."""
+    signing_key: bytes | None = None
+    hover_thrust: float = 0.5
+    home_amsl_m: float = 0.0
+    offboard_loss_s: float = 1.0
+    datalink_loss_s: float = 10.0
+    """PX4 COM_DL_LOSS_T."""
+    gcs_failsafe_s: float = 5.0
+    """ArduPilot FS_GCS_TIMEOUT."""
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.speed) and 0 < self.speed <= 50):
+            raise ValueError(f"speed must be in (0, 50], got {self.speed}")
+        if not self.vehicles:
+            raise ValueError("no vehicles to simulate")
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    agent_id: str
+    url: str
+    sysid: int
+    autopilot: Autopilot
+    kind: VehicleKind
+
+
+@dataclass
+class _Guided:
+    """ArduPilot GUIDED's current target (what the vehicle keeps flying to)."""
+
+    kind: str = "hold"  # hold | position | velocity | attitude
+    position: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    yaw: float | None = None
+    yaw_rate: float = 0.0
+    attitude: tuple[float, float, float] = (G, 0.0, 0.0)
+    since: float = 0.0
+    taking_off: bool = False
+
+
+class _SimulatedAutopilot:
+    """One vehicle's MAVLink endpoint and autopilot behaviour (module docstring)."""
+
+    def __init__(self, sim: MavSim, spec: VehicleSpec, backend: SimVehicle) -> None:
+        self.sim = sim
+        self.spec = spec
+        self.backend = backend
+        self.cfg = sim.config
+        self.autopilot = sim.config.autopilot
+        self.frame = LocalFrame(spec.start)
+        self.conn = self._open(spec.address)
+        self.intervals: dict[int, float] = {}
+        self.next_send: dict[int, float] = {}
+        self.next_heartbeat = 0.0
+        self.gcs_heartbeat_at = 0.0
+        self.drop_until = -math.inf
+        self.guided = _Guided()
+        self.failsafe_note = ""
+        self.received = 0
+        self.last_setpoint_t = -math.inf
+
+    def _open(self, address: MavlinkAddress) -> Any:
+        src = {"source_system": self.spec.sysid, "source_component": 1}
+        if address.transport == "udp":  # the client listens: send to it (PX4 SITL)
+            conn = mavutil.mavlink_connection(f"udpout:{address.host}:{address.port}", **src)
+        elif address.transport == "tcp":  # the client connects: listen (ArduPilot SITL)
+            conn = mavutil.mavlink_connection(f"tcpin:{address.host}:{address.port}", **src)
+        else:
+            raise ValueError(f"mavsim serves udp and tcp, not {address.transport}")
+        conn.WIRE_PROTOCOL_VERSION = "2.0"
+        if self.cfg.signing_key is not None:
+            enable_signing(conn, self.cfg.signing_key)
+        return conn
+
+    @property
+    def url(self) -> str:
+        a = self.spec.address
+        port = a.port
+        if a.transport == "tcp":
+            port = self.conn.listen.getsockname()[1]
+        return f"mavlink+{a.transport}://{a.host}:{port}"
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def state(self) -> Any:
+        return self.sim.simulator.vehicle(self.spec.agent_id)
+
+    def now(self) -> float:
+        return self.sim.simulator.time_s
+
+    def _boot_ms(self) -> int:
+        return int(self.now() * 1000) & 0xFFFFFFFF
+
+    def send(self, fn: Callable[[Any], None]) -> None:
+        if self.now() < self.drop_until:
+            return
+        try:
+            fn(self.conn.mav)
+        except OSError:
+            pass
+
+    def text(self, severity: int, message: str) -> None:
+        self.send(lambda mav: mav.statustext_send(severity, message[:50].encode()))
+
+    def ekf_ready(self) -> bool:
+        return self.now() >= self.cfg.ekf_delay_s
+
+    def custom_mode(self) -> int:
+        mode = self.backend.telemetry().mode
+        if self.autopilot is Autopilot.ARDUPILOT and mode in (Mode.TAKEOFF, Mode.OFFBOARD):
+            mode = Mode.OFFBOARD  # GUIDED
+        try:
+            return mode_request(self.autopilot, self.spec.kind, mode).custom_mode
+        except Exception:
+            return 0
+
+    # ------------------------------------------------------------------ receive
+    def receive(self) -> None:
+        for _ in range(500):
+            try:
+                msg = self.conn.recv_msg()
+            except (OSError, ConnectionError):
+                return
+            if msg is None:
+                return
+            if self.now() < self.drop_until:
+                continue  # the link is down: nothing arrives
+            if msg.get_type() == "BAD_DATA":
+                continue
+            self.received += 1
+            self._handle(msg)
+
+    def _for_me(self, msg: Any) -> bool:
+        target = getattr(msg, "target_system", 0)
+        return target in (0, self.spec.sysid)
+
+    def _handle(self, msg: Any) -> None:
+        kind = msg.get_type()
+        if kind == "HEARTBEAT":
+            if msg.type == mavlink.MAV_TYPE_GCS:
+                self.gcs_heartbeat_at = self.now()
+            return
+        if not self._for_me(msg):
+            return
+        if kind == "COMMAND_LONG":
+            result = self._command(msg)
+            src_sys, src_comp = msg.get_srcSystem(), msg.get_srcComponent()
+            self.send(
+                lambda mav: mav.command_ack_send(msg.command, result, 0, 0, src_sys, src_comp)
+            )
+        elif kind == "SET_POSITION_TARGET_LOCAL_NED":
+            self._position_target(msg)
+        elif kind == "SET_ATTITUDE_TARGET":
+            self._attitude_target(msg)
+        elif kind == "SET_GPS_GLOBAL_ORIGIN":
+            self.send(
+                lambda mav: mav.gps_global_origin_send(
+                    msg.latitude, msg.longitude, msg.altitude, int(self.now() * 1e6)
+                )
+            )
+
+    # ------------------------------------------------------------------ commands
+    def _refuse(self, text: str, result: int = mavlink.MAV_RESULT_DENIED) -> int:
+        self.text(mavlink.MAV_SEVERITY_CRITICAL, text)
+        return result
+
+    def _command(self, msg: Any) -> int:
+        c = msg.command
+        if c == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+            msg_id, interval_us = int(msg.param1), msg.param2
+            if interval_us < 0:
+                self.intervals.pop(msg_id, None)
+            else:
+                self.intervals[msg_id] = 1.0 if interval_us == 0 else interval_us / 1e6
+                self.next_send[msg_id] = self.now()
+            return mavlink.MAV_RESULT_ACCEPTED
+        if c == mavlink.MAV_CMD_REQUEST_MESSAGE:
+            if not self._send_message(int(msg.param1)):
+                return mavlink.MAV_RESULT_UNSUPPORTED
+            return mavlink.MAV_RESULT_ACCEPTED
+        if c == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
+            return self._arm_disarm(msg.param1 > 0.5, int(msg.param2) == 21196)
+        if c == mavlink.MAV_CMD_DO_SET_MODE:
+            return self._set_mode(custom_mode_of_command(self.autopilot, msg.param2, msg.param3))
+        if c == mavlink.MAV_CMD_NAV_TAKEOFF:
+            return self._takeoff(msg.param7)
+        if c == mavlink.MAV_CMD_NAV_LAND:
+            return self._result(self.backend.land())
+        return mavlink.MAV_RESULT_UNSUPPORTED
+
+    def _result(self, ack: Any) -> int:
+        if ack.accepted:
+            return mavlink.MAV_RESULT_ACCEPTED
+        return self._refuse(ack.reason)
+
+    def _arm_disarm(self, arm: bool, force: bool) -> int:
+        tel = self.backend.telemetry()
+        if not arm:
+            if not tel.armed:
+                return mavlink.MAV_RESULT_ACCEPTED
+            if not tel.landed and not force:
+                return self._refuse(
+                    "Disarming denied: not landed"
+                    if self.autopilot is Autopilot.PX4
+                    else "Arm: disarm refused, vehicle flying",
+                    mavlink.MAV_RESULT_DENIED
+                    if self.autopilot is Autopilot.PX4
+                    else mavlink.MAV_RESULT_FAILED,
+                )
+            return self._result(self.backend.disarm())
+        if tel.armed:
+            return mavlink.MAV_RESULT_ACCEPTED  # already armed
+        px4 = self.autopilot is Autopilot.PX4
+        if self.cfg.refuse_arm and not force:
+            return self._refuse(
+                ("Preflight Fail: " if px4 else "PreArm: ") + self.cfg.refuse_arm,
+                mavlink.MAV_RESULT_DENIED if px4 else mavlink.MAV_RESULT_FAILED,
+            )
+        if not self.ekf_ready() and not force:
+            if px4:
+                return self._refuse(
+                    "Arming denied: Preflight: estimator not ready",
+                    mavlink.MAV_RESULT_TEMPORARILY_REJECTED,
+                )
+            return self._refuse(
+                "PreArm: EKF3 waiting for GPS config data", mavlink.MAV_RESULT_FAILED
+            )
+        if not px4:
+            mode = mode_of(self.autopilot, self.spec.kind, self.custom_mode())
+            if mode is Mode.LAND:
+                return self._refuse("Arm: Mode not armable", mavlink.MAV_RESULT_FAILED)
+        return self._result(self.backend.arm())
+
+    def _set_mode(self, custom: int) -> int:
+        mode = mode_of(self.autopilot, self.spec.kind, custom)
+        if not isinstance(mode, Mode):
+            return self._refuse(
+                f"Mode change failed: {mode} not simulated", mavlink.MAV_RESULT_FAILED
+            )
+        if custom == self.custom_mode():
+            return mavlink.MAV_RESULT_ACCEPTED  # already in that mode
+        if self.autopilot is Autopilot.PX4:
+            if mode is Mode.OFFBOARD:
+                ack = self.backend.set_mode(Mode.OFFBOARD)
+                if not ack.accepted:
+                    return self._refuse("Switching to Offboard is currently not available")
+                return mavlink.MAV_RESULT_ACCEPTED
+            if mode is Mode.TAKEOFF:
+                return self._takeoff(math.nan)
+            return self._result(self.backend.set_mode(mode))
+        # ArduPilot
+        if mode is Mode.OFFBOARD:  # GUIDED
+            if not self.ekf_ready():
+                return self._refuse(
+                    "Mode change failed: requires position", mavlink.MAV_RESULT_FAILED
+                )
+            self._enter_guided(self.backend.telemetry().position.copy())
+            return mavlink.MAV_RESULT_ACCEPTED
+        if mode is Mode.HOLD and not self.ekf_ready():
+            return self._refuse("Mode change failed: requires position", mavlink.MAV_RESULT_FAILED)
+        if mode is Mode.MANUAL and not self.backend.telemetry().landed:
+            return self._result(self.backend.set_mode(Mode.MANUAL))
+        return self._result(self.backend.set_mode(mode))
+
+    def _enter_guided(self, hold: np.ndarray) -> None:
+        """ArduPilot GUIDED on the simulator's OFFBOARD: its targets are fed every step."""
+        v = self.state
+        t = self.now()
+        self.guided = _Guided("hold", hold.copy(), since=t)
+        v.sp_kind, v.sp_pos, v.sp_vel, v.sp_yaw = "position", hold.copy(), np.zeros(3), None
+        v.sp_time, v.stream_since = t, -math.inf
+        self.backend.set_mode(Mode.OFFBOARD)
+
+    def _takeoff(self, param7: float) -> int:
+        tel = self.backend.telemetry()
+        if self.spec.kind is VehicleKind.GROUND:
+            return self._refuse("Takeoff denied: not a multicopter", mavlink.MAV_RESULT_UNSUPPORTED)
+        if not tel.armed:
+            return self._refuse(
+                "Takeoff denied! Please disarm and retry"
+                if False
+                else "Takeoff refused: not armed",
+                mavlink.MAV_RESULT_DENIED
+                if self.autopilot is Autopilot.PX4
+                else mavlink.MAV_RESULT_FAILED,
+            )
+        if self.autopilot is Autopilot.PX4:
+            alt = 2.5 if math.isnan(param7) else param7 - self.cfg.home_amsl_m
+            if not alt > 0:
+                return self._refuse(f"Takeoff denied: altitude {alt:.1f} m below home")
+            return self._result(self.backend.takeoff(alt))
+        mode = mode_of(self.autopilot, self.spec.kind, self.custom_mode())
+        if mode is not Mode.OFFBOARD:
+            return self._refuse("Takeoff: not in GUIDED mode", mavlink.MAV_RESULT_FAILED)
+        if not tel.landed:
+            return self._refuse("Takeoff: already flying", mavlink.MAV_RESULT_FAILED)
+        target = tel.position.copy()
+        target[2] = tel.ground_z + float(param7)
+        self.guided = _Guided("position", target, since=self.now(), taking_off=True)
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    # ------------------------------------------------------------------ setpoints
+    def _position_target(self, msg: Any) -> None:
+        mask = msg.type_mask
+        t = self.now()
+        self.last_setpoint_t = t
+        position = self.frame.to_world((msg.x, msg.y, msg.z))
+        velocity = self.frame.vector_to_world((msg.vx, msg.vy, msg.vz))
+        yaw = None if mask & YAW_IGNORE else self.frame.yaw_to_world(msg.yaw)
+        yaw_rate = 0.0 if mask & YAW_RATE_IGNORE else self.frame.yaw_rate_to_world(msg.yaw_rate)
+        if mask & POSITION_IGNORE:
+            kind = "velocity"
+        else:
+            kind = "position"
+        if self.autopilot is Autopilot.ARDUPILOT:
+            if mode_of(self.autopilot, self.spec.kind, self.custom_mode()) is not Mode.OFFBOARD:
+                return  # GUIDED targets only count in GUIDED
+            g = self.guided
+            if g.taking_off and self.backend.telemetry().landed:
+                return  # a landed copter climbs on NAV_TAKEOFF, not on targets
+            self.guided = _Guided(
+                kind,
+                position if kind == "position" else self.backend.telemetry().position,
+                velocity if not mask & VELOCITY_IGNORE else np.zeros(3),
+                yaw,
+                yaw_rate,
+                since=t,
+            )
+            if (
+                kind == "position"
+                and self.backend.telemetry().landed
+                and self.spec.kind is VehicleKind.MULTIROTOR
+            ):
+                self.guided.position = self.backend.telemetry().position.copy()
+            return
+        if kind == "velocity" or self.spec.kind is VehicleKind.GROUND:
+            self.backend.set_velocity_setpoint(velocity, yaw_rate)
+        else:
+            vel = None if mask & VELOCITY_IGNORE else velocity
+            self.backend.set_position_setpoint(position, vel, yaw)
+
+    def _attitude_target(self, msg: Any) -> None:
+        if self.spec.kind is VehicleKind.GROUND:
+            return
+        w, x, y, z = msg.q
+        roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+        pitch_frd = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+        thrust = G * msg.thrust / self.cfg.hover_thrust
+        yaw_rate = self.frame.yaw_rate_to_world(msg.body_yaw_rate)
+        t = self.now()
+        self.last_setpoint_t = t
+        if self.autopilot is Autopilot.ARDUPILOT:
+            if mode_of(self.autopilot, self.spec.kind, self.custom_mode()) is not Mode.OFFBOARD:
+                return
+            if self.backend.telemetry().landed and not self.guided.taking_off:
+                return
+            if self.guided.taking_off and self.backend.telemetry().landed:
+                return
+            self.guided = _Guided("attitude", attitude=(thrust, roll, -pitch_frd),
+                                  yaw_rate=yaw_rate, since=t)  # fmt: skip
+            return
+        self.backend.set_attitude_setpoint(thrust, roll, -pitch_frd, yaw_rate)
+
+    # ------------------------------------------------------------------ per step
+    def step(self) -> None:
+        """The firmware's own logic this step (failsafes, GUIDED targets)."""
+        t = self.now()
+        tel = self.backend.telemetry()
+        flying = tel.armed and not tel.landed
+        if self.autopilot is Autopilot.PX4:
+            if (
+                flying
+                and t - self.gcs_heartbeat_at > self.cfg.datalink_loss_s
+                and tel.mode is not Mode.LAND
+            ):
+                self.backend.land()
+                self.failsafe_note = "data link lost: landing"
+                self.text(mavlink.MAV_SEVERITY_CRITICAL, "Failsafe: no GCS link, landing")
+            return
+        if (
+            flying
+            and t - self.gcs_heartbeat_at > self.cfg.gcs_failsafe_s
+            and tel.mode is not Mode.LAND
+        ):
+            self.backend.land()
+            self.failsafe_note = "GCS failsafe: landing"
+            self.text(mavlink.MAV_SEVERITY_CRITICAL, "GCS Failsafe On: LAND")
+            return
+        if tel.mode is not Mode.OFFBOARD:
+            return
+        g = self.guided
+        if g.kind == "velocity" and t - g.since > 3.0:
+            self.guided = g = _Guided("hold", tel.position.copy(), since=t)
+        if g.kind == "attitude" and t - g.since > 1.0:
+            self.guided = g = _Guided("hold", tel.position.copy(), since=t)
+        if g.taking_off and not tel.landed and abs(tel.position[2] - g.position[2]) < 0.2:
+            g.taking_off = False
+        b = self.backend
+        if g.kind == "velocity":
+            b.set_velocity_setpoint(g.velocity, g.yaw_rate)
+        elif g.kind == "attitude":
+            b.set_attitude_setpoint(*g.attitude, g.yaw_rate)
+        elif self.spec.kind is VehicleKind.GROUND:
+            b.set_velocity_setpoint(np.zeros(3), 0.0)
+        else:
+            b.set_position_setpoint(g.position, g.velocity if g.kind == "position" else None, g.yaw)
+
+    # ------------------------------------------------------------------ telemetry
+    def send_due(self) -> None:
+        t = self.now()
+        if t >= self.next_heartbeat:
+            self.next_heartbeat = t + 1.0
+            self._send_message(mavlink.MAVLINK_MSG_ID_HEARTBEAT)
+        for msg_id, interval in list(self.intervals.items()):
+            if t + 1e-9 >= self.next_send.get(msg_id, 0.0):
+                self.next_send[msg_id] = max(self.next_send.get(msg_id, t) + interval, t)
+                self._send_message(msg_id)
+
+    def _send_message(self, msg_id: int) -> bool:
+        tel = self.backend.telemetry()
+        ms = self._boot_ms()
+        fr = self.frame
+        px4 = self.autopilot is Autopilot.PX4
+        if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
+            kind = self.spec.kind
+            mav_type = (
+                mavlink.MAV_TYPE_QUADROTOR
+                if kind is VehicleKind.MULTIROTOR
+                else mavlink.MAV_TYPE_GROUND_ROVER
+            )
+            ap = mavlink.MAV_AUTOPILOT_PX4 if px4 else mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
+            base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+            if tel.armed:
+                base |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+            status = mavlink.MAV_STATE_ACTIVE if tel.armed else mavlink.MAV_STATE_STANDBY
+            custom = self.custom_mode()
+            self.send(lambda mav: mav.heartbeat_send(mav_type, ap, base, custom, status))
+        elif msg_id == mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
+            p = fr.to_local(tel.position)
+            v = fr.vector_to_local(tel.velocity)
+            self.send(lambda mav: mav.local_position_ned_send(ms, *map(float, p), *map(float, v)))
+        elif msg_id == mavlink.MAVLINK_MSG_ID_ATTITUDE:
+            yaw = fr.yaw_to_local(tel.yaw)
+            rate = fr.yaw_rate_to_local(tel.yaw_rate)
+            self.send(lambda mav: mav.attitude_send(ms, tel.roll, -tel.pitch, yaw, 0.0, 0.0, rate))
+        elif msg_id == mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
+            if tel.landed:
+                landed = mavlink.MAV_LANDED_STATE_ON_GROUND
+            elif tel.mode is Mode.LAND:
+                landed = mavlink.MAV_LANDED_STATE_LANDING
+            elif tel.mode is Mode.TAKEOFF:
+                landed = mavlink.MAV_LANDED_STATE_TAKEOFF
+            else:
+                landed = mavlink.MAV_LANDED_STATE_IN_AIR
+            self.send(lambda mav: mav.extended_sys_state_send(0, landed))
+        elif msg_id == mavlink.MAVLINK_MSG_ID_SYS_STATUS:
+            pct = round(100 * tel.battery)
+            mv = int(1000 * (13.2 + 3.6 * tel.battery))
+            self.send(lambda mav: mav.sys_status_send(0, 0, 0, 500, mv, -1, pct, 0, 0, 0, 0, 0, 0))
+        elif msg_id == mavlink.MAVLINK_MSG_ID_BATTERY_STATUS:
+            pct = round(100 * tel.battery)
+            volts = [int(1000 * (3.3 + 0.9 * tel.battery))] * 4 + [65535] * 6
+            self.send(lambda mav: mav.battery_status_send(0, 0, 0, 2500, volts, -1, -1, -1, pct))
+        elif msg_id == mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR:
+            if self.spec.kind is VehicleKind.GROUND:
+                return False
+            cm = round(100 * max(0.0, tel.height_above_ground))
+            self.send(
+                lambda mav: mav.distance_sensor_send(
+                    ms,
+                    1,
+                    4000,
+                    min(cm, 4000),
+                    mavlink.MAV_DISTANCE_SENSOR_LASER,
+                    0,
+                    mavlink.MAV_SENSOR_ROTATION_PITCH_270,
+                    255,
+                )
+            )
+        elif msg_id == mavlink.MAVLINK_MSG_ID_HOME_POSITION:
+            alt_mm = int(1000 * self.cfg.home_amsl_m)
+            self.send(
+                lambda mav: mav.home_position_send(0, 0, alt_mm, 0, 0, 0, [1, 0, 0, 0], 0, 0, 0)
+            )
+        elif msg_id == mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT and not px4:
+            ok = self.ekf_ready()
+            flags = (mavlink.EKF_ATTITUDE | mavlink.EKF_VELOCITY_HORIZ | mavlink.EKF_VELOCITY_VERT
+                     | mavlink.EKF_POS_HORIZ_REL | mavlink.EKF_POS_VERT_ABS) if ok else mavlink.EKF_ATTITUDE  # fmt: skip
+            self.send(lambda mav: mav.ekf_status_report_send(flags, 0.1, 0.1, 0.1, 0.1, 0.0))
+        elif msg_id == mavlink.MAVLINK_MSG_ID_ESTIMATOR_STATUS and px4:
+            ok = self.ekf_ready()
+            flags = (mavlink.ESTIMATOR_ATTITUDE | mavlink.ESTIMATOR_VELOCITY_HORIZ
+                     | mavlink.ESTIMATOR_POS_HORIZ_REL | mavlink.ESTIMATOR_POS_VERT_ABS) if ok else mavlink.ESTIMATOR_ATTITUDE  # fmt: skip
+            self.send(
+                lambda mav: mav.estimator_status_send(
+                    int(self.now() * 1e6), flags, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.5, 0.5
+                )
+            )
+        elif msg_id == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
+            cap = (
+                mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+                | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
+            )
+            self.send(
+                lambda mav: mav.autopilot_version_send(
+                    cap, 0, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, 0
+                )
+            )
+        else:
+            return False
+        return True
+
+    def close(self) -> None:
+        try:
+            self.conn.close()
+        except OSError:
+            pass
+
+
+class MavSim:
+    """The simulator (module docstring): ``start()`` runs it in a thread, ``stop()`` ends it."""
+
+    def __init__(self, config: MavSimConfig) -> None:
+        self.config = config
+        self.simulator = Simulator(
+            config.voxel_map, SimConfig(step_s=config.step_s), seed=config.seed
+        )
+        self.autopilots: dict[str, _SimulatedAutopilot] = {}
+        try:
+            for spec in config.vehicles:
+                if spec.kind is VehicleKind.GROUND:
+                    backend = self.simulator.add_ground(spec.agent_id, spec.start)
+                else:
+                    backend = self.simulator.add_multirotor(spec.agent_id, spec.start)
+                self.autopilots[spec.agent_id] = _SimulatedAutopilot(self, spec, backend)
+        except BaseException:
+            self.close()
+            raise
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.error: BaseException | None = None
+        self.steps = 0
+        self.late_steps = 0
+
+    @property
+    def endpoints(self) -> list[Endpoint]:
+        return [
+            Endpoint(a.spec.agent_id, a.url, a.spec.sysid, self.config.autopilot, a.spec.kind)
+            for a in self.autopilots.values()
+        ]
+
+    def start(self) -> MavSim:
+        self._thread = threading.Thread(target=self._guarded, name="mavsim", daemon=True)
+        self._thread.start()
+        return self
+
+    def _guarded(self) -> None:
+        try:
+            self.run_forever()
+        except BaseException as exc:
+            self.error = exc
+
+    def run_forever(self) -> None:
+        """Step the vehicles in (scaled) real time until :meth:`stop`."""
+        cfg = self.config
+        wall0 = time.monotonic()
+        while not self._stop.is_set():
+            for ap in self.autopilots.values():
+                ap.receive()
+            for ap in self.autopilots.values():
+                ap.step()
+            self.simulator.step()
+            self.steps += 1
+            for ap in self.autopilots.values():
+                ap.send_due()
+            due = wall0 + self.simulator.time_s / cfg.speed
+            delay = due - time.monotonic()
+            if delay > 0:
+                self._stop.wait(delay)
+            else:
+                self.late_steps += 1
+
+    def drop_link(self, agent_id: str, seconds: float) -> None:
+        """Fault: ``agent_id``'s vehicle neither sends nor hears anything for ``seconds``
+        (simulated)."""
+        ap = self.autopilots[agent_id]
+        ap.drop_until = self.simulator.time_s + seconds
+
+    def vehicle_state(self, agent_id: str) -> dict[str, Any]:
+        ap = self.autopilots[agent_id]
+        tel = ap.backend.telemetry()
+        return {
+            "position": tel.position.copy(),
+            "mode": mode_of(ap.autopilot, ap.spec.kind, ap.custom_mode()),
+            "armed": tel.armed,
+            "landed": tel.landed,
+            "failsafe": ap.failsafe_note or ap.backend.failsafe,
+            "received": ap.received,
+        }
+
+    def counters(self) -> dict[str, dict[str, int]]:
+        if self.config.signing_key is None:
+            return {}
+        return {aid: signing_counters(ap.conn) for aid, ap in self.autopilots.items()}
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=5.0)
+        self.close()
+
+    def close(self) -> None:
+        for ap in self.autopilots.values():
+            ap.close()
+
+    def __enter__(self) -> MavSim:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def default_address(autopilot: Autopilot, index: int, base: int | None = None) -> MavlinkAddress:
+    """Where vehicle ``index`` is served by default: PX4 SITL's UDP 14540 + i, ArduPilot SITL's
+    TCP 5760 + 10 i."""
+    if autopilot is Autopilot.PX4:
+        return MavlinkAddress("udp", "127.0.0.1", (PX4_UDP_BASE if base is None else base) + index)
+    return MavlinkAddress(
+        "tcp", "127.0.0.1", (ARDUPILOT_TCP_BASE if base is None else base) + 10 * index
+    )
+
+
+def vehicles_in_a_row(
+    count: int,
+    autopilot: Autopilot,
+    *,
+    base_port: int | None = None,
+    spacing_m: float = 3.0,
+    kind: VehicleKind = VehicleKind.MULTIROTOR,
+    origin: Sequence[float] = (5.0, 5.0, 0.0),
+) -> tuple[VehicleSpec, ...]:
+    """``count`` vehicles 3 m apart along +x (``--count N``)."""
+    return tuple(
+        VehicleSpec(
+            f"V{i + 1}",
+            kind,
+            (float(origin[0]) + spacing_m * i, float(origin[1]), float(origin[2])),
+            default_address(autopilot, i, base_port),
+            i + 1,
+        )
+        for i in range(count)
+    )
