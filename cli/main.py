@@ -21,6 +21,7 @@ from btmission.cli import (
     dispatch_cmds,
     library_cmds,
     map_cmds,
+    mavsim_cmds,
     mission_cmds,
     reloc_cmds,
     run_cmds,
@@ -140,6 +141,7 @@ cli.add_command(dispatch_cmds.dispatch)
 cli.add_command(run_cmds.run_cmd)
 cli.add_command(run_cmds.report_cmd)
 cli.add_command(reloc_cmds.reloc)
+cli.add_command(mavsim_cmds.mavsim)
 
 
 def main() -> None:

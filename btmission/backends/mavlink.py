@@ -38,6 +38,7 @@ import collections
 import math
 import os
 import select
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -232,6 +233,21 @@ class _Link:
             fn(self.conn.mav)
 
 
+def _check_udp_port_free(address: MavlinkAddress) -> None:
+    """pymavlink binds with SO_REUSEADDR, so a second ground station on the same UDP port would
+    bind too and the two would fight over the vehicle: refuse a port another process holds."""
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        probe.bind((address.host, address.port))
+    except OSError as exc:
+        raise MavlinkError(
+            f"cannot listen at {address.url()}: {exc.strerror or exc} (another ground station "
+            "or btmission run holds the port)"
+        ) from None
+    finally:
+        probe.close()
+
+
 def _open(address: MavlinkAddress, options: MavlinkOptions, deadline: float) -> Any:
     """A pymavlink connection for ``address`` (TCP: retried until ``deadline``)."""
     device = address.device()
@@ -240,6 +256,8 @@ def _open(address: MavlinkAddress, options: MavlinkOptions, deadline: float) -> 
         kwargs["baud"] = address.baud
     if address.transport == "tcp":
         kwargs["retries"] = 0  # retried here, quietly, until the deadline
+    if address.transport == "udp":
+        _check_udp_port_free(address)
     while True:
         try:
             conn = mavutil.mavlink_connection(device, **kwargs)
@@ -266,6 +284,7 @@ class _LinkIO:
         self._stop = threading.Event()
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_r, False)
+        os.set_blocking(self._wake_w, False)
         self.error: BaseException | None = None
         self.jitter: list[float] = []
         """Setpoint send lateness (s) when ``record_jitter`` is on (the benchmark)."""
@@ -276,7 +295,14 @@ class _LinkIO:
     def add(self, link: _Link) -> None:
         with self._lock:
             self.links[link.address.device()] = link
-        os.write(self._wake_w, b"x")
+        self.wake()
+
+    def wake(self) -> None:
+        """Make the thread look at its schedule now (a new setpoint to send)."""
+        try:
+            os.write(self._wake_w, b"x")
+        except (BlockingIOError, OSError):
+            pass  # the pipe is full: it will wake anyway
 
     def close(self) -> None:
         self._stop.set()
@@ -327,7 +353,7 @@ class _LinkIO:
         """Send what is due; return how long select may wait."""
         wall = time.monotonic()
         opts = self.options
-        period = 1.0 / opts.setpoint_hz
+        period = 1.0 / (opts.setpoint_hz * opts.time_scale)  # the rate in the vehicle's time
         next_due = wall + 0.05
         for link in links:
             if wall >= link.next_heartbeat_wall:
@@ -457,8 +483,10 @@ class MavlinkVehicle:
         clock: ScaledWallClock,
         options: MavlinkOptions,
         ground_at: Callable[[FloatArray], float] | None = None,
+        wake: Callable[[], None] | None = None,
     ) -> None:
         self.id = agent_id
+        self._wake = wake or (lambda: None)
         self.kind = kind
         self.link = link
         self.state = state
@@ -653,6 +681,11 @@ class MavlinkVehicle:
         return self.set_mode(Mode.LAND)
 
     # ------------------------------------------------------------------ setpoints
+    def _min_gap(self) -> float:
+        """Wall time a new setpoint may wait for the stream's next send before it is sent at
+        once (a quarter of the stream period)."""
+        return 0.25 / (self.options.setpoint_hz * self.options.time_scale)
+
     def _stream(self, send: Callable[[Any], None], climb_to: float | None) -> None:
         st = self.state
         if (
@@ -666,9 +699,10 @@ class MavlinkVehicle:
         self._takeoff_target = None if not self._landed() else self._takeoff_target
         st.setpoint = send
         wall = time.monotonic()
-        if wall - st.setpoint_wall > self.options.setpoint_stale_s:
-            st.next_setpoint_wall = wall  # a new stream starts now
         st.setpoint_wall = wall
+        if st.next_setpoint_wall > wall + self._min_gap():
+            st.next_setpoint_wall = wall  # a new setpoint goes out now (the stream keeps its rate)
+            self._wake()
 
     def _ardupilot_takeoff(self, climb_to: float) -> None:
         """ArduCopter does not leave the ground on GUIDED targets: it needs NAV_TAKEOFF. When
@@ -887,7 +921,7 @@ class MavlinkProvider:
             float(options.get("north_yaw", math.pi / 2)),
         )
         vehicle = MavlinkVehicle(
-            agent_id, kind, link, state, frame, self.clock, opts, self._ground_at
+            agent_id, kind, link, state, frame, self.clock, opts, self._ground_at, self._io.wake
         )
         self._request_streams(vehicle)
         while state.position is None:

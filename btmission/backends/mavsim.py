@@ -744,3 +744,25 @@ def vehicles_in_a_row(
         )
         for i in range(count)
     )
+
+
+def mission_vehicles(mission: Any) -> tuple[VehicleSpec, ...]:
+    """One vehicle per agent of ``mission`` whose backend is a ``mavlink+udp`` or
+    ``mavlink+tcp`` URL, served at that URL (``--mission``): spawned at the agent's start, a
+    ground robot if its library drives one, sysid from the URL's ``?sysid=`` or 1."""
+    from btmission.backends.mavlink_url import parse_mavlink_url
+    from btmission.backends.provider import scheme_of
+    from btmission.runtime.runner import vehicle_kind
+
+    out: list[VehicleSpec] = []
+    for agent in mission.agents:
+        if scheme_of(agent.backend) != "mavlink":
+            continue
+        address = parse_mavlink_url(agent.backend)
+        if address.transport not in ("udp", "tcp"):
+            continue
+        impl = mission.library_of(agent.id).implementations
+        kind = vehicle_kind(impl) if impl is not None else VehicleKind.MULTIROTOR
+        start = (float(agent.start[0]), float(agent.start[1]), float(agent.start[2]))
+        out.append(VehicleSpec(agent.id, kind, start, address, address.sysid or 1))
+    return tuple(out)

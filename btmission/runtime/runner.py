@@ -677,6 +677,7 @@ class MissionRun:
         stop_at = limit if until is None else min(until, limit)
         wall0 = time.perf_counter()
         steps0 = self.steps
+        clock0 = self.clock.now()
         next_progress = self.now()
         reason = ""
         self._stop_asked = None  # (a stop asked before is still queued as a command)
@@ -697,7 +698,13 @@ class MissionRun:
                 if progress is not None and self.now() >= next_progress:
                     progress(self)
                     next_progress += progress_every_s
-                if self.realtime:  # one step per ``dt`` of wall time (simulated or real vehicles)
+                if self.provider.realtime:  # real vehicles: one step per ``dt`` of their time
+                    due = clock0 + (self.steps - steps0) * self.dt
+                    if self.clock.now() > due + self.dt:  # late (a slow step): no catch-up burst
+                        clock0 += self.clock.now() - due
+                    else:
+                        self.clock.sleep_until(due)
+                elif self.realtime:  # the simulator, paced: one step per ``dt`` of wall time
                     ahead = wall0 + (self.steps - steps0) * self.dt - time.perf_counter()
                     if ahead > 0:
                         time.sleep(ahead)  # (at most about one step: a stop waits that long)

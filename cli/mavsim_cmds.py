@@ -1,0 +1,153 @@
+"""``btmission mavsim``: serve simulated PX4 or ArduPilot vehicles over MAVLink on 127.0.0.1."""
+
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from types import FrameType
+
+import click
+
+from btmission.cli.common import BadInput, handle_spec_errors
+
+
+@click.command("mavsim")
+@click.option(
+    "--mission",
+    "mission_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Serve one vehicle per agent whose backend is a mavlink+udp/tcp URL, at that URL, "
+    "spawned at the agent's start in the mission's world.",
+)
+@click.option(
+    "--count", type=click.IntRange(1, 100), help="Serve N vehicles 3 m apart in an empty world."
+)
+@click.option(
+    "--autopilot",
+    type=click.Choice(["px4", "ardupilot"]),
+    default="px4",
+    show_default=True,
+    help="Firmware behaviour: PX4 (OFFBOARD, UDP 14540+i) or ArduPilot (GUIDED, TCP 5760+10i).",
+)
+@click.option(
+    "--port", type=click.IntRange(1, 65535), help="First port for --count (default per firmware)."
+)
+@click.option(
+    "--speed",
+    type=click.FloatRange(0.1, 50),
+    help="Simulated seconds per wall second [default: the mission's runtime.mavlink.time_scale, "
+    "else 1]; the run's time_scale must match.",
+)
+@click.option(
+    "--ekf-delay", type=click.FloatRange(0, 3600), default=0.0, show_default=True,
+    help="Seconds before the estimator is ready (arming and GUIDED refused until then).",
+)  # fmt: skip
+@click.option("--refuse-arm", default="", help="A pre-arm check that always fails with this text.")
+@click.option(
+    "--signing-key-file",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="MAVLink 2 signing key (64 hex digits or a passphrase); also BTMISSION_MAVLINK_KEY_FILE "
+    "or BTMISSION_MAVLINK_KEY. Unsigned or badly signed messages are dropped and counted.",
+)
+@click.option(
+    "--hover-thrust", type=click.FloatRange(0.05, 1.0), default=0.5, show_default=True,
+    help="Normalised throttle that hovers (attitude setpoints).",
+)  # fmt: skip
+@click.option("--seed", type=click.IntRange(0), default=0, show_default=True)
+@click.option(
+    "--duration", type=click.FloatRange(0, min_open=True), help="Stop after this many wall seconds."
+)
+@handle_spec_errors
+def mavsim(
+    mission_path: Path | None,
+    count: int | None,
+    autopilot: str,
+    port: int | None,
+    speed: float | None,
+    ekf_delay: float,
+    refuse_arm: str,
+    signing_key_file: Path | None,
+    hover_thrust: float,
+    seed: int,
+    duration: float | None,
+) -> None:
+    """Simulated MAVLink vehicles for flying missions without hardware.
+
+    Each vehicle is one of the embedded simulator's, behind a MAVLink 2 endpoint that behaves
+    like PX4 or ArduPilot SITL: heartbeats, requested streams, COMMAND_ACKs with the firmware's
+    refusals, PX4's offboard rules and failsafes or ArduPilot's GUIDED. Everything binds
+    127.0.0.1. Prints one line per vehicle (agent, URL, sysid), then "ready"; Ctrl-C or SIGTERM
+    stops it. Example:
+
+    \b
+      btmission mavsim --mission missions/mine_inspection_px4.yaml --speed 4 &
+      btmission run missions/mine_inspection_px4.yaml
+    """
+    from btmission.backends.mavlink_modes import Autopilot
+    from btmission.backends.mavlink_signing import SigningKeyError, load_key
+    from btmission.backends.mavsim import MavSim, MavSimConfig, vehicles_in_a_row
+    from btmission.world.minegen import empty_world
+
+    if (mission_path is None) == (count is None):
+        raise BadInput("give either --mission FILE or --count N")
+    ap = Autopilot(autopilot)
+    try:
+        key = load_key(signing_key_file)
+    except SigningKeyError as exc:
+        raise BadInput(str(exc)) from None
+    if mission_path is not None:
+        from btmission.backends.mavsim import mission_vehicles
+        from btmission.spec.mission import load_mission
+        from btmission.world.build import world_from_spec
+
+        mission = load_mission(mission_path)
+        specs = mission_vehicles(mission)
+        if not specs:
+            raise BadInput(
+                f"{mission_path}: no agent has a mavlink+udp:// or mavlink+tcp:// backend to serve"
+            )
+        voxel_map = world_from_spec(mission.spec.world, mission.base_dir)
+        if speed is None:
+            speed = mission.spec.runtime.mavlink.time_scale
+    else:
+        assert count is not None
+        specs = vehicles_in_a_row(count, ap, base_port=port)
+        voxel_map = empty_world((10.0 + 3.0 * count, 20.0, 10.0), 0.5)
+    speed = 1.0 if speed is None else speed
+    config = MavSimConfig(
+        specs, voxel_map, autopilot=ap, speed=speed, ekf_delay_s=ekf_delay,
+        refuse_arm=refuse_arm, signing_key=key, hover_thrust=hover_thrust, seed=seed,
+    )  # fmt: skip
+    try:
+        sim = MavSim(config)
+    except OSError as exc:
+        raise BadInput(f"cannot serve the vehicles: {exc.strerror or exc}") from None
+    for ep in sim.endpoints:
+        click.echo(f"{ep.agent_id}  {ep.url}  sysid {ep.sysid}  {ep.autopilot.value} {ep.kind.value}")
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        stop.set()
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    sim.start()
+    click.echo(f"ready ({len(sim.endpoints)} vehicle(s), {ap.value}, speed {speed:g}x)")
+    sys.stdout.flush()
+    t0 = time.monotonic()
+    try:
+        while not stop.wait(0.2):
+            if sim.error is not None:
+                raise sim.error
+            if duration is not None and time.monotonic() - t0 >= duration:
+                break
+    finally:
+        sim.stop()
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    late = f", {sim.late_steps} late step(s)" if sim.late_steps else ""
+    click.echo(f"stopped after {sim.simulator.time_s:.1f} simulated s ({sim.steps} steps{late})")
+    for agent, counts in sim.counters().items():
+        click.echo(f"{agent} signing: " + ", ".join(f"{k} {v}" for k, v in counts.items()))
