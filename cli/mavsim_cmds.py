@@ -11,7 +11,7 @@ from types import FrameType
 
 import click
 
-from btmission.cli.common import BadInput, handle_spec_errors
+from btmission.cli.common import BadInput, FiniteFloat, handle_spec_errors
 
 
 @click.command("mavsim")
@@ -37,12 +37,12 @@ from btmission.cli.common import BadInput, handle_spec_errors
 )
 @click.option(
     "--speed",
-    type=click.FloatRange(0.1, 50),
+    type=FiniteFloat(0.1, 50),
     help="Simulated seconds per wall second [default: the mission's runtime.mavlink.time_scale, "
     "else 1]; the run's time_scale must match.",
 )
 @click.option(
-    "--ekf-delay", type=click.FloatRange(0, 3600), default=0.0, show_default=True,
+    "--ekf-delay", type=FiniteFloat(0, 3600), default=0.0, show_default=True,
     help="Seconds before the estimator is ready (arming and GUIDED refused until then).",
 )  # fmt: skip
 @click.option("--refuse-arm", default="", help="A pre-arm check that always fails with this text.")
@@ -53,12 +53,12 @@ from btmission.cli.common import BadInput, handle_spec_errors
     "or BTMISSION_MAVLINK_KEY. Unsigned or badly signed messages are dropped and counted.",
 )
 @click.option(
-    "--hover-thrust", type=click.FloatRange(0.05, 1.0), default=0.5, show_default=True,
+    "--hover-thrust", type=FiniteFloat(0.05, 1.0), default=0.5, show_default=True,
     help="Normalised throttle that hovers (attitude setpoints).",
 )  # fmt: skip
 @click.option("--seed", type=click.IntRange(0), default=0, show_default=True)
 @click.option(
-    "--duration", type=click.FloatRange(0, min_open=True), help="Stop after this many wall seconds."
+    "--duration", type=FiniteFloat(0, min_open=True), help="Stop after this many wall seconds."
 )
 @handle_spec_errors
 def mavsim(
