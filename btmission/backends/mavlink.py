@@ -838,7 +838,8 @@ class MavlinkVehicle:
         target = self._takeoff_target
         if target is None or self.state.setpoint is not None:
             return Mode.OFFBOARD
-        if self._landed() or abs(self._position()[2] - target) > 0.3:
+        climbing = abs(float(self.state.velocity[2])) > 0.1
+        if self._landed() or abs(self._position()[2] - target) > 0.2 or climbing:
             return Mode.TAKEOFF
         return Mode.HOLD
 
@@ -938,7 +939,7 @@ class MavlinkProvider:
                 f"{agent_id}: {state.autopilot.value} sysid {state.sysid} "
                 f"({_type_name(state.mav_type)}) at {address.url()}"
             )
-        return Vehicle(agent_id, kind, vehicle, None)
+        return Vehicle(agent_id, kind, vehicle, None, link_ok=vehicle.link_ok)
 
     def _wait_heartbeat(
         self, agent_id: str, link: _Link, address: MavlinkAddress, deadline: float
@@ -976,8 +977,18 @@ class MavlinkProvider:
         interval_us = 1e6 / self.options.telemetry_hz
         requests = [(msg, interval_us) for msg in STREAMS]
         requests.append((ESTIMATOR_STREAM[vehicle.autopilot], 5e5))
-        for msg_id, interval in requests:
+        for i, (msg_id, interval) in enumerate(requests):
             ack = vehicle.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, float(msg_id), interval)
+            if i == 0 and not ack.accepted and "no COMMAND_ACK" in ack.reason:
+                signing = (
+                    "the key may differ from the vehicle's"
+                    if self.options.signing_key is not None
+                    else "if it requires MAVLink 2 signing, give its key (--mavlink-key-file)"
+                )
+                raise MavlinkError(
+                    f"{vehicle.id}: sysid {vehicle.state.sysid} is heard but does not answer "
+                    f"commands ({signing})"
+                )
             if not ack.accepted and self._progress is not None:
                 self._progress(f"{vehicle.id}: stream {msg_id} not available ({ack.reason})")
         vehicle.command(

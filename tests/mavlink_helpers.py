@@ -1,0 +1,75 @@
+"""Shared pieces of the MAVLink tests: free loopback ports, an in-process mavsim, a provider."""
+
+from __future__ import annotations
+
+import socket
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+from btmission.backends.base import VehicleKind
+from btmission.backends.mavlink import MavlinkOptions, MavlinkProvider
+from btmission.backends.mavlink_modes import Autopilot
+from btmission.backends.mavlink_url import MavlinkAddress
+from btmission.backends.mavsim import MavSim, MavSimConfig, VehicleSpec
+from btmission.world.minegen import empty_world
+
+SPEED = 5.0
+"""mavsim's speed-up in these tests (every rule is in simulated time, so they stay honest)."""
+
+
+def free_port(kind: int = socket.SOCK_DGRAM) -> int:
+    s = socket.socket(socket.AF_INET, kind)
+    try:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+    finally:
+        s.close()
+
+
+def address(autopilot: Autopilot) -> MavlinkAddress:
+    """A free loopback endpoint in the firmware's SITL style (PX4: UDP, ArduPilot: TCP)."""
+    if autopilot is Autopilot.PX4:
+        return MavlinkAddress("udp", "127.0.0.1", free_port(socket.SOCK_DGRAM))
+    return MavlinkAddress("tcp", "127.0.0.1", free_port(socket.SOCK_STREAM))
+
+
+def spec(
+    autopilot: Autopilot,
+    agent: str = "R1",
+    start: tuple[float, float, float] = (5.0, 5.0, 0.0),
+    kind: VehicleKind = VehicleKind.MULTIROTOR,
+    sysid: int = 1,
+) -> VehicleSpec:
+    return VehicleSpec(agent, kind, start, address(autopilot), sysid)
+
+
+@contextmanager
+def mavsim(
+    autopilot: Autopilot, *specs: VehicleSpec, speed: float = SPEED, **config: Any
+) -> Iterator[MavSim]:
+    """Simulated vehicles (default: one drone R1 at (5, 5, 0)) in a 30 x 30 x 8 m open world."""
+    vehicles = specs or (spec(autopilot),)
+    sim = MavSim(
+        MavSimConfig(
+            vehicles, empty_world((30, 30, 8), 0.5), autopilot=autopilot, speed=speed, **config
+        )
+    )
+    sim.start()
+    try:
+        yield sim
+    finally:
+        sim.stop()
+
+
+@contextmanager
+def provider(speed: float = SPEED, **options: Any) -> Iterator[MavlinkProvider]:
+    made = MavlinkProvider(
+        MavlinkOptions(
+            time_scale=speed, connect_timeout_s=options.pop("connect_timeout_s", 5.0), **options
+        )
+    )
+    try:
+        yield made
+    finally:
+        made.close()

@@ -1,0 +1,288 @@
+"""The MAVLink provider against the MAVLink vehicle simulator (in this process, on loopback).
+
+Each test flies a mavsim vehicle through the provider's Backend and checks what a drone engineer
+would: the refusals name the autopilot's result and reason, the offboard rules hold, ArduCopter
+takes off on NAV_TAKEOFF, the link's health is seen, signing keeps strangers out."""
+
+from __future__ import annotations
+
+import socket
+import time
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+
+from btmission.backends.base import Backend, Mode, VehicleKind
+from btmission.backends.mavlink import MavlinkError, MavlinkProvider
+from btmission.backends.mavlink_modes import Autopilot
+from btmission.backends.mavlink_url import MavlinkAddress
+from btmission.backends.mavsim import MavSim
+from tests.mavlink_helpers import SPEED, free_port, mavsim, provider, spec
+
+PX4, ARDUPILOT = Autopilot.PX4, Autopilot.ARDUPILOT
+START = (5.0, 5.0, 0.0)
+
+
+def wait_for(
+    p: MavlinkProvider,
+    seconds: float,
+    what: Callable[[], bool],
+    every: Callable[[], object] | None = None,
+) -> bool:
+    """Let up to ``seconds`` of vehicle time pass until ``what()`` (calling ``every`` each 0.05 s)."""
+    end = p.clock.now() + seconds
+    while p.clock.now() < end:
+        if every is not None:
+            every()
+        if what():
+            return True
+        p.clock.sleep_until(p.clock.now() + 0.05)
+    return what()
+
+
+def hold_here(b: Backend) -> Callable[[], None]:
+    here = b.telemetry().position.copy()
+    return lambda: b.set_position_setpoint(here)
+
+
+def attach(
+    p: MavlinkProvider, sim: MavSim, agent: str = "R1", kind: VehicleKind = VehicleKind.MULTIROTOR
+) -> Backend:
+    ep = next(e for e in sim.endpoints if e.agent_id == agent)
+    start = sim.autopilots[agent].spec.start
+    return p.attach(agent, kind, start, url=ep.url).backend
+
+
+# ------------------------------------------------------------------------------ connecting
+def test_a_px4_vehicle_reports_where_it_stands() -> None:
+    with mavsim(PX4) as sim, provider() as p:
+        v = p.attach("R1", VehicleKind.MULTIROTOR, START, url=sim.endpoints[0].url)
+        assert v.odometer_m is None and v.clearance_m is None and v.link_ok is not None
+        assert wait_for(
+            p, 1.0, lambda: v.backend.telemetry().ground_z == pytest.approx(0.0, abs=0.05)
+        )
+        tel = v.backend.telemetry()
+        np.testing.assert_allclose(tel.position, START, atol=0.05)  # local NED origin = start
+        assert tel.mode is Mode.MANUAL and not tel.armed and tel.landed
+        assert tel.battery == pytest.approx(1.0, abs=0.02)
+        assert v.link_ok()
+
+
+def test_a_vehicle_of_the_wrong_type_is_refused() -> None:
+    with mavsim(PX4) as sim, provider() as p:
+        with pytest.raises(
+            MavlinkError, match="MAV_TYPE_QUADROTOR, but the agent's library drives a ground robot"
+        ):
+            p.attach("G1", VehicleKind.GROUND, START, url=sim.endpoints[0].url)
+
+
+def test_no_heartbeat_names_the_url_and_waits_only_as_long_as_asked() -> None:
+    port = free_port()
+    with provider(connect_timeout_s=0.5) as p:
+        t0 = time.monotonic()
+        with pytest.raises(
+            MavlinkError,
+            match=f"no heartbeat from an autopilot at mavlink\\+udp://127.0.0.1:{port} within 0.5 s",
+        ):
+            p.attach("R1", VehicleKind.MULTIROTOR, START, url=f"mavlink+udp://127.0.0.1:{port}")
+        assert time.monotonic() - t0 < 3.0
+
+
+def test_a_udp_port_another_ground_station_holds_is_refused() -> None:
+    holder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    holder.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as pymavlink binds
+    holder.bind(("127.0.0.1", 0))
+    port = holder.getsockname()[1]
+    try:
+        with provider(connect_timeout_s=0.5) as p:
+            with pytest.raises(
+                MavlinkError, match="another ground station or btmission run holds the port"
+            ):
+                p.attach("R1", VehicleKind.MULTIROTOR, START, url=f"mavlink+udp://127.0.0.1:{port}")
+    finally:
+        holder.close()
+
+
+# ------------------------------------------------------------------------------ PX4
+def test_px4_offboard_rules_and_a_flight() -> None:
+    with mavsim(PX4) as sim, provider() as p:
+        b = attach(p, sim)
+        ack = b.set_mode(Mode.OFFBOARD)  # nothing streamed yet
+        assert not ack and ack.reason == (
+            "MAV_CMD_DO_SET_MODE: MAV_RESULT_DENIED (Switching to Offboard is currently not available)"
+        )
+        wait_for(p, 1.3, lambda: False, hold_here(b))
+        assert b.arm() and b.telemetry().armed
+        ack = b.set_mode(Mode.OFFBOARD)
+        assert ack, ack.reason
+        assert b.telemetry().mode is Mode.OFFBOARD
+        goal = np.array([7.0, 5.0, 2.0])
+        assert wait_for(p, 8.0, lambda: float(np.linalg.norm(b.telemetry().position - goal)) < 0.2,
+                        lambda: b.set_position_setpoint(goal))  # fmt: skip
+        assert not b.telemetry().landed and sim.vehicle_state("R1")["mode"] is Mode.OFFBOARD
+        ack = b.disarm()
+        assert not ack and "air" in ack.reason
+        assert b.land()
+        assert wait_for(p, 10.0, lambda: b.telemetry().landed and not b.telemetry().armed)
+
+
+def test_px4_offboard_loss_holds_where_it_was() -> None:
+    with mavsim(PX4) as sim, provider() as p:
+        b = attach(p, sim)
+        wait_for(p, 1.3, lambda: False, hold_here(b))
+        assert b.arm() and b.set_mode(Mode.OFFBOARD)
+        goal = np.array([5.0, 5.0, 2.0])
+        assert wait_for(p, 6.0, lambda: abs(b.telemetry().position[2] - 2.0) < 0.15,
+                        lambda: b.set_position_setpoint(goal))  # fmt: skip
+        # the mission stops renewing its setpoint: the provider stops streaming it after 1 s
+        # (wall), the autopilot holds after COM_OF_LOSS_T
+        assert wait_for(p, 2.0 + 1.5 * SPEED, lambda: b.telemetry().mode is Mode.HOLD)
+        assert sim.vehicle_state("R1")["failsafe"].startswith("offboard setpoints lost")
+        assert b.telemetry().position[2] == pytest.approx(2.0, abs=0.3)
+
+
+# ------------------------------------------------------------------------------ ArduPilot
+def test_ardupilot_guided_climbs_on_nav_takeoff_sent_by_the_provider() -> None:
+    with mavsim(ARDUPILOT) as sim, provider() as p:
+        b = attach(p, sim)
+        assert b.arm()
+        assert b.set_mode(Mode.OFFBOARD)  # GUIDED: no stream needed
+        assert b.telemetry().mode is Mode.OFFBOARD
+        goal = np.array([5.0, 5.0, 2.5])
+        assert wait_for(p, 8.0, lambda: abs(b.telemetry().position[2] - 2.5) < 0.15,
+                        lambda: b.set_position_setpoint(goal))  # fmt: skip
+        # position targets do not time out on ArduPilot: it stays there without a stream
+        wait_for(p, 3.0, lambda: False)
+        tel = b.telemetry()
+        assert tel.mode is Mode.OFFBOARD and tel.position[2] == pytest.approx(2.5, abs=0.15)
+
+
+def test_ardupilot_takeoff_shows_as_takeoff_then_hold() -> None:
+    with mavsim(ARDUPILOT) as sim, provider() as p:
+        b = attach(p, sim)
+        ack = b.takeoff(2.0)
+        assert not ack and ack.reason == "takeoff refused: not armed"
+        assert b.arm() and b.takeoff(2.0)
+        assert wait_for(p, 1.0, lambda: b.telemetry().mode is Mode.TAKEOFF)
+        assert wait_for(p, 8.0, lambda: b.telemetry().mode is Mode.HOLD)
+        assert b.telemetry().height_above_ground == pytest.approx(2.0, abs=0.2)
+
+
+def test_arming_waits_for_the_ekf_with_the_autopilots_reason_and_a_back_off() -> None:
+    with mavsim(ARDUPILOT, ekf_delay_s=6.0) as sim, provider() as p:
+        b = attach(p, sim)
+        ack = b.arm()
+        assert not ack
+        assert ack.reason == (
+            "MAV_CMD_COMPONENT_ARM_DISARM: MAV_RESULT_FAILED (PreArm: EKF3 waiting for GPS config data)"
+        )
+        sent = b.commands_sent  # type: ignore[attr-defined]
+        assert b.arm() == ack and b.commands_sent == sent  # type: ignore[attr-defined]  # backing off
+        assert wait_for(p, 8.0, lambda: bool(b.arm()))
+        assert b.telemetry().armed or wait_for(p, 1.5, lambda: b.telemetry().armed)
+
+
+def test_a_failing_pre_arm_check_is_reported_by_px4() -> None:
+    with mavsim(PX4, refuse_arm="Accel #0 inconsistent") as sim, provider() as p:
+        b = attach(p, sim)
+        ack = b.arm()
+        assert ack.reason == (
+            "MAV_CMD_COMPONENT_ARM_DISARM: MAV_RESULT_DENIED (Preflight Fail: Accel #0 inconsistent)"
+        )
+        assert not sim.vehicle_state("R1")["armed"]
+
+
+# ------------------------------------------------------------------------------ link health
+def test_a_dropped_link_is_seen_and_streaming_resumes() -> None:
+    with mavsim(PX4) as sim, provider(heartbeat_timeout_s=2.0) as p:
+        v = p.attach("R1", VehicleKind.MULTIROTOR, START, url=sim.endpoints[0].url)
+        link_ok = v.link_ok
+        assert link_ok is not None and link_ok()
+        sim.drop_link("R1", 6.0)
+        keep = hold_here(v.backend)
+        assert wait_for(p, 4.0, lambda: not link_ok(), keep)
+        heard = sim.vehicle_state("R1")["received"]
+        assert wait_for(p, 6.0, link_ok, keep)
+        assert wait_for(p, 1.0, lambda: sim.vehicle_state("R1")["received"] > heard + 3, keep)
+
+
+# ------------------------------------------------------------------------------ signing
+KEY = bytes(range(32))
+
+
+def test_signed_links_fly_and_a_wrong_key_is_refused_and_counted() -> None:
+    with mavsim(PX4, signing_key=KEY) as sim:
+        with provider(signing_key=KEY) as p:
+            b = attach(p, sim)
+            assert b.arm()
+            assert p.rejected() == {}
+        with provider(signing_key=bytes(32), connect_timeout_s=1.0, ack_timeout_s=0.3) as p:
+            with pytest.raises(MavlinkError, match="no heartbeat"):
+                attach(p, sim)
+            assert p.rejected().get("bad_signature", 0) > 0
+        with provider(connect_timeout_s=1.0, ack_timeout_s=0.3) as p:  # unsigned: dropped
+            with pytest.raises(
+                MavlinkError,
+                match="is heard but does not answer commands \\(if it requires MAVLink 2 signing",
+            ):
+                attach(p, sim)
+        counts = sim.counters()["R1"]
+        assert counts["bad_signature"] + counts["unsigned_refused"] > 0
+
+
+def test_two_vehicles_on_two_links_fly_independently() -> None:
+    a = spec(PX4, "R1", (5.0, 5.0, 0.0))
+    b_ = spec(PX4, "R2", (9.0, 5.0, 0.0), sysid=2)
+    with mavsim(PX4, a, b_) as sim, provider() as p:
+        r1, r2 = attach(p, sim, "R1"), attach(p, sim, "R2")
+        np.testing.assert_allclose(r2.telemetry().position, (9.0, 5.0, 0.0), atol=0.05)
+        hold1, hold2 = hold_here(r1), hold_here(r2)
+
+        def both() -> None:
+            hold1()
+            hold2()
+
+        wait_for(p, 1.3, lambda: False, both)
+        assert r1.arm() and r1.set_mode(Mode.OFFBOARD)
+        goal = np.array([5.0, 5.0, 1.5])
+
+        def climb() -> None:
+            r1.set_position_setpoint(goal)
+            hold2()
+
+        wait_for(p, 5.0, lambda: abs(r1.telemetry().position[2] - 1.5) < 0.15, climb)
+        assert r1.telemetry().position[2] == pytest.approx(1.5, abs=0.15)
+        assert r2.telemetry().landed and not r2.telemetry().armed
+
+
+def test_the_sysid_in_the_url_picks_the_vehicle_behind_a_shared_port() -> None:
+    port = free_port()
+    shared = MavlinkAddress("udp", "127.0.0.1", port)
+    from btmission.backends.mavsim import VehicleSpec
+
+    specs = (
+        VehicleSpec("A", VehicleKind.MULTIROTOR, (5.0, 5.0, 0.0), shared, 7),
+        VehicleSpec("B", VehicleKind.MULTIROTOR, (12.0, 5.0, 0.0), shared, 9),
+    )
+    with mavsim(PX4, *specs), provider() as p:
+        v9 = p.attach(
+            "B",
+            VehicleKind.MULTIROTOR,
+            (12.0, 5.0, 0.0),
+            url=f"mavlink+udp://127.0.0.1:{port}?sysid=9",
+        )
+        v7 = p.attach(
+            "A",
+            VehicleKind.MULTIROTOR,
+            (5.0, 5.0, 0.0),
+            url=f"mavlink+udp://127.0.0.1:{port}?sysid=7",
+        )
+        assert v9.backend.state.sysid == 9 and v7.backend.state.sysid == 7  # type: ignore[attr-defined]
+        with pytest.raises(MavlinkError, match=r"sysid 7 .* is already another agent's vehicle"):
+            p.attach(
+                "C",
+                VehicleKind.MULTIROTOR,
+                (5.0, 5.0, 0.0),
+                url=f"mavlink+udp://127.0.0.1:{port}?sysid=7",
+            )
