@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -70,6 +71,19 @@ def _write_pngs(rep: Any, directory: Path, stem: str) -> list[Path]:
     "mission's runtime.controller.",
 )
 @click.option("--no-png", is_flag=True, help="Do not draw the timeline and top-view PNGs.")
+@click.option(
+    "--yes",
+    "-y",
+    is_flag=True,
+    help="Fly MAVLink vehicles that are not on this machine (a serial port, another host) "
+    "without asking first.",
+)
+@click.option(
+    "--mavlink-key-file",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="MAVLink 2 signing key of the vehicles (64 hex digits or a passphrase); also "
+    "BTMISSION_MAVLINK_KEY_FILE or BTMISSION_MAVLINK_KEY. Never put it in the mission.",
+)
 @handle_spec_errors
 def run_cmd(
     mission_file: Path,
@@ -80,11 +94,15 @@ def run_cmd(
     quiet: bool,
     controller: str | None,
     no_png: bool,
+    yes: bool,
+    mavlink_key_file: Path | None,
 ) -> None:
     """Run a mission and print its report.
 
     Each agent's vehicle comes from the provider its backend: names (sim: the embedded
-    simulator; fake: kinematic test vehicles). Every agent ticks its mission tree (seed 000
+    simulator; fake: kinematic test vehicles; mavlink+udp:// ...: PX4 or ArduPilot vehicles,
+    asked for confirmation unless they are on this machine or --yes is given; when the run
+    stops, a vehicle still flying is told to HOLD, then LAND). Every agent ticks its mission tree (seed 000
     Fig. 7), bids in the auction with D*+ path costs and flies (or drives) with NMPC + APF; the
     coordinator allocates tasks as they arrive. Ctrl-C or SIGTERM stops after the current step
     (again: at once), and the log still ends properly.
@@ -115,9 +133,17 @@ def run_cmd(
         handle_signals=True,
         notify=note,
     )
+    if mavlink_key_file is not None:
+        from btmission.backends.mavlink_signing import KEY_FILE_ENV, SigningKeyError, load_key
+
+        try:
+            load_key(mavlink_key_file)
+        except SigningKeyError as exc:
+            raise BadInput(str(exc)) from None
+        os.environ[KEY_FILE_ENV] = str(mavlink_key_file)  # read by the MAVLink provider
     try:
         with session:
-            code = _run(session, until, quiet, no_png)
+            code = _run(session, until, quiet, no_png, yes)
     except RunStopped as stop:  # before the log existed, or after the run had ended
         if session.ended and session.log_path is not None:
             click.echo(f"{stop.reason}; the log is complete: {session.log_path}", err=True)
@@ -152,7 +178,29 @@ class _StderrNotes:
             click.echo(line, err=True)
 
 
-def _run(session: Any, until: float | None, quiet: bool, no_png: bool) -> int:
+def _confirm_real_vehicles(mission: Any, yes: bool) -> None:
+    """Ask before flying MAVLink vehicles that may be real: on a serial port or another host
+    (loopback is SITL or mavsim). Without a terminal to ask, --yes is required."""
+    from btmission.backends.mavlink_url import parse_mavlink_url
+    from btmission.backends.provider import scheme_of
+
+    remote = []
+    for agent in mission.agents:
+        if scheme_of(agent.backend) != "mavlink":
+            continue
+        address = parse_mavlink_url(agent.backend)
+        if address.transport == "serial" or not address.host.startswith("127."):
+            remote.append(f"{agent.id} ({agent.backend})")
+    if not remote or yes:
+        return
+    what = f"{len(remote)} MAVLink vehicle(s) that may be real: " + ", ".join(remote)
+    if not sys.stdin.isatty():
+        raise BadInput(f"this mission flies {what}; add --yes to fly them without asking")
+    if not click.confirm(f"Fly {what}?", default=False, err=True):
+        raise click.Abort()
+
+
+def _run(session: Any, until: float | None, quiet: bool, no_png: bool, yes: bool) -> int:
     """The run command's body (a :class:`~btmission.runtime.session.RunSession` does the
     work; this prints); returns the exit status."""
     from btmission.runtime.report import format_report, format_warnings
@@ -160,6 +208,7 @@ def _run(session: Any, until: float | None, quiet: bool, no_png: bool) -> int:
     with internal_error_sink(session.record_internal_error):
         mission = session.load()
         echo_diagnostics(session.warnings)
+        _confirm_real_vehicles(mission, yes)
         try:
             run = session.start()
         except VehicleUnavailable as exc:  # nothing answers at an agent's backend URL

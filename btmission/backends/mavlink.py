@@ -39,6 +39,7 @@ import math
 import os
 import select
 import socket
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -135,6 +136,9 @@ class MavlinkOptions:
     """How much faster than the wall clock the vehicles' time runs (simulators' speed-up)."""
     signing_key: bytes | None = None
     """MAVLink 2 signing key (32 bytes): outgoing signed, unsigned incoming refused."""
+    on_stop: str = "land"
+    """What a flying vehicle is told when the provider closes: ``land`` (HOLD, then LAND) or
+    ``hold``."""
 
     def __post_init__(self) -> None:
         for name in (
@@ -1017,10 +1021,38 @@ class MavlinkProvider:
         return {k: v for k, v in out.items() if v}
 
     def close(self) -> None:
+        """Leave every vehicle safe, then close the links: a vehicle still flying is told to
+        HOLD and then (``on_stop: land``, the default) to LAND, each command confirmed by its
+        COMMAND_ACK; setpoints stop. Idempotent."""
         if self._closed:
             return
         self._closed = True
-        self._io.close()
+        try:
+            self.stop_vehicles()
+        finally:
+            self._io.close()
+
+    def stop_vehicles(self) -> dict[str, list[Ack]]:
+        """HOLD (then LAND) every vehicle that is armed and off the ground (:meth:`close`)."""
+        out: dict[str, list[Ack]] = {}
+        for vehicle in self.vehicles.values():
+            vehicle.state.setpoint = None  # nothing more is streamed
+            if self._io.error is not None or not vehicle.link_ok():
+                continue
+            tel = vehicle.telemetry()
+            if not tel.armed or (tel.landed and vehicle.kind is VehicleKind.MULTIROTOR):
+                continue
+            acks = [vehicle.set_mode(Mode.HOLD)]
+            if self.options.on_stop == "land" and vehicle.kind is VehicleKind.MULTIROTOR:
+                acks.append(vehicle.land())
+            out[vehicle.id] = acks
+            if self._progress is not None:
+                said = ", then ".join(
+                    f"{what} {'accepted' if a else 'refused: ' + a.reason}"
+                    for what, a in zip(("HOLD", "LAND"), acks, strict=False)
+                )
+                self._progress(f"{vehicle.id}: the run stopped: {said}")
+        return out
 
 
 def _type_name(mav_type: int) -> str:
@@ -1044,6 +1076,11 @@ def mavlink_provider(mission: Mission, voxel_map: VoxelMap, seed: int) -> Mavlin
         hover_thrust=spec.hover_thrust,
         time_scale=spec.time_scale,
         signing_key=load_key(),
+        on_stop=spec.on_stop,
     )
     world = SimWorld(voxel_map)
-    return MavlinkProvider(options, ground_at=world.ground_z)
+    return MavlinkProvider(options, ground_at=world.ground_z, progress=_to_stderr)
+
+
+def _to_stderr(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)

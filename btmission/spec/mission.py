@@ -321,6 +321,11 @@ class MavlinkSpec(_Strict):
         description="How much faster than real time the vehicles run (mavsim --speed, ArduPilot "
         "SITL --speedup, PX4_SIM_SPEED_FACTOR); 1 for real vehicles.",
     )
+    on_stop: Literal["land", "hold"] = Field(
+        "land",
+        description="What a flying vehicle is told when the run stops (the mission ends, a time "
+        "limit, Ctrl-C or SIGTERM): hold where it is, then land (land), or only hold (hold).",
+    )
     map_sensors: bool = Field(
         False,
         description="Give agents simulated sensors by ray-casting the mission map at the pose "
