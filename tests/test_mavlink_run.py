@@ -136,7 +136,7 @@ def test_a_run_stopped_in_flight_holds_then_lands_its_vehicles(tmp_path: Path) -
                 str(tmp_path / "l"),
                 "--until",
                 "12",
-            ],  # fmt: skip
+            ],
         )
         assert result.exit_code == 1, result.output
         assert "R1: the run stopped: HOLD accepted, then LAND accepted" in result.stderr
