@@ -14,7 +14,7 @@ from btmission.backends.mavlink_url import MavlinkAddress
 from btmission.backends.mavsim import MavSim, MavSimConfig, VehicleSpec
 from btmission.world.minegen import empty_world
 
-SPEED = 5.0
+SPEED = 10.0
 """mavsim's speed-up in these tests (every rule is in simulated time, so they stay honest)."""
 
 
@@ -66,7 +66,10 @@ def mavsim(
 def provider(speed: float = SPEED, **options: Any) -> Iterator[MavlinkProvider]:
     made = MavlinkProvider(
         MavlinkOptions(
-            time_scale=speed, connect_timeout_s=options.pop("connect_timeout_s", 5.0), **options
+            time_scale=speed,
+            connect_timeout_s=options.pop("connect_timeout_s", 5.0),
+            telemetry_hz=options.pop("telemetry_hz", 20.0),
+            **options,
         )
     )
     try:

@@ -37,8 +37,18 @@ from btmission.backends.provider import (
 from btmission.spec.mission import load_mission_text
 from btmission.world.build import world_from_spec
 
-PROVIDERS = [pytest.param("sim", id="sim"), pytest.param("fake", id="fake")]
-"""Backend URLs of the providers under test; each gets the same mission (below)."""
+PROVIDERS = [
+    pytest.param("sim", id="sim"),
+    pytest.param("fake", id="fake"),
+    pytest.param("mavlink-px4", id="mavlink-px4"),
+    pytest.param("mavlink-ardupilot", id="mavlink-ardupilot"),
+]
+"""The providers under test; each gets the same mission (below). ``mavlink-*``: the MAVLink
+provider against mavsim (in this process, on loopback) with PX4 or ArduPilot behaviour."""
+
+LATENCY_S = 0.6
+"""What a real link adds before a vehicle's reaction shows in its telemetry (the provider keeps
+a setpoint streaming 0.3 s after the mission's last one; modes arrive with heartbeats)."""
 
 MISSION = """
 mission: conformance
@@ -50,6 +60,7 @@ agents:
   - {{id: R1, library: aerial, start: [5, 5, 0], backend: '{url}'}}
 tasks: []
 task_types: {{}}
+runtime: {{mavlink: {{time_scale: {speed}, connect_timeout_s: 5, telemetry_hz: 20}}}}
 """
 
 STEP_S = 0.05
@@ -57,15 +68,36 @@ STEP_S = 0.05
 
 
 @pytest.fixture(params=PROVIDERS)
-def url(request: pytest.FixtureRequest) -> str:
-    """The backend URL of the provider under test."""
-    return str(request.param)
+def urls(request: pytest.FixtureRequest) -> Iterator[dict[VehicleKind, str]]:
+    """The backend URL of each vehicle (a drone R1 at (5, 5, 0), a ground robot G1 at (5, 10, 0))
+    of the provider under test; for MAVLink, mavsim serves both."""
+    name = str(request.param)
+    if not name.startswith("mavlink-"):
+        yield {VehicleKind.MULTIROTOR: name, VehicleKind.GROUND: name}
+        return
+    from btmission.backends.mavlink_modes import Autopilot
+    from tests.mavlink_helpers import mavsim, spec
+
+    ap = Autopilot(name.split("-", 1)[1])
+    drone = spec(ap, "R1", (5.0, 5.0, 0.0))
+    robot = spec(ap, "G1", (5.0, 10.0, 0.0), VehicleKind.GROUND, sysid=2)
+    with mavsim(ap, drone, robot) as sim:
+        by_agent = {e.agent_id: e.url for e in sim.endpoints}
+        yield {VehicleKind.MULTIROTOR: by_agent["R1"], VehicleKind.GROUND: by_agent["G1"]}
+
+
+@pytest.fixture
+def url(urls: dict[VehicleKind, str]) -> str:
+    """The backend URL of the drone (the mission's agent: it picks the provider)."""
+    return urls[VehicleKind.MULTIROTOR]
 
 
 @pytest.fixture
 def provider(url: str, tmp_path: Path) -> Iterator[VehicleProvider]:
     """The provider of ``url``'s scheme, from the registry, for a small open world."""
-    text = textwrap.dedent(MISSION.format(url=url)).lstrip()
+    from tests.mavlink_helpers import SPEED
+
+    text = textwrap.dedent(MISSION.format(url=url, speed=SPEED)).lstrip()
     mission = load_mission_text(text, str(tmp_path / "m.yaml"))
     world = world_from_spec(mission.spec.world, mission.base_dir)
     made = provider_factory(scheme_of(url))(mission, world, 0)
@@ -74,13 +106,13 @@ def provider(url: str, tmp_path: Path) -> Iterator[VehicleProvider]:
 
 
 @pytest.fixture
-def attach(provider: VehicleProvider, url: str) -> Callable[..., Vehicle]:
+def attach(provider: VehicleProvider, urls: dict[VehicleKind, str]) -> Callable[..., Vehicle]:
     """Attach a multirotor (R1) or a ground robot (G1) to the provider under test."""
 
     def attach_one(kind: VehicleKind = VehicleKind.MULTIROTOR) -> Vehicle:
         if kind is VehicleKind.MULTIROTOR:
-            return provider.attach("R1", kind, (5.0, 5.0, 0.0), url=url)
-        return provider.attach("G1", kind, (5.0, 10.0, 0.0), url=url)
+            return provider.attach("R1", kind, (5.0, 5.0, 0.0), url=urls[kind])
+        return provider.attach("G1", kind, (5.0, 10.0, 0.0), url=urls[kind])
 
     return attach_one
 
@@ -212,7 +244,7 @@ def test_setpoint_loss_in_offboard_falls_back_to_hold(
     airborne(provider, backend)
     advance(provider, 0.5)  # a short gap is tolerated
     assert backend.telemetry().mode is Mode.OFFBOARD
-    advance(provider, 0.8)  # > 1 s without setpoints
+    advance(provider, 0.8 + (LATENCY_S if provider.realtime else 0.0))  # > 1 s without setpoints
     tel = backend.telemetry()
     assert tel.mode is Mode.HOLD and tel.armed and not tel.landed
     z = tel.position[2]
@@ -280,13 +312,16 @@ def test_a_ground_robot_stops_when_its_cmd_vel_stops(
     backend = attach(VehicleKind.GROUND).backend
     assert backend.kind is VehicleKind.GROUND
     assert not backend.takeoff(1.0)
+    drive = lambda: backend.set_velocity_setpoint((0.3, 0.0, 0.0), 0.0)  # noqa: E731
+    if provider.realtime:  # a real robot is armed and put in GUIDED/OFFBOARD first
+        advance(provider, 2.5, drive)
     x0 = float(backend.telemetry().position[0])
-    advance(provider, 1.0, lambda: backend.set_velocity_setpoint((0.3, 0.0, 0.0), 0.0))
+    advance(provider, 1.0, drive)
     x1 = float(backend.telemetry().position[0])
     assert x1 - x0 == pytest.approx(0.3, abs=0.1)  # it drives its cmd_vel
     advance(provider, 1.5)  # no command: stopped within the 0.5 s timeout
     x2 = float(backend.telemetry().position[0])
-    assert x2 - x1 < 0.3 * 0.5 + 0.05
+    assert x2 - x1 < 0.3 * (0.5 + (LATENCY_S if provider.realtime else 0.0)) + 0.05
     advance(provider, 1.0)
     assert float(backend.telemetry().position[0]) == pytest.approx(x2, abs=0.01)
     assert np.linalg.norm(backend.telemetry().velocity[:2]) < 0.05

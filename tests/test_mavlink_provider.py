@@ -147,15 +147,22 @@ def test_ardupilot_guided_climbs_on_nav_takeoff_sent_by_the_provider() -> None:
     with mavsim(ARDUPILOT) as sim, provider() as p:
         b = attach(p, sim)
         assert b.arm()
-        assert b.set_mode(Mode.OFFBOARD)  # GUIDED: no stream needed
+        ack = b.set_mode(Mode.OFFBOARD)  # GUIDED would take it: the backend keeps PX4's rule
+        assert not ack and ack.reason.startswith("offboard refused: stream setpoints")
+        wait_for(p, 1.3, lambda: False, hold_here(b))
+        assert b.set_mode(Mode.OFFBOARD)
         assert b.telemetry().mode is Mode.OFFBOARD
+        assert sim.vehicle_state("R1")["mode"] is Mode.OFFBOARD  # GUIDED
         goal = np.array([5.0, 5.0, 2.5])
-        assert wait_for(p, 8.0, lambda: abs(b.telemetry().position[2] - 2.5) < 0.15,
-                        lambda: b.set_position_setpoint(goal))  # fmt: skip
-        # position targets do not time out on ArduPilot: it stays there without a stream
-        wait_for(p, 3.0, lambda: False)
-        tel = b.telemetry()
-        assert tel.mode is Mode.OFFBOARD and tel.position[2] == pytest.approx(2.5, abs=0.15)
+        assert wait_for(
+            p, 8.0, lambda: abs(b.telemetry().position[2] - 2.5) < 0.15,
+            lambda: b.set_position_setpoint(goal),
+        )  # fmt: skip
+        # the targets stop: ArduPilot keeps the last position target (GUIDED), seen as HOLD
+        assert wait_for(p, 3.0, lambda: b.telemetry().mode is Mode.HOLD)
+        assert sim.vehicle_state("R1")["mode"] is Mode.OFFBOARD
+        wait_for(p, 3.0, lambda: False)  # (the climb overshoots a little, then settles)
+        assert b.telemetry().position[2] == pytest.approx(2.5, abs=0.1)
 
 
 def test_ardupilot_takeoff_shows_as_takeoff_then_hold() -> None:

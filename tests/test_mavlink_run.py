@@ -47,7 +47,7 @@ default_behavior: {{goal: landed_at_home, idle_timeout_s: 2}}
 runtime:
   controller: track
   max_duration_s: 120
-  mavlink: {{time_scale: {speed}, connect_timeout_s: 5}}
+  mavlink: {{time_scale: {speed}, connect_timeout_s: 5, telemetry_hz: 20}}
 """
 
 

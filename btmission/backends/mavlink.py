@@ -49,6 +49,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from btmission.backends._pymavlink import mavlink, mavutil
+from btmission.backends.autopilot import OFFBOARD_LOSS_S, STREAM_MIN_HZ, STREAM_MIN_S
 from btmission.backends.base import ACCEPTED, Ack, Mode, Telemetry, VehicleKind
 from btmission.backends.mavlink_frames import LocalFrame
 from btmission.backends.mavlink_modes import (
@@ -123,8 +124,9 @@ class MavlinkOptions:
     in_progress_timeout_s: float = 5.0
     setpoint_hz: float = 20.0
     telemetry_hz: float = 50.0
-    setpoint_stale_s: float = 1.0
-    """Wall time after which a setpoint the mission stopped renewing is no longer streamed."""
+    setpoint_stale_s: float = 0.3
+    """Vehicle time after which a setpoint the mission stopped renewing is no longer streamed
+    (the mission's own rate must stay above ~3 Hz; the control loop runs at 20 Hz)."""
     heartbeat_timeout_s: float = 3.0
     """Run-clock time without a vehicle heartbeat after which its link counts as lost."""
     hover_thrust: float = 0.5
@@ -216,6 +218,10 @@ class _State:
     override: tuple[float, int | None, bool | None] | None = None
     """(wall time, custom_mode, armed) an accepted command set, until a newer heartbeat."""
     setpoint: Callable[[Any], None] | None = None
+    stop: Callable[[Any], None] | None = None
+    """Sent once when the mission stops renewing its setpoint (a ground robot's zero
+    velocity: ArduRover would keep a GUIDED speed 3 s)."""
+    stopped: bool = True
     setpoint_wall: float = -math.inf
     next_setpoint_wall: float = 0.0
     setpoints_sent: int = 0
@@ -374,7 +380,10 @@ class _LinkIO:
             next_due = min(next_due, link.next_heartbeat_wall)
             for st in list(link.vehicles.values()):
                 sp = st.setpoint
-                if sp is None or wall - st.setpoint_wall > opts.setpoint_stale_s:
+                if sp is None or wall - st.setpoint_wall > opts.setpoint_stale_s / opts.time_scale:
+                    if not st.stopped and st.stop is not None:
+                        link.send(st.stop)
+                    st.stopped = True
                     continue
                 if wall >= st.next_setpoint_wall:
                     if self.record_jitter and st.setpoints_sent:
@@ -503,6 +512,15 @@ class MavlinkVehicle:
         self._takeoff_target: float | None = None
         self._takeoff_sent_wall = -math.inf
         self.commands_sent = 0
+        self._last_set = -math.inf
+        self._stream_since = math.inf
+        self._ready_sent = -math.inf
+        if kind is VehicleKind.GROUND:
+            halt = velocity_target(frame, (0.0, 0.0, 0.0), 0.0)
+            state.stop = lambda mav: mav.set_position_target_local_ned_send(
+                0, state.sysid, state.compid, mavlink.MAV_FRAME_LOCAL_NED, halt.type_mask,
+                *halt.position, *halt.velocity, 0.0, 0.0, 0.0, halt.yaw, halt.yaw_rate,
+            )  # fmt: skip
 
     # ------------------------------------------------------------------ state
     @property
@@ -633,6 +651,38 @@ class MavlinkVehicle:
             armed if armed is not None else old_armed,
         )
 
+    def streaming(self) -> bool:
+        """The mission has renewed its setpoint for a second without gaps (PX4's rule for
+        OFFBOARD: more than 2 Hz for 1 s), in the vehicle's time."""
+        now = self.clock.now()
+        return (
+            now - self._last_set <= self.options.setpoint_stale_s
+            and now - self._stream_since >= STREAM_MIN_S
+        )
+
+    def _ground_ready(self, now: float) -> None:
+        """A ground robot's library has no arm or mode actions (the simulator's robots drive
+        their cmd_vel as they are): when the mission drives it, arm it and put it in GUIDED
+        (ArduRover) or OFFBOARD (PX4, once the stream has run a second), without waiting for
+        the acks (once a second until the telemetry shows it)."""
+        wall = time.monotonic()
+        if wall - self._ready_sent < 1.0 / self.options.time_scale:
+            return
+        wanted = mode_request(self.autopilot, self.kind, Mode.OFFBOARD)
+        armed, in_mode = self._armed(), self._custom_mode() == wanted.custom_mode
+        if armed and in_mode:
+            return
+        if self.autopilot is Autopilot.PX4 and not self.streaming():
+            return
+        self._ready_sent = wall
+        if not armed:
+            self._send_command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, (1.0,), 0)
+        if not in_mode:
+            self._send_command(
+                mavlink.MAV_CMD_DO_SET_MODE, set_mode_params(self.autopilot, wanted), 0
+            )
+
+
     def set_mode(self, mode: Mode) -> Ack:
         if mode is Mode.TAKEOFF:
             return self.takeoff(self.options.takeoff_alt_m)
@@ -646,6 +696,13 @@ class MavlinkVehicle:
             mode is not Mode.OFFBOARD or self._takeoff_target is None
         ):
             return ACCEPTED  # already in that mode
+        if mode is Mode.OFFBOARD and self.autopilot is Autopilot.ARDUPILOT and not self.streaming():
+            # GUIDED would take it; the backend keeps PX4's rule so trees behave the same
+            return Ack(
+                False,
+                f"offboard refused: stream setpoints at > {STREAM_MIN_HZ:g} Hz for "
+                f"{STREAM_MIN_S:g} s first (the backend's rule on every autopilot)",
+            )
         ack = self.command(mavlink.MAV_CMD_DO_SET_MODE, *set_mode_params(self.autopilot, request))
         if ack.accepted:
             self._set_override(mode=request.custom_mode)
@@ -702,7 +759,14 @@ class MavlinkVehicle:
             self._ardupilot_takeoff(climb_to)
         self._takeoff_target = None if not self._landed() else self._takeoff_target
         st.setpoint = send
+        st.stopped = False
         wall = time.monotonic()
+        now = self.clock.now()
+        if now - self._last_set > self.options.setpoint_stale_s:
+            self._stream_since = now  # a new stream starts
+        self._last_set = now
+        if self.kind is VehicleKind.GROUND:
+            self._ground_ready(now)
         st.setpoint_wall = wall
         if st.next_setpoint_wall > wall + self._min_gap():
             st.next_setpoint_wall = wall  # a new setpoint goes out now (the stream keeps its rate)
@@ -840,6 +904,9 @@ class MavlinkVehicle:
         """ArduPilot's GUIDED seen as PX4 would show it: TAKEOFF while a NAV_TAKEOFF climbs,
         HOLD once it is up and no target has come since, OFFBOARD otherwise."""
         target = self._takeoff_target
+        if self.clock.now() - self._last_set > self.options.setpoint_stale_s + OFFBOARD_LOSS_S:
+            if self._last_set > -math.inf and self.state.setpoint is not None:
+                return Mode.HOLD  # the mission stopped its targets: GUIDED holds the last one
         if target is None or self.state.setpoint is not None:
             return Mode.OFFBOARD
         climbing = abs(float(self.state.velocity[2])) > 0.1
@@ -981,6 +1048,7 @@ class MavlinkProvider:
         interval_us = 1e6 / self.options.telemetry_hz
         requests = [(msg, interval_us) for msg in STREAMS]
         requests.append((ESTIMATOR_STREAM[vehicle.autopilot], 5e5))
+        requests.append((mavlink.MAVLINK_MSG_ID_HEARTBEAT, 2e5))  # modes seen within 0.2 s
         for i, (msg_id, interval) in enumerate(requests):
             ack = vehicle.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, float(msg_id), interval)
             if i == 0 and not ack.accepted and "no COMMAND_ACK" in ack.reason:

@@ -289,6 +289,11 @@ class _SimulatedAutopilot:
 
     def _arm_disarm(self, arm: bool, force: bool) -> int:
         tel = self.backend.telemetry()
+        if self.spec.kind is VehicleKind.GROUND:  # the simulator's robots have no arming state
+            if arm and not force and not self.ekf_ready():
+                return self._refuse("PreArm: EKF3 waiting for GPS config data", mavlink.MAV_RESULT_FAILED)
+            self.state.armed = arm
+            return mavlink.MAV_RESULT_ACCEPTED
         if not arm:
             if not tel.armed:
                 return mavlink.MAV_RESULT_ACCEPTED
@@ -334,6 +339,10 @@ class _SimulatedAutopilot:
         if custom == self.custom_mode():
             return mavlink.MAV_RESULT_ACCEPTED  # already in that mode
         if self.autopilot is Autopilot.PX4:
+            if mode is Mode.OFFBOARD and self.spec.kind is VehicleKind.GROUND:
+                v, t = self.state, self.now()  # the simulator's robots take any mode: PX4 does not
+                if not (t - v.sp_time <= 0.5 and t - v.stream_since >= 1.0):
+                    return self._refuse("Switching to Offboard is currently not available")
             if mode is Mode.OFFBOARD:
                 ack = self.backend.set_mode(Mode.OFFBOARD)
                 if not ack.accepted:
@@ -427,7 +436,11 @@ class _SimulatedAutopilot:
             ):
                 self.guided.position = self.backend.telemetry().position.copy()
             return
-        if kind == "velocity" or self.spec.kind is VehicleKind.GROUND:
+        if self.spec.kind is VehicleKind.GROUND:  # a PX4 rover drives only armed, in OFFBOARD
+            tel = self.backend.telemetry()
+            drive = tel.armed and tel.mode is Mode.OFFBOARD
+            self.backend.set_velocity_setpoint(velocity if drive else np.zeros(3), yaw_rate if drive else 0.0)
+        elif kind == "velocity":
             self.backend.set_velocity_setpoint(velocity, yaw_rate)
         else:
             vel = None if mask & VELOCITY_IGNORE else velocity
@@ -480,7 +493,7 @@ class _SimulatedAutopilot:
             self.failsafe_note = "GCS failsafe: landing"
             self.text(mavlink.MAV_SEVERITY_CRITICAL, "GCS Failsafe On: LAND")
             return
-        if tel.mode is not Mode.OFFBOARD:
+        if tel.mode is not Mode.OFFBOARD or not tel.armed:
             return
         g = self.guided
         if g.kind == "velocity" and t - g.since > 3.0:
