@@ -135,7 +135,7 @@ def test_a_run_stopped_in_flight_holds_then_lands_its_vehicles(tmp_path: Path) -
                 "--log",
                 str(tmp_path / "l"),
                 "--until",
-                "12",
+                "7",
             ],
         )
         assert result.exit_code == 1, result.output

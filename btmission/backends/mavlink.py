@@ -224,8 +224,13 @@ class _State:
     stopped: bool = True
     setpoint_wall: float = -math.inf
     next_setpoint_wall: float = 0.0
+    last_sent_wall: float = -math.inf
     setpoints_sent: int = 0
+    send_times: list[float] | None = None
+    """Wall time of every setpoint sent, when a benchmark asks (a list), else None."""
     messages: int = 0
+    positions: int = 0
+    """LOCAL_POSITION_NED messages received."""
 
 
 @dataclass
@@ -296,9 +301,6 @@ class _LinkIO:
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
         self.error: BaseException | None = None
-        self.jitter: list[float] = []
-        """Setpoint send lateness (s) when ``record_jitter`` is on (the benchmark)."""
-        self.record_jitter = False
         self._thread = threading.Thread(target=self._run, name="mavlink-io", daemon=True)
         self._thread.start()
 
@@ -386,12 +388,12 @@ class _LinkIO:
                     st.stopped = True
                     continue
                 if wall >= st.next_setpoint_wall:
-                    if self.record_jitter and st.setpoints_sent:
-                        self.jitter.append(wall - st.next_setpoint_wall)
                     link.send(sp)
                     st.setpoints_sent += 1
-                    # keep the phase: late sends do not push the schedule back
-                    st.next_setpoint_wall = max(st.next_setpoint_wall + period, wall + 0.2 * period)
+                    st.last_sent_wall = wall
+                    if st.send_times is not None:
+                        st.send_times.append(time.monotonic())
+                    st.next_setpoint_wall = wall + period  # re-sent if not renewed meanwhile
                 next_due = min(next_due, st.next_setpoint_wall)
         return max(0.0, next_due - time.monotonic())
 
@@ -437,6 +439,7 @@ class _LinkIO:
             return
         st.messages += 1
         if kind == "LOCAL_POSITION_NED":
+            st.positions += 1
             st.position = np.array([msg.x, msg.y, msg.z], dtype=float)
             st.velocity = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
             st.position_at = now
@@ -742,10 +745,9 @@ class MavlinkVehicle:
         return self.set_mode(Mode.LAND)
 
     # ------------------------------------------------------------------ setpoints
-    def _min_gap(self) -> float:
-        """Wall time a new setpoint may wait for the stream's next send before it is sent at
-        once (a quarter of the stream period)."""
-        return 0.25 / (self.options.setpoint_hz * self.options.time_scale)
+    def _period(self) -> float:
+        """Wall time between two setpoints streamed to the vehicle."""
+        return 1.0 / (self.options.setpoint_hz * self.options.time_scale)
 
     def _stream(self, send: Callable[[Any], None], climb_to: float | None) -> None:
         st = self.state
@@ -768,9 +770,11 @@ class MavlinkVehicle:
         if self.kind is VehicleKind.GROUND:
             self._ground_ready(now)
         st.setpoint_wall = wall
-        if st.next_setpoint_wall > wall + self._min_gap():
-            st.next_setpoint_wall = wall  # a new setpoint goes out now (the stream keeps its rate)
+        if wall - st.last_sent_wall >= 0.75 * self._period():
+            st.next_setpoint_wall = wall  # a new setpoint goes out now
             self._wake()
+        else:  # sent moments ago: this one goes out one period after it (the rate is capped)
+            st.next_setpoint_wall = st.last_sent_wall + self._period()
 
     def _ardupilot_takeoff(self, climb_to: float) -> None:
         """ArduCopter does not leave the ground on GUIDED targets: it needs NAV_TAKEOFF. When
