@@ -8,8 +8,16 @@ import pytest
 
 from btmission.backends.base import Sensors
 from btmission.backends.mapsensors import Body, MapSensors, SensorPose
-from btmission.backends.sim import Artifact, SimConfig, Simulator, SimWorld
+from btmission.backends.sim import (
+    Artifact,
+    SimConfig,
+    Simulator,
+    SimWorld,
+    mission_artifacts,
+    sim_config,
+)
 from btmission.control.mav_model import yaw_frame_to_world
+from btmission.spec.mission import load_mission_text
 from btmission.world.voxel import VoxelMap
 from tests.test_sim import flying, room
 
@@ -115,3 +123,36 @@ def test_one_scan_and_one_frame_per_pose_time() -> None:
     assert again is not scan and again.time_s == 0.05
     assert not np.array_equal(again.points, scan.points)  # fresh range noise
     assert sensors.camera() is not frame
+
+
+def test_a_missions_sensor_settings_and_artifacts_build_map_sensors() -> None:
+    """What a provider other than the simulator does for its opt-in map sensors."""
+    m = load_mission_text(
+        """\
+mission: m
+version: 1
+world: {map: {generate: empty, size: [20, 10, 6]}}
+agents: [{id: R1, library: aerial, start: [5, 5, 0]}]
+task_types: {inspect: {goal: at_goal(location), cost: path_cost(location)}}
+runtime:
+  sim:
+    lidar_range_m: 1.5
+    dust_points: 2
+    detection_noise_px: 0
+    artifacts: [{label: survivor, position: [9, 5, 2], size_m: 0.6}]
+""",
+        "m.yaml",
+    )
+    config = sim_config(m)
+    assert (config.lidar_range_m, config.dust_points, config.detection_noise_px) == (1.5, 2, 0.0)
+    sensors = MapSensors(
+        SimWorld(room(), mission_artifacts(m)),
+        config,
+        np.random.default_rng(0),
+        lambda: SensorPose(0.0, np.array([5.0, 5.0, 1.9]), 0.0),
+    )
+    (det,) = sensors.camera().detections
+    assert det.label == "survivor" and det.bbox[2] == pytest.approx(
+        32 / np.tan(np.radians(43)) * 0.15
+    )
+    assert len(sensors.lidar()) == 2  # nothing within 1.5 m but the dust

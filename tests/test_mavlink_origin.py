@@ -87,7 +87,8 @@ def test_sim_agents_accept_and_ignore_the_fields() -> None:
 
 
 @pytest.mark.parametrize(
-    ("deg", "rad"), [(90, math.pi / 2), (450, math.pi / 2), (270, -math.pi / 2), (-45, -math.pi / 4)]
+    ("deg", "rad"),
+    [(90, math.pi / 2), (450, math.pi / 2), (270, -math.pi / 2), (-45, -math.pi / 4)],
 )
 def test_north_yaw_is_degrees_counter_clockwise_from_x_wrapped(deg: float, rad: float) -> None:
     assert local_frame((0, 0, 0), deg).north_yaw == pytest.approx(rad)
@@ -106,16 +107,28 @@ def test_longitudes_at_the_date_line_are_accepted(lon: float) -> None:
 @pytest.mark.parametrize(
     ("world", "expected"),
     [
-        ("{lat: 90, lon: 0}", "5:17: world.origin.lat: expected a latitude in degrees, "
-         "-90 < lat < 90 (got 90)"),
-        ("{lat: -91.5, lon: 0}", "5:17: world.origin.lat: expected a latitude in degrees, "
-         "-90 < lat < 90 (got -91.5)"),
-        ("{lat: 1, lon: 180.5}", "5:25: world.origin.lon: expected a longitude in degrees, "
-         "-180 <= lon <= 180 (got 180.5)"),
-        ("{lat: 1, lon: -181}", "5:25: world.origin.lon: expected a longitude in degrees, "
-         "-180 <= lon <= 180 (got -181)"),
-        ("{lat: 1, lon: 2, alt: .inf}", "5:33: world.origin.alt: expected a finite number "
-         "(got inf)"),
+        (
+            "{lat: 90, lon: 0}",
+            "5:17: world.origin.lat: expected a latitude in degrees, -90 < lat < 90 (got 90)",
+        ),
+        (
+            "{lat: -91.5, lon: 0}",
+            "5:17: world.origin.lat: expected a latitude in degrees, -90 < lat < 90 (got -91.5)",
+        ),
+        (
+            "{lat: 1, lon: 180.5}",
+            "5:25: world.origin.lon: expected a longitude in degrees, "
+            "-180 <= lon <= 180 (got 180.5)",
+        ),
+        (
+            "{lat: 1, lon: -181}",
+            "5:25: world.origin.lon: expected a longitude in degrees, "
+            "-180 <= lon <= 180 (got -181)",
+        ),
+        (
+            "{lat: 1, lon: 2, alt: .inf}",
+            "5:33: world.origin.alt: expected a finite number (got inf)",
+        ),
         ("{lat: true, lon: 2}", "5:17: world.origin.lat: expected a number (got true)"),
         ("{lat: 1}", "5:3: world.origin.lon: missing required key 'lon'"),
         ("{lat: 1, lon: 2, height: 3}", "5:28: world.origin.height: unknown key 'height'"),
@@ -130,20 +143,37 @@ def test_bad_world_origin_is_refused_at_its_line(world: str, expected: str) -> N
 @pytest.mark.parametrize(
     ("agent", "expected"),
     [
-        (", origin: [1, 2]", "6:99: agents[0].origin: expected [x, y, z] or "
-         "{position: [x, y, z], north_yaw_deg: 90}, with finite numbers (got [1, 2])"),
-        (", origin: [1, 2, .nan]", "6:99: agents[0].origin: expected [x, y, z] or "
-         "{position: [x, y, z], north_yaw_deg: 90}, with finite numbers (got [1, 2, nan])"),
-        (", origin: home", "6:99: agents[0].origin: expected [x, y, z] or "
-         "{position: [x, y, z], north_yaw_deg: 90} (got 'home')"),
-        (", origin: {north_yaw_deg: 0}", "6:91: agents[0].origin.position: missing required "
-         "key 'position'"),
-        (", origin: {position: [1, 2, 3], north_yaw_deg: .nan}",
-         "6:136: agents[0].origin.north_yaw_deg: expected a finite number (got nan)"),
-        (", origin: {position: [1, 2, 3], north_yaw_deg: east}",
-         "6:136: agents[0].origin.north_yaw_deg: Input should be a valid number"),
-        (", origin: {position: [1, 2, 3], yaw: 90}",
-         "6:121: agents[0].origin.yaw: unknown key 'yaw'"),
+        (
+            ", origin: [1, 2]",
+            "6:99: agents[0].origin: expected [x, y, z] or "
+            "{position: [x, y, z], north_yaw_deg: 90}, with finite numbers (got [1, 2])",
+        ),
+        (
+            ", origin: [1, 2, .nan]",
+            "6:99: agents[0].origin: expected [x, y, z] or "
+            "{position: [x, y, z], north_yaw_deg: 90}, with finite numbers (got [1, 2, nan])",
+        ),
+        (
+            ", origin: home",
+            "6:99: agents[0].origin: expected [x, y, z] or "
+            "{position: [x, y, z], north_yaw_deg: 90} (got 'home')",
+        ),
+        (
+            ", origin: {north_yaw_deg: 0}",
+            "6:91: agents[0].origin.position: missing required key 'position'",
+        ),
+        (
+            ", origin: {position: [1, 2, 3], north_yaw_deg: .nan}",
+            "6:136: agents[0].origin.north_yaw_deg: expected a finite number (got nan)",
+        ),
+        (
+            ", origin: {position: [1, 2, 3], north_yaw_deg: east}",
+            "6:136: agents[0].origin.north_yaw_deg: Input should be a valid number",
+        ),
+        (
+            ", origin: {position: [1, 2, 3], yaw: 90}",
+            "6:121: agents[0].origin.yaw: unknown key 'yaw'",
+        ),
     ],
 )
 def test_bad_agent_origin_is_refused_at_its_line(agent: str, expected: str) -> None:
@@ -157,7 +187,11 @@ def test_the_bad_example_exits_2_with_every_problem_and_its_line() -> None:
     f = str(BAD)
     lines = r.output.splitlines()
     assert [line.split(": ", 1)[0].removeprefix(f) for line in lines[:-1]] == [
-        ":6:17", ":6:39", ":8:57", ":9:79", ":10:57"
+        ":6:17",
+        ":6:39",
+        ":8:57",
+        ":9:79",
+        ":10:57",
     ]
     assert lines[-1] == "Error: 5 problem(s) found; nothing was run"
 
@@ -173,4 +207,3 @@ def test_the_schema_describes_both_forms_of_origin_and_the_geodetic_origin() -> 
     world = defs["WorldSpec"]["properties"]["origin"]
     assert {"$ref": "#/$defs/GeodeticSpec"} in world["anyOf"]
     assert set(defs["GeodeticSpec"]["required"]) == {"lat", "lon"}
-

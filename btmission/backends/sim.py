@@ -668,15 +668,25 @@ class SimProvider:
         """Nothing to release: the simulator lives in this process."""
 
 
-def sim_provider(mission: Mission, voxel_map: VoxelMap, seed: int) -> SimProvider:
-    """The ``sim`` entry point of ``btmission.providers``: a simulator of the mission's world
-    with its ``runtime.sim`` settings and artifacts, seeded with the run's seed."""
+def sim_config(mission: Mission) -> SimConfig:
+    """The simulator (and map-sensor) settings of a mission's ``runtime.sim`` section."""
     spec = mission.spec.runtime.sim
-    config = SimConfig(
+    return SimConfig(
         step_s=spec.step_s,
         lidar_range_m=spec.lidar_range_m,
         dust_points=spec.dust_points,
         detection_noise_px=spec.detection_noise_px,
     )
-    artifacts = [Artifact(a.label, a.position, a.size_m) for a in spec.artifacts]
+
+
+def mission_artifacts(mission: Mission) -> list[Artifact]:
+    """The objects a mission places in the world for the cameras (``runtime.sim.artifacts``)."""
+    return [Artifact(a.label, a.position, a.size_m) for a in mission.spec.runtime.sim.artifacts]
+
+
+def sim_provider(mission: Mission, voxel_map: VoxelMap, seed: int) -> SimProvider:
+    """The ``sim`` entry point of ``btmission.providers``: a simulator of the mission's world
+    with its ``runtime.sim`` settings and artifacts, seeded with the run's seed."""
+    config = sim_config(mission)
+    artifacts = mission_artifacts(mission)
     return SimProvider(Simulator(voxel_map, config, seed=seed, artifacts=artifacts))
