@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from btmission.backends.base import Sensors
-from btmission.backends.mapsensors import Body, MapSensors, SensorPose
+from btmission.backends.mapsensors import Body, MapSensors, SensorPose, body_at
 from btmission.backends.sim import (
     Artifact,
     SimConfig,
@@ -69,7 +69,7 @@ def test_other_vehicles_appear_as_points_on_their_body_spheres() -> None:
     yaw = 1.1
     bodies = [
         Body(np.array([11.0, 5.5, 2.75]), 0.25),  # in range
-        Body(np.array([10.0, 8.0, 2.65]), 0.15),  # its bottom 3 m away: out of range
+        body_at((10.0, 8.0, 2.5), 0.15),  # its bottom 3 m away: out of range
     ]
     sensors = MapSensors(
         SimWorld(room()),
@@ -78,6 +78,7 @@ def test_other_vehicles_appear_as_points_on_their_body_spheres() -> None:
         lambda: SensorPose(0.0, p, yaw),
         lambda: bodies,
     )
+    assert body_at((10.0, 8.0, 2.5), 0.15) == (pytest.approx([10.0, 8.0, 2.65]), 0.15)
     pts = sensors.lidar()
     assert len(pts) == 200
     world = yaw_frame_to_world(pts, yaw) + p

@@ -5,7 +5,8 @@
 settings of a :class:`~btmission.backends.sim.SimConfig`, a seeded numpy generator, and two
 callables: ``pose()``, where the vehicle is (anything with ``time_s``, ``position`` and ``yaw``,
 world frame: a :class:`SensorPose` or a :class:`~btmission.backends.base.Telemetry`), and
-``others()``, the body spheres of the other vehicles (:class:`Body`). It never looks at a
+``others()``, the body spheres of the other vehicles (:class:`Body`; :func:`body_at` makes one
+from a reported position). It never looks at a
 vehicle's truth, only at what those callables give:
 
 * the embedded simulator's vehicles (:class:`~btmission.backends.sim.SimVehicle`) use it with
@@ -41,7 +42,7 @@ import numpy as np
 from btmission.backends.base import CameraFrame, LidarScan
 from btmission.control.mav_model import world_to_yaw_frame
 from btmission.localization.scan import OS1_32, LidarSensor, pose_matrix, simulate_scan
-from btmission.types import CameraIntrinsics, Detection, FloatArray
+from btmission.types import CameraIntrinsics, Detection, FloatArray, Vec3
 
 if TYPE_CHECKING:
     from btmission.backends.sim import Artifact, SimConfig, SimWorld
@@ -87,6 +88,13 @@ class Body(NamedTuple):
     centre: FloatArray
     """World position of the sphere's centre (m)."""
     radius: float
+
+
+def body_at(position: Vec3 | FloatArray, radius: float) -> Body:
+    """The body sphere of a vehicle at ``position`` (its reference point, e.g. the position it
+    reports): the sphere of ``radius`` resting on that point."""
+    centre: FloatArray = np.asarray(position, dtype=float) + np.array([0.0, 0.0, radius])
+    return Body(centre, radius)
 
 
 def no_bodies() -> list[Body]:

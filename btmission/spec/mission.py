@@ -27,6 +27,7 @@ from pydantic import (
     field_validator,
 )
 
+from btmission.backends.mavlink_frames import NORTH_YAW_DEG
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError, errors
 from btmission.limits import grid_shape
 from btmission.plugins import LoadedLibrary, load_library
@@ -90,6 +91,34 @@ def _map_kind(v: Any) -> str:
     return "File" if isinstance(v, dict) and "file" in v else "Generated"
 
 
+class GeodeticSpec(_Strict):
+    """Where the world's (0, 0, 0) is on the globe (world +y is true north)."""
+
+    lat: FiniteFloat = Field(
+        description="Latitude of the world origin, degrees north, -90 < lat < 90."
+    )
+    lon: FiniteFloat = Field(
+        description="Longitude of the world origin, degrees east, -180 <= lon <= 180."
+    )
+    alt: FiniteFloat = Field(0.0, description="Altitude of world z = 0 (m).")
+
+    @field_validator("lat", mode="before")
+    @classmethod
+    def _lat(cls, v: Any) -> Any:
+        if number_problem(v) is None and not -90.0 < v < 90.0:
+            raise ValueError(f"expected a latitude in degrees, -90 < lat < 90 (got {shown(v)})")
+        return v
+
+    @field_validator("lon", mode="before")
+    @classmethod
+    def _lon(cls, v: Any) -> Any:
+        if number_problem(v) is None and not -180.0 <= v <= 180.0:
+            raise ValueError(
+                f"expected a longitude in degrees, -180 <= lon <= 180 (got {shown(v)})"
+            )
+        return v
+
+
 class WorldSpec(_Strict):
     map: Annotated[
         Annotated[GeneratedMap, Tag("Generated")] | Annotated[FileMap, Tag("File")],
@@ -121,10 +150,13 @@ class OriginSpec(_Strict):
 
     position: Vec3 = Field(description="World position [x, y, z] (m) of the vehicle's EKF origin.")
     north_yaw_deg: FiniteFloat = Field(
-        90.0,
+        NORTH_YAW_DEG,
         description="World yaw (degrees, counter-clockwise from +x) of the vehicle's local north "
         "(its NED +x axis); 90: world +y is north.",
     )
+
+
+ORIGIN_FORMS = "[x, y, z] or {position: [x, y, z], north_yaw_deg: 90}"
 
 
 def _origin_shorthand(v: Any) -> Any:
@@ -137,42 +169,6 @@ def _origin_shorthand(v: Any) -> Any:
             raise ValueError(f"expected {ORIGIN_FORMS}, with finite numbers (got {shown(v)})")
         return {"position": v}
     raise ValueError(f"expected {ORIGIN_FORMS} (got {shown(v)})")
-
-
-ORIGIN_FORMS = "[x, y, z] or {position: [x, y, z], north_yaw_deg: 90}"
-
-
-class GeodeticSpec(_Strict):
-    """Where the world's (0, 0, 0) is on the globe (world +y is true north)."""
-
-    lat: FiniteFloat = Field(
-        description="Latitude of the world origin, degrees north, -90 < lat < 90."
-    )
-    lon: FiniteFloat = Field(
-        description="Longitude of the world origin, degrees east, -180 <= lon <= 180."
-    )
-    alt: FiniteFloat = Field(0.0, description="Altitude of world z = 0 (m).")
-
-    @field_validator("lat", mode="before")
-    @classmethod
-    def _lat(cls, v: Any) -> Any:
-        if _number(v) and not -90.0 < v < 90.0:
-            raise ValueError(f"expected a latitude in degrees, -90 < lat < 90 (got {shown(v)})")
-        return v
-
-    @field_validator("lon", mode="before")
-    @classmethod
-    def _lon(cls, v: Any) -> Any:
-        if _number(v) and not -180.0 <= v <= 180.0:
-            raise ValueError(
-                f"expected a longitude in degrees, -180 <= lon <= 180 (got {shown(v)})"
-            )
-        return v
-
-
-def _number(v: Any) -> bool:
-    """A finite int or float that is not a bool (the rest is left to the type's own check)."""
-    return number_problem(v) is None
 
 
 class AgentSpec(_Strict):
