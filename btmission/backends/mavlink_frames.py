@@ -20,10 +20,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from btmission.types import FloatArray, Vec3
+
+if TYPE_CHECKING:
+    from btmission.spec.mission import Mission
+
+NORTH_YAW_DEG = 90.0
+"""Default world yaw of a vehicle's local north: world +y is north (a map laid out north-up)."""
 
 WGS84_A = 6378137.0
 """Semi-major axis (m)."""
@@ -131,3 +138,27 @@ def geodetic_to_world(
     n = math.radians(lat_deg - origin.lat_deg) * m
     e = math.radians(lon_deg - origin.lon_deg) * nr * math.cos(math.radians(origin.lat_deg))
     return np.array([e, n, alt_m - origin.alt_m])
+
+
+def local_frame(origin: Vec3, north_yaw_deg: float = NORTH_YAW_DEG) -> LocalFrame:
+    """The :class:`LocalFrame` of a vehicle whose EKF origin is at ``origin`` (world ENU, m) with
+    its north ``north_yaw_deg`` degrees counter-clockwise from world +x (a mission's units)."""
+    x, y, z = (float(c) for c in origin)
+    return LocalFrame((x, y, z), wrap_pi(math.radians(north_yaw_deg)))
+
+
+def agent_frame(mission: Mission, agent_id: str) -> LocalFrame:
+    """Agent ``agent_id``'s world ↔ local NED frame: its ``origin:`` if the mission gives one,
+    else its ``start`` with north along world +y."""
+    spec = next((a for a in mission.spec.agents if a.id == agent_id), None)
+    if spec is None:
+        raise KeyError(agent_id)
+    if spec.origin is None:
+        return local_frame(spec.start)
+    return local_frame(spec.origin.position, spec.origin.north_yaw_deg)
+
+
+def mission_geodetic_origin(mission: Mission) -> GeodeticOrigin | None:
+    """The mission's ``world.origin`` (where world (0, 0, 0) is on the globe), or None."""
+    o = mission.spec.world.origin
+    return None if o is None else GeodeticOrigin(o.lat, o.lon, o.alt)

@@ -27,14 +27,15 @@ simulator carries over to a real autopilot:
   controller (what PX4 runs on board); attitude setpoints (the NMPC's output) go straight to the
   attitude loop. Tilt is limited to 0.35 rad, as in the NMPC.
 
-**Sensors.** The LiDAR returns points on the rock surfaces within range (the centres of the faces
-between rock voxels and open voxels; no occlusion), plus optional dust outliers near the
-vehicle (seed 002 §3.2.3's reason for the dust rule); the depth camera is a low-resolution
-pinhole camera ray-cast through the voxel map (for DPHR); artifacts listed in the mission are
-rendered into the depth image as spheres and detected with noisy boxes and probabilities (for the
-COMPRA object localiser). The full-range 3D LiDAR scan (``lidar_scan``, for global
-relocalization) casts every beam of an OS1-32-like sensor through the voxel map from the vehicle's
-true pose, gravity-aligned, with range noise from the simulator's seeded generator.
+**Sensors** are :class:`~btmission.backends.mapsensors.MapSensors` at the vehicle's true pose,
+with the simulator's generator and the other vehicles' body spheres: the LiDAR returns points on
+the rock surfaces within range (the centres of the faces between rock voxels and open voxels; no
+occlusion), plus optional dust outliers near the vehicle (seed 002 §3.2.3's reason for the dust
+rule); the depth camera is a low-resolution pinhole camera ray-cast through the voxel map (for
+DPHR); artifacts listed in the mission are rendered into the depth image as spheres and detected
+with noisy boxes and probabilities (for the COMPRA object localiser). The full-range 3D LiDAR scan
+(``lidar_scan``, for global relocalization) casts every beam of an OS1-32-like sensor through the
+voxel map, gravity-aligned, with range noise from the simulator's seeded generator.
 
 **Collisions.** A vehicle is a sphere of radius ``body_radius_m`` whose bottom touches the
 ground when landed. It collides with rock when the sphere reaches a wall or roof face, when its
@@ -61,10 +62,11 @@ from btmission.backends.base import (
     Telemetry,
     VehicleKind,
 )
+from btmission.backends.mapsensors import Body, MapSensors, SensorPose
 from btmission.backends.provider import Vehicle, VehicleEvent
 from btmission.control.mav_model import MavParams, mav_dynamics, rk4_step, world_to_yaw_frame
-from btmission.localization.scan import OS1_32, LidarSensor, pose_matrix, simulate_scan
-from btmission.types import CameraIntrinsics, Detection, FloatArray, Vec3
+from btmission.localization.scan import LidarSensor
+from btmission.types import FloatArray, Vec3
 from btmission.world.voxel import OCCUPIED, VoxelMap
 
 if TYPE_CHECKING:
@@ -74,9 +76,6 @@ LAND_SPEED = 0.7
 TILT_MAX = 0.35
 IMPACT_SPEED = 2.0
 YAW_RATE_MAX = 0.8
-VEHICLE_POINTS = 200
-"""Points another vehicle returns in a LiDAR scan (a 0.5 m drone 1-2 m away in a VLP-16 scan
-gives hundreds)."""
 CONTACT_GAP_S = 0.5
 WALL_QUERY_M = 5.0
 """Clearances beyond this are reported as inf (nothing near enough to matter)."""
@@ -543,8 +542,8 @@ class SimVehicle(OffboardCommands):
         self._ap = vehicle
         self.id = vehicle.id
         self.kind = vehicle.kind
-        self._camera_cache: tuple[float, CameraFrame] | None = None
-        self._scan_cache: LidarScan | None = None
+        self.sensors = MapSensors(sim.world, sim.config, sim.rng, self._pose, self._other_bodies)
+        """The vehicle's LiDAR and camera, ray-cast at its true pose."""
 
     # ---------------------------------------------- commands and setpoints: OffboardCommands
     def _ap_time(self) -> float:
@@ -581,119 +580,42 @@ class SimVehicle(OffboardCommands):
         return self._v.failsafe
 
     # ------------------------------------------------------------------ sensors
-    scan_sensor: LidarSensor = OS1_32
-    """The 3D LiDAR of :meth:`lidar_scan` (seed 000's platforms carry an Ouster OS1-32)."""
-    lidar_mount_m: float = 0.2
-    """Height of that LiDAR above the vehicle's reference point (the bottom of its body)."""
+    @property
+    def scan_sensor(self) -> LidarSensor:
+        """The 3D LiDAR of :meth:`lidar_scan` (seed 000's platforms carry an Ouster OS1-32)."""
+        return self.sensors.scan_sensor
+
+    @property
+    def lidar_mount_m(self) -> float:
+        """Height of that LiDAR above the vehicle's reference point (the bottom of its body)."""
+        return self.sensors.lidar_mount_m
 
     def lidar_scan(self) -> LidarScan:
-        """A full turn of the 3D LiDAR at the vehicle's true pose: every beam of
-        :attr:`scan_sensor` ray-cast through the voxel map
-        (:func:`~btmission.localization.scan.simulate_scan`, with its range noise drawn from the
-        simulator's generator, so a seed gives the same scans). The sensor sits
-        :attr:`lidar_mount_m` above the vehicle and is gravity-aligned (x along the heading,
-        z up): the points are what a LiDAR-inertial driver gives. Other vehicles are not in it
-        (the voxel map is static). One scan per simulation step: asking again in the same step
-        returns the same scan."""
-        sim = self._sim
-        cached = self._scan_cache
-        if cached is not None and cached.time_s == sim.time_s:
-            return cached
-        v = self._v
-        p = v.position
-        pose = pose_matrix(float(p[0]), float(p[1]), float(p[2]) + self.lidar_mount_m, v.yaw)
-        points = simulate_scan(sim.world.map, pose, self.scan_sensor, rng=sim.rng)
-        mount = pose_matrix(0.0, 0.0, self.lidar_mount_m)
-        scan = LidarScan(sim.time_s, points, mount, self.scan_sensor.name)
-        self._scan_cache = scan
-        return scan
+        """A full turn of the 3D LiDAR at the vehicle's true pose
+        (:meth:`MapSensors.lidar_scan <btmission.backends.mapsensors.MapSensors.lidar_scan>`,
+        noise from the simulator's generator). One scan per simulation step."""
+        return self.sensors.lidar_scan()
 
     def lidar(self) -> FloatArray:
-        sim = self._sim
-        cfg = sim.config
-        p = self._v.position
-        pts = sim.world.surface_points(p, cfg.lidar_range_m) - p
-        others = [
-            sim._centre(o) - p + _SPHERE * sim._radius(o)
-            for o in sim._vehicles.values()
-            if o is not self._v and float(np.linalg.norm(o.position - p)) < cfg.lidar_range_m
-        ]
-        if others:  # other vehicles are seen as points on their body spheres
-            pts = np.vstack([pts, *others])
-        if cfg.dust_points:
-            dust = sim.rng.normal(0.0, 0.25, (cfg.dust_points, 3))
-            pts = np.vstack([pts, dust])
-        return world_to_yaw_frame(pts, self._v.yaw)
+        """Rock faces and the other vehicles' bodies within range, plus dust
+        (:meth:`MapSensors.lidar <btmission.backends.mapsensors.MapSensors.lidar>`)."""
+        return self.sensors.lidar()
 
     def camera(self) -> CameraFrame:
-        """Depth image (z-depth, 0 = no return) from a forward-looking level camera, with the
-        artifacts in view detected (noisy box, probability 0.6-0.95)."""
+        """Depth image from a forward-looking level camera with the artifacts in view detected
+        (:meth:`MapSensors.camera <btmission.backends.mapsensors.MapSensors.camera>`); one frame
+        per simulation step."""
+        return self.sensors.camera()
+
+    def _pose(self) -> SensorPose:
+        v = self._v
+        return SensorPose(self._sim.time_s, v.position, v.yaw)
+
+    def _other_bodies(self) -> list[Body]:
         sim = self._sim
-        if self._camera_cache is not None and self._camera_cache[0] == sim.time_s:
-            return self._camera_cache[1]
-        cfg = sim.config
-        w, h = cfg.camera_size
-        fx = (w / 2) / math.tan(math.radians(cfg.camera_hfov_deg) / 2)
-        intr = CameraIntrinsics(fx, fx, (w - 1) / 2, (h - 1) / 2)
-        p = self._v.position + np.array([0.0, 0.0, 0.1])
-        yaw = self._v.yaw
-        c, s = math.cos(yaw), math.sin(yaw)
-        # optical frame (x right, y down, z forward) → world, for a level camera facing yaw
-        rot = np.array([[s, 0.0, c], [-c, 0.0, s], [0.0, -1.0, 0.0]])
-        uu, vv = np.meshgrid((np.arange(w) - intr.cx) / fx, (np.arange(h) - intr.cy) / fx)
-        rays = np.column_stack([uu.ravel(), vv.ravel(), np.ones(w * h)]) @ rot.T
-        norm = np.linalg.norm(rays, axis=1)
-        dirs = rays / norm[:, None]
-        dist = sim.world.raycast(p, dirs, cfg.camera_range_m)
-        seen: list[tuple[Artifact, float]] = []
-        for art in sim.world.artifacts:
-            d = _ray_sphere(p, dirs, np.asarray(art.position), art.size_m / 2)
-            closer = d < dist
-            if np.any(closer):
-                dist = np.where(closer, d, dist)
-                seen.append((art, float(np.min(d))))
-        z = dist / norm  # distance along the ray → depth along the optical axis
-        depth = np.where(z <= cfg.camera_range_m, z, 0.0).reshape(h, w)
-        dets: list[Detection] = []
-        for art, _rng_m in seen:
-            rel = rot.T @ (np.asarray(art.position) - p)
-            if rel[2] <= 0.1:
-                continue
-            u = fx * rel[0] / rel[2] + intr.cx
-            vpx = fx * rel[1] / rel[2] + intr.cy
-            size_px = fx * art.size_m / rel[2]
-            noise = sim.rng.normal(0.0, cfg.detection_noise_px, 2)
-            x0 = u - size_px / 2 + noise[0]
-            y0 = vpx - size_px / 2 + noise[1]
-            if not (0 <= u < w and 0 <= vpx < h):
-                continue
-            prob = float(sim.rng.uniform(0.6, 0.95))
-            dets.append(Detection(sim.time_s, art.label, prob, (x0, y0, size_px, size_px)))
-        frame = CameraFrame(sim.time_s, depth, intr, rot, p, tuple(dets))
-        self._camera_cache = (sim.time_s, frame)
-        return frame
-
-
-def _fibonacci_sphere(n: int) -> FloatArray:
-    """``n`` points spread evenly on the unit sphere."""
-    k = np.arange(n) + 0.5
-    z = 1 - 2 * k / n
-    r = np.sqrt(1 - z * z)
-    phi = math.pi * (1 + 5**0.5) * k
-    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
-
-
-_SPHERE = _fibonacci_sphere(VEHICLE_POINTS)
-
-
-def _ray_sphere(origin: FloatArray, dirs: FloatArray, centre: FloatArray, r: float) -> FloatArray:
-    """Distance along each unit ray to a sphere (inf where it misses)."""
-    oc = origin - centre
-    b = dirs @ oc
-    c = float(oc @ oc) - r * r
-    disc = b * b - c
-    t = -b - np.sqrt(np.maximum(disc, 0.0))
-    return np.where((disc >= 0) & (t > 0), t, math.inf)
+        return [
+            Body(sim._centre(o), sim._radius(o)) for o in sim._vehicles.values() if o is not self._v
+        ]
 
 
 class SimProvider:
@@ -746,15 +668,25 @@ class SimProvider:
         """Nothing to release: the simulator lives in this process."""
 
 
-def sim_provider(mission: Mission, voxel_map: VoxelMap, seed: int) -> SimProvider:
-    """The ``sim`` entry point of ``btmission.providers``: a simulator of the mission's world
-    with its ``runtime.sim`` settings and artifacts, seeded with the run's seed."""
+def sim_config(mission: Mission) -> SimConfig:
+    """The simulator (and map-sensor) settings of a mission's ``runtime.sim`` section."""
     spec = mission.spec.runtime.sim
-    config = SimConfig(
+    return SimConfig(
         step_s=spec.step_s,
         lidar_range_m=spec.lidar_range_m,
         dust_points=spec.dust_points,
         detection_noise_px=spec.detection_noise_px,
     )
-    artifacts = [Artifact(a.label, a.position, a.size_m) for a in spec.artifacts]
+
+
+def mission_artifacts(mission: Mission) -> list[Artifact]:
+    """The objects a mission places in the world for the cameras (``runtime.sim.artifacts``)."""
+    return [Artifact(a.label, a.position, a.size_m) for a in mission.spec.runtime.sim.artifacts]
+
+
+def sim_provider(mission: Mission, voxel_map: VoxelMap, seed: int) -> SimProvider:
+    """The ``sim`` entry point of ``btmission.providers``: a simulator of the mission's world
+    with its ``runtime.sim`` settings and artifacts, seeded with the run's seed."""
+    config = sim_config(mission)
+    artifacts = mission_artifacts(mission)
     return SimProvider(Simulator(voxel_map, config, seed=seed, artifacts=artifacts))

@@ -27,6 +27,7 @@ from pydantic import (
     field_validator,
 )
 
+from btmission.backends.mavlink_frames import NORTH_YAW_DEG
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError, errors
 from btmission.limits import grid_shape
 from btmission.plugins import LoadedLibrary, load_library
@@ -37,6 +38,7 @@ from btmission.spec.common import (
     Identifier,
     Int,
     number_problem,
+    shown,
     validate_model,
 )
 from btmission.spec.costexpr import CostExpr, CostExprError, parse_cost
@@ -89,6 +91,34 @@ def _map_kind(v: Any) -> str:
     return "File" if isinstance(v, dict) and "file" in v else "Generated"
 
 
+class GeodeticSpec(_Strict):
+    """Where the world's (0, 0, 0) is on the globe (world +y is true north)."""
+
+    lat: FiniteFloat = Field(
+        description="Latitude of the world origin, degrees north, -90 < lat < 90."
+    )
+    lon: FiniteFloat = Field(
+        description="Longitude of the world origin, degrees east, -180 <= lon <= 180."
+    )
+    alt: FiniteFloat = Field(0.0, description="Altitude of world z = 0 (m).")
+
+    @field_validator("lat", mode="before")
+    @classmethod
+    def _lat(cls, v: Any) -> Any:
+        if number_problem(v) is None and not -90.0 < v < 90.0:
+            raise ValueError(f"expected a latitude in degrees, -90 < lat < 90 (got {shown(v)})")
+        return v
+
+    @field_validator("lon", mode="before")
+    @classmethod
+    def _lon(cls, v: Any) -> Any:
+        if number_problem(v) is None and not -180.0 <= v <= 180.0:
+            raise ValueError(
+                f"expected a longitude in degrees, -180 <= lon <= 180 (got {shown(v)})"
+            )
+        return v
+
+
 class WorldSpec(_Strict):
     map: Annotated[
         Annotated[GeneratedMap, Tag("Generated")] | Annotated[FileMap, Tag("File")],
@@ -100,6 +130,11 @@ class WorldSpec(_Strict):
         description="Topological map for GA fleet dispatch (seed 004): a built-in map (mine, "
         "static_npr, static_spr) or a map YAML file relative to the mission. Default: none.",
     )
+    origin: GeodeticSpec | None = Field(
+        None,
+        description="Where world (0, 0, 0) is on the globe, {lat, lon, alt}, for MAVLink "
+        "vehicles with GPS (or given a GPS origin); world +y is north. Ignored by sim.",
+    )
 
     @field_validator("resolution")
     @classmethod
@@ -108,6 +143,32 @@ class WorldSpec(_Strict):
         m = info.data.get("map")
         grid_shape(m.size if isinstance(m, GeneratedMap) else (1.0, 1.0, 1.0), v)
         return v
+
+
+class OriginSpec(_Strict):
+    """Where a MAVLink vehicle's local NED frame (its EKF origin) is in the world."""
+
+    position: Vec3 = Field(description="World position [x, y, z] (m) of the vehicle's EKF origin.")
+    north_yaw_deg: FiniteFloat = Field(
+        NORTH_YAW_DEG,
+        description="World yaw (degrees, counter-clockwise from +x) of the vehicle's local north "
+        "(its NED +x axis); 90: world +y is north.",
+    )
+
+
+ORIGIN_FORMS = "[x, y, z] or {position: [x, y, z], north_yaw_deg: 90}"
+
+
+def _origin_shorthand(v: Any) -> Any:
+    """``origin: [x, y, z]`` is ``origin: {position: [x, y, z]}``; anything but a list or a
+    mapping is refused with what is expected (not pydantic's union of both shapes)."""
+    if v is None or isinstance(v, dict):
+        return v
+    if isinstance(v, list):
+        if len(v) != 3 or any(number_problem(x) is not None for x in v):
+            raise ValueError(f"expected {ORIGIN_FORMS}, with finite numbers (got {shown(v)})")
+        return {"position": v}
+    raise ValueError(f"expected {ORIGIN_FORMS} (got {shown(v)})")
 
 
 class AgentSpec(_Strict):
@@ -119,6 +180,14 @@ class AgentSpec(_Strict):
         description="The vehicle provider: 'sim' (embedded simulator) or <scheme>://<address> "
         "of an installed provider, such as mavlink+udp://127.0.0.1:14540",
         json_schema_extra={"pattern": BACKEND_RE},
+    )
+    origin: Annotated[
+        OriginSpec | None,
+        BeforeValidator(_origin_shorthand, json_schema_input_type=Vec3 | OriginSpec | None),
+    ] = Field(
+        None,
+        description="MAVLink vehicles: where the vehicle's local NED origin (its EKF origin) is "
+        "in the world, " + ORIGIN_FORMS + "; default: its start, north along +y. Ignored by sim.",
     )
 
     @field_validator("backend")
