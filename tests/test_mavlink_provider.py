@@ -9,6 +9,8 @@ from __future__ import annotations
 import socket
 import time
 from collections.abc import Callable
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -293,3 +295,70 @@ def test_the_sysid_in_the_url_picks_the_vehicle_behind_a_shared_port() -> None:
                 (5.0, 5.0, 0.0),
                 url=f"mavlink+udp://127.0.0.1:{port}?sysid=7",
             )
+
+
+# ------------------------------------------------------------------------------ from a mission
+def factory_provider(tmp_path: Path, url: str, extra_world: str = "", mavlink: str = "") -> Any:
+    """The ``mavlink`` provider as ``run`` builds it, for a one-drone mission at ``url``."""
+    from btmission.backends.provider import provider_factory
+    from btmission.spec.mission import load_mission_text
+    from btmission.world.build import world_from_spec
+
+    text = (
+        "mission: m\nversion: 1\n"
+        f"world: {{map: {{generate: empty, size: [30, 30, 8]}}, resolution: 0.5{extra_world}}}\n"
+        f"agents:\n  - {{id: R1, library: aerial, start: [5, 5, 0], backend: '{url}'}}\n"
+        "tasks: []\ntask_types: {}\n"
+        f"runtime: {{mavlink: {{time_scale: {SPEED}, connect_timeout_s: 5{mavlink}}}}}\n"
+    )
+    mission = load_mission_text(text, str(tmp_path / "m.yaml"))
+    return provider_factory("mavlink")(mission, world_from_spec(mission.spec.world, tmp_path), 0)
+
+
+def test_map_sensors_look_from_the_reported_pose(tmp_path: Path) -> None:
+    from btmission.backends.mapsensors import MapSensors
+
+    with mavsim(PX4) as sim:
+        p = factory_provider(tmp_path, sim.endpoints[0].url, mavlink=", map_sensors: true")
+        try:
+            v = p.attach("R1", VehicleKind.MULTIROTOR, START, url=sim.endpoints[0].url)
+            assert isinstance(v.sensors, MapSensors)
+            frame = v.sensors.camera()
+            np.testing.assert_allclose(
+                frame.translation, v.backend.telemetry().position + np.array([0, 0, 0.1]), atol=0.05
+            )
+        finally:
+            p.close()
+        p = factory_provider(tmp_path, sim.endpoints[0].url)  # default: none
+        try:
+            assert (
+                p.attach("R1", VehicleKind.MULTIROTOR, START, url=sim.endpoints[0].url).sensors
+                is None
+            )
+        finally:
+            p.close()
+
+
+def test_a_vehicle_without_a_global_origin_gets_the_worlds(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from btmission.backends.mavlink_frames import GeodeticOrigin, world_to_geodetic
+
+    with mavsim(PX4) as sim:
+        p = factory_provider(
+            tmp_path,
+            sim.endpoints[0].url,
+            extra_world=", origin: {lat: -35.36, lon: 149.16, alt: 584}",
+        )
+        try:
+            v = p.attach("R1", VehicleKind.MULTIROTOR, START, url=sim.endpoints[0].url)
+            lat, lon, alt = world_to_geodetic(START, GeodeticOrigin(-35.36, 149.16, 584.0))
+            got = v.backend.state.global_origin  # type: ignore[attr-defined]
+            assert got == pytest.approx((lat, lon, alt), abs=1e-6)
+            assert got[0] != -35.36  # the drone's own origin, 5 m from the world's
+        finally:
+            p.close()
+    assert (
+        f"R1: global origin set to {lat:.7f}, {lon:.7f}, {alt:.1f} m (confirmed)"
+        in capsys.readouterr().err
+    )

@@ -3,6 +3,7 @@ a run gets its vehicles, and the interface module's independence from the algori
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 import textwrap
@@ -227,7 +228,12 @@ def test_a_run_gets_its_vehicles_from_the_agents_provider(
         ("G1", VehicleKind.GROUND, "replay://a"),
         ("G2", VehicleKind.GROUND, "replay://b"),
     ]
-    assert made.attached[0][4] == {"v_max": run.nav_config.speed_m_s}  # the navigator's speed
+    # the navigator's speed, and where the vehicle's local frame is (its start, north along +y)
+    assert made.attached[0][4] == {
+        "v_max": run.nav_config.speed_m_s,
+        "origin": made.attached[0][2],
+        "north_yaw": pytest.approx(math.pi / 2),
+    }
     result = run.run()
     assert result.reason == "completed" and result.steps == len(made.steps) > 0
     assert set(made.steps) == {run.dt}

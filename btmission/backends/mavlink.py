@@ -50,8 +50,13 @@ import numpy as np
 
 from btmission.backends._pymavlink import mavlink, mavutil
 from btmission.backends.autopilot import OFFBOARD_LOSS_S, STREAM_MIN_HZ, STREAM_MIN_S
-from btmission.backends.base import ACCEPTED, Ack, Mode, Telemetry, VehicleKind
-from btmission.backends.mavlink_frames import LocalFrame
+from btmission.backends.base import ACCEPTED, Ack, Mode, Sensors, Telemetry, VehicleKind
+from btmission.backends.mavlink_frames import (
+    GeodeticOrigin,
+    LocalFrame,
+    mission_geodetic_origin,
+    world_to_geodetic,
+)
 from btmission.backends.mavlink_modes import (
     Autopilot,
     UnsupportedMode,
@@ -209,6 +214,8 @@ class _State:
     range_m: float | None = None
     range_at: float = -math.inf
     home_alt_m: float | None = None
+    global_origin: tuple[float, float, float] | None = None
+    """The vehicle's EKF global origin (lat, lon, alt m), when it has told one."""
     ekf_flags: int | None = None
     estimator_ok: bool | None = None
     texts: collections.deque[tuple[float, int, str]] = field(
@@ -457,6 +464,8 @@ class _LinkIO:
             if msg.orientation == mavlink.MAV_SENSOR_ROTATION_PITCH_270:
                 st.range_m = msg.current_distance / 100.0
                 st.range_at = now
+        elif kind == "GPS_GLOBAL_ORIGIN":
+            st.global_origin = (msg.latitude / 1e7, msg.longitude / 1e7, msg.altitude / 1000.0)
         elif kind == "HOME_POSITION":
             st.home_alt_m = msg.altitude / 1000.0
         elif kind == "EKF_STATUS_REPORT":
@@ -949,8 +958,16 @@ class MavlinkProvider:
         options: MavlinkOptions | None = None,
         ground_at: Callable[[FloatArray], float] | None = None,
         progress: Callable[[str], None] | None = None,
+        *,
+        geodetic: GeodeticOrigin | None = None,
+        sensors: Callable[[MavlinkVehicle], Sensors] | None = None,
     ) -> None:
+        """``geodetic``: where the world's origin is on Earth (``world.origin``): a vehicle
+        that knows no global origin gets its own (SET_GPS_GLOBAL_ORIGIN). ``sensors``: map
+        sensors for each vehicle (``runtime.mavlink.map_sensors``), else none."""
         self.options = options or MavlinkOptions()
+        self._geodetic = geodetic
+        self._sensors = sensors
         self.clock = ScaledWallClock(self.options.time_scale)
         self._io = _LinkIO(self.clock, self.options)
         self._ground_at = ground_at
@@ -1000,6 +1017,8 @@ class MavlinkProvider:
             agent_id, kind, link, state, frame, self.clock, opts, self._ground_at, self._io.wake
         )
         self._request_streams(vehicle)
+        if self._geodetic is not None:
+            self._set_global_origin(vehicle, deadline)
         while state.position is None:
             if time.monotonic() > deadline:
                 raise MavlinkError(
@@ -1014,7 +1033,8 @@ class MavlinkProvider:
                 f"{agent_id}: {state.autopilot.value} sysid {state.sysid} "
                 f"({_type_name(state.mav_type)}) at {address.url()}"
             )
-        return Vehicle(agent_id, kind, vehicle, None, link_ok=vehicle.link_ok)
+        sensors = self._sensors(vehicle) if self._sensors is not None else None
+        return Vehicle(agent_id, kind, vehicle, sensors, link_ok=vehicle.link_ok)
 
     def _wait_heartbeat(
         self, agent_id: str, link: _Link, address: MavlinkAddress, deadline: float
@@ -1070,6 +1090,35 @@ class MavlinkProvider:
         vehicle.command(
             mavlink.MAV_CMD_REQUEST_MESSAGE, float(mavlink.MAVLINK_MSG_ID_HOME_POSITION)
         )
+
+    def _set_global_origin(self, vehicle: MavlinkVehicle, deadline: float) -> None:
+        """Give a vehicle without a global origin (no GPS: underground) the geodetic position of
+        its local origin, and wait until it confirms (GPS_GLOBAL_ORIGIN)."""
+        assert self._geodetic is not None
+        st = vehicle.state
+        ack = vehicle.command(
+            mavlink.MAV_CMD_REQUEST_MESSAGE, float(mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
+        )
+        if ack.accepted:
+            end = min(deadline, time.monotonic() + 1.0)
+            while st.global_origin is None and time.monotonic() < end:
+                time.sleep(0.02)
+        if st.global_origin is not None:
+            return  # it has one (its GPS, or set before)
+        lat, lon, alt = world_to_geodetic(vehicle.frame.origin, self._geodetic)
+        vehicle.link.send(
+            lambda mav: mav.set_gps_global_origin_send(
+                st.sysid, round(lat * 1e7), round(lon * 1e7), round(alt * 1000), 0
+            )
+        )
+        end = min(deadline, time.monotonic() + 2.0)
+        while st.global_origin is None and time.monotonic() < end:
+            time.sleep(0.02)
+        if self._progress is not None:
+            said = "confirmed" if st.global_origin is not None else "not confirmed"
+            self._progress(
+                f"{vehicle.id}: global origin set to {lat:.7f}, {lon:.7f}, {alt:.1f} m ({said})"
+            )
 
     def _check_io(self) -> None:
         if self._io.error is not None:
@@ -1134,9 +1183,12 @@ def _type_name(mav_type: int) -> str:
 
 def mavlink_provider(mission: Mission, voxel_map: VoxelMap, seed: int) -> MavlinkProvider:
     """The ``mavlink`` entry point of ``btmission.providers``: the mission's
-    ``runtime.mavlink`` settings; ground heights from the mission map when a vehicle has no
-    downward range finder."""
-    from btmission.backends.sim import SimWorld
+    ``runtime.mavlink`` settings, its ``world.origin``; ground heights from the mission map when
+    a vehicle has no downward range finder; with ``map_sensors``, each vehicle's LiDAR and
+    camera ray-cast in the mission map at the pose it reports
+    (:class:`~btmission.backends.mapsensors.MapSensors`, as SITL users get from Gazebo)."""
+    from btmission.backends.mapsensors import MapSensors
+    from btmission.backends.sim import SimWorld, mission_artifacts, sim_config
 
     spec = mission.spec.runtime.mavlink
     options = MavlinkOptions(
@@ -1150,8 +1202,22 @@ def mavlink_provider(mission: Mission, voxel_map: VoxelMap, seed: int) -> Mavlin
         signing_key=load_key(),
         on_stop=spec.on_stop,
     )
-    world = SimWorld(voxel_map)
-    return MavlinkProvider(options, ground_at=world.ground_z, progress=_to_stderr)
+    world = SimWorld(voxel_map, mission_artifacts(mission))
+    sensors: Callable[[MavlinkVehicle], Sensors] | None = None
+    if spec.map_sensors:
+        config = sim_config(mission)
+        rng = np.random.default_rng(seed)
+
+        def sensors(vehicle: MavlinkVehicle) -> Sensors:
+            return MapSensors(world, config, rng, vehicle.telemetry)
+
+    return MavlinkProvider(
+        options,
+        ground_at=world.ground_z,
+        progress=_to_stderr,
+        geodetic=mission_geodetic_origin(mission),
+        sensors=sensors,
+    )
 
 
 def _to_stderr(text: str) -> None:

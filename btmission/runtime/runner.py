@@ -42,6 +42,7 @@ from typing import TYPE_CHECKING, Any
 
 from btmission.allocation.tasks import TaskInfo, TaskState
 from btmission.backends.base import Backend, VehicleKind
+from btmission.backends.mavlink_frames import agent_frame
 from btmission.backends.provider import (
     Vehicle,
     VehicleProvider,
@@ -297,13 +298,16 @@ class MissionRun:
         return out
 
     def _build_agents(self) -> None:
+        blind: list[str] = []
         for spec in self.mission.agents:
             loaded = self.mission.library_of(spec.id)
             impl = loaded.implementations
             assert impl is not None  # run_problems() checked it
             kind = vehicle_kind(impl)
             ground = kind is VehicleKind.GROUND
-            options = {"v_max": self.nav_config.speed_m_s} if ground else {}
+            options: dict[str, Any] = {"v_max": self.nav_config.speed_m_s} if ground else {}
+            frame = agent_frame(self.mission, spec.id)  # where a real vehicle's EKF origin is
+            options.update(origin=frame.origin, north_yaw=frame.north_yaw)
             try:
                 vehicle = self.provider.attach(
                     spec.id, kind, spec.start, url=spec.backend, **options
@@ -316,6 +320,8 @@ class MissionRun:
                 )
                 raise VehicleUnavailable(problem.format()) from None
             self.vehicles[spec.id] = vehicle
+            if vehicle.sensors is None:
+                blind.append(spec.id)
             control_dt = 0.1 if ground else self.dt
             link = self.bus.agent_link(spec.id)  # the agent's end of the coordinator link
 
@@ -354,6 +360,13 @@ class MissionRun:
                 cost_provider=self.roads if ground else None,  # road costs; drones fly
                 substitutions=self.substitutions,
                 vehicle_link=vehicle.link_ok,
+            )
+        if blind:
+            self.emit(
+                "warning",
+                message=f"{', '.join(blind)}: no exteroceptive sensors (a real vehicle's come "
+                "from its drivers): planning on the prior map only, reactive avoidance (APF on "
+                "the LiDAR) is off",
             )
 
     def _emit_header(self) -> None:
