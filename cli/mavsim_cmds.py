@@ -28,9 +28,8 @@ from btmission.cli.common import BadInput, FiniteFloat, handle_spec_errors
 @click.option(
     "--autopilot",
     type=click.Choice(["px4", "ardupilot"]),
-    default="px4",
-    show_default=True,
-    help="Firmware behaviour: PX4 (OFFBOARD, UDP 14540+i) or ArduPilot (GUIDED, TCP 5760+10i).",
+    help="Firmware behaviour: PX4 (OFFBOARD, UDP 14540+i) or ArduPilot (GUIDED, TCP 5760+10i) "
+    "[default: as the SITLs serve them: ardupilot for a mission's mavlink+tcp agents, else px4].",
 )
 @click.option(
     "--port", type=click.IntRange(1, 65535), help="First port for --count (default per firmware)."
@@ -64,7 +63,7 @@ from btmission.cli.common import BadInput, FiniteFloat, handle_spec_errors
 def mavsim(
     mission_path: Path | None,
     count: int | None,
-    autopilot: str,
+    autopilot: str | None,
     port: int | None,
     speed: float | None,
     ekf_delay: float,
@@ -93,7 +92,7 @@ def mavsim(
 
     if (mission_path is None) == (count is None):
         raise BadInput("give either --mission FILE or --count N")
-    ap = Autopilot(autopilot)
+    ap = Autopilot(autopilot or "px4")
     try:
         key = load_key(signing_key_file)
     except SigningKeyError as exc:
@@ -109,6 +108,8 @@ def mavsim(
             raise BadInput(
                 f"{mission_path}: no agent has a mavlink+udp:// or mavlink+tcp:// backend to serve"
             )
+        if autopilot is None and all(s.address.transport == "tcp" for s in specs):
+            ap = Autopilot.ARDUPILOT
         voxel_map = world_from_spec(mission.spec.world, mission.base_dir)
         if speed is None:
             speed = mission.spec.runtime.mavlink.time_scale

@@ -230,6 +230,9 @@ def test_signed_links_fly_and_a_wrong_key_is_refused_and_counted() -> None:
             with pytest.raises(MavlinkError, match="no heartbeat"):
                 attach(p, sim)
             assert p.rejected().get("bad_signature", 0) > 0
+            said: list[str] = []
+            p._progress = said.append  # type: ignore[assignment]
+        assert said and said[-1].startswith("MAVLink messages refused: bad signature ")
         with provider(connect_timeout_s=1.0, ack_timeout_s=0.3) as p:  # unsigned: dropped
             with pytest.raises(
                 MavlinkError,

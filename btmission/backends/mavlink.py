@@ -1150,6 +1150,12 @@ class MavlinkProvider:
         self._closed = True
         try:
             self.stop_vehicles()
+            refused = self.rejected()
+            if refused and self._progress is not None:
+                self._progress(
+                    "MAVLink messages refused: "
+                    + ", ".join(f"{why.replace('_', ' ')} {n}" for why, n in sorted(refused.items()))
+                )
         finally:
             self._io.close()
 

@@ -102,8 +102,13 @@ def enable_signing(conn: Any, key: bytes, *, link_id: int | None = None) -> None
     ``key``, with the signature verified before the replay window moves."""
     if len(key) != 32:
         raise SigningKeyError(f"a MAVLink signing key is 32 bytes, got {len(key)}")
-    conn.setup_signing(key, sign_outgoing=True, allow_unsigned_callback=None, link_id=link_id)
+    conn.setup_signing(key, sign_outgoing=True, allow_unsigned_callback=_refuse, link_id=link_id)
     conn.mav.check_signature = types.MethodType(_check_signature, conn.mav)
+
+
+def _refuse(mav: Any, msg_id: int) -> bool:
+    """No unsigned message is accepted (given as pymavlink's callback so that it counts them)."""
+    return False
 
 
 def signing_counters(conn: Any) -> dict[str, int]:
@@ -111,7 +116,7 @@ def signing_counters(conn: Any) -> dict[str, int]:
     s = conn.mav.signing
     return {
         "signed_ok": int(s.goodsig_count),
-        "unsigned_refused": int(s.reject_count),
+        "unsigned_refused": int(s.reject_count) - int(s.badsig_count),
         "bad_signature": int(getattr(s, "bad_signature_count", 0)),
         "replay": int(getattr(s, "replay_count", 0)),
     }
