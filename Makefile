@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test test-all install system-deps bench lint clean
+.PHONY: demo test test-all test-slow install system-deps bench lint clean
 
 # After installing, compile the numba kernels (D*+, GA, ray casting) once: ~25 s here, instead
 # of in the middle of the first mission or test run (btmission/warmup.py).
@@ -37,6 +37,10 @@ test: install
 
 test-all: install
 	$(VENV)/bin/pytest -q -m ""
+
+# The long end-to-end tests (missions on mavsim's MAVLink vehicles, the shipped missions ...).
+test-slow: install
+	$(VENV)/bin/pytest -q -m slow --durations=10
 
 bench: install
 	$(VENV)/bin/btmission bench synth

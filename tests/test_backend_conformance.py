@@ -41,10 +41,11 @@ PROVIDERS = [
     pytest.param("sim", id="sim"),
     pytest.param("fake", id="fake"),
     pytest.param("mavlink-px4", id="mavlink-px4"),
-    pytest.param("mavlink-ardupilot", id="mavlink-ardupilot"),
+    pytest.param("mavlink-ardupilot", id="mavlink-ardupilot", marks=pytest.mark.slow),
 ]
 """The providers under test; each gets the same mission (below). ``mavlink-*``: the MAVLink
-provider against mavsim (in this process, on loopback) with PX4 or ArduPilot behaviour."""
+provider against mavsim (in this process, on loopback) with PX4 or ArduPilot behaviour (the
+ArduPilot run is in the slow selection, which CI runs too)."""
 
 LATENCY_S = 0.6
 """What a real link adds before a vehicle's reaction shows in its telemetry (the provider keeps

@@ -5,11 +5,13 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
+import pytest
 from click.testing import CliRunner
 
 from btmission.cli.main import cli
 
 
+@pytest.mark.slow
 def test_a_two_vehicle_run_measures_rates_jitter_and_cpu(tmp_path: Path) -> None:
     result = CliRunner().invoke(
         cli, ["bench", "mavlink", "--vehicles", "2", "--seconds", "1", "--out", str(tmp_path)]

@@ -101,6 +101,7 @@ def client(autopilot: Autopilot, **config: Any) -> Iterator[Client]:
             c.close()
 
 
+@pytest.mark.slow
 def test_heartbeats_say_the_firmware_and_streams_come_only_when_asked() -> None:
     with client(Autopilot.PX4) as c:
         hb = c.wait("HEARTBEAT")
@@ -136,6 +137,7 @@ def test_px4_lands_when_the_ground_station_goes_silent() -> None:
         assert state["mode"] is Mode.LAND and state["failsafe"] == "data link lost: landing"
 
 
+@pytest.mark.slow
 def test_ardupilot_velocity_targets_stop_after_3_s_and_gcs_loss_lands() -> None:
     with client(Autopilot.ARDUPILOT) as c:
         c.heartbeat()
@@ -198,6 +200,7 @@ def test_the_cli_refuses_bad_input_with_exit_2(tmp_path: Path) -> None:
     assert "no agent has a mavlink+udp:// or mavlink+tcp:// backend to serve" in result.output
 
 
+@pytest.mark.slow
 def test_the_cli_serves_until_sigterm_and_says_what_it_did() -> None:
     proc = subprocess.Popen(
         [sys.executable, "-m", "btmission", "mavsim", "--count", "1", "--port", "26540"],

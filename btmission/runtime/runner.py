@@ -96,6 +96,9 @@ from btmission.world.voxel import VoxelMap
 if TYPE_CHECKING:
     from btmission.runtime.roads import RoadCosts
 
+LATE_STEPS_WARNING = 20
+"""Steps late by more than one step, against a real provider's clock, before the run warns."""
+
 NEIGHBOUR_RANGE_M = 6.0
 """Agents farther than this are left out of each other's avoidance (APF, NMPC constraints)."""
 
@@ -214,6 +217,7 @@ class MissionRun:
         self.dt = sim_spec.step_s
         self.collisions = 0
         self._wall0: float | None = None
+        self._late_steps = 0
         self._wall_used = 0.0
         self._ended: RunResult | None = None
         self.errors = ErrorReporter(self.emit)
@@ -715,6 +719,15 @@ class MissionRun:
                     due = clock0 + (self.steps - steps0) * self.dt
                     if self.clock.now() > due + self.dt:  # late (a slow step): no catch-up burst
                         clock0 += self.clock.now() - due
+                        self._late_steps += 1
+                        if self._late_steps == LATE_STEPS_WARNING:
+                            self.emit(
+                                "warning",
+                                message=f"the run falls behind its vehicles' clock ("
+                                f"{LATE_STEPS_WARNING} steps late by more than {self.dt:g} s): "
+                                "the control loop cannot keep up; lower runtime.mavlink."
+                                "time_scale or use the track controller",
+                            )
                     else:
                         self.clock.sleep_until(due)
                 elif self.realtime:  # the simulator, paced: one step per ``dt`` of wall time
