@@ -15,6 +15,9 @@ from btmission.backends.mavsim import MavSim, MavSimConfig, VehicleSpec
 from btmission.world.minegen import empty_world
 
 SPEED = 10.0
+
+SIMS: list[MavSim] = []
+"""The mavsim instances running now (the innermost last): tests wait on their clock."""
 """mavsim's speed-up in these tests (every rule is in simulated time, so they stay honest)."""
 
 
@@ -56,9 +59,11 @@ def mavsim(
         )
     )
     sim.start()
+    SIMS.append(sim)
     try:
         yield sim
     finally:
+        SIMS.remove(sim)
         sim.stop()
 
 

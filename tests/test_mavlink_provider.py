@@ -20,7 +20,7 @@ from btmission.backends.mavlink import MavlinkError, MavlinkProvider
 from btmission.backends.mavlink_modes import Autopilot
 from btmission.backends.mavlink_url import MavlinkAddress
 from btmission.backends.mavsim import MavSim
-from tests.mavlink_helpers import SPEED, free_port, mavsim, provider, spec
+from tests.mavlink_helpers import SIMS, SPEED, free_port, mavsim, provider, spec
 
 PX4, ARDUPILOT = Autopilot.PX4, Autopilot.ARDUPILOT
 START = (5.0, 5.0, 0.0)
@@ -32,14 +32,19 @@ def wait_for(
     what: Callable[[], bool],
     every: Callable[[], object] | None = None,
 ) -> bool:
-    """Let up to ``seconds`` of vehicle time pass until ``what()`` (calling ``every`` each 0.05 s)."""
-    end = p.clock.now() + seconds
-    while p.clock.now() < end:
+    """Let up to ``seconds`` of vehicle time pass until ``what()`` (calling ``every`` each
+    0.05 s). Vehicle time is the simulator's own when one runs (a loaded machine slows it below
+    its speed-up), else the provider's clock."""
+    sim = SIMS[-1] if SIMS else None
+    now = (lambda: sim.simulator.time_s) if sim is not None else p.clock.now
+    end = now() + seconds
+    wall_end = time.monotonic() + 10 * seconds / SPEED + 5.0
+    while now() < end and time.monotonic() < wall_end:
         if every is not None:
             every()
         if what():
             return True
-        p.clock.sleep_until(p.clock.now() + 0.05)
+        time.sleep(0.05 / SPEED)
     return what()
 
 
@@ -179,8 +184,8 @@ def test_ardupilot_takeoff_shows_as_takeoff_then_hold() -> None:
 
 
 def test_arming_waits_for_the_ekf_with_the_autopilots_reason_and_a_back_off() -> None:
-    with mavsim(ARDUPILOT, ekf_delay_s=6.0) as sim, provider() as p:
-        b = attach(p, sim)
+    with mavsim(ARDUPILOT, ekf_delay_s=20.0) as sim, provider(connect_timeout_s=1.0) as p:
+        b = attach(p, sim)  # waits for the EKF as long as it may (1 s, 10 s at 10x), then goes on
         ack = b.arm()
         assert not ack
         assert ack.reason == (
@@ -188,8 +193,17 @@ def test_arming_waits_for_the_ekf_with_the_autopilots_reason_and_a_back_off() ->
         )
         sent = b.commands_sent  # type: ignore[attr-defined]
         assert b.arm() == ack and b.commands_sent == sent  # type: ignore[attr-defined]  # backing off
-        assert wait_for(p, 8.0, lambda: bool(b.arm()))
+        assert wait_for(p, 12.0, lambda: bool(b.arm()))
         assert b.telemetry().armed or wait_for(p, 1.5, lambda: b.telemetry().armed)
+
+
+@pytest.mark.parametrize("autopilot", [PX4, ARDUPILOT], ids=lambda a: a.value)
+def test_attaching_waits_for_a_usable_estimate(autopilot: Autopilot) -> None:
+    with mavsim(autopilot, ekf_delay_s=10.0) as sim, provider() as p:
+        b = attach(p, sim)
+        assert b.estimator_ready()  # type: ignore[attr-defined]
+        assert sim.simulator.time_s >= 10.0
+        assert b.arm()  # at once: nothing left to refuse
 
 
 def test_a_failing_pre_arm_check_is_reported_by_px4() -> None:

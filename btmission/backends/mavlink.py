@@ -555,6 +555,13 @@ class MavlinkVehicle:
             return st.override[1]
         return st.custom_mode
 
+    def estimator_ready(self) -> bool:
+        """The estimator reports a usable position (module :data:`EKF_POSITION_OK`)."""
+        st = self.state
+        if st.ekf_flags is not None:
+            return bool(st.ekf_flags & EKF_POSITION_OK == EKF_POSITION_OK)
+        return bool(st.estimator_ok)
+
     def mode_name(self) -> Mode | str:
         """The autopilot's mode as the backend's :class:`Mode`, or its own name."""
         return mode_of(self.autopilot, self.kind, self._custom_mode())
@@ -625,9 +632,9 @@ class MavlinkVehicle:
         ack = send()
         if ack.accepted:
             self._backoff.pop(command, None)
-        else:
+        else:  # 0.5 s, doubling to 4 s, of the vehicle's time
             delay = 0.5 if held is None else min(4.0, held[1] * 2)
-            self._backoff[command] = (wall + delay, delay, ack)
+            self._backoff[command] = (wall + delay / self.options.time_scale, delay, ack)
         return ack
 
     def arm(self) -> Ack:
@@ -1027,6 +1034,7 @@ class MavlinkProvider:
                     "position estimate (an EKF origin and a position source are needed)"
                 )
             time.sleep(0.02)
+        self._wait_estimator(vehicle, deadline)
         self.vehicles[agent_id] = vehicle
         if self._progress is not None:
             self._progress(
@@ -1090,6 +1098,32 @@ class MavlinkProvider:
         vehicle.command(
             mavlink.MAV_CMD_REQUEST_MESSAGE, float(mavlink.MAVLINK_MSG_ID_HOME_POSITION)
         )
+
+    def _wait_estimator(self, vehicle: MavlinkVehicle, deadline: float) -> None:
+        """Wait (until ``deadline``) for the estimator to report a usable position: ArduPilot's
+        EKF_STATUS_REPORT with attitude, horizontal velocity and relative position OK, PX4's
+        ESTIMATOR_STATUS with a relative position. A vehicle that sends neither within two
+        seconds is taken as it is; one still not ready at the deadline is attached anyway, and
+        its arming refusals will say why."""
+        st = vehicle.state
+        said = False
+        quiet_until = time.monotonic() + 2.0
+        while time.monotonic() < deadline:
+            if vehicle.estimator_ready():
+                return
+            if st.ekf_flags is None and st.estimator_ok is None and time.monotonic() > quiet_until:
+                return  # it does not report its estimator
+            if not said and self._progress is not None and (
+                st.ekf_flags is not None or st.estimator_ok is not None
+            ):
+                self._progress(f"{vehicle.id}: waiting for its estimator (EKF) to have a position")
+                said = True
+            time.sleep(0.05)
+        if self._progress is not None:
+            self._progress(
+                f"{vehicle.id}: the estimator has no usable position yet; arming will be refused "
+                "until it has"
+            )
 
     def _set_global_origin(self, vehicle: MavlinkVehicle, deadline: float) -> None:
         """Give a vehicle without a global origin (no GPS: underground) the geodetic position of
