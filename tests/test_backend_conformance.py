@@ -40,12 +40,12 @@ from btmission.world.build import world_from_spec
 PROVIDERS = [
     pytest.param("sim", id="sim"),
     pytest.param("fake", id="fake"),
-    pytest.param("mavlink-px4", id="mavlink-px4"),
+    pytest.param("mavlink-px4", id="mavlink-px4", marks=pytest.mark.slow),
     pytest.param("mavlink-ardupilot", id="mavlink-ardupilot", marks=pytest.mark.slow),
 ]
 """The providers under test; each gets the same mission (below). ``mavlink-*``: the MAVLink
-provider against mavsim (in this process, on loopback) with PX4 or ArduPilot behaviour (the
-ArduPilot run is in the slow selection, which CI runs too)."""
+provider against mavsim (in this process, on loopback) with PX4 or ArduPilot behaviour (in the
+slow selection, which CI runs too; tests/test_mavlink_provider.py is the fast one)."""
 
 LATENCY_S = 0.6
 """What a real link adds before a vehicle's reaction shows in its telemetry (the provider keeps

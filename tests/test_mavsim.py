@@ -126,6 +126,7 @@ def test_px4_refuses_offboard_below_2_hz_and_accepts_it_above() -> None:
         assert c.set_mode(Mode.OFFBOARD).result == mavlink.MAV_RESULT_ACCEPTED
 
 
+@pytest.mark.slow
 def test_px4_lands_when_the_ground_station_goes_silent() -> None:
     with client(Autopilot.PX4) as c:
         c.stream(1.2, hz=10)
