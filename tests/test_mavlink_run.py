@@ -8,7 +8,9 @@ flies. The seed 000 mission on three PX4 and on three ArduPilot vehicles runs in
 from __future__ import annotations
 
 import json
+import re
 import signal
+import socket
 import subprocess
 import sys
 import textwrap
@@ -26,7 +28,7 @@ from btmission.cli.main import cli
 from btmission.runtime.events import Recorder
 from btmission.runtime.runner import MissionRun
 from btmission.spec.mission import load_mission
-from tests.mavlink_helpers import SPEED, mavsim
+from tests.mavlink_helpers import SPEED, free_port, mavsim
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -173,7 +175,11 @@ def test_mine_inspection_on_three_mavlink_vehicles(tmp_path: Path, autopilot: st
     text = shipped.read_text()
     assert "mavlink: {time_scale: 4}" in text
     mission = tmp_path / shipped.name  # at half the shipped speed: margin on a busy CI machine
-    mission.write_text(text.replace("mavlink: {time_scale: 4}", "mavlink: {time_scale: 2}"))
+    text = text.replace("mavlink: {time_scale: 4}", "mavlink: {time_scale: 2}")
+    kind = socket.SOCK_DGRAM if autopilot == "px4" else socket.SOCK_STREAM
+    for port in re.findall(r"127\.0\.0\.1:(\d+)'", text):  # free ports: a SITL may hold those
+        text = text.replace(f"127.0.0.1:{port}'", f"127.0.0.1:{free_port(kind)}'")
+    mission.write_text(text)
     exe = [sys.executable, "-m", "btmission"]
     sim = subprocess.Popen(
         [*exe, "mavsim", "--mission", str(mission)],
