@@ -276,6 +276,11 @@ def test_one_shot_messages_and_unsupported_commands() -> None:
                          mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION) == ACCEPTED  # fmt: skip
         av = g.last.get("AUTOPILOT_VERSION") or g.wait("AUTOPILOT_VERSION")
         assert av.capabilities & mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+        assert g.command(
+            mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN
+        ) == (
+            mavlink.MAV_RESULT_UNSUPPORTED
+        )  # fmt: skip  (no GPS: no global origin until one is set)
         g.mav.set_gps_global_origin_send(1, 473977420, 85455940, 488000, 0)
         origin = g.wait("GPS_GLOBAL_ORIGIN")
         assert (origin.latitude, origin.longitude, origin.altitude) == (473977420, 85455940, 488000)

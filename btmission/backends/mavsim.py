@@ -173,8 +173,9 @@ class _SimulatedAutopilot:
         """SET_POSITION_TARGET_LOCAL_NED in another frame than MAV_FRAME_LOCAL_NED (ignored)."""
         self.rover_armed = False
         """A ground robot's arming (the embedded simulator's robots drive whenever told)."""
-        self.gps_origin: tuple[int, int, int] = (0, 0, int(1000 * self.cfg.home_amsl_m))
-        """GPS_GLOBAL_ORIGIN (degE7, degE7, mm): SET_GPS_GLOBAL_ORIGIN's, else zero."""
+        self.gps_origin: tuple[int, int, int] | None = None
+        """GPS_GLOBAL_ORIGIN (degE7, degE7, mm) once SET_GPS_GLOBAL_ORIGIN gave one (the vehicles
+        have no GPS: until then they know no global origin and do not answer a request)."""
 
     def _open(self, address: MavlinkAddress) -> Any:
         src = {"source_system": self.spec.sysid, "source_component": 1}
@@ -680,6 +681,8 @@ class _SimulatedAutopilot:
                 )
             )
         elif msg_id == mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN:
+            if self.gps_origin is None:
+                return False
             lat, lon, alt = self.gps_origin
             self.send(lambda mav: mav.gps_global_origin_send(lat, lon, alt, int(self.now() * 1e6)))
         elif msg_id == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
