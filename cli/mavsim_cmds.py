@@ -32,7 +32,23 @@ from btmission.cli.common import BadInput, FiniteFloat, handle_spec_errors
     "[default: as the SITLs serve them: ardupilot for a mission's mavlink+tcp agents, else px4].",
 )
 @click.option(
-    "--port", type=click.IntRange(1, 65535), help="First port for --count (default per firmware)."
+    "--transport",
+    type=click.Choice(["udp", "tcp"]),
+    help="For --count: UDP (the ground station listens, PX4 SITL's way) or TCP (the vehicle "
+    "listens, ArduPilot SITL's way) [default: the firmware's].",
+)
+@click.option(
+    "--port",
+    type=click.IntRange(1, 65535),
+    help="First port for --count: vehicle i at PORT + i (UDP) or PORT + 10 i (TCP) "
+    "[default: 14540 for UDP, 5760 for TCP].",
+)
+@click.option(
+    "--host",
+    default="127.0.0.1",
+    show_default=True,
+    help="Address to serve on (an IPv4 address of this machine). Anything but loopback makes "
+    "the vehicles reachable from the network: a warning is printed.",
 )
 @click.option(
     "--speed",
@@ -55,7 +71,11 @@ from btmission.cli.common import BadInput, FiniteFloat, handle_spec_errors
     "--hover-thrust", type=FiniteFloat(0.05, 1.0), default=0.5, show_default=True,
     help="Normalised throttle that hovers (attitude setpoints).",
 )  # fmt: skip
-@click.option("--seed", type=click.IntRange(0), default=0, show_default=True)
+@click.option(
+    "--seed", type=click.IntRange(0), default=0, show_default=True,
+    help="Seed of the simulator's sensor noise.",
+)  # fmt: skip
+@click.option("--quiet", is_flag=True, help="Print only the ready line and errors.")
 @click.option(
     "--duration", type=FiniteFloat(0, min_open=True), help="Stop after this many wall seconds."
 )
@@ -64,13 +84,16 @@ def mavsim(
     mission_path: Path | None,
     count: int | None,
     autopilot: str | None,
+    transport: str | None,
     port: int | None,
+    host: str,
     speed: float | None,
     ekf_delay: float,
     refuse_arm: str,
     signing_key_file: Path | None,
     hover_thrust: float,
     seed: int,
+    quiet: bool,
     duration: float | None,
 ) -> None:
     """Simulated MAVLink vehicles for flying missions without hardware.
@@ -78,8 +101,9 @@ def mavsim(
     Each vehicle is one of the embedded simulator's, behind a MAVLink 2 endpoint that behaves
     like PX4 or ArduPilot SITL: heartbeats, requested streams, COMMAND_ACKs with the firmware's
     refusals, PX4's offboard rules and failsafes or ArduPilot's GUIDED. Everything binds
-    127.0.0.1. Prints one line per vehicle (agent, URL, sysid), then "ready"; Ctrl-C or SIGTERM
-    stops it. Example:
+    127.0.0.1 (see --host). Prints one line per vehicle (agent, URL, sysid, firmware, kind),
+    then "ready"; Ctrl-C or SIGTERM stops it, printing the simulated time and, with signing, the
+    messages each vehicle accepted and refused. Example:
 
     \b
       btmission mavsim --mission missions/mine_inspection_px4.yaml --speed 4 &
@@ -87,11 +111,20 @@ def mavsim(
     """
     from btmission.backends.mavlink_modes import Autopilot
     from btmission.backends.mavlink_signing import SigningKeyError, load_key
-    from btmission.backends.mavsim import MavSim, MavSimConfig, vehicles_in_a_row
+    from btmission.backends.mavsim import (
+        MavSim,
+        MavSimConfig,
+        shared_endpoints,
+        vehicles_in_a_row,
+    )
     from btmission.world.minegen import empty_world
 
     if (mission_path is None) == (count is None):
         raise BadInput("give either --mission FILE or --count N")
+    if mission_path is not None and (transport is not None or port is not None):
+        raise BadInput("--transport and --port go with --count; --mission serves each agent at "
+                       "its backend URL")  # fmt: skip
+    _check_host(host)
     ap = Autopilot(autopilot or "px4")
     try:
         key = load_key(signing_key_file)
@@ -110,13 +143,25 @@ def mavsim(
             )
         if autopilot is None and all(s.address.transport == "tcp" for s in specs):
             ap = Autopilot.ARDUPILOT
+        elsewhere = [s for s in specs if s.address.host != host]
+        if elsewhere:
+            far = elsewhere[0]
+            raise BadInput(
+                f"{mission_path}: agent {far.agent_id}: its backend is at {far.address.host}, "
+                f"but mavsim serves on {host} (--host {far.address.host} to serve there)"
+            )
         voxel_map = world_from_spec(mission.spec.world, mission.base_dir)
         if speed is None:
             speed = mission.spec.runtime.mavlink.time_scale
     else:
         assert count is not None
-        specs = vehicles_in_a_row(count, ap, base_port=port)
+        specs = vehicles_in_a_row(count, ap, base_port=port, transport=transport, host=host)
+        if any(s.address.port > 65535 for s in specs):
+            raise BadInput(f"--port {port}: {count} vehicles do not fit below port 65536")
         voxel_map = empty_world((10.0 + 3.0 * count, 20.0, 10.0), 0.5)
+    clashes = shared_endpoints(specs)
+    if clashes:
+        raise BadInput(f"{mission_path}: " + "; ".join(clashes))
     speed = 1.0 if speed is None else speed
     config = MavSimConfig(
         specs, voxel_map, autopilot=ap, speed=speed, ekf_delay_s=ekf_delay,
@@ -126,8 +171,10 @@ def mavsim(
         sim = MavSim(config)
     except OSError as exc:
         raise BadInput(f"cannot serve the vehicles: {exc.strerror or exc}") from None
-    for ep in sim.endpoints:
-        click.echo(f"{ep.agent_id}  {ep.url}  sysid {ep.sysid}  {ep.autopilot.value} {ep.kind.value}")
+    for ep in [] if quiet else sim.endpoints:
+        click.echo(
+            f"{ep.agent_id}  {ep.url}  sysid {ep.sysid}  {ep.autopilot.value} {ep.kind.value}"
+        )
     stop = threading.Event()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
@@ -149,6 +196,25 @@ def mavsim(
         for s, handler in previous.items():
             signal.signal(s, handler)
     late = f", {sim.late_steps} late step(s)" if sim.late_steps else ""
+    if quiet:
+        return
     click.echo(f"stopped after {sim.simulator.time_s:.1f} simulated s ({sim.steps} steps{late})")
     for agent, counts in sim.counters().items():
         click.echo(f"{agent} signing: " + ", ".join(f"{k} {v}" for k, v in counts.items()))
+
+
+def _check_host(host: str) -> None:
+    """``--host`` must be an IPv4 address; anything but loopback is served with a warning."""
+    import ipaddress
+
+    try:
+        address = ipaddress.IPv4Address(host)
+    except ValueError:
+        raise BadInput(f"--host {host!r}: expected an IPv4 address such as 127.0.0.1") from None
+    if not address.is_loopback:
+        click.secho(
+            f"warning: serving simulated vehicles on {host}: anyone who reaches this address "
+            "can command them",
+            err=True,
+            fg="yellow",
+        )

@@ -127,3 +127,27 @@ def attitude_target(
     throttle = min(1.0, max(0.0, hover * thrust / G))
     mask = ROLL_RATE_IGNORE | PITCH_RATE_IGNORE
     return AttitudeTarget(mask, q, frame.yaw_rate_to_local(yaw_rate), throttle)
+
+
+def quaternion_to_euler(q: tuple[float, float, float, float]) -> tuple[float, float, float]:
+    """(roll, pitch, yaw) of a (w, x, y, z) quaternion, ZYX order (the inverse of
+    :func:`euler_to_quaternion` for pitch within ±π/2)."""
+    w, x, y, z = q
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return roll, pitch, yaw
+
+
+def attitude_from_target(
+    frame: LocalFrame, target: AttitudeTarget, *, hover: float = 0.5
+) -> tuple[float, float, float, float]:
+    """What an autopilot reads from a SET_ATTITUDE_TARGET (the inverse of
+    :func:`attitude_target`): the mass-less thrust (m/s²), the roll φ and pitch θ in the yaw
+    frame (seed 002's convention) and the world yaw rate. The heading in ``q`` is not needed:
+    the autopilot steers yaw by rate."""
+    if not 0.0 < hover <= 1.0:
+        raise ValueError(f"hover throttle must be in (0, 1], got {hover}")
+    roll, pitch_frd, _ = quaternion_to_euler(target.q)
+    thrust = G * target.thrust / hover
+    return thrust, roll, -pitch_frd, frame.yaw_rate_to_world(target.body_yaw_rate)

@@ -18,13 +18,17 @@ firmware's SITL:
 * every COMMAND_LONG answered by a COMMAND_ACK, a refusal preceded by a STATUSTEXT saying why;
 * **PX4 rules**: OFFBOARD only after setpoints have streamed at more than 2 Hz for a second
   (DENIED otherwise), HOLD when they stop for ``COM_OF_LOSS_T`` (1 s), LAND when the ground
-  station's heartbeats stop for ``COM_DL_LOSS_T`` (10 s) while armed (``NAV_DLL_ACT`` = land),
+  station's heartbeats stop for ``COM_DL_LOSS_T`` (10 s) while flying (``NAV_DLL_ACT`` = land;
+  like the firmware, only once a ground station has been heard),
   NAV_TAKEOFF to an AMSL altitude, automatic disarming (the embedded simulator's rules,
   :mod:`btmission.backends.autopilot`);
 * **ArduPilot rules**: GUIDED (copter 4, rover 15) takes targets that do not time out (position)
   or stop after 3 s (velocity) or 1 s (attitude, ``GUID_TIMEOUT``); a landed copter leaves the
   ground only with NAV_TAKEOFF (altitude above home, in GUIDED, armed); arming needs the EKF;
   the GCS failsafe (``FS_GCS_ENABLE``: no GCS heartbeat for 5 s while flying) lands;
+* ground robots (PX4 rover, ArduRover) are armed over MAVLink and drive on velocity targets
+  only when armed and in OFFBOARD / GUIDED;
+* only ``MAV_FRAME_LOCAL_NED`` position targets are simulated (others are ignored and counted);
 * faults for tests: an EKF that is not ready for a while (arming refused with the pre-arm
   message, TEMPORARILY_REJECTED on PX4), a pre-arm check that always fails, a link that drops,
   MAVLink 2 signing (unsigned or badly signed messages dropped and counted).
@@ -36,6 +40,7 @@ ArduPilot's ``--speedup`` do the same); every timeout and message rate is in sim
 from __future__ import annotations
 
 import math
+import socket
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -45,7 +50,8 @@ from typing import Any
 import numpy as np
 
 from btmission.backends._pymavlink import mavlink, mavutil
-from btmission.backends.base import Mode, VehicleKind
+from btmission.backends.autopilot import STREAM_MIN_HZ, STREAM_MIN_S
+from btmission.backends.base import Ack, Mode, VehicleKind
 from btmission.backends.mavlink_frames import LocalFrame
 from btmission.backends.mavlink_modes import (
     Autopilot,
@@ -58,6 +64,8 @@ from btmission.backends.mavlink_setpoints import (
     VELOCITY_IGNORE,
     YAW_IGNORE,
     YAW_RATE_IGNORE,
+    AttitudeTarget,
+    attitude_from_target,
 )
 from btmission.backends.mavlink_signing import enable_signing, signing_counters
 from btmission.backends.mavlink_url import MavlinkAddress
@@ -130,6 +138,9 @@ class _Guided:
     attitude: tuple[float, float, float] = (G, 0.0, 0.0)
     since: float = 0.0
     taking_off: bool = False
+    braking: bool = False
+    """Holding after a velocity target expired: zero velocity until stopped, then the position
+    where it stopped (flying back to where the target expired would overshoot)."""
 
 
 class _SimulatedAutopilot:
@@ -146,19 +157,43 @@ class _SimulatedAutopilot:
         self.intervals: dict[int, float] = {}
         self.next_send: dict[int, float] = {}
         self.next_heartbeat = 0.0
-        self.gcs_heartbeat_at = 0.0
+        self.heartbeat_s = 1.0
+        self.gcs_heartbeat_at = math.inf
+        """When a ground station's HEARTBEAT last came; the link-loss failsafes wait for the
+        first (PX4's and ArduCopter's do)."""
         self.drop_until = -math.inf
         self.guided = _Guided()
         self.failsafe_note = ""
         self.received = 0
         self.last_setpoint_t = -math.inf
+        self.stream_since = math.inf
+        """Since when setpoints have come at least every 0.5 s (PX4's OFFBOARD entry rule)."""
+        self.ground = spec.kind is VehicleKind.GROUND
+        self.ignored_frames = 0
+        """SET_POSITION_TARGET_LOCAL_NED in another frame than MAV_FRAME_LOCAL_NED (ignored)."""
+        self.rover_armed = False
+        """A ground robot's arming (the embedded simulator's robots drive whenever told)."""
+        self.gps_origin: tuple[int, int, int] | None = None
+        """GPS_GLOBAL_ORIGIN (degE7, degE7, mm) once SET_GPS_GLOBAL_ORIGIN gave one (the vehicles
+        have no GPS: until then they know no global origin and do not answer a request)."""
 
     def _open(self, address: MavlinkAddress) -> Any:
         src = {"source_system": self.spec.sysid, "source_component": 1}
         if address.transport == "udp":  # the client listens: send to it (PX4 SITL)
             conn = mavutil.mavlink_connection(f"udpout:{address.host}:{address.port}", **src)
+            try:
+                conn.port.bind((address.host, 0))  # its own address: loopback, any free port
+            except OSError:
+                conn.close()
+                raise
+            conn.recv = _answering_recv(conn)
         elif address.transport == "tcp":  # the client connects: listen (ArduPilot SITL)
+            if address.port:  # a port in use fails here, before pymavlink would leak a socket
+                with socket.socket() as probe:
+                    probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                    probe.bind((address.host, address.port))
             conn = mavutil.mavlink_connection(f"tcpin:{address.host}:{address.port}", **src)
+            conn.recv = _reaccepting_recv(conn)
         else:
             raise ValueError(f"mavsim serves udp and tcp, not {address.transport}")
         conn.WIRE_PROTOCOL_VERSION = "2.0"
@@ -195,6 +230,23 @@ class _SimulatedAutopilot:
 
     def text(self, severity: int, message: str) -> None:
         self.send(lambda mav: mav.statustext_send(severity, message[:50].encode()))
+
+    def armed(self) -> bool:
+        return self.rover_armed if self.ground else bool(self.backend.telemetry().armed)
+
+    def _streamed(self) -> None:
+        """A setpoint arrived now: PX4 counts the stream whatever it is used for."""
+        t = self.now()
+        if t - self.last_setpoint_t > 1.0 / STREAM_MIN_HZ:
+            self.stream_since = t
+        self.last_setpoint_t = t
+
+    def streaming(self) -> bool:
+        """Setpoints at more than 2 Hz for a second (PX4's condition for OFFBOARD)."""
+        t = self.now()
+        return t - self.last_setpoint_t <= 1.0 / STREAM_MIN_HZ and t - self.stream_since >= (
+            STREAM_MIN_S
+        )
 
     def ekf_ready(self) -> bool:
         return self.now() >= self.cfg.ekf_delay_s
@@ -247,11 +299,8 @@ class _SimulatedAutopilot:
         elif kind == "SET_ATTITUDE_TARGET":
             self._attitude_target(msg)
         elif kind == "SET_GPS_GLOBAL_ORIGIN":
-            self.send(
-                lambda mav: mav.gps_global_origin_send(
-                    msg.latitude, msg.longitude, msg.altitude, int(self.now() * 1e6)
-                )
-            )
+            self.gps_origin = (msg.latitude, msg.longitude, msg.altitude)
+            self._send_message(mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
 
     # ------------------------------------------------------------------ commands
     def _refuse(self, text: str, result: int = mavlink.MAV_RESULT_DENIED) -> int:
@@ -262,6 +311,9 @@ class _SimulatedAutopilot:
         c = msg.command
         if c == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             msg_id, interval_us = int(msg.param1), msg.param2
+            if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:  # always sent; only its rate changes
+                self.heartbeat_s = 1.0 if interval_us <= 0 else interval_us / 1e6
+                return mavlink.MAV_RESULT_ACCEPTED
             if interval_us < 0:
                 self.intervals.pop(msg_id, None)
             else:
@@ -289,13 +341,12 @@ class _SimulatedAutopilot:
 
     def _arm_disarm(self, arm: bool, force: bool) -> int:
         tel = self.backend.telemetry()
-        if self.spec.kind is VehicleKind.GROUND:  # the simulator's robots have no arming state
-            if arm and not force and not self.ekf_ready():
-                return self._refuse("PreArm: EKF3 waiting for GPS config data", mavlink.MAV_RESULT_FAILED)
-            self.state.armed = arm
-            return mavlink.MAV_RESULT_ACCEPTED
         if not arm:
-            if not tel.armed:
+            if not self.armed():
+                return mavlink.MAV_RESULT_ACCEPTED
+            if self.ground:
+                self.rover_armed = False
+                self.backend.set_velocity_setpoint(np.zeros(3), 0.0)
                 return mavlink.MAV_RESULT_ACCEPTED
             if not tel.landed and not force:
                 return self._refuse(
@@ -307,7 +358,7 @@ class _SimulatedAutopilot:
                     else mavlink.MAV_RESULT_FAILED,
                 )
             return self._result(self.backend.disarm())
-        if tel.armed:
+        if self.armed():
             return mavlink.MAV_RESULT_ACCEPTED  # already armed
         px4 = self.autopilot is Autopilot.PX4
         if self.cfg.refuse_arm and not force:
@@ -328,6 +379,9 @@ class _SimulatedAutopilot:
             mode = mode_of(self.autopilot, self.spec.kind, self.custom_mode())
             if mode is Mode.LAND:
                 return self._refuse("Arm: Mode not armable", mavlink.MAV_RESULT_FAILED)
+        if self.ground:
+            self.rover_armed = True
+            return mavlink.MAV_RESULT_ACCEPTED
         return self._result(self.backend.arm())
 
     def _set_mode(self, custom: int) -> int:
@@ -339,12 +393,14 @@ class _SimulatedAutopilot:
         if custom == self.custom_mode():
             return mavlink.MAV_RESULT_ACCEPTED  # already in that mode
         if self.autopilot is Autopilot.PX4:
-            if mode is Mode.OFFBOARD and self.spec.kind is VehicleKind.GROUND:
-                v, t = self.state, self.now()  # the simulator's robots take any mode: PX4 does not
-                if not (t - v.sp_time <= 0.5 and t - v.stream_since >= 1.0):
-                    return self._refuse("Switching to Offboard is currently not available")
+            if mode in (Mode.OFFBOARD, Mode.HOLD, Mode.TAKEOFF) and not self.ekf_ready():
+                name = {Mode.OFFBOARD: "Offboard", Mode.HOLD: "Hold", Mode.TAKEOFF: "Takeoff"}
+                return self._refuse(f"Switching to {name[mode]} is currently not available")
             if mode is Mode.OFFBOARD:
-                ack = self.backend.set_mode(Mode.OFFBOARD)
+                if self.ground and not self.streaming():  # the robots' own rule is laxer
+                    ack = Ack(False, "not streaming")
+                else:
+                    ack = self.backend.set_mode(Mode.OFFBOARD)
                 if not ack.accepted:
                     return self._refuse("Switching to Offboard is currently not available")
                 return mavlink.MAV_RESULT_ACCEPTED
@@ -380,9 +436,7 @@ class _SimulatedAutopilot:
             return self._refuse("Takeoff denied: not a multicopter", mavlink.MAV_RESULT_UNSUPPORTED)
         if not tel.armed:
             return self._refuse(
-                "Takeoff denied! Please disarm and retry"
-                if False
-                else "Takeoff refused: not armed",
+                "Takeoff refused: not armed",
                 mavlink.MAV_RESULT_DENIED
                 if self.autopilot is Autopilot.PX4
                 else mavlink.MAV_RESULT_FAILED,
@@ -404,9 +458,12 @@ class _SimulatedAutopilot:
 
     # ------------------------------------------------------------------ setpoints
     def _position_target(self, msg: Any) -> None:
+        if msg.coordinate_frame != mavlink.MAV_FRAME_LOCAL_NED:
+            self.ignored_frames += 1  # only the frame the provider uses is simulated
+            return
         mask = msg.type_mask
         t = self.now()
-        self.last_setpoint_t = t
+        self._streamed()
         position = self.frame.to_world((msg.x, msg.y, msg.z))
         velocity = self.frame.vector_to_world((msg.vx, msg.vy, msg.vz))
         yaw = None if mask & YAW_IGNORE else self.frame.yaw_to_world(msg.yaw)
@@ -436,10 +493,11 @@ class _SimulatedAutopilot:
             ):
                 self.guided.position = self.backend.telemetry().position.copy()
             return
-        if self.spec.kind is VehicleKind.GROUND:  # a PX4 rover drives only armed, in OFFBOARD
-            tel = self.backend.telemetry()
-            drive = tel.armed and tel.mode is Mode.OFFBOARD
-            self.backend.set_velocity_setpoint(velocity if drive else np.zeros(3), yaw_rate if drive else 0.0)
+        if self.ground:  # PX4 rover: drives on velocity setpoints, armed and in OFFBOARD
+            drive = self.rover_armed and self.backend.telemetry().mode is Mode.OFFBOARD
+            self.backend.set_velocity_setpoint(
+                velocity if drive else np.zeros(3), yaw_rate if drive else 0.0
+            )
         elif kind == "velocity":
             self.backend.set_velocity_setpoint(velocity, yaw_rate)
         else:
@@ -450,12 +508,12 @@ class _SimulatedAutopilot:
         if self.spec.kind is VehicleKind.GROUND:
             return
         w, x, y, z = msg.q
-        roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-        pitch_frd = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
-        thrust = G * msg.thrust / self.cfg.hover_thrust
-        yaw_rate = self.frame.yaw_rate_to_world(msg.body_yaw_rate)
+        target = AttitudeTarget(msg.type_mask, (w, x, y, z), msg.body_yaw_rate, msg.thrust)
+        thrust, roll, pitch, yaw_rate = attitude_from_target(
+            self.frame, target, hover=self.cfg.hover_thrust
+        )
         t = self.now()
-        self.last_setpoint_t = t
+        self._streamed()
         if self.autopilot is Autopilot.ARDUPILOT:
             if mode_of(self.autopilot, self.spec.kind, self.custom_mode()) is not Mode.OFFBOARD:
                 return
@@ -463,10 +521,10 @@ class _SimulatedAutopilot:
                 return
             if self.guided.taking_off and self.backend.telemetry().landed:
                 return
-            self.guided = _Guided("attitude", attitude=(thrust, roll, -pitch_frd),
+            self.guided = _Guided("attitude", attitude=(thrust, roll, pitch),
                                   yaw_rate=yaw_rate, since=t)  # fmt: skip
             return
-        self.backend.set_attitude_setpoint(thrust, roll, -pitch_frd, yaw_rate)
+        self.backend.set_attitude_setpoint(thrust, roll, pitch, yaw_rate)
 
     # ------------------------------------------------------------------ per step
     def step(self) -> None:
@@ -474,10 +532,26 @@ class _SimulatedAutopilot:
         t = self.now()
         tel = self.backend.telemetry()
         flying = tel.armed and not tel.landed
+        if (
+            self.ground
+            and tel.mode is Mode.OFFBOARD
+            and (
+                self.autopilot is Autopilot.PX4
+                and t - self.last_setpoint_t > self.cfg.offboard_loss_s
+            )
+        ):
+            self.backend.set_mode(Mode.HOLD)
+            self.failsafe_note = (
+                f"offboard setpoints lost for more than {self.cfg.offboard_loss_s:g} s"
+            )
+            self.text(mavlink.MAV_SEVERITY_CRITICAL, "Failsafe: offboard lost, holding")
+        if self.ground and not self.rover_armed:
+            self.backend.set_velocity_setpoint(np.zeros(3), 0.0)
+            return
         if self.autopilot is Autopilot.PX4:
             if (
                 flying
-                and t - self.gcs_heartbeat_at > self.cfg.datalink_loss_s
+                and self.gcs_heartbeat_at < t - self.cfg.datalink_loss_s
                 and tel.mode is not Mode.LAND
             ):
                 self.backend.land()
@@ -486,24 +560,26 @@ class _SimulatedAutopilot:
             return
         if (
             flying
-            and t - self.gcs_heartbeat_at > self.cfg.gcs_failsafe_s
+            and self.gcs_heartbeat_at < t - self.cfg.gcs_failsafe_s
             and tel.mode is not Mode.LAND
         ):
             self.backend.land()
             self.failsafe_note = "GCS failsafe: landing"
             self.text(mavlink.MAV_SEVERITY_CRITICAL, "GCS Failsafe On: LAND")
             return
-        if tel.mode is not Mode.OFFBOARD or not tel.armed:
+        if tel.mode is not Mode.OFFBOARD or not self.armed():
             return
         g = self.guided
-        if g.kind == "velocity" and t - g.since > 3.0:
-            self.guided = g = _Guided("hold", tel.position.copy(), since=t)
+        if g.kind == "velocity" and t - g.since > 3.0:  # stop, then hold where it stopped
+            self.guided = g = _Guided("hold", tel.position.copy(), since=t, braking=True)
+        if g.braking and float(np.linalg.norm(tel.velocity)) < 0.1:
+            g.position, g.braking = tel.position.copy(), False
         if g.kind == "attitude" and t - g.since > 1.0:
             self.guided = g = _Guided("hold", tel.position.copy(), since=t)
         if g.taking_off and not tel.landed and abs(tel.position[2] - g.position[2]) < 0.2:
             g.taking_off = False
         b = self.backend
-        if g.kind == "velocity":
+        if g.kind == "velocity" or g.braking:
             b.set_velocity_setpoint(g.velocity, g.yaw_rate)
         elif g.kind == "attitude":
             b.set_attitude_setpoint(*g.attitude, g.yaw_rate)
@@ -516,7 +592,7 @@ class _SimulatedAutopilot:
     def send_due(self) -> None:
         t = self.now()
         if t >= self.next_heartbeat:
-            self.next_heartbeat = t + 1.0
+            self.next_heartbeat = t + self.heartbeat_s
             self._send_message(mavlink.MAVLINK_MSG_ID_HEARTBEAT)
         for msg_id, interval in list(self.intervals.items()):
             if t + 1e-9 >= self.next_send.get(msg_id, 0.0):
@@ -537,9 +613,10 @@ class _SimulatedAutopilot:
             )
             ap = mavlink.MAV_AUTOPILOT_PX4 if px4 else mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
             base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
-            if tel.armed:
+            armed = self.armed()
+            if armed:
                 base |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
-            status = mavlink.MAV_STATE_ACTIVE if tel.armed else mavlink.MAV_STATE_STANDBY
+            status = mavlink.MAV_STATE_ACTIVE if armed else mavlink.MAV_STATE_STANDBY
             custom = self.custom_mode()
             self.send(lambda mav: mav.heartbeat_send(mav_type, ap, base, custom, status))
         elif msg_id == mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
@@ -603,6 +680,11 @@ class _SimulatedAutopilot:
                     int(self.now() * 1e6), flags, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.5, 0.5
                 )
             )
+        elif msg_id == mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN:
+            if self.gps_origin is None:
+                return False
+            lat, lon, alt = self.gps_origin
+            self.send(lambda mav: mav.gps_global_origin_send(lat, lon, alt, int(self.now() * 1e6)))
         elif msg_id == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
             cap = (
                 mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
@@ -698,11 +780,14 @@ class MavSim:
         tel = ap.backend.telemetry()
         return {
             "position": tel.position.copy(),
+            "velocity": tel.velocity.copy(),
+            "yaw": tel.yaw,
             "mode": mode_of(ap.autopilot, ap.spec.kind, ap.custom_mode()),
-            "armed": tel.armed,
+            "armed": ap.armed(),
             "landed": tel.landed,
             "failsafe": ap.failsafe_note or ap.backend.failsafe,
             "received": ap.received,
+            "ignored_frames": ap.ignored_frames,
         }
 
     def counters(self) -> dict[str, dict[str, int]]:
@@ -727,14 +812,68 @@ class MavSim:
         self.stop()
 
 
-def default_address(autopilot: Autopilot, index: int, base: int | None = None) -> MavlinkAddress:
-    """Where vehicle ``index`` is served by default: PX4 SITL's UDP 14540 + i, ArduPilot SITL's
-    TCP 5760 + 10 i."""
-    if autopilot is Autopilot.PX4:
-        return MavlinkAddress("udp", "127.0.0.1", (PX4_UDP_BASE if base is None else base) + index)
-    return MavlinkAddress(
-        "tcp", "127.0.0.1", (ARDUPILOT_TCP_BASE if base is None else base) + 10 * index
-    )
+def _answering_recv(conn: Any) -> Callable[[int | None], bytes]:
+    """A UDP vehicle sends to the port it was told until it hears from a ground station, then
+    answers wherever that one sends from (PX4 SITL's MAVLink instance does the same)."""
+
+    def recv(n: int | None = None) -> bytes:
+        try:
+            data, addr = conn.port.recvfrom(65535)
+        except (BlockingIOError, InterruptedError, ConnectionRefusedError):
+            return b""
+        conn.destination_addr = addr
+        conn.resolved_destination_addr = addr[0]
+        return data
+
+    return recv
+
+
+def _reaccepting_recv(conn: Any) -> Callable[[int | None], bytes]:
+    """A TCP vehicle serves one ground station at a time and takes the next one when it hangs
+    up (pymavlink's ``tcpin`` keeps the closed socket, so a reconnect would not be heard)."""
+
+    def recv(n: int | None = None) -> bytes:
+        if conn.port is None:
+            try:
+                port, _ = conn.listen.accept()
+            except (BlockingIOError, InterruptedError):
+                return b""
+            port.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            port.setblocking(False)
+            conn.port, conn.fd = port, port.fileno()
+        try:
+            data: bytes = conn.port.recv(n or 4096)
+        except (BlockingIOError, InterruptedError):
+            return b""
+        except OSError:
+            data = b""
+        if not data:  # the ground station hung up: listen for the next one
+            conn.port.close()
+            conn.port, conn.fd = None, conn.listen.fileno()
+        return data
+
+    return recv
+
+
+def default_address(
+    autopilot: Autopilot,
+    index: int,
+    base: int | None = None,
+    *,
+    transport: str | None = None,
+    host: str = "127.0.0.1",
+) -> MavlinkAddress:
+    """Where vehicle ``index`` is served by default: as its firmware's SITL does (PX4: UDP
+    14540 + i; ArduPilot: TCP 5760 + 10 i), or over ``transport`` from ``base`` (ports
+    ``base + i`` for UDP, ``base + 10 i`` for TCP)."""
+    transport = transport or ("udp" if autopilot is Autopilot.PX4 else "tcp")
+    if transport == "udp":
+        return MavlinkAddress("udp", host, (PX4_UDP_BASE if base is None else base) + index)
+    if transport == "tcp":
+        return MavlinkAddress(
+            "tcp", host, (ARDUPILOT_TCP_BASE if base is None else base) + 10 * index
+        )
+    raise ValueError(f"mavsim serves udp or tcp, not {transport}")
 
 
 def vehicles_in_a_row(
@@ -742,6 +881,8 @@ def vehicles_in_a_row(
     autopilot: Autopilot,
     *,
     base_port: int | None = None,
+    transport: str | None = None,
+    host: str = "127.0.0.1",
     spacing_m: float = 3.0,
     kind: VehicleKind = VehicleKind.MULTIROTOR,
     origin: Sequence[float] = (5.0, 5.0, 0.0),
@@ -752,7 +893,7 @@ def vehicles_in_a_row(
             f"V{i + 1}",
             kind,
             (float(origin[0]) + spacing_m * i, float(origin[1]), float(origin[2])),
-            default_address(autopilot, i, base_port),
+            default_address(autopilot, i, base_port, transport=transport, host=host),
             i + 1,
         )
         for i in range(count)
@@ -777,5 +918,22 @@ def mission_vehicles(mission: Any) -> tuple[VehicleSpec, ...]:
         impl = mission.library_of(agent.id).implementations
         kind = vehicle_kind(impl) if impl is not None else VehicleKind.MULTIROTOR
         start = (float(agent.start[0]), float(agent.start[1]), float(agent.start[2]))
-        out.append(VehicleSpec(agent.id, kind, start, address, address.sysid or 1))
+        out.append(VehicleSpec(agent.id, kind, start, address, address.sysid or len(out) + 1))
     return tuple(out)
+
+
+def shared_endpoints(specs: Sequence[VehicleSpec]) -> list[str]:
+    """Why these vehicles cannot all be served: two on one TCP port (a port has one listener),
+    or two with one sysid on one UDP port (the ground station could not tell them apart)."""
+    seen: dict[tuple[Any, ...], str] = {}
+    out = []
+    for s in specs:
+        a = s.address
+        key: tuple[Any, ...] = (a.transport, a.host, a.port)
+        if a.transport == "udp":
+            key += (s.sysid,)
+        if key in seen:
+            what = "TCP port" if a.transport == "tcp" else f"UDP port and sysid {s.sysid}"
+            out.append(f"{s.agent_id} and {seen[key]} share the {what} {a.host}:{a.port}")
+        seen.setdefault(key, s.agent_id)
+    return out
