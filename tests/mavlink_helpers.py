@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import re
 import socket
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 from btmission.backends.base import VehicleKind
@@ -81,3 +83,20 @@ def provider(speed: float = SPEED, **options: Any) -> Iterator[MavlinkProvider]:
         yield made
     finally:
         made.close()
+
+
+def mission_on_free_ports(shipped: Path, into: Path, time_scale: float | None = None) -> Path:
+    """A copy of a shipped MAVLink mission in ``into`` whose agents' loopback ports are free
+    ones (a SITL or another run may hold the shipped ports), at ``time_scale`` if given."""
+    text = shipped.read_text()
+    if time_scale is not None:
+        text, n = re.subn(
+            r"mavlink: \{time_scale: [0-9.]+\}", f"mavlink: {{time_scale: {time_scale:g}}}", text
+        )
+        assert n == 1, shipped
+    for url in re.findall(r"mavlink\+(?:udp|tcp)://127\.0\.0\.1:\d+", text):
+        kind = socket.SOCK_DGRAM if url.startswith("mavlink+udp") else socket.SOCK_STREAM
+        text = text.replace(url, url.rsplit(":", 1)[0] + f":{free_port(kind)}")
+    out = into / shipped.name
+    out.write_text(text)
+    return out

@@ -379,3 +379,24 @@ def test_a_vehicle_without_a_global_origin_gets_the_worlds(
         f"R1: global origin set to {lat:.7f}, {lon:.7f}, {alt:.1f} m (confirmed)"
         in capsys.readouterr().err
     )
+
+
+def test_a_tcp_vehicle_that_restarts_is_reconnected_without_spinning() -> None:
+    first = spec(ARDUPILOT)
+    with provider(heartbeat_timeout_s=2.0) as p:
+        with mavsim(ARDUPILOT, first) as sim:
+            v = p.attach("R1", VehicleKind.MULTIROTOR, START, url=sim.endpoints[0].url)
+        link = v.backend.link  # type: ignore[attr-defined]
+        deadline = time.monotonic() + 3.0
+        while not link.down and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert link.down  # the peer closed it: no busy loop on the dead socket
+        cpu0 = time.process_time()
+        time.sleep(0.5)
+        assert time.process_time() - cpu0 < 0.25  # idle, not spinning
+        assert v.link_ok is not None and not v.link_ok()
+        with mavsim(ARDUPILOT, first) as sim:  # the vehicle comes back on the same port
+            end = time.monotonic() + 5.0
+            while not v.link_ok() and time.monotonic() < end:
+                time.sleep(0.05)
+            assert v.link_ok() and not link.down

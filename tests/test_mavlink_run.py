@@ -8,9 +8,7 @@ flies. The seed 000 mission on three PX4 and on three ArduPilot vehicles runs in
 from __future__ import annotations
 
 import json
-import re
 import signal
-import socket
 import subprocess
 import sys
 import textwrap
@@ -28,7 +26,7 @@ from btmission.cli.main import cli
 from btmission.runtime.events import Recorder
 from btmission.runtime.runner import MissionRun
 from btmission.spec.mission import load_mission
-from tests.mavlink_helpers import SPEED, free_port, mavsim
+from tests.mavlink_helpers import SPEED, mavsim, mission_on_free_ports
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -172,14 +170,9 @@ def test_vehicles_that_may_be_real_need_yes(tmp_path: Path) -> None:
 @pytest.mark.parametrize("autopilot", ["px4", "ardupilot"])
 def test_mine_inspection_on_three_mavlink_vehicles(tmp_path: Path, autopilot: str) -> None:
     shipped = ROOT / "missions" / f"mine_inspection_{autopilot}.yaml"
-    text = shipped.read_text()
-    assert "mavlink: {time_scale: 4}" in text
-    mission = tmp_path / shipped.name  # at half the shipped speed: margin on a busy CI machine
-    text = text.replace("mavlink: {time_scale: 4}", "mavlink: {time_scale: 2}")
-    kind = socket.SOCK_DGRAM if autopilot == "px4" else socket.SOCK_STREAM
-    for port in re.findall(r"127\.0\.0\.1:(\d+)'", text):  # free ports: a SITL may hold those
-        text = text.replace(f"127.0.0.1:{port}'", f"127.0.0.1:{free_port(kind)}'")
-    mission.write_text(text)
+    assert "mavlink: {time_scale: 4}" in shipped.read_text()
+    # at half the shipped speed (margin on a busy CI machine), on free ports
+    mission = mission_on_free_ports(shipped, tmp_path, time_scale=2)
     exe = [sys.executable, "-m", "btmission"]
     sim = subprocess.Popen(
         [*exe, "mavsim", "--mission", str(mission)],

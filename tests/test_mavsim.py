@@ -21,7 +21,7 @@ from btmission.backends.base import Mode, VehicleKind
 from btmission.backends.mavlink_modes import Autopilot, mode_request, set_mode_params
 from btmission.backends.mavsim import MavSim
 from btmission.cli.main import cli
-from tests.mavlink_helpers import SPEED, mavsim
+from tests.mavlink_helpers import SPEED, mavsim, mission_on_free_ports
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -220,13 +220,15 @@ def test_the_cli_serves_until_sigterm_and_says_what_it_did() -> None:
 
 
 @pytest.mark.parametrize("autopilot", ["px4", "ardupilot"])
-def test_the_cli_serves_a_missions_agents_at_their_urls(autopilot: str) -> None:
-    mission = ROOT / "missions" / f"mine_inspection_{autopilot}.yaml"
+def test_the_cli_serves_a_missions_agents_at_their_urls(autopilot: str, tmp_path: Path) -> None:
+    shipped = ROOT / "missions" / f"mine_inspection_{autopilot}.yaml"
+    mission = mission_on_free_ports(shipped, tmp_path)
+    text = mission.read_text()
     result = CliRunner().invoke(cli, ["mavsim", "--mission", str(mission), "--duration", "0.2"])
     assert result.exit_code == 0, result.output
     lines = result.output.splitlines()
-    if autopilot == "px4":
-        assert lines[0].startswith("R1  mavlink+udp://127.0.0.1:14540  sysid 1  px4 multirotor")
-    else:
-        assert lines[2].startswith("R3  mavlink+tcp://127.0.0.1:5780  sysid 1  ardupilot")
+    for agent, line in zip(("R1", "R2", "R3"), lines, strict=False):
+        url = line.split()[1]
+        assert line.startswith(f"{agent}  {url}  sysid ") and f"'{url}'" in text
+        assert line.endswith(f"{autopilot} multirotor")
     assert lines[3] == f"ready (3 vehicle(s), {autopilot}, speed 4x)"

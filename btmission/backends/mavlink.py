@@ -249,8 +249,42 @@ class _Link:
     claimed: set[int] = field(default_factory=set)
     next_heartbeat_wall: float = 0.0
     rejected: collections.Counter[str] = field(default_factory=collections.Counter)
+    down: bool = False
+    """A TCP link whose peer closed it (the vehicle or SITL restarted): reconnected every
+    second."""
+    next_reconnect_wall: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.address.transport == "tcp":  # pymavlink would print and spin on a closed socket
+            self.conn.handle_eof = self._closed
+            self.conn.handle_disconnect = self._closed
+
+    def _closed(self) -> None:
+        port = getattr(self.conn, "port", None)
+        if port is not None:
+            try:
+                port.close()
+            except OSError:
+                pass
+        self.conn.port = None
+        self.down = True
+
+    def reconnect(self, wall: float) -> None:
+        """Try once to reconnect a closed TCP link (then again a second later)."""
+        if wall < self.next_reconnect_wall:
+            return
+        self.next_reconnect_wall = wall + 1.0
+        try:
+            with self.lock:
+                self.conn.do_connect()
+        except OSError:
+            return
+        self.conn.fd = self.conn.port.fileno()
+        self.down = False
 
     def send(self, fn: Callable[[Any], None]) -> None:
+        if self.down:
+            return
         with self.lock:
             fn(self.conn.mav)
 
@@ -334,6 +368,8 @@ class _LinkIO:
             links = list(self.links.values())
             self.links.clear()
         for link in links:
+            if link.down:
+                continue  # its socket is closed already
             try:
                 link.conn.close()
             except OSError:
@@ -375,6 +411,9 @@ class _LinkIO:
         period = 1.0 / (opts.setpoint_hz * opts.time_scale)  # the rate in the vehicle's time
         next_due = wall + 0.05
         for link in links:
+            if link.down:
+                link.reconnect(wall)
+                continue
             if wall >= link.next_heartbeat_wall:
                 link.next_heartbeat_wall = wall + 1.0 / opts.time_scale
                 link.send(
@@ -407,6 +446,8 @@ class _LinkIO:
     def _receive(self, link: _Link) -> None:
         conn = link.conn
         for _ in range(1000):  # bounded: never starve the setpoint stream
+            if link.down:
+                return
             try:
                 msg = conn.recv_msg()
             except (OSError, ConnectionError):
@@ -622,7 +663,8 @@ class MavlinkVehicle:
         """The autopilot's STATUSTEXTs since ``since`` (a refusal's reason), warnings first."""
         texts = [(sev, text) for wall, sev, text in self.state.texts if wall >= since - 0.2]
         texts.sort(key=lambda t: t[0])
-        return "; ".join(text for _, text in texts[:2])
+        unique = list(dict.fromkeys(text for _, text in texts))  # a retried refusal says it again
+        return "; ".join(unique[:2])
 
     def _with_backoff(self, command: int, send: Callable[[], Ack]) -> Ack:
         wall = time.monotonic()
