@@ -197,3 +197,30 @@ def test_mine_inspection_on_three_mavlink_vehicles(tmp_path: Path, autopilot: st
         out, _ = sim.communicate(timeout=20)
         assert sim.returncode == 0, out
         assert "stopped after" in out
+
+
+@pytest.mark.slow
+def test_sigterm_mid_flight_holds_then_lands_before_exiting(tmp_path: Path) -> None:
+    with mavsim(Autopilot.PX4) as sim:
+        path = small_mission(tmp_path, sim)
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "btmission", "run", str(path), "--quiet", "--no-png",
+             "--log", str(tmp_path / "logs")],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+        )  # fmt: skip
+        try:
+            deadline = time.monotonic() + 60.0
+            while time.monotonic() < deadline:  # until the drone is up
+                state = sim.vehicle_state("R1")
+                if not state["landed"] and state["position"][2] > 1.0:
+                    break
+                time.sleep(0.05)
+            proc.send_signal(signal.SIGTERM)
+            _, err = proc.communicate(timeout=60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+        assert proc.returncode == 143, err
+        assert "R1: the run stopped: HOLD accepted, then LAND accepted" in err
+        assert sim.vehicle_state("R1")["mode"] is Mode.LAND
