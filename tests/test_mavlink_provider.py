@@ -134,6 +134,7 @@ def test_px4_offboard_rules_and_a_flight() -> None:
         assert wait_for(p, 10.0, lambda: b.telemetry().landed and not b.telemetry().armed)
 
 
+@pytest.mark.slow  # the conformance suite covers it too (slow selection)
 def test_px4_offboard_loss_holds_where_it_was() -> None:
     with mavsim(PX4) as sim, provider() as p:
         b = attach(p, sim)
@@ -257,6 +258,7 @@ def test_signed_links_fly_and_a_wrong_key_is_refused_and_counted() -> None:
         assert counts["bad_signature"] + counts["unsigned_refused"] > 0
 
 
+@pytest.mark.slow  # the conformance suite covers it too (slow selection)
 def test_two_vehicles_on_two_links_fly_independently() -> None:
     a = spec(PX4, "R1", (5.0, 5.0, 0.0))
     b_ = spec(PX4, "R2", (9.0, 5.0, 0.0), sysid=2)

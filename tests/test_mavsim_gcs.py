@@ -260,6 +260,7 @@ def test_streams_only_when_asked_at_the_asked_rate() -> None:
         assert "LOCAL_POSITION_NED" not in {m.get_type() for m in g.pump(0.4)}
 
 
+@pytest.mark.slow  # covered in the fast selection by test_mavlink_provider / test_mavsim
 def test_stream_rates_are_in_simulated_time() -> None:
     with px4(speed=4.0) as (_sim, [g]):
         assert g.interval(mavlink.MAVLINK_MSG_ID_ATTITUDE, 10) == ACCEPTED
@@ -336,6 +337,7 @@ def test_px4_offboard_is_refused_for_a_slow_stream() -> None:
         assert g.set_mode(Mode.OFFBOARD) == mavlink.MAV_RESULT_DENIED
 
 
+@pytest.mark.slow  # covered in the fast selection by test_mavlink_provider / test_mavsim
 def test_px4_offboard_after_a_second_of_streaming_then_hold_when_it_stops() -> None:
     with px4(speed=4.0) as (sim, [g]):
         _takeoff_px4(sim, g)
@@ -513,6 +515,7 @@ def test_a_dropped_link_neither_sends_nor_hears() -> None:
         assert g.arm() == ACCEPTED
 
 
+@pytest.mark.slow  # covered in the fast selection by test_mavlink_provider / test_mavsim
 def test_two_vehicles_fly_independently() -> None:
     with px4(n=2, speed=4.0) as (sim, [g1, g2]):
         assert {ep.sysid for ep in sim.endpoints} == {1, 2}
@@ -528,6 +531,7 @@ def test_two_vehicles_fly_independently() -> None:
         assert not sim.vehicle_state("V1")["armed"]
 
 
+@pytest.mark.slow  # covered in the fast selection by test_mavlink_provider / test_mavsim
 def test_wrong_signing_key_gets_no_answer_and_is_counted() -> None:
     with ardupilot(speed=4.0, key=b"\x07" * 32, signing_key=KEY) as (sim, [g]):
         assert g.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1, timeout=0.6) is None
@@ -745,6 +749,7 @@ def _rover_mode(g: Gcs, mode: Mode) -> int | None:
     return g.command(mavlink.MAV_CMD_DO_SET_MODE, *set_mode_params(g.autopilot, req))
 
 
+@pytest.mark.slow  # covered in the fast selection by test_mavlink_provider / test_mavsim
 def test_px4_rover_offboard_rules() -> None:
     with rover(PX4, speed=4.0) as (sim, g):
         hb = g.wait("HEARTBEAT")
@@ -767,6 +772,7 @@ def test_px4_rover_offboard_rules() -> None:
         assert state["mode"] is Mode.HOLD and "offboard" in state["failsafe"]
 
 
+@pytest.mark.slow  # covered in the fast selection by test_mavlink_provider / test_mavsim
 def test_ardurover_guided_velocity_targets() -> None:
     with rover(APM, speed=4.0) as (sim, g):
         assert g.wait("HEARTBEAT").type == mavlink.MAV_TYPE_GROUND_ROVER
