@@ -22,6 +22,13 @@ from btmission.control.mav_model import MavParams, mav_dynamics
 MAP = LocalFrame((10.0, 5.0, 0.0))  # north = world +y
 
 
+def test_attitude_targets_ignore_no_body_rate() -> None:
+    """ArduCopter discards an attitude target whose mask ignores some body rates but not all
+    (seen on ArduCopter SITL with mask 3); PX4 reads attitude and yaw rate with mask 0."""
+    a = attitude_target(LocalFrame((0.0, 0.0, 0.0)), 9.81, 0.1, 0.0, 0.0, 0.2)
+    assert a.type_mask == 0
+
+
 def test_the_masks_are_the_dialects_bits() -> None:
     bits = {v.name: k for k, v in mavlink.enums["POSITION_TARGET_TYPEMASK"].items()}
     pos = position_target(MAP, (10.0, 5.0, 2.0))

@@ -162,7 +162,9 @@ def test_ardupilot_velocity_targets_stop_after_3_s_and_gcs_loss_lands() -> None:
         assert state["mode"] is Mode.LAND and state["failsafe"] == "GCS failsafe: landing"
 
 
-def test_a_landed_arducopter_ignores_position_targets_until_nav_takeoff() -> None:
+def test_a_landed_arducopter_climbs_on_nav_takeoff_and_targets_cancel_it() -> None:
+    """As ArduCopter SITL does: GUIDED targets never lift a landed copter, and a target sent
+    while a NAV_TAKEOFF is still spooling up cancels it (the copter stays on the ground)."""
     with client(Autopilot.ARDUPILOT) as c:
         c.heartbeat()
         assert c.set_mode(Mode.OFFBOARD).result == 0
@@ -171,8 +173,16 @@ def test_a_landed_arducopter_ignores_position_targets_until_nav_takeoff() -> Non
         assert c.sim.vehicle_state("R1")["landed"]
         ack = c.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 2.0)
         assert ack.result == mavlink.MAV_RESULT_ACCEPTED
-        c.stream(5.0, hz=10, z_up=2.0)
-        assert not c.sim.vehicle_state("R1")["landed"]
+        c.stream(3.0, hz=10, z_up=2.0)  # targets at once: the take-off is cancelled
+        assert c.sim.vehicle_state("R1")["landed"]
+        ack = c.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 2.0)
+        assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+        end = time.monotonic() + 5.0 / SPEED
+        while time.monotonic() < end:  # nothing but heartbeats: it climbs
+            c.heartbeat()
+            time.sleep(0.02)
+        state = c.sim.vehicle_state("R1")
+        assert not state["landed"] and state["position"][2] > 1.0
 
 
 def test_arming_during_the_ekf_delay_is_refused_with_a_statustext() -> None:

@@ -55,6 +55,22 @@ def test_goals_in_rock_or_outside_have_no_path() -> None:
     assert pc.route((1.25, 1.25, 0.25), (50.0, 1.0, 1.0)) is None
 
 
+def test_a_start_a_hair_outside_the_map_counts_as_its_edge_voxel() -> None:
+    """A real vehicle resting on a map whose floor is the map's edge reports z a few mm below
+    it (estimator noise, seen on ArduCopter SITL): it still has a path; half a voxel is the
+    limit."""
+    pc = PathCosts(corridor())
+    goal = (10.25, 2.25, 1.25)
+    on_floor = pc.path_cost((1.25, 1.25, 0.0), goal)
+    assert math.isfinite(on_floor)
+    assert pc.path_cost((1.25, 1.25, -0.006), goal) == pytest.approx(on_floor)
+    assert pc.path_cost((1.25, 1.25, 3.1), goal) == pytest.approx(
+        pc.path_cost((1.25, 1.25, 2.9), goal)
+    )
+    assert math.isinf(pc.path_cost((1.25, 1.25, -0.3), goal))  # more than half a voxel out
+    assert math.isinf(pc.path_cost((-0.3, 1.25, 0.25), goal))
+
+
 def test_inflation_keeps_paths_off_the_rock() -> None:
     vm = corridor()
     inflated = inflate(vm, 0.5)

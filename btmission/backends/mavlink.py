@@ -42,7 +42,7 @@ import socket
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -120,7 +120,7 @@ class MavlinkError(VehicleUnavailable):
 class MavlinkOptions:
     """How the provider talks to its vehicles (defaults: what a drone engineer expects)."""
 
-    connect_timeout_s: float = 30.0
+    connect_timeout_s: float = 120.0
     """Wall time to wait for a vehicle's first heartbeat and position estimate."""
     ack_timeout_s: float = 1.0
     """Wall time to wait for a COMMAND_ACK before sending the command again."""
@@ -178,6 +178,10 @@ class ScaledWallClock:
         delay = (t - self.now()) / self.scale
         if delay > 0:
             time.sleep(delay)
+
+    def restart(self) -> None:
+        """Zero now (times read before are then negative)."""
+        self._t0 = time.monotonic()
 
 
 # ---------------------------------------------------------------------------- vehicle state
@@ -458,10 +462,8 @@ class _LinkIO:
 
     def _file(self, link: _Link, msg: Any) -> None:
         kind = msg.get_type()
-        if kind == "BAD_DATA":
-            reason = getattr(msg, "reason", "")
-            link.rejected["signature" if "sign" in str(reason).lower() else "bad data"] += 1
-            return
+        if kind == "BAD_DATA":  # signing refusals are counted by pymavlink's signing state;
+            return  # other bytes (a SITL's boot banner on its serial port) are not messages
         src = msg.get_srcSystem()
         st = link.vehicles.get(src)
         now = self.clock.now()
@@ -809,22 +811,26 @@ class MavlinkVehicle:
 
     def _stream(self, send: Callable[[Any], None], climb_to: float | None) -> None:
         st = self.state
+        wall = time.monotonic()
+        now = self.clock.now()
+        if now - self._last_set > self.options.setpoint_stale_s:
+            self._stream_since = now  # a new stream starts
+        self._last_set = now
         if (
             self.autopilot is Autopilot.ARDUPILOT
             and self.kind is VehicleKind.MULTIROTOR
             and self._landed()
             and self._armed()
             and climb_to is not None
+            and self._ardupilot_takeoff(climb_to)
         ):
-            self._ardupilot_takeoff(climb_to)
+            # a GUIDED target would cancel the take-off and keep the copter on the ground
+            # (ModeGuided leaves its take-off submode): nothing is streamed until it is up
+            st.setpoint = None
+            return
         self._takeoff_target = None if not self._landed() else self._takeoff_target
         st.setpoint = send
         st.stopped = False
-        wall = time.monotonic()
-        now = self.clock.now()
-        if now - self._last_set > self.options.setpoint_stale_s:
-            self._stream_since = now  # a new stream starts
-        self._last_set = now
         if self.kind is VehicleKind.GROUND:
             self._ground_ready(now)
         st.setpoint_wall = wall
@@ -834,18 +840,17 @@ class MavlinkVehicle:
         else:  # sent moments ago: this one goes out one period after it (the rate is capped)
             st.next_setpoint_wall = st.last_sent_wall + self._period()
 
-    def _ardupilot_takeoff(self, climb_to: float) -> None:
+    def _ardupilot_takeoff(self, climb_to: float) -> bool:
         """ArduCopter does not leave the ground on GUIDED targets: it needs NAV_TAKEOFF. When
-        a setpoint asks a landed, armed copter in GUIDED to climb, send it (once a second)."""
+        a setpoint asks a landed, armed copter in GUIDED to climb, send it (once a second of
+        vehicle time) and say so (True: the setpoint must wait until the copter is up)."""
         guided = mode_request(self.autopilot, self.kind, Mode.OFFBOARD)
         height = climb_to - self._ground_z()
+        if self._custom_mode() != guided.custom_mode or height < 0.3:
+            return False
         wall = time.monotonic()
-        if (
-            self._custom_mode() != guided.custom_mode
-            or height < 0.3
-            or wall - self._takeoff_sent_wall < 1.0
-        ):
-            return
+        if wall - self._takeoff_sent_wall < 1.0 / self.options.time_scale:
+            return True
         self._takeoff_sent_wall = wall
         st = self.state
         p = [0.0, 0.0, 0.0, math.nan, math.nan, math.nan, float(height)]
@@ -854,6 +859,7 @@ class MavlinkVehicle:
                 st.sysid, st.compid, mavlink.MAV_CMD_NAV_TAKEOFF, 0, *p
             )
         )
+        return True
 
     def set_position_setpoint(
         self,
@@ -1032,6 +1038,21 @@ class MavlinkProvider:
             self._io.add(link)
         return link
 
+    def prepare(self, urls: Sequence[str]) -> None:
+        """Open every link before the vehicles are attached one by one, so that vehicles that
+        start on a connection (ArduPilot SITL waits for its TCP client) boot and warm up their
+        estimators together. A link that cannot be opened now is left to :meth:`attach`."""
+        deadline = time.monotonic() + 1.0
+        for url in dict.fromkeys(urls):
+            try:
+                self._link(parse_mavlink_url(url), deadline)
+            except (MavlinkError, ValueError):
+                continue
+
+    def start(self) -> None:
+        """The mission starts now: the run clock restarts at zero (connecting took its time)."""
+        self.clock.restart()
+
     def attach(
         self, agent_id: str, kind: VehicleKind, start: Vec3, *, url: str = "", **options: Any
     ) -> Vehicle:
@@ -1068,6 +1089,8 @@ class MavlinkProvider:
         self._request_streams(vehicle)
         if self._geodetic is not None:
             self._set_global_origin(vehicle, deadline)
+        if state.position is None and self._progress is not None:
+            self._progress(f"{agent_id}: waiting for its position estimate (LOCAL_POSITION_NED)")
         while state.position is None:
             if time.monotonic() > deadline:
                 raise MavlinkError(

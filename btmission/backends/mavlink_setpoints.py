@@ -34,8 +34,10 @@ POSITION_IGNORE = X_IGNORE | Y_IGNORE | Z_IGNORE
 VELOCITY_IGNORE = VX_IGNORE | VY_IGNORE | VZ_IGNORE
 ACCEL_IGNORE = AX_IGNORE | AY_IGNORE | AZ_IGNORE
 
-ROLL_RATE_IGNORE, PITCH_RATE_IGNORE = 1, 2
-"""ATTITUDE_TARGET_TYPEMASK bits: the body roll and pitch rates are not commanded."""
+ATTITUDE_ALL_RATES = 0
+"""ATTITUDE_TARGET_TYPEMASK of our attitude setpoints: nothing ignored (roll and pitch rates 0,
+the yaw rate commanded). ArduCopter refuses a mask that ignores some body rates but not all
+(seen on SITL: a mask of 3 was discarded); PX4 reads the attitude and the yaw rate."""
 
 
 @dataclass(frozen=True)
@@ -125,8 +127,7 @@ def attitude_target(
         raise ValueError(f"hover throttle must be in (0, 1], got {hover}")
     q = euler_to_quaternion(roll, -pitch, frame.yaw_to_local(yaw))
     throttle = min(1.0, max(0.0, hover * thrust / G))
-    mask = ROLL_RATE_IGNORE | PITCH_RATE_IGNORE
-    return AttitudeTarget(mask, q, frame.yaw_rate_to_local(yaw_rate), throttle)
+    return AttitudeTarget(ATTITUDE_ALL_RATES, q, frame.yaw_rate_to_local(yaw_rate), throttle)
 
 
 def quaternion_to_euler(q: tuple[float, float, float, float]) -> tuple[float, float, float]:

@@ -73,6 +73,9 @@ from btmission.backends.sim import SimConfig, Simulator, SimVehicle
 from btmission.world.voxel import VoxelMap
 
 G = 9.81
+SPOOL_S = 1.0
+"""An ArduCopter take-off spools its motors up this long before it leaves the ground (SITL shows
+the copter ON_GROUND for about a second after NAV_TAKEOFF)."""
 PX4_UDP_BASE = 14540
 ARDUPILOT_TCP_BASE = 5760
 BOOT_EPOCH_S = 0.0
@@ -138,6 +141,8 @@ class _Guided:
     attitude: tuple[float, float, float] = (G, 0.0, 0.0)
     since: float = 0.0
     taking_off: bool = False
+    spool_until: float = 0.0
+    """A take-off's motors spool up until then: the copter is still on the ground."""
     braking: bool = False
     """Holding after a velocity target expired: zero velocity until stopped, then the position
     where it stopped (flying back to where the target expired would overshoot)."""
@@ -453,7 +458,9 @@ class _SimulatedAutopilot:
             return self._refuse("Takeoff: already flying", mavlink.MAV_RESULT_FAILED)
         target = tel.position.copy()
         target[2] = tel.ground_z + float(param7)
-        self.guided = _Guided("position", target, since=self.now(), taking_off=True)
+        self.guided = _Guided(
+            "position", target, since=self.now(), taking_off=True, spool_until=self.now() + SPOOL_S
+        )
         return mavlink.MAV_RESULT_ACCEPTED
 
     # ------------------------------------------------------------------ setpoints
@@ -475,9 +482,12 @@ class _SimulatedAutopilot:
         if self.autopilot is Autopilot.ARDUPILOT:
             if mode_of(self.autopilot, self.spec.kind, self.custom_mode()) is not Mode.OFFBOARD:
                 return  # GUIDED targets only count in GUIDED
-            g = self.guided
-            if g.taking_off and self.backend.telemetry().landed:
-                return  # a landed copter climbs on NAV_TAKEOFF, not on targets
+            tel = self.backend.telemetry()
+            if tel.landed and self.spec.kind is VehicleKind.MULTIROTOR:
+                # as ArduCopter: a target leaves GUIDED's take-off submode, and on the ground
+                # it does not lift off (a NAV_TAKEOFF followed at once by targets stays put)
+                self.guided = _Guided("hold", tel.position.copy(), since=t)
+                return
             self.guided = _Guided(
                 kind,
                 position if kind == "position" else self.backend.telemetry().position,
@@ -517,10 +527,8 @@ class _SimulatedAutopilot:
         if self.autopilot is Autopilot.ARDUPILOT:
             if mode_of(self.autopilot, self.spec.kind, self.custom_mode()) is not Mode.OFFBOARD:
                 return
-            if self.backend.telemetry().landed and not self.guided.taking_off:
-                return
-            if self.guided.taking_off and self.backend.telemetry().landed:
-                return
+            if self.backend.telemetry().landed and thrust <= G:
+                return  # on the ground, only more than hover thrust lifts it (as ArduCopter)
             self.guided = _Guided("attitude", attitude=(thrust, roll, pitch),
                                   yaw_rate=yaw_rate, since=t)  # fmt: skip
             return
@@ -579,7 +587,10 @@ class _SimulatedAutopilot:
         if g.taking_off and not tel.landed and abs(tel.position[2] - g.position[2]) < 0.2:
             g.taking_off = False
         b = self.backend
-        if g.kind == "velocity" or g.braking:
+        if g.taking_off and t < g.spool_until:  # spooling up: still on the ground
+            ground = tel.position.copy()
+            b.set_position_setpoint(ground, None, g.yaw)
+        elif g.kind == "velocity" or g.braking:
             b.set_velocity_setpoint(g.velocity, g.yaw_rate)
         elif g.kind == "attitude":
             b.set_attitude_setpoint(*g.attitude, g.yaw_rate)

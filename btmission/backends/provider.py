@@ -22,6 +22,10 @@ run's seed, it returns the :class:`VehicleProvider` for the run. The provider th
   real time passes on its own);
 * is :meth:`~VehicleProvider.close`\\ d at the end (sockets, threads).
 
+Two optional methods a real provider may have: ``prepare(urls)``, called with every agent's URL
+before the first ``attach`` (open all links at once, so vehicles boot together), and ``start()``,
+called once every vehicle is attached (the mission's time starts: the clock restarts at zero).
+
 One run has one clock, so every agent of a mission uses the same provider (scheme): simulated
 time cannot be mixed with the wall clock
 (:func:`btmission.spec.runcheck.backend_problems` refuses such a fleet).

@@ -86,13 +86,21 @@ class PathCosts:
 
     # ---------------------------------------------------------------- indices
     def _flat(self, point: Sequence[float]) -> int:
-        """Padded flat index of the voxel holding ``point`` (-1 outside the map)."""
+        """Padded flat index of the voxel holding ``point`` (-1 outside the map). A point less
+        than half a voxel outside counts as in the edge voxel: a real vehicle resting on a map
+        whose floor is its edge reports z a few millimetres below it (estimator noise)."""
         vm = self.map
         res = vm.resolution
-        i = math.floor((point[0] - vm.origin[0]) / res)
-        j = math.floor((point[1] - vm.origin[1]) / res)
-        k = math.floor((point[2] - vm.origin[2]) / res)
         nx, ny, nz = vm.shape
+        idx = []
+        for axis, n in enumerate((nx, ny, nz)):
+            u = (point[axis] - vm.origin[axis]) / res
+            if -0.5 <= u < 0:
+                u = 0.0
+            elif n <= u < n + 0.5:
+                u = n - 1.0
+            idx.append(math.floor(u))
+        i, j, k = idx
         if not (0 <= i < nx and 0 <= j < ny and 0 <= k < nz):
             return -1
         return ((i + 1) * (ny + 2) + (j + 1)) * (nz + 2) + (k + 1)  # padded C-order index

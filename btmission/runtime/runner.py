@@ -229,6 +229,9 @@ class MissionRun:
         except BaseException:  # a vehicle that would not connect, Ctrl-C while connecting
             self.provider.close()
             raise
+        start = getattr(self.provider, "start", None)
+        if start is not None:  # the mission's time starts now, however long connecting took
+            start()
         self.agent_sides = [
             AgentRuntime(a, tick_period_s=1.0 / rt.tick_hz, status_period_s=1.0 / rt.status_hz)
             for a in self.agents.values()
@@ -303,6 +306,9 @@ class MissionRun:
 
     def _build_agents(self) -> None:
         blind: list[str] = []
+        prepare = getattr(self.provider, "prepare", None)
+        if prepare is not None:  # a real provider opens every link first (vehicles boot together)
+            prepare([spec.backend for spec in self.mission.agents])
         for spec in self.mission.agents:
             loaded = self.mission.library_of(spec.id)
             impl = loaded.implementations

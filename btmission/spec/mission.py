@@ -363,8 +363,9 @@ class MavlinkSpec(_Strict):
     environment (``BTMISSION_MAVLINK_KEY_FILE``, ``BTMISSION_MAVLINK_KEY``)."""
 
     connect_timeout_s: FiniteFloat = Field(
-        30.0, gt=0, le=600,
-        description="Wall time to wait for each vehicle's first heartbeat and position estimate.",
+        120.0, gt=0, le=600,
+        description="Wall time to wait for each vehicle's first heartbeat and position estimate "
+        "(ArduPilot SITL's EKF takes about 40 s with simulated GPS).",
     )
     setpoint_hz: FiniteFloat = Field(
         20.0, gt=2, le=200,
