@@ -97,7 +97,8 @@ if TYPE_CHECKING:
     from btmission.runtime.roads import RoadCosts
 
 LATE_STEPS_WARNING = 20
-"""Steps late by more than one step, against a real provider's clock, before the run warns."""
+"""Steps late by more than one step, against a real provider's clock, before the run warns (and
+more than 5 % of the steps so far)."""
 
 NEIGHBOUR_RANGE_M = 6.0
 """Agents farther than this are left out of each other's avoidance (APF, NMPC constraints)."""
@@ -218,6 +219,7 @@ class MissionRun:
         self.collisions = 0
         self._wall0: float | None = None
         self._late_steps = 0
+        self._late_warned = False
         self._wall_used = 0.0
         self._ended: RunResult | None = None
         self.errors = ErrorReporter(self.emit)
@@ -726,13 +728,15 @@ class MissionRun:
                     if self.clock.now() > due + self.dt:  # late (a slow step): no catch-up burst
                         clock0 += self.clock.now() - due
                         self._late_steps += 1
-                        if self._late_steps == LATE_STEPS_WARNING:
+                        late, steps = self._late_steps, self.steps - steps0
+                        if not self._late_warned and late >= LATE_STEPS_WARNING and late > 0.05 * steps:
+                            self._late_warned = True
                             self.emit(
                                 "warning",
-                                message=f"the run falls behind its vehicles' clock ("
-                                f"{LATE_STEPS_WARNING} steps late by more than {self.dt:g} s): "
-                                "the control loop cannot keep up; lower runtime.mavlink."
-                                "time_scale or use the track controller",
+                                message=f"the run falls behind its vehicles' clock ({late} of "
+                                f"{steps} steps late by more than {self.dt:g} s): the control loop "
+                                "cannot keep up; lower runtime.mavlink.time_scale or use the track "
+                                "controller",
                             )
                     else:
                         self.clock.sleep_until(due)
