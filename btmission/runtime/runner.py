@@ -96,9 +96,9 @@ from btmission.world.voxel import VoxelMap
 if TYPE_CHECKING:
     from btmission.runtime.roads import RoadCosts
 
-LATE_STEPS_WARNING = 20
-"""Steps late by more than one step, against a real provider's clock, before the run warns (and
-more than 5 % of the steps so far)."""
+LATE_STEPS_WARNING = 400
+"""Steps a run against a real provider's clock makes before it may warn that it falls behind
+(more than 5 % of its steps late by more than a step: the start's first NMPC solves are slow)."""
 
 NEIGHBOUR_RANGE_M = 6.0
 """Agents farther than this are left out of each other's avoidance (APF, NMPC constraints)."""
@@ -729,7 +729,7 @@ class MissionRun:
                         clock0 += self.clock.now() - due
                         self._late_steps += 1
                         late, steps = self._late_steps, self.steps - steps0
-                        if not self._late_warned and late >= LATE_STEPS_WARNING and late > 0.05 * steps:
+                        if not self._late_warned and steps >= LATE_STEPS_WARNING and late > 0.05 * steps:
                             self._late_warned = True
                             self.emit(
                                 "warning",
