@@ -408,6 +408,10 @@ def check_validate_implies_run(runner: CliRunner, path: Path, logs: Path) -> Non
     if checked.exit_code != 0:
         assert checked.exit_code in (1, 2), checked.output
         return
+    text = path.read_text()
+    if "mavlink: {time_scale: 4}" in text:  # a shipped MAVLink mission: no vehicle answers here
+        path = logs / path.name  # (its map is generated: the copy builds the same world)
+        path.write_text(text.replace("{time_scale: 4}", "{time_scale: 4, connect_timeout_s: 1}"))
     result = invoke(runner, "run", str(path), "--log", str(logs), *FAST_RUN)
     if result.exit_code == 2 and "cannot run" in result.output:
         assert "it is abstract" in result.output, result.output
