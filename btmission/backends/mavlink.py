@@ -66,7 +66,12 @@ from btmission.backends.mavlink_modes import (
     mode_request,
     set_mode_params,
 )
-from btmission.backends.mavlink_setpoints import attitude_target, position_target, velocity_target
+from btmission.backends.mavlink_setpoints import (
+    PositionTarget,
+    attitude_target,
+    position_target,
+    velocity_target,
+)
 from btmission.backends.mavlink_signing import enable_signing, load_key, signing_counters
 from btmission.backends.mavlink_url import MavlinkAddress, parse_mavlink_url
 from btmission.backends.provider import Vehicle, VehicleEvent, VehicleUnavailable
@@ -538,6 +543,18 @@ def _fileno(conn: Any) -> int | None:
 
 
 # ---------------------------------------------------------------------------- the vehicle
+def _send_position_target(st: _State, target: PositionTarget) -> Callable[[Any], None]:
+    """What sends ``target`` to the vehicle of ``st`` (SET_POSITION_TARGET_LOCAL_NED)."""
+
+    def send(mav: Any) -> None:
+        mav.set_position_target_local_ned_send(
+            0, st.sysid, st.compid, mavlink.MAV_FRAME_LOCAL_NED, target.type_mask,
+            *target.position, *target.velocity, 0.0, 0.0, 0.0, target.yaw, target.yaw_rate,
+        )  # fmt: skip
+
+    return send
+
+
 class MavlinkVehicle:
     """One MAVLink vehicle as a :class:`~btmission.backends.base.Backend` (module docstring)."""
 
@@ -571,11 +588,7 @@ class MavlinkVehicle:
         self._stream_since = math.inf
         self._ready_sent = -math.inf
         if kind is VehicleKind.GROUND:
-            halt = velocity_target(frame, (0.0, 0.0, 0.0), 0.0)
-            state.stop = lambda mav: mav.set_position_target_local_ned_send(
-                0, state.sysid, state.compid, mavlink.MAV_FRAME_LOCAL_NED, halt.type_mask,
-                *halt.position, *halt.velocity, 0.0, 0.0, 0.0, halt.yaw, halt.yaw_rate,
-            )  # fmt: skip
+            state.stop = _send_position_target(state, velocity_target(frame, (0.0, 0.0, 0.0)))
 
     # ------------------------------------------------------------------ state
     @property
@@ -868,45 +881,17 @@ class MavlinkVehicle:
         yaw: float | None = None,
     ) -> None:
         target = position_target(self.frame, position, velocity, yaw)
-        st = self.state
         self._stream(
-            lambda mav: mav.set_position_target_local_ned_send(
-                0,
-                st.sysid,
-                st.compid,
-                mavlink.MAV_FRAME_LOCAL_NED,
-                target.type_mask,
-                *target.position,
-                *target.velocity,
-                0.0,
-                0.0,
-                0.0,
-                target.yaw,
-                target.yaw_rate,
-            ),
+            _send_position_target(self.state, target),
             float(np.asarray(position, dtype=float)[2]),
         )
 
     def set_velocity_setpoint(self, velocity: Vec3 | FloatArray, yaw_rate: float = 0.0) -> None:
         target = velocity_target(self.frame, velocity, yaw_rate)
-        st = self.state
         v = np.asarray(velocity, dtype=float)
         climb = self._ground_z() + self.options.takeoff_alt_m if v[2] > 0.2 else None
         self._stream(
-            lambda mav: mav.set_position_target_local_ned_send(
-                0,
-                st.sysid,
-                st.compid,
-                mavlink.MAV_FRAME_LOCAL_NED,
-                target.type_mask,
-                *target.position,
-                *target.velocity,
-                0.0,
-                0.0,
-                0.0,
-                target.yaw,
-                target.yaw_rate,
-            ),
+            _send_position_target(self.state, target),
             climb,
         )
 
