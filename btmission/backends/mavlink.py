@@ -257,7 +257,6 @@ class _Link:
     vehicles: dict[int, _State] = field(default_factory=dict)
     claimed: set[int] = field(default_factory=set)
     next_heartbeat_wall: float = 0.0
-    rejected: collections.Counter[str] = field(default_factory=collections.Counter)
     down: bool = False
     """A TCP link whose peer closed it (the vehicle or SITL restarted): reconnected every
     second."""
@@ -695,8 +694,6 @@ class MavlinkVehicle:
         return ack
 
     def arm(self) -> Ack:
-        if self.kind is VehicleKind.GROUND and self.autopilot is Autopilot.PX4:
-            pass  # PX4 rovers arm like drones
         if self._armed():
             return ACCEPTED  # already armed counts as success
 
@@ -1214,11 +1211,10 @@ class MavlinkProvider:
         return []
 
     def rejected(self) -> dict[str, int]:
-        """Messages refused on every link, by reason: unsigned, a bad signature or a replay
-        (with signing on), bad data."""
+        """Messages refused on every link with signing on, by reason: unsigned, a bad
+        signature or a replay."""
         out: collections.Counter[str] = collections.Counter()
         for link in self._io.links.values():
-            out.update(link.rejected)
             if self.options.signing_key is not None:
                 counts = signing_counters(link.conn)
                 counts.pop("signed_ok")
