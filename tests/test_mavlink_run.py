@@ -224,3 +224,15 @@ def test_sigterm_mid_flight_holds_then_lands_before_exiting(tmp_path: Path) -> N
         assert proc.returncode == 143, err
         assert "R1: the run stopped: HOLD accepted, then LAND accepted" in err
         assert sim.vehicle_state("R1")["mode"] is Mode.LAND
+
+
+def test_a_missing_signing_key_file_is_refused_before_anything_runs(tmp_path: Path) -> None:
+    path = tmp_path / "remote.yaml"
+    path.write_text(
+        textwrap.dedent(MISSION.format(url="mavlink+udp://127.0.0.1:1", speed=1)).lstrip()
+    )
+    missing = tmp_path / "none.key"
+    result = run_cli(str(path), "--log", str(tmp_path / "logs"), "--mavlink-key-file", str(missing))
+    assert result.exit_code == 2
+    assert f"{missing}: no such file (the MAVLink signing key)" in result.output
+    assert not (tmp_path / "logs").exists()
