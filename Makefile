@@ -11,13 +11,13 @@ STAMP  := $(VENV)/.installed
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[test]"
+	$(PY) -m pip install --quiet -e ".[test,viz]"
 	$(PY) -m btmission.warmup
 	@touch $(STAMP)
 
 install: $(STAMP) system-deps
 
-# graphviz renders svg/png trees. Installed when missing and possible (root + apt-get);
+# graphviz renders svg/png trees; chromium runs the viewer's browser tests. Installed when missing and possible (root + apt-get);
 # otherwise a note, and every other feature keeps working (export to dot/xml/json/ascii).
 system-deps:
 	@command -v dot >/dev/null 2>&1 || { \
@@ -26,6 +26,12 @@ system-deps:
 	    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq graphviz >/dev/null) \
 	      || echo "note: could not install graphviz; svg/png export is unavailable"; \
 	  else echo "note: graphviz 'dot' not found; svg/png export is unavailable (install graphviz)"; fi; }
+	@command -v chromium >/dev/null 2>&1 || { \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+	    echo "installing chromium (the viewer's browser tests)..."; \
+	    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) \
+	      || echo "note: could not install chromium; the viewer's browser tests will be skipped"; \
+	  else echo "note: chromium not found; the viewer's browser tests will be skipped (install chromium)"; fi; }
 
 # The seed 000 field mission in the embedded simulator (tracking controller: ~10 s; drop
 # --controller to fly the NMPC, about a minute); ends with its report (Tables III and II).
