@@ -5,7 +5,8 @@ compiled on their first call and cached on disk (``cache=True``, next to their m
 fresh install the first mission, planner query or dispatch would otherwise pay that compilation
 (about half a minute on a 2-core machine) in the middle of its work. This module runs each of
 them once, on tiny inputs, through the same code paths a run uses, so that the argument types —
-and so the compiled signatures — are exactly those of real use::
+and so the compiled signatures — are exactly those of real use: a command where one runs the kernel,
+else the function that does (:func:`_calls`)::
 
     python -m btmission.warmup          # prints what it compiled and how long it took
 
@@ -48,6 +49,21 @@ def _commands(tmp: Path) -> list[tuple[str, list[str]]]:
     return steps
 
 
+def _viewer_mesh() -> None:
+    """The viewer's greedy meshing (:mod:`btmission.viz.mesh`), on a one-voxel rock."""
+    from btmission.viz.mesh import surface_mesh
+    from btmission.world.voxel import OCCUPIED, VoxelMap
+
+    vmap = VoxelMap.empty((1.5, 1.5, 1.5), 0.5)
+    vmap.state[1, 1, 1] = OCCUPIED
+    surface_mesh(vmap)
+
+
+def _calls() -> list[tuple[str, Callable[[], None]]]:
+    """Kernels no command runs on its own: the functions that run them."""
+    return [("viewer surface mesh", _viewer_mesh)]
+
+
 def warm_up(echo: Callable[[str], None] = print) -> float:
     """Run every kernel once (module docstring); returns the seconds it took."""
     from click.testing import CliRunner
@@ -67,6 +83,14 @@ def warm_up(echo: Callable[[str], None] = print) -> float:
                 )
             else:
                 echo(f"warm-up: {name} compiled in {took:.1f} s")
+    for name, call in _calls():
+        t = time.perf_counter()
+        try:
+            call()
+        except Exception as exc:  # as for a command: a failed step only loses its head start
+            echo(f"warm-up: {name}: {exc!r} (skipped; it compiles on first use)")
+        else:
+            echo(f"warm-up: {name} compiled in {time.perf_counter() - t:.1f} s")
     return time.perf_counter() - t0
 
 

@@ -34,9 +34,15 @@ def test_the_warm_up_steps_name_real_files_and_commands(tmp_path: Path) -> None:
                 assert Path(arg).is_file(), arg
 
 
+def test_the_warm_up_calls_the_kernels_no_command_runs() -> None:
+    assert [name for name, _ in warmup._calls()] == ["viewer surface mesh"]
+    for _, call in warmup._calls():
+        call()
+
+
 @pytest.mark.slow
 def test_the_warm_up_runs_every_step() -> None:
     lines: list[str] = []
     total = warmup.warm_up(lines.append)
-    assert len(lines) == 5 and all(" compiled in " in line for line in lines), lines
+    assert len(lines) == 6 and all(" compiled in " in line for line in lines), lines
     assert total > 0

@@ -1,0 +1,1 @@
+"""Building blocks of the live 3D viewer: the mine's and the planner's geometry for the browser."""
