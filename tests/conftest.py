@@ -1,14 +1,21 @@
-"""Shared fixtures: the built-in libraries, a CLI runner, small library builders."""
+"""Shared fixtures: the built-in libraries, a CLI runner, small library builders, a browser."""
 
 from __future__ import annotations
 
 import textwrap
+from collections.abc import Iterator
+from typing import TYPE_CHECKING
 
 import pytest
 from click.testing import CliRunner
 
 from btmission.plugins import load_library
 from btmission.spec.library import Library, load_library_text
+
+if TYPE_CHECKING:
+    from playwright.sync_api import Browser, Page
+
+    from tests.browser import BrowserSession
 
 
 @pytest.fixture(scope="session")
@@ -29,3 +36,34 @@ def runner() -> CliRunner:
 def lib_from(body: str, file: str = "lib.yaml"):  # type: ignore[no-untyped-def]
     """Load a library from an indented YAML snippet; returns (library, diagnostics)."""
     return load_library_text(textwrap.dedent(body).lstrip("\n"), file)
+
+
+# -- the browser (tests/browser.py: flags, skip-or-fail under CI, why `browser` is per test) -----
+# Imported inside the fixtures: tests that use no browser never load Playwright, Pillow or numpy.
+
+
+@pytest.fixture(scope="session")
+def browser_session() -> Iterator[BrowserSession]:
+    """One headless chromium for the session; skips (fails when CI is set) if it cannot start."""
+    from tests.browser import BrowserSession
+
+    session = BrowserSession.launch()
+    yield session
+    session.close()
+
+
+@pytest.fixture()
+def browser(browser_session: BrowserSession) -> Iterator[Browser]:
+    """The session's chromium, usable for the length of one test."""
+    with browser_session.active() as active:
+        yield active
+
+
+@pytest.fixture()
+def page(browser: Browser) -> Iterator[Page]:
+    """A new page with the fixed viewport tests.browser.VIEWPORT (1280x800), closed after the test."""
+    from tests.browser import VIEWPORT
+
+    page = browser.new_page(viewport=VIEWPORT)
+    yield page
+    page.close()
