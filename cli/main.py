@@ -26,6 +26,7 @@ from btmission.cli import (
     reloc_cmds,
     run_cmds,
     synth_cmds,
+    view_cmds,
 )
 from btmission.cli.common import EXIT_BAD_INPUT, EXIT_INTERRUPTED, report_internal_error
 
@@ -142,6 +143,7 @@ cli.add_command(run_cmds.run_cmd)
 cli.add_command(run_cmds.report_cmd)
 cli.add_command(reloc_cmds.reloc)
 cli.add_command(mavsim_cmds.mavsim)
+cli.add_command(view_cmds.view_cmd)
 
 
 def main() -> None:

@@ -22,6 +22,13 @@ from btmission.cli.common import (
     internal_error_sink,
     output_target,
 )
+from btmission.cli.view_cmds import (
+    require_viz,
+    reserve_server,
+    serve_until_stopped,
+    start_server,
+    viewer_options,
+)
 
 
 def _write_pngs(rep: Any, directory: Path, stem: str) -> list[Path]:
@@ -84,6 +91,20 @@ def _write_pngs(rep: Any, directory: Path, stem: str) -> list[Path]:
     help="MAVLink 2 signing key of the vehicles (64 hex digits or a passphrase); also "
     "BTMISSION_MAVLINK_KEY_FILE or BTMISSION_MAVLINK_KEY. Never put it in the mission.",
 )
+@click.option(
+    "--view",
+    is_flag=True,
+    help="Watch the run live in the browser: serves the viewer (3D mine, agents, trees, tasks) "
+    "on 127.0.0.1 and prints its URL; paces the run to real time unless --speed says otherwise.",
+)
+@viewer_options
+@click.option(
+    "--speed",
+    type=click.FloatRange(min=0, max=1e6),
+    default=None,
+    help="Pace the simulator this many times faster than real time (implies --realtime; 0: as "
+    "fast as the machine allows, also with --view).",
+)
 @handle_spec_errors
 def run_cmd(
     mission_file: Path,
@@ -96,6 +117,10 @@ def run_cmd(
     no_png: bool,
     yes: bool,
     mavlink_key_file: Path | None,
+    view: bool,
+    host: str,
+    port: int | None,
+    speed: float | None,
 ) -> None:
     """Run a mission and print its report.
 
@@ -114,11 +139,25 @@ def run_cmd(
       btmission run missions/mine_inspection.yaml --controller track --log runs
       btmission report --latest runs
 
+    --view serves the live viewer (docs/viewer.md) while the run goes: closing the browser never
+    touches the run; when the run has ended the page stays up, on a terminal, until Ctrl-C
+    (btmission view LOG replays it later).
+
+    \b
+    Watch it live, 5 times faster than real time:
+      btmission run missions/mine_inspection.yaml --controller track --view --speed 5
+
     Exit status: 0 every task done, 1 tasks left open, failed or still to arrive, 2 bad
     mission file, 130 interrupted (Ctrl-C), 143 terminated (SIGTERM): the log and the report
     cover what happened so far.
     """
     from btmission.runtime.session import RunSession, RunStopped
+
+    live: LiveView | None = None
+    if view:
+        require_viz()
+        live = LiveView(host, port)
+    paced = realtime or bool(speed) or (view and speed is None)
 
     def note(text: str) -> None:
         click.echo(f"\n{text}", err=True)
@@ -127,9 +166,10 @@ def run_cmd(
         mission_file,
         seed=seed,
         controller=controller,
-        realtime=realtime,
+        realtime=paced,
+        speed=speed or 1.0,
         log_dir=log_dir,
-        observers=[_StderrNotes()],
+        observers=[_StderrNotes(), *([live.observer] if live is not None else [])],
         handle_signals=True,
         notify=note,
     )
@@ -143,15 +183,69 @@ def run_cmd(
         os.environ[KEY_FILE_ENV] = str(mavlink_key_file)  # read by the MAVLink provider
     try:
         with session:
-            code = _run(session, until, quiet, no_png, yes)
+            code = _run(session, until, quiet, no_png, yes, live)
     except RunStopped as stop:  # before the log existed, or after the run had ended
         if session.ended and session.log_path is not None:
             click.echo(f"{stop.reason}; the log is complete: {session.log_path}", err=True)
         else:
             click.echo(f"{stop.reason} before the run started: nothing was run", err=True)
         code = stop.code
+    finally:
+        if live is not None:
+            live.finish(linger=sys.stdin.isatty() and sys.stderr.isatty())
     if code:
         sys.exit(code)
+
+
+class LiveView:
+    """``run --view``: the live feed behind a queue (the run never waits for it), and the
+    viewer's server once the run is built."""
+
+    def __init__(self, host: str, port: int | None) -> None:
+        from btmission.runtime.observers import QueuedObserver
+        from btmission.viz.feed import LiveFeed
+
+        self.host = host
+        self.port = port
+        self.run: Any = None
+        self.feed = LiveFeed(lambda: self.run.snapshot if self.run is not None else None)
+        self.observer = QueuedObserver(self.feed, maxsize=10_000, name="viewer")
+        self.server: Any = reserve_server(host, port)  # a port in use: before anything runs
+        self.serving = False
+
+    def serve(self, session: Any, run: Any) -> None:
+        """Start serving the run (its map is built)."""
+        from btmission.planning.risk import RiskParams
+        from btmission.viz.server import ViewerSource, mission_info
+
+        mission = session.mission
+        rt = mission.spec.runtime
+        header = {
+            "mission": mission.name,
+            "description": mission.spec.description,
+            "agents": [{"id": a.id, "library": a.library, "start": list(a.start)} for a in mission.agents],
+            "step_s": run.dt,
+        }
+        source = ViewerSource(
+            mission_info(header, mode="live", source=str(session.log_path or "")),
+            self.feed,
+            run.map,
+            scene_options={"risk": RiskParams(rt.risk_radius_m, rt.unknown_cost)},
+        )
+        self.run = run
+        start_server(source, self.host, self.port, self.server)
+        self.serving = True
+        self.feed.start()
+
+    def finish(self, *, linger: bool) -> None:
+        """The run has ended: every event to the feed; on a terminal, keep the page up until
+        Ctrl-C; then close the server."""
+        self.observer.close(timeout=10.0)
+        self.feed.close()
+        if linger and self.serving:
+            serve_until_stopped(self.server, "the run has ended; the viewer still shows it")
+        else:
+            self.server.close()
 
 
 class _StderrNotes:
@@ -200,7 +294,9 @@ def _confirm_real_vehicles(mission: Any, yes: bool) -> None:
         raise click.Abort()
 
 
-def _run(session: Any, until: float | None, quiet: bool, no_png: bool, yes: bool) -> int:
+def _run(
+    session: Any, until: float | None, quiet: bool, no_png: bool, yes: bool, live: LiveView | None
+) -> int:
     """The run command's body (a :class:`~btmission.runtime.session.RunSession` does the
     work; this prints); returns the exit status."""
     from btmission.runtime.report import format_report, format_warnings
@@ -213,6 +309,8 @@ def _run(session: Any, until: float | None, quiet: bool, no_png: bool, yes: bool
             run = session.start()
         except VehicleUnavailable as exc:  # nothing answers at an agent's backend URL
             raise ChecksFailed(f"{exc}; nothing was run") from None
+        if run is not None and live is not None:
+            live.serve(session, run)
         if run is not None:
             if not quiet:
                 click.echo(

@@ -385,11 +385,11 @@ def test_the_report_finds_the_world_from_another_directory(
     ran: Ran, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The top view's map comes from ``world_ref``, not from where the run was started."""
-    from btmission.runtime.report import _world_from_header
+    from btmission.runtime.report import world_from_header
 
     monkeypatch.chdir(tmp_path)
     header = dict(ran.events[0].data, file="small.yaml")  # relative: not from here
-    vm = _world_from_header(header)
+    vm = world_from_header(header)
     assert vm is not None and vm.shape == ran.run.map.shape
 
 

@@ -69,7 +69,12 @@ from btmission.runtime.leaves import (
 from btmission.runtime.navigation import Navigator, route_points
 from btmission.runtime.paths import PathCosts
 from btmission.runtime.substitution import Substitutions
-from btmission.runtime.treestatus import TREE_EVENT_S, LeanBehaviourTree, TreeStatusLogger
+from btmission.runtime.treestatus import (
+    TREE_EVENT_S,
+    LeanBehaviourTree,
+    TreeStatusLogger,
+    blackboard_value,
+)
 from btmission.spec.mission import Mission
 from btmission.spec.source import format_path
 from btmission.synthesis.mission_tree import build_mission_tree
@@ -156,6 +161,8 @@ class Agent:
         }
         self._commit_leaves = self._find_commit_leaves()
         self._default = next((c for c in self.root.children if c.name == "default"), None)
+        self._blackboard_sent: dict[str, Any] = {}
+        """The blackboard as the last ``tree`` event showed it (its keys' display values)."""
         self.tree = LeanBehaviourTree(self.root)
         """The root in py_trees' tree custodian: ticks run its visitors and post-tick handlers."""
         self._tree_log = TreeStatusLogger(
@@ -407,7 +414,17 @@ class Agent:
         self._emit(kind, agent=self.id, **data)
 
     def _tree_event(self, changes: list[list[Any]], nodes: list[list[Any]] | None) -> None:
-        self._emit("tree", agent=self.id, changes=changes, **({"nodes": nodes} if nodes else {}))
+        extra: dict[str, Any] = {"nodes": nodes} if nodes else {}
+        now = {k: blackboard_value(v) for k, v in self.blackboard.snapshot().items()}
+        sent = self._blackboard_sent
+        changed = {k: v for k, v in now.items() if k not in sent or sent[k] != v}
+        unset = [k for k in sent if k not in now]
+        self._blackboard_sent = now
+        if changed:
+            extra["blackboard"] = changed
+        if unset:
+            extra["unset"] = unset
+        self._emit("tree", agent=self.id, changes=changes, **extra)
 
     def _route_event(self, points: Any, length_m: float) -> None:
         task = self.task.id if self.task is not None else None

@@ -34,7 +34,8 @@ has a typed class below (:class:`TypedEvent` subclasses, frozen dataclasses; ``E
                    (at most a few hundred), ``length_m``; version 2
 ``tree``           an agent's behaviour-tree nodes whose status changed: ``agent``,
                    ``changes`` (``[[uid, old, new], ...]``) and, in its first one, ``nodes``;
-                   at most one per agent per ``tree_event_s`` setting; version 2
+                   its blackboard keys that changed (``blackboard``) or were removed
+                   (``unset``); at most one per agent per ``tree_event_s`` setting; version 2
 ``pose``           ground truth from the simulator: ``agent``, ``p``, ``v``, ``yaw``, ``mode``,
                    ``armed``, ``flying``, ``odometer_m``, ``clearance_m`` (the smallest
                    distance to rock since the previous pose event, null when not measured)
@@ -786,6 +787,11 @@ class TreeEvent(TypedEvent):
     nodes: list[TreeNode] | None = optional()
     """In an agent's first ``tree`` event only: the tree, ``[[name, parent uid, kind], ...]`` in
     uid order (the root's parent is -1; kind: fallback, sequence, condition, action)."""
+    blackboard: dict[str, Any] | None = optional()
+    """The agent's blackboard keys that changed since its previous ``tree`` event: key → value
+    as shown (:func:`~btmission.runtime.treestatus.blackboard_value`)."""
+    unset: list[str] | None = optional()
+    """Blackboard keys removed since the previous ``tree`` event."""
 
 
 @register_event

@@ -472,7 +472,7 @@ def _mission_dir(header: Mapping[str, Any]) -> Path:
     return Path(str(header.get("file", "."))).parent
 
 
-def _world_from_header(header: Mapping[str, Any]) -> Any:
+def world_from_header(header: Mapping[str, Any]) -> Any:
     """The mission's voxel map rebuilt from the log's header (None if it cannot be)."""
     try:
         from btmission.spec.mission import WorldSpec
@@ -487,7 +487,7 @@ def _world_from_header(header: Mapping[str, Any]) -> Any:
 def topview_png(rep: MissionReport, path: str | Path, voxel_map: Any = None) -> Path:
     """Top view: open space of the map (grey), trajectories, starts (squares), tasks (×),
     artifacts placed in the simulator (stars) and the objects localised (+)."""
-    vm = voxel_map if voxel_map is not None else _world_from_header(rep.header)
+    vm = voxel_map if voxel_map is not None else world_from_header(rep.header)
     aspect = 0.6
     if vm is not None:
         ex = vm.extent

@@ -145,8 +145,10 @@ class MissionRun:
         voxel_map: VoxelMap | None = None,
         realtime: bool = False,
         substitutions: Substitutions | SubstitutionRules | None = None,
+        speed: float = 1.0,
     ) -> None:
-        """``substitutions``: leaves of the agents' trees to replace, for tests
+        """``realtime`` paces the simulator to the wall clock, ``speed`` times faster than real
+        time (real vehicles always go at their own clock). ``substitutions``: leaves of the agents' trees to replace, for tests
         (:mod:`btmission.runtime.substitution`; a rule that replaces no leaf raises
         :class:`~btmission.runtime.substitution.SubstitutionError` before anything is
         published)."""
@@ -164,6 +166,9 @@ class MissionRun:
         self.seed = seed
         self.controller = controller or rt.controller
         self.realtime = realtime
+        if not (math.isfinite(speed) and speed > 0):
+            raise ValueError(f"speed must be a number > 0 (got {speed})")
+        self.speed = speed
         self.events = EventStream(observers)
         self._last_t = 0.0
         self.clock: Clock = ManualClock(0.0)  # until the vehicle provider is built
@@ -740,8 +745,8 @@ class MissionRun:
                             )
                     else:
                         self.clock.sleep_until(due)
-                elif self.realtime:  # the simulator, paced: one step per ``dt`` of wall time
-                    ahead = wall0 + (self.steps - steps0) * self.dt - time.perf_counter()
+                elif self.realtime:  # the simulator, paced: one step per dt / speed of wall time
+                    ahead = wall0 + (self.steps - steps0) * self.dt / self.speed - time.perf_counter()
                     if ahead > 0:
                         time.sleep(ahead)  # (at most about one step: a stop waits that long)
         finally:

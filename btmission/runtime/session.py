@@ -123,6 +123,7 @@ class RunSession:
         seed: int = 0,
         controller: str | None = None,
         realtime: bool = False,
+        speed: float = 1.0,
         log_dir: str | Path | None = "runs",
         log_path: str | Path | None = None,
         observers: Iterable[Observer] = (),
@@ -134,11 +135,13 @@ class RunSession:
         The log goes to ``log_path``, else to a new file in ``log_dir``; with neither, no log
         is written (then :meth:`report` is not available). ``notify(text)`` receives the
         session's notes for a person (a signal was taken); default: none. ``substitutions``:
-        leaves to replace, for tests (:mod:`btmission.runtime.substitution`)."""
+        leaves to replace, for tests (:mod:`btmission.runtime.substitution`). ``realtime`` paces
+        the simulator ``speed`` times faster than the wall clock."""
         self._source = mission
         self.seed = seed
         self.controller = controller
         self.realtime = realtime
+        self.speed = speed
         self.log_dir = Path(log_dir) if log_dir is not None else None
         self.log_path: Path | None = Path(log_path) if log_path is not None else None
         self._observers = list(observers)
@@ -229,6 +232,7 @@ class RunSession:
                 controller=self.controller,
                 observers=observers,
                 realtime=self.realtime,
+                speed=self.speed,
                 substitutions=self.substitutions,
             )
         except (SpecError, VehicleUnavailable):  # nothing ran: no log

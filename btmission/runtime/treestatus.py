@@ -14,10 +14,15 @@ accumulates the changes and publishes them:
 * the first event carries the tree itself (``nodes``: name, parent, kind in pre-order), so the
   changes can name nodes by their pre-order index (``uid``, as BehaviorTree.CPP's UIDs);
 * :attr:`TreeStatusLogger.status` is the current status of every node, for snapshots.
+
+The agent adds to each ``tree`` event its blackboard keys that changed since its previous one
+(``blackboard``: key → :func:`blackboard_value`; ``unset``: keys removed), so a viewer shows a
+tree's blackboard next to its statuses from the log alone (Groot2's blackboard panel).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from types import MappingProxyType
 from typing import Any
@@ -31,6 +36,33 @@ seconds of mission time (0: one per tick with changes)."""
 
 Change = tuple[int, str, str]
 """(uid, old status, new status)."""
+
+BLACKBOARD_TEXT = 80
+"""A blackboard value that is not plain JSON data is shown as its ``repr``, cut to this many
+characters; so is a sequence longer than :data:`BLACKBOARD_ITEMS`."""
+BLACKBOARD_ITEMS = 16
+
+
+def blackboard_value(value: Any) -> Any:
+    """How a blackboard value is shown in a ``tree`` event: numbers (finite floats rounded to
+    4 decimals; NaN and infinities as text), strings, booleans and None as they are, short
+    sequences (a location) as lists of those, anything else as a shortened ``repr``."""
+    if value is None or isinstance(value, (bool, int, str)):
+        return value if not isinstance(value, str) or len(value) <= BLACKBOARD_TEXT else (
+            value[: BLACKBOARD_TEXT - 1] + "…"
+        )
+    if isinstance(value, float):
+        return round(value, 4) if math.isfinite(value) else str(value)
+    if hasattr(value, "tolist") and getattr(value, "size", BLACKBOARD_ITEMS + 1) <= BLACKBOARD_ITEMS:
+        value = value.tolist()  # a small numpy array or scalar
+    if isinstance(value, (list, tuple)) and len(value) <= BLACKBOARD_ITEMS:
+        items = [blackboard_value(v) for v in value]
+        if all(not isinstance(v, (list, dict)) for v in items):
+            return items
+    if isinstance(value, (int, float, bool, str)) or value is None:  # a numpy scalar's tolist()
+        return blackboard_value(value)
+    text = repr(value)
+    return text if len(text) <= BLACKBOARD_TEXT else text[: BLACKBOARD_TEXT - 1] + "…"
 
 
 def node_kind(behaviour: py_trees.behaviour.Behaviour) -> str:

@@ -1,0 +1,725 @@
+/* btmission viewer: a run's records folded at a chosen time T into a meshcat 3D scene, each
+ * agent's behaviour tree (Groot2's colours), its blackboard, a task table, a timeline and an
+ * event list. The same code watches a live run (records stream in over Server-Sent Events and T
+ * follows the newest) and replays a log (play, pause, speed, a time slider), served by
+ * `btmission view LOG` or embedded in one offline HTML file (`--html`).
+ *
+ * Records are the event log's JSON lines ({t, ev, ...}); see btmission/viz/feed.py. */
+(function () {
+  "use strict";
+  const CFG = window.BTM_CONFIG || {};
+  const THREE = MeshCat.THREE;
+  const TASK_COLORS = {
+    open: "#3b82f6", assigned: "#f59e0b", committed: "#a855f7", done: "#22c55e",
+    unreachable: "#ef4444", failed: "#b91c1c", cancelled: "#9ca3af",
+  };
+  const AGENT_COLORS = ["#38bdf8", "#f472b6", "#a3e635", "#fb923c", "#c084fc", "#facc15",
+    "#2dd4bf", "#f87171", "#818cf8", "#4ade80", "#e879f9", "#fbbf24"];
+  const GLYPH = { fallback: "?", sequence: "→", condition: "◇", action: "▶" };
+  const TRAIL_S = 60;          // trail length (s of mission time)
+  const PANEL_MS = 200;        // DOM panels refresh at most this often
+  const $ = (id) => document.getElementById(id);
+
+  // ------------------------------------------------------------------------ the model
+  function bisect(ts, t) {     // last index i with ts[i] <= t, or -1
+    let lo = 0, hi = ts.length - 1, ans = -1;
+    while (lo <= hi) {
+      const mid = (lo + hi) >> 1;
+      if (ts[mid] <= t) { ans = mid; lo = mid + 1; } else { hi = mid - 1; }
+    }
+    return ans;
+  }
+  function lastAt(list, t) {   // list of [t, ...] sorted by t: the last entry at or before t
+    const i = bisect(list.tsCache || (list.tsCache = []), t);
+    return i >= 0 ? list[i] : null;
+  }
+  function pushTimed(list, entry) {
+    list.push(entry);
+    (list.tsCache || (list.tsCache = [])).push(entry[0]);
+  }
+
+  class Agent {
+    constructor(id, index, start) {
+      this.id = id;
+      this.color = AGENT_COLORS[index % AGENT_COLORS.length];
+      this.start = start || [0, 0, 0];
+      this.pt = []; this.px = []; this.py = []; this.pz = []; this.pyaw = []; this.pmode = [];
+      this.routes = []; this.tasks = []; this.stages = []; this.trees = []; this.lost = [];
+      this.nodes = null;
+      this.cache = null;       // tree status folded up to cache.t
+    }
+    addPose(r) {
+      const n = this.pt.length;
+      if (n && r.t < this.pt[n - 1]) return;          // (a live latest pose already kept)
+      if (n && r.t === this.pt[n - 1]) { this.pt.pop(); this.px.pop(); this.py.pop(); this.pz.pop(); this.pyaw.pop(); this.pmode.pop(); }
+      this.pt.push(r.t); this.px.push(r.p[0]); this.py.push(r.p[1]); this.pz.push(r.p[2]);
+      this.pyaw.push(r.yaw || 0); this.pmode.push(r.mode || "");
+    }
+    poseAt(t) {
+      const i = bisect(this.pt, t);
+      if (i < 0) return this.pt.length ? null : { x: this.start[0], y: this.start[1], z: this.start[2], yaw: 0, mode: "" };
+      const j = i + 1;
+      if (j < this.pt.length && this.pt[j] - this.pt[i] < 5) {
+        const a = (t - this.pt[i]) / (this.pt[j] - this.pt[i]);
+        let dy = this.pyaw[j] - this.pyaw[i];
+        dy = Math.atan2(Math.sin(dy), Math.cos(dy));
+        return { x: this.px[i] + a * (this.px[j] - this.px[i]), y: this.py[i] + a * (this.py[j] - this.py[i]),
+          z: this.pz[i] + a * (this.pz[j] - this.pz[i]), yaw: this.pyaw[i] + a * dy, mode: this.pmode[i] };
+      }
+      return { x: this.px[i], y: this.py[i], z: this.pz[i], yaw: this.pyaw[i], mode: this.pmode[i] };
+    }
+    trail(t0, t1) {
+      const a = Math.max(0, bisect(this.pt, t0)), b = bisect(this.pt, t1);
+      const out = [];
+      for (let i = a; i <= b; i++) out.push(this.px[i], this.py[i], this.pz[i]);
+      return out;
+    }
+    treeAt(t) {                 // {status: [..], bb: Map} folded from the tree records up to t
+      if (!this.nodes) return null;
+      let c = this.cache;
+      if (!c || t < c.t) {
+        c = this.cache = { t: -Infinity, i: 0, status: this.nodes.map(() => "INVALID"), bb: new Map(), changedAt: new Map() };
+      }
+      while (c.i < this.trees.length && this.trees[c.i][0] <= t) {
+        const [tt, changes, bb, unset] = this.trees[c.i];
+        for (const [uid, , now] of changes) if (uid < c.status.length) c.status[uid] = now;
+        if (bb) for (const k of Object.keys(bb)) { c.bb.set(k, bb[k]); c.changedAt.set(k, tt); }
+        if (unset) for (const k of unset) { c.bb.delete(k); c.changedAt.delete(k); }
+        c.i++;
+      }
+      c.t = t;
+      return c;
+    }
+  }
+
+  class Model {
+    constructor() {
+      this.agents = new Map(); this.tasks = new Map(); this.events = [];
+      this.header = null; this.end = null; this.tEnd = 0; this.count = 0; this.version = 0;
+    }
+    agent(id, start) {
+      let a = this.agents.get(id);
+      if (!a) { a = new Agent(id, this.agents.size, start); this.agents.set(id, a); }
+      return a;
+    }
+    add(records) {
+      for (const r of records) this.add1(r);
+      this.count += records.length;
+      if (records.length) this.version++;
+    }
+    add1(r) {
+      const t = r.t;
+      if (t > this.tEnd && r.ev !== "header") this.tEnd = t;
+      switch (r.ev) {
+        case "header":
+          this.header = r;
+          for (const a of r.agents || []) this.agent(a.id, a.start);
+          break;
+        case "pose": this.agent(r.agent).addPose(r); break;
+        case "task_added": {
+          const task = { id: r.task, type: r.type, fields: r.fields || {}, priority: r.priority, added: t, states: [] };
+          pushTimed(task.states, [t, "open", null, ""]);
+          this.tasks.set(r.task, task);
+          this.note(r, `task ${r.task} added (${r.type})${r.by && r.by !== "mission" ? " by " + r.by : ""}`);
+          break;
+        }
+        case "task": {
+          const task = this.tasks.get(r.task);
+          if (task) pushTimed(task.states, [t, r.state, r.agent, r.reason || ""]);
+          this.note(r, `${r.task} ${r.state}${r.agent ? " → " + r.agent : ""}${r.reason ? " (" + r.reason + ")" : ""}`,
+            r.state === "unreachable" || r.state === "failed");
+          break;
+        }
+        case "agent_task": pushTimed(this.agent(r.agent).tasks, [t, r.task]); break;
+        case "stage": pushTimed(this.agent(r.agent).stages, [t, r.action, r.task]); break;
+        case "route": pushTimed(this.agent(r.agent).routes, [t, r.points, r.task]); break;
+        case "tree": {
+          const a = this.agent(r.agent);
+          if (r.nodes) { a.nodes = r.nodes; a.cache = null; }
+          pushTimed(a.trees, [t, r.changes || [], r.blackboard || null, r.unset || null]);
+          if (a.cache && t < a.cache.t) a.cache = null;
+          break;
+        }
+        case "agent_lost":
+          pushTimed(this.agent(r.agent).lost, [t, r.reason]);
+          this.note(r, `${r.agent} lost: ${r.reason}`, true); break;
+        case "collision": this.note(r, `${r.agent} collided with ${r.other}`, true); break;
+        case "progress": this.note(r, `${r.agent} reports ${r.task} ${r.event}${r.reason ? " (" + r.reason + ")" : ""}`, r.event === "failed"); break;
+        case "committed": this.note(r, `${r.agent} committed to ${r.task}`); break;
+        case "link": this.note(r, `${r.agent} link ${r.up ? "restored" : "cut"}`, !r.up); break;
+        case "vehicle_link": this.note(r, `${r.agent} vehicle ${r.up ? "heard again" : "lost"}${r.mode ? " (" + r.mode + ")" : ""}`, !r.up); break;
+        case "command": this.note(r, `operator ${r.by}: ${r.command}${r.task ? " " + r.task : ""}${r.agent ? " " + r.agent : ""} ${r.ok ? "ok" : "refused: " + (r.error || "")}`, !r.ok); break;
+        case "withdrawn": this.note(r, `${r.agent} withdrawn from ${r.task} (${r.reason})`); break;
+        case "warning": this.note(r, `warning: ${r.message}`, true); break;
+        case "leaf_error": this.note(r, `${r.agent || ""} ${r.leaf} raised ${r.error}: ${r.message}`, true); break;
+        case "relocalized": this.note(r, `${r.agent} relocalised: ${r.localized ? "yes" : "no"} (${r.reason || ""})`); break;
+        case "end": this.end = r; this.note(r, `end: ${r.reason}`); break;
+        default: break;
+      }
+    }
+    note(r, text, warn) { pushTimed(this.events, [r.t, text, !!warn]); }
+    taskState(task, t) { return lastAt(task.states, t); }
+    taskPoints(task) {          // the task's places: every [x, y, z] field, in field order
+      const out = [];
+      for (const [k, v] of Object.entries(task.fields)) {
+        if (Array.isArray(v) && v.length === 3 && v.every((c) => typeof c === "number")) out.push([k, v]);
+      }
+      return out;
+    }
+  }
+
+  // ------------------------------------------------------------------------ the 3D scene
+  class Scene3D {
+    constructor(pane, model) {
+      this.model = model;
+      this.pane = pane;
+      this.viewer = new MeshCat.Viewer(pane);
+      const v = this.viewer;
+      // meshcat sizes its canvas to the window's height; this pane is not the whole window
+      v.set_3d_pane_size = (w, h) => {
+        w = w === undefined ? pane.offsetWidth : w;
+        h = h === undefined ? pane.offsetHeight : h;
+        v.camera.aspect = w / Math.max(h, 1);
+        v.camera.updateProjectionMatrix();
+        v.renderer.setSize(w, h);
+        v.set_dirty();
+      };
+      new ResizeObserver(() => v.set_3d_pane_size()).observe(pane);
+      const render = v.render.bind(v);
+      v.render = () => { render(); this.afterRender(); };
+      this.agents = new Map(); this.tasks = new Map(); this.labels = new Map();
+      this.options = { trails: true, routes: true, labels: true };
+      this.scale = 1;
+      this.selected = null;
+      this.lidar = null;
+    }
+    loadCommands(buf) {
+      const u8 = new Uint8Array(buf);
+      const dv = new DataView(u8.buffer, u8.byteOffset, u8.byteLength);
+      let i = 0, n = 0;
+      while (i + 4 <= u8.length) {
+        const len = dv.getUint32(i);
+        this.viewer.handle_command_bytearray(u8.subarray(i + 4, i + 4 + len));
+        i += 4 + len; n++;
+      }
+      return n;
+    }
+    setBounds(bounds) {
+      this.bounds = bounds;
+      const [lo, hi] = bounds;
+      const size = Math.max(hi[0] - lo[0], hi[1] - lo[1], 1);
+      this.scale = Math.max(0.6, size / 150);
+      // meshcat makes z up by rotating the scene and the camera's parent frame, so its orbit
+      // controls only work around the origin; a mine is orbited around its centre: the scene
+      // and the camera get plain frames, the camera z up, and new controls
+      const v = this.viewer;
+      v.scene.rotation.set(0, 0, 0);   // meshcat turns its whole scene z-up (Rx -90°): undone,
+      v.scene.updateMatrixWorld(true); // so the scene, the camera and the labels share one frame
+      v.set_transform(["Cameras", "default", "rotated"], new THREE.Matrix4().toArray());
+      const sun = new THREE.DirectionalLight(0xffffff, 0.55);
+      sun.position.set(0.35 * size, -0.6 * size, size);
+      v.set_object(["Lights", "Sun"], sun);
+      v.set_object(["Lights", "Sky"], new THREE.HemisphereLight(0xdde6f0, 0x3a3128, 0.45));
+      const cam = v.camera;
+      cam.up.set(0, 0, 1);
+      cam.far = Math.max(1000, size * 10); cam.near = 0.05; cam.fov = 50;
+      cam.updateProjectionMatrix();
+      v.controls.dispose();
+      v.set_camera(cam);
+      this.fit();
+    }
+    fit(top) {
+      if (!this.bounds) return;
+      const [lo, hi] = this.bounds;
+      const c = [(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]];
+      const size = Math.max(hi[0] - lo[0], hi[1] - lo[1], 1);
+      const cam = this.viewer.camera;
+      if (top) cam.position.set(c[0], c[1] - 0.001, c[2] + size * 1.0);
+      else cam.position.set(c[0], c[1] - size * 0.8, c[2] + size * 0.7);
+      this.viewer.controls.target.set(c[0], c[1], c[2]);
+      this.viewer.controls.update();
+      this.viewer.set_dirty();
+    }
+    material(color, opts) {
+      return new THREE.MeshLambertMaterial(Object.assign({ color: new THREE.Color(color) }, opts || {}));
+    }
+    ensureAgent(a) {
+      let o = this.agents.get(a.id);
+      if (o) return o;
+      const s = this.scale;
+      const group = new THREE.Group();
+      const cone = new THREE.Mesh(new THREE.ConeGeometry(0.55 * s, 1.6 * s, 16), this.material(a.color, { emissive: new THREE.Color(a.color).multiplyScalar(0.35) }));
+      cone.rotation.z = -Math.PI / 2;            // the tip along +x: the heading
+      group.add(cone);
+      const ring = new THREE.Mesh(new THREE.TorusGeometry(0.9 * s, 0.12 * s, 6, 24), this.material("#ffffff", { emissive: new THREE.Color("#444") }));
+      ring.visible = false;
+      group.add(ring);
+      this.viewer.set_object(["btm", "agents", a.id], group);
+      const trail = new THREE.Line(new THREE.BufferGeometry(), new THREE.LineBasicMaterial({ color: a.color, transparent: true, opacity: 0.75 }));
+      this.viewer.set_object(["btm", "trails", a.id], trail);
+      const route = new THREE.Line(new THREE.BufferGeometry(), new THREE.LineDashedMaterial({ color: a.color, dashSize: 1.2 * s, gapSize: 0.8 * s }));
+      this.viewer.set_object(["btm", "routes", a.id], route);
+      o = { group, ring, trail, route, routeT: null, trailKey: "" };
+      this.agents.set(a.id, o);
+      this.label("a:" + a.id, a.id, "agent", a.color);
+      return o;
+    }
+    ensureTask(task) {
+      let o = this.tasks.get(task.id);
+      if (o) return o;
+      const s = this.scale;
+      const group = new THREE.Group();
+      const pts = this.model.taskPoints(task);
+      const mat = this.material("#ffffff", { transparent: true, opacity: 0.9 });
+      pts.forEach(([name, p], k) => {
+        const m = new THREE.Mesh(new THREE.OctahedronGeometry((k ? 0.6 : 0.9) * s), mat);
+        m.position.set(p[0], p[1], p[2]);
+        group.add(m);
+      });
+      if (pts.length > 1) {
+        const g = new THREE.BufferGeometry().setFromPoints(pts.map(([, p]) => new THREE.Vector3(p[0], p[1], p[2])));
+        group.add(new THREE.Line(g, new THREE.LineDashedMaterial({ color: "#9ca3af", dashSize: s, gapSize: s })).computeLineDistances());
+      }
+      this.viewer.set_object(["btm", "tasks", task.id], group);
+      o = { group, mat, at: pts.length ? pts[0][1] : null, state: "" };
+      this.tasks.set(task.id, o);
+      if (o.at) this.label("t:" + task.id, task.id, "task", "#e5e7eb");
+      return o;
+    }
+    label(key, text, cls, color) {
+      const el = document.createElement("div");
+      el.className = "label " + cls;
+      el.textContent = text;
+      el.style.color = color;
+      el.dataset.key = key;
+      $("labels").appendChild(el);
+      this.labels.set(key, { el, p: null });
+    }
+    update(t) {
+      const m = this.model;
+      for (const a of m.agents.values()) {
+        const o = this.ensureAgent(a);
+        const pose = a.poseAt(t);
+        o.group.visible = !!pose;
+        const lab = this.labels.get("a:" + a.id);
+        if (!pose) { lab.p = null; continue; }
+        const M = new THREE.Matrix4().makeRotationZ(pose.yaw);
+        M.setPosition(pose.x, pose.y, pose.z);
+        this.viewer.set_transform(["btm", "agents", a.id], M.toArray());
+        o.ring.visible = this.selected === a.id;
+        lab.p = [pose.x, pose.y, pose.z];
+        lab.el.style.opacity = lastAt(a.lost, t) ? 0.45 : 1;
+        // trail: the last TRAIL_S seconds, redrawn when T moved by a pose
+        const key = bisect(a.pt, t) + ":" + bisect(a.pt, t - TRAIL_S);
+        o.trail.visible = this.options.trails;
+        if (this.options.trails && key !== o.trailKey) {
+          o.trailKey = key;
+          const pts = a.trail(t - TRAIL_S, t);
+          pts.push(pose.x, pose.y, pose.z);
+          o.trail.geometry.dispose();
+          o.trail.geometry = new THREE.BufferGeometry();
+          o.trail.geometry.setAttribute("position", new THREE.Float32BufferAttribute(pts, 3));
+        }
+        const route = lastAt(a.routes, t);
+        const cur = lastAt(a.tasks, t);
+        const showRoute = this.options.routes && route && (cur ? cur[1] !== null || route[0] >= cur[0] : true);
+        o.route.visible = !!showRoute;
+        if (showRoute && o.routeT !== route[0]) {
+          o.routeT = route[0];
+          o.route.geometry.dispose();
+          o.route.geometry = new THREE.BufferGeometry().setFromPoints(route[1].map((p) => new THREE.Vector3(p[0], p[1], p[2])));
+          o.route.computeLineDistances();
+        }
+      }
+      for (const task of m.tasks.values()) {
+        const o = this.ensureTask(task);
+        const st = m.taskState(task, t);
+        const lab = this.labels.get("t:" + task.id);
+        o.group.visible = !!st;
+        if (lab) lab.p = st && o.at ? o.at : null;
+        if (!st) continue;
+        if (o.state !== st[1]) {
+          o.state = st[1];
+          o.mat.color.set(TASK_COLORS[st[1]] || "#ffffff");
+          o.mat.emissive = new THREE.Color(TASK_COLORS[st[1]] || "#ffffff").multiplyScalar(0.3);
+          if (lab) lab.el.style.color = TASK_COLORS[st[1]] || "#e5e7eb";
+        }
+      }
+      this.viewer.set_dirty();
+    }
+    afterRender() {              // the HTML labels follow the 3D points they name
+      const show = this.options.labels;
+      const cam = this.viewer.camera;
+      const w = this.pane.offsetWidth, h = this.pane.offsetHeight;
+      const v = new THREE.Vector3();
+      for (const { el, p } of this.labels.values()) {
+        if (!show || !p) { el.style.display = "none"; continue; }
+        v.set(p[0], p[1], p[2]).project(cam);
+        if (v.z > 1 || v.z < -1) { el.style.display = "none"; continue; }
+        el.style.display = "block";
+        el.style.left = ((v.x + 1) / 2 * w).toFixed(1) + "px";
+        el.style.top = ((1 - v.y) / 2 * h).toFixed(1) + "px";
+      }
+    }
+    screenPos(p) {               // pixel position of a world point in the pane (tests, labels)
+      const v = new THREE.Vector3(p[0], p[1], p[2]);
+      this.viewer.camera.updateMatrixWorld();
+      v.project(this.viewer.camera);
+      return [(v.x + 1) / 2 * this.pane.offsetWidth, (1 - v.y) / 2 * this.pane.offsetHeight, v.z];
+    }
+    setRisk(on) { this.viewer.set_property(["risk"], "visible", on); this.viewer.set_dirty(); }
+    setLidar(points) {
+      if (!points || !points.length) { if (this.lidar) this.lidar.visible = false; this.viewer.set_dirty(); return; }
+      const g = new THREE.BufferGeometry();
+      g.setAttribute("position", new THREE.Float32BufferAttribute(points, 3));
+      const obj = new THREE.Points(g, new THREE.PointsMaterial({ color: "#22d3ee", size: 0.12 * this.scale }));
+      this.viewer.set_object(["btm", "lidar"], obj);
+      this.lidar = obj;
+      this.viewer.set_dirty();
+    }
+  }
+
+  // ------------------------------------------------------------------------ the tree panel
+  class TreePanel {
+    constructor(el) { this.el = el; this.agent = null; this.nodes = null; this.items = []; this.shown = []; }
+    show(agent) {
+      if (this.agent === agent && this.nodes === (agent && agent.nodes)) return;
+      this.agent = agent; this.nodes = agent ? agent.nodes : null;
+      this.el.textContent = "";
+      this.items = []; this.shown = [];
+      if (!this.nodes) { this.el.innerHTML = '<p class="muted" style="padding:6px 10px">No tree yet (its first tree event has not arrived).</p>'; return; }
+      const root = document.createElement("ul");
+      const lists = [];
+      this.depth = [];
+      this.nodes.forEach(([name, parent, kind], uid) => {
+        const li = document.createElement("li");
+        li.dataset.uid = uid;
+        const row = document.createElement("span");
+        row.className = "bt kind-" + kind + " st-INVALID";
+        row.dataset.uid = uid;
+        row.title = `${name} (${kind})`;
+        const caret = document.createElement("span"); caret.className = "caret";
+        const glyph = document.createElement("span"); glyph.className = "glyph"; glyph.textContent = GLYPH[kind] || "•";
+        const label = document.createElement("span"); label.className = "name"; label.textContent = name;
+        row.append(caret, glyph, label);
+        li.appendChild(row);
+        (parent >= 0 ? lists[parent] : root).appendChild(li);
+        this.depth.push(parent >= 0 ? this.depth[parent] + 1 : 0);
+        this.items.push({ li, row, caret, kids: null });
+        if (parent >= 0 && !lists[parent].parentElement) {
+          this.items[parent].li.appendChild(lists[parent]);
+          this.items[parent].caret.textContent = "▾";
+        }
+        lists.push(document.createElement("ul"));
+        this.shown.push("INVALID");
+      });
+      this.items.forEach((it, uid) => {
+        it.caret.onclick = () => { it.li.classList.toggle("collapsed"); this.syncCaret(uid); $("opt-follow").checked = false; };
+      });
+      this.el.appendChild(root);
+      if (this.nodes.length > 40) this.collapseBelow(2);
+    }
+    syncCaret(uid) {
+      const it = this.items[uid];
+      if (it.caret.textContent) it.caret.textContent = it.li.classList.contains("collapsed") ? "▸" : "▾";
+    }
+    setAll(collapsed) { this.items.forEach((it, uid) => { it.li.classList.toggle("collapsed", collapsed && uid > 0); this.syncCaret(uid); }); }
+    collapseBelow(d) { this.items.forEach((it, uid) => { it.li.classList.toggle("collapsed", this.depth[uid] >= d); this.syncCaret(uid); }); }
+    update(status, follow) {
+      if (!this.nodes || !status) return;
+      for (let uid = 0; uid < status.length; uid++) {
+        if (this.shown[uid] !== status[uid]) {
+          const it = this.items[uid];
+          it.row.classList.remove("st-" + this.shown[uid]);
+          it.row.classList.add("st-" + status[uid]);
+          this.shown[uid] = status[uid];
+        }
+      }
+      if (follow) {             // open the branches with an active node; fold the idle ones
+        const active = status.map((s) => s !== "INVALID");
+        for (let uid = status.length - 1; uid > 0; uid--) {
+          if (active[uid]) active[this.nodes[uid][1]] = true;
+        }
+        const running = status.map((s) => s === "RUNNING");
+        for (let uid = status.length - 1; uid > 0; uid--) {
+          if (running[uid]) running[this.nodes[uid][1]] = true;
+        }
+        this.items.forEach((it, uid) => {
+          if (!it.caret.textContent || uid === 0) return;
+          const fold = this.nodes.length > 40 ? !running[uid] : !active[uid];
+          if (it.li.classList.contains("collapsed") !== fold) { it.li.classList.toggle("collapsed", fold); this.syncCaret(uid); }
+        });
+      }
+    }
+  }
+
+  // ------------------------------------------------------------------------ the page
+  const model = new Model();
+  const state = { viewT: 0, follow: true, playing: false, speed: 5, live: false, complete: false,
+    selected: null, lastPanel: 0, drawnVersion: -1, drawnT: -1, info: null, lidarOn: false, lidarKey: "" };
+  const scene = new Scene3D($("meshcat-pane"), model);
+  const tree = new TreePanel($("tree"));
+  const fmt = (t) => (t === null || t === undefined ? "" : Number(t).toFixed(1));
+  const esc = (s) => String(s).replace(/[&<>"]/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" }[c]));
+
+  function legend() {
+    $("legend").innerHTML = Object.entries(TASK_COLORS).map(([k, c]) => `<span><i style="background:${c}"></i>${k}</span>`).join("");
+  }
+
+  function selectAgent(id) {
+    state.selected = id;
+    scene.selected = id;
+    state.lidarKey = "";
+    for (const b of $("agent-tabs").children) b.classList.toggle("on", b.dataset.agent === id);
+    state.drawnT = -1;
+  }
+
+  function agentTabs() {
+    const tabs = $("agent-tabs");
+    if (tabs.children.length === model.agents.size) return;
+    tabs.textContent = "";
+    for (const a of model.agents.values()) {
+      const b = document.createElement("button");
+      b.dataset.agent = a.id;
+      b.innerHTML = `<i style="background:${a.color}"></i>${esc(a.id)}`;
+      b.onclick = () => selectAgent(a.id);
+      tabs.appendChild(b);
+    }
+    if (!state.selected && model.agents.size) selectAgent(model.agents.keys().next().value);
+    else selectAgent(state.selected);
+  }
+
+  function panels(t) {
+    agentTabs();
+    const counts = {};
+    const rows = [];
+    for (const task of model.tasks.values()) {
+      const st = model.taskState(task, t);
+      if (!st) continue;
+      counts[st[1]] = (counts[st[1]] || 0) + 1;
+      const done = task.states.find((s) => s[1] === "done" && s[0] <= t);
+      const color = TASK_COLORS[st[1]] || "#fff";
+      rows.push(`<tr data-task="${esc(task.id)}" data-state="${esc(st[1])}"><td>${esc(task.id)}</td><td>${esc(task.type)}</td>` +
+        `<td><span class="state" style="background:${color}">${esc(st[1])}</span></td><td>${esc(st[2] || "")}</td>` +
+        `<td>${task.priority === undefined || task.priority === null ? "" : esc(task.priority)}</td><td>${fmt(task.added)}</td>` +
+        `<td>${done ? fmt(done[0]) : ""}</td><td class="muted">${esc(st[3] || "")}</td></tr>`);
+    }
+    $("tasks").tBodies[0].innerHTML = rows.join("");
+    $("counts").innerHTML = Object.entries(counts).map(([k, n]) => `<span style="color:${TASK_COLORS[k] || "#fff"}">${k} ${n}</span>`).join("");
+    // the selected agent: action, task, mode; its tree and blackboard
+    const a = state.selected ? model.agents.get(state.selected) : null;
+    if (a) {
+      const pose = a.poseAt(t), stage = lastAt(a.stages, t), cur = lastAt(a.tasks, t), lost = lastAt(a.lost, t);
+      $("agent-info").innerHTML = `<b>${esc(a.id)}</b> · task <b>${esc(cur && cur[1] ? cur[1] : "—")}</b> · action <b>${esc(stage ? stage[1] : "—")}</b>` +
+        (pose ? `<br>mode ${esc(pose.mode || "?")} · (${pose.x.toFixed(1)}, ${pose.y.toFixed(1)}, ${pose.z.toFixed(1)}) m` : "") +
+        (lost ? `<br><span style="color:var(--failure)">lost: ${esc(lost[1])}</span>` : "");
+      tree.show(a);
+      const c = a.treeAt(t);
+      tree.update(c ? c.status : null, $("opt-follow").checked);
+      const bb = c ? [...c.bb.entries()].sort() : [];
+      $("blackboard").tBodies[0].innerHTML = bb.map(([k, v]) =>
+        `<tr class="${t - (c.changedAt.get(k) || -99) < 1 ? "changed" : ""}"><td>${esc(k)}</td><td>${esc(JSON.stringify(v))}</td></tr>`).join("") ||
+        '<tr><td class="muted">(empty)</td><td></td></tr>';
+    }
+    if ($("tab-timeline").classList.contains("active")) timeline(t);
+    if ($("tab-events").classList.contains("active")) {
+      const i = bisect(model.events.tsCache || [], t);
+      const out = [];
+      for (let k = i; k >= 0 && out.length < 300; k--) {
+        const [et, text, warn] = model.events[k];
+        out.push(`<li class="${warn ? "warn" : ""}"><span class="muted">${fmt(et)}</span> ${esc(text)}</li>`);
+      }
+      $("events").innerHTML = out.join("");
+    }
+  }
+
+  function timeline(t) {
+    const svg = $("timeline");
+    const W = svg.clientWidth || 800, left = 60, right = 12, rowH = 18;
+    const agents = [...model.agents.values()];
+    const H = Math.max(60, 24 + agents.length * rowH);
+    svg.setAttribute("height", H);
+    const span = Math.max(model.tEnd, t, 1);
+    const x = (tt) => left + (W - left - right) * tt / span;
+    const parts = [];
+    agents.forEach((a, i) => {
+      const y = 6 + i * rowH;
+      parts.push(`<text x="4" y="${y + 12}">${esc(a.id)}</text>`);
+      for (let k = 0; k < a.tasks.length; k++) {
+        const [t0, task] = a.tasks[k];
+        if (!task || t0 > t) continue;
+        const t1 = Math.min(k + 1 < a.tasks.length ? a.tasks[k + 1][0] : t, t);
+        parts.push(`<rect x="${x(t0)}" y="${y}" width="${Math.max(1, x(t1) - x(t0))}" height="${rowH - 4}" rx="3" fill="${a.color}" opacity="0.8"><title>${esc(task)} ${fmt(t0)}–${fmt(t1)} s</title></rect>`);
+        if (x(t1) - x(t0) > 24) parts.push(`<text x="${x(t0) + 3}" y="${y + 11}" fill="#111" style="fill:#111">${esc(task)}</text>`);
+      }
+    });
+    for (const task of model.tasks.values()) {
+      if (task.added > t) continue;
+      parts.push(`<line x1="${x(task.added)}" x2="${x(task.added)}" y1="${H - 14}" y2="${H - 8}" stroke="#9ca3af"><title>${esc(task.id)} added at ${fmt(task.added)} s</title></line>`);
+    }
+    const step = Math.pow(10, Math.floor(Math.log10(span / 5 || 1)));
+    const tick = span / step > 10 ? step * 2 : step;
+    for (let tt = 0; tt <= span; tt += tick) parts.push(`<text class="axis" x="${x(tt)}" y="${H - 1}">${Math.round(tt)}</text>`);
+    parts.push(`<line x1="${x(t)}" x2="${x(t)}" y1="0" y2="${H}" stroke="#f43f5e" stroke-width="2"/>`);
+    svg.innerHTML = parts.join("");
+    svg.onclick = (e) => {
+      const r = svg.getBoundingClientRect();
+      seek(Math.max(0, Math.min(span, (e.clientX - r.left - left) / (W - left - right) * span)));
+    };
+  }
+
+  function seek(t) {
+    state.viewT = t;
+    state.follow = false;
+    refreshControls();
+  }
+
+  function refreshControls() {
+    const slider = $("slider");
+    slider.max = model.tEnd.toFixed(1);
+    if (document.activeElement !== slider) slider.value = state.viewT.toFixed(1);
+    $("slider-time").textContent = `${fmt(state.viewT)} / ${fmt(model.tEnd)} s`;
+    $("btn-play").textContent = state.playing ? "❚❚" : "▶";
+    $("btn-live").style.display = state.live ? "" : "none";
+    $("btn-live").classList.toggle("on", state.follow);
+    const mode = $("mode");
+    const ended = state.live && state.complete;
+    mode.textContent = state.live ? (ended ? "ENDED" : "LIVE") : "REPLAY";
+    mode.className = "badge " + (state.live ? (ended ? "ended" : "live") : "replay");
+  }
+
+  function lidar(t) {
+    const a = state.selected ? model.agents.get(state.selected) : null;
+    if (!state.lidarOn || !a || CFG.embedded) { if (scene.lidar) scene.setLidar(null); return; }
+    const p = a.poseAt(t);
+    if (!p) return;
+    const key = `${a.id}:${p.x.toFixed(1)}:${p.y.toFixed(1)}:${p.z.toFixed(1)}`;
+    if (key === state.lidarKey || state.lidarBusy) return;
+    state.lidarKey = key; state.lidarBusy = true;
+    fetch(`api/scan?x=${p.x}&y=${p.y}&z=${p.z}&yaw=${p.yaw}`).then((r) => r.json()).then((d) => {
+      scene.setLidar(d.points);
+      document.body.dataset.lidarPoints = d.points.length / 3;
+    }).catch(() => {}).finally(() => { state.lidarBusy = false; });
+  }
+
+  let lastFrame = performance.now();
+  function frame(now) {
+    const dt = (now - lastFrame) / 1000;
+    lastFrame = now;
+    if (state.follow) state.viewT = model.tEnd;
+    else if (state.playing) {
+      state.viewT = Math.min(model.tEnd, state.viewT + dt * state.speed);
+      if (state.viewT >= model.tEnd && (!state.live || state.complete)) state.playing = false;
+    }
+    const t = state.viewT;
+    if (t !== state.drawnT || model.version !== state.drawnVersion) {
+      scene.update(t);
+      state.drawnT = t; state.drawnVersion = model.version;
+      $("clock").textContent = `t = ${fmt(t)} s`;
+      document.body.dataset.viewT = t.toFixed(2);
+      if (now - state.lastPanel > PANEL_MS) { state.lastPanel = now; panels(t); refreshControls(); lidar(t); }
+      else state.drawnT = -1; // redraw the panels on a later frame
+    }
+    requestAnimationFrame(frame);
+  }
+
+  function bindControls() {
+    $("btn-play").onclick = () => {
+      if (state.follow) state.follow = false;
+      if (!state.playing && state.viewT >= model.tEnd - 1e-6 && (!state.live || state.complete)) state.viewT = 0;
+      state.playing = !state.playing; refreshControls();
+    };
+    $("speed").onchange = (e) => { state.speed = Number(e.target.value); };
+    $("slider").oninput = (e) => { state.playing = false; seek(Number(e.target.value)); };
+    $("btn-live").onclick = () => { state.follow = true; state.playing = false; refreshControls(); };
+    $("opt-risk").onchange = (e) => scene.setRisk(e.target.checked);
+    $("opt-trails").onchange = (e) => { scene.options.trails = e.target.checked; state.drawnT = -1; };
+    $("opt-routes").onchange = (e) => { scene.options.routes = e.target.checked; state.drawnT = -1; };
+    $("opt-labels").onchange = (e) => { scene.options.labels = e.target.checked; scene.viewer.set_dirty(); };
+    $("opt-lidar").onchange = (e) => { state.lidarOn = e.target.checked; state.lidarKey = ""; state.drawnT = -1; };
+    $("btn-fit").onclick = () => scene.fit(false);
+    $("btn-top").onclick = () => scene.fit(true);
+    $("btn-expand").onclick = () => { $("opt-follow").checked = false; tree.setAll(false); };
+    $("btn-collapse").onclick = () => { $("opt-follow").checked = false; tree.setAll(true); };
+    for (const b of document.querySelectorAll("#tabs .tab")) {
+      b.onclick = () => {
+        for (const x of document.querySelectorAll("#tabs .tab")) x.classList.toggle("active", x === b);
+        for (const p of document.querySelectorAll(".tabpane")) p.classList.toggle("active", p.id === "tab-" + b.dataset.tab);
+        state.drawnT = -1;
+      };
+    }
+    document.addEventListener("keydown", (e) => {
+      if (e.code === "Space" && e.target === document.body) { e.preventDefault(); $("btn-play").click(); }
+    });
+    if (CFG.embedded) {
+      const l = $("opt-lidar").parentElement;
+      l.classList.add("disabled"); $("opt-lidar").disabled = true;
+      l.title = "A LiDAR scan needs the viewer's server: btmission view LOG";
+    }
+  }
+
+  function start(info) {
+    state.info = info;
+    state.live = info.mode === "live";
+    state.follow = state.live;
+    $("mission").textContent = info.mission || "";
+    document.title = `${info.mission || "btmission"} · btmission viewer`;
+    (info.agents || []).forEach((a) => model.agent(a.id, a.start));
+    if (info.scene) scene.setBounds(info.scene.bounds);
+    if (!state.live) { state.viewT = 0; state.playing = false; }
+    refreshControls();
+  }
+
+  function connect(cursor) {
+    const es = new EventSource(`api/stream?cursor=${cursor}`);
+    $("conn").textContent = "connected";
+    es.onmessage = (e) => {
+      const msg = JSON.parse(e.data);
+      model.add(msg.records);
+      if (msg.latest) model.add(msg.latest);
+      cursor = msg.cursor;
+      document.body.dataset.records = model.count;
+    };
+    es.addEventListener("complete", () => {
+      es.close(); state.complete = true; $("conn").textContent = "";
+      document.body.dataset.complete = "1"; refreshControls();
+    });
+    es.onerror = () => {            // reconnect from where we were (not from the start)
+      es.close();
+      if (state.complete) return;
+      $("conn").textContent = "reconnecting…";
+      setTimeout(() => connect(cursor), 1000);
+    };
+  }
+
+  function b64bytes(b64) {
+    const s = atob(b64), out = new Uint8Array(s.length);
+    for (let i = 0; i < s.length; i++) out[i] = s.charCodeAt(i);
+    return out;
+  }
+
+  async function main() {
+    legend();
+    bindControls();
+    if (CFG.embedded) {
+      start(CFG.info);
+      if (CFG.scene) scene.loadCommands(b64bytes(CFG.scene).buffer);
+      model.add(CFG.records || []);
+      state.complete = true;
+      document.body.dataset.records = model.count;
+      document.body.dataset.complete = "1";
+    } else {
+      const info = await (await fetch("api/info")).json();
+      start(info);
+      const buf = await (await fetch("api/scene")).arrayBuffer();
+      document.body.dataset.sceneCommands = scene.loadCommands(buf);
+      connect(0);
+    }
+    document.body.dataset.ready = "1";
+    requestAnimationFrame(frame);
+  }
+
+  window.btm = { model, scene, state, seek, selectAgent,
+    agentScreen: (id) => { const p = model.agents.get(id).poseAt(state.viewT); return p ? scene.screenPos([p.x, p.y, p.z]) : null; } };
+  main().catch((e) => { $("conn").textContent = "error: " + e; console.error(e); });
+})();
