@@ -23,10 +23,9 @@ from btmission.cli.common import (
     output_target,
 )
 from btmission.cli.view_cmds import (
+    announce_server,
     require_viz,
-    reserve_server,
     serve_until_stopped,
-    start_server,
     viewer_options,
 )
 
@@ -198,54 +197,37 @@ def run_cmd(
 
 
 class LiveView:
-    """``run --view``: the live feed behind a queue (the run never waits for it), and the
-    viewer's server once the run is built."""
+    """``run --view``: a :class:`~btmission.viz.live.LiveViewer` (its port taken before anything
+    runs), what it prints, and the page kept up after the run on a terminal."""
 
     def __init__(self, host: str, port: int | None) -> None:
-        from btmission.runtime.observers import QueuedObserver
-        from btmission.viz.feed import LiveFeed
+        from btmission.viz.live import LiveViewer
+        from btmission.viz.server import DEFAULT_PORT, PORT_TRIES, ViewerError
 
         self.host = host
-        self.port = port
-        self.run: Any = None
-        self.feed = LiveFeed(lambda: self.run.snapshot if self.run is not None else None)
-        self.observer = QueuedObserver(self.feed, maxsize=10_000, name="viewer")
-        self.server: Any = reserve_server(host, port)  # a port in use: before anything runs
-        self.serving = False
+        try:
+            self.viewer = LiveViewer(
+                host,
+                DEFAULT_PORT if port is None else port,
+                port_tries=PORT_TRIES if port is None else 1,
+            )
+        except ViewerError as exc:
+            raise BadInput(str(exc)) from None
+        self.observer = self.viewer.observer
 
     def serve(self, session: Any, run: Any) -> None:
         """Start serving the run (its map is built)."""
-        from btmission.planning.risk import RiskParams
-        from btmission.viz.server import ViewerSource, mission_info
-
-        mission = session.mission
-        rt = mission.spec.runtime
-        header = {
-            "mission": mission.name,
-            "description": mission.spec.description,
-            "agents": [{"id": a.id, "library": a.library, "start": list(a.start)} for a in mission.agents],
-            "step_s": run.dt,
-        }
-        source = ViewerSource(
-            mission_info(header, mode="live", source=str(session.log_path or "")),
-            self.feed,
-            run.map,
-            scene_options={"risk": RiskParams(rt.risk_radius_m, rt.unknown_cost)},
-        )
-        self.run = run
-        start_server(source, self.host, self.port, self.server)
-        self.serving = True
-        self.feed.start()
+        url = self.viewer.attach(session, run)
+        announce_server(url, self.host)
 
     def finish(self, *, linger: bool) -> None:
-        """The run has ended: every event to the feed; on a terminal, keep the page up until
+        """The run has ended: every event to the page; on a terminal, keep the page up until
         Ctrl-C; then close the server."""
-        self.observer.close(timeout=10.0)
-        self.feed.close()
-        if linger and self.serving:
-            serve_until_stopped(self.server, "the run has ended; the viewer still shows it")
+        self.viewer.finish()
+        if linger and self.viewer.serving:
+            serve_until_stopped(self.viewer.server, "the run has ended; the viewer still shows it")
         else:
-            self.server.close()
+            self.viewer.close()
 
 
 class _StderrNotes:

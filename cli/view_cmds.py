@@ -46,38 +46,27 @@ def require_viz() -> None:
         raise BadInput(f"{NEEDS_VIZ} (missing: {', '.join(missing)})")
 
 
-def reserve_server(host: str, port: int | None) -> Any:
-    """A :class:`~btmission.viz.server.ViewerServer` holding its port already (nothing is
-    served until :func:`start_server`): a port in use is :class:`BadInput` before anything
-    runs."""
+def start_server(source: Any, host: str, port: int | None) -> Any:
+    """Serve ``source`` on a :class:`~btmission.viz.server.ViewerServer` and print its URL. A
+    port in use is :class:`BadInput`."""
     from btmission.viz.server import DEFAULT_PORT, PORT_TRIES, ViewerError, ViewerServer
 
     server = ViewerServer(
-        None,
+        source,
         host,
         DEFAULT_PORT if port is None else port,
         port_tries=PORT_TRIES if port is None else 1,
     )
     try:
-        server.bind()
-    except ViewerError as exc:
-        raise BadInput(str(exc)) from None
-    return server
-
-
-def start_server(source: Any, host: str, port: int | None, server: Any = None) -> Any:
-    """Serve ``source`` (on ``server``, reserved by :func:`reserve_server`, else a new one);
-    print its URL (and a warning when it is not on loopback). A port in use is
-    :class:`BadInput`."""
-    from btmission.viz.server import ViewerError
-
-    if server is None:
-        server = reserve_server(host, port)
-    server.source = source
-    try:
         url = server.start()
     except ViewerError as exc:
         raise BadInput(str(exc)) from None
+    announce_server(url, host)
+    return server
+
+
+def announce_server(url: str, host: str) -> None:
+    """Print the viewer's URL, and a warning when it is not on loopback."""
     if not _loopback(host):
         click.echo(
             f"warning: the viewer listens on {host}: anyone who can reach this machine can "
@@ -85,7 +74,6 @@ def start_server(source: Any, host: str, port: int | None, server: Any = None) -
             err=True,
         )
     click.echo(f"viewer: {url}", err=True)
-    return server
 
 
 def _loopback(host: str) -> bool:

@@ -5,7 +5,7 @@ Console examples
 Every ``$ btmission ...`` line inside a ```` ```console ```` block of ``docs/*.md`` is run through
 click's ``CliRunner`` from the repository root. It must exit with status 0, or with the status its
 trailing comment documents (``# exit 2``). Commands never touch the repository: ``-o``/``--output``,
-``--out``, ``--log`` and ``--png`` paths are redirected into ``tmp_path``, and ``library new`` (and
+``--out``, ``--log``, ``--png`` and ``--html`` paths are redirected into ``tmp_path``, and ``library new`` (and
 commands on the plugin it scaffolds) run inside ``tmp_path``. svg/png commands are skipped without
 Graphviz.
 
@@ -82,7 +82,7 @@ _EXIT = re.compile(r"\bexit\s+(\d+)\b")
 _SLOW = re.compile(r"\bslow\b")
 _FENCE = re.compile(r"^\s*(```+|~~~+)\s*([\w+-]*)")
 _NO_COMPARE = re.compile(r"^<!--\s*output not compared:\s*(\S.*?)\s*-->$")
-_OUTPUT_OPTIONS = ("-o", "--output", "--out", "--log", "--png")
+_OUTPUT_OPTIONS = ("-o", "--output", "--out", "--log", "--png", "--html")
 _SCAFFOLD_DIR = re.compile(r"^btmission-([a-z0-9-]+)(/|$)")
 ELLIPSIS = "..."
 
@@ -428,7 +428,7 @@ def _rewrite_outputs(args: list[str], tmp_path: Path) -> tuple[list[str], dict[s
             paths[target] = args[i + 1]
             i += 2
             continue
-        assert not arg.startswith(("--output=", "--out=", "--log=", "--png=")), (
+        assert not arg.startswith(("--output=", "--out=", "--log=", "--png=", "--html=")), (
             "write '-o PATH' in the docs"
         )
         assert not (arg.startswith("-o") and len(arg) > 2), "write '-o PATH' in the docs"

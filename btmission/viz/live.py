@@ -1,0 +1,82 @@
+"""A live run's viewer: the feed behind a queue, and the server once the run is built.
+
+What ``btmission run --view`` does, as a class the tests and the benchmark use too::
+
+    viewer = LiveViewer(port=0)                  # takes the port now: in use → ViewerError
+    with RunSession(mission, observers=[viewer.observer]) as session:
+        run = session.start()
+        url = viewer.attach(session, run)        # serves the page from here on
+        session.run()
+    viewer.close()
+
+The run only appends events to a :class:`~btmission.runtime.observers.QueuedObserver` (it never
+waits for the viewer); the :class:`~btmission.viz.feed.LiveFeed` behind it keeps the records
+and samples the run's snapshots for poses on a thread of its own; the server reads the feed.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from btmission.runtime.observers import QueuedObserver
+from btmission.viz.feed import LiveFeed
+from btmission.viz.server import DEFAULT_PORT, ViewerServer, ViewerSource, mission_info
+
+
+class LiveViewer:
+    """A running mission's viewer (module docstring)."""
+
+    def __init__(
+        self,
+        host: str = "127.0.0.1",
+        port: int = DEFAULT_PORT,
+        *,
+        port_tries: int = 1,
+        pose_hz: float = 10.0,
+        queue_size: int = 10_000,
+    ) -> None:
+        self.run: Any = None
+        self.feed = LiveFeed(
+            lambda: self.run.snapshot if self.run is not None else None, pose_hz=pose_hz
+        )
+        self.observer = QueuedObserver(self.feed, maxsize=queue_size, name="viewer")
+        """Give this to the run (``RunSession(observers=[...])``)."""
+        self.server = ViewerServer(None, host, port, port_tries=port_tries)
+        self.server.bind()
+        self.serving = False
+
+    def attach(self, session: Any, run: Any) -> str:
+        """Serve ``run`` (built by ``session``); the page's URL."""
+        from btmission.planning.risk import RiskParams
+
+        mission = session.mission
+        rt = mission.spec.runtime
+        header = {
+            "mission": mission.name,
+            "description": mission.spec.description,
+            "agents": [
+                {"id": a.id, "library": a.library, "start": list(a.start)} for a in mission.agents
+            ],
+            "step_s": run.dt,
+        }
+        self.server.source = ViewerSource(
+            mission_info(header, mode="live", source=str(session.log_path or "")),
+            self.feed,
+            run.map,
+            scene_options={"risk": RiskParams(rt.risk_radius_m, rt.unknown_cost)},
+        )
+        self.run = run
+        url = self.server.start()
+        self.serving = True
+        self.feed.start()
+        return url
+
+    def finish(self) -> None:
+        """The run has ended: deliver every queued event and the last poses (the page keeps
+        being served until :meth:`close`)."""
+        self.observer.close(timeout=10.0)
+        self.feed.close()
+
+    def close(self) -> None:
+        self.finish()
+        self.server.close()
