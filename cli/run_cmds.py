@@ -17,6 +17,7 @@ from btmission.cli.common import (
     SEED,
     BadInput,
     ChecksFailed,
+    FiniteFloat,
     echo_diagnostics,
     handle_spec_errors,
     internal_error_sink,
@@ -99,7 +100,7 @@ def _write_pngs(rep: Any, directory: Path, stem: str) -> list[Path]:
 @viewer_options
 @click.option(
     "--speed",
-    type=click.FloatRange(min=0, max=1e6),
+    type=FiniteFloat(min=0, max=1e6),
     default=None,
     help="Pace the simulator this many times faster than real time (implies --realtime; 0: as "
     "fast as the machine allows, also with --view).",

@@ -6,7 +6,10 @@ test_viewer_browser.py."""
 from __future__ import annotations
 
 import json
+import signal
 import socket
+import subprocess
+import sys
 import urllib.request
 import warnings
 from collections.abc import Iterator
@@ -277,3 +280,28 @@ def test_run_view_on_a_port_in_use_stops_before_anything_runs(tmp_path: Path) ->
         holder.close()
     assert r.exit_code == 2 and f"port {port} on 127.0.0.1 in use" in r.output
     assert list(tmp_path.iterdir()) == []  # no log: nothing ran
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_view_server_closes_cleanly_on_ctrl_c_and_sigterm(mine_log: Path, sig: int) -> None:
+    """`btmission view LOG` serves until Ctrl-C or SIGTERM, then closes the server and exits 0
+    (a real process: the signal goes to it, by its PID)."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "btmission", "view", str(mine_log), "--port", "0"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert proc.stderr is not None
+        line = proc.stderr.readline()
+        assert line.startswith("viewer: http://127.0.0.1:"), line
+        url = line.split()[1]
+        assert json.loads(_get(url + "api/info"))["mission"] == "mine_inspection"
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0 and "viewer closed" in err and "Traceback" not in err
+    with pytest.raises(OSError):
+        _get(url + "api/info")
