@@ -165,3 +165,18 @@ def test_an_observer_that_raises_does_not_stop_delivery() -> None:
 def test_maxsize_must_be_positive() -> None:
     with pytest.raises(ValueError, match="maxsize must be at least 1"):
         QueuedObserver(Recorder(), maxsize=0)
+
+
+def test_batched_delivery_wakes_per_batch_and_loses_nothing() -> None:
+    """With ``batch_s`` the thread delivers what arrived since its last wake, in order, and
+    flush/close still deliver everything."""
+    rec = Recorder()
+    with QueuedObserver(rec, maxsize=1000, batch_s=0.05) as queued:
+        for i in range(300):
+            queued.on_event(Event(i * 0.01, "task", {"task": f"T{i}"}))
+        assert queued.flush(timeout=5.0)
+        assert [e.get("task") for e in rec.events] == [f"T{i}" for i in range(300)]
+        queued.on_event(Event(9.0, "end", {"reason": "completed"}))
+    assert rec.events[-1].kind == "end"
+    with pytest.raises(ValueError, match="batch_s"):
+        QueuedObserver(Recorder(), batch_s=-1)

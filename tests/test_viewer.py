@@ -305,3 +305,17 @@ def test_view_server_closes_cleanly_on_ctrl_c_and_sigterm(mine_log: Path, sig: i
     assert proc.returncode == 0 and "viewer closed" in err and "Traceback" not in err
     with pytest.raises(OSError):
         _get(url + "api/info")
+
+
+def test_the_run_queues_only_what_the_page_draws() -> None:
+    from btmission.runtime.events import Recorder
+    from btmission.viz.live import ViewerKinds
+
+    rec = Recorder()
+    kinds = ViewerKinds(rec)
+    kinds.on_event(Event(0.1, "pose", {"agent": "R1", "p": [0, 0, 0]}))
+    kinds.on_event(Event(0.1, "round", {"round": 1, "bids": 3}))
+    kinds.on_event(Event(0.2, "round", {"round": 2, "assignments": {"R1": "T1"}}))
+    kinds.on_event(Event(0.2, "task", {"task": "T1", "state": "assigned", "agent": "R1"}))
+    kinds.on_event(Event(0.3, "my_library_kind", {}))
+    assert [(e.kind, e.t) for e in rec.events] == [("round", 0.2), ("task", 0.2)]

@@ -117,7 +117,7 @@ def test_live_run_moves_markers_and_ticks_trees(page: Any, tmp_path: Path) -> No
     assert tree_states >= 3, "the tree panel's statuses did not change as the run went"
     assert running >= 2  # the root and the branch it runs
     assert result and result[0].reason == "until" and result[0].time_s == pytest.approx(30.0)
-    assert viewer.observer.dropped.get("task", 0) == 0
+    assert viewer.queue.dropped.get("task", 0) == 0
 
 
 TREE_WATCH = """

@@ -9,8 +9,9 @@ What ``btmission run --view`` does, as a class the tests and the benchmark use t
         session.run()
     viewer.close()
 
-The run only appends events to a :class:`~btmission.runtime.observers.QueuedObserver` (it never
-waits for the viewer); the :class:`~btmission.viz.feed.LiveFeed` behind it keeps the records
+The run only appends the events the page draws to a :class:`~btmission.runtime.observers.
+QueuedObserver` (it never waits for the viewer), delivered in batches to keep thread switches
+few; the :class:`~btmission.viz.feed.LiveFeed` behind it keeps the records
 and samples the run's snapshots for poses on a thread of its own; the server reads the feed.
 """
 
@@ -18,9 +19,30 @@ from __future__ import annotations
 
 from typing import Any
 
+from btmission.runtime.events import Event, Observer
 from btmission.runtime.observers import QueuedObserver
-from btmission.viz.feed import LiveFeed
+from btmission.viz.feed import VIEW_KINDS, LiveFeed
 from btmission.viz.server import DEFAULT_PORT, ViewerServer, ViewerSource, mission_info
+
+BATCH_S = 0.05
+"""The viewer's queue is delivered in batches, at most every this many seconds."""
+
+
+class ViewerKinds:
+    """Passes on, on the run's thread, only the events the feed keeps: the run does not queue
+    the ``pose`` events (the feed takes poses from the snapshots) nor the auction rounds that
+    changed nothing (ten a second) for a thread that would only drop them."""
+
+    def __init__(self, inner: Observer) -> None:
+        self.inner = inner
+
+    def on_event(self, event: Event) -> None:
+        kind = event.kind
+        if kind == "pose" or kind not in VIEW_KINDS:
+            return
+        if kind == "round" and not event.get("assignments"):
+            return
+        self.inner.on_event(event)
 
 
 class LiveViewer:
@@ -39,7 +61,8 @@ class LiveViewer:
         self.feed = LiveFeed(
             lambda: self.run.snapshot if self.run is not None else None, pose_hz=pose_hz
         )
-        self.observer = QueuedObserver(self.feed, maxsize=queue_size, name="viewer")
+        self.queue = QueuedObserver(self.feed, maxsize=queue_size, name="viewer", batch_s=BATCH_S)
+        self.observer = ViewerKinds(self.queue)
         """Give this to the run (``RunSession(observers=[...])``)."""
         self.server = ViewerServer(None, host, port, port_tries=port_tries)
         self.server.bind()
@@ -74,7 +97,7 @@ class LiveViewer:
     def finish(self) -> None:
         """The run has ended: deliver every queued event and the last poses (the page keeps
         being served until :meth:`close`)."""
-        self.observer.close(timeout=10.0)
+        self.queue.close(timeout=10.0)
         self.feed.close()
 
     def close(self) -> None:
