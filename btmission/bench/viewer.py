@@ -9,7 +9,7 @@ machine, and its drift, hits each alike):
 
 * **A, no viewer**: the run and its event log (as ``btmission run`` writes it);
 * **B, viewer**: the same plus the viewer exactly as ``btmission run --view`` wires it — the
-  command's own :class:`~btmission.cli.run_cmds.LiveView`: a
+  command's own :class:`~btmission.viz.live.LiveViewer`: a
   :class:`~btmission.viz.feed.LiveFeed` (poses sampled from the run's snapshots at 10 Hz on its
   own thread) behind a :class:`~btmission.runtime.observers.QueuedObserver`, served by a
   :class:`~btmission.viz.server.ViewerServer` (FastAPI on uvicorn, on a thread) on 127.0.0.1, a
@@ -368,16 +368,13 @@ def run_once(
     (``variant`` ``none``), or with ``run --view``'s viewer read by ``clients`` readers, each
     pausing ``pause_s`` after every message with a ``recv_buffer``-byte receive buffer
     (:class:`StreamClient`). The log goes to ``log_dir``."""
-    import contextlib
-    import io
-
-    from btmission.cli.run_cmds import LiveView
     from btmission.runtime.session import RunSession
+    from btmission.viz.live import LiveViewer
 
-    live: LiveView | None = None
+    live: LiveViewer | None = None
     readers: list[StreamClient] = []
     if variant != "none":
-        live = LiveView("127.0.0.1", 0)  # binds a free loopback port now, as run --view does
+        live = LiveViewer("127.0.0.1", 0)  # binds a free loopback port now, as run --view does
     session = RunSession(
         mission,
         seed=seed,
@@ -395,8 +392,7 @@ def run_once(
             if run is None:
                 raise ViewerBenchError("the run was stopped while being built")
             if live is not None:
-                with contextlib.redirect_stderr(io.StringIO()):  # its "viewer: URL" line
-                    live.serve(session, run)
+                live.attach(session, run)
                 host, port = live.server.address[:2]
                 readers = [
                     StreamClient(host, port, pause_s=pause_s, recv_buffer=recv_buffer).start()
@@ -411,10 +407,9 @@ def run_once(
             if result is None:
                 raise ViewerBenchError("the run did not run")
             clock.append((result.time_s, time.perf_counter()))
-            if live is not None:  # LiveView.finish(linger=False), the readers given time first
+            if live is not None:  # run --view's finish (no linger), the readers given time first
                 t_end = time.perf_counter()
-                live.observer.close(timeout=10.0)
-                live.feed.close()
+                live.finish()
                 for r in readers:  # a slow one reads the rest at once (its delay is measured)
                     r.hurry()
                     r.join(max(DRAIN_S - (time.perf_counter() - t_end), 0.0))
@@ -423,9 +418,7 @@ def run_once(
         for r in readers:
             r.stop()
         if live is not None:
-            live.observer.close(timeout=10.0)
-            live.feed.close()
-            live.server.close()
+            live.close()
         for r in readers:
             r.join(READ_TIMEOUT_S)
     assert session.log_path is not None
@@ -448,8 +441,8 @@ def run_once(
     for c in point.clients:
         c.lags = [wall - wall_at(clock, t) for wall, t in c.receipts]
     if live is not None:
-        point.dropped = dict(live.observer.dropped)
-        point.delivered = live.observer.delivered
+        point.dropped = dict(live.queue.dropped)
+        point.delivered = live.queue.delivered
         point.feed_records = len(live.feed)
         point.samples = live.feed.samples
         check_run(point, [r for r in recs if r["ev"] not in LOSSY_KINDS])
@@ -708,7 +701,7 @@ def markdown(
         f"runs ({', '.join(variants)}, then the other way round, …; {cfg.repeats} repeat(s) "
         "after one unmeasured "
         f"{cfg.warmup_s:g} s run with the viewer). *viewer*: `btmission run --view`'s own "
-        f"wiring (`LiveView`: a LiveFeed sampling poses at {POSE_HZ:g} Hz behind a "
+        f"wiring (`LiveViewer`: a LiveFeed sampling poses at {POSE_HZ:g} Hz behind a "
         "QueuedObserver, served by uvicorn on 127.0.0.1) with "
         f"{cfg.clients} reader(s) of `/api/stream` over loopback HTTP for the whole run." + slow,
         "",

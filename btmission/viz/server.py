@@ -63,6 +63,8 @@ PUSH_S = 0.1
 """How often a page's stream sends what is new (10 Hz poses)."""
 BATCH = 5000
 """Records per stream message (a replay's records arrive in several)."""
+SEND_BUFFER = 256 * 1024
+"""Send buffer (bytes) of the server's connections."""
 SCAN_CHANNELS = 16
 SCAN_AZIMUTHS = 360
 SCAN_RANGE_M = 60.0
@@ -280,6 +282,10 @@ def bind_socket(host: str, port: int, *, tries: int = 1) -> socket.socket:
         sock = socket.socket(family, socket.SOCK_STREAM)
         try:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            # connections inherit a bounded send buffer: a page that reads slowly holds the
+            # stream back (it then gets bigger batches later), instead of the kernel queueing
+            # megabytes of records for it
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER)
             sock.bind((host, p))
             sock.listen(64)
             sock.setblocking(False)
