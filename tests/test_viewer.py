@@ -319,3 +319,21 @@ def test_the_run_queues_only_what_the_page_draws() -> None:
     kinds.on_event(Event(0.2, "task", {"task": "T1", "state": "assigned", "agent": "R1"}))
     kinds.on_event(Event(0.3, "my_library_kind", {}))
     assert [(e.kind, e.t) for e in rec.events] == [("round", 0.2), ("task", 0.2)]
+
+
+def test_run_view_serves_while_the_run_goes_and_closes_with_it(tmp_path: Path) -> None:
+    """`run --view` without a terminal: the URL is printed, the run and its report are as
+    without it, and the server is gone when the command returns (no linger)."""
+    mission = ROOT / "missions" / "warehouse.yaml"
+    args = ["run", str(mission), "--controller", "track", "--quiet", "--no-png", "--until", "15"]
+    plain = CliRunner().invoke(cli, [*args, "--log", str(tmp_path / "plain")])
+    r = CliRunner().invoke(
+        cli, [*args, "--view", "--port", "0", "--speed", "0", "--log", str(tmp_path / "view")]
+    )
+    assert r.exit_code == plain.exit_code, r.output
+    line = next(x for x in r.stderr.splitlines() if x.startswith("viewer: "))
+    url = line.split()[1]
+    assert url.startswith("http://127.0.0.1:")
+    assert r.stdout == plain.stdout  # the same report
+    with pytest.raises(OSError):
+        _get(url + "api/info")

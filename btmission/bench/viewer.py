@@ -14,8 +14,8 @@ machine, and its drift, hits each alike):
   own thread) behind a :class:`~btmission.runtime.observers.QueuedObserver`, served by a
   :class:`~btmission.viz.server.ViewerServer` (FastAPI on uvicorn, on a thread) on 127.0.0.1, a
   free port — with ``clients`` readers of ``GET /api/stream`` over loopback HTTP for the whole
-  run (:class:`StreamClient`: a thread each, a plain socket, HTTP/1.1 chunked Server-Sent
-  Events, as a page's ``EventSource`` reads them);
+  run (:class:`ReaderProcess`: a process each, as a browser is, reading with a plain socket,
+  HTTP/1.1 chunked Server-Sent Events, as a page's ``EventSource`` reads them);
 * **S, slow client** (unless ``slow=False``): B with one reader that pauses ``slow_pause_s``
   after each message, so the server's writes back up.
 
@@ -247,6 +247,76 @@ class StreamClient:
         return False
 
 
+class ReaderProcess:
+    """A :class:`StreamClient` in a process of its own, as a browser is: its reading and JSON
+    decoding do not compete with the run for this process's GIL. The same interface as a
+    :class:`StreamClient`; :attr:`stats` arrive when it ends (:meth:`join`)."""
+
+    def __init__(self, host: str, port: int, *, pause_s: float = 0.0, recv_buffer: int = 0) -> None:
+        import multiprocessing
+
+        ctx = multiprocessing.get_context("spawn")  # (no fork of a process with threads)
+        self.stats = ClientStats(pause_s=pause_s)
+        self._pipe, child = ctx.Pipe()
+        self._hurry = ctx.Event()
+        self._stop = ctx.Event()
+        self._proc = ctx.Process(
+            target=_reader_main,
+            args=(host, port, pause_s, recv_buffer, child, self._hurry, self._stop),
+            name=READER_THREAD,
+            daemon=True,
+        )
+        self._done = False
+
+    def start(self) -> ReaderProcess:
+        self._proc.start()
+        if not self._pipe.poll(READ_TIMEOUT_S + 30.0):  # (a new interpreter imports first)
+            raise ViewerBenchError("the stream reader's process did not start")
+        kind, value = self._pipe.recv()
+        if kind != "connected":
+            raise ViewerBenchError(f"the stream reader could not connect: {value}")
+        return self
+
+    def hurry(self) -> None:
+        self._hurry.set()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._hurry.set()
+
+    def join(self, timeout: float) -> bool:
+        if not self._done and self._pipe.poll(max(timeout, 0.0)):
+            kind, value = self._pipe.recv()
+            if kind == "stats":
+                self.stats = value
+                self._done = True
+        if self._done:
+            self._proc.join(5.0)
+        elif not self._proc.is_alive():
+            self._done = True
+        if self._done and self._proc.is_alive():
+            self._proc.kill()  # ours, by its handle
+            self._proc.join(5.0)
+        return self._done
+
+
+def _reader_main(
+    host: str, port: int, pause_s: float, recv_buffer: int, pipe: Any, hurry: Any, stop: Any
+) -> None:
+    """A :class:`ReaderProcess`'s process: read the stream, report the stats."""
+    client = StreamClient(host, port, pause_s=pause_s, recv_buffer=recv_buffer)
+    client._thread.start()
+    client.connected.wait(READ_TIMEOUT_S)
+    pipe.send(("connected", "") if not client.stats.error else ("error", client.stats.error))
+    while client._thread.is_alive():
+        if stop.is_set():
+            client.stop()
+        elif hurry.is_set():
+            client.hurry()
+        client._thread.join(0.05)
+    pipe.send(("stats", client.stats))
+
+
 # ------------------------------------------------------------------------------ one run
 @dataclass
 class RunPoint:
@@ -372,7 +442,7 @@ def run_once(
     from btmission.viz.live import LiveViewer
 
     live: LiveViewer | None = None
-    readers: list[StreamClient] = []
+    readers: list[ReaderProcess] = []
     if variant != "none":
         live = LiveViewer("127.0.0.1", 0)  # binds a free loopback port now, as run --view does
     session = RunSession(
@@ -395,7 +465,7 @@ def run_once(
                 live.attach(session, run)
                 host, port = live.server.address[:2]
                 readers = [
-                    StreamClient(host, port, pause_s=pause_s, recv_buffer=recv_buffer).start()
+                    ReaderProcess(host, port, pause_s=pause_s, recv_buffer=recv_buffer).start()
                     for _ in range(clients)
                 ]
             clock.append((run.now(), time.perf_counter()))
