@@ -122,7 +122,23 @@ class ClientStats:
         return sum(self.kinds[k] for k in TASK_KINDS)
 
 
-class StreamClient:
+class _Stoppable:
+    """hurry / stop through two events (a thread's or a process's)."""
+
+    _hurry: Any
+    _stop: Any
+
+    def hurry(self) -> None:
+        """Pause no more: read the rest of the stream as fast as it comes."""
+        self._hurry.set()
+
+    def stop(self) -> None:
+        """Stop reading (at the next message or within :data:`READ_TIMEOUT_S`)."""
+        self._stop.set()
+        self._hurry.set()
+
+
+class StreamClient(_Stoppable):
     """Reads ``GET /api/stream?cursor=0`` of a viewer at ``host``:``port`` on a thread of its
     own, over a plain socket (HTTP/1.1, chunked, Server-Sent Events), until the stream's
     ``complete`` event, the end of the connection, :data:`READ_TIMEOUT_S` of silence, or
@@ -144,15 +160,6 @@ class StreamClient:
         if not self.connected.wait(READ_TIMEOUT_S):
             raise ViewerBenchError(f"the stream reader could not connect: {self.stats.error}")
         return self
-
-    def hurry(self) -> None:
-        """Pause no more: read the rest of the stream as fast as it comes."""
-        self._hurry.set()
-
-    def stop(self) -> None:
-        """Stop reading (at the next message or within :data:`READ_TIMEOUT_S`)."""
-        self._stop.set()
-        self._hurry.set()
 
     def join(self, timeout: float) -> bool:
         """Wait up to ``timeout`` s for the reader to end (True if it has)."""
@@ -247,7 +254,7 @@ class StreamClient:
         return False
 
 
-class ReaderProcess:
+class ReaderProcess(_Stoppable):
     """A :class:`StreamClient` in a process of its own, as a browser is: its reading and JSON
     decoding do not compete with the run for this process's GIL. The same interface as a
     :class:`StreamClient`; :attr:`stats` arrive when it ends (:meth:`join`)."""
@@ -276,13 +283,6 @@ class ReaderProcess:
         if kind != "connected":
             raise ViewerBenchError(f"the stream reader could not connect: {value}")
         return self
-
-    def hurry(self) -> None:
-        self._hurry.set()
-
-    def stop(self) -> None:
-        self._stop.set()
-        self._hurry.set()
 
     def join(self, timeout: float) -> bool:
         if not self._done and self._pipe.poll(max(timeout, 0.0)):
