@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import textwrap
 from collections.abc import Iterator
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import pytest
@@ -67,3 +68,16 @@ def page(browser: Browser) -> Iterator[Page]:
     page = browser.new_page(viewport=VIEWPORT)
     yield page
     page.close()
+
+
+@pytest.fixture(scope="session")
+def mine_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The event log of the seed 000 mission's first 120 s (track controller): tasks assigned
+    and done, routes, tree events with blackboards, poses (the viewer's tests replay it)."""
+    from btmission.runtime.session import RunSession
+
+    path = tmp_path_factory.mktemp("mine-log") / "mine.jsonl"
+    mission = Path(__file__).resolve().parents[1] / "missions" / "mine_inspection.yaml"
+    with RunSession(mission, controller="track", log_path=path) as s:
+        s.run(until=120.0)
+    return path

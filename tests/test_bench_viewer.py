@@ -28,6 +28,8 @@ from btmission.bench.viewer import (
 from btmission.cli.main import cli
 from btmission.runtime.events import read_events
 
+pytestmark = pytest.mark.slow  # runs of 30 agents' floor with a server and readers: make test-slow
+
 pytest.importorskip("uvicorn")
 pytest.importorskip("fastapi")
 

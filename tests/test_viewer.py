@@ -34,16 +34,6 @@ ROOT = Path(__file__).resolve().parents[1]
 MINE = ROOT / "missions" / "mine_inspection.yaml"
 
 
-@pytest.fixture(scope="module")
-def mine_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The first 60 s of the seed 000 mission (track controller): tasks assigned and done,
-    routes, tree events, poses."""
-    path = tmp_path_factory.mktemp("viewer") / "mine.jsonl"
-    with RunSession(MINE, controller="track", log_path=path) as s:
-        s.run(until=60.0)
-    return path
-
-
 def _unpack(data: bytes) -> Any:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -282,7 +272,9 @@ def test_run_view_on_a_port_in_use_stops_before_anything_runs(tmp_path: Path) ->
     assert list(tmp_path.iterdir()) == []  # no log: nothing ran
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.parametrize(
+    "sig", [signal.SIGINT, pytest.param(signal.SIGTERM, marks=pytest.mark.slow)]
+)
 def test_view_server_closes_cleanly_on_ctrl_c_and_sigterm(mine_log: Path, sig: int) -> None:
     """`btmission view LOG` serves until Ctrl-C or SIGTERM, then closes the server and exits 0
     (a real process: the signal goes to it, by its PID)."""
@@ -337,3 +329,29 @@ def test_run_view_serves_while_the_run_goes_and_closes_with_it(tmp_path: Path) -
     assert r.stdout == plain.stdout  # the same report
     with pytest.raises(OSError):
         _get(url + "api/info")
+
+
+def test_the_live_viewer_watches_any_provider(tmp_path: Path) -> None:
+    """The viewer reads only events and snapshots: the `fake` provider's kinematic vehicles
+    show up the same (poses sampled from the snapshots, task events, tree events)."""
+    from btmission.viz.live import LiveViewer
+
+    viewer = LiveViewer(port=0)
+    with RunSession(
+        ROOT / "docs" / "examples" / "fake_fleet.yaml", log_dir=None, observers=[viewer.observer]
+    ) as session:
+        run = session.start()
+        url = viewer.attach(session, run)
+        result = session.run()
+    viewer.finish()
+    try:
+        records = [r for _, d in _stream(url + "api/stream?cursor=0") for r in d.get("records", [])]
+    finally:
+        viewer.close()
+    assert result is not None and result.reason == "completed"
+    kinds = {r["ev"] for r in records}
+    assert {"task", "tree", "agent_task", "end"} <= kinds
+    poses = {r["agent"] for r in records if r["ev"] == "pose"}
+    assert poses == {"R1", "R2"}
+    done = [r["task"] for r in records if r["ev"] == "task" and r["state"] == "done"]
+    assert sorted(done) == ["T1", "T2"]

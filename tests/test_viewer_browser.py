@@ -59,14 +59,6 @@ def _agent_px(page: Any, agent: str) -> tuple[float, float]:
     return float(x), float(y)
 
 
-@pytest.fixture(scope="module")
-def mine_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    path = tmp_path_factory.mktemp("viewer-browser") / "mine.jsonl"
-    with RunSession(MINE, controller="track", log_path=path) as s:
-        s.run(until=120.0)
-    return path
-
-
 def test_live_run_moves_markers_and_ticks_trees(page: Any, tmp_path: Path) -> None:
     """A run watched live from its start: the tree panel's node classes change as the trees
     tick (the first seconds, at real time: arm, take off, set off), then, 8× faster than real
@@ -147,6 +139,14 @@ def test_replay_slider_changes_the_scene(page: Any, mine_log: Path) -> None:
         late = page.screenshot()
         late_px = _agent_px(page, "R1")
         late_tasks = page.evaluate("[...document.querySelectorAll('#tasks tbody tr')].map(r => r.dataset.state)")
+        page.check("#opt-lidar")  # a scan from R1's pose, cast by the server
+        lidar = _wait(page, "Number(document.body.dataset.lidarPoints || 0)")
+        before_risk = page.screenshot()
+        page.check("#opt-risk")  # the risk layer on demand
+        time.sleep(0.4)
+        with_risk = page.screenshot()
+        page.uncheck("#opt-risk")
+        page.uncheck("#opt-lidar")
         page.click("#btn-play")
         time.sleep(1.0)
         played = float(page.evaluate("document.body.dataset.viewT"))
@@ -159,6 +159,8 @@ def test_replay_slider_changes_the_scene(page: Any, mine_log: Path) -> None:
     assert region_diff(early, late, PANE) > 0.002
     assert early_tasks.count("done") == 0 and late_tasks.count("done") >= 2
     assert played > 100.0  # play moves time on from where the slider was
+    assert lidar > 1000
+    assert region_diff(before_risk, with_risk, PANE) > 0.01  # the risk points appeared
     assert bars >= 3  # each agent's task on the timeline
 
 
