@@ -151,7 +151,7 @@ def run_cmd(
     mission file, 130 interrupted (Ctrl-C), 143 terminated (SIGTERM): the log and the report
     cover what happened so far.
     """
-    from btmission.runtime.session import RunSession, RunStopped
+    from btmission.runtime.session import EXIT_CODES, RunSession, RunStopped
 
     live: LiveView | None = None
     if view:
@@ -191,8 +191,9 @@ def run_cmd(
             click.echo(f"{stop.reason} before the run started: nothing was run", err=True)
         code = stop.code
     finally:
-        if live is not None:
-            live.finish(linger=sys.stdin.isatty() and sys.stderr.isatty())
+        if live is not None:  # the page stays up after a run that ended by itself, on a
+            signalled = session.exit_code in EXIT_CODES.values()  # terminal; not after Ctrl-C
+            live.finish(linger=sys.stdin.isatty() and sys.stderr.isatty() and not signalled)
     if code:
         sys.exit(code)
 
