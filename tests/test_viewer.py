@@ -355,3 +355,13 @@ def test_the_live_viewer_watches_any_provider(tmp_path: Path) -> None:
     assert poses == {"R1", "R2"}
     done = [r["task"] for r in records if r["ev"] == "task" and r["state"] == "done"]
     assert sorted(done) == ["T1", "T2"]
+
+
+def test_a_viewer_off_loopback_is_announced_with_a_warning(capsys: pytest.CaptureFixture[str]) -> None:
+    from btmission.cli.view_cmds import announce_server
+
+    announce_server("http://127.0.0.1:8470/", "127.0.0.1")
+    assert capsys.readouterr().err == "viewer: http://127.0.0.1:8470/\n"
+    announce_server("http://0.0.0.0:8470/", "0.0.0.0")  # (nothing is bound here)
+    err = capsys.readouterr().err
+    assert err.startswith("warning: the viewer listens on 0.0.0.0: anyone who can reach")

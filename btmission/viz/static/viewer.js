@@ -18,6 +18,7 @@
   const GLYPH = { fallback: "?", sequence: "→", condition: "◇", action: "▶" };
   const TRAIL_S = 60;          // trail length (s of mission time)
   const PANEL_MS = 200;        // DOM panels refresh at most this often
+  const MAX_POSES = 40000;     // per agent (over an hour at 10 Hz); past it the older are thinned
   const $ = (id) => document.getElementById(id);
 
   // ------------------------------------------------------------------------ the model
@@ -54,6 +55,14 @@
       if (n && r.t === this.pt[n - 1]) { this.pt.pop(); this.px.pop(); this.py.pop(); this.pz.pop(); this.pyaw.pop(); this.pmode.pop(); }
       this.pt.push(r.t); this.px.push(r.p[0]); this.py.push(r.p[1]); this.pz.push(r.p[2]);
       this.pyaw.push(r.yaw || 0); this.pmode.push(r.mode || "");
+      if (this.pt.length > MAX_POSES) this.thin();
+    }
+    thin() {                    // a long live run: every other pose of the older half goes
+      const half = this.pt.length >> 1;
+      for (const a of [this.pt, this.px, this.py, this.pz, this.pyaw, this.pmode]) {
+        const kept = a.slice(0, half).filter((_, i) => i % 2 === 0);
+        a.splice(0, half, ...kept);
+      }
     }
     poseAt(t) {
       const i = bisect(this.pt, t);
@@ -226,6 +235,11 @@
       cam.updateProjectionMatrix();
       v.controls.dispose();
       v.set_camera(cam);
+      // the map's bounds as a faint box: orientation on any map, even one without rock
+      const box = new THREE.BoxGeometry(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]);
+      const edges = new THREE.LineSegments(new THREE.EdgesGeometry(box), new THREE.LineBasicMaterial({ color: "#64748b", transparent: true, opacity: 0.5 }));
+      edges.position.set((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, (lo[2] + hi[2]) / 2);
+      v.set_object(["btm", "bounds"], edges);
       this.fit();
     }
     fit(top) {
@@ -387,7 +401,7 @@
       this.agent = agent; this.nodes = agent ? agent.nodes : null;
       this.el.textContent = "";
       this.items = []; this.shown = [];
-      if (!this.nodes) { this.el.innerHTML = '<p class="muted" style="padding:6px 10px">No tree yet (its first tree event has not arrived).</p>'; return; }
+      if (!this.nodes) { this.el.innerHTML = '<p class="muted" style="padding:6px 10px">No tree yet: its first tree event has not arrived (logs before version 2 have none).</p>'; return; }
       const root = document.createElement("ul");
       const lists = [];
       this.depth = [];
