@@ -139,7 +139,11 @@ def test_replay_slider_changes_the_scene(page: Any, mine_log: Path) -> None:
         late = page.screenshot()
         late_px = _agent_px(page, "R1")
         late_tasks = page.evaluate("[...document.querySelectorAll('#tasks tbody tr')].map(r => r.dataset.state)")
-        page.check("#opt-lidar")  # a scan from R1's pose, cast by the server
+        x, y = _agent_px(page, "R2")  # a click on R2's marker selects it (a 3D pick)
+        page.mouse.click(x, y + PANE[1])
+        picked = _wait(page, "document.body.dataset.picked")
+        selected = page.evaluate("window.btm.state.selected")
+        page.check("#opt-lidar")  # a scan from R2's pose, cast by the server
         lidar = _wait(page, "Number(document.body.dataset.lidarPoints || 0)")
         before_risk = page.screenshot()
         page.check("#opt-risk")  # the risk layer on demand
@@ -159,6 +163,7 @@ def test_replay_slider_changes_the_scene(page: Any, mine_log: Path) -> None:
     assert region_diff(early, late, PANE) > 0.002
     assert early_tasks.count("done") == 0 and late_tasks.count("done") >= 2
     assert played > 100.0  # play moves time on from where the slider was
+    assert picked == "agent:R2" and selected == "R2"
     assert lidar > 1000
     assert region_diff(before_risk, with_risk, PANE) > 0.01  # the risk points appeared
     assert bars >= 3  # each agent's task on the timeline

@@ -197,6 +197,13 @@
       const render = v.render.bind(v);
       v.render = () => { render(); this.afterRender(); };
       this.agents = new Map(); this.tasks = new Map(); this.labels = new Map();
+      this.onPick = null;      // (kind, id): a click (not a drag) on an agent or a task
+      let down = null;
+      pane.addEventListener("pointerdown", (e) => { down = [e.clientX, e.clientY]; });
+      pane.addEventListener("pointerup", (e) => {
+        if (down && Math.hypot(e.clientX - down[0], e.clientY - down[1]) < 5) this.pick(e.clientX, e.clientY);
+        down = null;
+      });
       this.options = { trails: true, routes: true, labels: true };
       this.scale = 1;
       this.selected = null;
@@ -268,6 +275,7 @@
       const ring = new THREE.Mesh(new THREE.TorusGeometry(0.9 * s, 0.12 * s, 6, 24), this.material("#ffffff", { emissive: new THREE.Color("#444") }));
       ring.visible = false;
       group.add(ring);
+      group.userData.pick = ["agent", a.id];
       this.viewer.set_object(["btm", "agents", a.id], group);
       const trail = new THREE.Line(new THREE.BufferGeometry(), new THREE.LineBasicMaterial({ color: a.color, transparent: true, opacity: 0.75 }));
       this.viewer.set_object(["btm", "trails", a.id], trail);
@@ -294,6 +302,7 @@
         const g = new THREE.BufferGeometry().setFromPoints(pts.map(([, p]) => new THREE.Vector3(p[0], p[1], p[2])));
         group.add(new THREE.Line(g, new THREE.LineDashedMaterial({ color: "#9ca3af", dashSize: s, gapSize: s })).computeLineDistances());
       }
+      group.userData.pick = ["task", task.id];
       this.viewer.set_object(["btm", "tasks", task.id], group);
       o = { group, mat, at: pts.length ? pts[0][1] : null, state: "" };
       this.tasks.set(task.id, o);
@@ -380,6 +389,18 @@
       this.viewer.camera.updateMatrixWorld();
       v.project(this.viewer.camera);
       return [(v.x + 1) / 2 * this.pane.offsetWidth, (1 - v.y) / 2 * this.pane.offsetHeight, v.z];
+    }
+    pick(cx, cy) {               // the agent or task under a click (meshcat's camera ray)
+      const r = this.pane.getBoundingClientRect();
+      const ndc = new THREE.Vector2((cx - r.left) / r.width * 2 - 1, -(cy - r.top) / r.height * 2 + 1);
+      const ray = new THREE.Raycaster();
+      ray.setFromCamera(ndc, this.viewer.camera);
+      const targets = [...this.agents.values()].map((o) => o.group).concat([...this.tasks.values()].map((o) => o.group));
+      for (const hit of ray.intersectObjects(targets.filter((g) => g.visible), true)) {
+        let o = hit.object;
+        while (o && !o.userData.pick) o = o.parent;
+        if (o && this.onPick) { this.onPick(o.userData.pick[0], o.userData.pick[1]); return; }
+      }
     }
     setRisk(on) { this.viewer.set_property(["risk"], "visible", on); this.viewer.set_dirty(); }
     setLidar(points) {
@@ -470,7 +491,7 @@
   // ------------------------------------------------------------------------ the page
   const model = new Model();
   const state = { viewT: 0, follow: true, playing: false, speed: 5, live: false, complete: false,
-    selected: null, lastPanel: 0, drawnVersion: -1, drawnT: -1, info: null, lidarOn: false, lidarKey: "" };
+    selected: null, task: null, lastPanel: 0, drawnVersion: -1, drawnT: -1, info: null, lidarOn: false, lidarKey: "" };
   const scene = new Scene3D($("meshcat-pane"), model);
   const tree = new TreePanel($("tree"));
   const fmt = (t) => (t === null || t === undefined ? "" : Number(t).toFixed(1));
@@ -513,7 +534,7 @@
       counts[st[1]] = (counts[st[1]] || 0) + 1;
       const done = task.states.find((s) => s[1] === "done" && s[0] <= t);
       const color = TASK_COLORS[st[1]] || "#fff";
-      rows.push(`<tr data-task="${esc(task.id)}" data-state="${esc(st[1])}"><td>${esc(task.id)}</td><td>${esc(task.type)}</td>` +
+      rows.push(`<tr data-task="${esc(task.id)}" data-state="${esc(st[1])}"${state.task === task.id ? ' class="picked"' : ""}><td>${esc(task.id)}</td><td>${esc(task.type)}</td>` +
         `<td><span class="state" style="background:${color}">${esc(st[1])}</span></td><td>${esc(st[2] || "")}</td>` +
         `<td>${task.priority === undefined || task.priority === null ? "" : esc(task.priority)}</td><td>${fmt(task.added)}</td>` +
         `<td>${done ? fmt(done[0]) : ""}</td><td class="muted">${esc(st[3] || "")}</td></tr>`);
@@ -636,6 +657,19 @@
     }
     requestAnimationFrame(frame);
   }
+
+  scene.onPick = (kind, id) => {
+    if (kind === "agent") selectAgent(id);
+    else {
+      state.task = id;
+      state.drawnT = -1;
+      requestAnimationFrame(() => {
+        const row = document.querySelector(`#tasks tr[data-task="${CSS.escape(id)}"]`);
+        if (row) row.scrollIntoView({ block: "nearest" });
+      });
+    }
+    document.body.dataset.picked = `${kind}:${id}`;
+  };
 
   function bindControls() {
     $("btn-play").onclick = () => {
