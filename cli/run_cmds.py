@@ -95,7 +95,8 @@ def _write_pngs(rep: Any, directory: Path, stem: str) -> list[Path]:
     "--view",
     is_flag=True,
     help="Watch the run live in the browser: serves the viewer (3D mine, agents, trees, tasks) "
-    "on 127.0.0.1 and prints its URL; paces the run to real time unless --speed says otherwise.",
+    "on --host (127.0.0.1) and prints its URL; paces the run to real time unless --speed says "
+    "otherwise.",
 )
 @viewer_options
 @click.option(
@@ -124,7 +125,7 @@ def run_cmd(
 ) -> None:
     """Run a mission and print its report.
 
-    Each agent's vehicle comes from the provider its backend: names (sim: the embedded
+    Each agent's vehicle comes from the provider its backend: URL names (sim: the embedded
     simulator; fake: kinematic test vehicles; mavlink+udp:// ...: PX4 or ArduPilot vehicles,
     asked for confirmation unless they are on this machine or --yes is given; when the run
     stops, a vehicle still flying is told to HOLD, then LAND). Every agent ticks its mission tree (seed 000
@@ -153,6 +154,8 @@ def run_cmd(
     """
     from btmission.runtime.session import EXIT_CODES, RunSession, RunStopped
 
+    if not view and (port is not None or host != "127.0.0.1"):
+        raise click.UsageError("--host and --port are the viewer's: add --view")
     live: LiveView | None = None
     if view:
         require_viz()

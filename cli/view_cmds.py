@@ -91,7 +91,7 @@ def serve_until_stopped(server: Any, what: str) -> None:
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
             previous[sig] = signal.signal(sig, handle)
-    click.echo(f"{what}; Ctrl-C to close the viewer", err=True)
+    click.echo(f"{what} at {server.url}; Ctrl-C to close the viewer", err=True)
     try:
         while not stop.wait(0.25):
             pass
@@ -103,7 +103,15 @@ def serve_until_stopped(server: Any, what: str) -> None:
 
 
 @click.command("view")
-@click.argument("log_file", metavar="LOG", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument(
+    "log_file", metavar="[LOG]", required=False, type=click.Path(dir_okay=False, path_type=Path)
+)
+@click.option(
+    "--latest",
+    "latest_dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Replay the newest log (*.jsonl) in this directory (e.g. runs).",
+)
 @viewer_options
 @click.option(
     "--html",
@@ -113,7 +121,13 @@ def serve_until_stopped(server: Any, what: str) -> None:
     help="Write the viewer as one self-contained HTML file (opens offline; no server) instead "
     "of serving it.",
 )
-def view_cmd(log_file: Path, host: str, port: int | None, html_out: Path | None) -> None:
+def view_cmd(
+    log_file: Path | None,
+    latest_dir: Path | None,
+    host: str,
+    port: int | None,
+    html_out: Path | None,
+) -> None:
     """Replay a finished run in the browser, from its event log alone.
 
     Serves the viewer page on 127.0.0.1 (--host, --port) and prints its URL: the mine in 3D
@@ -123,19 +137,28 @@ def view_cmd(log_file: Path, host: str, port: int | None, html_out: Path | None)
     the log's header (a generated map, or the map file it names). Ctrl-C closes it.
 
     --html FILE writes the same page as one file instead (meshcat's viewer, the scene and the
-    records inside; tens of MB for a long run) that opens offline, for reports and sharing.
+    records inside: 5.4 MB for the seed 000 mission, at most about 25 MB) that opens offline, for
+    reports and sharing. A log cut short (the run was killed) replays up to where it stops,
+    with a note.
 
     \b
     Example:
       btmission run missions/mine_inspection.yaml --controller track --log runs
-      btmission view runs/mine_inspection-*.jsonl
-      btmission view runs/mine_inspection-*.jsonl --html mine_inspection.html
+      btmission view --latest runs
+      btmission view --latest runs --html mine_inspection.html
 
     Exit status: 0 closed (or written), 2 not a log, port in use, or the viz extra missing.
     """
     require_viz()
+    from btmission.cli.run_cmds import latest_log
     from btmission.runtime.events import LogError
     from btmission.viz.server import log_source
+
+    if (log_file is None) == (latest_dir is None):
+        raise click.UsageError("give a LOG file, or --latest DIR")
+    if latest_dir is not None:
+        log_file = latest_log(latest_dir)
+    assert log_file is not None
 
     try:
         source, notes = log_source(log_file)

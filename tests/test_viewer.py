@@ -168,7 +168,8 @@ def test_scene_encodes_the_mine_the_risk_layer_and_the_look() -> None:
     mine = by_path[("set_object", "/mine")]["object"]
     assert mine["materials"][0]["vertexColors"] and mine["materials"][0]["side"] == 0
     assert by_path[("set_property", "/risk")]["value"] is False  # the risk layer: on demand
-    assert by_path[("set_object", "/risk")]["object"]["object"]["type"] == "Points"
+    risk = by_path[("set_object", "/risk")]["object"]
+    assert risk["object"]["type"] == "Points" and risk["materials"][0]["opacity"] < 1
     assert scene.info["bounds"] == [[10.0, 20.0, 0.0], [20.0, 26.0, 3.0]]
     assert scene.info["triangles"] > 0 and scene.info["risk_points"] > 0
 
@@ -365,3 +366,19 @@ def test_a_viewer_off_loopback_is_announced_with_a_warning(capsys: pytest.Captur
     announce_server("http://0.0.0.0:8470/", "0.0.0.0")  # (nothing is bound here)
     err = capsys.readouterr().err
     assert err.startswith("warning: the viewer listens on 0.0.0.0: anyone who can reach")
+
+
+def test_view_latest_and_the_viewer_options_need_their_command(mine_log: Path, tmp_path: Path) -> None:
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    (runs / "old.jsonl").write_text(mine_log.read_text())
+    out = tmp_path / "latest.html"
+    r = CliRunner().invoke(cli, ["view", "--latest", str(runs), "--html", str(out)])
+    assert r.exit_code == 0 and out.stat().st_size > 1_000_000, r.output
+    r = CliRunner().invoke(cli, ["view"])
+    assert r.exit_code == 2 and "give a LOG file, or --latest DIR" in r.output
+    r = CliRunner().invoke(cli, ["view", "--latest", str(tmp_path / "none")])
+    assert r.exit_code == 2 and "no such directory" in r.output
+    r = CliRunner().invoke(cli, ["run", str(MINE), "--port", "0", "--log", str(tmp_path / "x")])
+    assert r.exit_code == 2 and "--host and --port are the viewer's: add --view" in r.output
+    assert not (tmp_path / "x").exists()

@@ -162,6 +162,7 @@ class Agent:
         self._commit_leaves = self._find_commit_leaves()
         self._default = next((c for c in self.root.children if c.name == "default"), None)
         self._blackboard_sent: dict[str, Any] = {}
+        self._blackboard_version = -1
         """The blackboard as the last ``tree`` event showed it (its keys' display values)."""
         self.tree = LeanBehaviourTree(self.root)
         """The root in py_trees' tree custodian: ticks run its visitors and post-tick handlers."""
@@ -170,6 +171,7 @@ class Agent:
             self._tree_event,
             clock,
             float(settings.get("tree_event_s", TREE_EVENT_S)),
+            dirty=lambda: self.blackboard.version != self._blackboard_version,
         )
         navigator.on_route = self._route_event
         depth = behaviour_depth(self.root)
@@ -415,6 +417,7 @@ class Agent:
 
     def _tree_event(self, changes: list[list[Any]], nodes: list[list[Any]] | None) -> None:
         extra: dict[str, Any] = {"nodes": nodes} if nodes else {}
+        self._blackboard_version = self.blackboard.version
         now = {k: blackboard_value(v) for k, v in self.blackboard.snapshot().items()}
         sent = self._blackboard_sent
         changed = {k: v for k, v in now.items() if k not in sent or sent[k] != v}

@@ -46,6 +46,9 @@ if TYPE_CHECKING:
 UNSET = object()
 
 
+_ABSENT = object()
+
+
 class Blackboard:
     """One agent's key-value store, under its own namespace (``/agents/<id>``).
 
@@ -57,6 +60,8 @@ class Blackboard:
     def __init__(self, namespace: str) -> None:
         self.namespace = namespace
         self._data: dict[str, Any] = {}
+        self.version = 0
+        """Counts the writes (set, unset): an observer knows cheaply whether anything changed."""
 
     def get(self, key: str, default: Any = None) -> Any:
         return self._data.get(key, default)
@@ -72,9 +77,11 @@ class Blackboard:
 
     def set(self, key: str, value: Any) -> None:
         self._data[key] = value
+        self.version += 1
 
     def unset(self, key: str) -> None:
-        self._data.pop(key, None)
+        if self._data.pop(key, _ABSENT) is not _ABSENT:
+            self.version += 1
 
     def keys(self) -> Iterator[str]:
         return iter(self._data)

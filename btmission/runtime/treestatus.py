@@ -189,8 +189,12 @@ class TreeStatusLogger:
         publish: Callable[[list[list[Any]], list[list[Any]] | None], None],
         clock: Callable[[], float],
         period_s: float = TREE_EVENT_S,
+        dirty: Callable[[], bool] | None = None,
     ) -> None:
+        """``dirty()`` True: something else the event carries changed (the blackboard), so an
+        event goes out at its time even if no status changed."""
         self.visitor = StatusChanges(tree.root)
+        self._dirty = dirty
         self.period_s = period_s
         self._publish = publish
         self._clock = clock
@@ -239,7 +243,7 @@ class TreeStatusLogger:
         """Publish the pending net changes now (if any), whatever the period."""
         net = [[uid, old, new] for uid, (old, new) in sorted(self._pending.items()) if old != new]
         self._pending.clear()
-        if not net:
+        if not net and not (self._sent_nodes and self._dirty is not None and self._dirty()):
             return
         self._next_t = (self._clock() if now is None else now) + self.period_s
         nodes = None

@@ -75,8 +75,12 @@ def unpack_commands(data: bytes) -> list[bytes]:
 
 
 def risk_colors(values: npt.ArrayLike) -> npt.NDArray[np.float32]:
-    """Risk in [0, 1] → RGB from pale yellow (low) to red (next to rock), ``(N, 3)``."""
-    v = np.clip(np.asarray(values, dtype=np.float32), 0.0, 1.0)[:, None]
+    """Risk in [0, 1] → RGB from pale yellow (the lowest there is) to red (the highest: next to
+    rock), ``(N, 3)``."""
+    v = np.clip(np.asarray(values, dtype=np.float32), 0.0, 1.0)
+    if len(v) and float(v.max() - v.min()) > 1e-6:  # the ramp over the values there are
+        v = (v - v.min()) / (v.max() - v.min())
+    v = v[:, None]
     low = np.array([1.0, 0.93, 0.45], dtype=np.float32)
     high = np.array([0.86, 0.1, 0.08], dtype=np.float32)
     out: npt.NDArray[np.float32] = (low + (high - low) * v).astype(np.float32)
@@ -106,13 +110,14 @@ def build_scene(
     points, values = risk_points(vmap, risk, max_points=max_risk_points)
     if len(points):
         size = float(vmap.resolution) * 0.6
-        commands.append(
-            c.SetObject(
-                g.PointsGeometry(points.T, risk_colors(values).T),
-                g.PointsMaterial(size=size),
-                path=P(("risk",)),
-            ).lower()
-        )
+        risk_cmd = c.SetObject(
+            g.PointsGeometry(points.T, risk_colors(values).T),
+            g.PointsMaterial(size=size),
+            path=P(("risk",)),
+        ).lower()
+        for material in risk_cmd["object"]["materials"]:  # see-through: tasks and trails show
+            material.update({"transparent": True, "opacity": 0.35, "depthWrite": False})
+        commands.append(risk_cmd)
         commands.append(c.SetProperty("visible", False, P(("risk",))).lower())
     for name in ("Grid", "Axes"):  # meshcat's 20 m grid at the origin: not the mine's floor
         commands.append(c.SetProperty("visible", False, P((name,))).lower())
