@@ -28,6 +28,7 @@ from btmission.cli.view_cmds import (
     require_viz,
     serve_until_stopped,
     viewer_options,
+    viewer_port,
 )
 
 
@@ -207,15 +208,12 @@ class LiveView:
 
     def __init__(self, host: str, port: int | None) -> None:
         from btmission.viz.live import LiveViewer
-        from btmission.viz.server import DEFAULT_PORT, PORT_TRIES, ViewerError
+        from btmission.viz.server import ViewerError
 
         self.host = host
+        first, tries = viewer_port(port)
         try:
-            self.viewer = LiveViewer(
-                host,
-                DEFAULT_PORT if port is None else port,
-                port_tries=PORT_TRIES if port is None else 1,
-            )
+            self.viewer = LiveViewer(host, first, port_tries=tries)
         except ViewerError as exc:
             raise BadInput(str(exc)) from None
         self.observer = self.viewer.observer

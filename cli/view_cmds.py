@@ -46,17 +46,21 @@ def require_viz() -> None:
         raise BadInput(f"{NEEDS_VIZ} (missing: {', '.join(missing)})")
 
 
+def viewer_port(port: int | None) -> tuple[int, int]:
+    """The first port to try and how many: the one the user asked for only, else the default
+    and the next free ones up to :data:`~btmission.viz.server.PORT_TRIES`."""
+    from btmission.viz.server import DEFAULT_PORT, PORT_TRIES
+
+    return (DEFAULT_PORT, PORT_TRIES) if port is None else (port, 1)
+
+
 def start_server(source: Any, host: str, port: int | None) -> Any:
     """Serve ``source`` on a :class:`~btmission.viz.server.ViewerServer` and print its URL. A
     port in use is :class:`BadInput`."""
-    from btmission.viz.server import DEFAULT_PORT, PORT_TRIES, ViewerError, ViewerServer
+    from btmission.viz.server import ViewerError, ViewerServer
 
-    server = ViewerServer(
-        source,
-        host,
-        DEFAULT_PORT if port is None else port,
-        port_tries=PORT_TRIES if port is None else 1,
-    )
+    first, tries = viewer_port(port)
+    server = ViewerServer(source, host, first, port_tries=tries)
     try:
         url = server.start()
     except ViewerError as exc:

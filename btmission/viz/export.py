@@ -12,23 +12,10 @@ from __future__ import annotations
 
 import base64
 import json
-import re
+from pathlib import Path
 from typing import Any
 
-from btmission.viz.server import ViewerSource, meshcat_js, static_dir
-
-_INLINE = {
-    '<link rel="stylesheet" href="static/viewer.css">': "css",
-    '<script src="static/meshcat.js"></script>': "meshcat",
-    '<script src="static/viewer.js"></script>': "viewer",
-    "/*BTM_CONFIG*/null": "config",
-    "<!--BTM_TITLE-->": "title",
-}
-
-
-def _script_safe(text: str) -> str:
-    """``text`` safe inside a ``<script>`` element (no ``</script>`` or ``<!--`` in it)."""
-    return text.replace("</", "<\\/").replace("<!--", "<\\!--")
+from btmission.viz.server import ViewerSource, meshcat_js, page_html, script_safe, static_dir
 
 
 def static_html(source: ViewerSource) -> str:
@@ -43,19 +30,14 @@ def static_html(source: ViewerSource) -> str:
         "records": records,
     }
     static = static_dir()
-    parts = {
+
+    def script(path: Path) -> str:
+        return "<script>\n" + script_safe(path.read_text(encoding="utf-8")) + "\n</script>"
+
+    inline = {
         "css": "<style>\n" + (static / "viewer.css").read_text(encoding="utf-8") + "\n</style>",
-        "meshcat": "<script>\n" + _script_safe(meshcat_js().read_text(encoding="utf-8")) + "\n</script>",
-        "viewer": "<script>\n" + _script_safe((static / "viewer.js").read_text(encoding="utf-8"))
-        + "\n</script>",
-        "config": _script_safe(json.dumps(config, separators=(",", ":"), allow_nan=False)),
-        "title": _html_text(str(source.info.get("mission") or "btmission")),
+        "meshcat": script(meshcat_js()),
+        "viewer": script(static / "viewer.js"),
     }
-    template = (static / "index.html").read_text(encoding="utf-8")
-    pattern = re.compile("|".join(re.escape(k) for k in _INLINE))
-    return pattern.sub(lambda m: parts[_INLINE[m.group(0)]], template)  # one pass: inserted
-    # text is never searched again
-
-
-def _html_text(text: str) -> str:
-    return text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+    config_json = json.dumps(config, separators=(",", ":"), allow_nan=False)  # (a big file)
+    return page_html(config_json, str(source.info.get("mission") or "btmission"), inline)

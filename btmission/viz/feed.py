@@ -54,13 +54,19 @@ MAX_HISTORY = 2_000_000
 each agent is still sent): a page that connects then sees the past more coarsely."""
 
 
+def draws(event: Event) -> bool:
+    """The page draws this event: its kind is one of :data:`VIEW_KINDS` (an auction round only
+    when its assignments changed)."""
+    if event.kind not in VIEW_KINDS:
+        return False
+    return event.kind != "round" or bool(event.get("assignments"))
+
+
 def view_record(event: Event) -> Record | None:
-    """``event`` as the viewer's record, or None if the page does not draw its kind."""
+    """``event`` as the viewer's record, or None if the page does not draw it (:func:`draws`)."""
+    if not draws(event):
+        return None
     kind = event.kind
-    if kind not in VIEW_KINDS:
-        return None
-    if kind == "round" and not event.get("assignments"):
-        return None
     data: Mapping[str, Any] = event.data
     if kind == "pose":
         data = {k: data[k] for k in POSE_FIELDS if k in data}

@@ -21,7 +21,7 @@ from typing import Any
 
 from btmission.runtime.events import Event, Observer
 from btmission.runtime.observers import QueuedObserver
-from btmission.viz.feed import VIEW_KINDS, LiveFeed
+from btmission.viz.feed import LiveFeed, draws
 from btmission.viz.server import DEFAULT_PORT, ViewerServer, ViewerSource, mission_info
 
 BATCH_S = 0.05
@@ -37,12 +37,8 @@ class ViewerKinds:
         self.inner = inner
 
     def on_event(self, event: Event) -> None:
-        kind = event.kind
-        if kind == "pose" or kind not in VIEW_KINDS:
-            return
-        if kind == "round" and not event.get("assignments"):
-            return
-        self.inner.on_event(event)
+        if event.kind != "pose" and draws(event):
+            self.inner.on_event(event)
 
 
 class LiveViewer:

@@ -17,6 +17,7 @@ import struct
 import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -55,6 +56,11 @@ class Scene:
     ``risk_points``."""
 
     def packed(self) -> bytes:
+        """The commands as :func:`pack_commands` gives them (made once: every page asks)."""
+        return self._packed
+
+    @cached_property
+    def _packed(self) -> bytes:
         return pack_commands(self.commands)
 
 

@@ -31,10 +31,11 @@ from __future__ import annotations
 import asyncio
 import errno
 import json
+import re
 import socket
 import threading
 import time
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
 from importlib import resources
@@ -183,12 +184,34 @@ def mission_info(header: dict[str, Any] | Any, *, mode: str, source: str) -> dic
     }
 
 
-def _page(info: dict[str, Any]) -> str:
-    html = (static_dir() / "index.html").read_text(encoding="utf-8")
-    config = json.dumps({"embedded": False, "title": info.get("mission") or "btmission"})
-    return html.replace("/*BTM_CONFIG*/null", config).replace(
-        "<!--BTM_TITLE-->", str(info.get("mission") or "btmission")
-    )
+_SLOTS = {
+    '<link rel="stylesheet" href="static/viewer.css">': "css",
+    '<script src="static/meshcat.js"></script>': "meshcat",
+    '<script src="static/viewer.js"></script>': "viewer",
+    "/*BTM_CONFIG*/null": "config",
+    "<!--BTM_TITLE-->": "title",
+}
+"""The places in ``static/index.html`` that :func:`page_html` fills, by name."""
+
+
+def script_safe(text: str) -> str:
+    """``text`` safe inside a ``<script>`` element (no ``</script>`` or ``<!--`` in it)."""
+    return text.replace("</", "<\\/").replace("<!--", "<\\!--")
+
+
+def page_html(config_json: str, title: str, inline: Mapping[str, str] | None = None) -> str:
+    """The viewer page: ``static/index.html`` with its ``window.BTM_CONFIG`` (``config_json``,
+    a JSON object), its title, and the static files named in ``inline`` (``css``, ``meshcat``,
+    ``viewer``: their full elements) in place of their links. One pass: inserted text is never
+    searched again."""
+    parts = {
+        "config": script_safe(config_json),
+        "title": title.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;"),
+        **(inline or {}),
+    }
+    template = (static_dir() / "index.html").read_text(encoding="utf-8")
+    pattern = re.compile("|".join(re.escape(k) for k in _SLOTS))
+    return pattern.sub(lambda m: parts.get(_SLOTS[m.group(0)], m.group(0)), template)
 
 
 def create_app(source: ViewerSource, closing: threading.Event | None = None) -> FastAPI:
@@ -203,7 +226,8 @@ def create_app(source: ViewerSource, closing: threading.Event | None = None) -> 
 
     @app.get("/", response_class=HTMLResponse)
     def page() -> str:
-        return _page(source.info)
+        title = str(source.info.get("mission") or "btmission")
+        return page_html(json.dumps({"embedded": False, "title": title}), title)
 
     @app.get("/static/{name}")
     def static(name: str) -> Response:
