@@ -382,3 +382,16 @@ def test_view_latest_and_the_viewer_options_need_their_command(mine_log: Path, t
     r = CliRunner().invoke(cli, ["run", str(MINE), "--port", "0", "--log", str(tmp_path / "x")])
     assert r.exit_code == 2 and "--host and --port are the viewer's: add --view" in r.output
     assert not (tmp_path / "x").exists()
+
+
+def test_view_on_a_port_in_use_is_refused_clearly(mine_log: Path) -> None:
+    holder = socket.socket()
+    holder.bind(("127.0.0.1", 0))
+    holder.listen(1)
+    port = holder.getsockname()[1]
+    try:
+        r = CliRunner().invoke(cli, ["view", str(mine_log), "--port", str(port)])
+    finally:
+        holder.close()
+    assert r.exit_code == 2 and f"port {port} on 127.0.0.1 in use" in r.output
+    assert "Traceback" not in r.output
