@@ -115,6 +115,9 @@ MAX_MESSAGE_BYTES = Budget(
     "size of one coordinator/agent message on the wire (an announcement of 10,000 tasks is "
     "about 1.5 MB)",
 )
+MAX_REQUEST_BYTES = Budget(
+    "BTMISSION_MAX_REQUEST_BYTES", 65_536, "size of one request body to the operator console"
+)
 
 BUDGETS: tuple[Budget, ...] = (
     MAX_FILE_BYTES,
@@ -129,6 +132,7 @@ BUDGETS: tuple[Budget, ...] = (
     MAX_TEXT_CHARS,
     MAX_LOG_BYTES,
     MAX_MESSAGE_BYTES,
+    MAX_REQUEST_BYTES,
 )
 
 

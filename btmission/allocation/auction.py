@@ -297,6 +297,12 @@ class AuctionState:
     announcement: Announcement = Announcement()
     board: Mapping[str, Bid] = field(default_factory=dict)
     """Each live agent's latest bid."""
+    paused: bool = False
+    """Allocation paused by the operator: every holder keeps its task, nothing else is
+    assigned (the rounds still run, so bids keep agents alive and progress is taken)."""
+    excluded: frozenset[str] = frozenset()
+    """Agents the operator took out of the auction: each keeps the task it holds (until it is
+    done or released) and wins nothing else."""
 
     # -- progress reported by the agents (between rounds) ----------------------------------
     def add_task(self, info: TaskInfo, now: float | None = None) -> AuctionState:
@@ -439,14 +445,23 @@ def auction_round(
     def current(tid: str) -> PoolTask:
         return changed.get(tid) or pool[tid]
 
-    # pinned pairs: a committed task stays with its agent whatever the bids
+    # pinned pairs: a committed task stays with its agent whatever the bids; while allocation
+    # is paused every holder is pinned, and an excluded agent keeps only what it holds
     pinned = {
         a: tid
         for a, tid in holders.items()
-        if tid in index and current(tid).state is TaskState.COMMITTED
+        if tid in index
+        and (state.paused or a in state.excluded or current(tid).state is TaskState.COMMITTED)
     }
     costs, covered = _matrix(ann, agents, board, ignored)
     na, nt = costs.shape
+    if state.paused:  # nothing but the pinned pairs below
+        costs[:] = np.nan
+    elif state.excluded:
+        for a in state.excluded:
+            if a in row_of:
+                costs[row_of[a]] = np.nan
+                covered[row_of[a]] = False
     for a, tid in pinned.items():  # a committed agent takes part in nothing else
         i = row_of[a]
         costs[i] = np.nan
@@ -493,6 +508,10 @@ def auction_round(
         """Why announced task ``j`` got no agent, and the state that goes with it."""
         if not agents:
             return "no agents are bidding", TaskState.OPEN
+        if state.paused:
+            return "allocation paused by the operator", TaskState.OPEN
+        if all(a in state.excluded for a in agents):
+            return "every agent is out of the auction (excluded by the operator)", TaskState.OPEN
         if n_fin[j]:
             return f"outbid: its {int(n_fin[j])} bidder(s) won other tasks", TaskState.OPEN
         who = [agents[i] for i in np.nonzero(covered[:, j])[0]]
@@ -546,7 +565,9 @@ def auction_round(
         agents=tuple(agents),
         dropped=tuple(stale),
         assignments={a: t for a, t in assignments.items() if t is not None},
-        committed=tuple(sorted(pinned)),
+        committed=tuple(
+            sorted(a for a, t in pinned.items() if current(t).state is TaskState.COMMITTED)
+        ),
         unassigned=unassigned,
         changes=tuple(changes),
         ignored=tuple(ignored),

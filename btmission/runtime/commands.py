@@ -15,20 +15,30 @@ and the log show operator actions next to what they caused.
 :class:`SetPriority`   a task's priority changes (it is announced again)
 :class:`RecallAgent`   an agent gives up its task, stops bidding and runs its default
                        behaviour now (e.g. return home and land)
+:class:`ExcludeAgent`  an agent leaves the auction: it keeps the task it holds and wins
+                       nothing else (``IncludeAgent`` brings it back, a recalled one too)
+:class:`IncludeAgent`  an excluded or recalled agent takes part in the auction again
+:class:`SetAllocation` allocation pauses (every holder keeps its task, nothing else is
+                       assigned) or resumes
 :class:`KillAgent`     an agent's computer stops: no ticks, bids or setpoints
 :class:`SetLink`       an agent's link to the coordinator is cut or restored
 :class:`Signal`        a supervisor signal its leaves read (``ctx.state[name]``)
 :class:`Stop`          the run ends after the current step
 =====================  =====================================================================
 
-Commands are plain frozen dataclasses (the wire form of a later operator console is their
+Commands are plain frozen dataclasses (the operator console's wire form is their
 :meth:`Command.to_data`); what each one *does* lives with the run that applies it.
+:meth:`MissionRun.submit <btmission.runtime.runner.MissionRun.submit>` returns a
+:class:`~concurrent.futures.Future` of the command's :class:`Outcome`, set when its step
+applied it (or refused it), so a console can answer with the result.
 """
 
 from __future__ import annotations
 
+import math
 import queue
 from collections.abc import Mapping
+from concurrent.futures import Future
 from dataclasses import asdict, dataclass, field
 from typing import Any, ClassVar
 
@@ -81,6 +91,24 @@ class RecallAgent(Command):
 
 
 @dataclass(frozen=True)
+class ExcludeAgent(Command):
+    name: ClassVar[str] = "exclude_agent"
+    agent: str
+
+
+@dataclass(frozen=True)
+class IncludeAgent(Command):
+    name: ClassVar[str] = "include_agent"
+    agent: str
+
+
+@dataclass(frozen=True)
+class SetAllocation(Command):
+    name: ClassVar[str] = "set_allocation"
+    paused: bool
+
+
+@dataclass(frozen=True)
 class KillAgent(Command):
     name: ClassVar[str] = "kill_agent"
     agent: str
@@ -110,7 +138,19 @@ class Stop(Command):
 
 COMMANDS: dict[str, type[Command]] = {
     c.name: c
-    for c in (AddTask, CancelTask, SetPriority, RecallAgent, KillAgent, SetLink, Signal, Stop)
+    for c in (
+        AddTask,
+        CancelTask,
+        SetPriority,
+        RecallAgent,
+        ExcludeAgent,
+        IncludeAgent,
+        SetAllocation,
+        KillAgent,
+        SetLink,
+        Signal,
+        Stop,
+    )
 }
 """Every command by name (what an operator console sends)."""
 
@@ -126,18 +166,58 @@ def command_from_data(name: str, data: Mapping[str, Any], by: str = "api") -> Co
         raise CommandError(f"command '{name}': {exc}") from None
 
 
+PRIORITY_LEVELS: dict[str, float] = {"low": 0.5, "normal": 1.0, "high": 2.0, "urgent": 4.0}
+"""Priority names an operator may use: multiples of the task type's own priority."""
+
+
+def priority_value(value: Any, type_priority: float) -> float:
+    """A priority given as a number (> 0, finite) or a name of :data:`PRIORITY_LEVELS` (a
+    multiple of ``type_priority``). :class:`CommandError` says what was expected."""
+    if isinstance(value, str):
+        level = PRIORITY_LEVELS.get(value.strip().lower())
+        if level is not None:
+            return level * type_priority
+        try:
+            value = float(value)
+        except ValueError:
+            raise CommandError(
+                f"priority '{value}' is not a number or one of {', '.join(PRIORITY_LEVELS)}"
+            ) from None
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise CommandError(
+            f"priority must be a number > 0 or one of {', '.join(PRIORITY_LEVELS)} (got {value!r})"
+        )
+    if not (math.isfinite(value) and value > 0):
+        raise CommandError(f"priority must be a finite number > 0 (got {value!r})")
+    return float(value)
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What became of a submitted command: applied at mission time ``t`` (``ok``), or refused
+    with ``error``; ``data`` is its ``command`` event's fields."""
+
+    t: float
+    ok: bool
+    error: str = ""
+    data: Mapping[str, Any] = field(default_factory=dict)
+
+
 class CommandQueue:
-    """Commands waiting for the next step (thread-safe; first in, first applied)."""
+    """Commands waiting for the next step (thread-safe; first in, first applied), each with
+    the future of its :class:`Outcome`."""
 
     def __init__(self) -> None:
-        self._q: queue.SimpleQueue[Command] = queue.SimpleQueue()
+        self._q: queue.SimpleQueue[tuple[Command, Future[Outcome]]] = queue.SimpleQueue()
 
-    def put(self, command: Command) -> None:
-        self._q.put(command)
+    def put(self, command: Command) -> Future[Outcome]:
+        future: Future[Outcome] = Future()
+        self._q.put((command, future))
+        return future
 
-    def take(self) -> list[Command]:
+    def take(self) -> list[tuple[Command, Future[Outcome]]]:
         """Everything queued so far, in order (empties the queue)."""
-        out: list[Command] = []
+        out: list[tuple[Command, Future[Outcome]]] = []
         while True:
             try:
                 out.append(self._q.get_nowait())

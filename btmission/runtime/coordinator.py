@@ -205,6 +205,24 @@ class Coordinator:
         self.recalled.add(agent)
         self.loop.state = replace(state, pool=pool, board=board)
 
+    def exclude(self, agent: str, out: bool) -> None:
+        """The operator takes ``agent`` out of the auction (``out``: it keeps the task it holds
+        and wins nothing else) or brings it back (a recalled agent too)."""
+        state = self.state
+        excluded = state.excluded | {agent} if out else state.excluded - {agent}
+        if not out:
+            self.recalled.discard(agent)
+        self.loop.state = replace(state, excluded=frozenset(excluded))
+
+    def pause(self, paused: bool) -> None:
+        """Pause allocation (every holder keeps its task, nothing else is assigned; the rounds
+        go on, so bids keep the agents alive) or resume it."""
+        self.loop.state = replace(self.state, paused=paused)
+
+    @property
+    def paused(self) -> bool:
+        return self.state.paused
+
     # ---------------------------------------------------------------- stepping
     def intake(self, now: float) -> None:
         """Queued tasks enter the pool now (each a ``task_added`` event)."""

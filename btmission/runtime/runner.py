@@ -37,6 +37,7 @@ import threading
 import time
 import uuid
 from collections.abc import Callable, Iterable, Mapping
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -61,8 +62,12 @@ from btmission.runtime.commands import (
     Command,
     CommandError,
     CommandQueue,
+    ExcludeAgent,
+    IncludeAgent,
     KillAgent,
+    Outcome,
     RecallAgent,
+    SetAllocation,
     SetLink,
     SetPriority,
     Signal,
@@ -444,15 +449,17 @@ class MissionRun:
         self.events.emit(when, kind, **data)
 
     # ---------------------------------------------------------------- commands
-    def submit(self, command: Command) -> None:
-        """Queue a command for the next step (thread-safe; :mod:`btmission.runtime.commands`).
-        Raises :class:`~btmission.runtime.commands.CommandError` at once for a command that
-        names an unknown agent or task, and :class:`~btmission.runtime.coordinator.TaskError`
-        for a task that cannot be added (it is checked, and its id reserved, right here)."""
+    def submit(self, command: Command) -> Future[Outcome]:
+        """Queue a command for the next step (thread-safe; :mod:`btmission.runtime.commands`);
+        the future of its :class:`~btmission.runtime.commands.Outcome`, set when that step
+        applied or refused it. Raises :class:`~btmission.runtime.commands.CommandError` at once
+        for a command that names an unknown agent or task, and
+        :class:`~btmission.runtime.coordinator.TaskError` for a task that cannot be added (it is
+        checked, and its id reserved, right here)."""
         self._check_command(command)
         if isinstance(command, AddTask):
             self.coordinator.add_task(command.task, self.now(), command.by)
-        self.commands.put(command)
+        return self.commands.put(command)
 
     def _refuse_after_end(self, name: str) -> None:
         if self._ended is not None:
@@ -543,16 +550,19 @@ class MissionRun:
 
     def _apply_commands(self) -> None:
         """Apply every queued command, in order, each logged as a ``command`` event."""
-        for command in self.commands.take():
+        for command, future in self.commands.take():
             error = ""
             try:
                 self._apply(command)
             except (CommandError, TaskError) as exc:
                 error = str(exc)
-            self._log_command(command, error)
+            self._log_command(command, error, future)
 
-    def _log_command(self, command: Command, error: str) -> None:
-        """The ``command`` event: who, what, its arguments, and whether it was refused."""
+    def _log_command(
+        self, command: Command, error: str, future: Future[Outcome] | None = None
+    ) -> None:
+        """The ``command`` event: who, what, its arguments, and whether it was refused (also
+        the outcome of ``future``)."""
         data: dict[str, Any] = {"command": command.name, "by": command.by}
         data.update(command.to_data())
         if isinstance(command, AddTask):
@@ -561,6 +571,8 @@ class MissionRun:
         if error:
             data["error"] = error
         self.emit("command", **data)
+        if future is not None and not future.done():
+            future.set_result(Outcome(self._last_t, not error, error, data))
 
     def _apply(self, command: Command) -> None:
         now = self.now()
@@ -579,6 +591,16 @@ class MissionRun:
                 raise CommandError(f"recall_agent: agent {command.agent} is not running")
             coord.recall(command.agent, now)
             a.recall(now)
+        elif isinstance(command, ExcludeAgent):
+            coord.exclude(command.agent, True)
+        elif isinstance(command, IncludeAgent):
+            a = self.agents[command.agent]
+            if not a.alive:
+                raise CommandError(f"include_agent: agent {command.agent} is not running")
+            coord.exclude(command.agent, False)
+            a.recalled = False
+        elif isinstance(command, SetAllocation):
+            coord.pause(bool(command.paused))
         elif isinstance(command, KillAgent):
             a = self.agents[command.agent]
             if a.alive:
@@ -669,10 +691,18 @@ class MissionRun:
                     a.action,
                     tree,
                     self._tree_nodes(a),
+                    a.recalled,
                 )
             )
+        state = self.coordinator.state
         return RunSnapshot(
-            self.now(), self.steps, tuple(agents), self.coordinator.state.pool, ended
+            self.now(),
+            self.steps,
+            tuple(agents),
+            state.pool,
+            ended,
+            state.paused,
+            state.excluded,
         )
 
     def finished(self) -> str | None:
@@ -734,7 +764,11 @@ class MissionRun:
                         clock0 += self.clock.now() - due
                         self._late_steps += 1
                         late, steps = self._late_steps, self.steps - steps0
-                        if not self._late_warned and steps >= LATE_STEPS_WARNING and late > 0.05 * steps:
+                        if (
+                            not self._late_warned
+                            and steps >= LATE_STEPS_WARNING
+                            and late > 0.05 * steps
+                        ):
                             self._late_warned = True
                             self.emit(
                                 "warning",
@@ -746,7 +780,9 @@ class MissionRun:
                     else:
                         self.clock.sleep_until(due)
                 elif self.realtime:  # the simulator, paced: one step per dt / speed of wall time
-                    ahead = wall0 + (self.steps - steps0) * self.dt / self.speed - time.perf_counter()
+                    ahead = (
+                        wall0 + (self.steps - steps0) * self.dt / self.speed - time.perf_counter()
+                    )
                     if ahead > 0:
                         time.sleep(ahead)  # (at most about one step: a stop waits that long)
         finally:
@@ -817,9 +853,11 @@ class MissionRun:
         if self._ended is not None:
             return
         self._ended = result
-        for command in self.commands.take():  # the run ended before their step came
+        for command, future in self.commands.take():  # the run ended before their step came
             self._log_command(
-                command, "" if isinstance(command, Stop) else "not applied: the run had ended"
+                command,
+                "" if isinstance(command, Stop) else "not applied: the run had ended",
+                future,
             )
         self.snapshot = self._snapshot(result.reason)
         for a in self.agents.values():

@@ -56,6 +56,8 @@ class AgentSnapshot:
     tree_nodes: tuple[tuple[str, int, str], ...] = ()
     """``(name, parent uid, kind)`` by uid (the root's parent is -1): what names the statuses of
     :attr:`tree`, for a reader that did not see the agent's first ``tree`` event."""
+    recalled: bool = False
+    """The operator recalled it (it bids no more; its default behaviour runs)."""
 
 
 @dataclass(frozen=True)
@@ -68,6 +70,10 @@ class RunSnapshot:
     pool: TaskPool = field(repr=False, compare=False)
     ended: str | None = None
     """Why the run ended (None while it runs)."""
+    paused: bool = False
+    """Allocation paused by the operator."""
+    excluded: frozenset[str] = frozenset()
+    """Agents the operator took out of the auction."""
 
     @cached_property
     def tasks(self) -> tuple[TaskSnapshot, ...]:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import difflib
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -363,16 +363,22 @@ class MavlinkSpec(_Strict):
     environment (``BTMISSION_MAVLINK_KEY_FILE``, ``BTMISSION_MAVLINK_KEY``)."""
 
     connect_timeout_s: FiniteFloat = Field(
-        120.0, gt=0, le=600,
+        120.0,
+        gt=0,
+        le=600,
         description="Wall time to wait for each vehicle's first heartbeat and position estimate "
         "(ArduPilot SITL's EKF takes about 40 s with simulated GPS).",
     )
     setpoint_hz: FiniteFloat = Field(
-        20.0, gt=2, le=200,
+        20.0,
+        gt=2,
+        le=200,
         description="Setpoints streamed per second to each vehicle (PX4 needs > 2 Hz).",
     )
     telemetry_hz: FiniteFloat = Field(
-        50.0, gt=0, le=200,
+        50.0,
+        gt=0,
+        le=200,
         description="Position and attitude messages asked of each vehicle per second.",
     )
     heartbeat_timeout_s: FiniteFloat = Field(
@@ -382,12 +388,16 @@ class MavlinkSpec(_Strict):
         1.0, gt=0, le=30, description="Wall time to wait for a COMMAND_ACK before sending again."
     )
     hover_thrust: FiniteFloat = Field(
-        0.5, gt=0, le=1,
+        0.5,
+        gt=0,
+        le=1,
         description="Normalised hover throttle of attitude setpoints (PX4 MPC_THR_HOVER, "
         "ArduPilot MOT_THST_HOVER).",
     )
     time_scale: FiniteFloat = Field(
-        1.0, gt=0, le=50,
+        1.0,
+        gt=0,
+        le=50,
         description="How much faster than real time the vehicles run (mavsim --speed, ArduPilot "
         "SITL --speedup, PX4_SIM_SPEED_FACTOR); 1 for real vehicles.",
     )
@@ -540,11 +550,13 @@ def _check_field_value(v: Any) -> str | None:
     return expected
 
 
-def compile_mission(spec: MissionSpec, src: Source) -> Mission:
-    """Check everything that needs more than the schema. Raises :class:`SpecError` with all errors."""
-    from btmission.synthesis.mission_tree import check_agent_trees
+AddProblem = Callable[..., None]
+"""``add(path, message, code, severity=ERROR, key=False)``: how a check reports a problem."""
 
-    diags: list[Diagnostic] = []
+
+def _adder(src: Source, diags: list[Diagnostic], *, errors_only: bool = False) -> AddProblem:
+    """The ``add`` of the checks: each problem a Diagnostic located in ``src``, into ``diags``
+    (``errors_only``: warnings are dropped)."""
 
     def add(
         path: Sequence[str | int],
@@ -553,8 +565,132 @@ def compile_mission(spec: MissionSpec, src: Source) -> Mission:
         sev: Severity = Severity.ERROR,
         key: bool = False,
     ) -> None:
-        diags.append(Diagnostic(sev, code, message, format_path(path), src.locate(path, key=key)))
+        if sev is Severity.ERROR or not errors_only:
+            diags.append(
+                Diagnostic(sev, code, message, format_path(path), src.locate(path, key=key))
+            )
 
+    return add
+
+
+def _check_task(
+    t: TaskSpec,
+    tpath: tuple[str | int, ...],
+    spec: MissionSpec,
+    task_types: Mapping[str, TaskType],
+    src: Source,
+    add: AddProblem,
+    heavy: set[tuple[str | int, ...]],
+) -> tuple[float, dict[str, Any]] | None:
+    """One task's checks beyond the schema (its field values, its type, the fields the type
+    needs and no others, when it arrives, its priority's weight); its priority and fields, or
+    None when its type is unknown. Shared by mission files and tasks added while a mission runs
+    (:func:`check_added_task`), so both get the same messages."""
+    task_fields: dict[str, Any] = dict(t.model_extra or {})
+    for k, v in task_fields.items():
+        problem = _check_field_value(v)
+        if problem:
+            add((*tpath, k), f"task field '{k}': {problem} (got {v!r})", "schema")
+    if t.type not in spec.task_types:
+        close = difflib.get_close_matches(t.type, list(spec.task_types), n=1)
+        hint = f" (did you mean '{close[0]}'?)" if close else ""
+        add(
+            (*tpath, "type"),
+            f"unknown task type '{t.type}'{hint}; declared: {', '.join(spec.task_types) or 'none'}",
+            "unknown-task-type",
+        )
+        return None
+    tt2 = task_types.get(t.type)
+    if tt2 is None:
+        return None
+    for need in tt2.fields:
+        if need not in task_fields:
+            add(
+                tpath,
+                f"task '{t.id}' of type '{t.type}' lacks field '{need}' (the type uses: {', '.join(tt2.fields)})",
+                "missing-field",
+            )
+    for k in task_fields:
+        if k not in tt2.fields:
+            add(
+                (*tpath, k),
+                f"unknown key '{k}' for a task of type '{t.type}' (expected: id, type, "
+                f"at, priority, {', '.join(tt2.fields)})",
+                "schema",
+                key=True,
+            )
+    limit = spec.runtime.max_duration_s
+    if t.at >= limit:
+        add((*tpath, "at"), f"task '{t.id}' is added at {t.at:g} s, when a run has already "
+            f"stopped (runtime.max_duration_s is {limit:g} s)", "never-added", Severity.WARNING)  # fmt: skip
+    prio = t.priority if t.priority is not None else tt2.priority
+    weight = prio * spec.coordination.priority_scale
+    ppath: tuple[str | int, ...] = (*tpath, "priority")
+    if t.priority is None:  # the type's priority, else the default 1: blame the scale
+        ppath = ("task_types", t.type, "priority")
+        if ppath not in src.key_positions:
+            ppath = ("coordination", "priority_scale")
+    if weight > MAX_PRIORITY_WEIGHT and ppath not in heavy:
+        heavy.add(ppath)
+        add(ppath, f"task '{t.id}': priority {prio:g} × coordination.priority_scale "
+            f"{spec.coordination.priority_scale:g} is {weight:g}; the auction takes at most "
+            f"{MAX_PRIORITY_WEIGHT:g}", "schema")  # fmt: skip
+    return prio, task_fields
+
+
+def _place_problem(
+    name: str, v: str, tt: TaskType, topomap: str | None, places: frozenset[str] | None
+) -> tuple[str, str] | None:
+    """(message, code) when the cost argument ``name`` is the place name ``v`` and that is not
+    a place: no topological map, or no node of that name."""
+    if places is None:
+        return (f"task field '{name}' is used as a position by the cost '{tt.cost.text}': "
+                f"expected [x, y, z] (a place name like {v!r} needs a world.topomap)", "schema")  # fmt: skip
+    if v not in places:
+        close = difflib.get_close_matches(v, sorted(places), n=1)
+        hint = f" (did you mean '{close[0]}'?)" if close else ""
+        return (f"task field '{name}': '{v}' is not a node of the topological map "
+                f"'{topomap}'{hint}", "unknown-place")  # fmt: skip
+    return None
+
+
+def check_added_task(mission: Mission, src: Source, places: frozenset[str] | None = None) -> Task:
+    """A task added while ``mission`` runs (by the operator console), given as the mapping
+    ``src.data`` (``{id, type, [at], [priority], <the type's fields>}``), checked as a task of
+    the mission file is: the same model, the same checks, the same messages; each problem's
+    item names the field. ``places``: the topological map's nodes, if the mission has one.
+    Raises :class:`SpecError` with every error."""
+    if not isinstance(src.data, dict):
+        raise SpecError([src.diag((), "a task must be a JSON object such as {\"type\": "
+                                  "\"inspect\", \"location\": [x, y, z]}", "schema")])  # fmt: skip
+    t: TaskSpec = validate_model(TaskSpec, src, "task")
+    diags: list[Diagnostic] = []
+    add = _adder(src, diags, errors_only=True)
+    checked = _check_task(t, (), mission.spec, mission.task_types, src, add, set())
+    if checked is not None and not diags:
+        fields = checked[1]
+        tt = mission.task_types[t.type]
+        problem = tt.cost.probe(fields)
+        if problem:
+            add((), f"{problem} (the cost of task type '{t.type}': {tt.cost.text})",
+                "cost-expression")  # fmt: skip
+        for name, v in fields.items():
+            if name in tt.cost.symbols and isinstance(v, str):
+                found = _place_problem(name, v, tt, mission.spec.world.topomap, places)
+                if found:
+                    add((name,), *found)
+    if diags:
+        raise SpecError(diags)
+    assert checked is not None
+    return Task(t.id, t.type, t.at, checked[0], checked[1], src.locate(()))
+
+
+def compile_mission(spec: MissionSpec, src: Source) -> Mission:
+    """Check everything that needs more than the schema. Raises :class:`SpecError` with all errors."""
+    from btmission.synthesis.mission_tree import check_agent_trees
+
+    diags: list[Diagnostic] = []
+    add = _adder(src, diags)
     base = Path(src.file).parent
     # agents: unique ids, libraries resolvable and sound
     agents: list[Agent] = []
@@ -677,55 +813,10 @@ def compile_mission(spec: MissionSpec, src: Source) -> Mission:
                 "duplicate-id",
             )
         tseen.setdefault(t.id, i)
-        task_fields: dict[str, Any] = dict(t.model_extra or {})
-        for k, v in task_fields.items():
-            problem = _check_field_value(v)
-            if problem:
-                add((*tpath, k), f"task field '{k}': {problem} (got {v!r})", "schema")
-        if t.type not in spec.task_types:
-            close = difflib.get_close_matches(t.type, list(spec.task_types), n=1)
-            hint = f" (did you mean '{close[0]}'?)" if close else ""
-            add(
-                (*tpath, "type"),
-                f"unknown task type '{t.type}'{hint}; declared: {', '.join(spec.task_types) or 'none'}",
-                "unknown-task-type",
-            )
+        checked = _check_task(t, tpath, spec, task_types, src, add, heavy)
+        if checked is None:
             continue
-        tt2 = task_types.get(t.type)
-        if tt2 is None:
-            continue
-        for need in tt2.fields:
-            if need not in task_fields:
-                add(
-                    tpath,
-                    f"task '{t.id}' of type '{t.type}' lacks field '{need}' (the type uses: {', '.join(tt2.fields)})",
-                    "missing-field",
-                )
-        for k in task_fields:
-            if k not in tt2.fields:
-                add(
-                    (*tpath, k),
-                    f"unknown key '{k}' for a task of type '{t.type}' (expected: id, type, "
-                    f"at, priority, {', '.join(tt2.fields)})",
-                    "schema",
-                    key=True,
-                )
-        limit = spec.runtime.max_duration_s
-        if t.at >= limit:
-            add((*tpath, "at"), f"task '{t.id}' is added at {t.at:g} s, when a run has already "
-                f"stopped (runtime.max_duration_s is {limit:g} s)", "never-added", Severity.WARNING)  # fmt: skip
-        prio = t.priority if t.priority is not None else tt2.priority
-        weight = prio * spec.coordination.priority_scale
-        ppath: tuple[str | int, ...] = (*tpath, "priority")
-        if t.priority is None:  # the type's priority, else the default 1: blame the scale
-            ppath = ("task_types", t.type, "priority")
-            if ppath not in src.key_positions:
-                ppath = ("coordination", "priority_scale")
-        if weight > MAX_PRIORITY_WEIGHT and ppath not in heavy:
-            heavy.add(ppath)
-            add(ppath, f"task '{t.id}': priority {prio:g} × coordination.priority_scale "
-                f"{spec.coordination.priority_scale:g} is {weight:g}; the auction takes at most "
-                f"{MAX_PRIORITY_WEIGHT:g}", "schema")  # fmt: skip
+        prio, task_fields = checked
         tasks.append(Task(t.id, t.type, t.at, prio, task_fields, src.locate(tpath)))
 
     # cost expressions evaluate on the tasks' own values: no division by zero, no overflow,
@@ -769,16 +860,9 @@ def compile_mission(spec: MissionSpec, src: Source) -> Mission:
                 or (places is None and spec.world.topomap is not None)
             ):
                 continue  # (a topological map with errors is reported above)
-            fpath = ("tasks", i, name)
-            if places is None:
-                add(fpath, f"task field '{name}' is used as a position by the cost "
-                    f"'{tt3.cost.text}': expected [x, y, z] (a place name like {v!r} needs a "
-                    "world.topomap)", "schema")  # fmt: skip
-            elif v not in places:
-                close = difflib.get_close_matches(v, sorted(places), n=1)
-                hint = f" (did you mean '{close[0]}'?)" if close else ""
-                add(fpath, f"task field '{name}': '{v}' is not a node of the topological map "
-                    f"'{spec.world.topomap}'{hint}", "unknown-place")  # fmt: skip
+            wrong = _place_problem(name, v, tt3, spec.world.topomap, places)
+            if wrong:
+                add(("tasks", i, name), *wrong)
 
     mission = Mission(
         spec.mission, spec, src.file, agents, tasks, task_types, default, libraries, source=src

@@ -6,6 +6,8 @@ What ``btmission run --view`` does, as a class the tests and the benchmark use t
     with RunSession(mission, observers=[viewer.observer]) as session:
         run = session.start()
         url = viewer.attach(session, run)        # serves the page from here on
+                                                 # (console=True: commands too, with the
+                                                 # token in viewer.server.console_url)
         session.run()
     viewer.close()
 
@@ -19,6 +21,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from btmission.console.api import new_token
+from btmission.console.service import Console
 from btmission.runtime.events import Event, Observer
 from btmission.runtime.observers import QueuedObserver
 from btmission.viz.feed import LiveFeed, draws
@@ -52,6 +56,9 @@ class LiveViewer:
         port_tries: int = 1,
         pose_hz: float = 10.0,
         queue_size: int = 10_000,
+        console: bool = False,
+        token: str | None = None,
+        tls: tuple[str, str] | None = None,
     ) -> None:
         self.run: Any = None
         self.feed = LiveFeed(
@@ -60,7 +67,16 @@ class LiveViewer:
         self.queue = QueuedObserver(self.feed, maxsize=queue_size, name="viewer", batch_s=BATCH_S)
         self.observer = ViewerKinds(self.queue)
         """Give this to the run (``RunSession(observers=[...])``)."""
-        self.server = ViewerServer(None, host, port, port_tries=port_tries)
+        self.console = console
+        """Serve the operator console too (commands need ``token``; a new one if None)."""
+        self.server = ViewerServer(
+            None,
+            host,
+            port,
+            port_tries=port_tries,
+            token=(token or new_token()) if console else None,
+            tls=tls,
+        )
         self.server.bind()
         self.serving = False
 
@@ -84,6 +100,8 @@ class LiveViewer:
             run.map,
             scene_options={"risk": RiskParams(rt.risk_radius_m, rt.unknown_cost)},
         )
+        if self.console:
+            self.server.console = Console(session, run)
         self.run = run
         url = self.server.start()
         self.serving = True

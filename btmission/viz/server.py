@@ -5,7 +5,8 @@ A FastAPI app (:func:`create_app`) over a :class:`ViewerSource` — a live run's
 uvicorn on a thread of its own (:class:`ViewerServer`), so the process that runs the mission
 keeps its main thread (signals, the run loop).
 
-Routes (all read-only; nothing here can move a robot):
+Routes of the viewer (read-only; the operator console's routes, which can change the run and
+need its token, are in :mod:`btmission.console.api`):
 
 ==========================  ====================================================================
 ``GET /``                   the page (``static/index.html``)
@@ -52,6 +53,8 @@ from fastapi.responses import (
     StreamingResponse,
 )
 
+from btmission.console.api import Security
+from btmission.console.service import Console
 from btmission.viz.feed import LiveFeed
 from btmission.viz.scene import Scene, build_scene
 from btmission.world.voxel import VoxelMap
@@ -214,10 +217,35 @@ def page_html(config_json: str, title: str, inline: Mapping[str, str] | None = N
     return pattern.sub(lambda m: parts.get(_SLOTS[m.group(0)], m.group(0)), template)
 
 
-def create_app(source: ViewerSource, closing: threading.Event | None = None) -> FastAPI:
-    """The FastAPI app of ``source`` (module docstring). ``closing`` set: streams end."""
+REPLAY_READ_ONLY = "a replay of a finished run: there is nothing to command"
+LIVE_READ_ONLY = "read-only: the run was started with --view; start it with --console to command it"
+
+
+def create_app(
+    source: ViewerSource,
+    closing: threading.Event | None = None,
+    *,
+    console: Console | None = None,
+    security: Security | None = None,
+) -> FastAPI:
+    """The FastAPI app of ``source`` (module docstring) with the operator console's routes
+    (:mod:`btmission.console.api`; commands need ``console``) behind its guard (``security``:
+    the bound host and the run's token). ``closing`` set: streams end."""
+    from btmission.console.api import Guard, add_console_routes
+
     stop = closing if closing is not None else threading.Event()
-    app = FastAPI(title="btmission viewer", docs_url=None, redoc_url=None)
+    sec = security if security is not None else Security()
+    app = FastAPI(
+        title="btmission viewer and operator console",
+        version=_version(),
+        docs_url=None,
+        redoc_url=None,
+        description="The live viewer's data and the operator console of a running mission "
+        "(docs/operator.md). Commands need the run's token: Authorization: Bearer <token>.",
+    )
+    app.add_middleware(Guard, security=sec)
+    read_only = REPLAY_READ_ONLY if source.info.get("mode") == "replay" else LIVE_READ_ONLY
+    add_console_routes(app, console, read_only)
     files = {
         "viewer.js": (static_dir() / "viewer.js", "text/javascript"),
         "viewer.css": (static_dir() / "viewer.css", "text/css"),
@@ -242,7 +270,12 @@ def create_app(source: ViewerSource, closing: threading.Event | None = None) -> 
 
     @app.get("/api/info")
     def info() -> dict[str, Any]:
-        return source.full_info()
+        out = source.full_info()
+        if console is not None and sec.token is not None:
+            out["console"] = {**console.info(), "token_required": not sec.loopback}
+        else:
+            out["console"] = {"enabled": False, "reason": read_only}
+        return out
 
     @app.get("/api/scene")
     def scene() -> Response:
@@ -297,6 +330,12 @@ async def _stream(
         await asyncio.sleep(PUSH_S)
 
 
+def _version() -> str:
+    from btmission import __version__
+
+    return str(__version__)
+
+
 def bind_socket(host: str, port: int, *, tries: int = 1) -> socket.socket:
     """A listening TCP socket on ``host``:``port`` (0: any free port), trying the next
     ``tries - 1`` ports when one is in use. :class:`ViewerError` when none can be bound."""
@@ -339,11 +378,19 @@ class ViewerServer:
         port: int = DEFAULT_PORT,
         *,
         port_tries: int = 1,
+        console: Console | None = None,
+        token: str | None = None,
+        tls: tuple[str, str] | None = None,
     ) -> None:
         self.source = source
         self.host = host
         self.port = port
         self.port_tries = port_tries
+        self.console = console
+        """Commands from the page and the API go here (None: read-only)."""
+        self.security = Security(host, token)
+        self.tls = tls
+        """(certificate file, key file): serve HTTPS (uvicorn's ssl_certfile, ssl_keyfile)."""
         self._closing = threading.Event()
         self._server: Any = None
         self._thread: threading.Thread | None = None
@@ -355,7 +402,13 @@ class ViewerServer:
     def url(self) -> str:
         host, port = self.address[:2]
         shown = f"[{host}]" if ":" in host else host
-        return f"http://{shown}:{port}/"
+        return f"{'https' if self.tls else 'http'}://{shown}:{port}/"
+
+    @property
+    def console_url(self) -> str:
+        """The page's URL with the run's token (what the terminal shows, as Jupyter does)."""
+        token = self.security.token
+        return f"{self.url}?token={token}" if token else self.url
 
     def bind(self) -> tuple[str, int]:
         """Take the port now (:class:`ViewerError` if it cannot be had), serve later."""
@@ -372,9 +425,14 @@ class ViewerServer:
         self.bind()
         if self.source is None:
             raise ViewerError("nothing to serve yet (no source)")
-        app = create_app(self.source, self._closing)
+        app = create_app(self.source, self._closing, console=self.console, security=self.security)
         config = uvicorn.Config(
-            app, log_level="warning", lifespan="off", timeout_graceful_shutdown=2
+            app,
+            log_level="warning",
+            lifespan="off",
+            timeout_graceful_shutdown=2,
+            ssl_certfile=self.tls[0] if self.tls else None,
+            ssl_keyfile=self.tls[1] if self.tls else None,
         )
         self._server = uvicorn.Server(config)
         sock = self._sock

@@ -33,7 +33,7 @@ def _fmt(p: Sequence[float] | np.ndarray) -> str:
     return "[" + ", ".join(f"{v:g}" for v in p) + "]"
 
 
-def _where_problem(vm: VoxelMap, p: tuple[float, float, float]) -> tuple[str, str] | None:
+def point_problem(vm: VoxelMap, p: tuple[float, float, float]) -> tuple[str, str] | None:
     """(code, message) when ``p`` cannot be used: outside the map or inside rock."""
     state = vm.state_at(p)
     if state is None:
@@ -64,7 +64,7 @@ def check_mission_map(mission: Any, voxel_map: VoxelMap) -> list[Diagnostic]:
     starts: list[tuple[float, float, float]] = []
     for i, a in enumerate(mission.agents):
         item = f"agents[{i}].start"
-        problem = _where_problem(voxel_map, a.start)
+        problem = point_problem(voxel_map, a.start)
         if problem:
             add(Severity.ERROR, problem[0], item, f"agent {a.id} starts at {problem[1]}", a.where)
             continue
@@ -87,7 +87,7 @@ def check_mission_map(mission: Any, voxel_map: VoxelMap) -> list[Diagnostic]:
             if p is None:
                 continue
             item = f"tasks[{i}].{name}"
-            problem = _where_problem(voxel_map, p)
+            problem = point_problem(voxel_map, p)
             if problem:
                 add(Severity.ERROR, problem[0], item, f"task {t.id}: {name} {problem[1]}", t.where)
                 continue

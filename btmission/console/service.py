@@ -1,0 +1,396 @@
+"""The operator console's logic, without HTTP: a running mission's commands and status.
+
+:class:`Console` sits between a request (from the viewer page, ``btmission task ...`` or a
+script) and the run. Each method checks what it is given, submits one
+:class:`~btmission.runtime.commands.Command` to the run (thread-safe) and waits, a bounded time,
+for the step that applies it, so the answer carries the result: ``T8 added at 116.1 s``, or why
+it was refused. A refusal is a :class:`ConsoleError` with the HTTP status it maps to and, for a
+bad field, the field's name.
+
+A task added here is checked exactly as a task of a mission file is
+(:func:`btmission.spec.mission.check_added_task`: the same model and messages), and its
+positions against the map as ``btmission validate`` checks them
+(:func:`btmission.world.checks.point_problem`: outside the map, inside rock), before it reaches
+the run; a task no agent can reach is left ``unreachable`` by the auction, with the reason, as
+any task is.
+
+A flood of requests cannot stall the run: at most :data:`MAX_PENDING` commands wait for their
+step at once, and a token bucket (:class:`RateLimit`) admits :data:`COMMAND_RATE_HZ` commands a
+second on average; beyond either the request is refused with 429.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import threading
+import time
+from collections import Counter
+from collections.abc import Mapping
+from concurrent.futures import TimeoutError as FutureTimeout
+from dataclasses import dataclass
+from typing import Any
+
+from btmission.runtime.commands import (
+    PRIORITY_LEVELS,
+    AddTask,
+    CancelTask,
+    Command,
+    CommandError,
+    ExcludeAgent,
+    IncludeAgent,
+    RecallAgent,
+    SetAllocation,
+    SetLink,
+    SetPriority,
+    Stop,
+    priority_value,
+)
+
+WAIT_S = 5.0
+"""How long (wall time) a request waits for the step that applies its command; past it the
+answer is 202 (queued: the result will be in the log and on the page)."""
+MAX_PENDING = 32
+"""Commands waiting for their step at once; more is 429."""
+COMMAND_RATE_HZ = 20.0
+"""Commands admitted per second on average ..."""
+COMMAND_BURST = 40
+"""... and at most this many in a burst."""
+LINK_DRILL_SCHEMES = ("sim", "fake")
+"""Vehicle providers whose agents' links may be cut for drills (in the simulator only)."""
+
+
+class ConsoleError(Exception):
+    """A request the console refuses: ``status`` (HTTP), ``message`` (one sentence naming the
+    field), ``field`` (the body's field at fault, if one is)."""
+
+    def __init__(self, status: int, message: str, field: str | None = None) -> None:
+        super().__init__(message)
+        self.status = status
+        self.message = message
+        self.field = field
+
+
+class RateLimit:
+    """A token bucket: ``rate`` admissions a second on average, ``burst`` at once
+    (thread-safe). :meth:`take` returns 0 when admitted, else the seconds to wait."""
+
+    def __init__(self, rate: float, burst: int, clock: Any = time.monotonic) -> None:
+        self.rate = rate
+        self.burst = float(burst)
+        self.clock = clock
+        self._tokens = float(burst)
+        self._t = clock()
+        self._lock = threading.Lock()
+
+    def take(self) -> float:
+        with self._lock:
+            now = self.clock()
+            self._tokens = min(self.burst, self._tokens + (now - self._t) * self.rate)
+            self._t = now
+            if self._tokens >= 1.0:
+                self._tokens -= 1.0
+                return 0.0
+            return (1.0 - self._tokens) / self.rate
+
+
+@dataclass(frozen=True)
+class Result:
+    """A command's answer: ``ok`` (applied at mission time ``t``) and a sentence; ``status``
+    202 when its step had not come within :data:`WAIT_S`."""
+
+    command: str
+    ok: bool
+    t: float
+    message: str
+    status: int = 200
+    task: str | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "ok": self.ok,
+            "command": self.command,
+            "t": round(self.t, 3),
+            "message": self.message,
+        }
+        if self.task is not None:
+            out["task"] = self.task
+        return out
+
+
+_ID = re.compile(r"^(.*?)(\d+)$")
+_MISSING = re.compile(r"lacks field '([^']+)'")
+
+
+class Console:
+    """A running mission's operator console (module docstring). ``session`` is the
+    :class:`~btmission.runtime.session.RunSession` (its mission), ``run`` its
+    :class:`~btmission.runtime.runner.MissionRun`."""
+
+    def __init__(
+        self,
+        session: Any,
+        run: Any,
+        *,
+        wait_s: float = WAIT_S,
+        max_pending: int = MAX_PENDING,
+        rate: RateLimit | None = None,
+    ) -> None:
+        self.mission = session.mission
+        self.run = run
+        self.wait_s = wait_s
+        self.max_pending = max_pending
+        self.rate = rate if rate is not None else RateLimit(COMMAND_RATE_HZ, COMMAND_BURST)
+        self._pending = 0
+        self._lock = threading.Lock()
+        self._id_lock = threading.Lock()
+        self.drill_agents = frozenset(
+            a.id for a in self.mission.agents if a.backend.split(":", 1)[0] in LINK_DRILL_SCHEMES
+        )
+
+    # ------------------------------------------------------------------ what the page needs
+    def info(self) -> dict[str, Any]:
+        """The task types (their fields, which are positions, their priority), the places,
+        the priority names and the next free task id: what the page's form is built from."""
+        types = {}
+        for name, tt in self.mission.task_types.items():
+            positions = [f for f in tt.fields if f in tt.cost.symbols or f in _goal_args(tt)]
+            types[name] = {
+                "fields": list(tt.fields),
+                "positions": positions,
+                "priority": tt.priority,
+                "multi_stage": tt.commit_after is not None,
+            }
+        return {
+            "enabled": True,
+            "reason": None,
+            "task_types": types,
+            "places": sorted(self.run.places),
+            "priorities": dict(PRIORITY_LEVELS),
+            "next_task_id": self.next_task_id(),
+            "link_drills": bool(self.drill_agents),
+            "drill_agents": sorted(self.drill_agents),
+        }
+
+    def next_task_id(self) -> str:
+        """The next free id in the mission's own pattern (T1..T7 → T8), else ``T<n>``."""
+        ids = [t.id for t in self.run.coordinator.state.pool]
+        prefixes: Counter[str] = Counter()
+        top: dict[str, int] = {}
+        for tid in ids:
+            m = _ID.match(tid)
+            if m:
+                prefixes[m.group(1)] += 1
+                top[m.group(1)] = max(top.get(m.group(1), 0), int(m.group(2)))
+        prefix = prefixes.most_common(1)[0][0] if prefixes else "T"
+        n = top.get(prefix, 0) + 1
+        while self.run.coordinator.knows(f"{prefix}{n}"):
+            n += 1
+        return f"{prefix}{n}"
+
+    def status(self) -> dict[str, Any]:
+        """Agents and tasks as the run's last step left them (its immutable snapshot)."""
+        snap = self.run.snapshot
+        if snap is None:
+            raise ConsoleError(409, "the run is not built yet")
+        infos = {t.id: t.info for t in snap.pool}
+        return {
+            "t": round(snap.time_s, 3),
+            "steps": snap.steps,
+            "running": snap.ended is None,
+            "ended": snap.ended,
+            "allocation": {"paused": snap.paused},
+            "agents": [
+                {
+                    "id": a.id,
+                    "alive": a.alive,
+                    "link_up": a.link_up,
+                    "recalled": a.recalled,
+                    "excluded": a.id in snap.excluded,
+                    "task": a.task,
+                    "action": a.action,
+                    "mode": a.mode,
+                    "armed": a.armed,
+                    "p": [round(v, 2) for v in a.position],
+                    "yaw": round(a.yaw, 3),
+                }
+                for a in snap.agents
+            ],
+            "tasks": [
+                {
+                    "id": t.id,
+                    "type": t.type,
+                    "state": t.state,
+                    "agent": t.agent,
+                    "priority": t.priority,
+                    "added_s": round(t.arrival_s, 3),
+                    "note": t.note,
+                    "fields": _plain(infos[t.id].fields),
+                }
+                for t in snap.tasks
+            ],
+        }
+
+    # ------------------------------------------------------------------ commands
+    def add_task(self, body: Any, by: str) -> Result:
+        """Add the task ``body`` (``{id?, type, priority?, at?, <fields>}``; the id defaults to
+        :meth:`next_task_id`, the priority may be a name of PRIORITY_LEVELS)."""
+        from btmission.diagnostics import SpecError
+        from btmission.spec.mission import check_added_task
+        from btmission.spec.source import parse_yaml
+
+        if not isinstance(body, dict):
+            raise ConsoleError(
+                422, 'a task is a JSON object such as {"type": "inspect", "location": [x, y, z]}'
+            )
+        data = dict(body)
+        with self._id_lock:  # two adds without an id: two different ids
+            if data.get("id") in (None, ""):
+                data["id"] = self.next_task_id()
+            tt = self.mission.task_types.get(data.get("type"))
+            if tt is not None and data.get("priority") is not None:
+                try:
+                    data["priority"] = priority_value(data["priority"], tt.priority)
+                except CommandError as exc:
+                    raise ConsoleError(422, f"priority: {exc}", "priority") from None
+            # the mission file's model and checks, on the task as JSON (JSON is YAML)
+            src = parse_yaml(json.dumps(data), "<request>")
+            try:
+                task = check_added_task(self.mission, src, frozenset(self.run.places) or None)
+            except SpecError as exc:
+                first = exc.diagnostics[0]
+                missing = _MISSING.search(first.message) if first.code == "missing-field" else None
+                field = first.item or (missing.group(1) if missing else None)
+                where = (
+                    f"{field}: " if field and not first.message.startswith(("task ", field)) else ""
+                )
+                raise ConsoleError(422, where + first.message, field) from None
+            for name, value in task.fields.items():
+                problem = self._where_problem(value)
+                if problem:
+                    raise ConsoleError(422, f"{name}: {problem}", name)
+            limit = _max_tasks()
+            if len(self.run.coordinator.state.pool) >= limit:
+                raise ConsoleError(
+                    409, f"the mission has {limit} tasks already (BTMISSION_MAX_TASKS)"
+                )
+            payload: dict[str, Any] = {
+                "id": task.id, "type": task.type, **task.fields, "priority": task.priority,
+            }  # fmt: skip
+            if "at" in data:
+                payload["at"] = task.at
+            try:
+                return self._submit(AddTask(payload, by=by), f"{task.id} added", task=task.id)
+            except ConsoleError as exc:
+                if "duplicate" in exc.message:
+                    raise ConsoleError(422, f"id: {exc.message}", "id") from None
+                raise
+
+    def cancel_task(self, task: str, by: str, reason: str = "") -> Result:
+        cmd = CancelTask(task, reason or f"cancelled by the operator ({by})", by=by)
+        return self._submit(cmd, f"{task} cancelled", task=task)
+
+    def set_priority(self, task: str, value: Any, by: str) -> Result:
+        info = self._task_info(task)
+        tt = self.mission.task_types.get(info.type) if info is not None else None
+        try:
+            prio = priority_value(value, tt.priority if tt is not None else 1.0)
+        except CommandError as exc:
+            raise ConsoleError(422, f"priority: {exc}", "priority") from None
+        return self._submit(SetPriority(task, prio, by=by), f"{task} priority {prio:g}", task=task)
+
+    def recall(self, agent: str, by: str) -> Result:
+        return self._submit(RecallAgent(agent, by=by), f"{agent} recalled (default behaviour)")
+
+    def exclude(self, agent: str, out: bool, by: str) -> Result:
+        if out:
+            return self._submit(ExcludeAgent(agent, by=by), f"{agent} out of the auction")
+        return self._submit(IncludeAgent(agent, by=by), f"{agent} back in the auction")
+
+    def set_link(self, agent: str, up: bool, by: str) -> Result:
+        if agent in self.run.agents and agent not in self.drill_agents:
+            raise ConsoleError(
+                409,
+                f"{agent} flies a real vehicle: link drills are for the simulator only "
+                f"(backend: {LINK_DRILL_SCHEMES[0]})",
+            )
+        what = f"{agent}'s link restored" if up else f"{agent}'s link cut"
+        return self._submit(SetLink(agent, up, by=by), what)
+
+    def set_allocation(self, paused: bool, by: str) -> Result:
+        what = "allocation paused" if paused else "allocation resumed"
+        return self._submit(SetAllocation(paused, by=by), what)
+
+    def stop(self, by: str, reason: str = "") -> Result:
+        return self._submit(
+            Stop(reason or f"stopped by the operator ({by})", by=by), "run stopping"
+        )
+
+    # ------------------------------------------------------------------ helpers
+    def _where_problem(self, value: Any) -> str | None:
+        from btmission.world.checks import point_problem
+
+        vmap = self.run.map
+        if vmap is None or not (isinstance(value, (list, tuple)) and len(value) == 3):
+            return None
+        found = point_problem(vmap, (float(value[0]), float(value[1]), float(value[2])))
+        return found[1] if found else None
+
+    def _task_info(self, task: str) -> Any:
+        t = self.run.coordinator.state.pool.get(task)
+        return t.info if t is not None else None
+
+    def _submit(self, command: Command, done: str, task: str | None = None) -> Result:
+        """Admit (rate, pending), submit, and wait for the step that applies ``command``."""
+        from btmission.runtime.coordinator import TaskError
+
+        wait = self.rate.take()
+        if wait > 0:
+            raise ConsoleError(
+                429, f"too many commands: at most {COMMAND_RATE_HZ:g} a second; retry in "
+                f"{wait:.2f} s"
+            )  # fmt: skip
+        with self._lock:
+            if self._pending >= self.max_pending:
+                raise ConsoleError(
+                    429, f"{self._pending} commands are waiting for the run already; retry shortly"
+                )
+            self._pending += 1
+        try:
+            try:
+                future = self.run.submit(command)
+            except (CommandError, TaskError) as exc:
+                text = str(exc)
+                raise ConsoleError(404 if "unknown" in text else 409, text) from None
+            try:
+                outcome = future.result(timeout=self.wait_s)
+            except FutureTimeout:
+                now = self.run.now()
+                return Result(
+                    command.name, True, now, f"{done}: queued for the next step", 202, task
+                )
+        finally:
+            with self._lock:
+                self._pending -= 1
+        if not outcome.ok:
+            raise ConsoleError(409, outcome.error)
+        return Result(command.name, True, outcome.t, f"{done} at {outcome.t:.1f} s", 200, task)
+
+
+def _goal_args(tt: Any) -> set[str]:
+    """Field names a task type's goal conditions take (``at_goal(location)`` → location)."""
+    out: set[str] = set()
+    for g in getattr(tt, "goals", ()):
+        for arg in getattr(g, "args", ()):
+            out.add(str(arg))
+    return out
+
+
+def _plain(fields: Mapping[str, Any]) -> dict[str, Any]:
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in fields.items()}
+
+
+def _max_tasks() -> int:
+    from btmission.limits import MAX_TASKS
+
+    return int(MAX_TASKS.value)
