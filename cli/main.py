@@ -17,6 +17,7 @@ from btmission import __version__
 from btmission.cli import (
     auction_cmds,
     bench_cmds,
+    console_cmds,
     control_cmds,
     dispatch_cmds,
     library_cmds,
@@ -144,6 +145,9 @@ cli.add_command(run_cmds.report_cmd)
 cli.add_command(reloc_cmds.reloc)
 cli.add_command(mavsim_cmds.mavsim)
 cli.add_command(view_cmds.view_cmd)
+cli.add_command(console_cmds.task_group)
+cli.add_command(console_cmds.status_cmd)
+cli.add_command(console_cmds.fleet_group)
 
 
 def main() -> None:

@@ -23,10 +23,12 @@ from btmission.cli.common import (
     internal_error_sink,
     output_target,
 )
+from btmission.cli.console_cmds import token_for_run
 from btmission.cli.view_cmds import (
     announce_server,
     require_viz,
     serve_until_stopped,
+    tls_files,
     viewer_options,
     viewer_port,
 )
@@ -99,6 +101,20 @@ def _write_pngs(rep: Any, directory: Path, stem: str) -> list[Path]:
     "on --host (127.0.0.1) and prints its URL; paces the run to real time unless --speed says "
     "otherwise.",
 )
+@click.option(
+    "--console",
+    is_flag=True,
+    help="As --view, and the page becomes the operator console: add tasks by clicking the map, "
+    "cancel or reprioritise them, recall or exclude agents, pause allocation (docs/operator.md). "
+    "Commands need the run's token, printed with the URL; btmission task / status / fleet use "
+    "the same console from scripts.",
+)
+@click.option(
+    "--token-file",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="The console's token: the first line of this file (default: BTMISSION_TOKEN, else a "
+    "new one for each run).",
+)
 @viewer_options
 @click.option(
     "--speed",
@@ -120,8 +136,12 @@ def run_cmd(
     yes: bool,
     mavlink_key_file: Path | None,
     view: bool,
+    console: bool,
+    token_file: Path | None,
     host: str,
     port: int | None,
+    tls_cert: Path | None,
+    tls_key: Path | None,
     speed: float | None,
 ) -> None:
     """Run a mission and print its report.
@@ -155,12 +175,17 @@ def run_cmd(
     """
     from btmission.runtime.session import EXIT_CODES, RunSession, RunStopped
 
-    if not view and (port is not None or host != "127.0.0.1"):
-        raise click.UsageError("--host and --port are the viewer's: add --view")
+    view = view or console
+    tls = tls_files(tls_cert, tls_key)
+    if not view and (port is not None or host != "127.0.0.1" or tls is not None):
+        raise click.UsageError("--host, --port and --tls-* are the viewer's: add --view")
+    if token_file is not None and not console:
+        raise click.UsageError("--token-file is the console's: add --console")
     live: LiveView | None = None
     if view:
         require_viz()
-        live = LiveView(host, port)
+        token = token_for_run(token_file) if console else None
+        live = LiveView(host, port, console=console, token=token, tls=tls)
     paced = realtime or bool(speed) or (view and speed is None)
 
     def note(text: str) -> None:
@@ -206,22 +231,41 @@ class LiveView:
     """``run --view``: a :class:`~btmission.viz.live.LiveViewer` (its port taken before anything
     runs), what it prints, and the page kept up after the run on a terminal."""
 
-    def __init__(self, host: str, port: int | None) -> None:
+    def __init__(
+        self,
+        host: str,
+        port: int | None,
+        *,
+        console: bool = False,
+        token: str | None = None,
+        tls: tuple[str, str] | None = None,
+    ) -> None:
         from btmission.viz.live import LiveViewer
         from btmission.viz.server import ViewerError
 
         self.host = host
+        self.console = console
+        self.tls = tls
         first, tries = viewer_port(port)
         try:
-            self.viewer = LiveViewer(host, first, port_tries=tries)
+            self.viewer = LiveViewer(
+                host,
+                first,
+                port_tries=tries,
+                console=console,
+                token=token,
+                tls=tls,
+            )
         except ViewerError as exc:
             raise BadInput(str(exc)) from None
         self.observer = self.viewer.observer
 
     def serve(self, session: Any, run: Any) -> None:
         """Start serving the run (its map is built)."""
-        url = self.viewer.attach(session, run)
-        announce_server(url, self.host)
+        self.viewer.attach(session, run)
+        announce_server(
+            self.viewer.server.console_url, self.host, console=self.console, tls=bool(self.tls)
+        )
 
     def finish(self, *, linger: bool) -> None:
         """The run has ended: every event to the page; on a terminal, keep the page up until

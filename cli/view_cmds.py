@@ -19,7 +19,18 @@ NEEDS_VIZ = "the viewer needs the viz extra: pip install 'btmission[viz]' (make 
 
 
 def viewer_options(fn: F) -> F:
-    """``--host`` and ``--port`` of a command that serves the viewer."""
+    """``--host``, ``--port`` and the TLS files of a command that serves the viewer."""
+    fn = click.option(
+        "--tls-key",
+        type=click.Path(dir_okay=False, exists=True, path_type=Path),
+        help="The TLS certificate's private key (PEM), with --tls-cert.",
+    )(fn)
+    fn = click.option(
+        "--tls-cert",
+        type=click.Path(dir_okay=False, exists=True, path_type=Path),
+        help="Serve HTTPS with this certificate (PEM; with --tls-key): for --host on a network "
+        "you do not trust.",
+    )(fn)
     fn = click.option(
         "--port",
         type=click.IntRange(0, 65535),
@@ -31,10 +42,17 @@ def viewer_options(fn: F) -> F:
         "--host",
         default="127.0.0.1",
         show_default=True,
-        help="Address the viewer listens on. Anything but loopback shows the page (read-only) "
-        "to the network.",
+        help="Address the viewer listens on. Anything but loopback serves the page to the "
+        "network (and then every request needs the run's token).",
     )(fn)
     return fn
+
+
+def tls_files(cert: Path | None, key: Path | None) -> tuple[str, str] | None:
+    """(certificate, key) for the server, or None; both or neither (a usage error)."""
+    if (cert is None) != (key is None):
+        raise click.UsageError("--tls-cert and --tls-key go together")
+    return (str(cert), str(key)) if cert is not None and key is not None else None
 
 
 def require_viz() -> None:
@@ -54,34 +72,39 @@ def viewer_port(port: int | None) -> tuple[int, int]:
     return (DEFAULT_PORT, PORT_TRIES) if port is None else (port, 1)
 
 
-def start_server(source: Any, host: str, port: int | None) -> Any:
+def start_server(
+    source: Any, host: str, port: int | None, tls: tuple[str, str] | None = None
+) -> Any:
     """Serve ``source`` on a :class:`~btmission.viz.server.ViewerServer` and print its URL. A
     port in use is :class:`BadInput`."""
+    from btmission.console.api import is_loopback, new_token
     from btmission.viz.server import ViewerError, ViewerServer
 
     first, tries = viewer_port(port)
-    server = ViewerServer(source, host, first, port_tries=tries)
+    token = None if is_loopback(host) else new_token()  # off loopback, every view needs it
+    server = ViewerServer(source, host, first, port_tries=tries, tls=tls, token=token)
     try:
-        url = server.start()
+        server.start()
     except ViewerError as exc:
         raise BadInput(str(exc)) from None
-    announce_server(url, host)
+    announce_server(server.console_url, host, tls=tls is not None)
     return server
 
 
-def announce_server(url: str, host: str) -> None:
-    """Print the viewer's URL, and a warning when it is not on loopback."""
-    if not _loopback(host):
+def announce_server(url: str, host: str, *, console: bool = False, tls: bool = False) -> None:
+    """Print the page's URL (with the token when it serves the console), and a warning when it
+    is not on loopback."""
+    from btmission.console.api import is_loopback
+
+    if not is_loopback(host):
+        what = "command the run" if console else "watch the run"
+        plain = "" if tls else "; the traffic, token included, is not encrypted: add --tls-cert"
         click.echo(
-            f"warning: the viewer listens on {host}: anyone who can reach this machine can "
-            "watch the run (the page is read-only)",
+            f"warning: the {'console' if console else 'viewer'} listens on {host}: anyone who "
+            f"can reach this machine and has the token can {what}{plain}",
             err=True,
         )
-    click.echo(f"viewer: {url}", err=True)
-
-
-def _loopback(host: str) -> bool:
-    return host in ("localhost", "::1") or host.startswith("127.")
+    click.echo(f"{'console' if console else 'viewer'}: {url}", err=True)
 
 
 def serve_until_stopped(server: Any, what: str) -> None:
@@ -130,6 +153,8 @@ def view_cmd(
     latest_dir: Path | None,
     host: str,
     port: int | None,
+    tls_cert: Path | None,
+    tls_key: Path | None,
     html_out: Path | None,
 ) -> None:
     """Replay a finished run in the browser, from its event log alone.
@@ -175,5 +200,5 @@ def view_cmd(
 
         write_output(static_html(source), html_out)
         return
-    server = start_server(source, host, port)
+    server = start_server(source, host, port, tls_files(tls_cert, tls_key))
     serve_until_stopped(server, f"replaying {source.info.get('mission')} from {log_file}")

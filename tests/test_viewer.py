@@ -380,7 +380,7 @@ def test_view_latest_and_the_viewer_options_need_their_command(mine_log: Path, t
     r = CliRunner().invoke(cli, ["view", "--latest", str(tmp_path / "none")])
     assert r.exit_code == 2 and "no such directory" in r.output
     r = CliRunner().invoke(cli, ["run", str(MINE), "--port", "0", "--log", str(tmp_path / "x")])
-    assert r.exit_code == 2 and "--host and --port are the viewer's: add --view" in r.output
+    assert r.exit_code == 2 and "--host, --port and --tls-* are the viewer's: add --view" in r.output
     assert not (tmp_path / "x").exists()
 
 

@@ -193,7 +193,7 @@ class Console:
         snap = self.run.snapshot
         if snap is None:
             raise ConsoleError(409, "the run is not built yet")
-        infos = {t.id: t.info for t in snap.pool}
+        pool = {t.id: t for t in snap.pool}
         return {
             "t": round(snap.time_s, 3),
             "steps": snap.steps,
@@ -225,7 +225,8 @@ class Console:
                     "priority": t.priority,
                     "added_s": round(t.arrival_s, 3),
                     "note": t.note,
-                    "fields": _plain(infos[t.id].fields),
+                    "since_s": round(pool[t.id].history[-1].time_s, 3),
+                    "fields": _plain(pool[t.id].info.fields),
                 }
                 for t in snap.tasks
             ],

@@ -40,6 +40,8 @@ class TaskRow:
     agent: str | None
     state: str
     reason: str = ""
+    added_by: str = "mission"
+    """Who added it: ``mission`` (its file), or the operator (``cli@127.0.0.1``, ``page@…``)."""
 
 
 @dataclass(frozen=True)
@@ -100,6 +102,7 @@ class ReportBuilder:
     def __init__(self) -> None:
         self.header: dict[str, Any] = {}
         self.added: dict[str, tuple[float, str]] = {}
+        self.added_by: dict[str, str] = {}
         self.fields: dict[str, dict[str, Any]] = {}
         self.task_events: dict[str, list[Event]] = {}
         self.poses: dict[str, list[tuple[float, list[float]]]] = {}
@@ -123,6 +126,7 @@ class ReportBuilder:
             self.header = dict(ev.data)
         elif kind == "task_added":
             self.added[ev.get("task")] = (_when(ev), str(ev.get("type", "")))
+            self.added_by[ev.get("task")] = str(ev.get("by") or "mission")
             self.fields[ev.get("task")] = dict(ev.get("fields") or {})
             for problem in ev.get("problems") or []:
                 self.warnings.append(f"task {ev.get('task')}: {problem}")
@@ -182,9 +186,11 @@ class ReportBuilder:
                 elif ev.get("agent") != agent:
                     start = None
             execution = None if start is None else _when(done) - start
-            return TaskRow(task, ttype, added, _when(done), execution, agent, "done")
+            by = self.added_by.get(task, "mission")
+            return TaskRow(task, ttype, added, _when(done), execution, agent, "done", "", by)
         agent = evs[-1].get("agent") if evs else None
-        return TaskRow(task, ttype, added, None, None, agent, str(state), str(reason))
+        by = self.added_by.get(task, "mission")
+        return TaskRow(task, ttype, added, None, None, agent, str(state), str(reason), by)
 
     def report(self) -> MissionReport:
         tasks = list(self.added)
@@ -293,8 +299,8 @@ def format_report(rep: MissionReport) -> str:
         "",
         "Tasks (seed 000 Table III)",
     ]
-    head = ("Task", "Added [s]", "Finished [s]", "Execution [s]", "Agent", "Note")
-    body = [
+    head: tuple[str, ...] = ("Task", "Added [s]", "Finished [s]", "Execution [s]", "Agent", "Note")
+    body: list[tuple[str, ...]] = [
         (
             r.task,
             _f(r.added_s, 1),
@@ -305,7 +311,10 @@ def format_report(rep: MissionReport) -> str:
         )
         for r in rep.rows
     ]
-    lines += _table(head, body)
+    if any(r.added_by not in ("mission", "api") for r in rep.rows):  # an operator added some
+        head = (*head[:2], "Added by", *head[2:])
+        body = [(*b[:2], r.added_by, *b[2:]) for b, r in zip(body, rep.rows)]
+    lines += table_lines(head, body)
     lines += ["", "Mission (seed 000 Table II)"]
     clearance = "—" if s.min_clearance_m is None else f"{s.min_clearance_m:.2f} m"
     per_agent = ", ".join(f"{a} {d:.1f}" for a, d in rep.distance_by_agent.items())
@@ -317,11 +326,11 @@ def format_report(rep: MissionReport) -> str:
         ("Min clearance to rock", clearance),
         ("Collisions", str(s.collisions)),
     ]
-    lines += _table(("Parameter", "Value"), summary)
+    lines += table_lines(("Parameter", "Value"), summary)
     if rep.objects or rep.header.get("artifacts"):
         truth = rep.header.get("artifacts") or []
         lines += ["", f"Objects localised ({len(rep.objects)}; {len(truth)} placed in the world)"]
-        lines += _table(
+        lines += table_lines(
             ("Label", "Position [m]", "Observations", "Error [m]"),
             [
                 (
@@ -335,7 +344,7 @@ def format_report(rep: MissionReport) -> str:
         )
     if rep.commands:  # what operators did (a run without commands shows nothing here)
         lines += ["", f"Operator commands ({len(rep.commands)})"]
-        lines += _table(
+        lines += table_lines(
             ("Time [s]", "By", "Command", "Arguments", "Result"),
             [(_f(c.time_s, 1), c.by, c.command, c.args, c.result) for c in rep.commands],
         )
@@ -364,7 +373,7 @@ def _nearest(obj: Mapping[str, Any], truth: Sequence[Mapping[str, Any]]) -> floa
     return min(math.dist(obj["p"], p) for p in same)
 
 
-def _table(head: tuple[str, ...], rows: Sequence[tuple[str, ...]]) -> list[str]:
+def table_lines(head: tuple[str, ...], rows: Sequence[tuple[str, ...]]) -> list[str]:
     widths = [
         max(len(head[i]), *(len(r[i]) for r in rows)) if rows else len(head[i])
         for i in range(len(head))

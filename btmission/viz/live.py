@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from btmission.console.api import new_token
+from btmission.console.api import is_loopback, new_token
 from btmission.console.service import Console
 from btmission.runtime.events import Event, Observer
 from btmission.runtime.observers import QueuedObserver
@@ -74,7 +74,8 @@ class LiveViewer:
             host,
             port,
             port_tries=port_tries,
-            token=(token or new_token()) if console else None,
+            # the console's commands need a token, and so does every view off loopback
+            token=(token or new_token()) if console or not is_loopback(host) else None,
             tls=tls,
         )
         self.server.bind()
