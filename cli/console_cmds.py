@@ -20,6 +20,7 @@ F = TypeVar("F", bound=Callable[..., Any])
 TOKEN_ENV = "BTMISSION_TOKEN"
 WAIT_STATES = ("added", "assigned", "done")
 POLL_S = 0.5
+QUIET_NOTES = ("added", "awaiting bids (newly announced)")
 
 
 def console_options(fn: F) -> F:
@@ -216,7 +217,8 @@ def _wait_for(client: Any, task: str, until: str, timeout: float) -> None:
             now = (row.get("state"), row.get("agent"))
             if now != last:
                 last = now
-                _say_state(task, row, row.get("since_s", status.get("t", 0.0)))
+                if row.get("note") not in QUIET_NOTES:  # just added: nothing to tell yet
+                    _say_state(task, row, row.get("since_s", status.get("t", 0.0)))
             state = row.get("state")
             if state in ("unreachable", "failed", "cancelled"):
                 raise ChecksFailed(f"{task} {state}: {row.get('note') or 'no reason given'}")
