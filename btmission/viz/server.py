@@ -67,6 +67,8 @@ PUSH_S = 0.1
 """How often a page's stream sends what is new (10 Hz poses)."""
 BATCH = 5000
 """Records per stream message (a replay's records arrive in several)."""
+MAX_CONNECTIONS = 128
+"""Connections served at once (pages' streams included); beyond, uvicorn answers 503."""
 SEND_BUFFER = 256 * 1024
 """Send buffer (bytes) of the server's connections."""
 SCAN_CHANNELS = 16
@@ -431,6 +433,7 @@ class ViewerServer:
             log_level="warning",
             lifespan="off",
             timeout_graceful_shutdown=2,
+            limit_concurrency=MAX_CONNECTIONS,
             ssl_certfile=self.tls[0] if self.tls else None,
             ssl_keyfile=self.tls[1] if self.tls else None,
         )
