@@ -12,12 +12,17 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
+import shutil
 import socket
+import subprocess
+import sys
 import threading
 import time
 import urllib.error
 import urllib.request
+from collections import Counter
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
@@ -29,9 +34,15 @@ from click.testing import CliRunner
 from btmission.allocation.auction import AuctionConfig, AuctionState, Bid, auction_round
 from btmission.allocation.tasks import TaskInfo, TaskPool, TaskState
 from btmission.cli.main import cli
-from btmission.console.service import Console, RateLimit
+from btmission.console.service import (
+    COMMAND_BURST,
+    COMMAND_RATE_HZ,
+    Console,
+    ConsoleError,
+    RateLimit,
+)
 from btmission.diagnostics import SpecError
-from btmission.runtime.commands import CommandError, priority_value
+from btmission.runtime.commands import Command, CommandError, Outcome, priority_value
 from btmission.runtime.events import Event, read_events
 from btmission.runtime.session import RunSession
 from btmission.spec.mission import load_mission_text
@@ -127,7 +138,13 @@ class Live:
         return out
 
     def task_row(self, task: str) -> dict[str, Any]:
-        return next(t for t in self.status()["tasks"] if t["id"] == task)
+        """The task in the status, once it is there (a command is answered when its step has
+        applied it; the status is the snapshot taken at the end of that step)."""
+        row: dict[str, Any] = wait_for(
+            lambda: next((t for t in self.status()["tasks"] if t["id"] == task), None),
+            f"{task} in the status",
+        )
+        return row
 
     def agent_row(self, agent: str) -> dict[str, Any]:
         return next(a for a in self.status()["agents"] if a["id"] == agent)
@@ -286,18 +303,215 @@ def test_rate_limit_admits_a_burst_then_the_rate() -> None:
     assert limit.take() > 0
 
 
-def test_the_next_task_id_follows_the_missions_pattern() -> None:
-    def console(ids: list[str], queued: tuple[str, ...] = ()) -> Console:
-        state = SimpleNamespace(pool=[SimpleNamespace(id=t) for t in ids])
-        coordinator = SimpleNamespace(state=state, knows=lambda t: t in ids or t in queued)
-        session = SimpleNamespace(mission=SimpleNamespace(agents=[]))
-        return Console(session, SimpleNamespace(coordinator=coordinator))
+def _stub_console(
+    ids: tuple[str, ...] = (), queued: tuple[str, ...] = (), submit: Any = None, **kw: Any
+) -> Console:
+    """A console over a stand-in run: its pool's ids, ids queued to enter it, its submit."""
+    state = SimpleNamespace(pool=[SimpleNamespace(id=t) for t in ids])
+    coordinator = SimpleNamespace(state=state, knows=lambda t: t in ids or t in queued)
+    run = SimpleNamespace(coordinator=coordinator, submit=submit, now=lambda: 12.0)
+    return Console(SimpleNamespace(mission=SimpleNamespace(agents=[])), run, **kw)
 
-    seven = [f"T{i}" for i in range(1, 8)]
-    assert console(seven).next_task_id() == "T8"
-    assert console(seven, queued=("T8",)).next_task_id() == "T9"  # reserved by a queued add
-    assert console(["I1", "I2", "P9", "I10"]).next_task_id() == "I11"
-    assert console([]).next_task_id() == "T1"
+
+def test_the_next_task_id_follows_the_missions_pattern() -> None:
+    seven = tuple(f"T{i}" for i in range(1, 8))
+    assert _stub_console(seven).next_task_id() == "T8"
+    assert _stub_console(seven, queued=("T8",)).next_task_id() == "T9"  # reserved by an add
+    assert _stub_console(("I1", "I2", "P9", "I10")).next_task_id() == "I11"
+    assert _stub_console().next_task_id() == "T1"
+
+
+def test_commands_beyond_the_rate_or_the_bound_are_refused() -> None:
+    applied: list[Command] = []
+
+    def submit(command: Command) -> Future[Outcome]:
+        applied.append(command)
+        done: Future[Outcome] = Future()
+        done.set_result(Outcome(7.5, True))
+        return done
+
+    now = [0.0]
+    console = _stub_console(submit=submit, rate=RateLimit(1.0, 2, clock=lambda: now[0]))
+    assert console.set_allocation(True, "test").message == "allocation paused at 7.5 s"
+    assert console.set_allocation(False, "test").ok
+    with pytest.raises(ConsoleError) as refused:
+        console.set_allocation(True, "test")
+    assert refused.value.status == 429 and "too many commands" in refused.value.message
+    assert len(applied) == 2  # the refused one never reached the run
+    now[0] += 1.0
+    assert console.stop("test").message == "run stopping at 7.5 s" and len(applied) == 3
+    # at most max_pending commands wait for their step; one not applied within wait_s is 202
+    never: Future[Outcome] = Future()
+    slow = _stub_console(submit=lambda command: never, max_pending=1, wait_s=1.0)
+    out: list[Any] = []
+    first = threading.Thread(target=lambda: out.append(slow.set_allocation(True, "a")))
+    first.start()
+    wait_for(lambda: slow._pending == 1, "the first command waiting", timeout=5)
+    with pytest.raises(ConsoleError) as busy:
+        slow.set_allocation(False, "b")
+    assert busy.value.status == 429 and "waiting for the run" in busy.value.message
+    first.join(timeout=5)
+    assert out and out[0].status == 202 and out[0].message.endswith("queued for the next step")
+    assert slow._pending == 0
+
+
+# ---------------------------------------------------------------------------- HTTPS
+def test_the_console_serves_https(tmp_path: Path) -> None:
+    """A self-signed certificate (openssl): the URL is https, the client reads over it with
+    --insecure and refuses the certificate without."""
+    from btmission.console.client import ConsoleClient, ConsoleClientError
+    from btmission.viz.server import ViewerServer, log_source
+
+    openssl = shutil.which("openssl")
+    if openssl is None:
+        pytest.skip("openssl is not on PATH: no certificate to serve HTTPS with")
+    cert, key = tmp_path / "c.pem", tmp_path / "k.pem"
+    made = subprocess.run(
+        [openssl, "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", str(key),
+         "-out", str(cert), "-days", "1", "-subj", "/CN=127.0.0.1"],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert made.returncode == 0, made.stderr
+    log = tmp_path / "small.jsonl"
+    with RunSession(ROOT / "docs" / "examples" / "fake_fleet.yaml", log_path=log) as session:
+        session.run(until=0.5)
+    source, _ = log_source(log)
+    with ViewerServer(source, port=0, tls=(str(cert), str(key)), token=TOKEN) as server:
+        assert server.url.startswith("https://127.0.0.1:")
+        assert server.console_url == f"{server.url}?token={TOKEN}"
+        info = ConsoleClient(server.console_url, insecure=True).info()
+        assert info["mission"] == "fake_fleet" and info["console"]["enabled"] is False
+        with pytest.raises(ConsoleClientError) as untrusted:
+            ConsoleClient(server.url).info()
+        assert untrusted.value.status == 0 and "CERTIFICATE_VERIFY_FAILED" in str(untrusted.value)
+        # the token travels over TLS: past the guard to the replay's refusal (nothing to command)
+        with pytest.raises(ConsoleClientError) as replay:
+            ConsoleClient(server.console_url, insecure=True).add_task({"type": "inspect"})
+        assert replay.value.status == 403 and "a replay of a finished run" in str(replay.value)
+        with pytest.raises(ConsoleClientError) as bare:
+            ConsoleClient(server.url, insecure=True).stop()
+        assert bare.value.status == 401
+
+
+# ---------------------------------------------------------------------------- a flood
+FLOOD = 1000
+FLOOD_POSTS = 200
+FLOOD_THREADS = 16
+PRE_S = 4.0
+"""The run's pace is measured over this long (at most) before the flood."""
+
+
+FLOOD_CLIENT = r"""
+import json, sys, urllib.error, urllib.request
+from concurrent.futures import ThreadPoolExecutor
+url, token, n, posts, threads, body = sys.argv[1:7]
+n, every, body = int(n), int(n) // int(posts), body.encode()
+def one(i):
+    if i % every == 0:
+        req = urllib.request.Request(url + "api/tasks", data=body, method="POST", headers={
+            "Authorization": "Bearer " + token, "Content-Type": "application/json"})
+    else:
+        req = urllib.request.Request(url + "api/status")
+    try:
+        with urllib.request.urlopen(req, timeout=30) as r:
+            r.read()
+            return req.get_method(), r.status, None
+    except urllib.error.HTTPError as e:
+        with e:
+            e.read()
+            return req.get_method(), e.code, e.headers.get("Retry-After")
+with ThreadPoolExecutor(int(threads)) as pool:
+    print(json.dumps(list(pool.map(one, range(n)))))
+"""
+"""The flood's clients, a process of their own (as a flood's are: the run's process measures
+what serving the requests costs it, not what making them would): ``n`` requests, every
+``n // posts``-th adds the task ``body``, the others read the status; prints (method, status,
+Retry-After) of each."""
+
+
+def _flood(url: str) -> list[tuple[str, int, str | None]]:
+    body = json.dumps({"type": "inspect", "location": FREE})
+    args = [url, TOKEN, str(FLOOD), str(FLOOD_POSTS), str(FLOOD_THREADS), body]
+    done = subprocess.run([sys.executable, "-c", FLOOD_CLIENT, *args],
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    return [tuple(a) for a in json.loads(done.stdout)]  # type: ignore[misc]
+
+
+def _pace(samples: list[tuple[float, float]], w0: float, w1: float) -> float:
+    """Mission seconds per wall second over [w0, w1] from (wall, mission time) samples."""
+    inside = [s for s in samples if w0 <= s[0] <= w1]
+    (ta, sa), (tb, sb) = inside[0], inside[-1]
+    return (sb - sa) / (tb - ta)
+
+
+def test_a_flood_of_requests_neither_slows_the_run_nor_loses_a_command(tmp_path: Path) -> None:
+    """1,000 requests at once (800 status reads, 200 valid task adds, 16 at a time, from
+    another process) against a run paced at 4x real time: it keeps its pace, the limiter refuses what is over the rate
+    (429, Retry-After), and every add that was accepted is in the log, no other. A page that
+    drops its stream mid-way changes nothing either."""
+    speed = 4.0
+    log = tmp_path / "flood.jsonl"
+    viewer = LiveViewer(port=0, console=True, token=TOKEN)
+    samples: list[tuple[float, float]] = []
+    done = threading.Event()
+    try:
+        with RunSession(MINE, controller="track", realtime=True, speed=speed, log_path=log,
+                        observers=[viewer.observer]) as session:  # fmt: skip
+            run = session.start()
+            assert run is not None
+            url = viewer.attach(session, run)
+            worker = threading.Thread(target=lambda: session.run(until=900.0), daemon=True)
+            worker.start()
+
+            def sample() -> None:
+                while not done.is_set():
+                    samples.append((time.monotonic(), run.snapshot.time_s))
+                    time.sleep(0.02)
+
+            sampler = threading.Thread(target=sample, daemon=True)
+            try:
+                wait_for(lambda: run.snapshot.time_s >= 1.0, "the run under way")
+                sampler.start()
+                stream = urllib.request.urlopen(url + "api/stream?cursor=0", timeout=TIMEOUT_S)
+                assert stream.readline().startswith(b"retry:")
+                time.sleep(PRE_S)
+                b0 = time.monotonic()
+                answers = _flood(url)
+                b1 = time.monotonic()
+                stream.close()  # the page goes away mid-stream
+                time.sleep(1.0)
+                after = call("GET", url + "api/status")
+                done.set()
+                sampler.join(timeout=5)
+            finally:
+                done.set()
+                run.stop("the flood is over")
+                worker.join(timeout=60)
+            assert not worker.is_alive()
+    finally:
+        viewer.close()
+    burst = b1 - b0
+    before = _pace(samples, max(b0 - burst, samples[0][0]), b0)
+    during = _pace(samples, b0, b1)
+    if before < 0.8 * speed:  # the machine is too busy for the measure to mean anything
+        pytest.skip(f"the run kept only {before:.2f}x of {speed:g}x before the flood")
+    assert during >= 0.9 * min(before, speed), (before, during, burst)
+    assert _pace(samples, b1, b1 + 1.0) >= 0.9 * min(before, speed)  # stream dropped
+    assert after.status == 200 and after.body["running"] is True
+    counts = Counter((m, s) for m, s, _ in answers)
+    assert set(counts) <= {("GET", 200), ("GET", 429), ("POST", 201), ("POST", 202),
+                           ("POST", 429)}, counts  # fmt: skip
+    accepted = counts["POST", 201] + counts["POST", 202]
+    refused = counts["GET", 429] + counts["POST", 429]
+    assert refused >= FLOOD_POSTS - (COMMAND_BURST + COMMAND_RATE_HZ * burst), counts
+    assert 0 < accepted <= COMMAND_BURST + COMMAND_RATE_HZ * burst + 1, (counts, burst)
+    assert all(r is not None and int(r) >= 1 for _, s, r in answers if s == 429)
+    events = read_events(log).events
+    added = [e for e in events if e.kind == "task_added" and e.get("by") == "api@127.0.0.1"]
+    assert len(added) == accepted  # nothing accepted was lost, nothing refused was added
+    adds = [e for e in events if e.kind == "command" and e.get("command") == "add_task"]
+    assert len(adds) == accepted and all(e.get("ok") for e in adds)
 
 
 def test_a_task_is_refused_with_the_mission_files_own_message(live: Live) -> None:
@@ -430,7 +644,7 @@ def test_an_added_task_is_logged_and_assigned(live: Live) -> None:
     assert added.get("by") == "api@127.0.0.1" and added.t == command.t
     assigned = live.wait_event(_task_event("T8", "assigned"), "T8 assigned")
     assert assigned.get("agent") in ("R1", "R2", "R3") and assigned.t >= added.t
-    row = live.task_row("T8")
+    row = wait_for(lambda: (r := live.task_row("T8"))["state"] != "open" and r, "T8 in status")
     assert row["priority"] == 2.0 and row["fields"] == {"location": FREE}
     assert call("GET", live.url + "api/info").body["console"]["next_task_id"] == "T9"
 
@@ -451,7 +665,7 @@ def test_cancelling_a_held_task_frees_its_agent(live: Live) -> None:
         f"{agent}'s next task",
     )  # fmt: skip
     assert nxt.get("task") != task
-    assert live.task_row(task)["state"] == "cancelled"
+    assert wait_for(lambda: live.task_row(task)["state"] == "cancelled", "cancelled in status")
     again = live.api("DELETE", f"api/tasks/{task}")  # over already
     assert again.status == 409, again.body
 
