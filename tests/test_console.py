@@ -157,7 +157,10 @@ class Live:
         self, match: Callable[[Event], bool], what: str, timeout: float = WAIT_S
     ) -> Event:
         """The first event of the log ``match`` accepts, once there is one."""
-        return wait_for(lambda: next((e for e in self.events() if match(e)), None), what, timeout)
+        found: Event = wait_for(
+            lambda: next((e for e in self.events() if match(e)), None), what, timeout
+        )
+        return found
 
 
 def wait_for(probe: Callable[[], Any], what: str, timeout: float = WAIT_S) -> Any:
@@ -840,11 +843,11 @@ def test_the_cli_shows_the_status_and_drills_a_link(
     assert as_json.exit_code == 0 and json.loads(as_json.output)["running"] is True
     token_file = tmp_path / "token"
     token_file.write_text(TOKEN + "\n")
-    down = cli_run("fleet", "link", live.url, "R2", "down", "--token-file", str(token_file))
-    assert down.exit_code == 0 and down.output.startswith("R2's link cut at "), down.output
-    up = cli_run("fleet", "link", live.url, "R2", "up", "--token-file", str(token_file))
-    assert up.exit_code == 0 and up.output.startswith("R2's link restored at "), up.output
-    links = [e.get("up") for e in live.events("link") if e.get("agent") == "R2"]
+    down = cli_run("fleet", "link", live.url, "R1", "down", "--token-file", str(token_file))
+    assert down.exit_code == 0 and down.output.startswith("R1's link cut at "), down.output
+    up = cli_run("fleet", "link", live.url, "R1", "up", "--token-file", str(token_file))
+    assert up.exit_code == 0 and up.output.startswith("R1's link restored at "), up.output
+    links = [e.get("up") for e in live.events("link") if e.get("agent") == "R1"]
     assert links[-2:] == [False, True]
 
 
