@@ -13,7 +13,7 @@ from typing import Any, TypeVar
 
 import click
 
-from btmission.cli.common import BadInput, ChecksFailed, parse_numbers
+from btmission.cli.common import BadInput, ChecksFailed, FiniteFloat, parse_numbers
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -145,7 +145,7 @@ def _field_value(text: str) -> Any:
 )
 @click.option(
     "--timeout",
-    type=click.FloatRange(min=0.1, max=86_400),
+    type=FiniteFloat(min=0.1, max=86_400),
     default=120.0,
     show_default=True,
     help="Give up waiting after this many seconds (wall clock).",
@@ -187,7 +187,7 @@ def task_add(
         point = parse_numbers(at_point, 3)
         if point is None:
             raise BadInput(f"--at '{at_point}': expected X,Y,Z (three finite numbers)")
-        types = _call(client.info).get("console", {}).get("task_types", {})
+        types = _call(client.console).get("task_types", {})
         positions = types.get(task_type, {}).get("positions") or []
         free = [p for p in positions if p not in body]
         if task_type in types and not free:

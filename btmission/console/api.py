@@ -4,6 +4,7 @@ Routes (added to the viewer's app by :func:`add_console_routes`; the schema is s
 ``/openapi.json``):
 
 =====================================  ==========================================================
+``GET    /api/console``                the task types, places, priority names, next task id
 ``GET    /api/status``                 agents and tasks as they stand (JSON)
 ``POST   /api/tasks``                  add a task ``{id?, type, priority?, <fields>}`` → 201
 ``DELETE /api/tasks/{id}``             cancel a task
@@ -274,8 +275,9 @@ def add_console_routes(app: FastAPI, console: Console | None, read_only_reason: 
     @app.exception_handler(ConsoleError)
     async def console_error(request: Request, exc: ConsoleError) -> JSONResponse:
         detail: Any = exc.message
-        if exc.field:
-            detail = [{"loc": ["body", exc.field], "msg": exc.message, "type": "value_error"}]
+        if exc.field or exc.status == 422:  # FastAPI's form: where in the body, and why
+            loc = ["body", exc.field] if exc.field else ["body"]
+            detail = [{"loc": loc, "msg": exc.message, "type": "value_error"}]
         headers = {"Retry-After": "1"} if exc.status == 429 else {}
         return _refusal(exc.status, exc.message, detail, **headers)
 
@@ -301,6 +303,13 @@ def add_console_routes(app: FastAPI, console: Console | None, read_only_reason: 
             raise ConsoleError(403, read_only_reason)
         return console
 
+    @app.get("/api/console", tags=["console"])
+    def console_info() -> dict[str, Any]:
+        """What a client needs to build a command: the task types (their fields, which are
+        positions, their priority), the places, the priority names, the next free task id
+        (``/api/info`` has the same under ``console``, with the map's bounds)."""
+        return need().info()
+
     @app.get("/api/status", tags=["console"])
     def status() -> dict[str, Any]:
         """Agents (pose, task, alive, link, recalled, excluded) and tasks (state, agent,
@@ -310,7 +319,11 @@ def add_console_routes(app: FastAPI, console: Console | None, read_only_reason: 
     @app.post("/api/tasks", tags=["console"], status_code=201, response_model=CommandResult)
     def add_task(
         request: Request,
-        task: dict[str, Any] = Body(..., examples=[TASK_EXAMPLE]),
+        task: Any = Body(  # any JSON: the service says what it wants
+            ...,
+            examples=[TASK_EXAMPLE],
+            json_schema_extra={"type": "object", "additionalProperties": True},
+        ),
     ) -> JSONResponse:
         """Add a task: ``type``, the type's fields (a position ``[x, y, z]`` or a place),
         optionally ``id`` (default: the next free one, e.g. T8), ``priority`` (a number or

@@ -98,6 +98,11 @@ class ConsoleClient:
         out: dict[str, Any] = self.request("GET", "api/info")
         return out
 
+    def console(self) -> dict[str, Any]:
+        """The task types, places, priority names and next task id (``/api/console``)."""
+        out: dict[str, Any] = self.request("GET", "api/console")
+        return out
+
     def status(self) -> dict[str, Any]:
         out: dict[str, Any] = self.request("GET", "api/status")
         return out

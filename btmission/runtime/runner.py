@@ -550,19 +550,21 @@ class MissionRun:
 
     def _apply_commands(self) -> None:
         """Apply every queued command, in order, each logged as a ``command`` event."""
+        settled: list[tuple[Future[Outcome], Outcome]] = []
         for command, future in self.commands.take():
             error = ""
             try:
                 self._apply(command)
             except (CommandError, TaskError) as exc:
                 error = str(exc)
-            self._log_command(command, error, future)
+            settled.append((future, self._log_command(command, error)))
+        if settled:  # whoever waits for an outcome then reads a snapshot that shows it
+            self.snapshot = self._snapshot()
+            _settle(settled)
 
-    def _log_command(
-        self, command: Command, error: str, future: Future[Outcome] | None = None
-    ) -> None:
-        """The ``command`` event: who, what, its arguments, and whether it was refused (also
-        the outcome of ``future``)."""
+    def _log_command(self, command: Command, error: str) -> Outcome:
+        """The ``command`` event: who, what, its arguments, and whether it was refused; the
+        command's outcome."""
         data: dict[str, Any] = {"command": command.name, "by": command.by}
         data.update(command.to_data())
         if isinstance(command, AddTask):
@@ -571,8 +573,7 @@ class MissionRun:
         if error:
             data["error"] = error
         self.emit("command", **data)
-        if future is not None and not future.done():
-            future.set_result(Outcome(self._last_t, not error, error, data))
+        return Outcome(self._last_t, not error, error, data)
 
     def _apply(self, command: Command) -> None:
         now = self.now()
@@ -853,13 +854,14 @@ class MissionRun:
         if self._ended is not None:
             return
         self._ended = result
-        for command, future in self.commands.take():  # the run ended before their step came
-            self._log_command(
-                command,
-                "" if isinstance(command, Stop) else "not applied: the run had ended",
-                future,
-            )
+        settled = [  # the run ended before their step came
+            (future, self._log_command(
+                command, "" if isinstance(command, Stop) else "not applied: the run had ended"
+            ))
+            for command, future in self.commands.take()
+        ]  # fmt: skip
         self.snapshot = self._snapshot(result.reason)
+        _settle(settled)
         for a in self.agents.values():
             a.flush_tree_events()
         data: dict[str, Any] = {
@@ -873,3 +875,10 @@ class MissionRun:
         if result.cancelled:
             data["cancelled"] = result.cancelled
         self.emit("end", **data)
+
+
+def _settle(outcomes: Iterable[tuple[Future[Outcome], Outcome]]) -> None:
+    """Give each waiting submitter its command's outcome."""
+    for future, outcome in outcomes:
+        if not future.done():
+            future.set_result(outcome)
