@@ -408,15 +408,23 @@
       return ray;
     }
     surfacePick(cx, cy) {        // the mine's surface under a page point: {p, normal}, world frame
-      const node = this.viewer.scene_tree.children.mine;  // scene.py's /mine (front faces only,
-      if (!node || !node.object.visible) return null;      // so the cut-away near rock is not hit)
       const r = this.pane.getBoundingClientRect();
       if (cx < r.left || cx >= r.right || cy < r.top || cy >= r.bottom) return null;
-      node.object.updateMatrixWorld(true);
-      const hit = this.ray(cx, cy).intersectObject(node.object, true).find((h) => h.face);
-      if (!hit) return null;
-      const n = hit.face.normal.clone().applyMatrix3(new THREE.Matrix3().getNormalMatrix(hit.object.matrixWorld)).normalize();
-      return { p: [hit.point.x, hit.point.y, hit.point.z], normal: [n.x, n.y, n.z] };
+      const ray = this.ray(cx, cy);
+      const node = this.viewer.scene_tree.children.mine;  // scene.py's /mine (front faces only,
+      if (node && node.object.visible) {                   // so the cut-away near rock is not hit)
+        node.object.updateMatrixWorld(true);
+        const hit = ray.intersectObject(node.object, true).find((h) => h.face);
+        if (hit) {
+          const n = hit.face.normal.clone().applyMatrix3(new THREE.Matrix3().getNormalMatrix(hit.object.matrixWorld)).normalize();
+          return { p: [hit.point.x, hit.point.y, hit.point.z], normal: [n.x, n.y, n.z] };
+        }
+      }
+      if (!this.bounds) return null;   // no rock there: the map's floor (a map without rock stands on it)
+      const [lo, hi] = this.bounds;
+      const p = ray.ray.intersectPlane(new THREE.Plane(new THREE.Vector3(0, 0, 1), -lo[2]), new THREE.Vector3());
+      if (!p || p.x < lo[0] || p.x > hi[0] || p.y < lo[1] || p.y > hi[1]) return null;
+      return { p: [p.x, p.y, p.z], normal: [0, 0, 1] };
     }
     setMark(key, p, surface, text, color) {   // a picked point (null: hide it)
       let o = this.marks.get(key);
@@ -438,7 +446,10 @@
         this.viewer.set_object(["btm", "console", key], group);
         o = { group, ball, ring, stem };
         this.marks.set(key, o);
-        this.label("m:" + key, text, "task mark", color);
+        this.label("m:" + key, "", "mark", color);   // a ring of fixed size on the page, and the name
+        const el = this.labels.get("m:" + key).el;
+        el.innerHTML = '<i></i><span></span>';
+        el.style.setProperty("--mark", color);
       }
       o.group.visible = true;
       o.ball.position.set(p[0], p[1], p[2]);
@@ -447,7 +458,7 @@
       o.stem.geometry.dispose();
       o.stem.geometry = new THREE.BufferGeometry().setFromPoints([new THREE.Vector3(...from), new THREE.Vector3(...p)]);
       const lab = this.labels.get("m:" + key);
-      lab.p = p; lab.el.textContent = text;
+      lab.p = p; lab.el.lastChild.textContent = text;
       this.viewer.set_dirty();
     }
     pick(cx, cy) {               // the agent or task under a click (meshcat's camera ray)
@@ -741,6 +752,7 @@
   // and then what happens to the task it touched (from the records), goes to the console log.
   const TOKEN_KEY = "btm-token";
   const OFFSET_M = 1.0;        // a picked task location: this far off the rock face clicked
+                               // (unless info.console.pick_offset_m says otherwise)
   const STATUS_MS = 1000;      // api/status is polled this often while the run goes on
   const FINAL = new Set(["done", "failed", "cancelled"]);
   const MARK_COLORS = ["#e879f9", "#22d3ee", "#fde047", "#fb7185"];
@@ -818,7 +830,8 @@
     const sent = model.tEnd;
     const res = await request(method, path, body);
     logResult(res.ok, res.message);
-    if (res.ok && task) watchTask(task, typeof res.data.t === "number" ? res.data.t : sent);
+    // its states from the step that applied the command (the answer's t, rounded to 1 ms)
+    if (res.ok && task) watchTask(task, typeof res.data.t === "number" ? res.data.t - 0.01 : sent);
     pollStatus();
     return res;
   }
@@ -850,9 +863,10 @@
       let k = w.seen;
       for (; k < task.states.length; k++) {
         const st = task.states[k];
-        if (st[0] < w.since - 1e-6) continue;
+        if (st[0] < w.since) continue;
         const text = taskNews(id, st, k ? task.states[k - 1] : null);
-        if (text) logResult(st[1] !== "unreachable" && st[1] !== "failed", text);
+        // (the command's own answer may have said it already: "T4 cancelled at 137.0 s")
+        if (text && text !== document.body.dataset.lastResult) logResult(st[1] !== "unreachable" && st[1] !== "failed", text);
       }
       w.seen = k;
       if (k && FINAL.has(task.states[k - 1][1])) ops.watch.delete(id);
@@ -896,7 +910,7 @@
       (s.excluded
         ? `<button id="btn-exclude" data-act="include"${off} title="${esc(id)} bids for tasks again">Include</button>`
         : `<button id="btn-exclude" data-act="exclude"${off} title="Take ${esc(id)} out of the auction: it wins no new task">Exclude</button>`) +
-      (ops.cfg.link_drills
+      (ops.cfg.link_drills && (!ops.cfg.drill_agents || ops.cfg.drill_agents.includes(id))
         ? (s.link_up === false
           ? `<button id="btn-link" data-act="link" data-up="1"${off} title="Drill: restore ${esc(id)}'s link to the coordinator">Restore link</button>`
           : `<button id="btn-link" data-act="link" data-up="0"${off} title="Drill (simulator): cut ${esc(id)}'s link to the coordinator">Cut link</button>`)
@@ -1087,12 +1101,16 @@
     if (!ops.arm) return false;
     const hit = scene.surfacePick(cx, cy);
     if (!hit) { hint("Nothing there: click the rock or a tunnel's floor · Esc cancels"); return true; }
-    const p = hit.p.map((v, i) => Math.round((v + hit.normal[i] * OFFSET_M) * 10) / 10);
+    const off = Number.isFinite(ops.cfg.pick_offset_m) ? ops.cfg.pick_offset_m : OFFSET_M;
+    const p = hit.p.map((v, i) => Math.round((v + hit.normal[i] * off) * 10) / 10);
     openForm();
     const pos = positions();
-    const field = ops.arm === "*" ? pos.find((f) => !ops.points.has(f)) || pos[0] : ops.arm;
+    const chain = ops.arm === "*";   // + Task: the type's positions one click after the other
+    const field = chain ? pos.find((f) => !ops.points.has(f)) || pos[0] : ops.arm;
     disarm();
     if (field) setPoint(field, p, hit.p);
+    const next = chain && pos.find((f) => !ops.points.has(f));
+    if (next) arm(next);
     return true;
   }
 
