@@ -1093,7 +1093,7 @@
   }
   async function refreshInfo() {   // the next free task id
     try {
-      const info = await (await fetch("api/info")).json();
+      const info = await (await fetch("api/info", { headers: authHeaders() })).json();
       if (info.console && info.console.enabled) Object.assign(ops.cfg, info.console);
     } catch (e) { /* the next add proposes the old id; the server says if it is taken */ }
   }
@@ -1177,6 +1177,7 @@
       try { sessionStorage.setItem(TOKEN_KEY, v); } catch (err) { /* kept for this page only */ }
       $("token-form").hidden = true;
       $("token-input").value = "";
+      if (ops.reloadOnToken) { location.reload(); return; }
       logResult(true, "token set: commands are sent with it");
       pollStatus();
     };
@@ -1293,7 +1294,17 @@
       document.body.dataset.complete = "1";
     } else {
       ops.token = takeToken();
-      const info = await (await fetch("api/info")).json();
+      const r = await fetch("api/info", { headers: authHeaders() });   // (off loopback it needs the token)
+      if (r.status === 401 || r.status === 403) {
+        const refusal = await r.json().catch(() => ({}));
+        $("console-bar").hidden = false;
+        $("btn-pause").hidden = true;
+        ops.reloadOnToken = true;     // with a token, the page starts again
+        askToken(errorText(r.status, refusal));
+        $("conn").textContent = "this page needs the run's token";
+        return;
+      }
+      const info = await r.json();
       start(info);
       const buf = await (await fetch("api/scene", { headers: authHeaders() })).arrayBuffer();
       document.body.dataset.sceneCommands = scene.loadCommands(buf);
