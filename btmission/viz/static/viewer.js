@@ -763,6 +763,7 @@
     arm: null,                 // add mode: null, "*" (the form's first position) or a field name
     points: new Map(),         // position field → {p, surface}: the form's points
     watch: new Map(),          // task id → {since: mission time, seen: its states told}
+    shown: [],                 // the form's position fields, in order
     watchedVersion: -1, actionsKey: "", closed: false,
   };
 
@@ -1005,6 +1006,7 @@
       ops.points.clear();
       (tt.positions || []).forEach((f, i) => { if (kept[i]) ops.points.set(f, kept[i]); });
     }
+    ops.shown = tt.positions || [];   // (the next type takes these points, in this order)
     $("task-fields").innerHTML = (tt.fields || []).map((f) => pos.has(f)
       ? `<div class="row pos" data-field="${esc(f)}"><span>${esc(f)}</span><span class="xyz">` +
         ["x", "y", "z"].map((c) => `<input type="number" step="0.1" name="${esc(f)}.${c}" placeholder="${c}" aria-label="${esc(f)} ${c} (m)">`).join("") +
@@ -1146,10 +1148,7 @@
     f.onsubmit = submitForm;
     $("task-form-cancel").onclick = closeForm;
     $("task-form-close").onclick = closeForm;
-    f.elements.type.onchange = () => {
-      const before = [...ops.points.keys()];
-      buildFields(before);
-    };
+    f.elements.type.onchange = () => buildFields(ops.shown);
     f.elements.id.oninput = showMarks;
     $("task-fields").addEventListener("click", (e) => {
       const b = e.target.closest("button.pick");
