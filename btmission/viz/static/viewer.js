@@ -198,12 +198,16 @@
       v.render = () => { render(); this.afterRender(); };
       this.agents = new Map(); this.tasks = new Map(); this.labels = new Map();
       this.onPick = null;      // (kind, id): a click (not a drag) on an agent or a task
+      this.onClick = null;     // (x, y) → true when it took the click (the console's add mode)
       let down = null;
       pane.addEventListener("pointerdown", (e) => { down = [e.clientX, e.clientY]; });
       pane.addEventListener("pointerup", (e) => {
-        if (down && Math.hypot(e.clientX - down[0], e.clientY - down[1]) < 5) this.pick(e.clientX, e.clientY);
+        if (down && Math.hypot(e.clientX - down[0], e.clientY - down[1]) < 5) {
+          if (!(this.onClick && this.onClick(e.clientX, e.clientY))) this.pick(e.clientX, e.clientY);
+        }
         down = null;
       });
+      this.marks = new Map();  // the console's picked points, by form field
       this.options = { trails: true, routes: true, labels: true };
       this.scale = 1;
       this.selected = null;
@@ -390,11 +394,75 @@
       v.project(this.viewer.camera);
       return [(v.x + 1) / 2 * this.pane.offsetWidth, (1 - v.y) / 2 * this.pane.offsetHeight, v.z];
     }
-    pick(cx, cy) {               // the agent or task under a click (meshcat's camera ray)
+    worldScreen(p) {             // a world point in page coordinates (tests)
+      const r = this.pane.getBoundingClientRect();
+      const [x, y] = this.screenPos(p);
+      return [r.left + x, r.top + y];
+    }
+    ray(cx, cy) {                // the camera ray through a page point
       const r = this.pane.getBoundingClientRect();
       const ndc = new THREE.Vector2((cx - r.left) / r.width * 2 - 1, -(cy - r.top) / r.height * 2 + 1);
       const ray = new THREE.Raycaster();
+      this.viewer.camera.updateMatrixWorld();
       ray.setFromCamera(ndc, this.viewer.camera);
+      return ray;
+    }
+    surfacePick(cx, cy) {        // the mine's surface under a page point: {p, normal}, world frame
+      const r = this.pane.getBoundingClientRect();
+      if (cx < r.left || cx >= r.right || cy < r.top || cy >= r.bottom) return null;
+      const ray = this.ray(cx, cy);
+      const node = this.viewer.scene_tree.children.mine;  // scene.py's /mine (front faces only,
+      if (node && node.object.visible) {                   // so the cut-away near rock is not hit)
+        node.object.updateMatrixWorld(true);
+        const hit = ray.intersectObject(node.object, true).find((h) => h.face);
+        if (hit) {
+          const n = hit.face.normal.clone().applyMatrix3(new THREE.Matrix3().getNormalMatrix(hit.object.matrixWorld)).normalize();
+          return { p: [hit.point.x, hit.point.y, hit.point.z], normal: [n.x, n.y, n.z] };
+        }
+      }
+      if (!this.bounds) return null;   // no rock there: the map's floor (a map without rock stands on it)
+      const [lo, hi] = this.bounds;
+      const p = ray.ray.intersectPlane(new THREE.Plane(new THREE.Vector3(0, 0, 1), -lo[2]), new THREE.Vector3());
+      if (!p || p.x < lo[0] || p.x > hi[0] || p.y < lo[1] || p.y > hi[1]) return null;
+      return { p: [p.x, p.y, p.z], normal: [0, 0, 1] };
+    }
+    setMark(key, p, surface, text, color) {   // a picked point (null: hide it)
+      let o = this.marks.get(key);
+      if (!p) {
+        if (o) { o.group.visible = false; this.labels.get("m:" + key).p = null; this.viewer.set_dirty(); }
+        return;
+      }
+      if (!o) {
+        const s = this.scale;
+        const group = new THREE.Group();
+        const mat = new THREE.MeshBasicMaterial({ color: new THREE.Color(color), depthTest: false, transparent: true, opacity: 0.95 });
+        const ball = new THREE.Mesh(new THREE.SphereGeometry(0.45 * s, 16, 12), mat);
+        ball.renderOrder = 10;
+        const ring = new THREE.Mesh(new THREE.TorusGeometry(1.0 * s, 0.09 * s, 6, 32), mat);
+        ring.renderOrder = 10;
+        const stem = new THREE.Line(new THREE.BufferGeometry(), new THREE.LineBasicMaterial({ color: new THREE.Color(color), depthTest: false }));
+        stem.renderOrder = 10;
+        group.add(ball, ring, stem);
+        this.viewer.set_object(["btm", "console", key], group);
+        o = { group, ball, ring, stem };
+        this.marks.set(key, o);
+        this.label("m:" + key, "", "mark", color);   // a ring of fixed size on the page, and the name
+        const el = this.labels.get("m:" + key).el;
+        el.innerHTML = '<i></i><span></span>';
+        el.style.setProperty("--mark", color);
+      }
+      o.group.visible = true;
+      o.ball.position.set(p[0], p[1], p[2]);
+      o.ring.position.set(p[0], p[1], p[2]);
+      const from = surface || p;
+      o.stem.geometry.dispose();
+      o.stem.geometry = new THREE.BufferGeometry().setFromPoints([new THREE.Vector3(...from), new THREE.Vector3(...p)]);
+      const lab = this.labels.get("m:" + key);
+      lab.p = p; lab.el.lastChild.textContent = text;
+      this.viewer.set_dirty();
+    }
+    pick(cx, cy) {               // the agent or task under a click (meshcat's camera ray)
+      const ray = this.ray(cx, cy);
       const targets = [...this.agents.values()].map((o) => o.group).concat([...this.tasks.values()].map((o) => o.group));
       for (const hit of ray.intersectObjects(targets.filter((g) => g.visible), true)) {
         let o = hit.object;
@@ -534,18 +602,22 @@
       counts[st[1]] = (counts[st[1]] || 0) + 1;
       const done = task.states.find((s) => s[1] === "done" && s[0] <= t);
       const color = TASK_COLORS[st[1]] || "#fff";
+      const live = ops.cfg && opsTaskOpen(task);   // the console's controls: on what is not over
       rows.push(`<tr data-task="${esc(task.id)}" data-state="${esc(st[1])}"${state.task === task.id ? ' class="picked"' : ""}><td>${esc(task.id)}</td><td>${esc(task.type)}</td>` +
         `<td><span class="state" style="background:${color}">${esc(st[1])}</span></td><td>${esc(st[2] || "")}</td>` +
-        `<td>${task.priority === undefined || task.priority === null ? "" : esc(task.priority)}</td><td>${fmt(task.added)}</td>` +
-        `<td>${done ? fmt(done[0]) : ""}</td><td class="muted">${esc(st[3] || "")}</td></tr>`);
+        `<td>${live ? prioritySelect(task) : task.priority === undefined || task.priority === null ? "" : esc(task.priority)}</td><td>${fmt(task.added)}</td>` +
+        `<td>${done ? fmt(done[0]) : ""}</td><td class="muted">${esc(st[3] || "")}</td>` +
+        (ops.cfg ? `<td class="ops">${live ? `<button class="cancel-task" data-task="${esc(task.id)}" title="Cancel ${esc(task.id)}"${ops.closed ? " disabled" : ""}>✕</button>` : ""}</td>` : "") + "</tr>");
     }
-    $("tasks").tBodies[0].innerHTML = rows.join("");
+    const body = $("tasks").tBodies[0], html = rows.join("");
+    // rewritten only when it changed, and never under the operator's hand (an open menu)
+    if (html !== state.tasksHtml && !body.contains(document.activeElement)) { body.innerHTML = html; state.tasksHtml = html; }
     $("counts").innerHTML = Object.entries(counts).map(([k, n]) => `<span style="color:${TASK_COLORS[k] || "#fff"}">${k} ${n}</span>`).join("");
     // the selected agent: action, task, mode; its tree and blackboard
     const a = state.selected ? model.agents.get(state.selected) : null;
     if (a) {
       const pose = a.poseAt(t), stage = lastAt(a.stages, t), cur = lastAt(a.tasks, t), lost = lastAt(a.lost, t);
-      $("agent-info").innerHTML = `<b>${esc(a.id)}</b> · task <b>${esc(cur && cur[1] ? cur[1] : "—")}</b> · action <b>${esc(stage ? stage[1] : "—")}</b>` +
+      $("agent-text").innerHTML = `<b>${esc(a.id)}</b> · task <b>${esc(cur && cur[1] ? cur[1] : "—")}</b> · action <b>${esc(stage ? stage[1] : "—")}</b>` +
         (pose ? `<br>mode ${esc(pose.mode || "?")} · (${pose.x.toFixed(1)}, ${pose.y.toFixed(1)}, ${pose.z.toFixed(1)}) m` : "") +
         (lost ? `<br><span style="color:var(--failure)">lost: ${esc(lost[1])}</span>` : "");
       tree.show(a);
@@ -556,6 +628,7 @@
         `<tr class="${t - (c.changedAt.get(k) || -99) < 1 ? "changed" : ""}"><td>${esc(k)}</td><td>${esc(JSON.stringify(v))}</td></tr>`).join("") ||
         '<tr><td class="muted">(empty)</td><td></td></tr>';
     }
+    agentActions();
     if ($("tab-timeline").classList.contains("active")) timeline(t);
     if ($("tab-events").classList.contains("active")) {
       const i = bisect(model.events.tsCache || [], t);
@@ -631,7 +704,7 @@
     const key = `${a.id}:${p.x.toFixed(1)}:${p.y.toFixed(1)}:${p.z.toFixed(1)}`;
     if (key === state.lidarKey || state.lidarBusy) return;
     state.lidarKey = key; state.lidarBusy = true;
-    fetch(`api/scan?x=${p.x}&y=${p.y}&z=${p.z}&yaw=${p.yaw}`).then((r) => r.json()).then((d) => {
+    fetch(`api/scan?x=${p.x}&y=${p.y}&z=${p.z}&yaw=${p.yaw}`, { headers: authHeaders() }).then((r) => r.json()).then((d) => {
       scene.setLidar(d.points);
       document.body.dataset.lidarPoints = d.points.length / 3;
     }).catch(() => {}).finally(() => { state.lidarBusy = false; });
@@ -646,6 +719,7 @@
       state.viewT = Math.min(model.tEnd, state.viewT + dt * state.speed);
       if (state.viewT >= model.tEnd && (!state.live || state.complete)) state.playing = false;
     }
+    if (ops.watch.size && model.version !== ops.watchedVersion) { ops.watchedVersion = model.version; watchTasks(); }
     const t = state.viewT;
     if (t !== state.drawnT || model.version !== state.drawnVersion) {
       scene.update(t);
@@ -670,6 +744,465 @@
     }
     document.body.dataset.picked = `${kind}:${id}`;
   };
+
+  // ------------------------------------------------------------------------ the operator console
+  // A live run served with a console (info.console.enabled: `btmission run --console`): add a
+  // task where the map is clicked, cancel one, change its priority, recall an agent, take it out
+  // of the auction, pause the allocation, cut a link (simulator drills). Every action's result,
+  // and then what happens to the task it touched (from the records), goes to the console log.
+  const TOKEN_KEY = "btm-token";
+  const OFFSET_M = 1.0;        // a picked task location: this far off the rock face clicked
+                               // (unless info.console.pick_offset_m says otherwise)
+  const STATUS_MS = 1000;      // api/status is polled this often while the run goes on
+  const FINAL = new Set(["done", "failed", "cancelled"]);
+  const MARK_COLORS = ["#e879f9", "#22d3ee", "#fde047", "#fb7185"];
+  const ops = {
+    cfg: null,                 // info.console, when it is enabled
+    token: null,
+    status: null, agentStatus: new Map(), taskStatus: new Map(),
+    arm: null,                 // add mode: null, "*" (the form's first position) or a field name
+    points: new Map(),         // position field → {p, surface}: the form's points
+    watch: new Map(),          // task id → {since: mission time, seen: its states told}
+    shown: [],                 // the form's position fields, in order
+    watchedVersion: -1, actionsKey: "", closed: false,
+  };
+
+  function takeToken() {       // ?token=… → this tab's session storage, and out of the address bar
+    try {
+      const q = new URLSearchParams(location.search);
+      const tok = q.get("token");
+      if (tok) {
+        sessionStorage.setItem(TOKEN_KEY, tok);
+        q.delete("token");
+        const rest = q.toString();
+        history.replaceState(history.state, "", location.pathname + (rest ? "?" + rest : "") + location.hash);
+      }
+      return sessionStorage.getItem(TOKEN_KEY);
+    } catch (e) {
+      return null;
+    }
+  }
+  function authHeaders(h) {
+    h = h || {};
+    if (ops.token) h.Authorization = "Bearer " + ops.token;
+    return h;
+  }
+  function streamQuery() {
+    const c = state.info && state.info.console;
+    return c && c.token_required && ops.token ? "&token=" + encodeURIComponent(ops.token) : "";
+  }
+
+  function logResult(ok, text) {
+    const li = document.createElement("li");
+    li.dataset.ok = ok ? "1" : "0";
+    li.textContent = text;
+    const log = $("console-log");
+    log.prepend(li);
+    while (log.children.length > 200) log.lastChild.remove();
+    document.body.dataset.lastResult = text;
+  }
+  function errorText(status, data, retry) {
+    let m = data && typeof data.message === "string" ? data.message : "";
+    if (!m && data && typeof data.detail === "string") m = data.detail;
+    if (!m && data && Array.isArray(data.detail)) {
+      m = data.detail.map((d) => `${(d.loc || []).filter((x) => x !== "body").join(".")}: ${d.msg}`).join("; ");
+    }
+    if (!m) m = `the server answered ${status}`;
+    if (status === 429 && retry) m += ` (try again in ${retry} s)`;
+    return m;
+  }
+  async function request(method, path, body) {
+    const headers = authHeaders({ "X-Btmission-Client": "page" });
+    if (body !== undefined) headers["Content-Type"] = "application/json";
+    let r;
+    try {
+      r = await fetch(path, { method, headers, body: body === undefined ? undefined : JSON.stringify(body) });
+    } catch (e) {
+      return { ok: false, status: 0, data: {}, message: "the viewer's server did not answer (has the run's process stopped?)" };
+    }
+    let data = {};
+    try { data = await r.json(); } catch (e) { data = {}; }
+    if (r.ok) return { ok: true, status: r.status, data, message: data.message || `${data.command || method} ok` };
+    const message = errorText(r.status, data, r.headers.get("Retry-After"));
+    if (r.status === 401 || r.status === 403) askToken(message);
+    return { ok: false, status: r.status, data, message };
+  }
+  async function act(method, path, body, task) {   // one action; its result goes to the log
+    const sent = model.tEnd;
+    const res = await request(method, path, body);
+    logResult(res.ok, res.message);
+    // its states from the step that applied the command (the answer's t, rounded to 1 ms)
+    if (res.ok && task) watchTask(task, typeof res.data.t === "number" ? res.data.t - 0.01 : sent);
+    pollStatus();
+    return res;
+  }
+
+  // what happens to the tasks the console touched, told as the records bring it
+  function watchTask(id, since) {   // its states from mission time `since` on
+    ops.watch.set(id, { since, seen: 0 });
+    ops.watchedVersion = -1;
+  }
+  function taskNews(id, st, prev) {
+    const [t, s, agent, note] = st;
+    const at = `at ${fmt(t)} s`;
+    if (prev && prev[1] === s && prev[2] === agent) return null;
+    switch (s) {
+      case "open": return prev ? `${id} back in the pool ${at}${note ? ": " + note : ""}` : null;
+      case "assigned": return `${id} assigned to ${agent} ${at}`;
+      case "committed": return `${id}: ${agent} committed ${at}`;
+      case "done": return `${id} done by ${agent} ${at}`;
+      case "unreachable": return `${id} unreachable: ${note || "no agent can reach it"}`;
+      case "failed": return `${id} failed${agent ? " (" + agent + ")" : ""} ${at}${note ? ": " + note : ""}`;
+      case "cancelled": return `${id} cancelled ${at}`;
+      default: return `${id} ${s} ${at}`;
+    }
+  }
+  function watchTasks() {
+    for (const [id, w] of ops.watch) {
+      const task = model.tasks.get(id);
+      if (!task) continue;
+      let k = w.seen;
+      for (; k < task.states.length; k++) {
+        const st = task.states[k];
+        if (st[0] < w.since) continue;
+        const text = taskNews(id, st, k ? task.states[k - 1] : null);
+        // (the command's own answer may have said it already: "T4 cancelled at 137.0 s")
+        if (text && text !== document.body.dataset.lastResult) logResult(st[1] !== "unreachable" && st[1] !== "failed", text);
+      }
+      w.seen = k;
+      if (k && FINAL.has(task.states[k - 1][1])) ops.watch.delete(id);
+    }
+  }
+
+  // ---- the task table's controls
+  function opsTaskOpen(task) { // not over at the run's newest time
+    const st = task.states[task.states.length - 1];
+    return !!st && !FINAL.has(st[1]);
+  }
+  function prioritySelect(task) {
+    const tt = (ops.cfg.task_types || {})[task.type] || {};
+    const base = Number(tt.priority) || 1;
+    const s = ops.taskStatus.get(task.id);
+    const p = Number(s && s.priority !== undefined ? s.priority : task.priority);
+    let found = false;
+    const opts = Object.entries(ops.cfg.priorities || {}).map(([name, m]) => {
+      const sel = !found && Math.abs(base * m - p) <= 1e-6 * Math.max(1, Math.abs(p));
+      found = found || sel;
+      return `<option value="${esc(name)}"${sel ? " selected" : ""}>${esc(name)} (${+(base * m).toFixed(3)})</option>`;
+    });
+    if (!found) opts.unshift(`<option value="" selected disabled>${esc(Number.isFinite(p) ? +p.toFixed(3) : "?")}</option>`);
+    return `<select class="task-priority" data-task="${esc(task.id)}" title="Change ${esc(task.id)}'s priority"${ops.closed ? " disabled" : ""}>${opts.join("")}</select>`;
+  }
+
+  // ---- the selected agent's controls
+  function agentActions() {
+    const el = $("agent-actions");
+    if (!ops.cfg || !state.selected) { el.hidden = true; return; }
+    const id = state.selected, s = ops.agentStatus.get(id) || {};
+    const key = JSON.stringify([id, s.alive, s.link_up, s.recalled, s.excluded, ops.closed]);
+    if (key === ops.actionsKey) return;
+    ops.actionsKey = key;
+    el.hidden = false;
+    const off = ops.closed || s.alive === false ? " disabled" : "";
+    const chips = [[s.alive === false, "not running"], [s.recalled, "recalled"], [s.excluded, "excluded"], [s.link_up === false, "link down"]]
+      .filter(([on]) => on).map(([, text]) => `<span class="chip">${text}</span>`);
+    el.innerHTML =
+      `<button id="btn-recall" data-act="recall"${off || (s.recalled ? " disabled" : "")} title="${esc(id)} gives up its task, stops bidding and runs its default behaviour (home)">⌂ Recall</button>` +
+      (s.excluded
+        ? `<button id="btn-exclude" data-act="include"${off} title="${esc(id)} bids for tasks again">Include</button>`
+        : `<button id="btn-exclude" data-act="exclude"${off} title="Take ${esc(id)} out of the auction: it wins no new task">Exclude</button>`) +
+      (ops.cfg.link_drills && (!ops.cfg.drill_agents || ops.cfg.drill_agents.includes(id))
+        ? (s.link_up === false
+          ? `<button id="btn-link" data-act="link" data-up="1"${off} title="Drill: restore ${esc(id)}'s link to the coordinator">Restore link</button>`
+          : `<button id="btn-link" data-act="link" data-up="0"${off} title="Drill (simulator): cut ${esc(id)}'s link to the coordinator">Cut link</button>`)
+        : "") + chips.join("");
+  }
+
+  // ---- status: what the records do not carry (pause, exclusion, links)
+  async function pollStatus() {
+    if (!ops.cfg) return;
+    let r;
+    try { r = await fetch("api/status", { headers: authHeaders() }); } catch (e) { return; }
+    if (r.status === 401 || r.status === 403) { askToken(errorText(r.status, await r.json().catch(() => ({})))); return; }
+    if (!r.ok) return;
+    const s = await r.json().catch(() => null);
+    if (s) applyStatus(s);
+  }
+  function statusLoop() {
+    pollStatus().finally(() => { if (!ops.closed) setTimeout(statusLoop, STATUS_MS); });
+  }
+  function applyStatus(s) {
+    ops.status = s;
+    ops.agentStatus = new Map((s.agents || []).map((a) => [a.id, a]));
+    ops.taskStatus = new Map((s.tasks || []).map((t) => [t.id, t]));
+    const paused = !!(s.allocation && s.allocation.paused);
+    const b = $("btn-pause");
+    b.textContent = paused ? "Resume allocation" : "Pause allocation";
+    b.classList.toggle("warn", paused);
+    $("console-state").textContent = paused ? "allocation paused" : "";
+    for (const tab of $("agent-tabs").children) {
+      const a = ops.agentStatus.get(tab.dataset.agent) || {};
+      tab.classList.toggle("excluded", !!a.excluded || !!a.recalled);
+      tab.classList.toggle("nolink", a.link_up === false);
+    }
+    if (s.ended) closeConsole();
+    state.drawnT = -1;
+  }
+  function closeConsole() {    // the run has ended: nothing more to command
+    if (ops.closed || !ops.cfg) return;
+    ops.closed = true;
+    disarm();
+    for (const id of ["btn-add-task", "btn-pause", "task-form-submit"]) $(id).disabled = true;
+    $("console-state").textContent = "run ended";
+    logResult(true, "the run has ended: the console takes no more commands");
+    state.tasksHtml = ""; ops.actionsKey = ""; state.drawnT = -1;
+  }
+
+  // ---- the token
+  function askToken(message) {
+    const f = $("token-form");
+    f.hidden = false;
+    f.title = message || "This console needs the token printed on the terminal (the URL's ?token=…)";
+    $("token-input").classList.toggle("bad", !!message);
+  }
+
+  // ---- add a task: pick the map, fill the form
+  function typeInfo(type) { return ((ops.cfg && ops.cfg.task_types) || {})[type] || { fields: [], positions: [] }; }
+  function formEl() { return $("task-form"); }
+  function arm(field) {
+    ops.arm = field;
+    $("view3d").classList.add("arming");
+    $("btn-add-task").classList.add("on");
+    hint(field === "*" ? "Click the map where the task goes · Esc cancels" : `Click the map: ${field} · Esc cancels`);
+  }
+  function disarm() {
+    ops.arm = null;
+    $("view3d").classList.remove("arming");
+    $("btn-add-task").classList.remove("on");
+    hint(null);
+  }
+  function hint(text) { const h = $("pick-hint"); h.hidden = !text; h.textContent = text || ""; }
+  function positions() { return typeInfo(formEl().elements.type.value).positions || []; }
+  function openForm() {
+    const f = formEl();
+    if (!f.hidden) return;
+    f.hidden = false;
+    f.elements.id.value = ops.cfg.next_task_id || "";
+    ops.points.clear();
+    buildFields();
+    formMessage("");
+  }
+  function closeForm() {
+    formEl().hidden = true;
+    ops.points.clear();
+    showMarks();
+    disarm();
+    formMessage("");
+  }
+  function buildFields(previous) {
+    const tt = typeInfo(formEl().elements.type.value), pos = new Set(tt.positions || []);
+    if (previous) {            // a new type: its positions take the points in the same order
+      const kept = previous.map((f) => ops.points.get(f)).filter(Boolean);
+      ops.points.clear();
+      (tt.positions || []).forEach((f, i) => { if (kept[i]) ops.points.set(f, kept[i]); });
+    }
+    ops.shown = tt.positions || [];   // (the next type takes these points, in this order)
+    $("task-fields").innerHTML = (tt.fields || []).map((f) => pos.has(f)
+      ? `<div class="row pos" data-field="${esc(f)}"><span>${esc(f)}</span><span class="xyz">` +
+        ["x", "y", "z"].map((c) => `<input type="number" step="0.1" name="${esc(f)}.${c}" placeholder="${c}" aria-label="${esc(f)} ${c} (m)">`).join("") +
+        `</span><button type="button" class="pick" data-field="${esc(f)}" title="Pick ${esc(f)} on the map">pick</button></div>`
+      : `<label class="row" data-field="${esc(f)}"><span>${esc(f)}</span><input name="${esc(f)}" list="places-list" placeholder="place or number" spellcheck="false"></label>`).join("");
+    for (const [f, pt] of ops.points) fillPoint(f, pt.p);
+    showMarks();
+  }
+  function fillPoint(field, p) {
+    const f = formEl();
+    ["x", "y", "z"].forEach((c, i) => { const el = f.elements[`${field}.${c}`]; if (el) el.value = +p[i].toFixed(1); });
+  }
+  function setPoint(field, p, surface) {
+    ops.points.set(field, { p, surface });
+    fillPoint(field, p);
+    const row = formEl().querySelector(`.row[data-field="${CSS.escape(field)}"]`);
+    if (row) row.classList.remove("bad");
+    showMarks();
+  }
+  function showMarks() {
+    const pos = formEl().hidden ? [] : positions();
+    const id = formEl().elements.id.value.trim() || "new task";
+    pos.forEach((f, k) => {
+      const pt = ops.points.get(f);
+      scene.setMark(f, pt ? pt.p : null, pt ? pt.surface : null, pos.length > 1 ? `${id} ${f}` : id, MARK_COLORS[k % MARK_COLORS.length]);
+    });
+    for (const key of scene.marks.keys()) if (!pos.includes(key)) scene.setMark(key, null);
+  }
+  function formMessage(text, field) {
+    const f = formEl();
+    $("task-form-msg").textContent = text;
+    for (const el of f.querySelectorAll(".bad")) el.classList.remove("bad");
+    if (!field) return;
+    const el = f.querySelector(`.row[data-field="${CSS.escape(field)}"]`) || (f.elements[field] && f.elements[field].closest(".row"));
+    if (el) {
+      el.classList.add("bad");
+      const input = el.querySelector("input, select");
+      if (input) input.focus();
+    }
+  }
+  function badField(res) {     // the form field a refusal names: 422's detail[0].loc, or "field: …"
+    const f = formEl();
+    const known = (name) => typeof name === "string" && (f.elements[name] || f.querySelector(`.row[data-field="${CSS.escape(name)}"]`));
+    const d = res.data && res.data.detail;
+    if (Array.isArray(d) && d.length && Array.isArray(d[0].loc)) {
+      for (let i = d[0].loc.length - 1; i >= 0; i--) if (known(d[0].loc[i])) return d[0].loc[i];
+    }
+    const m = /^([\w.-]+):/.exec(res.message || "");
+    return m && known(m[1]) ? m[1] : null;
+  }
+  async function submitForm(e) {
+    e.preventDefault();
+    if (ops.closed) return;
+    const f = formEl();
+    const type = f.elements.type.value, tt = typeInfo(type), pos = new Set(tt.positions || []);
+    const body = { type, priority: f.elements.priority.value };
+    const id = f.elements.id.value.trim();
+    if (id) body.id = id;
+    for (const field of tt.fields || []) {
+      if (pos.has(field)) {
+        const v = ["x", "y", "z"].map((c) => f.elements[`${field}.${c}`].value.trim());
+        if (v.some((x) => x === "" || !Number.isFinite(Number(x)))) {
+          formMessage(`${field}: give x, y and z, or pick the point on the map`, field);
+          return;
+        }
+        body[field] = v.map(Number);
+      } else {
+        const v = f.elements[field].value.trim();
+        if (v !== "") body[field] = /^[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$/.test(v) ? Number(v) : v;
+      }
+    }
+    formMessage("");
+    $("task-form-submit").disabled = true;
+    const res = await request("POST", "api/tasks", body);
+    $("task-form-submit").disabled = ops.closed;
+    logResult(res.ok, res.message);
+    if (res.ok) {
+      const tid = res.data.task || id;
+      if (tid) watchTask(tid, -Infinity);
+      closeForm();
+      refreshInfo();
+    } else {
+      formMessage(res.message, badField(res));
+    }
+    pollStatus();
+  }
+  async function refreshInfo() {   // the next free task id
+    try {
+      const info = await (await fetch("api/info", { headers: authHeaders() })).json();
+      if (info.console && info.console.enabled) Object.assign(ops.cfg, info.console);
+    } catch (e) { /* the next add proposes the old id; the server says if it is taken */ }
+  }
+  function pickPoint(cx, cy) {     // Scene3D.onClick: in add mode a click picks the surface
+    if (!ops.arm) return false;
+    const hit = scene.surfacePick(cx, cy);
+    if (!hit) { hint("Nothing there: click the rock or a tunnel's floor · Esc cancels"); return true; }
+    const off = Number.isFinite(ops.cfg.pick_offset_m) ? ops.cfg.pick_offset_m : OFFSET_M;
+    const p = hit.p.map((v, i) => Math.round((v + hit.normal[i] * off) * 10) / 10);
+    openForm();
+    const pos = positions();
+    const chain = ops.arm === "*";   // + Task: the type's positions one click after the other
+    const field = chain ? pos.find((f) => !ops.points.has(f)) || pos[0] : ops.arm;
+    disarm();
+    if (field) setPoint(field, p, hit.p);
+    const next = chain && pos.find((f) => !ops.points.has(f));
+    if (next) arm(next);
+    return true;
+  }
+
+  function setupConsole(info) {
+    const c = info.console;
+    if (CFG.embedded || info.mode !== "live") return;   // a replay, the offline file: no console
+    if (!c || !c.enabled) {
+      const badge = $("console-ro");
+      badge.hidden = false;
+      badge.title = (c && c.reason) || "This page only watches the run";
+      return;
+    }
+    ops.cfg = c;
+    document.body.classList.add("console-on");
+    for (const id of ["console-bar", "btn-add-task", "console-panel", "th-ops"]) $(id).hidden = false;
+    const f = formEl();
+    f.elements.type.innerHTML = Object.keys(c.task_types || {}).map((t) => `<option value="${esc(t)}">${esc(t)}</option>`).join("");
+    f.elements.priority.innerHTML = Object.entries(c.priorities || { normal: 1 })
+      .map(([n, m]) => `<option value="${esc(n)}"${n === "normal" ? " selected" : ""}>${esc(n)} (×${esc(m)})</option>`).join("");
+    $("places-list").innerHTML = (c.places || []).map((p) => `<option value="${esc(p)}"></option>`).join("");
+    if (!ops.token) askToken(null);
+    statusLoop();
+  }
+
+  function bindConsole() {
+    scene.onClick = pickPoint;
+    const f = formEl();
+    $("btn-add-task").onclick = () => {
+      if (ops.arm) { disarm(); return; }
+      openForm();
+      arm("*");
+    };
+    f.onsubmit = submitForm;
+    $("task-form-cancel").onclick = closeForm;
+    $("task-form-close").onclick = closeForm;
+    f.elements.type.onchange = () => buildFields(ops.shown);
+    f.elements.id.oninput = showMarks;
+    $("task-fields").addEventListener("click", (e) => {
+      const b = e.target.closest("button.pick");
+      if (b) arm(b.dataset.field);
+    });
+    $("task-fields").addEventListener("input", (e) => {
+      const row = e.target.closest(".row");
+      if (row) row.classList.remove("bad");
+      const m = /^(.*)\.([xyz])$/.exec(e.target.name || "");
+      if (!m) return;
+      const v = ["x", "y", "z"].map((c) => f.elements[`${m[1]}.${c}`].value.trim());
+      if (v.every((x) => x !== "" && Number.isFinite(Number(x)))) ops.points.set(m[1], { p: v.map(Number), surface: null });
+      else ops.points.delete(m[1]);
+      showMarks();
+    });
+    $("btn-pause").onclick = () => {
+      const paused = !!(ops.status && ops.status.allocation && ops.status.allocation.paused);
+      act("POST", "api/allocation", { paused: !paused });
+    };
+    $("token-form").onsubmit = (e) => {
+      e.preventDefault();
+      const v = $("token-input").value.trim();
+      if (!v) return;
+      ops.token = v;
+      try { sessionStorage.setItem(TOKEN_KEY, v); } catch (err) { /* kept for this page only */ }
+      $("token-form").hidden = true;
+      $("token-input").value = "";
+      if (ops.reloadOnToken) { location.reload(); return; }
+      logResult(true, "token set: commands are sent with it");
+      pollStatus();
+    };
+    $("agent-actions").addEventListener("click", (e) => {
+      const b = e.target.closest("button[data-act]");
+      if (!b || b.disabled || !state.selected) return;
+      const what = b.dataset.act;
+      act("POST", `api/agents/${encodeURIComponent(state.selected)}/${what}`, what === "link" ? { up: b.dataset.up === "1" } : undefined);
+    });
+    const body = $("tasks").tBodies[0];
+    body.addEventListener("click", (e) => {
+      const b = e.target.closest("button.cancel-task");
+      if (!b || b.disabled) return;
+      b.disabled = true;
+      act("DELETE", `api/tasks/${encodeURIComponent(b.dataset.task)}`, undefined, b.dataset.task);
+    });
+    body.addEventListener("change", (e) => {
+      const sel = e.target.closest("select.task-priority");
+      if (!sel || !sel.value) return;
+      act("PATCH", `api/tasks/${encodeURIComponent(sel.dataset.task)}`, { priority: sel.value }, sel.dataset.task)
+        .finally(() => { sel.blur(); state.tasksHtml = ""; state.drawnT = -1; });
+    });
+    document.addEventListener("keydown", (e) => {
+      if (e.key === "Escape" && ops.arm) { e.preventDefault(); disarm(); }
+    });
+  }
 
   function bindControls() {
     $("btn-play").onclick = () => {
@@ -715,11 +1248,12 @@
     (info.agents || []).forEach((a) => model.agent(a.id, a.start));
     if (info.scene) scene.setBounds(info.scene.bounds);
     if (!state.live) { state.viewT = 0; state.playing = false; }
+    setupConsole(info);
     refreshControls();
   }
 
   function connect(cursor) {
-    const es = new EventSource(`api/stream?cursor=${cursor}`);
+    const es = new EventSource(`api/stream?cursor=${cursor}${streamQuery()}`);
     $("conn").textContent = "connected";
     es.onmessage = (e) => {
       const msg = JSON.parse(e.data);
@@ -730,7 +1264,7 @@
     };
     es.addEventListener("complete", () => {
       es.close(); state.complete = true; $("conn").textContent = "";
-      document.body.dataset.complete = "1"; refreshControls();
+      document.body.dataset.complete = "1"; refreshControls(); closeConsole();
     });
     es.onerror = () => {            // reconnect from where we were (not from the start)
       es.close();
@@ -749,6 +1283,7 @@
   async function main() {
     legend();
     bindControls();
+    bindConsole();
     if (CFG.embedded) {
       start(CFG.info);
       if (CFG.scene) scene.loadCommands(b64bytes(CFG.scene).buffer);
@@ -757,9 +1292,20 @@
       document.body.dataset.records = model.count;
       document.body.dataset.complete = "1";
     } else {
-      const info = await (await fetch("api/info")).json();
+      ops.token = takeToken();
+      const r = await fetch("api/info", { headers: authHeaders() });   // (off loopback it needs the token)
+      if (r.status === 401 || r.status === 403) {
+        const refusal = await r.json().catch(() => ({}));
+        $("console-bar").hidden = false;
+        $("btn-pause").hidden = true;
+        ops.reloadOnToken = true;     // with a token, the page starts again
+        askToken(errorText(r.status, refusal));
+        $("conn").textContent = "this page needs the run's token";
+        return;
+      }
+      const info = await r.json();
       start(info);
-      const buf = await (await fetch("api/scene")).arrayBuffer();
+      const buf = await (await fetch("api/scene", { headers: authHeaders() })).arrayBuffer();
       document.body.dataset.sceneCommands = scene.loadCommands(buf);
       connect(0);
     }
@@ -767,7 +1313,9 @@
     requestAnimationFrame(frame);
   }
 
-  window.btm = { model, scene, state, seek, selectAgent,
+  window.btm = { model, scene, state, seek, selectAgent, ops,
+    surfacePick: (cx, cy) => scene.surfacePick(cx, cy),
+    worldScreen: (p) => scene.worldScreen(p),
     agentScreen: (id) => { const p = model.agents.get(id).poseAt(state.viewT); return p ? scene.screenPos([p.x, p.y, p.z]) : null; } };
   main().catch((e) => { $("conn").textContent = "error: " + e; console.error(e); });
 })();
