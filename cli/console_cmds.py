@@ -207,18 +207,20 @@ def task_add(
 
 
 def _wait_for(client: Any, task: str, until: str, timeout: float) -> None:
-    """Poll the status until ``task`` is assigned (or done), printing each change."""
+    """Poll the status until ``task`` is assigned (or done), printing each change of its
+    history once (the status carries its latest changes, so none is missed between polls)."""
     deadline = time.monotonic() + timeout
-    last: tuple[str, str | None] | None = None
+    printed: set[tuple[float, str, str | None]] = set()
     while True:
         status = _call(client.status)
         row = next((t for t in status.get("tasks", []) if t.get("id") == task), None)
         if row is not None:
-            now = (row.get("state"), row.get("agent"))
-            if now != last:
-                last = now
-                if row.get("note") not in QUIET_NOTES:  # just added: nothing to tell yet
-                    _say_state(task, row, row.get("since_s", status.get("t", 0.0)))
+            for t, state, agent, reason in row.get("history", []):
+                if (t, state, agent) in printed:
+                    continue
+                printed.add((t, state, agent))
+                if not (state == "open" and reason in QUIET_NOTES):  # just added: no news
+                    click.echo(_change(task, t, state, agent, reason))
             state = row.get("state")
             if state in ("unreachable", "failed", "cancelled"):
                 raise ChecksFailed(f"{task} {state}: {row.get('note') or 'no reason given'}")
@@ -231,15 +233,13 @@ def _wait_for(client: Any, task: str, until: str, timeout: float) -> None:
         time.sleep(POLL_S)
 
 
-def _say_state(task: str, row: dict[str, Any], t: float) -> None:
-    state, agent = row.get("state"), row.get("agent")
+def _change(task: str, t: float, state: str, agent: str | None, reason: str) -> str:
+    """One line for one change of a task's state."""
     if state in ("assigned", "committed"):
-        click.echo(f"{task} {state} to {agent} at {t:.1f} s")
-    elif state == "done":
-        click.echo(f"{task} done at {t:.1f} s")
-    else:
-        note = f": {row['note']}" if row.get("note") else ""
-        click.echo(f"{task} {state} at {t:.1f} s{note}")
+        return f"{task} {state} to {agent} at {t:.1f} s"
+    if state == "done":
+        return f"{task} done by {agent} at {t:.1f} s"
+    return f"{task} {state} at {t:.1f} s" + (f": {reason}" if reason else "")
 
 
 @task_group.command("cancel")

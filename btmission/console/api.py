@@ -57,6 +57,9 @@ READ_BURST = 400
 TOKEN_ENV = "BTMISSION_TOKEN"
 """The environment variable a run's console token (and the CLI's) may come from."""
 MUTATING = frozenset({"POST", "PUT", "PATCH", "DELETE"})
+COOKIE = "btmission_token"
+"""The cookie that keeps the token for reads off loopback after the page removed it from its
+address (HttpOnly, SameSite=Strict; commands still need the header)."""
 FREE_PATHS = ("/static/", "/favicon.ico")
 """What needs no token even off loopback: the page's own script and style (public code)."""
 
@@ -125,7 +128,27 @@ class Guard:
         if refusal is not None:
             await refusal(scope, receive, send)
             return
+        if self.security.token is not None and scope["method"] == "GET" and scope["path"] == "/":
+            send = self._remember(scope, send)
         await self.app(scope, _bounded(receive), send)
+
+    def _remember(self, scope: Scope, send: Send) -> Send:
+        """The page opened with ``?token=``: a cookie keeps the token for this browser, so that
+        a reload (the page removes the token from its address) still reads off loopback. The
+        cookie serves reads only: a command needs the header (no cross-site request sends it)."""
+        token = parse_qs(scope.get("query_string", b"").decode("latin-1")).get("token", [""])[0]
+        assert self.security.token is not None
+        if not token or not hmac.compare_digest(token.encode(), self.security.token.encode()):
+            return send
+        secure = "; Secure" if scope.get("scheme") == "https" else ""
+        cookie = f"{_cookie(scope)}={token}; Path=/; HttpOnly; SameSite=Strict{secure}"
+
+        async def inner(message: MutableMapping[str, Any]) -> None:
+            if message["type"] == "http.response.start":
+                message["headers"] = [*message.get("headers", []), (b"set-cookie", cookie.encode())]
+            await send(message)
+
+        return inner
 
     def check(self, scope: Scope) -> JSONResponse | None:
         """The refusal of this request, or None to let it through."""
@@ -166,7 +189,8 @@ class Guard:
                     "this run's console is read-only (started with --view): start it with "
                     "--console to command the run",
                 )
-            given = _token_of(headers, scope.get("query_string", b""))
+            query = scope.get("query_string", b"")
+            given = _token_of(headers, query, _cookie(scope) if method not in MUTATING else None)
             if not given:
                 return _refusal(
                     401,
@@ -185,12 +209,27 @@ def _hostname(host: str) -> str:
     return host.rsplit(":", 1)[0] if host.count(":") == 1 else host
 
 
-def _token_of(headers: dict[str, str], query: bytes) -> str:
+def _cookie(scope: Scope) -> str:
+    """The cookie's name on this server (cookies ignore ports: two runs must not share one)."""
+    server = scope.get("server") or ("", 0)
+    return f"{COOKIE}_{server[1]}"
+
+
+def _token_of(headers: dict[str, str], query: bytes, cookie: str | None) -> str:
+    """The token a request carries: its Bearer header, its ``?token=``, or (a read only) the
+    page's cookie."""
     auth = headers.get("authorization", "")
     if auth.lower().startswith("bearer "):
         return auth[7:].strip()
     values = parse_qs(query.decode("latin-1")).get("token")
-    return values[0] if values else ""
+    if values:
+        return values[0]
+    if cookie is not None:  # a read: the page's cookie will do
+        for part in headers.get("cookie", "").split(";"):
+            name, _, value = part.strip().partition("=")
+            if name == cookie:
+                return value
+    return ""
 
 
 def _bounded(receive: Receive) -> Receive:

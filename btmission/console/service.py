@@ -56,6 +56,8 @@ COMMAND_RATE_HZ = 20.0
 """Commands admitted per second on average ..."""
 COMMAND_BURST = 40
 """... and at most this many in a burst."""
+HISTORY = 20
+"""A task's latest changes in a status answer (what a client polling it may have missed)."""
 LINK_DRILL_SCHEMES = ("sim", "fake")
 """Vehicle providers whose agents' links may be cut for drills (in the simulator only)."""
 
@@ -154,9 +156,10 @@ class Console:
         the priority names and the next free task id: what the page's form is built from."""
         types = {}
         for name, tt in self.mission.task_types.items():
-            positions = [f for f in tt.fields if f in tt.cost.symbols or f in _goal_args(tt)]
+            fields = _field_order(tt)
+            positions = [f for f in fields if f in tt.cost.symbols or f in _goal_args(tt)]
             types[name] = {
-                "fields": list(tt.fields),
+                "fields": fields,
                 "positions": positions,
                 "priority": tt.priority,
                 "multi_stage": tt.commit_after is not None,
@@ -168,9 +171,17 @@ class Console:
             "places": sorted(self.run.places),
             "priorities": dict(PRIORITY_LEVELS),
             "next_task_id": self.next_task_id(),
+            "pick_offset_m": 0.0 if self._ground_fleet() else 1.0,
             "link_drills": bool(self.drill_agents),
             "drill_agents": sorted(self.drill_agents),
         }
+
+    def _ground_fleet(self) -> bool:
+        """Whether every agent drives (a task picked on a floor then stays on it)."""
+        from btmission.backends.base import VehicleKind
+
+        kinds = {v.kind for v in self.run.vehicles.values()}
+        return kinds == {VehicleKind.GROUND}
 
     def next_task_id(self) -> str:
         """The next free id in the mission's own pattern (T1..T7 → T8), else ``T<n>``."""
@@ -226,6 +237,10 @@ class Console:
                     "added_s": round(t.arrival_s, 3),
                     "note": t.note,
                     "since_s": round(pool[t.id].history[-1].time_s, 3),
+                    "history": [  # its latest changes: [t, state, agent, reason]
+                        [round(h.time_s, 3), h.state.value, h.agent, h.reason]
+                        for h in pool[t.id].history[-HISTORY:]
+                    ],
                     "fields": _plain(pool[t.id].info.fields),
                 }
                 for t in snap.tasks
@@ -376,6 +391,17 @@ class Console:
         if not outcome.ok:
             raise ConsoleError(409, outcome.error)
         return Result(command.name, True, outcome.t, f"{done} at {outcome.t:.1f} s", 200, task)
+
+
+def _field_order(tt: Any) -> list[str]:
+    """A task type's fields in the order a person fills them: as its goal names them
+    (``delivered(pickup, dropoff)``), then its commit condition, then its cost, then the rest."""
+    order: list[str] = []
+    atoms = [*getattr(tt, "goals", ()), *([tt.commit_after] if tt.commit_after else [])]
+    for name in [a for atom in atoms for a in atom.args] + list(tt.cost.symbols):
+        if name in tt.fields and name not in order:
+            order.append(name)
+    return order + [f for f in tt.fields if f not in order]
 
 
 def _goal_args(tt: Any) -> set[str]:
