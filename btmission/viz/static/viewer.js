@@ -1095,8 +1095,8 @@
   }
   async function refreshInfo() {   // the next free task id
     try {
-      const info = await (await fetch("api/info", { headers: authHeaders() })).json();
-      if (info.console && info.console.enabled) Object.assign(ops.cfg, info.console);
+      const res = await fetch("api/console", { headers: authHeaders() });
+      if (res.ok) Object.assign(ops.cfg, await res.json());
     } catch (e) { /* the next add proposes the old id; the server says if it is taken */ }
   }
   function pickPoint(cx, cy) {     // Scene3D.onClick: in add mode a click picks the surface
