@@ -18,6 +18,7 @@ from btmission.cli.common import BadInput, ChecksFailed, FiniteFloat, parse_numb
 F = TypeVar("F", bound=Callable[..., Any])
 
 TOKEN_ENV = "BTMISSION_TOKEN"
+TOKEN_HOW = "give it with --token-file FILE, BTMISSION_TOKEN, or ?token= in the URL"
 WAIT_STATES = ("added", "assigned", "done")
 POLL_S = 0.5
 QUIET_NOTES = ("added", "awaiting bids (newly announced)")
@@ -83,6 +84,8 @@ def _call(fn: Callable[[], Any]) -> Any:
     except ConsoleClientError as exc:
         if exc.status in (0, 429) or exc.status >= 500:
             raise ChecksFailed(str(exc)) from None
+        if exc.status in (401, 403) and "token" in str(exc):
+            raise BadInput(f"{exc}: {TOKEN_HOW}") from None
         raise BadInput(str(exc)) from None
 
 
@@ -101,11 +104,14 @@ def task_group() -> None:
     """
 
 
-def _field_value(text: str) -> Any:
-    """``x,y,z`` → a position, a number → a number, anything else → a place name."""
+def _field_value(text: str, name: str = "") -> Any:
+    """``x,y,z`` → a position, a number → a number, anything else → a place name (a value
+    with commas must be a position)."""
     nums = parse_numbers(text, 3)
     if nums is not None:
         return list(nums)
+    if "," in text:
+        raise BadInput(f"--field {name}={text}: expected a position X,Y,Z (three finite numbers)")
     try:
         v = float(text)
     except ValueError:
@@ -182,7 +188,7 @@ def task_add(
         name, sep, value = item.partition("=")
         if not sep or not name.strip():
             raise BadInput(f"--field '{item}': expected NAME=VALUE (e.g. location=60,9.5,2)")
-        body[name.strip()] = _field_value(value)
+        body[name.strip()] = _field_value(value, name.strip())
     if at_point is not None:
         point = parse_numbers(at_point, 3)
         if point is None:
@@ -191,9 +197,13 @@ def task_add(
         positions = types.get(task_type, {}).get("positions") or []
         free = [p for p in positions if p not in body]
         if task_type in types and not free:
+            given = ", ".join(f"-f {p}" for p in positions if p in body)
             raise BadInput(
-                f"--at: task type '{task_type}' has no position field left to fill "
-                f"(its fields: {', '.join(types[task_type].get('fields', [])) or 'none'})"
+                f"--at fills the first position field of '{task_type}', but {given} gave it "
+                "already: give one of them"
+                if given
+                else f"--at: task type '{task_type}' has no position field (its fields: "
+                f"{', '.join(types[task_type].get('fields', [])) or 'none'}): use -f NAME=VALUE"
             )
         body[free[0] if free else "location"] = list(point)
     if task_id:
@@ -210,9 +220,19 @@ def _wait_for(client: Any, task: str, until: str, timeout: float) -> None:
     """Poll the status until ``task`` is assigned (or done), printing each change of its
     history once (the status carries its latest changes, so none is missed between polls)."""
     deadline = time.monotonic() + timeout
+    from btmission.console.client import ConsoleClientError
+
     printed: set[tuple[float, str, str | None]] = set()
     while True:
-        status = _call(client.status)
+        try:
+            status = client.status()
+        except ConsoleClientError as exc:
+            if exc.status == 0:  # it answered before: the run ended or was stopped meanwhile
+                raise ChecksFailed(
+                    f"the console went away before {task} was {until}: the run ended or was "
+                    "stopped (its report says how)"
+                ) from None
+            raise ChecksFailed(str(exc)) from None
         row = next((t for t in status.get("tasks", []) if t.get("id") == task), None)
         if row is not None:
             for t, state, agent, reason in row.get("history", []):
@@ -254,6 +274,8 @@ def task_cancel(
     \b
     Example:
       btmission task cancel http://127.0.0.1:8470/ T8
+
+    Exit status: 0 done, 1 the console did not answer (or too many requests), 2 refused (the message says why).
     """
     client = _client(url, token, token_file, insecure)
     _say(_call(lambda: client.cancel_task(task)))
@@ -278,6 +300,8 @@ def task_priority(
     \b
     Example:
       btmission task priority http://127.0.0.1:8470/ T3 urgent
+
+    Exit status: 0 done, 1 the console did not answer (or too many requests), 2 refused (the message says why).
     """
     client = _client(url, token, token_file, insecure)
     value: float | str = _field_value(priority) if priority[:1].isdigit() else priority
@@ -298,11 +322,13 @@ def status_cmd(
 ) -> None:
     """Show the agents and tasks of the running mission at URL (a table; --json for scripts).
 
-    Needs no token on loopback (it changes nothing).
+    Needs no token on loopback (it changes nothing); works on a --view run too.
 
     \b
     Example:
       btmission status http://127.0.0.1:8470/
+
+    Exit status: 0 shown, 1 the console did not answer, 2 refused.
     """
     client = _client(url, token, token_file, insecure)
     status = _call(client.status)
@@ -353,7 +379,11 @@ def format_status(status: dict[str, Any]) -> str:
 @click.group("fleet")
 def fleet_group() -> None:
     """Recall, exclude or include an agent, cut its link (simulator drills), pause or resume
-    allocation, or stop a running mission (its console at URL; see btmission task)."""
+    allocation, or stop a running mission (its console at URL; see btmission task).
+
+    Exit status: 0 done, 1 the console did not answer (or too many requests), 2 refused (the message says why). Doing again what is done already (a second pause) is not an error: the answer says
+    "(it was already)".
+    """
 
 
 def _agent_command(name: str, action: str, doc: str) -> None:
@@ -432,8 +462,9 @@ def fleet_resume(url: str, token: str | None, token_file: Path | None, insecure:
 def fleet_stop(
     url: str, reason: str, token: str | None, token_file: Path | None, insecure: bool
 ) -> None:
-    """End the run after the current step, as Ctrl-C on its terminal does: its log and report
-    are complete."""
+    """End the run after the current step: its log and report are complete, as after Ctrl-C
+    on its terminal; the run's own exit status is then 0 if every task is done, else 1 (not
+    Ctrl-C's 130). --reason is logged, with who stopped it."""
     client = _client(url, token, token_file, insecure)
     _say(_call(lambda: client.stop(reason)))
 

@@ -312,7 +312,7 @@ def _stub_console(
     """A console over a stand-in run: its pool's ids, ids queued to enter it, its submit."""
     state = SimpleNamespace(pool=[SimpleNamespace(id=t) for t in ids])
     coordinator = SimpleNamespace(state=state, knows=lambda t: t in ids or t in queued)
-    run = SimpleNamespace(coordinator=coordinator, submit=submit, now=lambda: 12.0)
+    run = SimpleNamespace(coordinator=coordinator, submit=submit, now=lambda: 12.0, snapshot=None)
     return Console(SimpleNamespace(mission=SimpleNamespace(agents=[])), run, **kw)
 
 
@@ -541,7 +541,7 @@ def test_commands_need_the_runs_token(live: Live) -> None:
     task = {"type": "inspekt", "location": FREE}  # refused by the checks, after the guard
     none = live.api("POST", "api/tasks", task, token=None)
     assert none.status == 401 and none.headers.get("www-authenticate") == "Bearer"
-    assert "needs the run's token" in none.message and "Authorization: Bearer" in none.message
+    assert "needs the run's token, printed with the URL" in none.message
     wrong = live.api("POST", "api/tasks", task, token="not-it")
     assert wrong.status == 403 and "wrong token" in wrong.message
     for method, path in (("DELETE", "api/tasks/T1"), ("PATCH", "api/tasks/T1"),
@@ -571,7 +571,11 @@ def test_a_read_only_viewer_refuses_commands(live: Live) -> None:
     assert "--console" in answer.message
     info = call("GET", live.ro_url + "api/info").body
     assert info["console"]["enabled"] is False and "read-only" in info["console"]["reason"]
-    assert call("GET", live.ro_url + "api/status").status == 403  # no console: no status
+    status = call("GET", live.ro_url + "api/status")  # reading needs no console
+    assert status.status == 200 and {a["id"] for a in status.body["agents"]} == {"R1", "R2", "R3"}
+    for route in ("api/allocation", "api/agents/R1/recall"):  # with or without a token
+        refused = call("POST", live.ro_url + route, {"paused": True}, token=TOKEN)
+        assert refused.status == 403 and "--console" in refused.message
     assert not any(e.get("task") == "T8" for e in live.events("task_added"))
 
 
@@ -625,11 +629,18 @@ def test_bad_tasks_are_refused_naming_the_field(
     monkeypatch.setenv("BTMISSION_MAX_REQUEST_BYTES", "2000")
     over = live.api("POST", "api/tasks", {"type": "inspect", "location": FREE, "n": "x" * 2100})
     assert over.status == 413 and "BTMISSION_MAX_REQUEST_BYTES" in over.message
-    # nothing refused reached the run: no task was added, no command logged for them
-    time.sleep(0.3)  # (a step or two)
+    # nothing refused reached the pool; each refusal the console checked is logged, refused
+    # (who tried what), but not those refused before (413, bad JSON: no task to name)
+    refused = live.wait_event(
+        lambda e: e.kind == "command" and e.get("task") == "R0CK", "the refused add of R0CK"
+    )
+    assert refused.get("command") == "add_task" and refused.get("ok") is False
+    assert refused.get("by") == "api@127.0.0.1" and "inside rock" in refused.get("error")
     added = [e.get("task") for e in live.events("task_added")]
     assert set(added) <= {f"T{i}" for i in range(1, 8)}  # the mission's own (T7 at 116 s)
-    assert not any(e.get("command") == "add_task" for e in live.events("command"))
+    adds = [e for e in live.events("command") if e.get("command") == "add_task"]
+    assert adds and not any(e.get("ok") for e in adds)
+    assert any(e.get("type") == "inpsect" for e in adds)
 
 
 # ---------------------------------------------------------------------------- the commands
@@ -661,7 +672,7 @@ def test_cancelling_a_held_task_frees_its_agent(live: Live) -> None:
     answer = live.api("DELETE", f"api/tasks/{task}")
     assert answer.status == 200 and re.fullmatch(rf"{task} cancelled at \d+\.\d s", answer.message)
     cancelled = live.wait_event(_task_event(task, "cancelled"), f"{task} cancelled")
-    assert "cancelled by the operator (api@127.0.0.1)" in cancelled.get("reason")
+    assert cancelled.get("reason") == "by the operator (api@127.0.0.1)"
     nxt = live.wait_event(
         lambda e: e.kind == "task" and e.get("state") == "assigned" and e.get("agent") == agent
         and e.t >= cancelled.t,
@@ -852,6 +863,90 @@ def test_the_cli_shows_the_status_and_drills_a_link(
     assert links[-2:] == [False, True]
 
 
+def test_strict_bodies_null_origins_unknown_routes_and_empty_bodies(live: Live) -> None:
+    """No lenient conversion (true is not a priority, "no" is not a boolean), a page of the
+    null origin (a sandboxed frame, a file) is another origin, and every refusal is a
+    sentence: an unknown route, an empty body."""
+    truthy = live.api("PATCH", "api/tasks/T2", {"priority": True})
+    assert truthy.status == 422 and truthy.loc == ["body", "priority"], truthy.body
+    no = live.api("POST", "api/agents/R1/link", {"up": "no"})
+    assert no.status == 422 and no.loc == ["body", "up"], no.body
+    assert live.agent_row("R1")["link_up"] is True
+    null = live.api("POST", "api/allocation", {"paused": True}, headers={"Origin": "null"})
+    assert null.status == 403 and "origin 'null'" in null.message
+    nowhere = live.api("GET", "api/nowhere")
+    assert nowhere.status == 404 and nowhere.message.startswith("no such route: GET /api/nowhere")
+    empty = live.api("POST", "api/tasks", raw=b"")
+    assert empty.status == 422 and "needs a JSON body" in empty.message, empty.body
+
+
+def test_a_command_done_already_says_so_and_a_later_task_is_scheduled(live: Live) -> None:
+    first = live.api("POST", "api/allocation", {"paused": True})
+    again = live.api("POST", "api/allocation", {"paused": True})
+    assert first.status == again.status == 200
+    assert not first.message.endswith("(it was already)"), first.body
+    assert again.message.endswith("(it was already)"), again.body
+    assert live.api("POST", "api/allocation", {"paused": False}).status == 200
+    later = live.api("POST", "api/tasks", {"type": "inspect", "location": FREE, "at": 1100})
+    assert later.status == 201 and later.message.endswith("announced from 1100 s"), later.body
+    row = live.task_row(str(later.body["task"]))
+    assert row["state"] == "scheduled" and row["added_s"] == 1100.0
+
+
+def test_a_page_gets_the_runs_end_before_the_server_closes(tmp_path: Path) -> None:
+    """A run that ends by itself with no terminal to keep the page up: the page's stream still
+    gets the last records and the end (``complete``) before the server closes (DRAIN_S)."""
+    viewer = LiveViewer(port=0)
+    got: list[str] = []
+    with RunSession(MINE, controller="track", realtime=True, speed=20,
+                    log_path=tmp_path / "end.jsonl", observers=[viewer.observer]) as session:  # fmt: skip
+        run = session.start()
+        url = viewer.attach(session, run)
+
+        def read() -> None:
+            with urllib.request.urlopen(url + "api/stream", timeout=WAIT_S) as stream:
+                for raw in stream:
+                    got.append(raw.decode())
+                    if raw.startswith(b"event: complete"):
+                        return
+
+        reader = threading.Thread(target=read, daemon=True)
+        reader.start()
+        wait_for(lambda: viewer.server.streams.n == 1, "the page's stream")
+        session.run(until=3.0)
+    viewer.finish()  # what run --view does when nothing keeps the page up
+    viewer.close()
+    reader.join(timeout=WAIT_S)
+    assert any(line.startswith("event: complete") for line in got), got[-3:]
+    assert any('"ev":"end"' in line for line in got)
+
+
+def test_the_cli_says_when_the_console_goes_away_and_reads_a_routes_url(
+    live: Live, cli_run: Any
+) -> None:
+    short = cli_run("task", "add", f"{live.url}?token={TOKEN}", "--type", "inspect",
+                    "-f", "location=5,5")  # fmt: skip
+    assert short.exit_code == 2 and "expected a position X,Y,Z" in short.output
+    route = cli_run("status", live.url + "api/status")  # the route's URL pasted: still works
+    assert route.exit_code == 0 and route.output.startswith("t = "), route.output
+    none = cli_run("task", "cancel", live.url, "T2")
+    assert none.exit_code == 2 and "--token-file FILE, BTMISSION_TOKEN" in none.output
+
+
+def test_the_openapi_schema_documents_the_token_the_refusals_and_the_bodies(live: Live) -> None:
+    schema = call("GET", live.url + "openapi.json").body
+    assert schema["components"]["securitySchemes"]["HTTPBearer"]["scheme"] == "bearer"
+    add = schema["paths"]["/api/tasks"]["post"]
+    assert add["security"] == [{"HTTPBearer": []}]
+    assert {"201", "401", "403", "422", "429"} <= set(add["responses"])
+    refusal = add["responses"]["422"]["content"]["application/json"]["schema"]["$ref"]
+    assert refusal.endswith("/Refusal")
+    assert add["requestBody"]["content"]["application/json"]["schema"]["examples"]
+    status = schema["paths"]["/api/status"]["get"]["responses"]["200"]["content"]
+    assert status["application/json"]["schema"]["$ref"].endswith("/Status")
+    assert "security" not in schema["paths"]["/api/status"]["get"]  # a read: free on loopback
+
+
 # ---------------------------------------------------------------------------- last: stop it
 def test_stop_ends_the_run_with_the_operators_reason(live: Live) -> None:
     answer = live.api("POST", "api/stop", headers={"X-Btmission-Client": "cli"})
@@ -876,11 +971,10 @@ def test_the_form_gets_the_fields_in_the_goals_order_and_a_ground_fleets_offset(
     mission = load_mission(ROOT / "missions" / "pick_and_deliver.yaml")
 
     def info(kind: VehicleKind) -> dict[str, Any]:
+        pool = [SimpleNamespace(id=t.id, info=SimpleNamespace(type=t.type)) for t in mission.tasks]
         run = SimpleNamespace(
             places={}, vehicles={"G1": SimpleNamespace(kind=kind)},
-            coordinator=SimpleNamespace(
-                state=SimpleNamespace(pool=[SimpleNamespace(id="P1")]), knows=lambda t: False
-            ),
+            coordinator=SimpleNamespace(state=SimpleNamespace(pool=pool), knows=lambda t: False),
         )  # fmt: skip
         return Console(SimpleNamespace(mission=mission), run).info()
 
@@ -889,7 +983,8 @@ def test_the_form_gets_the_fields_in_the_goals_order_and_a_ground_fleets_offset(
     assert ground["task_types"]["pick_and_deliver"]["positions"] == ["pickup", "dropoff"]
     assert ground["task_types"]["pick_and_deliver"]["multi_stage"] is True
     assert ground["task_types"]["inspect"]["multi_stage"] is False
-    assert ground["pick_offset_m"] == 0.0 and ground["next_task_id"] == "P2"
+    assert ground["pick_offset_m"] == 0.0 and ground["next_task_id"] == "I3"  # (I1, I2, P1)
+    assert ground["next_task_ids"] == {"inspect": "I3", "pick_and_deliver": "P2"}
     assert info(VehicleKind.MULTIROTOR)["pick_offset_m"] == 1.0
 
 

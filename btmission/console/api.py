@@ -43,10 +43,12 @@ from dataclasses import dataclass, field
 from typing import Any
 from urllib.parse import parse_qs
 
-from fastapi import Body, FastAPI, Request
+from fastapi import Body, Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from pydantic import BaseModel, ConfigDict, Field
+from fastapi.security import HTTPBearer
+from pydantic import BaseModel, ConfigDict, Field, StrictBool
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from btmission.console.service import Console, ConsoleError, RateLimit
 
@@ -54,6 +56,7 @@ READ_RATE_HZ = 200.0
 """Requests a second (of any kind) the server answers on average; a burst of
 :data:`READ_BURST` at once; beyond, 429 before any work is done."""
 READ_BURST = 400
+READ_ONLY = "read-only: the run was started with --view; start it with --console to command it"
 TOKEN_ENV = "BTMISSION_TOKEN"
 """The environment variable a run's console token (and the CLI's) may come from."""
 MUTATING = frozenset({"POST", "PUT", "PATCH", "DELETE"})
@@ -93,6 +96,8 @@ class Security:
     host: str = "127.0.0.1"
     token: str | None = None
     origins: frozenset[str] = frozenset()
+    read_only: str = READ_ONLY
+    """Why a command is refused when there is no token."""
     reads: RateLimit = field(default_factory=lambda: RateLimit(READ_RATE_HZ, READ_BURST))
 
     @property
@@ -171,7 +176,7 @@ class Guard:
                 "(start it with --host to serve other machines)",
             )
         origin = headers.get("origin")
-        if origin is not None and origin != "null":
+        if origin is not None:  # "null" too: a sandboxed frame or a file:// page
             own = {f"{scope.get('scheme', 'http')}://{host}"}
             if origin not in own and origin not in sec.origins:
                 return _refusal(403, f"origin '{origin}' may not use this console")
@@ -184,18 +189,13 @@ class Guard:
         method, path = scope["method"], scope["path"]
         if sec.needs_token(method, path):
             if sec.token is None:
-                return _refusal(
-                    403,
-                    "this run's console is read-only (started with --view): start it with "
-                    "--console to command the run",
-                )
+                return _refusal(403, sec.read_only)
             query = scope.get("query_string", b"")
             given = _token_of(headers, query, _cookie(scope) if method not in MUTATING else None)
             if not given:
                 return _refusal(
                     401,
-                    "this request needs the run's token (printed with the URL when the run "
-                    "started): send 'Authorization: Bearer <token>'",
+                    "this request needs the run's token, printed with the URL when the run started",
                     **{"WWW-Authenticate": "Bearer"},
                 )
             if not hmac.compare_digest(given.encode(), sec.token.encode()):
@@ -269,19 +269,25 @@ class CommandResult(BaseModel):
 
 class PriorityBody(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    priority: float | str = Field(
-        description="A number > 0, or low / normal / high / urgent (× the type's priority)."
+    priority: Any = Field(  # checked by the console (priority_value): one message for all
+        json_schema_extra={
+            "anyOf": [
+                {"type": "number", "exclusiveMinimum": 0},
+                {"type": "string", "enum": ["low", "normal", "high", "urgent"]},
+            ]
+        },
+        description="A number > 0, or low / normal / high / urgent (× the type's priority).",
     )
 
 
 class LinkBody(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    up: bool
+    up: StrictBool = Field(description="false: cut the link; true: restore it.")
 
 
 class AllocationBody(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    paused: bool
+    paused: StrictBool
 
 
 class StopBody(BaseModel):
@@ -289,6 +295,70 @@ class StopBody(BaseModel):
     reason: str = Field("", max_length=200)
 
 
+class Refusal(BaseModel):
+    """Every refusal: one sentence naming the field, and FastAPI's detail (for a 422 a list of
+    ``{loc, msg, type}``)."""
+
+    message: str
+    detail: Any = None
+
+
+class AgentStatus(BaseModel):
+    id: str
+    alive: bool
+    link_up: bool
+    recalled: bool
+    excluded: bool
+    task: str | None
+    action: str
+    mode: str
+    armed: bool
+    p: list[float] = Field(description="[x, y, z] (m), map frame")
+    yaw: float
+
+
+class TaskStatus(BaseModel):
+    id: str
+    type: str
+    state: str = Field(description="open, assigned, committed, done, failed, unreachable, "
+                       "cancelled, or scheduled (its arrival time is still to come)")  # fmt: skip
+    agent: str | None
+    priority: float
+    added_s: float
+    note: str = Field(description="Why it is in that state (the pool's note).")
+    since_s: float
+    history: list[list[Any]] = Field(description="Its latest changes: [t, state, agent, reason].")
+    fields: dict[str, Any]
+
+
+class Status(BaseModel):
+    """The run after its last step."""
+
+    t: float
+    steps: int
+    running: bool
+    ended: str | None
+    allocation: dict[str, bool]
+    agents: list[AgentStatus]
+    tasks: list[TaskStatus]
+
+
+_WHY = {
+    401: "No token (the run's token: Authorization: Bearer <token>).",
+    403: "A wrong token, another origin, a Host not on loopback, or a read-only run.",
+    404: "No such task or agent.",
+    409: "Not now: the task is over, or the run has ended.",
+    413: "The body is over BTMISSION_MAX_REQUEST_BYTES.",
+    422: "A bad body: the message names the field.",
+    429: "Too many requests or commands (Retry-After).",
+}
+REFUSALS: dict[int | str, dict[str, Any]] = {
+    202: {"model": CommandResult, "description": "Queued: its step did not come within 5 s."},
+    **{code: {"model": Refusal, "description": why} for code, why in _WHY.items()},
+}
+READ_REFUSALS: dict[int | str, dict[str, Any]] = {
+    code: {"model": Refusal, "description": _WHY[code]} for code in (401, 403, 429)
+}
 TASK_EXAMPLE = {"type": "inspect", "location": [60.0, 9.5, 2.0], "priority": "high"}
 _CLIENT = re.compile(r"[^A-Za-z0-9_.-]")
 
@@ -320,10 +390,22 @@ def add_console_routes(app: FastAPI, console: Console | None, read_only_reason: 
         headers = {"Retry-After": "1"} if exc.status == 429 else {}
         return _refusal(exc.status, exc.message, detail, **headers)
 
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        if exc.status_code == 404:
+            message = f"no such route: {request.method} {request.url.path} (see /openapi.json)"
+        elif exc.status_code == 405:
+            message = f"{request.url.path} does not take {request.method} (see /openapi.json)"
+        else:
+            message = str(exc.detail)
+        return _refusal(exc.status_code, message, exc.detail)
+
     @app.exception_handler(RequestValidationError)
     async def invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
         errors = json.loads(json.dumps(exc.errors(), default=str))
         first: dict[str, Any] = errors[0] if errors else {"loc": ["body"], "msg": "invalid"}
+        if first.get("type") == "missing" and list(first.get("loc", [])) == ["body"]:
+            return _refusal(422, "the request needs a JSON body (see /openapi.json)", errors)
         if first.get("type") == "json_invalid":
             why = (first.get("ctx") or {}).get("error", "")
             at = first.get("loc", ["body", 0])[-1]
@@ -342,20 +424,32 @@ def add_console_routes(app: FastAPI, console: Console | None, read_only_reason: 
             raise ConsoleError(403, read_only_reason)
         return console
 
-    @app.get("/api/console", tags=["console"])
+    bearer = HTTPBearer(
+        auto_error=False,
+        description="The run's token, printed with the page's URL when it started "
+        "(?token=…); also accepted as ?token=.",
+    )
+    command: dict[str, Any] = {
+        "tags": ["console"],
+        "response_model": CommandResult,
+        "dependencies": [Depends(bearer)],  # (the guard checks it: this documents it)
+        "responses": REFUSALS,
+    }
+
+    @app.get("/api/console", tags=["console"], responses=READ_REFUSALS)
     def console_info() -> dict[str, Any]:
         """What a client needs to build a command: the task types (their fields, which are
         positions, their priority), the places, the priority names, the next free task id
         (``/api/info`` has the same under ``console``, with the map's bounds)."""
         return need().info()
 
-    @app.get("/api/status", tags=["console"])
+    @app.get("/api/status", tags=["console"], responses={200: {"model": Status}, **READ_REFUSALS})
     def status() -> dict[str, Any]:
         """Agents (pose, task, alive, link, recalled, excluded) and tasks (state, agent,
         priority, the pool's note) after the run's last step."""
         return need().status()
 
-    @app.post("/api/tasks", tags=["console"], status_code=201, response_model=CommandResult)
+    @app.post("/api/tasks", status_code=201, **command)
     def add_task(
         request: Request,
         task: Any = Body(  # any JSON: the service says what it wants
@@ -370,44 +464,44 @@ def add_console_routes(app: FastAPI, console: Console | None, read_only_reason: 
         and its positions against the map: a refusal is 422 naming the field."""
         return _answer(need().add_task(task, who(request)), created=True)
 
-    @app.delete("/api/tasks/{task_id}", tags=["console"], response_model=CommandResult)
+    @app.delete("/api/tasks/{task_id}", **command)
     def cancel_task(request: Request, task_id: str) -> JSONResponse:
         """Cancel a task: it leaves the pool (state cancelled); its agent stops it."""
         return _answer(need().cancel_task(task_id, who(request)))
 
-    @app.patch("/api/tasks/{task_id}", tags=["console"], response_model=CommandResult)
+    @app.patch("/api/tasks/{task_id}", **command)
     def set_priority(request: Request, task_id: str, body: PriorityBody) -> JSONResponse:
         """Change a task's priority (it is announced again with it)."""
         return _answer(need().set_priority(task_id, body.priority, who(request)))
 
-    @app.post("/api/agents/{agent}/recall", tags=["console"], response_model=CommandResult)
+    @app.post("/api/agents/{agent}/recall", **command)
     def recall(request: Request, agent: str) -> JSONResponse:
         """The agent gives up its task, bids no more and runs its default behaviour now."""
         return _answer(need().recall(agent, who(request)))
 
-    @app.post("/api/agents/{agent}/exclude", tags=["console"], response_model=CommandResult)
+    @app.post("/api/agents/{agent}/exclude", **command)
     def exclude(request: Request, agent: str) -> JSONResponse:
         """The agent leaves the auction: it keeps the task it holds and wins nothing else."""
         return _answer(need().exclude(agent, True, who(request)))
 
-    @app.post("/api/agents/{agent}/include", tags=["console"], response_model=CommandResult)
+    @app.post("/api/agents/{agent}/include", **command)
     def include(request: Request, agent: str) -> JSONResponse:
         """The agent takes part in the auction again (an excluded or a recalled one)."""
         return _answer(need().exclude(agent, False, who(request)))
 
-    @app.post("/api/agents/{agent}/link", tags=["console"], response_model=CommandResult)
+    @app.post("/api/agents/{agent}/link", **command)
     def link(request: Request, agent: str, body: LinkBody) -> JSONResponse:
         """Cut (``up: false``) or restore an agent's link to the coordinator, for drills:
         simulated vehicles only. The agent keeps executing its task meanwhile."""
         return _answer(need().set_link(agent, body.up, who(request)))
 
-    @app.post("/api/allocation", tags=["console"], response_model=CommandResult)
+    @app.post("/api/allocation", **command)
     def allocation(request: Request, body: AllocationBody) -> JSONResponse:
         """Pause allocation (every holder keeps its task, nothing else is assigned) or
         resume it."""
         return _answer(need().set_allocation(body.paused, who(request)))
 
-    @app.post("/api/stop", tags=["console"], response_model=CommandResult)
+    @app.post("/api/stop", **command)
     def stop(request: Request, body: StopBody | None = None) -> JSONResponse:
         """End the run after the current step (as Ctrl-C does); the log and report are
         complete."""

@@ -41,7 +41,8 @@ def split_url(url: str) -> tuple[str, str | None]:
             f"'{url}' is not the console's URL (expected http://HOST:PORT/ as the run printed it)"
         )
     token = parse_qs(parts.query).get("token", [None])[0]
-    path = parts.path if parts.path.endswith("/") else parts.path + "/"
+    path = parts.path.split("/api/", 1)[0]  # a route's URL pasted instead of the page's
+    path = path if path.endswith("/") else path + "/"
     return urlunsplit((parts.scheme, parts.netloc, path, "", "")), token
 
 

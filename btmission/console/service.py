@@ -26,8 +26,9 @@ import re
 import threading
 import time
 from collections import Counter
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from concurrent.futures import TimeoutError as FutureTimeout
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from typing import Any
 
@@ -40,6 +41,7 @@ from btmission.runtime.commands import (
     ExcludeAgent,
     IncludeAgent,
     RecallAgent,
+    Refused,
     SetAllocation,
     SetLink,
     SetPriority,
@@ -66,11 +68,15 @@ class ConsoleError(Exception):
     """A request the console refuses: ``status`` (HTTP), ``message`` (one sentence naming the
     field), ``field`` (the body's field at fault, if one is)."""
 
-    def __init__(self, status: int, message: str, field: str | None = None) -> None:
+    def __init__(
+        self, status: int, message: str, field: str | None = None, *, logged: bool = False
+    ) -> None:
         super().__init__(message)
         self.status = status
         self.message = message
         self.field = field
+        self.logged = logged
+        """The run logged it already (it refused the command when it applied it)."""
 
 
 class RateLimit:
@@ -137,7 +143,10 @@ class Console:
         wait_s: float = WAIT_S,
         max_pending: int = MAX_PENDING,
         rate: RateLimit | None = None,
+        read_only: str | None = None,
     ) -> None:
+        self.read_only = read_only
+        """Why commands are refused (a run started with --view); None: they are taken."""
         self.mission = session.mission
         self.run = run
         self.wait_s = wait_s
@@ -165,12 +174,13 @@ class Console:
                 "multi_stage": tt.commit_after is not None,
             }
         return {
-            "enabled": True,
-            "reason": None,
+            "enabled": self.read_only is None,
+            "reason": self.read_only,
             "task_types": types,
             "places": sorted(self.run.places),
             "priorities": dict(PRIORITY_LEVELS),
             "next_task_id": self.next_task_id(),
+            "next_task_ids": {name: self.next_task_id(name) for name in types},
             "pick_offset_m": 0.0 if self._ground_fleet() else 1.0,
             "link_drills": bool(self.drill_agents),
             "drill_agents": sorted(self.drill_agents),
@@ -183,9 +193,12 @@ class Console:
         kinds = {v.kind for v in self.run.vehicles.values()}
         return kinds == {VehicleKind.GROUND}
 
-    def next_task_id(self) -> str:
-        """The next free id in the mission's own pattern (T1..T7 → T8), else ``T<n>``."""
-        ids = [t.id for t in self.run.coordinator.state.pool]
+    def next_task_id(self, task_type: str | None = None) -> str:
+        """The next free id in the mission's own pattern (T1..T7 → T8), that of the tasks of
+        ``task_type`` if it has some (P1 → P2 beside I1, I2), else ``T<n>``."""
+        pool = self.run.coordinator.state.pool
+        ids = [t.id for t in pool if _type_of(t) == task_type] if task_type else []
+        ids = ids or [t.id for t in pool]
         prefixes: Counter[str] = Counter()
         top: dict[str, int] = {}
         for tid in ids:
@@ -244,13 +257,34 @@ class Console:
                     "fields": _plain(pool[t.id].info.fields),
                 }
                 for t in snap.tasks
+            ]
+            + [
+                {
+                    "id": t.id,
+                    "type": t.info.type,
+                    "state": "scheduled",
+                    "agent": None,
+                    "priority": t.info.priority,
+                    "added_s": round(t.info.arrival_s, 3),
+                    "note": f"announced from {t.info.arrival_s:g} s",
+                    "since_s": round(t.history[-1].time_s, 3),
+                    "history": [],
+                    "fields": _plain(t.info.fields),
+                }
+                for t in snap.pool
+                if t.info.arrival_s > snap.time_s + 1e-9
             ],
         }
 
     # ------------------------------------------------------------------ commands
     def add_task(self, body: Any, by: str) -> Result:
         """Add the task ``body`` (``{id?, type, priority?, at?, <fields>}``; the id defaults to
-        :meth:`next_task_id`, the priority may be a name of PRIORITY_LEVELS)."""
+        the next free one of its type, the priority may be a name of PRIORITY_LEVELS)."""
+        args = {"task": body.get("id"), "type": body.get("type")} if isinstance(body, dict) else {}
+        with self._audit("add_task", by, args):
+            return self._add_task(body, by)
+
+    def _add_task(self, body: Any, by: str) -> Result:
         from btmission.diagnostics import SpecError
         from btmission.spec.mission import check_added_task
         from btmission.spec.source import parse_yaml
@@ -262,13 +296,13 @@ class Console:
         data = dict(body)
         with self._id_lock:  # two adds without an id: two different ids
             if data.get("id") in (None, ""):
-                data["id"] = self.next_task_id()
+                data["id"] = self.next_task_id(data.get("type"))
             tt = self.mission.task_types.get(data.get("type"))
             if tt is not None and data.get("priority") is not None:
                 try:
                     data["priority"] = priority_value(data["priority"], tt.priority)
                 except CommandError as exc:
-                    raise ConsoleError(422, f"priority: {exc}", "priority") from None
+                    raise ConsoleError(422, str(exc), "priority") from None
             # the mission file's model and checks, on the task as JSON (JSON is YAML)
             src = parse_yaml(json.dumps(data), "<request>")
             try:
@@ -277,10 +311,9 @@ class Console:
                 first = exc.diagnostics[0]
                 missing = _MISSING.search(first.message) if first.code == "missing-field" else None
                 field = first.item or (missing.group(1) if missing else None)
-                where = (
-                    f"{field}: " if field and not first.message.startswith(("task ", field)) else ""
-                )
-                raise ConsoleError(422, where + first.message, field) from None
+                named = field and first.message.startswith((field, f"task field '{field}'"))
+                raise ConsoleError(422, f"{field}: {first.message}" if field and not named
+                                   else first.message, field) from None  # fmt: skip
             for name, value in task.fields.items():
                 problem = self._where_problem(value)
                 if problem:
@@ -293,56 +326,105 @@ class Console:
             payload: dict[str, Any] = {
                 "id": task.id, "type": task.type, **task.fields, "priority": task.priority,
             }  # fmt: skip
+            later = ""
             if "at" in data:
                 payload["at"] = task.at
+                if task.at > self.run.now():
+                    later = f", announced from {task.at:g} s"
             try:
-                return self._submit(AddTask(payload, by=by), f"{task.id} added", task=task.id)
+                return self._submit(AddTask(payload, by=by), f"{task.id} added", later, task.id)
             except ConsoleError as exc:
                 if "duplicate" in exc.message:
                     raise ConsoleError(422, f"id: {exc.message}", "id") from None
                 raise
 
     def cancel_task(self, task: str, by: str, reason: str = "") -> Result:
-        cmd = CancelTask(task, reason or f"cancelled by the operator ({by})", by=by)
-        return self._submit(cmd, f"{task} cancelled", task=task)
+        with self._audit("cancel_task", by, {"task": task}):
+            cmd = CancelTask(task, reason or f"by the operator ({by})", by=by)
+            return self._submit(cmd, f"{task} cancelled", task=task)
 
     def set_priority(self, task: str, value: Any, by: str) -> Result:
-        info = self._task_info(task)
-        tt = self.mission.task_types.get(info.type) if info is not None else None
-        try:
-            prio = priority_value(value, tt.priority if tt is not None else 1.0)
-        except CommandError as exc:
-            raise ConsoleError(422, f"priority: {exc}", "priority") from None
-        return self._submit(SetPriority(task, prio, by=by), f"{task} priority {prio:g}", task=task)
+        with self._audit("set_priority", by, {"task": task, "priority": value}):
+            info = self._task_info(task)
+            tt = self.mission.task_types.get(info.type) if info is not None else None
+            try:
+                prio = priority_value(value, tt.priority if tt is not None else 1.0)
+            except CommandError as exc:
+                raise ConsoleError(422, str(exc), "priority") from None
+            cmd = SetPriority(task, prio, by=by)
+            return self._submit(cmd, f"{task} priority {prio:g}", task=task)
 
     def recall(self, agent: str, by: str) -> Result:
-        return self._submit(RecallAgent(agent, by=by), f"{agent} recalled (default behaviour)")
+        with self._audit("recall_agent", by, {"agent": agent}):
+            was = self._agent(agent)
+            already = " (it was already)" if was is not None and was.recalled else ""
+            return self._submit(RecallAgent(agent, by=by), f"{agent} recalled home", already)
 
     def exclude(self, agent: str, out: bool, by: str) -> Result:
-        if out:
-            return self._submit(ExcludeAgent(agent, by=by), f"{agent} out of the auction")
-        return self._submit(IncludeAgent(agent, by=by), f"{agent} back in the auction")
+        name = "exclude_agent" if out else "include_agent"
+        with self._audit(name, by, {"agent": agent}):
+            snap, was = self.run.snapshot, self._agent(agent)
+            inside = was is not None and snap is not None and agent not in snap.excluded
+            inside = inside and was is not None and not was.recalled
+            if out:
+                note = "" if inside or was is None else " (it was already)"
+                return self._submit(ExcludeAgent(agent, by=by), f"{agent} out of the auction", note)
+            note = " (it was already)" if inside else ""
+            return self._submit(IncludeAgent(agent, by=by), f"{agent} back in the auction", note)
 
     def set_link(self, agent: str, up: bool, by: str) -> Result:
-        if agent in self.run.agents and agent not in self.drill_agents:
-            raise ConsoleError(
-                409,
-                f"{agent} flies a real vehicle: link drills are for the simulator only "
-                f"(backend: {LINK_DRILL_SCHEMES[0]})",
-            )
-        what = f"{agent}'s link restored" if up else f"{agent}'s link cut"
-        return self._submit(SetLink(agent, up, by=by), what)
+        with self._audit("set_link", by, {"agent": agent, "up": up}):
+            if agent in self.run.agents and agent not in self.drill_agents:
+                raise ConsoleError(
+                    409,
+                    f"{agent} flies a real vehicle: link drills are for the simulator only "
+                    f"(backend: {LINK_DRILL_SCHEMES[0]})",
+                )
+            was = self._agent(agent)
+            note = " (it was already)" if was is not None and was.link_up == up else ""
+            what = f"{agent}'s link restored" if up else f"{agent}'s link cut"
+            return self._submit(SetLink(agent, up, by=by), what, note)
 
     def set_allocation(self, paused: bool, by: str) -> Result:
-        what = "allocation paused" if paused else "allocation resumed"
-        return self._submit(SetAllocation(paused, by=by), what)
+        with self._audit("set_allocation", by, {"paused": paused}):
+            snap = self.run.snapshot
+            note = " (it was already)" if snap is not None and snap.paused == paused else ""
+            what = "allocation paused" if paused else "allocation resumed"
+            return self._submit(SetAllocation(paused, by=by), what, note)
 
     def stop(self, by: str, reason: str = "") -> Result:
-        return self._submit(
-            Stop(reason or f"stopped by the operator ({by})", by=by), "run stopping"
-        )
+        with self._audit("stop", by, {"reason": reason}):
+            why = f"{reason} ({by})" if reason else f"stopped by the operator ({by})"
+            return self._submit(Stop(why, by=by), "run stopping")
 
     # ------------------------------------------------------------------ helpers
+    @contextmanager
+    def _audit(self, name: str, by: str, args: Mapping[str, Any]) -> Iterator[None]:
+        """Admit the request (the command rate: 429 beyond it, before any work), and log a
+        refusal that never reached the run (a bad task, an unknown agent...) as a refused
+        ``command`` event, so the log shows who tried what."""
+        if self.read_only is not None:
+            raise ConsoleError(403, self.read_only)
+        wait = self.rate.take()
+        if wait > 0:
+            raise ConsoleError(
+                429, f"too many commands: at most {COMMAND_RATE_HZ:g} a second; retry in "
+                f"{wait:.2f} s"
+            )  # fmt: skip
+        try:
+            yield
+        except ConsoleError as exc:
+            if not exc.logged and exc.status != 429:
+                with suppress(CommandError):  # the run has ended: nothing to log it in
+                    self.run.submit(Refused(name, dict(args), exc.message, by=by))
+            raise
+
+    def _agent(self, agent: str) -> Any:
+        snap = self.run.snapshot
+        if snap is None:
+            return None
+        return next((a for a in snap.agents if a.id == agent), None)
+
     def _where_problem(self, value: Any) -> str | None:
         from btmission.world.checks import point_problem
 
@@ -356,16 +438,13 @@ class Console:
         t = self.run.coordinator.state.pool.get(task)
         return t.info if t is not None else None
 
-    def _submit(self, command: Command, done: str, task: str | None = None) -> Result:
-        """Admit (rate, pending), submit, and wait for the step that applies ``command``."""
+    def _submit(
+        self, command: Command, done: str, note: str = "", task: str | None = None
+    ) -> Result:
+        """Submit ``command`` (at most :data:`MAX_PENDING` wait at once) and wait for the step
+        that applies it; ``done`` says what happened, ``note`` is added after its time."""
         from btmission.runtime.coordinator import TaskError
 
-        wait = self.rate.take()
-        if wait > 0:
-            raise ConsoleError(
-                429, f"too many commands: at most {COMMAND_RATE_HZ:g} a second; retry in "
-                f"{wait:.2f} s"
-            )  # fmt: skip
         with self._lock:
             if self._pending >= self.max_pending:
                 raise ConsoleError(
@@ -376,8 +455,8 @@ class Console:
             try:
                 future = self.run.submit(command)
             except (CommandError, TaskError) as exc:
-                text = str(exc)
-                raise ConsoleError(404 if "unknown" in text else 409, text) from None
+                text = _plain_error(str(exc), command.name)
+                raise ConsoleError(404 if text.startswith("unknown") else 409, text) from None
             try:
                 outcome = future.result(timeout=self.wait_s)
             except FutureTimeout:
@@ -389,8 +468,20 @@ class Console:
             with self._lock:
                 self._pending -= 1
         if not outcome.ok:
-            raise ConsoleError(409, outcome.error)
-        return Result(command.name, True, outcome.t, f"{done} at {outcome.t:.1f} s", 200, task)
+            raise ConsoleError(409, _plain_error(outcome.error, command.name), logged=True)
+        text = f"{done} at {outcome.t:.1f} s{note}"
+        return Result(command.name, True, outcome.t, text, 200, task)
+
+
+def _type_of(task: Any) -> str | None:
+    return getattr(getattr(task, "info", None), "type", None)
+
+
+def _plain_error(text: str, name: str) -> str:
+    """The run's message without its command's name (``recall_agent: unknown agent 'R9'`` →
+    ``unknown agent 'R9'``): a person asked to recall, not to ``recall_agent``."""
+    prefix = f"{name}: "
+    return text[len(prefix) :] if text.startswith(prefix) else text
 
 
 def _field_order(tt: Any) -> list[str]:

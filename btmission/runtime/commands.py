@@ -136,6 +136,19 @@ class Stop(Command):
     reason: str = "interrupted"
 
 
+@dataclass(frozen=True)
+class Refused(Command):
+    """A command refused before it reached the run (the operator console's checks: a task
+    inside rock, an unknown agent...): the run only logs it, as a refused ``command`` event
+    named ``command`` with ``args`` and ``error``, so the log shows who tried what. Not sent
+    by name (not in :data:`COMMANDS`)."""
+
+    name: ClassVar[str] = "refused"
+    command: str
+    args: Mapping[str, Any] = field(default_factory=dict)
+    error: str = ""
+
+
 COMMANDS: dict[str, type[Command]] = {
     c.name: c
     for c in (

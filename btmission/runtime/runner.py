@@ -67,6 +67,7 @@ from btmission.runtime.commands import (
     KillAgent,
     Outcome,
     RecallAgent,
+    Refused,
     SetAllocation,
     SetLink,
     SetPriority,
@@ -566,7 +567,12 @@ class MissionRun:
         """The ``command`` event: who, what, its arguments, and whether it was refused; the
         command's outcome."""
         data: dict[str, Any] = {"command": command.name, "by": command.by}
-        data.update(command.to_data())
+        if isinstance(command, Refused):  # refused before it reached the run: as it was asked
+            data["command"] = command.command
+            data.update(command.args)
+            error = command.error
+        else:
+            data.update(command.to_data())
         if isinstance(command, AddTask):
             data["task"] = dict(command.task).get("id")
         data["ok"] = not error
@@ -578,6 +584,8 @@ class MissionRun:
     def _apply(self, command: Command) -> None:
         now = self.now()
         coord = self.coordinator
+        if isinstance(command, Refused):
+            raise CommandError(command.error)
         if isinstance(command, AddTask):  # checked and queued with the coordinator when
             coord.intake(now)  # submitted: it enters the pool now (later commands may name it)
         elif isinstance(command, Stop):

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from btmission.console.api import is_loopback, new_token
+from btmission.console.api import READ_ONLY, is_loopback, new_token
 from btmission.console.service import Console
 from btmission.runtime.events import Event, Observer
 from btmission.runtime.observers import QueuedObserver
@@ -101,8 +101,8 @@ class LiveViewer:
             run.map,
             scene_options={"risk": RiskParams(rt.risk_radius_m, rt.unknown_cost)},
         )
-        if self.console:
-            self.server.console = Console(session, run)
+        # the status answers on every live run; commands only with the console (--console)
+        self.server.console = Console(session, run, read_only=None if self.console else READ_ONLY)
         self.run = run
         url = self.server.start()
         self.serving = True

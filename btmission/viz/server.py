@@ -53,7 +53,7 @@ from fastapi.responses import (
     StreamingResponse,
 )
 
-from btmission.console.api import Security
+from btmission.console.api import READ_ONLY, Security
 from btmission.console.service import Console
 from btmission.viz.feed import LiveFeed
 from btmission.viz.scene import Scene, build_scene
@@ -67,6 +67,8 @@ PUSH_S = 0.1
 """How often a page's stream sends what is new (10 Hz poses)."""
 BATCH = 5000
 """Records per stream message (a replay's records arrive in several)."""
+DRAIN_S = 2.0
+"""How long a closing server waits for its pages to get the last records of the run."""
 MAX_CONNECTIONS = 128
 """Connections served at once (pages' streams included); beyond, uvicorn answers 503."""
 SEND_BUFFER = 256 * 1024
@@ -220,7 +222,6 @@ def page_html(config_json: str, title: str, inline: Mapping[str, str] | None = N
 
 
 REPLAY_READ_ONLY = "a replay of a finished run: there is nothing to command"
-LIVE_READ_ONLY = "read-only: the run was started with --view; start it with --console to command it"
 
 
 def create_app(
@@ -229,6 +230,7 @@ def create_app(
     *,
     console: Console | None = None,
     security: Security | None = None,
+    streams: StreamCount | None = None,
 ) -> FastAPI:
     """The FastAPI app of ``source`` (module docstring) with the operator console's routes
     (:mod:`btmission.console.api`; commands need ``console``) behind its guard (``security``:
@@ -237,6 +239,7 @@ def create_app(
 
     stop = closing if closing is not None else threading.Event()
     sec = security if security is not None else Security()
+    streams = streams if streams is not None else StreamCount()
     app = FastAPI(
         title="btmission viewer and operator console",
         version=_version(),
@@ -246,7 +249,7 @@ def create_app(
         "(docs/operator.md). Commands need the run's token: Authorization: Bearer <token>.",
     )
     app.add_middleware(Guard, security=sec)
-    read_only = REPLAY_READ_ONLY if source.info.get("mode") == "replay" else LIVE_READ_ONLY
+    read_only = REPLAY_READ_ONLY if source.info.get("mode") == "replay" else READ_ONLY
     add_console_routes(app, console, read_only)
     files = {
         "viewer.js": (static_dir() / "viewer.js", "text/javascript"),
@@ -273,7 +276,7 @@ def create_app(
     @app.get("/api/info")
     def info() -> dict[str, Any]:
         out = source.full_info()
-        if console is not None and sec.token is not None:
+        if console is not None:
             out["console"] = {**console.info(), "token_required": not sec.loopback}
         else:
             out["console"] = {"enabled": False, "reason": read_only}
@@ -298,12 +301,34 @@ def create_app(
     @app.get("/api/stream")
     async def stream(request: Request, cursor: int = Query(0, ge=0)) -> StreamingResponse:
         return StreamingResponse(
-            _stream(source.feed, cursor, request.is_disconnected, stop),
+            _counted(_stream(source.feed, cursor, request.is_disconnected, stop), streams),
             media_type="text/event-stream",
             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
         )
 
     return app
+
+
+class StreamCount:
+    """How many pages are being streamed to (thread-safe): the server waits for them to get
+    the run's last records before it closes."""
+
+    def __init__(self) -> None:
+        self.n = 0
+        self._lock = threading.Lock()
+
+    def add(self, k: int) -> None:
+        with self._lock:
+            self.n += k
+
+
+async def _counted(stream: AsyncIterator[str], count: StreamCount) -> AsyncIterator[str]:
+    count.add(1)
+    try:
+        async for part in stream:
+            yield part
+    finally:
+        count.add(-1)
 
 
 async def _stream(
@@ -394,6 +419,8 @@ class ViewerServer:
         self.tls = tls
         """(certificate file, key file): serve HTTPS (uvicorn's ssl_certfile, ssl_keyfile)."""
         self._closing = threading.Event()
+        self.streams = StreamCount()
+        """Pages being streamed to now."""
         self._server: Any = None
         self._thread: threading.Thread | None = None
         self._sock: socket.socket | None = None
@@ -427,7 +454,13 @@ class ViewerServer:
         self.bind()
         if self.source is None:
             raise ViewerError("nothing to serve yet (no source)")
-        app = create_app(self.source, self._closing, console=self.console, security=self.security)
+        app = create_app(
+            self.source,
+            self._closing,
+            console=self.console,
+            security=self.security,
+            streams=self.streams,
+        )
         config = uvicorn.Config(
             app,
             log_level="warning",
@@ -452,8 +485,13 @@ class ViewerServer:
             time.sleep(0.01)
         return self.url
 
-    def close(self, timeout: float = 5.0) -> None:
-        """End the streams, stop the server, release the port."""
+    def close(self, timeout: float = 5.0, *, drain_s: float = DRAIN_S) -> None:
+        """Let the pages being streamed to get what is left (a finished run's last records
+        and its end: at most ``drain_s``), end the streams, stop the server, release the
+        port."""
+        deadline = time.monotonic() + drain_s
+        while self.streams.n > 0 and time.monotonic() < deadline:
+            time.sleep(0.02)
         self._closing.set()
         if self._server is not None:
             self._server.should_exit = True
