@@ -251,7 +251,9 @@ def test_a_task_inside_rock_is_refused_with_the_reason(page: Any, tmp_path: Path
     assert "T8" not in after and set(before) <= set(after)
     events = _events(live.log)
     assert not [e for e in events if e.kind == "task_added" and e.get("task") == "T8"]
-    assert not [e for e in events if e.kind == "command" and e.get("command") == "add_task"]
+    adds = [e for e in events if e.kind == "command" and e.get("command") == "add_task"]
+    assert adds and all(e.get("ok") is False and "inside rock" in e.get("error") for e in adds)
+    assert adds[0].get("by") == "page@127.0.0.1"  # refused, and logged: who tried what
 
 
 def test_cancel_pause_exclude_then_the_page_closes(page: Any, tmp_path: Path) -> None:
