@@ -407,20 +407,25 @@
       ray.setFromCamera(ndc, this.viewer.camera);
       return ray;
     }
+    hasRock() {                  // the map has a rock surface (scene.py's /mine)
+      const node = this.viewer.scene_tree.children.mine;
+      let found = false;
+      if (node) node.object.traverse((o) => { if (o.isMesh) found = true; });
+      return found;
+    }
     surfacePick(cx, cy) {        // the mine's surface under a page point: {p, normal}, world frame
       const r = this.pane.getBoundingClientRect();
       if (cx < r.left || cx >= r.right || cy < r.top || cy >= r.bottom) return null;
       const ray = this.ray(cx, cy);
-      const node = this.viewer.scene_tree.children.mine;  // scene.py's /mine (front faces only,
-      if (node && node.object.visible) {                   // so the cut-away near rock is not hit)
-        node.object.updateMatrixWorld(true);
-        const hit = ray.intersectObject(node.object, true).find((h) => h.face);
-        if (hit) {
-          const n = hit.face.normal.clone().applyMatrix3(new THREE.Matrix3().getNormalMatrix(hit.object.matrixWorld)).normalize();
-          return { p: [hit.point.x, hit.point.y, hit.point.z], normal: [n.x, n.y, n.z] };
-        }
+      if (this.hasRock()) {      // front faces only, so the cut-away near rock is not hit; a
+        const obj = this.viewer.scene_tree.children.mine.object;   // miss is solid rock: null
+        obj.updateMatrixWorld(true);
+        const hit = ray.intersectObject(obj, true).find((h) => h.face);
+        if (!hit) return null;
+        const n = hit.face.normal.clone().applyMatrix3(new THREE.Matrix3().getNormalMatrix(hit.object.matrixWorld)).normalize();
+        return { p: [hit.point.x, hit.point.y, hit.point.z], normal: [n.x, n.y, n.z] };
       }
-      if (!this.bounds) return null;   // no rock there: the map's floor (a map without rock stands on it)
+      if (!this.bounds) return null;   // a map without rock: its floor (it stands on it)
       const [lo, hi] = this.bounds;
       const p = ray.ray.intersectPlane(new THREE.Plane(new THREE.Vector3(0, 0, 1), -lo[2]), new THREE.Vector3());
       if (!p || p.x < lo[0] || p.x > hi[0] || p.y < lo[1] || p.y > hi[1]) return null;
@@ -756,6 +761,8 @@
   const STATUS_MS = 1000;      // api/status is polled this often while the run goes on
   const FINAL = new Set(["done", "failed", "cancelled"]);
   const MARK_COLORS = ["#e879f9", "#22d3ee", "#fde047", "#fb7185"];
+  const ESC_HINT = "Esc stops picking";
+  const MISS_HINT = "no open space under the cursor: click a tunnel (its floor or a wall)";
   const ops = {
     cfg: null,                 // info.console, when it is enabled
     token: null,
@@ -981,7 +988,16 @@
     $("btn-add-task").classList.remove("on");
     hint(null);
   }
-  function hint(text) { const h = $("pick-hint"); h.hidden = !text; h.textContent = text || ""; }
+  function hint(text, warn) { const h = $("pick-hint"); h.hidden = !text; h.textContent = text || ""; h.classList.toggle("warn", !!warn); }
+  function note(cx, cy, text) {  // a short note where the map was clicked
+    const el = $("pick-note"), r = $("view3d").getBoundingClientRect();
+    el.textContent = text;
+    el.style.left = (cx - r.left) + "px";
+    el.style.top = (cy - r.top) + "px";
+    el.hidden = false;
+    clearTimeout(ops.noteTimer);
+    ops.noteTimer = setTimeout(() => { el.hidden = true; }, 2500);
+  }
   function positions() { return typeInfo(formEl().elements.type.value).positions || []; }
   function openForm() {
     const f = formEl();
@@ -994,6 +1010,7 @@
   }
   function closeForm() {
     formEl().hidden = true;
+    $("pick-note").hidden = true;
     ops.points.clear();
     showMarks();
     disarm();
@@ -1102,7 +1119,11 @@
   function pickPoint(cx, cy) {     // Scene3D.onClick: in add mode a click picks the surface
     if (!ops.arm) return false;
     const hit = scene.surfacePick(cx, cy);
-    if (!hit) { hint("Nothing there: click the rock or a tunnel's floor · Esc cancels"); return true; }
+    if (!hit) {                    // solid rock (or off the map): nothing is filled
+      hint(`${MISS_HINT} · ${ESC_HINT}`, true);
+      note(cx, cy, MISS_HINT);
+      return true;
+    }
     const off = Number.isFinite(ops.cfg.pick_offset_m) ? ops.cfg.pick_offset_m : OFFSET_M;
     const p = hit.p.map((v, i) => Math.round((v + hit.normal[i] * off) * 10) / 10);
     openForm();
