@@ -595,6 +595,7 @@
     }
     if (!state.selected && model.agents.size) selectAgent(model.agents.keys().next().value);
     else selectAgent(state.selected);
+    if (ops.cfg) tabMarks();
   }
 
   function panels(t) {
@@ -915,8 +916,8 @@
       .filter(([on]) => on).map(([, text]) => `<span class="chip">${text}</span>`);
     el.innerHTML =
       `<button id="btn-recall" data-act="recall"${off || (s.recalled ? " disabled" : "")} title="${esc(id)} gives up its task, stops bidding and runs its default behaviour (home)">⌂ Recall</button>` +
-      (s.excluded
-        ? `<button id="btn-exclude" data-act="include"${off} title="${esc(id)} bids for tasks again">Include</button>`
+      (s.excluded || s.recalled   // (include brings a recalled agent back too)
+        ? `<button id="btn-exclude" data-act="include"${off} title="${esc(id)} bids for tasks again${s.recalled ? " (and leaves its default behaviour when it wins one)" : ""}">Include</button>`
         : `<button id="btn-exclude" data-act="exclude"${off} title="Take ${esc(id)} out of the auction: it wins no new task">Exclude</button>`) +
       (ops.cfg.link_drills && (!ops.cfg.drill_agents || ops.cfg.drill_agents.includes(id))
         ? (s.link_up === false
@@ -947,13 +948,17 @@
     b.textContent = paused ? "Resume allocation" : "Pause allocation";
     b.classList.toggle("warn", paused);
     $("console-state").textContent = paused ? "allocation paused" : "";
-    for (const tab of $("agent-tabs").children) {
-      const a = ops.agentStatus.get(tab.dataset.agent) || {};
-      tab.classList.toggle("excluded", !!a.excluded || !!a.recalled);
-      tab.classList.toggle("nolink", a.link_up === false);
-    }
+    tabMarks();
     if (s.ended) closeConsole();
     state.drawnT = -1;
+  }
+  function tabMarks() {         // out of the auction (excluded or recalled): dashed; link down: red ring
+    for (const tab of $("agent-tabs").children) {
+      const a = ops.agentStatus.get(tab.dataset.agent) || {};
+      tab.classList.toggle("out", !!a.excluded || !!a.recalled);
+      tab.classList.toggle("nolink", a.link_up === false);
+      tab.title = a.recalled ? `${tab.dataset.agent}: recalled (out of the auction)` : a.excluded ? `${tab.dataset.agent}: excluded (out of the auction)` : "";
+    }
   }
   function closeConsole() {    // the run has ended: nothing more to command
     if (ops.closed || !ops.cfg) return;
