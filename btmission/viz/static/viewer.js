@@ -773,6 +773,7 @@
     watch: new Map(),          // task id → {since: mission time, seen: its states told}
     shown: [],                 // the form's position fields, in order
     watchedVersion: -1, actionsKey: "", closed: false,
+    idEdited: false,           // the operator typed the form's id: a new type keeps it
   };
 
   function takeToken() {       // ?token=… → this tab's session storage, and out of the address bar
@@ -1008,10 +1009,16 @@
     const f = formEl();
     if (!f.hidden) return;
     f.hidden = false;
-    f.elements.id.value = ops.cfg.next_task_id || "";
+    ops.idEdited = false;
+    proposeId();
     ops.points.clear();
     buildFields();
     formMessage("");
+  }
+  function proposeId() {       // the type's next free id (P2 for pick_and_deliver, I3 for inspect),
+    if (ops.idEdited) return;  // unless the operator wrote one
+    const f = formEl(), ids = ops.cfg.next_task_ids || {};
+    f.elements.id.value = ids[f.elements.type.value] || ops.cfg.next_task_id || "";
   }
   function closeForm() {
     formEl().hidden = true;
@@ -1174,8 +1181,8 @@
     f.onsubmit = submitForm;
     $("task-form-cancel").onclick = closeForm;
     $("task-form-close").onclick = closeForm;
-    f.elements.type.onchange = () => buildFields(ops.shown);
-    f.elements.id.oninput = showMarks;
+    f.elements.type.onchange = () => { proposeId(); buildFields(ops.shown); };
+    f.elements.id.oninput = () => { ops.idEdited = f.elements.id.value.trim() !== ""; showMarks(); };
     $("task-fields").addEventListener("click", (e) => {
       const b = e.target.closest("button.pick");
       if (b) arm(b.dataset.field);
