@@ -808,6 +808,7 @@
     const log = $("console-log");
     log.prepend(li);
     while (log.children.length > 200) log.lastChild.remove();
+    log.scrollTop = 0;         // the newest, on top, in sight
     document.body.dataset.lastResult = text;
   }
   function errorText(status, data, retry) {
@@ -888,6 +889,7 @@
     const st = task.states[task.states.length - 1];
     return !!st && !FINAL.has(st[1]);
   }
+  function priorityLabel(name, m) { return `${esc(name)} (×${esc(m)})`; }   // the form's and the table's
   function prioritySelect(task) {
     const tt = (ops.cfg.task_types || {})[task.type] || {};
     const base = Number(tt.priority) || 1;
@@ -897,10 +899,11 @@
     const opts = Object.entries(ops.cfg.priorities || {}).map(([name, m]) => {
       const sel = !found && Math.abs(base * m - p) <= 1e-6 * Math.max(1, Math.abs(p));
       found = found || sel;
-      return `<option value="${esc(name)}"${sel ? " selected" : ""}>${esc(name)} (${+(base * m).toFixed(3)})</option>`;
+      return `<option value="${esc(name)}"${sel ? " selected" : ""}>${priorityLabel(name, m)}</option>`;
     });
     if (!found) opts.unshift(`<option value="" selected disabled>${esc(Number.isFinite(p) ? +p.toFixed(3) : "?")}</option>`);
-    return `<select class="task-priority" data-task="${esc(task.id)}" title="Change ${esc(task.id)}'s priority"${ops.closed ? " disabled" : ""}>${opts.join("")}</select>`;
+    const now = Number.isFinite(p) ? ` (now ${+p.toFixed(3)}: the type's ${+base.toFixed(3)} × the level)` : "";
+    return `<select class="task-priority" data-task="${esc(task.id)}" title="Change ${esc(task.id)}'s priority${now}"${ops.closed ? " disabled" : ""}>${opts.join("")}</select>`;
   }
 
   // ---- the selected agent's controls
@@ -986,7 +989,7 @@
     ops.arm = field;
     $("view3d").classList.add("arming");
     $("btn-add-task").classList.add("on");
-    hint(field === "*" ? "Click the map where the task goes · Esc cancels" : `Click the map: ${field} · Esc cancels`);
+    hint(field === "*" ? `Click the map where the task goes · ${ESC_HINT}` : `Click the map: ${field} · ${ESC_HINT}`);
   }
   function disarm() {
     ops.arm = null;
@@ -1009,6 +1012,7 @@
     const f = formEl();
     if (!f.hidden) return;
     f.hidden = false;
+    fold(false);
     ops.idEdited = false;
     proposeId();
     ops.points.clear();
@@ -1019,6 +1023,13 @@
     if (ops.idEdited) return;  // unless the operator wrote one
     const f = formEl(), ids = ops.cfg.next_task_ids || {};
     f.elements.id.value = ids[f.elements.type.value] || ops.cfg.next_task_id || "";
+  }
+  function fold(on) {         // the form folded to its title (and the hint), the map under it seen
+    const f = formEl(), b = $("task-form-fold");
+    f.classList.toggle("folded", on);
+    b.textContent = on ? "▸" : "▾";
+    b.setAttribute("aria-expanded", on ? "false" : "true");
+    b.title = on ? "Unfold the form" : "Fold the form to its title (the map under it shows)";
   }
   function closeForm() {
     formEl().hidden = true;
@@ -1067,6 +1078,7 @@
   function formMessage(text, field) {
     const f = formEl();
     $("task-form-msg").textContent = text;
+    if (text) fold(false);
     for (const el of f.querySelectorAll(".bad")) el.classList.remove("bad");
     if (!field) return;
     const el = f.querySelector(`.row[data-field="${CSS.escape(field)}"]`) || (f.elements[field] && f.elements[field].closest(".row"));
@@ -1089,6 +1101,7 @@
   async function submitForm(e) {
     e.preventDefault();
     if (ops.closed) return;
+    disarm();                  // (typed coordinates: the click the hint asked for is not needed)
     const f = formEl();
     const type = f.elements.type.value, tt = typeInfo(type), pos = new Set(tt.positions || []);
     const body = { type, priority: f.elements.priority.value };
@@ -1146,6 +1159,7 @@
     if (field) setPoint(field, p, hit.p);
     const next = chain && pos.find((f) => !ops.points.has(f));
     if (next) arm(next);
+    else fold(false);          // every point picked: the form, to check and add
     return true;
   }
 
@@ -1164,7 +1178,7 @@
     const f = formEl();
     f.elements.type.innerHTML = Object.keys(c.task_types || {}).map((t) => `<option value="${esc(t)}">${esc(t)}</option>`).join("");
     f.elements.priority.innerHTML = Object.entries(c.priorities || { normal: 1 })
-      .map(([n, m]) => `<option value="${esc(n)}"${n === "normal" ? " selected" : ""}>${esc(n)} (×${esc(m)})</option>`).join("");
+      .map(([n, m]) => `<option value="${esc(n)}"${n === "normal" ? " selected" : ""}>${priorityLabel(n, m)}</option>`).join("");
     $("places-list").innerHTML = (c.places || []).map((p) => `<option value="${esc(p)}"></option>`).join("");
     if (!ops.token) askToken(null);
     statusLoop();
@@ -1181,6 +1195,7 @@
     f.onsubmit = submitForm;
     $("task-form-cancel").onclick = closeForm;
     $("task-form-close").onclick = closeForm;
+    $("task-form-fold").onclick = () => fold(!f.classList.contains("folded"));
     f.elements.type.onchange = () => { proposeId(); buildFields(ops.shown); };
     f.elements.id.oninput = () => { ops.idEdited = f.elements.id.value.trim() !== ""; showMarks(); };
     $("task-fields").addEventListener("click", (e) => {
