@@ -833,8 +833,8 @@
     let data = {};
     try { data = await r.json(); } catch (e) { data = {}; }
     if (r.ok) return { ok: true, status: r.status, data, message: data.message || `${data.command || method} ok` };
-    const message = errorText(r.status, data, r.headers.get("Retry-After"));
-    if (r.status === 401 || r.status === 403) askToken(message);
+    let message = errorText(r.status, data, r.headers.get("Retry-After"));
+    if (r.status === 401 || r.status === 403) { message = tokenText(message); askToken(message); }
     return { ok: false, status: r.status, data, message };
   }
   async function act(method, path, body, task) {   // one action; its result goes to the log
@@ -935,7 +935,12 @@
     if (!ops.cfg) return;
     let r;
     try { r = await fetch("api/status", { headers: authHeaders() }); } catch (e) { return; }
-    if (r.status === 401 || r.status === 403) { askToken(errorText(r.status, await r.json().catch(() => ({})))); return; }
+    if (r.status === 401 || r.status === 403) {
+      const m = tokenText(errorText(r.status, await r.json().catch(() => ({}))));
+      if (document.body.dataset.lastResult !== m) logResult(false, m);   // (once, not every poll)
+      askToken(m);
+      return;
+    }
     if (!r.ok) return;
     const s = await r.json().catch(() => null);
     if (s) applyStatus(s);
@@ -975,6 +980,9 @@
   }
 
   // ---- the token
+  function tokenText(message) {   // a refusal for the token, and what to do about it
+    return /token field/.test(message) ? message : `${message} — paste it in the token field`;
+  }
   function askToken(message) {
     const f = $("token-form");
     f.hidden = false;
@@ -1347,8 +1355,8 @@
         $("console-bar").hidden = false;
         $("btn-pause").hidden = true;
         ops.reloadOnToken = true;     // with a token, the page starts again
-        askToken(errorText(r.status, refusal));
-        $("conn").textContent = "this page needs the run's token";
+        askToken(tokenText(errorText(r.status, refusal)));
+        $("conn").textContent = "this page needs the run's token — paste it in the token field";
         return;
       }
       const info = await r.json();
