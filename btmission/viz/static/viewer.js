@@ -563,7 +563,7 @@
 
   // ------------------------------------------------------------------------ the page
   const model = new Model();
-  const state = { viewT: 0, follow: true, playing: false, speed: 5, live: false, complete: false,
+  const state = { viewT: 0, follow: true, playing: false, speed: 5, live: false, complete: false, gone: false,
     selected: null, task: null, lastPanel: 0, drawnVersion: -1, drawnT: -1, info: null, lidarOn: false, lidarKey: "" };
   const scene = new Scene3D($("meshcat-pane"), model);
   const tree = new TreePanel($("tree"));
@@ -697,7 +697,7 @@
     $("btn-live").style.display = state.live ? "" : "none";
     $("btn-live").classList.toggle("on", state.follow);
     const mode = $("mode");
-    const ended = state.live && state.complete;
+    const ended = state.live && (state.complete || state.gone);
     mode.textContent = state.live ? (ended ? "ENDED" : "LIVE") : "REPLAY";
     mode.className = "badge " + (state.live ? (ended ? "ended" : "live") : "replay");
   }
@@ -723,7 +723,7 @@
     if (state.follow) state.viewT = model.tEnd;
     else if (state.playing) {
       state.viewT = Math.min(model.tEnd, state.viewT + dt * state.speed);
-      if (state.viewT >= model.tEnd && (!state.live || state.complete)) state.playing = false;
+      if (state.viewT >= model.tEnd && (!state.live || state.complete || state.gone)) state.playing = false;
     }
     if (ops.watch.size && model.version !== ops.watchedVersion) { ops.watchedVersion = model.version; watchTasks(); }
     const t = state.viewT;
@@ -934,7 +934,7 @@
   async function pollStatus() {
     if (!ops.cfg) return;
     let r;
-    try { r = await fetch("api/status", { headers: authHeaders() }); } catch (e) { return; }
+    try { r = await fetch("api/status", { headers: authHeaders() }); } catch (e) { serverGone(); return; }
     if (r.status === 401 || r.status === 403) {
       const m = tokenText(errorText(r.status, await r.json().catch(() => ({}))));
       if (document.body.dataset.lastResult !== m) logResult(false, m);   // (once, not every poll)
@@ -946,7 +946,7 @@
     if (s) applyStatus(s);
   }
   function statusLoop() {
-    pollStatus().finally(() => { if (!ops.closed) setTimeout(statusLoop, STATUS_MS); });
+    pollStatus().finally(() => { if (!ops.closed && !state.gone) setTimeout(statusLoop, STATUS_MS); });
   }
   function applyStatus(s) {
     ops.status = s;
@@ -969,13 +969,13 @@
       tab.title = a.recalled ? `${tab.dataset.agent}: recalled (out of the auction)` : a.excluded ? `${tab.dataset.agent}: excluded (out of the auction)` : "";
     }
   }
-  function closeConsole() {    // the run has ended: nothing more to command
+  function closeConsole(why) {   // the run has ended (or its server has gone): nothing more to command
     if (ops.closed || !ops.cfg) return;
     ops.closed = true;
     disarm();
     for (const id of ["btn-add-task", "btn-pause", "task-form-submit"]) $(id).disabled = true;
-    $("console-state").textContent = "run ended";
-    logResult(true, "the run has ended: the console takes no more commands");
+    $("console-state").textContent = why ? "server gone" : "run ended";
+    logResult(!why, why || "the run has ended: the console takes no more commands");
     state.tasksHtml = ""; ops.actionsKey = ""; state.drawnT = -1;
   }
 
@@ -1263,7 +1263,7 @@
   function bindControls() {
     $("btn-play").onclick = () => {
       if (state.follow) state.follow = false;
-      if (!state.playing && state.viewT >= model.tEnd - 1e-6 && (!state.live || state.complete)) state.viewT = 0;
+      if (!state.playing && state.viewT >= model.tEnd - 1e-6 && (!state.live || state.complete || state.gone)) state.viewT = 0;
       state.playing = !state.playing; refreshControls();
     };
     $("speed").onchange = (e) => { state.speed = Number(e.target.value); };
@@ -1308,10 +1308,33 @@
     refreshControls();
   }
 
+  // the server gone for good (the run ended or was stopped without the stream's `complete`
+  // reaching the page): said once, the controls disabled, no more reconnecting
+  const GONE = "the run's server has gone (the run ended or was stopped)";
+  const GONE_AFTER = 3;        // stream errors in a row
+  function serverGone() {
+    if (state.gone || state.complete || CFG.embedded) return;
+    state.gone = true;
+    if (state.es) state.es.close();
+    clearTimeout(state.retry);
+    const conn = $("conn");
+    conn.textContent = state.live ? GONE : "the viewer's server has gone";
+    conn.classList.add("gone");
+    document.body.dataset.gone = "1";
+    closeConsole(GONE);
+    refreshControls();
+  }
+  async function serverAnswers() {  // any HTTP answer (even a refusal) says the server is up
+    try { await fetch("api/status", { headers: authHeaders(), cache: "no-store" }); return true; } catch (e) { return false; }
+  }
+
   function connect(cursor) {
-    const es = new EventSource(`api/stream?cursor=${cursor}${streamQuery()}`);
+    if (state.gone) return;
+    const es = state.es = new EventSource(`api/stream?cursor=${cursor}${streamQuery()}`);
     $("conn").textContent = "connected";
+    es.onopen = () => { state.streamFails = 0; $("conn").textContent = "connected"; };
     es.onmessage = (e) => {
+      state.streamFails = 0;
       const msg = JSON.parse(e.data);
       model.add(msg.records);
       if (msg.latest) model.add(msg.latest);
@@ -1322,11 +1345,14 @@
       es.close(); state.complete = true; $("conn").textContent = "";
       document.body.dataset.complete = "1"; refreshControls(); closeConsole();
     });
-    es.onerror = () => {            // reconnect from where we were (not from the start)
+    es.onerror = async () => {      // reconnect from where we were (not from the start) ...
       es.close();
-      if (state.complete) return;
+      if (state.complete || state.gone) return;
+      state.streamFails = (state.streamFails || 0) + 1;
+      // ... unless the server is gone: a refused connection, or errors again and again
+      if (state.streamFails >= GONE_AFTER || !(await serverAnswers())) { serverGone(); return; }
       $("conn").textContent = "reconnecting…";
-      setTimeout(() => connect(cursor), 1000);
+      state.retry = setTimeout(() => connect(cursor), 1000);
     };
   }
 
