@@ -428,7 +428,10 @@ def test_cancel_pause_exclude_then_the_page_closes(page: Any, tmp_path: Path) ->
     (result,) = live.result
     assert result.reason == "until" and result.time_s == pytest.approx(until)
     assert cancel_gone and "allocation paused" in paused_said
-    assert [b[:2] for b in recalled_buttons][:2] == [["btn-recall", "⌂ Recall"], ["btn-exclude", "Include"]]
+    assert [b[:2] for b in recalled_buttons][:2] == [
+        ["btn-recall", "⌂ Recall"],
+        ["btn-exclude", "Include"],
+    ]
     assert recalled_buttons[0][2] and not recalled_buttons[1][2]  # Recall disabled, Include not
     assert recalled_tab == [True, "dashed"] and not included_tab
     assert status["recalled"] is False and status["excluded"] is False
@@ -524,7 +527,8 @@ def test_the_form_proposes_the_types_own_next_id(page: Any, tmp_path: Path) -> N
     """A mission with two task types (pick_and_deliver's P1, inspect's I1, I2): the form's Id
     is the selected type's next id (api/info's next_task_ids: P2, I3) when it opens and when the
     type changes, until the operator writes one; without next_task_ids (a server before it)
-    it stays next_task_id. The form's priority menu and the table's say the same."""
+    it stays next_task_id. The form's priority menu and the table's say the same. (Its map has
+    no rock: a click is picked on the map's floor.)"""
     with live_run(tmp_path, mission=PICK_AND_DELIVER, until=60.0) as live:
         errors = _open(page, f"{live.url}?token={TOKEN}")
         live.go()
@@ -536,6 +540,8 @@ def test_the_form_proposes_the_types_own_next_id(page: Any, tmp_path: Path) -> N
         types = sorted(cfg["task_types"])
         server_ids = cfg.get("next_task_ids")
         page.click("#btn-add-task")
+        x, y = page.evaluate("btm.worldScreen([6, 4, 0])")
+        floor = page.evaluate(f"[btm.scene.hasRock(), btm.surfacePick({x}, {y})]")
         page.keyboard.press("Escape")
         form_priority = page.evaluate(
             "document.querySelector('#task-form [name=priority]').selectedOptions[0].textContent"
@@ -561,6 +567,7 @@ def test_the_form_proposes_the_types_own_next_id(page: Any, tmp_path: Path) -> N
         live.stop()
     assert errors == []
     assert types == ["inspect", "pick_and_deliver"]
+    assert floor[0] is False and floor[1]["p"] == pytest.approx([6, 4, 0], abs=0.05)
     if fallback is not None:
         assert fallback == [cfg["next_task_id"]] * 2
     else:  # the mission's P1 and I1, I2 (I2 comes at 40 s: I2 or I3)
