@@ -934,7 +934,10 @@
   async function pollStatus() {
     if (!ops.cfg) return;
     let r;
-    try { r = await fetch("api/status", { headers: authHeaders() }); } catch (e) { serverGone(); return; }
+    try { r = await fetch("api/status", { headers: authHeaders() }); } catch (e) {
+      if ((await serverAnswers()) === "refused") serverGone();   // (not a passing network error)
+      return;
+    }
     if (r.status === 401 || r.status === 403) {
       const m = tokenText(errorText(r.status, await r.json().catch(() => ({}))));
       if (document.body.dataset.lastResult !== m) logResult(false, m);   // (once, not every poll)
@@ -1001,6 +1004,7 @@
   }
   function disarm() {
     ops.arm = null;
+    $("pick-note").hidden = true;
     $("view3d").classList.remove("arming");
     $("btn-add-task").classList.remove("on");
     hint(null);
@@ -1041,7 +1045,6 @@
   }
   function closeForm() {
     formEl().hidden = true;
-    $("pick-note").hidden = true;
     ops.points.clear();
     showMarks();
     disarm();
@@ -1311,7 +1314,7 @@
   // the server gone for good (the run ended or was stopped without the stream's `complete`
   // reaching the page): said once, the controls disabled, no more reconnecting
   const GONE = "the run's server has gone (the run ended or was stopped)";
-  const GONE_AFTER = 3;        // stream errors in a row
+  const GONE_AFTER = 3;        // stream errors in a row, the server silent
   function serverGone() {
     if (state.gone || state.complete || CFG.embedded) return;
     state.gone = true;
@@ -1324,14 +1327,20 @@
     closeConsole(GONE);
     refreshControls();
   }
-  async function serverAnswers() {  // any HTTP answer (even a refusal) says the server is up
-    try { await fetch("api/status", { headers: authHeaders(), cache: "no-store" }); return true; } catch (e) { return false; }
+  async function serverAnswers() {  // "up" (any HTTP answer, even a refusal), "refused" or "silent"
+    const ctl = new AbortController(), timer = setTimeout(() => ctl.abort(), 5000);
+    try {
+      await fetch("api/status", { headers: authHeaders(), cache: "no-store", signal: ctl.signal });
+      return "up";
+    } catch (e) {
+      return e && e.name === "AbortError" ? "silent" : "refused";
+    } finally { clearTimeout(timer); }
   }
 
   function connect(cursor) {
     if (state.gone) return;
     const es = state.es = new EventSource(`api/stream?cursor=${cursor}${streamQuery()}`);
-    $("conn").textContent = "connected";
+    if (!state.streamFails) $("conn").textContent = "connected";   // (a reconnect: once open)
     es.onopen = () => { state.streamFails = 0; $("conn").textContent = "connected"; };
     es.onmessage = (e) => {
       state.streamFails = 0;
@@ -1349,8 +1358,10 @@
       es.close();
       if (state.complete || state.gone) return;
       state.streamFails = (state.streamFails || 0) + 1;
-      // ... unless the server is gone: a refused connection, or errors again and again
-      if (state.streamFails >= GONE_AFTER || !(await serverAnswers())) { serverGone(); return; }
+      // ... unless the server is gone: it refuses the connection, or it has not answered
+      // GONE_AFTER times in a row (a server that answers, e.g. 503 when busy, is retried)
+      const up = await serverAnswers();
+      if (up === "refused" || (up === "silent" && state.streamFails >= GONE_AFTER)) { serverGone(); return; }
       $("conn").textContent = "reconnecting…";
       state.retry = setTimeout(() => connect(cursor), 1000);
     };
