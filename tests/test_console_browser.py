@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from btmission.runtime.events import Event, read_events
@@ -32,6 +33,7 @@ from tests.browser import colour_fraction, next_frames
 
 ROOT = Path(__file__).resolve().parents[1]
 MINE = ROOT / "missions" / "mine_inspection.yaml"
+PICK_AND_DELIVER = ROOT / "missions" / "pick_and_deliver.yaml"
 TOKEN = "t0ken"
 SPEED = 8.0
 """The runs go 8 times faster than real time."""
@@ -91,6 +93,7 @@ class Live:
     url: str
     log: Path
     until: float
+    viewer: LiveViewer
     result: list[Any] = field(default_factory=list)
     worker: threading.Thread | None = None
 
@@ -111,18 +114,20 @@ class Live:
 
 
 @contextlib.contextmanager
-def live_run(tmp_path: Path, *, console: bool = True, until: float = 240.0) -> Iterator[Live]:
-    """The seed 000 mission (track controller) served live, with the console and TOKEN unless
-    ``console`` is False. On the way out the run is stopped and its thread joined."""
+def live_run(
+    tmp_path: Path, *, console: bool = True, until: float = 240.0, mission: Path = MINE
+) -> Iterator[Live]:
+    """The seed 000 mission (or ``mission``; track controller) served live, with the console and
+    TOKEN unless ``console`` is False. On the way out the run is stopped and its thread joined."""
     viewer = LiveViewer(port=0, console=console, token=TOKEN if console else None)
     log = tmp_path / "console.jsonl"
     try:
         with RunSession(
-            MINE, controller="track", realtime=True, speed=SPEED, log_path=log,
+            mission, controller="track", realtime=True, speed=SPEED, log_path=log,
             observers=[viewer.observer],
         ) as session:  # fmt: skip
             run = session.start()
-            live = Live(session, run, viewer.attach(session, run), log, until)
+            live = Live(session, run, viewer.attach(session, run), log, until, viewer)
             try:
                 yield live
             finally:
@@ -145,6 +150,49 @@ def _rock_point(vmap: VoxelMap) -> list[float]:
         if vmap.state_at(p) == OCCUPIED:
             return p
     raise AssertionError("no rock east of the launch area")
+
+
+def _rock_columns(vmap: VoxelMap, margin_m: float = 3.0, step_m: float = 4.0) -> list[list[float]]:
+    """(x, y) on a ``step_m`` grid of the columns of solid rock, every voxel occupied from the
+    map's bottom to its top within ``margin_m`` around: the rock between tunnels."""
+    solid = (vmap.state == OCCUPIED).all(axis=2)
+    k = max(1, round(margin_m / vmap.resolution))
+    nx, ny = solid.shape
+    padded = np.pad(solid, k, constant_values=False)
+    inner = solid.copy()
+    for dx in range(2 * k + 1):
+        for dy in range(2 * k + 1):
+            inner &= padded[dx : dx + nx, dy : dy + ny]
+    step = max(1, round(step_m / vmap.resolution))
+    out = []
+    for i, j in zip(*np.nonzero(inner[::step, ::step]), strict=True):
+        x, y, _ = vmap.index_to_world([i * step, j * step, 0])
+        out.append([round(float(x), 2), round(float(y), 2)])
+    return out
+
+
+_PICK_ROCK = """([cols, z]) => {
+  // of the rock columns, the one nearest the pane's middle whose top is seen (the map's canvas
+  // under it, no panel) and under which the mine's surface has nothing
+  const r = document.getElementById('view3d').getBoundingClientRect();
+  const cx = (r.left + r.right) / 2, cy = (r.top + r.bottom) / 2;
+  let best = null;
+  for (const [wx, wy] of cols) {
+    const [x, y] = btm.worldScreen([wx, wy, z]);
+    const el = document.elementFromPoint(x, y);
+    if (!el || el.tagName !== 'CANVAS' || btm.surfacePick(x, y)) continue;
+    const d = Math.hypot(x - cx, y - cy);
+    if (!best || d < best[2]) best = [x, y, d, wx, wy];
+  }
+  return best;
+}"""
+
+
+def _rect(page: Any, selector: str) -> list[float]:
+    return page.evaluate(
+        f"(() => {{ const r = document.querySelector({selector!r}).getBoundingClientRect();"
+        " return [r.left, r.top, r.right, r.bottom]; })()"
+    )
 
 
 def test_click_on_the_map_adds_a_task_that_is_then_done(page: Any, tmp_path: Path) -> None:
@@ -217,6 +265,66 @@ def test_click_on_the_map_adds_a_task_that_is_then_done(page: Any, tmp_path: Pat
     assert all(ok == "1" for ok, _ in entries)
 
 
+def test_a_click_on_rock_between_tunnels_fills_nothing(page: Any, tmp_path: Path) -> None:
+    """Top view, + Task, a click on the rock between two tunnels, where no open space is under
+    the cursor (the ray meets no face of the mine): a hint says so, in the form and where the
+    click was; no point is filled or marked, the map still waits for a click, and nothing is
+    sent. The form is docked at the pane's right edge (the map's middle and left, where clicks
+    go, stay in sight) and folds to its title; its hint says Esc stops picking. Add task with
+    nothing filled says what is missing, and the click hint goes; closing the form clears it."""
+    with live_run(tmp_path) as live:  # (the run need not step)
+        errors = _open(page, f"{live.url}?token={TOKEN}")
+        sent: list[str] = []
+        page.on("request", lambda r: sent.append(f"{r.method} {r.url}") if r.method != "GET" else None)  # fmt: skip
+        page.click("#btn-top")
+        next_frames(page)
+        page.click("#btn-add-task")
+        armed_hint = page.text_content("#pick-hint")
+        pane, form = _rect(page, "#view3d"), _rect(page, "#task-form")
+        page.click("#task-form-fold")
+        folded = _rect(page, "#task-form")
+        folded_hint = page.is_visible("#pick-hint") and page.is_hidden("#task-form [name=id]")
+        page.click("#task-form-fold")
+        lo, hi = live.run.map.bounds
+        found = page.evaluate(_PICK_ROCK, [_rock_columns(live.run.map), hi[2]])
+        assert found, "no rock column in sight in the Top view"
+        x, y, _d, wx, wy = found
+        assert lo[0] < wx < hi[0] and lo[1] < wy < hi[1]  # (the map's floor is under it)
+        page.mouse.click(x, y)
+        _wait(page, "!document.getElementById('pick-note').hidden", 5)
+        next_frames(page, 2)
+        page.screenshot(path=str(tmp_path / "rock.png"))
+        hint = page.text_content("#pick-hint")
+        note = page.text_content("#pick-note")
+        filled = page.evaluate(
+            "['x', 'y', 'z'].map(c => document.querySelector(`#task-form [name='location.${c}']`).value)"
+        )
+        points = page.evaluate("btm.ops.points.size")
+        marks = page.evaluate("[...btm.scene.marks.values()].filter(o => o.group.visible).length")
+        arming = page.evaluate("document.getElementById('view3d').classList.contains('arming')")
+        page.click("#task-form-submit")  # nothing filled: said on the form, nothing sent
+        missing = page.text_content("#task-form-msg")
+        hint_after_submit = page.is_visible("#pick-hint")
+        arming_after_submit = page.evaluate(
+            "document.getElementById('view3d').classList.contains('arming')"
+        )
+        page.click("#task-form-close")
+        closed = page.is_hidden("#task-form") and page.is_hidden("#pick-note")
+        time.sleep(0.5)  # (a request would have gone by now)
+    assert errors == []
+    assert armed_hint is not None and "Esc stops picking" in armed_hint
+    mid = (pane[0] + pane[2]) / 2
+    assert mid < form[0] and form[2] <= pane[2]  # docked right, clear of the middle and left
+    assert folded[3] - folded[1] < 90 and folded_hint
+    miss = "no open space under the cursor: click a tunnel (its floor or a wall)"
+    assert hint is not None and miss in hint and "Esc stops picking" in hint
+    assert note is not None and miss in note
+    assert filled == ["", "", ""] and points == 0 and marks == 0 and arming
+    assert missing is not None and "location: give x, y and z" in missing
+    assert not hint_after_submit and not arming_after_submit and closed
+    assert sent == []
+
+
 def test_a_task_inside_rock_is_refused_with_the_reason(page: Any, tmp_path: Path) -> None:
     """Coordinates typed into the form that are inside rock: the page shows the server's
     refusal, the form stays open with the location marked; nothing is added."""
@@ -259,8 +367,9 @@ def test_a_task_inside_rock_is_refused_with_the_reason(page: Any, tmp_path: Path
 def test_cancel_pause_exclude_then_the_page_closes(page: Any, tmp_path: Path) -> None:
     """A task an agent holds is cancelled from its row's ✕: the log has it cancelled and that
     agent's next task is not it. Allocation is paused and resumed, the agent taken out of the
-    auction and back, each reflected by the page from api/status. Then the page closes and the
-    run goes on to its end time."""
+    auction and back, then recalled (its tab dashed, Recall disabled, Include offered) and
+    included again (it bids again), each reflected by the page from api/status. Then the page
+    closes and the run goes on to its end time."""
     until = 200.0
     with live_run(tmp_path, until=until) as live:
         errors = _open(page, f"{live.url}?token={TOKEN}")
@@ -293,6 +402,25 @@ def test_cancel_pause_exclude_then_the_page_closes(page: Any, tmp_path: Path) ->
         assert page.text_content("#btn-exclude") == "Include"
         page.click("#btn-exclude")
         _wait(page, "document.getElementById('btn-exclude').textContent === 'Exclude'", 15)
+        # recalled: out of the auction like an excluded agent, and Include brings it back
+        page.click("#btn-recall")
+        _wait(page, "[...document.querySelectorAll('#agent-actions .chip')].some(c => c.textContent === 'recalled')", 15)  # fmt: skip
+        page.screenshot(path=str(tmp_path / "recalled.png"))
+        recalled_buttons = page.evaluate(
+            "[...document.querySelectorAll('#agent-actions button')].map(b => [b.id, b.textContent, b.disabled])"
+        )
+        tab = f"document.querySelector('#agent-tabs button[data-agent=\"{agent}\"]')"
+        recalled_tab = page.evaluate(f"[{tab}.classList.contains('out'), getComputedStyle({tab}).borderTopStyle]")  # fmt: skip
+        page.click("#btn-exclude")
+        _wait(
+            page,
+            "document.getElementById('btn-exclude').textContent === 'Exclude'"
+            " && !document.getElementById('btn-recall').disabled"
+            " && ![...document.querySelectorAll('#agent-actions .chip')].some(c => c.textContent === 'recalled')",
+            15,
+        )
+        status = page.evaluate(f"btm.ops.agentStatus.get({agent!r})")
+        included_tab = page.evaluate(f"{tab}.classList.contains('out')")
         entries = _console_log(page)
         t_closed = float(page.evaluate("window.btm.state.viewT"))
         page.close()  # the browser goes away while the run goes on
@@ -302,6 +430,13 @@ def test_cancel_pause_exclude_then_the_page_closes(page: Any, tmp_path: Path) ->
     (result,) = live.result
     assert result.reason == "until" and result.time_s == pytest.approx(until)
     assert cancel_gone and "allocation paused" in paused_said
+    assert [b[:2] for b in recalled_buttons][:2] == [
+        ["btn-recall", "⌂ Recall"],
+        ["btn-exclude", "Include"],
+    ]
+    assert recalled_buttons[0][2] and not recalled_buttons[1][2]  # Recall disabled, Include not
+    assert recalled_tab == [True, "dashed"] and not included_tab
+    assert status["recalled"] is False and status["excluded"] is False
     assert all(ok == "1" for ok, _ in entries)
     events = _events(live.log)
     (cancelled,) = [e for e in events if e.kind == "task" and e.get("task") == task and e.get("state") == "cancelled"]  # fmt: skip
@@ -324,7 +459,14 @@ def test_cancel_pause_exclude_then_the_page_closes(page: Any, tmp_path: Path) ->
         ("set_allocation", True, False, None),
         ("exclude_agent", True, None, agent),
         ("include_agent", True, None, agent),
+        ("recall_agent", True, None, agent),
+        ("include_agent", True, None, agent),
     ]
+    # back in the auction: a task assigned to it after the include, or (none left for it) its
+    # status says it is no longer recalled (asserted above)
+    included = [e for e in events if e.kind == "command" and e.get("command") == "include_agent"][-1]  # fmt: skip
+    won = [e for e in events if e.kind == "task" and e.get("state") == "assigned" and e.get("agent") == agent and e.t >= included.t]  # fmt: skip
+    assert won or status["recalled"] is False
 
 
 def test_a_view_only_page_has_no_console(page: Any, tmp_path: Path) -> None:
@@ -379,4 +521,85 @@ def test_the_token_is_asked_for_when_the_page_has_none(page: Any, tmp_path: Path
     assert errors == []
     assert asked and closed and asked_again and not asked_with_token
     assert no_token[0] == "0" and "needs the run's token" in no_token[1]
+    assert no_token[1].endswith("— paste it in the token field")
     assert url == live.url and stored == TOKEN
+
+
+def test_the_form_proposes_the_types_own_next_id(page: Any, tmp_path: Path) -> None:
+    """A mission with two task types (pick_and_deliver's P1, inspect's I1, I2): the form's Id
+    is the selected type's next id (api/info's next_task_ids: P2, I3) when it opens and when the
+    type changes, until the operator writes one; without next_task_ids (a server before it)
+    it stays next_task_id. The form's priority menu and the table's say the same. (Its map has
+    no rock: a click is picked on the map's floor.)"""
+    with live_run(tmp_path, mission=PICK_AND_DELIVER, until=60.0) as live:
+        errors = _open(page, f"{live.url}?token={TOKEN}")
+        live.go()
+        _wait(page, "document.querySelector('#tasks tr[data-task=\"P1\"] select.task-priority')")
+        table_priority = page.evaluate(
+            "document.querySelector('#tasks tr[data-task=\"P1\"] select.task-priority').selectedOptions[0].textContent"
+        )
+        cfg = page.evaluate("btm.ops.cfg")
+        types = sorted(cfg["task_types"])
+        server_ids = cfg.get("next_task_ids")
+        page.click("#btn-add-task")
+        x, y = page.evaluate("btm.worldScreen([6, 4, 0])")
+        floor = page.evaluate(f"[btm.scene.hasRock(), btm.surfacePick({x}, {y})]")
+        page.keyboard.press("Escape")
+        form_priority = page.evaluate(
+            "document.querySelector('#task-form [name=priority]').selectedOptions[0].textContent"
+        )
+
+        def proposed(kind: str) -> str:
+            page.select_option("#task-form [name=type]", kind)
+            return str(page.input_value("#task-form [name=id]"))
+
+        fallback = None
+        if server_ids is None:  # a server before next_task_ids: the one id for every type ...
+            fallback = [proposed(k) for k in types]
+            ids = {"inspect": "I9", "pick_and_deliver": "P9"}  # ... and the page's use of them
+            page.evaluate(f"btm.ops.cfg.next_task_ids = {ids!r}")
+        else:
+            ids = server_ids
+        by_type = {k: proposed(k) for k in types}
+        page.fill("#task-form [name=id]", "X1")  # the operator's own id stays
+        kept = [proposed(k) for k in reversed(types)]
+        page.click("#task-form-close")
+        page.click("#btn-add-task")  # a new form: the type's id again
+        reopened = (page.input_value("#task-form [name=type]"), page.input_value("#task-form [name=id]"))  # fmt: skip
+        live.stop()
+    assert errors == []
+    assert types == ["inspect", "pick_and_deliver"]
+    assert floor[0] is False and floor[1]["p"] == pytest.approx([6, 4, 0], abs=0.05)
+    if fallback is not None:
+        assert fallback == [cfg["next_task_id"]] * 2
+    else:  # the mission's P1 and I1, I2 (I2 comes at 40 s: I2 or I3)
+        assert ids["pick_and_deliver"] == "P2" and ids["inspect"] in ("I2", "I3")
+    assert by_type == {k: ids[k] for k in types}
+    assert kept == ["X1", "X1"]
+    assert reopened == ("inspect", ids["inspect"])
+    assert table_priority == form_priority == "normal (×1)"
+
+
+def test_the_page_says_when_the_runs_server_has_gone(page: Any, tmp_path: Path) -> None:
+    """The viewer's server stops while the page watches (the process killed, say: no
+    ``complete`` reaches the page): the page says the run's server has gone, in the title bar
+    and the console log, and disables the controls, instead of reconnecting for ever."""
+    with live_run(tmp_path) as live:
+        errors = _open(page, f"{live.url}?token={TOKEN}")
+        live.go()
+        _wait(page, "window.btm.state.viewT > 2")
+        live.viewer.server.close()  # the HTTP server only: the run goes on, its feed open
+        _wait(page, "document.body.dataset.gone === '1'", 20)
+        conn = page.text_content("#conn")
+        first = _console_log(page)[0]
+        disabled = page.evaluate(
+            "['btn-add-task', 'btn-pause', 'task-form-submit'].map(id => document.getElementById(id).disabled)"
+        )
+        mode = page.text_content("#mode")
+        complete = page.evaluate("document.body.dataset.complete")
+        time.sleep(3.0)  # no reconnecting afterwards
+        conn_later = page.text_content("#conn")
+    assert errors == []
+    gone = "the run's server has gone (the run ended or was stopped)"
+    assert conn == gone and conn_later == gone and first == ("0", gone)
+    assert disabled == [True, True, True] and mode == "ENDED" and complete is None

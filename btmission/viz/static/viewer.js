@@ -407,20 +407,25 @@
       ray.setFromCamera(ndc, this.viewer.camera);
       return ray;
     }
+    hasRock() {                  // the map has a rock surface (scene.py's /mine)
+      const node = this.viewer.scene_tree.children.mine;
+      let found = false;
+      if (node) node.object.traverse((o) => { if (o.isMesh) found = true; });
+      return found;
+    }
     surfacePick(cx, cy) {        // the mine's surface under a page point: {p, normal}, world frame
       const r = this.pane.getBoundingClientRect();
       if (cx < r.left || cx >= r.right || cy < r.top || cy >= r.bottom) return null;
       const ray = this.ray(cx, cy);
-      const node = this.viewer.scene_tree.children.mine;  // scene.py's /mine (front faces only,
-      if (node && node.object.visible) {                   // so the cut-away near rock is not hit)
-        node.object.updateMatrixWorld(true);
-        const hit = ray.intersectObject(node.object, true).find((h) => h.face);
-        if (hit) {
-          const n = hit.face.normal.clone().applyMatrix3(new THREE.Matrix3().getNormalMatrix(hit.object.matrixWorld)).normalize();
-          return { p: [hit.point.x, hit.point.y, hit.point.z], normal: [n.x, n.y, n.z] };
-        }
+      if (this.hasRock()) {      // front faces only, so the cut-away near rock is not hit; a
+        const obj = this.viewer.scene_tree.children.mine.object;   // miss is solid rock: null
+        obj.updateMatrixWorld(true);
+        const hit = ray.intersectObject(obj, true).find((h) => h.face);
+        if (!hit) return null;
+        const n = hit.face.normal.clone().applyMatrix3(new THREE.Matrix3().getNormalMatrix(hit.object.matrixWorld)).normalize();
+        return { p: [hit.point.x, hit.point.y, hit.point.z], normal: [n.x, n.y, n.z] };
       }
-      if (!this.bounds) return null;   // no rock there: the map's floor (a map without rock stands on it)
+      if (!this.bounds) return null;   // a map without rock: its floor (it stands on it)
       const [lo, hi] = this.bounds;
       const p = ray.ray.intersectPlane(new THREE.Plane(new THREE.Vector3(0, 0, 1), -lo[2]), new THREE.Vector3());
       if (!p || p.x < lo[0] || p.x > hi[0] || p.y < lo[1] || p.y > hi[1]) return null;
@@ -558,7 +563,7 @@
 
   // ------------------------------------------------------------------------ the page
   const model = new Model();
-  const state = { viewT: 0, follow: true, playing: false, speed: 5, live: false, complete: false,
+  const state = { viewT: 0, follow: true, playing: false, speed: 5, live: false, complete: false, gone: false,
     selected: null, task: null, lastPanel: 0, drawnVersion: -1, drawnT: -1, info: null, lidarOn: false, lidarKey: "" };
   const scene = new Scene3D($("meshcat-pane"), model);
   const tree = new TreePanel($("tree"));
@@ -590,6 +595,7 @@
     }
     if (!state.selected && model.agents.size) selectAgent(model.agents.keys().next().value);
     else selectAgent(state.selected);
+    if (ops.cfg) tabMarks();
   }
 
   function panels(t) {
@@ -691,7 +697,7 @@
     $("btn-live").style.display = state.live ? "" : "none";
     $("btn-live").classList.toggle("on", state.follow);
     const mode = $("mode");
-    const ended = state.live && state.complete;
+    const ended = state.live && (state.complete || state.gone);
     mode.textContent = state.live ? (ended ? "ENDED" : "LIVE") : "REPLAY";
     mode.className = "badge " + (state.live ? (ended ? "ended" : "live") : "replay");
   }
@@ -717,7 +723,7 @@
     if (state.follow) state.viewT = model.tEnd;
     else if (state.playing) {
       state.viewT = Math.min(model.tEnd, state.viewT + dt * state.speed);
-      if (state.viewT >= model.tEnd && (!state.live || state.complete)) state.playing = false;
+      if (state.viewT >= model.tEnd && (!state.live || state.complete || state.gone)) state.playing = false;
     }
     if (ops.watch.size && model.version !== ops.watchedVersion) { ops.watchedVersion = model.version; watchTasks(); }
     const t = state.viewT;
@@ -756,6 +762,8 @@
   const STATUS_MS = 1000;      // api/status is polled this often while the run goes on
   const FINAL = new Set(["done", "failed", "cancelled"]);
   const MARK_COLORS = ["#e879f9", "#22d3ee", "#fde047", "#fb7185"];
+  const ESC_HINT = "Esc stops picking";
+  const MISS_HINT = "no open space under the cursor: click a tunnel (its floor or a wall)";
   const ops = {
     cfg: null,                 // info.console, when it is enabled
     token: null,
@@ -765,6 +773,7 @@
     watch: new Map(),          // task id → {since: mission time, seen: its states told}
     shown: [],                 // the form's position fields, in order
     watchedVersion: -1, actionsKey: "", closed: false,
+    idEdited: false,           // the operator typed the form's id: a new type keeps it
   };
 
   function takeToken() {       // ?token=… → this tab's session storage, and out of the address bar
@@ -799,6 +808,7 @@
     const log = $("console-log");
     log.prepend(li);
     while (log.children.length > 200) log.lastChild.remove();
+    log.scrollTop = 0;         // the newest, on top, in sight
     document.body.dataset.lastResult = text;
   }
   function errorText(status, data, retry) {
@@ -823,8 +833,8 @@
     let data = {};
     try { data = await r.json(); } catch (e) { data = {}; }
     if (r.ok) return { ok: true, status: r.status, data, message: data.message || `${data.command || method} ok` };
-    const message = errorText(r.status, data, r.headers.get("Retry-After"));
-    if (r.status === 401 || r.status === 403) askToken(message);
+    let message = errorText(r.status, data, r.headers.get("Retry-After"));
+    if (r.status === 401 || r.status === 403) { message = tokenText(message); askToken(message); }
     return { ok: false, status: r.status, data, message };
   }
   async function act(method, path, body, task) {   // one action; its result goes to the log
@@ -879,6 +889,7 @@
     const st = task.states[task.states.length - 1];
     return !!st && !FINAL.has(st[1]);
   }
+  function priorityLabel(name, m) { return `${esc(name)} (×${esc(m)})`; }   // the form's and the table's
   function prioritySelect(task) {
     const tt = (ops.cfg.task_types || {})[task.type] || {};
     const base = Number(tt.priority) || 1;
@@ -888,10 +899,11 @@
     const opts = Object.entries(ops.cfg.priorities || {}).map(([name, m]) => {
       const sel = !found && Math.abs(base * m - p) <= 1e-6 * Math.max(1, Math.abs(p));
       found = found || sel;
-      return `<option value="${esc(name)}"${sel ? " selected" : ""}>${esc(name)} (${+(base * m).toFixed(3)})</option>`;
+      return `<option value="${esc(name)}"${sel ? " selected" : ""}>${priorityLabel(name, m)}</option>`;
     });
     if (!found) opts.unshift(`<option value="" selected disabled>${esc(Number.isFinite(p) ? +p.toFixed(3) : "?")}</option>`);
-    return `<select class="task-priority" data-task="${esc(task.id)}" title="Change ${esc(task.id)}'s priority"${ops.closed ? " disabled" : ""}>${opts.join("")}</select>`;
+    const now = Number.isFinite(p) ? ` (now ${+p.toFixed(3)}: the type's ${+base.toFixed(3)} × the level)` : "";
+    return `<select class="task-priority" data-task="${esc(task.id)}" title="Change ${esc(task.id)}'s priority${now}"${ops.closed ? " disabled" : ""}>${opts.join("")}</select>`;
   }
 
   // ---- the selected agent's controls
@@ -908,8 +920,8 @@
       .filter(([on]) => on).map(([, text]) => `<span class="chip">${text}</span>`);
     el.innerHTML =
       `<button id="btn-recall" data-act="recall"${off || (s.recalled ? " disabled" : "")} title="${esc(id)} gives up its task, stops bidding and runs its default behaviour (home)">⌂ Recall</button>` +
-      (s.excluded
-        ? `<button id="btn-exclude" data-act="include"${off} title="${esc(id)} bids for tasks again">Include</button>`
+      (s.excluded || s.recalled   // (include brings a recalled agent back too)
+        ? `<button id="btn-exclude" data-act="include"${off} title="${esc(id)} bids for tasks again${s.recalled ? " (and leaves its default behaviour when it wins one)" : ""}">Include</button>`
         : `<button id="btn-exclude" data-act="exclude"${off} title="Take ${esc(id)} out of the auction: it wins no new task">Exclude</button>`) +
       (ops.cfg.link_drills && (!ops.cfg.drill_agents || ops.cfg.drill_agents.includes(id))
         ? (s.link_up === false
@@ -922,14 +934,22 @@
   async function pollStatus() {
     if (!ops.cfg) return;
     let r;
-    try { r = await fetch("api/status", { headers: authHeaders() }); } catch (e) { return; }
-    if (r.status === 401 || r.status === 403) { askToken(errorText(r.status, await r.json().catch(() => ({})))); return; }
+    try { r = await fetch("api/status", { headers: authHeaders() }); } catch (e) {
+      if ((await serverAnswers()) === "refused") serverGone();   // (not a passing network error)
+      return;
+    }
+    if (r.status === 401 || r.status === 403) {
+      const m = tokenText(errorText(r.status, await r.json().catch(() => ({}))));
+      if (document.body.dataset.lastResult !== m) logResult(false, m);   // (once, not every poll)
+      askToken(m);
+      return;
+    }
     if (!r.ok) return;
     const s = await r.json().catch(() => null);
     if (s) applyStatus(s);
   }
   function statusLoop() {
-    pollStatus().finally(() => { if (!ops.closed) setTimeout(statusLoop, STATUS_MS); });
+    pollStatus().finally(() => { if (!ops.closed && !state.gone) setTimeout(statusLoop, STATUS_MS); });
   }
   function applyStatus(s) {
     ops.status = s;
@@ -940,25 +960,32 @@
     b.textContent = paused ? "Resume allocation" : "Pause allocation";
     b.classList.toggle("warn", paused);
     $("console-state").textContent = paused ? "allocation paused" : "";
-    for (const tab of $("agent-tabs").children) {
-      const a = ops.agentStatus.get(tab.dataset.agent) || {};
-      tab.classList.toggle("excluded", !!a.excluded || !!a.recalled);
-      tab.classList.toggle("nolink", a.link_up === false);
-    }
+    tabMarks();
     if (s.ended) closeConsole();
     state.drawnT = -1;
   }
-  function closeConsole() {    // the run has ended: nothing more to command
+  function tabMarks() {         // out of the auction (excluded or recalled): dashed; link down: red ring
+    for (const tab of $("agent-tabs").children) {
+      const a = ops.agentStatus.get(tab.dataset.agent) || {};
+      tab.classList.toggle("out", !!a.excluded || !!a.recalled);
+      tab.classList.toggle("nolink", a.link_up === false);
+      tab.title = a.recalled ? `${tab.dataset.agent}: recalled (out of the auction)` : a.excluded ? `${tab.dataset.agent}: excluded (out of the auction)` : "";
+    }
+  }
+  function closeConsole(why) {   // the run has ended (or its server has gone): nothing more to command
     if (ops.closed || !ops.cfg) return;
     ops.closed = true;
     disarm();
     for (const id of ["btn-add-task", "btn-pause", "task-form-submit"]) $(id).disabled = true;
-    $("console-state").textContent = "run ended";
-    logResult(true, "the run has ended: the console takes no more commands");
+    $("console-state").textContent = why ? "server gone" : "run ended";
+    logResult(!why, why || "the run has ended: the console takes no more commands");
     state.tasksHtml = ""; ops.actionsKey = ""; state.drawnT = -1;
   }
 
   // ---- the token
+  function tokenText(message) {   // a refusal for the token, and what to do about it
+    return /token field/.test(message) ? message : `${message} — paste it in the token field`;
+  }
   function askToken(message) {
     const f = $("token-form");
     f.hidden = false;
@@ -973,24 +1000,48 @@
     ops.arm = field;
     $("view3d").classList.add("arming");
     $("btn-add-task").classList.add("on");
-    hint(field === "*" ? "Click the map where the task goes · Esc cancels" : `Click the map: ${field} · Esc cancels`);
+    hint(field === "*" ? `Click the map where the task goes · ${ESC_HINT}` : `Click the map: ${field} · ${ESC_HINT}`);
   }
   function disarm() {
     ops.arm = null;
+    $("pick-note").hidden = true;
     $("view3d").classList.remove("arming");
     $("btn-add-task").classList.remove("on");
     hint(null);
   }
-  function hint(text) { const h = $("pick-hint"); h.hidden = !text; h.textContent = text || ""; }
+  function hint(text, warn) { const h = $("pick-hint"); h.hidden = !text; h.textContent = text || ""; h.classList.toggle("warn", !!warn); }
+  function note(cx, cy, text) {  // a short note where the map was clicked
+    const el = $("pick-note"), r = $("view3d").getBoundingClientRect();
+    el.textContent = text;
+    el.style.left = (cx - r.left) + "px";
+    el.style.top = (cy - r.top) + "px";
+    el.hidden = false;
+    clearTimeout(ops.noteTimer);
+    ops.noteTimer = setTimeout(() => { el.hidden = true; }, 2500);
+  }
   function positions() { return typeInfo(formEl().elements.type.value).positions || []; }
   function openForm() {
     const f = formEl();
     if (!f.hidden) return;
     f.hidden = false;
-    f.elements.id.value = ops.cfg.next_task_id || "";
+    fold(false);
+    ops.idEdited = false;
+    proposeId();
     ops.points.clear();
     buildFields();
     formMessage("");
+  }
+  function proposeId() {       // the type's next free id (P2 for pick_and_deliver, I3 for inspect),
+    if (ops.idEdited) return;  // unless the operator wrote one
+    const f = formEl(), ids = ops.cfg.next_task_ids || {};
+    f.elements.id.value = ids[f.elements.type.value] || ops.cfg.next_task_id || "";
+  }
+  function fold(on) {         // the form folded to its title (and the hint), the map under it seen
+    const f = formEl(), b = $("task-form-fold");
+    f.classList.toggle("folded", on);
+    b.textContent = on ? "▸" : "▾";
+    b.setAttribute("aria-expanded", on ? "false" : "true");
+    b.title = on ? "Unfold the form" : "Fold the form to its title (the map under it shows)";
   }
   function closeForm() {
     formEl().hidden = true;
@@ -1038,6 +1089,7 @@
   function formMessage(text, field) {
     const f = formEl();
     $("task-form-msg").textContent = text;
+    if (text) fold(false);
     for (const el of f.querySelectorAll(".bad")) el.classList.remove("bad");
     if (!field) return;
     const el = f.querySelector(`.row[data-field="${CSS.escape(field)}"]`) || (f.elements[field] && f.elements[field].closest(".row"));
@@ -1060,6 +1112,7 @@
   async function submitForm(e) {
     e.preventDefault();
     if (ops.closed) return;
+    disarm();                  // (typed coordinates: the click the hint asked for is not needed)
     const f = formEl();
     const type = f.elements.type.value, tt = typeInfo(type), pos = new Set(tt.positions || []);
     const body = { type, priority: f.elements.priority.value };
@@ -1102,7 +1155,11 @@
   function pickPoint(cx, cy) {     // Scene3D.onClick: in add mode a click picks the surface
     if (!ops.arm) return false;
     const hit = scene.surfacePick(cx, cy);
-    if (!hit) { hint("Nothing there: click the rock or a tunnel's floor · Esc cancels"); return true; }
+    if (!hit) {                    // solid rock (or off the map): nothing is filled
+      hint(`${MISS_HINT} · ${ESC_HINT}`, true);
+      note(cx, cy, MISS_HINT);
+      return true;
+    }
     const off = Number.isFinite(ops.cfg.pick_offset_m) ? ops.cfg.pick_offset_m : OFFSET_M;
     const p = hit.p.map((v, i) => Math.round((v + hit.normal[i] * off) * 10) / 10);
     openForm();
@@ -1113,6 +1170,7 @@
     if (field) setPoint(field, p, hit.p);
     const next = chain && pos.find((f) => !ops.points.has(f));
     if (next) arm(next);
+    else fold(false);          // every point picked: the form, to check and add
     return true;
   }
 
@@ -1131,7 +1189,7 @@
     const f = formEl();
     f.elements.type.innerHTML = Object.keys(c.task_types || {}).map((t) => `<option value="${esc(t)}">${esc(t)}</option>`).join("");
     f.elements.priority.innerHTML = Object.entries(c.priorities || { normal: 1 })
-      .map(([n, m]) => `<option value="${esc(n)}"${n === "normal" ? " selected" : ""}>${esc(n)} (×${esc(m)})</option>`).join("");
+      .map(([n, m]) => `<option value="${esc(n)}"${n === "normal" ? " selected" : ""}>${priorityLabel(n, m)}</option>`).join("");
     $("places-list").innerHTML = (c.places || []).map((p) => `<option value="${esc(p)}"></option>`).join("");
     if (!ops.token) askToken(null);
     statusLoop();
@@ -1148,8 +1206,9 @@
     f.onsubmit = submitForm;
     $("task-form-cancel").onclick = closeForm;
     $("task-form-close").onclick = closeForm;
-    f.elements.type.onchange = () => buildFields(ops.shown);
-    f.elements.id.oninput = showMarks;
+    $("task-form-fold").onclick = () => fold(!f.classList.contains("folded"));
+    f.elements.type.onchange = () => { proposeId(); buildFields(ops.shown); };
+    f.elements.id.oninput = () => { ops.idEdited = f.elements.id.value.trim() !== ""; showMarks(); };
     $("task-fields").addEventListener("click", (e) => {
       const b = e.target.closest("button.pick");
       if (b) arm(b.dataset.field);
@@ -1207,7 +1266,7 @@
   function bindControls() {
     $("btn-play").onclick = () => {
       if (state.follow) state.follow = false;
-      if (!state.playing && state.viewT >= model.tEnd - 1e-6 && (!state.live || state.complete)) state.viewT = 0;
+      if (!state.playing && state.viewT >= model.tEnd - 1e-6 && (!state.live || state.complete || state.gone)) state.viewT = 0;
       state.playing = !state.playing; refreshControls();
     };
     $("speed").onchange = (e) => { state.speed = Number(e.target.value); };
@@ -1252,10 +1311,39 @@
     refreshControls();
   }
 
+  // the server gone for good (the run ended or was stopped without the stream's `complete`
+  // reaching the page): said once, the controls disabled, no more reconnecting
+  const GONE = "the run's server has gone (the run ended or was stopped)";
+  const GONE_AFTER = 3;        // stream errors in a row, the server silent
+  function serverGone() {
+    if (state.gone || state.complete || CFG.embedded) return;
+    state.gone = true;
+    if (state.es) state.es.close();
+    clearTimeout(state.retry);
+    const conn = $("conn");
+    conn.textContent = state.live ? GONE : "the viewer's server has gone";
+    conn.classList.add("gone");
+    document.body.dataset.gone = "1";
+    closeConsole(GONE);
+    refreshControls();
+  }
+  async function serverAnswers() {  // "up" (any HTTP answer, even a refusal), "refused" or "silent"
+    const ctl = new AbortController(), timer = setTimeout(() => ctl.abort(), 5000);
+    try {
+      await fetch("api/status", { headers: authHeaders(), cache: "no-store", signal: ctl.signal });
+      return "up";
+    } catch (e) {
+      return e && e.name === "AbortError" ? "silent" : "refused";
+    } finally { clearTimeout(timer); }
+  }
+
   function connect(cursor) {
-    const es = new EventSource(`api/stream?cursor=${cursor}${streamQuery()}`);
-    $("conn").textContent = "connected";
+    if (state.gone) return;
+    const es = state.es = new EventSource(`api/stream?cursor=${cursor}${streamQuery()}`);
+    if (!state.streamFails) $("conn").textContent = "connected";   // (a reconnect: once open)
+    es.onopen = () => { state.streamFails = 0; $("conn").textContent = "connected"; };
     es.onmessage = (e) => {
+      state.streamFails = 0;
       const msg = JSON.parse(e.data);
       model.add(msg.records);
       if (msg.latest) model.add(msg.latest);
@@ -1266,11 +1354,16 @@
       es.close(); state.complete = true; $("conn").textContent = "";
       document.body.dataset.complete = "1"; refreshControls(); closeConsole();
     });
-    es.onerror = () => {            // reconnect from where we were (not from the start)
+    es.onerror = async () => {      // reconnect from where we were (not from the start) ...
       es.close();
-      if (state.complete) return;
+      if (state.complete || state.gone) return;
+      state.streamFails = (state.streamFails || 0) + 1;
+      // ... unless the server is gone: it refuses the connection, or it has not answered
+      // GONE_AFTER times in a row (a server that answers, e.g. 503 when busy, is retried)
+      const up = await serverAnswers();
+      if (up === "refused" || (up === "silent" && state.streamFails >= GONE_AFTER)) { serverGone(); return; }
       $("conn").textContent = "reconnecting…";
-      setTimeout(() => connect(cursor), 1000);
+      state.retry = setTimeout(() => connect(cursor), 1000);
     };
   }
 
@@ -1299,8 +1392,8 @@
         $("console-bar").hidden = false;
         $("btn-pause").hidden = true;
         ops.reloadOnToken = true;     // with a token, the page starts again
-        askToken(errorText(r.status, refusal));
-        $("conn").textContent = "this page needs the run's token";
+        askToken(tokenText(errorText(r.status, refusal)));
+        $("conn").textContent = "this page needs the run's token — paste it in the token field";
         return;
       }
       const info = await r.json();
