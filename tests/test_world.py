@@ -66,6 +66,28 @@ def test_nearest_free() -> None:
     assert vm.nearest_free((0.2, 0.2, 0.5), max_distance=2.0) is None
 
 
+@given(
+    st.integers(0, 2**31),
+    st.floats(0.1, 6.0),
+    st.tuples(*[st.floats(-3.0, 9.0, allow_nan=False)] * 3),
+)
+def test_nearest_free_within_a_distance_is_the_brute_force_one(
+    seed: int, max_distance: float, point: tuple[float, float, float]
+) -> None:
+    """With a finite distance only the box around the point is searched: the same voxel (or
+    distance) as searching the whole map, and None exactly when it is None."""
+    rng = np.random.default_rng(seed)
+    vm = VoxelMap(rng.choice([FREE, OCCUPIED, UNKNOWN], size=(7, 6, 5), p=[0.1, 0.8, 0.1]).astype(np.uint8), 0.75, (-1.0, 0.5, -0.25))  # fmt: skip
+    free = vm.index_to_world(np.argwhere(vm.state == FREE))
+    d = np.sqrt(np.sum((free - np.asarray(point)) ** 2, axis=1)) if len(free) else np.array([])
+    got = vm.nearest_free(point, max_distance)
+    if not len(d) or d.min() > max_distance:
+        assert got is None
+    else:
+        assert got is not None
+        assert np.isclose(np.sqrt(np.sum((got - np.asarray(point)) ** 2)), d.min())
+
+
 # ------------------------------------------------------------------------------- files
 @st.composite
 def small_maps(draw: st.DrawFn) -> VoxelMap:
@@ -312,7 +334,8 @@ def test_check_mission_map_reports_each_problem_with_file_line(tmp_path: Path) -
         in text
     )
     assert (
-        "agent A3 starts at [1.5, 1.5, 9.5] is outside the map (x [0, 10), y [0, 10), z [0, 1))" in text
+        "agent A3 starts at [1.5, 1.5, 9.5] is outside the map (x [0, 10), y [0, 10), z [0, 1))"
+        in text
     )
     assert (
         "task T4: location [5.5, 5.5, 0.5] is inside rock (an occupied voxel); the nearest free voxel"

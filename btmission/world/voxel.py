@@ -224,11 +224,19 @@ class VoxelMap:
         Used to snap a start or goal that lies in rock or just outside the map. Only free voxels
         count (never unknown ones): a snapped position must be known to be safe.
         """
-        free = np.argwhere(self.state == FREE)
+        p = np.asarray(point, dtype=np.float64)
+        lo = np.zeros(3, dtype=np.intp)
+        grid = self.state
+        if np.isfinite(max_distance):  # only the box around the point can hold the answer
+            o, r = np.asarray(self.origin), self.resolution
+            lo = np.clip(np.floor((p - max_distance - o) / r).astype(np.intp), 0, self.shape)
+            hi = np.clip(np.floor((p + max_distance - o) / r).astype(np.intp) + 1, 0, self.shape)
+            grid = grid[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
+        free = np.argwhere(grid == FREE) + lo
         if free.size == 0:
             return None
         centres = self.index_to_world(free)
-        d2 = np.sum((centres - np.asarray(point, dtype=np.float64)) ** 2, axis=1)
+        d2 = np.sum((centres - p) ** 2, axis=1)
         k = int(np.argmin(d2))
         if np.sqrt(d2[k]) > max_distance:
             return None
