@@ -299,11 +299,21 @@ class ReaderProcess(_Stoppable):
             self._proc.join(5.0)
         return self._done
 
+    def end(self) -> None:
+        """End the process now if it still runs (ours, by its handle): after an error or a
+        Ctrl-C, when it would not report."""
+        if self._proc.pid is not None and self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join(5.0)
+
 
 def _reader_main(
     host: str, port: int, pause_s: float, recv_buffer: int, pipe: Any, hurry: Any, stop: Any
 ) -> None:
     """A :class:`ReaderProcess`'s process: read the stream, report the stats."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it ends us
     client = StreamClient(host, port, pause_s=pause_s, recv_buffer=recv_buffer)
     client._thread.start()
     client.connected.wait(READ_TIMEOUT_S)
@@ -491,6 +501,7 @@ def run_once(
             live.close()
         for r in readers:
             r.join(READ_TIMEOUT_S)
+            r.end()
     assert session.log_path is not None
     recs = log_records(session.log_path)
     point = RunPoint(
