@@ -640,6 +640,14 @@ def viewer_bench(
     help="Flood variants: with valid adds (new tasks), with adds the console refuses (422), "
     "both, or none (viewer only and idle console).",
 )
+@click.option(
+    "--refused",
+    type=click.Choice(["rock", "outside"]),
+    default="rock",
+    show_default=True,
+    help="Where the refused flood's adds go: into rock next to the valid ones (the console "
+    "names the nearest free voxel), or outside the map.",
+)
 @int_option("--burst", default=1000, max=100_000, help="Requests in a burst of the flood.")
 @int_option(
     "--burst-adds",
@@ -660,6 +668,7 @@ def console_bench(
     seconds: float,
     pairs: int,
     flood: str,
+    refused: str,
     burst: int,
     burst_adds: int,
     threads: int,
@@ -709,6 +718,7 @@ def console_bench(
         adds=burst_adds,
         threads=threads,
         every_s=every,
+        refused=refused,
         warmup_s=min(30.0, seconds),
     )
     prog = Path(sys.argv[0]).name

@@ -165,6 +165,8 @@ def test_add_bodies_on_rock_and_on_a_floor() -> None:
     good, bad, what = add_bodies(mine, mission_map(mine))
     assert good == {"type": "inspect", "location": [64.4, 9.6, 2.5]}  # T1's, no id
     assert what == "inside rock" and mission_map(mine).state_at(bad["location"]) == 1
+    _, bad, what = add_bodies(mine, mission_map(mine), "outside")
+    assert what == "outside the map" and mission_map(mine).state_at(bad["location"]) is None
     floor = load_bench_mission(None, 2, 3)
     good, bad, what = add_bodies(floor, mission_map(floor))
     assert what == "outside the map" and mission_map(floor).state_at(bad["location"]) is None

@@ -74,6 +74,7 @@ from btmission.bench.viewer import (
     ViewerBenchError,
     check_run,
     log_records,
+    start_process,
     thread_cpu,
 )
 
@@ -278,10 +279,7 @@ def _load_main(
     role: str, host: str, port: int, spec: FloodSpec, hz: float, pipe: Any, go: Any, stop: Any
 ) -> None:
     """A :class:`LoadProcess`'s process: poll or flood, then report its :class:`LoadLog`."""
-    import signal
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it ends us
-    pipe.send(("ready", ""))
+    pipe.send(("ready", ""))  # (SIGINT ignored since the start: the parent ends us)
     log = _poll(host, port, hz, go, stop) if role == "poll" else _flood(host, port, spec, go, stop)
     pipe.send(("log", log))
 
@@ -314,7 +312,7 @@ class LoadProcess:
         return self._proc.pid
 
     def start(self) -> LoadProcess:
-        self._proc.start()
+        start_process(self._proc)
         if not self._pipe.poll(READ_TIMEOUT_S + 30.0):  # (a new interpreter imports first)
             raise ConsoleBenchError(f"the {self.role} client's process did not start")
         self._pipe.recv()
@@ -357,11 +355,14 @@ def load_bench_mission(path: str | Path | None, agents: int = 30, tasks: int = 6
     return load_mission(path)
 
 
-def add_bodies(mission: Any, vmap: Any) -> tuple[dict[str, Any], dict[str, Any], str]:
+def add_bodies(
+    mission: Any, vmap: Any, refused: str = "rock"
+) -> tuple[dict[str, Any], dict[str, Any], str]:
     """The flood's add bodies: a valid one (the mission's first task with a position field:
-    its type and fields, no id) and one the console refuses (its positions moved to the
-    nearest occupied voxel, or outside the map on a map without rock), and what the refused
-    one is (``inside rock`` / ``outside the map``)."""
+    its type and fields, no id) and one the console refuses: its positions moved to the
+    nearest occupied voxel (``refused`` ``rock``; the console then looks for the nearest free
+    voxel to name in its answer) or outside the map (``outside``, and on a map without rock);
+    and what the refused one is (``inside rock`` / ``outside the map``)."""
     import numpy as np
 
     from btmission.world.voxel import OCCUPIED
@@ -380,8 +381,10 @@ def add_bodies(mission: Any, vmap: Any) -> tuple[dict[str, Any], dict[str, Any],
 
     good = {"type": task.type, **{k: plain(v) for k, v in task.fields.items()}}
     bad = dict(good)
-    rock = np.argwhere(vmap.state == OCCUPIED) if vmap is not None else np.empty((0, 3))
-    what = "inside rock"
+    rock: Any = np.empty((0, 3), dtype=np.int64)
+    if refused == "rock" and vmap is not None:
+        rock = np.argwhere(vmap.state == OCCUPIED)
+    what = "inside rock" if len(rock) else "outside the map"
     for name, p in positions.items():
         if len(rock):
             centres = vmap.index_to_world(rock)
@@ -390,7 +393,6 @@ def add_bodies(mission: Any, vmap: Any) -> tuple[dict[str, Any], dict[str, Any],
         else:
             hi = vmap.bounds[1] if vmap is not None else (1e6, 1e6, 1e6)
             bad[name] = [float(hi[0]) + 10.0, float(p[1]), float(p[2])]
-            what = "outside the map"
     return good, bad, what
 
 
@@ -529,9 +531,14 @@ def run_once(
             clock.append((run.now(), time.perf_counter()))
             for load in loads:
                 load.go()
-            result = session.run(
-                duration_s, progress=lambda r: clock.append((r.now(), time.perf_counter()))
-            )
+            try:
+                result = session.run(
+                    duration_s, progress=lambda r: clock.append((r.now(), time.perf_counter()))
+                )
+            except BaseException:  # Ctrl-C: end the run, so that no request waits for a step
+                if not session.ended:
+                    session.end(run.result("interrupted"))
+                raise
             clock.append((result.time_s, time.perf_counter()))
             for load in loads:
                 load.stop()
@@ -868,6 +875,8 @@ class ConsoleConfig:
     threads: int = 16
     every_s: float = 2.0
     poll_hz: float = 1.0
+    refused: str = "rock"
+    """Where the refused adds go: ``rock`` (next to the valid one) or ``outside`` the map."""
     warmup_s: float = 30.0
     """Simulated seconds of one unmeasured flood run first (caches, imports)."""
 
@@ -1025,7 +1034,7 @@ def run_console_benchmark(
     refused_what = ""
     with tempfile.TemporaryDirectory(prefix="btmission-bench-console-") as tmp:
         logs = Path(tmp)
-        good, bad, refused_what = add_bodies(mission, mission_map(mission))
+        good, bad, refused_what = add_bodies(mission, mission_map(mission), cfg.refused)
         specs = {
             v: FloodSpec(
                 cfg.burst,

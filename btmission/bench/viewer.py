@@ -254,6 +254,23 @@ class StreamClient(_Stoppable):
         return False
 
 
+def start_process(proc: Any) -> None:
+    """Start ``proc`` (a multiprocessing process) with SIGINT blocked in it from its first
+    instruction: a Ctrl-C at the terminal reaches the whole process group, and the parent,
+    which ends its children itself, must not have them print tracebacks while they import.
+    (Blocked, not ignored, here meanwhile: a Ctrl-C in that instant waits for us, not lost.)"""
+    import signal
+
+    if not hasattr(signal, "pthread_sigmask"):
+        proc.start()
+        return
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})  # (inherited by the child)
+    try:
+        proc.start()
+    finally:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
 class ReaderProcess(_Stoppable):
     """A :class:`StreamClient` in a process of its own, as a browser is: its reading and JSON
     decoding do not compete with the run for this process's GIL. The same interface as a
@@ -276,7 +293,7 @@ class ReaderProcess(_Stoppable):
         self._done = False
 
     def start(self) -> ReaderProcess:
-        self._proc.start()
+        start_process(self._proc)
         if not self._pipe.poll(READ_TIMEOUT_S + 30.0):  # (a new interpreter imports first)
             raise ViewerBenchError("the stream reader's process did not start")
         kind, value = self._pipe.recv()
@@ -311,9 +328,6 @@ def _reader_main(
     host: str, port: int, pause_s: float, recv_buffer: int, pipe: Any, hurry: Any, stop: Any
 ) -> None:
     """A :class:`ReaderProcess`'s process: read the stream, report the stats."""
-    import signal
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it ends us
     client = StreamClient(host, port, pause_s=pause_s, recv_buffer=recv_buffer)
     client._thread.start()
     client.connected.wait(READ_TIMEOUT_S)
