@@ -630,7 +630,7 @@ def viewer_bench(
     show_default=True,
     help="Path following of the robots.",
 )
-@positive_float_option("--seconds", default=100.0, help="Simulated seconds of each run.")
+@positive_float_option("--seconds", default=80.0, help="Simulated seconds of each run.")
 @int_option("--pairs", default=5, max=100, help="Repeats of the variants (alternating; medians).")
 @click.option(
     "--flood",
@@ -690,7 +690,7 @@ def console_bench(
 
     \b
     Examples:
-      btmission bench console                  # mine_inspection, 5 × 4 runs of 100 s: ~4 min
+      btmission bench console                  # mine_inspection, 5 × 4 runs of 80 s: ~4 min
       btmission bench console --seconds 20 --pairs 1 --burst 200 --burst-adds 40 --out /tmp/r
     """
     import shlex

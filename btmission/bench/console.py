@@ -21,7 +21,7 @@ reader of ``GET /api/stream`` in a process of its own (as ``bench viewer`` reads
   accepted one is a new task for the auction, which costs the run too;
 * **R, refused flood** (``refused``): F with adds the console refuses (422): the same task
   moved into rock next to it (its nearest occupied voxel) or, on a map without rock, outside
-  the map. Nothing reaches the run, so this is the server's own cost.
+  the map. No task reaches the run (a refusal is only logged), so this is the server's cost.
 
 The speed is simulated seconds per wall second of the run loop (:attr:`RunResult.speedup
 <btmission.runtime.runner.RunResult.speedup>`; building the run, starting the server and the
@@ -865,8 +865,8 @@ class ConsoleConfig:
     """A mission file; None: ``bench viewer``'s floor of ``agents`` robots and ``tasks``."""
     agents: int = 30
     tasks: int = 60
-    duration_s: float = 150.0
-    pairs: int = 6
+    duration_s: float = 80.0
+    pairs: int = 5
     variants: tuple[str, ...] = tuple(VARIANTS)
     controller: str | None = "track"
     seed: int = 0
