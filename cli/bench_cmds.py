@@ -521,7 +521,9 @@ def mavlink_bench(
     if any(not 1 <= n <= 100 for n in counts):
         raise click.BadParameter("fleet sizes must be 1-100", param_hint="--vehicles")
     if not 2.0 < setpoint_hz <= 200.0:
-        raise click.BadParameter("must be > 2 (PX4's minimum) and <= 200", param_hint="--setpoint-hz")
+        raise click.BadParameter(
+            "must be > 2 (PX4's minimum) and <= 200", param_hint="--setpoint-hz"
+        )
     if telemetry_hz > 200.0:
         raise click.BadParameter("must be <= 200", param_hint="--telemetry-hz")
     run_mavlink_benchmark(counts, seconds, setpoint_hz, telemetry_hz, out, click.echo)
@@ -610,4 +612,122 @@ def viewer_bench(
     try:
         run_viewer_benchmark(cfg, out, click.echo, command)
     except ViewerBenchError as exc:
+        raise click.ClickException(str(exc)) from None
+
+
+@bench.command("console")
+@click.option(
+    "--mission",
+    default="missions/mine_inspection.yaml",
+    show_default=True,
+    help="The mission file to run, or 'floor': `bench viewer`'s floor of 30 ground robots "
+    "and 60 tasks.",
+)
+@click.option(
+    "--controller",
+    type=click.Choice(["track", "nmpc"]),
+    default="track",
+    show_default=True,
+    help="Path following of the robots.",
+)
+@positive_float_option("--seconds", default=80.0, help="Simulated seconds of each run.")
+@int_option("--pairs", default=5, max=100, help="Repeats of the variants (alternating; medians).")
+@click.option(
+    "--flood",
+    type=click.Choice(["both", "valid", "refused", "none"]),
+    default="both",
+    show_default=True,
+    help="Flood variants: with valid adds (new tasks), with adds the console refuses (422), "
+    "both, or none (viewer only and idle console).",
+)
+@click.option(
+    "--refused",
+    type=click.Choice(["rock", "outside"]),
+    default="rock",
+    show_default=True,
+    help="Where the refused flood's adds go: into rock next to the valid ones (the console "
+    "names the nearest free voxel), or outside the map.",
+)
+@int_option("--burst", default=1000, max=100_000, help="Requests in a burst of the flood.")
+@int_option(
+    "--burst-adds",
+    default=200,
+    min=0,
+    max=100_000,
+    help="Of them, POST /api/tasks (the rest GET /api/status).",
+)
+@int_option("--threads", default=16, max=128, help="The flood's client threads (connections).")
+@positive_float_option(
+    "--every", default=2.0, help="Wall seconds from a burst's start to the next's."
+)
+@seed_option("Mission and simulator seed (the same in every run).")
+@out_option("console.md and console.csv")
+def console_bench(
+    mission: str,
+    controller: str,
+    seconds: float,
+    pairs: int,
+    flood: str,
+    refused: str,
+    burst: int,
+    burst_adds: int,
+    threads: int,
+    every: float,
+    seed: int,
+    out: Path,
+) -> None:
+    """What the operator console costs a running mission: the same mission served with the
+    viewer only (`run --view`), with the console idle (`run --console` and one page polling
+    its status every second), and under a flood of requests from another process (bursts of
+    --burst requests, --burst-adds of them task adds, from --threads threads), in alternating
+    runs as fast as they go.
+
+    Every run has one reader of the event stream in a process of its own. The flood's adds are
+    copies of the mission's first task (valid: each a new task for the auction) or the same
+    moved into rock, which the console refuses (422: the server's own cost). Each run checks
+    that every add answered 201 is in the run's log, that nothing was answered 5xx, and that
+    the stream reader received every record. Progress goes to stderr, the summary to stdout.
+
+    \b
+    Examples:
+      btmission bench console                  # mine_inspection, 5 × 4 runs of 80 s: ~4 min
+      btmission bench console --seconds 20 --pairs 1 --burst 200 --burst-adds 40 --out /tmp/r
+    """
+    import shlex
+
+    from btmission.bench.console import ConsoleBenchError, ConsoleConfig, run_console_benchmark
+    from btmission.cli.view_cmds import require_viz
+    from btmission.diagnostics import SpecError
+
+    require_viz()
+    if burst_adds > burst:
+        raise click.BadParameter("cannot be more than --burst", param_hint="--burst-adds")
+    floods = {"both": ("flood", "refused"), "valid": ("flood",), "refused": ("refused",)}
+    path = Path(mission)
+    if mission != "floor" and not path.exists() and not path.is_absolute():
+        here = Path(__file__).resolve().parent.parent / path  # the repository's missions/
+        mission = str(here) if here.exists() else mission
+    cfg = ConsoleConfig(
+        mission=None if mission == "floor" else mission,
+        duration_s=seconds,
+        pairs=pairs,
+        variants=("viewer", "idle", *floods.get(flood, ())),
+        controller=controller,
+        seed=seed,
+        burst=burst,
+        adds=burst_adds,
+        threads=threads,
+        every_s=every,
+        refused=refused,
+        warmup_s=min(30.0, seconds),
+    )
+    prog = Path(sys.argv[0]).name
+    command = shlex.join(["btmission" if prog == "__main__.py" else prog, *sys.argv[1:]])
+    try:
+        run_console_benchmark(
+            cfg, out, click.echo, lambda line: click.echo(line, err=True), command
+        )
+    except SpecError as exc:
+        raise BadInput(f"--mission: {exc}") from None
+    except ConsoleBenchError as exc:
         raise click.ClickException(str(exc)) from None

@@ -254,6 +254,23 @@ class StreamClient(_Stoppable):
         return False
 
 
+def start_process(proc: Any) -> None:
+    """Start ``proc`` (a multiprocessing process) with SIGINT blocked in it from its first
+    instruction: a Ctrl-C at the terminal reaches the whole process group, and the parent,
+    which ends its children itself, must not have them print tracebacks while they import.
+    (Blocked, not ignored, here meanwhile: a Ctrl-C in that instant waits for us, not lost.)"""
+    import signal
+
+    if not hasattr(signal, "pthread_sigmask"):
+        proc.start()
+        return
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})  # (inherited by the child)
+    try:
+        proc.start()
+    finally:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
 class ReaderProcess(_Stoppable):
     """A :class:`StreamClient` in a process of its own, as a browser is: its reading and JSON
     decoding do not compete with the run for this process's GIL. The same interface as a
@@ -276,7 +293,7 @@ class ReaderProcess(_Stoppable):
         self._done = False
 
     def start(self) -> ReaderProcess:
-        self._proc.start()
+        start_process(self._proc)
         if not self._pipe.poll(READ_TIMEOUT_S + 30.0):  # (a new interpreter imports first)
             raise ViewerBenchError("the stream reader's process did not start")
         kind, value = self._pipe.recv()
@@ -298,6 +315,13 @@ class ReaderProcess(_Stoppable):
             self._proc.kill()  # ours, by its handle
             self._proc.join(5.0)
         return self._done
+
+    def end(self) -> None:
+        """End the process now if it still runs (ours, by its handle): after an error or a
+        Ctrl-C, when it would not report."""
+        if self._proc.pid is not None and self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join(5.0)
 
 
 def _reader_main(
@@ -491,6 +515,7 @@ def run_once(
             live.close()
         for r in readers:
             r.join(READ_TIMEOUT_S)
+            r.end()
     assert session.log_path is not None
     recs = log_records(session.log_path)
     point = RunPoint(
