@@ -45,7 +45,7 @@ from urllib.parse import parse_qs
 
 from fastapi import Body, Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from fastapi.security import HTTPBearer
 from pydantic import BaseModel, ConfigDict, Field, StrictBool
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -53,9 +53,11 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from btmission.console.service import Console, ConsoleError, RateLimit
 
 READ_RATE_HZ = 200.0
-"""Requests a second (of any kind) the server answers on average; a burst of
+"""Requests a second (of any kind) the server answers each client on average; a burst of
 :data:`READ_BURST` at once; beyond, 429 before any work is done."""
 READ_BURST = 400
+MAX_CLIENTS = 256
+"""Clients with a request-rate bucket of their own; the others share one."""
 READ_ONLY = "read-only: the run was started with --view; start it with --console to command it"
 TOKEN_ENV = "BTMISSION_TOKEN"
 """The environment variable a run's console token (and the CLI's) may come from."""
@@ -98,7 +100,20 @@ class Security:
     origins: frozenset[str] = frozenset()
     read_only: str = READ_ONLY
     """Why a command is refused when there is no token."""
-    reads: RateLimit = field(default_factory=lambda: RateLimit(READ_RATE_HZ, READ_BURST))
+    reads: dict[tuple[str, str], RateLimit] = field(default_factory=dict)
+    """A request-rate bucket per client (address and ``X-Btmission-Client``): a script's
+    flood does not starve the page."""
+
+    def bucket(self, address: str, client: str) -> RateLimit:
+        key = (address, client[:24])
+        found = self.reads.get(key)
+        if found is None:
+            if len(self.reads) >= MAX_CLIENTS:  # beyond: the others share one bucket
+                key = ("*", "*")
+                found = self.reads.get(key)
+            if found is None:
+                found = self.reads[key] = RateLimit(READ_RATE_HZ, READ_BURST)
+        return found
 
     @property
     def loopback(self) -> bool:
@@ -160,14 +175,15 @@ class Guard:
         from btmission.limits import MAX_REQUEST_BYTES
 
         sec = self.security
-        wait = sec.reads.take()
+        headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}
+        peer = scope.get("client") or ("?", 0)
+        wait = sec.bucket(str(peer[0]), headers.get("x-btmission-client", "api")).take()
         if wait > 0:
             return _refusal(
                 429,
                 f"too many requests: at most {READ_RATE_HZ:g} a second; retry in {wait:.2f} s",
                 **{"Retry-After": str(max(1, round(wait)))},
             )
-        headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}
         host = headers.get("host", "")
         if sec.loopback and host and not is_loopback(_hostname(host)):
             return _refusal(
@@ -444,10 +460,10 @@ def add_console_routes(app: FastAPI, console: Console | None, read_only_reason: 
         return need().info()
 
     @app.get("/api/status", tags=["console"], responses={200: {"model": Status}, **READ_REFUSALS})
-    def status() -> dict[str, Any]:
+    def status() -> Response:
         """Agents (pose, task, alive, link, recalled, excluded) and tasks (state, agent,
-        priority, the pool's note) after the run's last step."""
-        return need().status()
+        priority, the pool's note, its latest changes) after the run's last step."""
+        return Response(need().status_json(), media_type="application/json")
 
     @app.post("/api/tasks", status_code=201, **command)
     def add_task(

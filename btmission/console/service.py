@@ -153,6 +153,7 @@ class Console:
         self.max_pending = max_pending
         self.rate = rate if rate is not None else RateLimit(COMMAND_RATE_HZ, COMMAND_BURST)
         self._pending = 0
+        self._status_cache: tuple[Any, bytes] | None = None
         self._lock = threading.Lock()
         self._id_lock = threading.Lock()
         self.drill_agents = frozenset(
@@ -212,9 +213,20 @@ class Console:
             n += 1
         return f"{prefix}{n}"
 
-    def status(self) -> dict[str, Any]:
-        """Agents and tasks as the run's last step left them (its immutable snapshot)."""
+    def status_json(self) -> bytes:
+        """:meth:`status` as JSON, encoded once per snapshot however many read it (a flood of
+        status reads costs the run one encoding a step, not one a request)."""
         snap = self.run.snapshot
+        cached = self._status_cache
+        if cached is not None and cached[0] is snap:
+            return cached[1]
+        data = json.dumps(self.status(snap), separators=(",", ":")).encode()
+        self._status_cache = (snap, data)
+        return data
+
+    def status(self, snap: Any = None) -> dict[str, Any]:
+        """Agents and tasks as the run's last step left them (its immutable snapshot)."""
+        snap = snap if snap is not None else self.run.snapshot
         if snap is None:
             raise ConsoleError(409, "the run is not built yet")
         pool = {t.id: t for t in snap.pool}

@@ -794,6 +794,7 @@
   function authHeaders(h) {
     h = h || {};
     if (ops.token) h.Authorization = "Bearer " + ops.token;
+    h["X-Btmission-Client"] = "page";  // the server's rate limits count each client apart
     return h;
   }
   function streamQuery() {
