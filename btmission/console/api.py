@@ -52,10 +52,10 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from btmission.console.service import Console, ConsoleError, RateLimit
 
-READ_RATE_HZ = 200.0
+READ_RATE_HZ = 50.0
 """Requests a second (of any kind) the server answers each client on average; a burst of
 :data:`READ_BURST` at once; beyond, 429 before any work is done."""
-READ_BURST = 400
+READ_BURST = 100
 MAX_CLIENTS = 256
 """Clients with a request-rate bucket of their own; the others share one."""
 READ_ONLY = "read-only: the run was started with --view; start it with --console to command it"
