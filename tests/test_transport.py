@@ -38,6 +38,7 @@ from btmission.runtime.bus import (
 from btmission.runtime.coordinator import Coordinator
 from btmission.spec.mission import Mission
 from btmission.transport import keys
+from btmission.transport.acl import access_control
 from btmission.transport.faulty import (
     Faults,
     FaultyAgentLink,
@@ -742,6 +743,67 @@ def test_nothing_listens_beyond_loopback(zenoh_ready: None) -> None:
         assert [s for s in sockets if not is_loopback_address(s[1])] == []  # no 0.0.0.0, no UDP
     finally:
         close_all([r1, coord])
+
+
+# ------------------------------------------------------------------------------------ security
+def test_access_control_lets_an_agent_publish_only_as_itself(
+    zenoh_ready: None, tmp_path: Path
+) -> None:
+    """User name + password authentication and the rules of btmission.transport.acl, enforced by
+    Zenoh on loopback: R1 gets its messages and is heard, but cannot bid as R2 nor announce as
+    the coordinator; a session without a password is refused."""
+    (tmp_path / "users.txt").write_text("R1:r1-secret\nR2:r2-secret\n")
+    coord_cfg = {
+        "access_control": access_control("mine", ["R1", "R2"]),
+        "transport": {"auth": {"usrpwd": {"dictionary_file": str(tmp_path / "users.txt")}}},
+    }
+    (tmp_path / "coordinator.json5").write_text(json.dumps(coord_cfg))
+    for a in ("R1", "R2"):
+        auth = {"transport": {"auth": {"usrpwd": {"user": a, "password": f"{a.lower()}-secret"}}}}
+        (tmp_path / f"{a}.json5").write_text(json.dumps(auth))
+    coord, endpoint = coordinator("mine", config_file=str(tmp_path / "coordinator.json5"))
+    links: list[ZenohAgentLink] = []
+    try:
+        for a in ("R1", "R2"):
+            settings = ZenohSettings.agent([endpoint], config_file=str(tmp_path / f"{a}.json5"))
+            links.append(ZenohAgentLink("mine", a, settings=settings, mailbox=Mailbox()))
+        r1, r2 = links
+        g1, g2 = Received(r1), Received(r2)
+        assert coord.wait_for_agents({"R1", "R2"}, WAIT_S) and r1.wait_for_coordinator(WAIT_S)
+        coord.announce(ANN)
+        assert pump(r1.mailbox, lambda: len(g1.messages) == 1)
+        assert pump(r2.mailbox, lambda: len(g2.messages) == 1)
+        fake = wire.encode(Announcement(99, 0.0, ()))
+        r1.session.put("btmission/mine/bids/R2", wire.encode(Bid.of("R2", 1.0, {}, serial=4)))
+        r1.session.put("btmission/mine/announce", fake)
+        r1.send_bid(Bid.of("R1", 1.0, {"T1": 1.0}, serial=4))
+        assert coord.wait(lambda inbox: bool(inbox.bids), WAIT_S)
+        assert not coord.wait(lambda inbox: len(inbox.bids) > 1, 0.3)  # R2's never comes
+        assert [b.agent for b in coord.drain().bids] == ["R1"] and coord.stats.dropped == 0
+        assert r2.dispatch(0.3) == 0 and len(g2.messages) == 1  # nor the fake announcement
+        with pytest.raises(TransportError, match="cannot open a Zenoh session"):
+            open_session(ZenohSettings.agent([endpoint], connect_timeout_s=0.5))
+    finally:
+        close_all([*links, coord])
+
+
+def test_access_rules_are_per_agent_and_deny_by_default() -> None:
+    acl = access_control("mine", ["R1", "R2"], identity="cert_common_names")
+    assert acl["enabled"] and acl["default_permission"] == "deny"
+    assert acl["subjects"] == [{"id": "agent.R1", "cert_common_names": ["R1"]},
+                               {"id": "agent.R2", "cert_common_names": ["R2"]}]  # fmt: skip
+    ids = [r["id"] for r in acl["rules"]]
+    assert len(ids) == len(set(ids)) == 14
+    (pub,) = [r for r in acl["rules"] if r["id"] == "btmission.mine.R1.publishes"]
+    assert pub["key_exprs"] == [
+        keys.key("mine", ch, "R1") for ch in ("bids", "progress", "status", "predict")
+    ]
+    assert acl["policies"][1] == {
+        "rules": [i for i in ids if ".R2." in i],
+        "subjects": ["agent.R2"],
+    }
+    with pytest.raises(ValueError, match="identity must be"):
+        access_control("mine", ["R1"], identity="zid")  # type: ignore[arg-type]
 
 
 # ------------------------------------------------------------------------------------ waits
