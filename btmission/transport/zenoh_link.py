@@ -517,6 +517,7 @@ class ZenohCoordinatorLink:
         self._cond = threading.Condition()
         self._inbox = CoordinatorInbox()
         self._pending = 0
+        self._waiting: list[Callable[[CoordinatorInbox], bool]] = []
         self._closed = False
         self._agents: set[str] = set()
         self._encoded: tuple[Announcement, bytes] | None = None
@@ -560,7 +561,9 @@ class ZenohCoordinatorLink:
             elif isinstance(msg, AgentStatus):
                 self._inbox.statuses.append(msg)
             self._pending += 1
-            self._cond.notify_all()
+            # wake a waiting thread only when what it waits for holds (not for each of 50 bids)
+            if not self._waiting or any(self._holds(w) for w in self._waiting):
+                self._cond.notify_all()
 
     def _on_agent(self, sample: Any) -> None:
         try:
@@ -613,8 +616,19 @@ class ZenohCoordinatorLink:
         """Wait up to ``timeout_s`` until ``until(pending inbox)`` holds (it is called under the
         link's lock, on what :meth:`drain` would return; it must not keep it). Returns whether
         it held."""
+        timeout_s = _bounded(timeout_s)
         with self._cond:
-            return self._cond.wait_for(lambda: until(self._inbox), _bounded(timeout_s))
+            self._waiting.append(until)
+            try:
+                return self._cond.wait_for(lambda: until(self._inbox), timeout_s)
+            finally:
+                self._waiting.remove(until)
+
+    def _holds(self, until: Callable[[CoordinatorInbox], bool]) -> bool:
+        try:
+            return until(self._inbox)
+        except Exception:  # the waiter's predicate: it will raise in its own thread
+            return True
 
     def wait_for_bids(self, serial: int, agents: int | Collection[str], timeout_s: float) -> bool:
         """Wait up to ``timeout_s`` until bids answering announcement ``serial`` are pending
