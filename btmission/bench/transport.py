@@ -779,9 +779,9 @@ def markdown(b: TransportBench) -> str:
         "",
         "## Message sizes",
         "",
-        "Bytes of one message on the wire (JSON); *kB per round*: what the coordinator sent and "
-        "received per round over Zenoh (an announcement and an assignment to every agent, every "
-        "agent's bid and status).",
+        "Bytes of one message on the wire (JSON); *kB per round*: what the coordinator "
+        "published and received per round over Zenoh (its announcement and assignment counted "
+        "once, though Zenoh sends each agent a copy; every agent's bid and status).",
         "",
         *_head(SIZE_COLS, 0),
     ]
