@@ -29,6 +29,7 @@ from btmission.allocation.tasks import TaskInfo
 from btmission.runtime import wire
 from btmission.runtime.bus import (
     AgentLink,
+    AgentStatus,
     Assignment,
     CoordinatorInbox,
     CoordinatorLink,
@@ -728,6 +729,69 @@ def test_an_agent_sees_the_coordinator_go_and_come_back(zenoh_ready: None) -> No
             again.close()
     finally:
         close_all([r1, coord])
+
+
+# ------------------------------------------------------------------------------------ conformance
+@pytest.mark.parametrize("net", [False, True], ids=["in-memory", "zenoh"])
+def test_both_transports_behave_alike_up_and_cut(net: bool) -> None:
+    """The in-memory bus's own link test (tests/test_bid_window.py), run on both transports:
+    what arrives, and what a cut link drops both ways."""
+    links: list[Any] = []
+    if net:
+        need_zenoh()
+        zc, endpoint = coordinator("mine")
+        za = ZenohAgentLink("mine", "G1", settings=ZenohSettings.agent([endpoint]))
+        links = [za, zc]
+        coordinator_side: CoordinatorLink = zc
+        agent_side: AgentLink = za
+
+        def settle(agent_gets: int, coordinator_gets: int) -> None:
+            assert pump(za.mailbox, lambda: len(got) == agent_gets)
+            assert wait_until(lambda: zc.stats.received == coordinator_gets)
+
+        def cut(up: bool) -> None:
+            za.set_link(up)
+
+        def dropped() -> int:
+            return za.stats.cut
+    else:
+        bus = InMemoryBus()
+        coordinator_side, agent_side = bus, bus.agent_link("G1")
+
+        def settle(agent_gets: int, coordinator_gets: int) -> None:
+            pass
+
+        def cut(up: bool) -> None:
+            bus.set_link("G1", up)
+
+        def dropped() -> int:
+            return bus.dropped
+
+    try:
+        got: list[object] = []
+        agent_side.connect(got.append, got.append, got.append)
+        if net:
+            assert zc.wait_for_agents({"G1"}, WAIT_S) and za.wait_for_coordinator(WAIT_S)
+        assert agent_side.up
+        coordinator_side.announce(Announcement(1, 0.0, ()))
+        agent_side.send_progress(Progress("G1", "A", "done", 1.0))
+        coordinator_side.acknowledge(ProgressAck("G1", (("A", "done", 1.0),)))
+        settle(2, 1)
+        assert sorted(type(m).__name__ for m in got) == ["Announcement", "ProgressAck"]
+        assert coordinator_side.drain().progress == [Progress("G1", "A", "done", 1.0)]
+        cut(False)
+        assert not agent_side.up
+        agent_side.send_status(AgentStatus("G1", 1.0, (0, 0, 0), "HOLD", False, 1.0, None, ""))
+        coordinator_side.acknowledge(ProgressAck("G1", ()))
+        assert wait_until(lambda: dropped() == 2)
+        assert coordinator_side.drain().statuses == [] and len(got) == 2
+        cut(True)
+        assert agent_side.up
+        agent_side.send_status(AgentStatus("G1", 2.0, (0, 0, 0), "HOLD", False, 1.0, None, ""))
+        settle(2, 2)
+        assert [s.time_s for s in coordinator_side.drain().statuses] == [2.0]
+    finally:
+        close_all(links)
 
 
 # ------------------------------------------------------------------------------------ sockets
