@@ -13,6 +13,7 @@ from btmission.bench.synth import DEFAULT_SHAPES, SHAPES
 from btmission.cli.common import (
     SEED,
     BadInput,
+    ChecksFailed,
     FiniteFloat,
     int_option,
     output_file_option,
@@ -435,6 +436,94 @@ def sim_bench(
         _within_budget([int(t)], MAX_TASKS, "tasks", "--scale")
         points.append((int(a), int(t), participation))
     run_sim_benchmark(ctrls, points, duration, out, click.echo)
+
+
+@bench.command("transport")
+@list_option("--sizes", default="10x40,50x400", help="Comma-separated AGENTSxTASKS sizes.")
+@click.option(
+    "--rounds",
+    type=click.IntRange(1),
+    help="Timed rounds per transport and size. [default: 300; --quick: 60]",
+)
+@click.option(
+    "--warmup",
+    type=click.IntRange(0),
+    help="Untimed rounds first. [default: 10; --quick: 5]",
+)
+@click.option(
+    "-p",
+    "--participation",
+    default=0.9,
+    show_default=True,
+    type=FiniteFloat(0, 1, min_open=True),
+    help="Fraction of the tasks each agent bids on.",
+)
+@list_option(
+    "--layouts",
+    default="1:each,2:shared",
+    help="The agents' sides over Zenoh, a row each: PROCESSES:each|shared (a Zenoh session per "
+    "agent, or one per process); 'thread' for a thread of this process.",
+)
+@click.option("--shm", is_flag=True, help="Let Zenoh use shared memory between the processes.")
+@positive_float_option("--timeout", default=20.0, help="Bound of every wait, in seconds.")
+@click.option("--quick", is_flag=True, help="A short run (~1 min): 60 rounds, 5 warm-up.")
+@seed_option("Instance seed.")
+@out_option("transport.md and transport.csv", "-o")
+def transport_bench(
+    sizes: str,
+    rounds: int | None,
+    warmup: int | None,
+    participation: float,
+    layouts: str,
+    shm: bool,
+    timeout: float,
+    quick: bool,
+    seed: int,
+    out: Path,
+) -> None:
+    """Auction rounds over Zenoh on loopback vs the in-process bus (issue #17). Each round:
+    announce, bids from every agent, solve, assign, every agent confirms. Reports round rate,
+    p50/p99 latency, CPU per round and message sizes. Target: >= 50 Hz at 50x400 over Zenoh.
+    Needs the net extra (eclipse-zenoh).
+
+    \b
+    Examples:
+      btmission bench transport                    # 10x40 and 50x400, a few minutes
+      btmission bench transport --quick --sizes 10x40 --layouts 1:each --out /tmp/results
+    """
+    from btmission.bench.transport import BenchError, Layout, TransportBenchConfig
+    from btmission.transport.zenoh_link import NEEDS_NET, zenoh_available
+
+    points = _size_list(sizes, "--sizes")
+    if not points:
+        raise click.BadParameter("expected at least one AGENTSxTASKS size", param_hint="--sizes")
+    try:
+        lays = tuple(Layout.parse(t) for t in layouts.split(",") if t.strip())
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--layouts") from None
+    if not lays:
+        raise click.BadParameter("expected at least one layout", param_hint="--layouts")
+    if not zenoh_available():
+        raise BadInput(NEEDS_NET)
+    overrides: dict[str, Any] = {
+        "sizes": points,
+        "participation": participation,
+        "layouts": lays,
+        "shared_memory": shm,
+        "timeout_s": timeout,
+        "seed": seed,
+    }
+    if rounds is not None:
+        overrides["rounds"] = rounds
+    if warmup is not None:
+        overrides["warmup"] = warmup
+    cfg = TransportBenchConfig.quick(**overrides) if quick else TransportBenchConfig(**overrides)
+    from btmission.bench.transport import run_transport_benchmark
+
+    try:
+        run_transport_benchmark(cfg, out_dir=out, echo=click.echo)
+    except BenchError as exc:
+        raise ChecksFailed(f"the transport benchmark failed: {exc}") from None
 
 
 @bench.command("reloc")

@@ -14,7 +14,17 @@ from btmission.cli.bench_cmds import bench, script_main
 from btmission.cli.main import cli
 
 ROOT = Path(__file__).resolve().parents[1]
-SCRIPTED = ("auction", "console", "control", "planner", "reloc", "sim", "synth", "viewer")
+SCRIPTED = (
+    "auction",
+    "console",
+    "control",
+    "planner",
+    "reloc",
+    "sim",
+    "synth",
+    "transport",
+    "viewer",
+)
 
 
 @pytest.mark.parametrize("name", SCRIPTED)

@@ -163,3 +163,69 @@ def test_a_task_field_that_cannot_be_sent() -> None:
         encode(bad)
     with pytest.raises(WireError, match="object is not a message"):
         to_dict(object())  # type: ignore[arg-type]
+
+
+def _generic(msg: Any) -> bytes:
+    return json.dumps(to_dict(msg), allow_nan=False, separators=(",", ":")).encode()
+
+
+def test_the_fast_encodings_are_the_plain_json_of_to_dict() -> None:
+    """Announcements keep their tasks' JSON, assignments splice it in, number lists skip a
+    Python call per number: the bytes are those of ``json.dumps(to_dict(msg))``."""
+    big = Announcement(9, 2.0, tuple(TaskInfo(f"T{j}", "inspect", {"location": [j / 3, -j, 0.5]},
+                                              1.0 + j % 3, j * 0.1) for j in range(50)))  # fmt: skip
+    costs = np.linspace(0, 7, 50)
+    costs[[3, 9, 10]] = [math.nan, math.inf, -math.inf]
+    for msg in (
+        ANN,
+        big,
+        Announcement(),
+        Assignment(1.6, 17, {"R1": "T1", "R2": None}, ANN),
+        Assignment(0.0, 1, {}, big),
+        Bid.aligned("R1", 1.5, big, costs),
+        Prediction("R1", 2.0, np.array([[0.1, 1e-300], [np.float32(0.3), 2**60]])),
+    ):
+        assert encode(msg) == _generic(msg)
+        assert encode(msg) == encode(msg)  # the cached part too
+
+
+def test_decoding_reuses_a_known_announcement_exactly() -> None:
+    other = Announcement(4, 1.5, ANN.tasks[:1])
+    known = decode(encode(ANN))
+    assert isinstance(known, Announcement)
+    assert decode(encode(ANN), known) is known
+    msg = Assignment(1.6, 17, {"R1": "T1", "announcement": None}, ANN)
+    back = decode(encode(msg), known)
+    assert back == msg and back.announcement is known
+    for data in (encode(other), encode(Assignment(1.6, 17, {"R1": None}, other))):
+        got = decode(data, known)  # another announcement: decoded, not reused
+        assert got == decode(data) and got is not known
+        assert getattr(got, "announcement", got) is not known
+    spaced = json.dumps(to_dict(msg)).encode()  # not the compact encoding: decoded as usual
+    assert decode(spaced, known) == msg and decode(spaced, known).announcement is not known
+    bad = encode(msg).replace(b'"round":17', b'"round":"17"')
+    with pytest.raises(WireError, match="field 'round' must be an integer"):
+        decode(bad, known)
+    v2 = encode(msg).replace(b'"v":1', b'"v":2')
+    with pytest.raises(WireError, match="message version 2 is not supported"):
+        decode(v2, known)
+    body = b"{" + encode(ANN)[len(b'{"v":1,"kind":"announcement",') :]
+    nested = encode(msg)[:-1] + b',"announcement":' + body + b"}"
+    assert decode(nested, known) == decode(nested)  # a second top-level key: the usual path
+
+
+def test_number_lists_still_refuse_what_they_refused() -> None:
+    good = to_dict(Bid.of("R1", 1.0, {"A": 1.0, "B": 2.0}))
+    for costs, ok in (([1, 2.5], True), ([True, 1.0], False), (["inf", 1], True),
+                      (["x", 1], False), (["BIG", 1], True)):  # fmt: skip
+        data = json.dumps({**good, "costs": costs}).replace('"BIG"', "1e999").encode()
+        if ok:
+            assert len(decode(data).costs) == 2  # type: ignore[union-attr]
+        else:
+            with pytest.raises(WireError, match="field 'costs' must be a list of numbers"):
+                decode(data)
+    st = to_dict(AgentStatus("R1", 3.0, (1.0, 2.0, 0.5), "HOLD", True, 0.8, None, ""))
+    for pos in (["BIG", 0, 0], [True, 0, 0], ["nan", 0, 0]):
+        data = json.dumps({**st, "position": pos}).replace('"BIG"', "1e999").encode()
+        with pytest.raises(WireError, match="field 'position' must be a list of finite numbers"):
+            decode(data)

@@ -158,7 +158,7 @@ class AgentLink(Protocol):
         near: FloatArray | None = None,
         within_m: float = math.inf,
     ) -> list[FloatArray]:
-        """The other agents' predictions (:meth:`InMemoryBus.predictions`)."""
+        """The other agents' predictions (:func:`advance_predictions`)."""
         ...
 
 
@@ -267,27 +267,40 @@ class InMemoryBus:
         near: FloatArray | None = None,
         within_m: float = math.inf,
     ) -> list[FloatArray]:
-        """The other agents' predictions — (N+1, 2) or (N+1, 3) positions, a vehicle that only
-        shares where it is gives one row — advanced to ``time_s`` (shifted by the steps of
-        ``step_s`` since they were published, the last point repeated), nearest to ``near``
-        first, those farther than ``within_m`` left out."""
-        out: list[tuple[float, FloatArray]] = []
-        for other, pred in self._predictions.items():
-            if other == agent:
+        """The other agents' predictions (:func:`advance_predictions`)."""
+        return advance_predictions(self._predictions, agent, time_s, step_s, near, within_m)
+
+
+def advance_predictions(
+    shared: Mapping[str, Prediction],
+    agent: str,
+    time_s: float,
+    step_s: float,
+    near: FloatArray | None = None,
+    within_m: float = math.inf,
+) -> list[FloatArray]:
+    """The predictions of the agents other than ``agent`` in ``shared`` (each agent's latest) —
+    (N+1, 2) or (N+1, 3) positions, a vehicle that only shares where it is gives one row —
+    advanced to ``time_s`` (shifted by the steps of ``step_s`` since they were published, the
+    last point repeated), nearest to ``near`` first, those farther than ``within_m`` left out.
+    Pure: every transport's :meth:`AgentLink.predictions` gives the same answer."""
+    out: list[tuple[float, FloatArray]] = []
+    for other, pred in shared.items():
+        if other == agent:
+            continue
+        pts = pred.positions
+        d = 0.0
+        if near is not None:
+            d = math.dist(pts[0, :2], near[:2])
+            if d > within_m:
                 continue
-            pts = pred.positions
-            d = 0.0
-            if near is not None:
-                d = math.dist(pts[0, :2], near[:2])
-                if d > within_m:
-                    continue
-            k = max(0, round((time_s - pred.time_s) / step_s))
-            if k and len(pts) > 1:
-                k = min(k, len(pts) - 1)
-                pts = np.vstack([pts[k:], np.repeat(pts[-1:], k, axis=0)])
-            out.append((d, pts))
-        out.sort(key=lambda x: x[0])
-        return [p for _, p in out]
+        k = max(0, round((time_s - pred.time_s) / step_s))
+        if k and len(pts) > 1:
+            k = min(k, len(pts) - 1)
+            pts = np.vstack([pts[k:], np.repeat(pts[-1:], k, axis=0)])
+        out.append((d, pts))
+    out.sort(key=lambda x: x[0])
+    return [p for _, p in out]
 
 
 class InMemoryAgentLink:

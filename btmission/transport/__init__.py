@@ -1,0 +1,14 @@
+"""The network transport between the coordinator and the agents (DESIGN.md §3): Eclipse Zenoh.
+
+* :mod:`btmission.transport.keys` — the key expressions (pure; no Zenoh needed);
+* :mod:`btmission.transport.zenoh_link` — :class:`~btmission.transport.zenoh_link.
+  ZenohCoordinatorLink` and :class:`~btmission.transport.zenoh_link.ZenohAgentLink`, the
+  :class:`~btmission.runtime.bus.CoordinatorLink` and :class:`~btmission.runtime.bus.AgentLink`
+  over a Zenoh session, carrying exactly the :mod:`btmission.runtime.wire` encodings;
+* :mod:`btmission.transport.faulty` — a test wrapper that duplicates, delays and reorders
+  messages (seeded), around the in-memory bus or Zenoh links alike.
+
+Zenoh is the optional ``net`` extra (``pip install 'btmission[net]'``): neither ``import
+btmission`` nor this package imports it; :mod:`~btmission.transport.zenoh_link` does when a
+session is opened, and says how to install it when it is missing. See docs/distributed.md.
+"""
