@@ -60,6 +60,7 @@ import os
 import re
 import shutil
 import threading
+import time
 import urllib.parse
 from collections.abc import Iterator, Mapping
 from http.server import BaseHTTPRequestHandler, SimpleHTTPRequestHandler, ThreadingHTTPServer
@@ -229,6 +230,33 @@ def meshcat_dist() -> Path:
 
 
 # -- pixels -------------------------------------------------------------------------------------
+
+
+def docs_shot(page: Page, name: str) -> None:
+    """With ``BTMISSION_DOCS_SCREENSHOTS`` set, save the page as ``docs/img/<name>``."""
+    if os.environ.get("BTMISSION_DOCS_SCREENSHOTS"):
+        page.screenshot(path=str(Path(__file__).resolve().parents[1] / "docs" / "img" / name))
+
+
+def wait_js(page: Page, script: str, timeout_s: float = 30.0) -> Any:
+    """The first truthy value of ``script`` in the page, polled every 0.1 s (an
+    AssertionError after ``timeout_s``)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = page.evaluate(script)
+        if value:
+            return value
+        time.sleep(0.1)
+    raise AssertionError(f"timed out after {timeout_s} s waiting for {script}")
+
+
+def open_page(page: Page, url: str) -> list[str]:
+    """Open the viewer at ``url`` and wait until it is ready; the list its script errors go to."""
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(url)
+    page.wait_for_selector("body[data-ready='1']", timeout=30_000)
+    return errors
 
 
 def pixels(png: Shot) -> np.ndarray:

@@ -14,7 +14,6 @@ are also written to docs/img (the pictures docs/operator.md shows)."""
 from __future__ import annotations
 
 import contextlib
-import os
 import threading
 import time
 from collections.abc import Iterator
@@ -29,7 +28,7 @@ from btmission.runtime.events import Event, read_events
 from btmission.runtime.session import RunSession
 from btmission.viz.live import LiveViewer
 from btmission.world.voxel import OCCUPIED, VoxelMap
-from tests.browser import colour_fraction, next_frames
+from tests.browser import colour_fraction, docs_shot, next_frames, open_page, wait_js
 
 ROOT = Path(__file__).resolve().parents[1]
 MINE = ROOT / "missions" / "mine_inspection.yaml"
@@ -39,29 +38,6 @@ SPEED = 8.0
 """The runs go 8 times faster than real time."""
 FREE_FLOOR = (8.0, 3.0)
 """(x, y) of the launch area's floor, beside the agents' starts (free above the floor)."""
-
-
-def _docs_shot(page: Any, name: str) -> None:
-    if os.environ.get("BTMISSION_DOCS_SCREENSHOTS"):
-        page.screenshot(path=str(ROOT / "docs" / "img" / name))
-
-
-def _wait(page: Any, script: str, timeout_s: float = 30.0) -> Any:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = page.evaluate(script)
-        if value:
-            return value
-        time.sleep(0.1)
-    raise AssertionError(f"timed out after {timeout_s} s waiting for {script}")
-
-
-def _open(page: Any, url: str) -> list[str]:
-    errors: list[str] = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
-    page.goto(url)
-    page.wait_for_selector("body[data-ready='1']", timeout=30_000)
-    return errors
 
 
 def _console_log(page: Any) -> list[tuple[str, str]]:
@@ -200,7 +176,7 @@ def test_click_on_the_map_adds_a_task_that_is_then_done(page: Any, tmp_path: Pat
     above the floor (a marker there), T8 is added (urgent), and the console log tells the
     answer, then who was assigned T8 and who did it; the log has the same story."""
     with live_run(tmp_path) as live:
-        errors = _open(page, f"{live.url}?token={TOKEN}")
+        errors = open_page(page, f"{live.url}?token={TOKEN}")
         live.go()
         # the token: kept for this tab, gone from the address bar
         assert page.url == live.url
@@ -217,7 +193,7 @@ def test_click_on_the_map_adds_a_task_that_is_then_done(page: Any, tmp_path: Pat
         assert hit["p"] == pytest.approx([*FREE_FLOOR, floor], abs=0.3)
         assert hit["normal"] == pytest.approx([0, 0, 1], abs=1e-6)  # the floor, seen from above
         page.mouse.click(x, y)
-        location = _wait(
+        location = wait_js(
             page,
             "(() => { const v = ['x', 'y', 'z'].map(c => "
             "document.querySelector(`#task-form [name='location.${c}']`).value);"
@@ -232,18 +208,18 @@ def test_click_on_the_map_adds_a_task_that_is_then_done(page: Any, tmp_path: Pat
         box = (round(x) - 14, round(y) - 14, round(x) + 14, round(y) + 14)
         marker = colour_fraction(shot, (200, 90, 215), (255, 160, 255), box)
         page.select_option("#task-form [name=priority]", "urgent")
-        _docs_shot(page, "console_add.png")
+        docs_shot(page, "console_add.png")
         page.click("#task-form-submit")
-        _wait(page, "document.getElementById('task-form').hidden", 15)
-        _wait(page, _last_result("T8 done by"), 90)
+        wait_js(page, "document.getElementById('task-form').hidden", 15)
+        wait_js(page, _last_result("T8 done by"), 90)
         entries = _console_log(page)
-        _wait(
+        wait_js(
             page, "document.querySelector('#tasks tr[data-task=\"T8\"]')?.dataset.state === 'done'"
         )
         page.evaluate("btm.scene.onPick('task', 'T8')")  # its row highlighted, for the picture
         next_frames(page, 3)
         time.sleep(0.3)
-        _docs_shot(page, "console_result.png")
+        docs_shot(page, "console_result.png")
         live.stop()
     assert errors == []
     assert marker > 0.05, "no marker where the task goes"
@@ -273,7 +249,7 @@ def test_a_click_on_rock_between_tunnels_fills_nothing(page: Any, tmp_path: Path
     go, stay in sight) and folds to its title; its hint says Esc stops picking. Add task with
     nothing filled says what is missing, and the click hint goes; closing the form clears it."""
     with live_run(tmp_path) as live:  # (the run need not step)
-        errors = _open(page, f"{live.url}?token={TOKEN}")
+        errors = open_page(page, f"{live.url}?token={TOKEN}")
         sent: list[str] = []
         page.on("request", lambda r: sent.append(f"{r.method} {r.url}") if r.method != "GET" else None)  # fmt: skip
         page.click("#btn-top")
@@ -291,7 +267,7 @@ def test_a_click_on_rock_between_tunnels_fills_nothing(page: Any, tmp_path: Path
         x, y, _d, wx, wy = found
         assert lo[0] < wx < hi[0] and lo[1] < wy < hi[1]  # (the map's floor is under it)
         page.mouse.click(x, y)
-        _wait(page, "!document.getElementById('pick-note').hidden", 5)
+        wait_js(page, "!document.getElementById('pick-note').hidden", 5)
         next_frames(page, 2)
         page.screenshot(path=str(tmp_path / "rock.png"))
         hint = page.text_content("#pick-hint")
@@ -329,10 +305,10 @@ def test_a_task_inside_rock_is_refused_with_the_reason(page: Any, tmp_path: Path
     """Coordinates typed into the form that are inside rock: the page shows the server's
     refusal, the form stays open with the location marked; nothing is added."""
     with live_run(tmp_path) as live:
-        errors = _open(page, f"{live.url}?token={TOKEN}")
+        errors = open_page(page, f"{live.url}?token={TOKEN}")
         live.go()
         rock = _rock_point(live.run.map)
-        before = _wait(page, "document.querySelectorAll('#tasks tbody tr').length >= 6")
+        before = wait_js(page, "document.querySelectorAll('#tasks tbody tr').length >= 6")
         before = _task_rows(page)
         page.click("#btn-add-task")  # the form opens, add mode is armed ...
         page.keyboard.press("Escape")  # ... and Esc disarms it (the form stays)
@@ -341,9 +317,9 @@ def test_a_task_inside_rock_is_refused_with_the_reason(page: Any, tmp_path: Path
         for c, v in zip("xyz", rock, strict=True):
             page.fill(f"#task-form [name='location.{c}']", str(v))
         page.click("#task-form-submit")
-        _wait(page, _last_result("inside rock"), 20)
+        wait_js(page, _last_result("inside rock"), 20)
         page.screenshot(path=str(tmp_path / "refused.png"))
-        _docs_shot(page, "console_refused.png")
+        docs_shot(page, "console_refused.png")
         entries = _console_log(page)
         message = page.text_content("#task-form-msg")
         marked = page.evaluate(
@@ -372,18 +348,18 @@ def test_cancel_pause_exclude_then_the_page_closes(page: Any, tmp_path: Path) ->
     closes and the run goes on to its end time."""
     until = 200.0
     with live_run(tmp_path, until=until) as live:
-        errors = _open(page, f"{live.url}?token={TOKEN}")
+        errors = open_page(page, f"{live.url}?token={TOKEN}")
         live.go()
-        _wait(page, "window.btm.state.viewT > 3")  # the agents have taken their tasks
-        task, agent = _wait(
+        wait_js(page, "window.btm.state.viewT > 3")  # the agents have taken their tasks
+        task, agent = wait_js(
             page,
             "(() => { const r = [...document.querySelectorAll('#tasks tbody tr[data-state=\"assigned\"]')]"
             ".find(r => r.querySelector('button.cancel-task'));"
             " return r && [r.dataset.task, r.children[3].textContent]; })()",
         )
         page.click(f"#tasks tr[data-task='{task}'] button.cancel-task")
-        _wait(page, _last_result(f"{task} cancelled"), 20)
-        _wait(
+        wait_js(page, _last_result(f"{task} cancelled"), 20)
+        wait_js(
             page,
             f"document.querySelector('#tasks tr[data-task=\"{task}\"]').dataset.state === 'cancelled'",
         )
@@ -391,20 +367,22 @@ def test_cancel_pause_exclude_then_the_page_closes(page: Any, tmp_path: Path) ->
             f"!document.querySelector('#tasks tr[data-task=\"{task}\"] button.cancel-task')"
         )
         page.click("#btn-pause")
-        _wait(page, "document.getElementById('btn-pause').textContent === 'Resume allocation'", 15)
+        wait_js(
+            page, "document.getElementById('btn-pause').textContent === 'Resume allocation'", 15
+        )
         paused_said = page.evaluate("document.body.dataset.lastResult")
         page.click("#btn-pause")
-        _wait(page, "document.getElementById('btn-pause').textContent === 'Pause allocation'", 15)
+        wait_js(page, "document.getElementById('btn-pause').textContent === 'Pause allocation'", 15)
         page.click(f"#agent-tabs button[data-agent='{agent}']")
         page.click("#btn-exclude")
-        _wait(page, "[...document.querySelectorAll('#agent-actions .chip')].some(c => c.textContent === 'excluded')", 15)  # fmt: skip
+        wait_js(page, "[...document.querySelectorAll('#agent-actions .chip')].some(c => c.textContent === 'excluded')", 15)  # fmt: skip
         page.screenshot(path=str(tmp_path / "excluded.png"))
         assert page.text_content("#btn-exclude") == "Include"
         page.click("#btn-exclude")
-        _wait(page, "document.getElementById('btn-exclude').textContent === 'Exclude'", 15)
+        wait_js(page, "document.getElementById('btn-exclude').textContent === 'Exclude'", 15)
         # recalled: out of the auction like an excluded agent, and Include brings it back
         page.click("#btn-recall")
-        _wait(page, "[...document.querySelectorAll('#agent-actions .chip')].some(c => c.textContent === 'recalled')", 15)  # fmt: skip
+        wait_js(page, "[...document.querySelectorAll('#agent-actions .chip')].some(c => c.textContent === 'recalled')", 15)  # fmt: skip
         page.screenshot(path=str(tmp_path / "recalled.png"))
         recalled_buttons = page.evaluate(
             "[...document.querySelectorAll('#agent-actions button')].map(b => [b.id, b.textContent, b.disabled])"
@@ -412,7 +390,7 @@ def test_cancel_pause_exclude_then_the_page_closes(page: Any, tmp_path: Path) ->
         tab = f"document.querySelector('#agent-tabs button[data-agent=\"{agent}\"]')"
         recalled_tab = page.evaluate(f"[{tab}.classList.contains('out'), getComputedStyle({tab}).borderTopStyle]")  # fmt: skip
         page.click("#btn-exclude")
-        _wait(
+        wait_js(
             page,
             "document.getElementById('btn-exclude').textContent === 'Exclude'"
             " && !document.getElementById('btn-recall').disabled"
@@ -473,9 +451,9 @@ def test_a_view_only_page_has_no_console(page: Any, tmp_path: Path) -> None:
     """A live run served without its console (``run --view``): a read-only badge with the
     reason, no console controls, and the server refuses a command sent anyway."""
     with live_run(tmp_path, console=False, until=30.0) as live:
-        errors = _open(page, live.url)
+        errors = open_page(page, live.url)
         live.go()
-        _wait(page, "document.querySelectorAll('#tasks tbody tr').length >= 6")
+        wait_js(page, "document.querySelectorAll('#tasks tbody tr').length >= 6")
         badge = page.is_visible("#console-ro")
         title = page.get_attribute("#console-ro", "title")
         hidden = page.evaluate(
@@ -502,16 +480,16 @@ def test_the_token_is_asked_for_when_the_page_has_none(page: Any, tmp_path: Path
     wrong one is refused (403) and the input opens again. The URL's token is kept for the tab
     and taken out of the address bar."""
     with live_run(tmp_path) as live:  # (the run need not step: these are refused up front)
-        errors = _open(page, live.url)
+        errors = open_page(page, live.url)
         asked = page.is_visible("#token-input")
         page.click("#btn-pause")
-        _wait(page, _last_result("token"), 10)
+        wait_js(page, _last_result("token"), 10)
         no_token = _console_log(page)[0]
         page.fill("#token-input", "not-the-token")
         page.click("#token-form button[type=submit]")
         closed = page.is_hidden("#token-form")
         page.click("#btn-pause")
-        _wait(page, _last_result("wrong token"), 10)
+        wait_js(page, _last_result("wrong token"), 10)
         asked_again = page.is_visible("#token-input")
         page.goto(f"{live.url}?token={TOKEN}")  # the URL the terminal printed
         page.wait_for_selector("body[data-ready='1']", timeout=30_000)
@@ -532,9 +510,9 @@ def test_the_form_proposes_the_types_own_next_id(page: Any, tmp_path: Path) -> N
     it stays next_task_id. The form's priority menu and the table's say the same. (Its map has
     no rock: a click is picked on the map's floor.)"""
     with live_run(tmp_path, mission=PICK_AND_DELIVER, until=60.0) as live:
-        errors = _open(page, f"{live.url}?token={TOKEN}")
+        errors = open_page(page, f"{live.url}?token={TOKEN}")
         live.go()
-        _wait(page, "document.querySelector('#tasks tr[data-task=\"P1\"] select.task-priority')")
+        wait_js(page, "document.querySelector('#tasks tr[data-task=\"P1\"] select.task-priority')")
         table_priority = page.evaluate(
             "document.querySelector('#tasks tr[data-task=\"P1\"] select.task-priority').selectedOptions[0].textContent"
         )
@@ -585,11 +563,11 @@ def test_the_page_says_when_the_runs_server_has_gone(page: Any, tmp_path: Path) 
     ``complete`` reaches the page): the page says the run's server has gone, in the title bar
     and the console log, and disables the controls, instead of reconnecting for ever."""
     with live_run(tmp_path) as live:
-        errors = _open(page, f"{live.url}?token={TOKEN}")
+        errors = open_page(page, f"{live.url}?token={TOKEN}")
         live.go()
-        _wait(page, "window.btm.state.viewT > 2")
+        wait_js(page, "window.btm.state.viewT > 2")
         live.viewer.server.close()  # the HTTP server only: the run goes on, its feed open
-        _wait(page, "document.body.dataset.gone === '1'", 20)
+        wait_js(page, "document.body.dataset.gone === '1'", 20)
         conn = page.text_content("#conn")
         first = _console_log(page)[0]
         disabled = page.evaluate(

@@ -6,7 +6,6 @@ are also written to docs/img (the pictures docs/viewer.md shows)."""
 
 from __future__ import annotations
 
-import os
 import threading
 import time
 from pathlib import Path
@@ -18,36 +17,13 @@ from btmission.runtime.session import RunSession
 from btmission.viz.export import static_html
 from btmission.viz.live import LiveViewer
 from btmission.viz.server import ViewerServer, log_source
-from tests.browser import image_stats, pixels, region_diff
+from tests.browser import docs_shot, image_stats, open_page, pixels, region_diff, wait_js
 
 ROOT = Path(__file__).resolve().parents[1]
 MINE = ROOT / "missions" / "mine_inspection.yaml"
 PANE = (0, 34, 900, 566)
 """The 3D pane in the 1280x800 viewport (left, top, right, bottom): below the title bar, left
 of the tree panel, above the player."""
-
-
-def _docs_shot(page: Any, name: str) -> None:
-    if os.environ.get("BTMISSION_DOCS_SCREENSHOTS"):
-        page.screenshot(path=str(ROOT / "docs" / "img" / name))
-
-
-def _wait(page: Any, script: str, timeout_s: float = 30.0) -> Any:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = page.evaluate(script)
-        if value:
-            return value
-        time.sleep(0.1)
-    raise AssertionError(f"timed out waiting for {script}")
-
-
-def _open(page: Any, url: str) -> list[str]:
-    errors: list[str] = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
-    page.goto(url)
-    page.wait_for_selector("body[data-ready='1']", timeout=30_000)
-    return errors
 
 
 def _tree_classes(page: Any) -> list[str]:
@@ -72,7 +48,7 @@ def test_live_run_moves_markers_and_ticks_trees(page: Any, tmp_path: Path) -> No
     ) as session:  # fmt: skip
         run = session.start()
         url = viewer.attach(session, run)
-        errors = _open(page, url)
+        errors = open_page(page, url)
         page.evaluate(TREE_WATCH)
 
         def go() -> None:
@@ -84,7 +60,7 @@ def test_live_run_moves_markers_and_ticks_trees(page: Any, tmp_path: Path) -> No
         worker.start()
         try:
             assert page.evaluate("window.btm.state.live && window.btm.state.follow")
-            _wait(page, "Number(document.body.dataset.viewT) > 8")
+            wait_js(page, "Number(document.body.dataset.viewT) > 8")
             first = page.screenshot()
             at_first = {a: _agent_px(page, a) for a in ("R1", "R2", "R3")}
             time.sleep(1.5)
@@ -92,7 +68,7 @@ def test_live_run_moves_markers_and_ticks_trees(page: Any, tmp_path: Path) -> No
             at_second = {a: _agent_px(page, a) for a in ("R1", "R2", "R3")}
             tree_states = page.evaluate("window.treeStates.size")
             running = page.evaluate("document.querySelectorAll('#tree .bt.st-RUNNING').length")
-            _docs_shot(page, "viewer_live.png")
+            docs_shot(page, "viewer_live.png")
             page.close()  # the browser goes away while the run goes on
         finally:
             worker.join(timeout=120)
@@ -100,7 +76,11 @@ def test_live_run_moves_markers_and_ticks_trees(page: Any, tmp_path: Path) -> No
     assert errors == []
     _mean, std, colours = image_stats(first, PANE)
     assert std > 12 and colours > 200, "the 3D pane is blank"
-    moved = [a for a in at_first if abs(at_first[a][0] - at_second[a][0]) + abs(at_first[a][1] - at_second[a][1]) > 4]
+    moved = [
+        a
+        for a in at_first
+        if abs(at_first[a][0] - at_second[a][0]) + abs(at_first[a][1] - at_second[a][1]) > 4
+    ]
     assert moved, f"no marker moved: {at_first} → {at_second}"
     for a in moved:  # the pixels around where the marker was and is did change
         x, y = (round(v) for v in at_second[a])
@@ -123,28 +103,32 @@ new MutationObserver(() => window.treeStates.add(
 def test_replay_slider_changes_the_scene(page: Any, mine_log: Path) -> None:
     source, _ = log_source(mine_log)
     with ViewerServer(source, port=0) as server:
-        errors = _open(page, server.url)
-        _wait(page, "document.body.dataset.complete === '1'")
+        errors = open_page(page, server.url)
+        wait_js(page, "document.body.dataset.complete === '1'")
         assert page.evaluate("window.btm.state.live") is False
         page.evaluate("window.btm.seek(5)")
-        _wait(page, "document.body.dataset.viewT === '5.00'")
+        wait_js(page, "document.body.dataset.viewT === '5.00'")
         time.sleep(0.4)
         early = page.screenshot()
         early_px = _agent_px(page, "R1")
-        early_tasks = page.evaluate("[...document.querySelectorAll('#tasks tbody tr')].map(r => r.dataset.state)")
+        early_tasks = page.evaluate(
+            "[...document.querySelectorAll('#tasks tbody tr')].map(r => r.dataset.state)"
+        )
         slider = page.locator("#slider")
         slider.fill("100")  # the slider, as a person drags it
-        _wait(page, "document.body.dataset.viewT === '100.00'")
+        wait_js(page, "document.body.dataset.viewT === '100.00'")
         time.sleep(0.4)
         late = page.screenshot()
         late_px = _agent_px(page, "R1")
-        late_tasks = page.evaluate("[...document.querySelectorAll('#tasks tbody tr')].map(r => r.dataset.state)")
+        late_tasks = page.evaluate(
+            "[...document.querySelectorAll('#tasks tbody tr')].map(r => r.dataset.state)"
+        )
         x, y = _agent_px(page, "R2")  # a click on R2's marker selects it (a 3D pick)
         page.mouse.click(x, y + PANE[1])
-        picked = _wait(page, "document.body.dataset.picked")
+        picked = wait_js(page, "document.body.dataset.picked")
         selected = page.evaluate("window.btm.state.selected")
         page.check("#opt-lidar")  # a scan from R2's pose, cast by the server
-        lidar = _wait(page, "Number(document.body.dataset.lidarPoints || 0)")
+        lidar = wait_js(page, "Number(document.body.dataset.lidarPoints || 0)")
         before_risk = page.screenshot()
         page.check("#opt-risk")  # the risk layer on demand
         time.sleep(0.4)
@@ -157,7 +141,7 @@ def test_replay_slider_changes_the_scene(page: Any, mine_log: Path) -> None:
         page.click(".tab[data-tab='timeline']")
         time.sleep(0.3)
         bars = page.evaluate("document.querySelectorAll('#timeline rect').length")
-        _docs_shot(page, "viewer_replay.png")
+        docs_shot(page, "viewer_replay.png")
     assert errors == []
     assert abs(early_px[0] - late_px[0]) + abs(early_px[1] - late_px[1]) > 20
     assert region_diff(early, late, PANE) > 0.002
@@ -183,9 +167,9 @@ def test_static_html_renders_offline(page: Any, mine_log: Path, tmp_path: Path) 
             route.continue_()
 
     page.route("**/*", offline)
-    errors = _open(page, out.as_uri())
+    errors = open_page(page, out.as_uri())
     page.evaluate("window.btm.seek(90)")
-    _wait(page, "document.body.dataset.viewT === '90.00'")
+    wait_js(page, "document.body.dataset.viewT === '90.00'")
     time.sleep(0.4)
     shot = page.screenshot()
     rows = page.evaluate("document.querySelectorAll('#tasks tbody tr').length")

@@ -229,7 +229,7 @@ class Console:
         snap = snap if snap is not None else self.run.snapshot
         if snap is None:
             raise ConsoleError(409, "the run is not built yet")
-        pool = {t.id: t for t in snap.pool}
+        tasks = [_task_row(t, snap.time_s) for t in snap.pool]
         return {
             "t": round(snap.time_s, 3),
             "steps": snap.steps,
@@ -252,40 +252,8 @@ class Console:
                 }
                 for a in snap.agents
             ],
-            "tasks": [
-                {
-                    "id": t.id,
-                    "type": t.type,
-                    "state": t.state,
-                    "agent": t.agent,
-                    "priority": t.priority,
-                    "added_s": round(t.arrival_s, 3),
-                    "note": t.note,
-                    "since_s": round(pool[t.id].history[-1].time_s, 3),
-                    "history": [  # its latest changes: [t, state, agent, reason]
-                        [round(h.time_s, 3), h.state.value, h.agent, h.reason]
-                        for h in pool[t.id].history[-HISTORY:]
-                    ],
-                    "fields": _plain(pool[t.id].info.fields),
-                }
-                for t in snap.tasks
-            ]
-            + [
-                {
-                    "id": t.id,
-                    "type": t.info.type,
-                    "state": "scheduled",
-                    "agent": None,
-                    "priority": t.info.priority,
-                    "added_s": round(t.info.arrival_s, 3),
-                    "note": f"announced from {t.info.arrival_s:g} s",
-                    "since_s": round(t.history[-1].time_s, 3),
-                    "history": [],
-                    "fields": _plain(t.info.fields),
-                }
-                for t in snap.pool
-                if t.info.arrival_s > snap.time_s + 1e-9
-            ],
+            # the arrived ones in the pool's order, then those still to arrive
+            "tasks": sorted(tasks, key=lambda row: row["state"] == "scheduled"),
         }
 
     # ------------------------------------------------------------------ commands
@@ -483,6 +451,28 @@ class Console:
             raise ConsoleError(409, _plain_error(outcome.error, command.name), logged=True)
         text = f"{done} at {outcome.t:.1f} s{note}"
         return Result(command.name, True, outcome.t, text, 200, task)
+
+
+def _task_row(t: Any, now: float) -> dict[str, Any]:
+    """One task of the status: a pool task as it stands at ``now`` (``scheduled`` while its
+    arrival time is still to come), with its latest changes."""
+    scheduled = t.info.arrival_s > now + 1e-9
+    return {
+        "id": t.id,
+        "type": t.info.type,
+        "state": "scheduled" if scheduled else t.state.value,
+        "agent": None if scheduled else t.agent,
+        "priority": t.info.priority,
+        "added_s": round(t.info.arrival_s, 3),
+        "note": f"announced from {t.info.arrival_s:g} s" if scheduled else t.note,
+        "since_s": round(t.history[-1].time_s, 3),
+        "history": []
+        if scheduled
+        else [  # its latest changes: [t, state, agent, reason]
+            [round(h.time_s, 3), h.state.value, h.agent, h.reason] for h in t.history[-HISTORY:]
+        ],
+        "fields": _plain(t.info.fields),
+    }
 
 
 def _type_of(task: Any) -> str | None:
