@@ -1048,3 +1048,31 @@ def test_off_loopback_every_read_needs_the_token_and_the_page_keeps_it_in_a_cook
     assert _asgi(local, "/api/status", host="127.0.0.1:8470")[0] == 200
     assert _asgi(local, "/api/status", host="localhost:8470")[0] == 200
     assert _asgi(local, "/api/status", host="attacker.example:8470")[0] == 403
+
+
+def test_the_run_commands_console_options_refuse_what_cannot_be_used(
+    cli_run: Any, tmp_path: Path
+) -> None:
+    """Each bad use of run's console options is one message and exit 2, before anything runs
+    (no log is written)."""
+    logs = tmp_path / "runs"
+    cert = tmp_path / "cert.pem"
+    cert.write_text("not used\n")
+    cases = [
+        (["--token-file", str(cert)], "--token-file is the console's: add --console"),
+        (
+            ["--console", "--port", "0", "--tls-cert", str(cert)],
+            "--tls-cert and --tls-key go together",
+        ),
+        (["--tls-cert", str(cert), "--tls-key", str(cert)], "add --view"),
+        (
+            ["--console", "--port", "0", "--token-file", str(tmp_path / "nope")],
+            "cannot read the token file",
+        ),
+        (["--console", "--tls-cert", str(tmp_path / "nope.pem")], "does not exist"),
+    ]
+    for extra, says in cases:
+        r = cli_run("run", str(MINE), "--log", str(logs), *extra)
+        assert r.exit_code == 2 and says in r.output, (extra, r.output)
+        assert "Traceback" not in r.output
+    assert not logs.exists() or not list(logs.glob("*.jsonl"))
