@@ -12,7 +12,7 @@ import pytest
 from btmission.allocation.auction import Announcement, Bid
 from btmission.allocation.loop import Progress
 from btmission.allocation.tasks import TaskInfo
-from btmission.runtime.bus import AgentStatus, Assignment, Prediction, ProgressAck
+from btmission.runtime.bus import AgentStatus, Assignment, MissionEnd, Prediction, ProgressAck
 from btmission.runtime.wire import KINDS, WIRE_VERSION, WireError, decode, encode, to_dict
 
 ANN = Announcement(
@@ -74,8 +74,23 @@ def test_status_progress_ack_and_prediction_round_trip() -> None:
 
 def test_every_kind_has_a_round_trip_test() -> None:
     assert set(KINDS) == {
-        "announcement", "bid", "assignment", "status", "progress", "ack", "prediction",
+        "announcement", "bid", "assignment", "status", "progress", "ack", "prediction", "end",
     }  # fmt: skip
+
+
+def test_at_rest_and_the_end_of_a_mission_round_trip() -> None:
+    st = AgentStatus("R1", 9.0, (1.0, 2.0, 0.0), "LAND", False, 0.5, None, "", True, True)
+    assert roundtrip(st) == st and roundtrip(st).at_rest
+    older = to_dict(st)
+    del older["at_rest"]  # a v1 status from before the field: not at rest
+    assert not decode(json.dumps(older)).at_rest  # type: ignore[union-attr]
+    end = MissionEnd(311.5, "completed", ("T1", "T2"), {"T3": "failed: blocked"})
+    assert roundtrip(end) == end
+    bad = {**to_dict(end), "open": {"T3": 4}}
+    with pytest.raises(WireError, match="end message: field 'open'"):
+        decode(json.dumps(bad))
+    with pytest.raises(WireError, match="end message: missing field 'reason'"):
+        decode(json.dumps({"v": WIRE_VERSION, "kind": "end", "time_s": 1.0}))
 
 
 def good_bid() -> dict[str, Any]:

@@ -502,6 +502,7 @@ class Agent:
             self.task.id if self.task else None,
             self.action,
             self.vehicle_link_up,
+            self.at_rest,
         )
 
     @property

@@ -70,6 +70,19 @@ class AgentStatus:
     action: str
     vehicle_link: bool = True
     """The agent hears its vehicle (its autopilot's heartbeats); False while that link is lost."""
+    at_rest: bool = False
+    """No task, and its default behaviour is over (e.g. landed at home): what a coordinator in
+    another process needs to tell that the mission is over."""
+
+
+@dataclass(frozen=True)
+class MissionEnd:
+    """The coordinator ended the mission (coordinator → agents): agent processes stop."""
+
+    time_s: float
+    reason: str
+    done: tuple[str, ...] = ()
+    open: Mapping[str, str] = field(default_factory=dict)
 
 
 ProgressKey = tuple[str, str, float]

@@ -30,12 +30,25 @@ from btmission.allocation.auction import Announcement, Bid
 from btmission.allocation.loop import Progress
 from btmission.allocation.tasks import TaskInfo
 from btmission.limits import MAX_MESSAGE_BYTES
-from btmission.runtime.bus import AgentStatus, Assignment, Prediction, ProgressAck
+from btmission.runtime.bus import (
+    AgentStatus,
+    Assignment,
+    MissionEnd,
+    Prediction,
+    ProgressAck,
+)
 
 WIRE_VERSION = 1
 
 Message: TypeAlias = (
-    Announcement | Bid | Assignment | AgentStatus | Progress | ProgressAck | Prediction
+    Announcement
+    | Bid
+    | Assignment
+    | AgentStatus
+    | Progress
+    | ProgressAck
+    | Prediction
+    | MissionEnd
 )
 
 PROGRESS_EVENTS = ("committed", "done", "failed")
@@ -147,6 +160,7 @@ def to_dict(msg: Message) -> dict[str, Any]:
             "task": msg.task,
             "action": msg.action,
             "vehicle_link": msg.vehicle_link,
+            "at_rest": msg.at_rest,
         }
     elif isinstance(msg, Progress):
         kind = "progress"
@@ -167,6 +181,14 @@ def to_dict(msg: Message) -> dict[str, Any]:
             "agent": msg.agent,
             "time_s": msg.time_s,
             "positions": [_nums(row) for row in pos],
+        }
+    elif isinstance(msg, MissionEnd):
+        kind = "end"
+        body = {
+            "time_s": msg.time_s,
+            "reason": msg.reason,
+            "done": list(msg.done),
+            "open": dict(msg.open),
         }
     else:
         raise WireError(f"{type(msg).__name__} is not a message")
@@ -385,6 +407,7 @@ def _status(f: _Fields) -> AgentStatus:
         f.text("task", optional=True),
         f.text("action"),
         f.flag("vehicle_link") if "vehicle_link" in f.data else True,
+        f.flag("at_rest") if "at_rest" in f.data else False,
     )
 
 
@@ -419,6 +442,13 @@ def _prediction(f: _Fields) -> Prediction:
     return Prediction(f.text("agent"), f.number("time_s"), np.array(pts, dtype=np.float64))
 
 
+def _end(f: _Fields) -> MissionEnd:
+    t, reason, done, still = f.number("time_s"), f.text("reason"), f.texts("done"), f.mapping("open")
+    if not all(isinstance(v, str) for v in still.values()):
+        raise f.fail("open", "an object of task id → text", dict(still))
+    return MissionEnd(t, reason, tuple(done), dict(still))
+
+
 _DECODERS: dict[str, Callable[[_Fields], Message]] = {
     "announcement": lambda f: _announcement_from(f.kind, f.data),
     "bid": _bid,
@@ -427,6 +457,7 @@ _DECODERS: dict[str, Callable[[_Fields], Message]] = {
     "progress": _progress,
     "ack": _ack,
     "prediction": _prediction,
+    "end": _end,
 }
 KINDS: tuple[str, ...] = tuple(_DECODERS)
 

@@ -5,6 +5,7 @@ publishes (or that is addressed to one agent) end with the agent's id::
 
     btmission/<mission>/announce            coordinator → agents   announcement
     btmission/<mission>/assign              coordinator → agents   assignment
+    btmission/<mission>/end                 coordinator → agents   end (the mission is over)
     btmission/<mission>/ack/<agent>         coordinator → agent    ack (of its progress reports)
     btmission/<mission>/bids/<agent>        agent → coordinator    bid
     btmission/<mission>/progress/<agent>    agent → coordinator    progress
@@ -41,6 +42,7 @@ BIDS: Final = "bids"
 PROGRESS: Final = "progress"
 STATUS: Final = "status"
 PREDICT: Final = "predict"
+END: Final = "end"
 
 KINDS: Final[dict[str, str]] = {
     ANNOUNCE: "announcement",
@@ -50,10 +52,11 @@ KINDS: Final[dict[str, str]] = {
     PROGRESS: "progress",
     STATUS: "status",
     PREDICT: "prediction",
+    END: "end",
 }
 """Channel → the wire ``kind`` of the messages published on it."""
 
-BROADCAST: Final = frozenset({ANNOUNCE, ASSIGN})
+BROADCAST: Final = frozenset({ANNOUNCE, ASSIGN, END})
 """Channels without an agent chunk (one key for every agent)."""
 
 PER_AGENT: Final = frozenset(KINDS) - BROADCAST

@@ -58,6 +58,7 @@ from btmission.runtime.bus import (
     AgentStatus,
     Assignment,
     CoordinatorInbox,
+    MissionEnd,
     OnAck,
     OnAnnouncement,
     OnAssignment,
@@ -273,6 +274,7 @@ _KIND_OF: Final[dict[type, str]] = {
     Progress: "progress",
     ProgressAck: "ack",
     Prediction: "prediction",
+    MissionEnd: "end",
 }
 
 
@@ -429,6 +431,11 @@ class Mailbox:
         with self._cond:
             return len(self._items)
 
+    def wake(self) -> None:
+        """Wake a thread waiting in :meth:`wait` or :meth:`dispatch` (something else changed)."""
+        with self._cond:
+            self._cond.notify_all()
+
     def wait(self, timeout_s: float) -> bool:
         """Wait up to ``timeout_s`` for a message; whether one is waiting."""
         with self._cond:
@@ -525,7 +532,8 @@ class ZenohCoordinatorLink:
         try:
             self._announce = self._s.publisher(keys.key(mission, keys.ANNOUNCE), _BLOCK)
             self._assign = self._s.publisher(keys.key(mission, keys.ASSIGN), _BLOCK)
-            self._declared += [self._announce, self._assign]
+            self._end = self._s.publisher(keys.key(mission, keys.END), _BLOCK)
+            self._declared += [self._announce, self._assign, self._end]
             self._acks: dict[str, Any] = {}
             for channel in keys.TO_COORDINATOR:
                 self._declared.append(
@@ -588,6 +596,10 @@ class ZenohCoordinatorLink:
 
     def assign(self, assignment: Assignment) -> None:
         self._put(self._assign, wire.encode(assignment))
+
+    def end(self, end: MissionEnd) -> None:
+        """Tell every agent the mission is over (their processes stop)."""
+        self._put(self._end, wire.encode(end))
 
     def acknowledge(self, ack: ProgressAck) -> None:
         pub = self._acks.get(ack.agent)
@@ -702,6 +714,8 @@ class ZenohAgentLink:
         self._closed = False
         self._handlers: tuple[OnAnnouncement, OnAssignment, OnAck] | None = None
         self._predictions: dict[str, Prediction] = {}
+        self.ended: MissionEnd | None = None
+        """The coordinator's end of the mission, once it has arrived (set on Zenoh's thread)."""
         self._declared: list[Any] = []
         self._connected: list[Any] = []
         try:
@@ -754,6 +768,7 @@ class ZenohAgentLink:
             (keys.key(m, keys.ANNOUNCE), self._on_message),
             (keys.key(m, keys.ASSIGN), self._on_message),
             (keys.key(m, keys.ACK, a), self._on_message),
+            (keys.key(m, keys.END), self._on_end),
             (keys.every_agent(m, keys.PREDICT), self._on_prediction),
         ]
         for k, cb in subs:
@@ -841,6 +856,14 @@ class ZenohAgentLink:
         self.mailbox.put(handler, msg)
         if self.mailbox.overflow != before:
             self.stats.count("overflow", "mailbox full: call dispatch() from the agent's loop")
+
+    def _on_end(self, sample: Any) -> None:
+        if self._closed:
+            return
+        got = _check(_payload(sample), str(sample.key_expr), self.stats, self._decoder.decode)
+        if got is not None and isinstance(got[1], MissionEnd) and not self._cut:
+            self.ended = got[1]
+            self.mailbox.wake()
 
     def _on_prediction(self, sample: Any) -> None:
         if self._closed or self._cut:
