@@ -24,6 +24,7 @@ from btmission.cli import (
     map_cmds,
     mavsim_cmds,
     mission_cmds,
+    process_cmds,
     reloc_cmds,
     run_cmds,
     synth_cmds,
@@ -133,6 +134,8 @@ cli.add_command(library_cmds.library)
 cli.add_command(synth_cmds.synth)
 cli.add_command(mission_cmds.validate)
 cli.add_command(mission_cmds.mission)
+cli.add_command(process_cmds.coordinator_cmd)
+cli.add_command(process_cmds.agent_cmd)
 cli.add_command(mission_cmds.schema)
 cli.add_command(bench_cmds.bench)
 cli.add_command(control_cmds.control)

@@ -8,6 +8,7 @@ import threading
 import time
 from pathlib import Path
 from types import FrameType
+from typing import Any
 
 import click
 
@@ -79,6 +80,15 @@ from btmission.cli.common import BadInput, FiniteFloat, handle_spec_errors
 @click.option(
     "--duration", type=FiniteFloat(0, min_open=True), help="Stop after this many wall seconds."
 )
+@click.option(
+    "--backend",
+    "backends",
+    multiple=True,
+    metavar="AGENT=URL",
+    help="With --mission: serve AGENT's vehicle at this mavlink+udp/tcp URL instead of its "
+    "backend (repeatable); how an agent of a simulator mission gets a vehicle another process "
+    "can fly (run --processes uses it).",
+)
 @handle_spec_errors
 def mavsim(
     mission_path: Path | None,
@@ -95,6 +105,7 @@ def mavsim(
     seed: int,
     quiet: bool,
     duration: float | None,
+    backends: tuple[str, ...],
 ) -> None:
     """Simulated MAVLink vehicles for flying missions without hardware.
 
@@ -121,6 +132,8 @@ def mavsim(
 
     if (mission_path is None) == (count is None):
         raise BadInput("give either --mission FILE or --count N")
+    if backends and mission_path is None:
+        raise BadInput("--backend goes with --mission")
     if mission_path is not None and (transport is not None or port is not None):
         raise BadInput("--transport and --port go with --count; --mission serves each agent at "
                        "its backend URL")  # fmt: skip
@@ -135,7 +148,7 @@ def mavsim(
         from btmission.spec.mission import load_mission
         from btmission.world.build import world_from_spec
 
-        mission = load_mission(mission_path)
+        mission = _with_backends(load_mission(mission_path), backends)
         specs = mission_vehicles(mission)
         if not specs:
             raise BadInput(
@@ -201,6 +214,27 @@ def mavsim(
     click.echo(f"stopped after {sim.simulator.time_s:.1f} simulated s ({sim.steps} steps{late})")
     for agent, counts in sim.counters().items():
         click.echo(f"{agent} signing: " + ", ".join(f"{k} {v}" for k, v in counts.items()))
+
+
+def _with_backends(mission: Any, backends: tuple[str, ...]) -> Any:
+    """``mission`` with ``AGENT=URL`` backends (checked: a known agent, a MAVLink URL)."""
+    from btmission.backends.mavlink_url import parse_mavlink_url
+    from btmission.runtime.distribution import with_backends
+
+    out: dict[str, str] = {}
+    ids = [a.id for a in mission.agents]
+    for item in backends:
+        agent, sep, url = item.partition("=")
+        if not sep or agent not in ids:
+            raise BadInput(
+                f"--backend {item}: expected AGENT=URL with AGENT one of {', '.join(ids)}"
+            )
+        try:
+            parse_mavlink_url(url)
+        except ValueError as exc:
+            raise BadInput(f"--backend {item}: {exc}") from None
+        out[agent] = url
+    return with_backends(mission, out, None) if out else mission
 
 
 def _check_host(host: str) -> None:

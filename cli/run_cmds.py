@@ -123,6 +123,18 @@ def _write_pngs(rep: Any, directory: Path, stem: str) -> list[Path]:
     help="Pace the simulator this many times faster than real time (implies --realtime; 0: as "
     "fast as the machine allows, also with --view).",
 )
+@click.option(
+    "--processes",
+    is_flag=True,
+    help="Run the coordinator and each agent in its own process on this machine, linked by "
+    "Zenoh on 127.0.0.1, their vehicles served by one btmission mavsim (docs/distributed.md); "
+    "their logs are merged into one in --log.",
+)
+@click.option(
+    "--listen",
+    help="With --processes: the coordinator's Zenoh endpoint [default: a free port, "
+    "tcp/127.0.0.1:PORT].",
+)
 @handle_spec_errors
 def run_cmd(
     mission_file: Path,
@@ -143,6 +155,8 @@ def run_cmd(
     tls_cert: Path | None,
     tls_key: Path | None,
     speed: float | None,
+    processes: bool,
+    listen: str | None,
 ) -> None:
     """Run a mission and print its report.
 
@@ -169,12 +183,35 @@ def run_cmd(
     Watch it live, 5 times faster than real time:
       btmission run missions/mine_inspection.yaml --controller track --view --speed 5
 
+    --processes spreads it over processes (the coordinator, one per agent, mavsim for the
+    vehicles) as on a real fleet; --speed then sets the vehicles' speed-up:
+
+    
+      btmission run docs/examples/processes_small.yaml --processes --speed 10
+
     Exit status: 0 every task done, 1 tasks left open, failed or still to arrive, 2 bad
     mission file, 130 interrupted (Ctrl-C), 143 terminated (SIGTERM): the log and the report
     cover what happened so far.
     """
     from btmission.runtime.session import EXIT_CODES, RunSession, RunStopped
 
+    if listen is not None and not processes:
+        raise click.UsageError("--listen is the coordinator's: add --processes")
+    if processes:
+        if view or console or until is not None or realtime or mavlink_key_file is not None:
+            raise click.UsageError(
+                "--processes runs on the wall clock, without --view, --console, --until, "
+                "--realtime or --mavlink-key-file"
+            )
+        from btmission.cli.process_cmds import run_processes
+
+        code = run_processes(
+            mission_file, log_dir=log_dir, seed=seed, controller=controller, speed=speed,
+            quiet=quiet, no_png=no_png, listen=listen,
+        )  # fmt: skip
+        if code:
+            sys.exit(code)
+        return
     view = view or console
     tls = tls_files(tls_cert, tls_key)
     if not view and (port is not None or host != "127.0.0.1" or tls is not None):
@@ -446,8 +483,18 @@ class _ProgressDisplay:
     help="Also draw the timeline and top view as PNG into this directory.",
 )
 @click.option("--json", "as_json", is_flag=True, help="Print Tables II and III as JSON.")
+@click.option(
+    "--merge",
+    is_flag=True,
+    help="The logs are one run spread over processes: the coordinator's first, then its agent "
+    "processes' (btmission coordinator / agent); one report of them merged.",
+)
 def report_cmd(
-    log_files: tuple[Path, ...], latest_dir: Path | None, png_dir: Path | None, as_json: bool
+    log_files: tuple[Path, ...],
+    latest_dir: Path | None,
+    png_dir: Path | None,
+    as_json: bool,
+    merge: bool,
 ) -> None:
     """Print the report of a run from its event log (seed 000 Tables III and II).
 
@@ -477,7 +524,14 @@ def report_cmd(
     if not paths:
         raise click.UsageError("give a LOG file (or several), or --latest DIR")
     reports = []
-    for path in paths:  # read them all first: a bad one is reported before any output
+    if merge:
+        from btmission.runtime.report import merge_log_files
+
+        try:
+            reports.append((paths[0], merge_log_files(paths[0], paths[1:])))
+        except LogError as exc:
+            raise BadInput(str(exc)) from None
+    for path in [] if merge else paths:  # read them all first: a bad one is reported first
         try:
             reports.append((path, report_from_log(path)))
         except LogError as exc:

@@ -75,6 +75,7 @@ from btmission.backends.mavlink_setpoints import (
 from btmission.backends.mavlink_signing import enable_signing, load_key, signing_counters
 from btmission.backends.mavlink_url import MavlinkAddress, parse_mavlink_url
 from btmission.backends.provider import Vehicle, VehicleEvent, VehicleUnavailable
+from btmission.runtime.clock import ScaledWallClock
 from btmission.types import FloatArray, Vec3
 
 if TYPE_CHECKING:
@@ -167,26 +168,6 @@ class MavlinkOptions:
                 raise ValueError(f"{name} must be a positive number, got {value!r}")
         if not 0.0 < self.hover_thrust <= 1.0:
             raise ValueError(f"hover_thrust must be in (0, 1], got {self.hover_thrust}")
-
-
-class ScaledWallClock:
-    """The wall clock (monotonic, zero when made), running ``scale`` times faster."""
-
-    def __init__(self, scale: float = 1.0) -> None:
-        self.scale = scale
-        self._t0 = time.monotonic()
-
-    def now(self) -> float:
-        return (time.monotonic() - self._t0) * self.scale
-
-    def sleep_until(self, t: float) -> None:
-        delay = (t - self.now()) / self.scale
-        if delay > 0:
-            time.sleep(delay)
-
-    def restart(self) -> None:
-        """Zero now (times read before are then negative)."""
-        self._t0 = time.monotonic()
 
 
 # ---------------------------------------------------------------------------- vehicle state

@@ -54,6 +54,9 @@ class Assignment:
     round: int
     tasks: Mapping[str, str | None]
     announcement: Announcement
+    sent_s: float | None = None
+    """The coordinator's clock when it sent the assignment (``time_s`` is the round's
+    announcement's): what an agent process sets its mission clock from."""
 
 
 @dataclass(frozen=True)
@@ -359,3 +362,48 @@ class InMemoryAgentLink:
         within_m: float = math.inf,
     ) -> list[FloatArray]:
         return self._bus.predictions(self._agent, time_s, step_s, near, within_m)
+
+
+class ForwardingAgentLink:
+    """An :class:`AgentLink` around another (``inner``) that forwards everything to it; a
+    subclass changes what it needs (a test transport's faults, an agent process's clock)."""
+
+    def __init__(self, inner: AgentLink) -> None:
+        self.inner = inner
+
+    @property
+    def agent(self) -> str:
+        return self.inner.agent
+
+    @property
+    def up(self) -> bool:
+        return self.inner.up
+
+    def connect(
+        self, on_announcement: OnAnnouncement, on_assignment: OnAssignment, on_ack: OnAck
+    ) -> None:
+        self.inner.connect(on_announcement, on_assignment, on_ack)
+
+    def disconnect(self) -> None:
+        self.inner.disconnect()
+
+    def send_bid(self, bid: Bid) -> None:
+        self.inner.send_bid(bid)
+
+    def send_progress(self, progress: Progress) -> None:
+        self.inner.send_progress(progress)
+
+    def send_status(self, status: AgentStatus) -> None:
+        self.inner.send_status(status)
+
+    def share_prediction(self, time_s: float, positions: FloatArray) -> None:
+        self.inner.share_prediction(time_s, positions)
+
+    def predictions(
+        self,
+        time_s: float,
+        step_s: float,
+        near: FloatArray | None = None,
+        within_m: float = math.inf,
+    ) -> list[FloatArray]:
+        return self.inner.predictions(time_s, step_s, near, within_m)

@@ -10,11 +10,12 @@ embedded simulator's fixed-step time, so the same agent and coordinator code dri
 
 from __future__ import annotations
 
+import time
 from typing import Protocol
 
 from btmission.allocation.loop import Clock, ManualClock, WallClock
 
-__all__ = ["Clock", "ManualClock", "SimClock", "TimeSource", "WallClock"]
+__all__ = ["Clock", "ManualClock", "ScaledWallClock", "SimClock", "TimeSource", "WallClock"]
 
 
 class TimeSource(Protocol):
@@ -32,3 +33,30 @@ class SimClock:
 
     def sleep_until(self, t: float) -> None:
         pass
+
+
+class ScaledWallClock:
+    """The wall clock (monotonic, zero when made or at ``now_s``), running ``scale`` times
+    faster: real vehicles' time (a simulator's speed-up), and a distributed run's processes'
+    (a restarted coordinator continues its mission's time; an agent process follows its
+    coordinator's: :meth:`set_now`)."""
+
+    def __init__(self, scale: float = 1.0, *, now_s: float = 0.0) -> None:
+        self.scale = scale
+        self._t0 = time.monotonic() - now_s / scale
+
+    def now(self) -> float:
+        return (time.monotonic() - self._t0) * self.scale
+
+    def sleep_until(self, t: float) -> None:
+        delay = (t - self.now()) / self.scale
+        if delay > 0:
+            time.sleep(delay)
+
+    def restart(self) -> None:
+        """Zero now (times read before are then negative)."""
+        self._t0 = time.monotonic()
+
+    def set_now(self, t: float) -> None:
+        """It is mission time ``t`` now."""
+        self._t0 = time.monotonic() - t / self.scale

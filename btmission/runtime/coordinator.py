@@ -32,7 +32,7 @@ import math
 import queue
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import replace
 from typing import Any
 
@@ -82,6 +82,7 @@ class Coordinator:
     ) -> None:
         self.mission = mission
         self.link = link
+        self._clock = clock
         self.bid_window_s = float(getattr(mission.spec.coordination, "bid_window_s", 0.0))
         self._open: tuple[int, float, CoordinatorInbox] | None = None
         """The round collecting bids: (serial, closes at, what arrived so far)."""
@@ -110,6 +111,9 @@ class Coordinator:
         self._last_assignments: dict[str, str] = {}
         self.recalled: set[str] = set()
         """Agents the operator recalled: their bids are no longer taken."""
+        self.expect: Callable[[], Iterable[str]] | None = None
+        """The agents whose bids a round's bid window waits for (None: it waits its whole
+        length): over a network, those the link can reach."""
 
     # ---------------------------------------------------------------- operator API
     @property
@@ -246,7 +250,7 @@ class Coordinator:
         if self._open is not None:  # a round is collecting bids (bid window)
             serial, closes, inbox = self._open
             self._take(self.link.drain(), inbox)
-            if now + 1e-9 < closes:
+            if now + 1e-9 < closes and not self._all_bid(serial, inbox):
                 return None
             self._open = None
             return self.loop.close_round(inbox, now, serial)
@@ -262,6 +266,16 @@ class Coordinator:
         self._announce(ann)
         self._open = (ann.serial, now + self.bid_window_s, early)
         return None
+
+    def _all_bid(self, serial: int, inbox: CoordinatorInbox) -> bool:
+        """Every agent :attr:`expect` names (and the auction takes bids from) has answered
+        announcement ``serial``: the bid window can close early."""
+        if self.expect is None:
+            return False
+        want = set(self.expect()) - self.recalled
+        if not want:
+            return False
+        return want <= {b.agent for b in inbox.bids if b.serial == serial}
 
     def _emit_added(self, info: TaskInfo, t: float, by: str) -> None:
         self._added.add(info.id)
@@ -376,7 +390,9 @@ class Coordinator:
         if rep.stale_bids:
             data["stale_bids"] = rep.stale_bids
         self._emit("round", **data)
-        self.link.assign(Assignment(now, rep.round, result.assignments, result.announcement))
+        self.link.assign(
+            Assignment(now, rep.round, result.assignments, result.announcement, self._clock())
+        )
         acks, self._acks = self._acks, {}
         for agent, keys in acks.items():
             self.link.acknowledge(ProgressAck(agent, tuple(keys)))

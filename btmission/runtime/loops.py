@@ -52,11 +52,18 @@ class _Every:
 class AgentRuntime:
     """One agent's side of the loop (module docstring)."""
 
-    def __init__(self, agent: Agent, *, tick_period_s: float, status_period_s: float) -> None:
+    def __init__(
+        self,
+        agent: Agent,
+        *,
+        tick_period_s: float,
+        status_period_s: float,
+        start_s: float = 0.0,
+    ) -> None:
         self.agent = agent
         self.id = agent.id
-        self._tick = _Every(tick_period_s)
-        self._status = _Every(status_period_s)
+        self._tick = _Every(tick_period_s, start_s)
+        self._status = _Every(status_period_s, start_s)
 
     def tick(self, now: float) -> Status | None:
         """Tick the mission tree if a tick is due (None: none was)."""

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from btmission.runtime.events import Event, LogContents, read_events
+from btmission.runtime.events import Event, LogContents, LogError, read_events
 
 
 @dataclass(frozen=True)
@@ -279,6 +279,33 @@ def report_from_log(path: str | Path) -> MissionReport:
         rep.warnings.append("the last line of the log was cut off (the run was killed)")
     if contents.skipped:
         rep.warnings.append(f"unreadable lines skipped: {contents.skipped[:5]}")
+    return rep
+
+
+def merge_log_files(
+    coordinator: str | Path, agents: Sequence[str | Path], out: str | Path | None = None
+) -> MissionReport:
+    """The report of a run spread over processes: the coordinator's log and its agent
+    processes' logs merged (:func:`~btmission.runtime.distribution.merge_logs`), written to
+    ``out`` if given (one log, as a one-process run's). Raises
+    :class:`~btmission.runtime.events.LogError` for a log that cannot be read or merged."""
+    from btmission.runtime.distribution import MergeError, merge_logs
+
+    first = read_events(coordinator)
+    others = [read_events(p) for p in agents]
+    try:
+        events = merge_logs(first.events, [o.events for o in others])
+    except MergeError as exc:
+        raise LogError(f"{coordinator}: {exc}") from None
+    if out is not None:
+        with open(out, "x", encoding="utf-8") as f:
+            for ev in events:
+                f.write(ev.to_json() + "\n")
+    rep = build_report(events)
+    cut = [str(p) for p, c in zip([coordinator, *agents], [first, *others]) if c.truncated]
+    if cut:
+        rep.truncated = True
+        rep.warnings.append(f"the last line was cut off (a process was killed): {', '.join(cut)}")
     return rep
 
 

@@ -54,8 +54,8 @@ from btmission.backends.provider import (
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
 from btmission.plugins import Implementations
 from btmission.runtime.agent import Agent
-from btmission.runtime.bus import AgentLink, InMemoryBus
-from btmission.runtime.clock import Clock, ManualClock
+from btmission.runtime.bus import AgentLink, InMemoryBus, MissionEnd
+from btmission.runtime.clock import Clock, ManualClock, ScaledWallClock
 from btmission.runtime.commands import (
     AddTask,
     CancelTask,
@@ -75,6 +75,7 @@ from btmission.runtime.commands import (
     Stop,
 )
 from btmission.runtime.coordinator import Coordinator, TaskError
+from btmission.runtime.distribution import ClockFollower, NoVehicles, Part, remote_bid_window
 from btmission.runtime.events import (
     LOG_FORMAT,
     LOG_VERSION,
@@ -152,9 +153,12 @@ class MissionRun:
         realtime: bool = False,
         substitutions: Substitutions | SubstitutionRules | None = None,
         speed: float = 1.0,
+        part: Part | None = None,
     ) -> None:
         """``realtime`` paces the simulator to the wall clock, ``speed`` times faster than real
-        time (real vehicles always go at their own clock). ``substitutions``: leaves of the agents' trees to replace, for tests
+        time (real vehicles always go at their own clock). ``part``: what this process runs of
+        a mission spread over processes (:mod:`btmission.runtime.distribution`; default: all of
+        it, over the in-memory bus). ``substitutions``: leaves of the agents' trees to replace, for tests
         (:mod:`btmission.runtime.substitution`; a rule that replaces no leaf raises
         :class:`~btmission.runtime.substitution.SubstitutionError` before anything is
         published)."""
@@ -168,6 +172,7 @@ class MissionRun:
         if self.substitutions is not None:
             self.substitutions.check(mission)
         self.mission = mission
+        self.part = part
         rt = mission.spec.runtime
         self.seed = seed
         self.controller = controller or rt.controller
@@ -195,8 +200,15 @@ class MissionRun:
         self.nav_config = NavConfig.from_settings(self.settings)
         sim_spec = rt.sim
         # one provider for every agent (run_problems refused mixed fleets: one run, one clock)
-        scheme = scheme_of(mission.agents[0].backend) if mission.agents else "sim"
-        self.provider: VehicleProvider = provider_factory(scheme)(mission, self.map, seed)
+        here = self._here()
+        self.provider: VehicleProvider
+        if part is not None and not here:  # the coordinator's process: no vehicles
+            scale = rt.mavlink.time_scale
+            since = 0.0 if part.started_unix is None else max(0.0, time.time() - part.started_unix)
+            self.provider = NoVehicles(scale, since * scale)
+        else:
+            scheme = scheme_of(here[0].backend) if here else "sim"
+            self.provider = provider_factory(scheme)(mission, self.map, seed)
         self.clock = self.provider.clock
         self.realtime = realtime or self.provider.realtime  # real vehicles: the wall clock
         self.vehicles: dict[str, Vehicle] = {}
@@ -211,7 +223,7 @@ class MissionRun:
         self.bus = InMemoryBus()
         self.coordinator = Coordinator(
             mission,
-            self.bus,
+            part.coordinator_link if part is not None and part.coordinator_link else self.bus,
             self.now,
             self.emit,
             check_location=self.paths.problem,
@@ -237,6 +249,14 @@ class MissionRun:
         """Exceptions raised by services' ``step`` → ``leaf_error`` events (once each)."""
         self.services: dict[str, dict[str, Any]] = self._build_services()
         self.coordinator_side = CoordinatorRuntime(self.coordinator, self.services, self.errors)
+        self.runs_coordinator = part is None or part.runs_coordinator
+        """This process runs the coordinator (one process, or the coordinator's of several)."""
+        if part is not None and part.runs_coordinator:
+            self.coordinator.expect = part.live_agents
+            if self.coordinator.bid_window_s <= 0:  # bids come back over a network
+                self.coordinator.bid_window_s = remote_bid_window(
+                    self.coordinator.period_s, rt.mavlink.time_scale
+                )
         try:
             self._build_agents()
         except BaseException:  # a vehicle that would not connect, Ctrl-C while connecting
@@ -245,8 +265,16 @@ class MissionRun:
         start = getattr(self.provider, "start", None)
         if start is not None:  # the mission's time starts now, however long connecting took
             start()
+        if part is not None and not part.runs_coordinator:
+            self._follow_coordinator(part.sync_timeout_s)
+        t0 = self.now()
         self.agent_sides = [
-            AgentRuntime(a, tick_period_s=1.0 / rt.tick_hz, status_period_s=1.0 / rt.status_hz)
+            AgentRuntime(
+                a,
+                tick_period_s=1.0 / rt.tick_hz,
+                status_period_s=1.0 / rt.status_hz,
+                start_s=t0,
+            )
             for a in self.agents.values()
         ]
         self._trees: dict[str, tuple[tuple[int, Any], Mapping[int, str]]] = {}
@@ -321,8 +349,8 @@ class MissionRun:
         blind: list[str] = []
         prepare = getattr(self.provider, "prepare", None)
         if prepare is not None:  # a real provider opens every link first (vehicles boot together)
-            prepare([spec.backend for spec in self.mission.agents])
-        for spec in self.mission.agents:
+            prepare([spec.backend for spec in self._here()])
+        for spec in self._here():
             loaded = self.mission.library_of(spec.id)
             impl = loaded.implementations
             assert impl is not None  # run_problems() checked it
@@ -346,7 +374,7 @@ class MissionRun:
             if vehicle.sensors is None:
                 blind.append(spec.id)
             control_dt = 0.1 if ground else self.dt
-            link = self.bus.agent_link(spec.id)  # the agent's end of the coordinator link
+            link = self._agent_link(spec.id)  # the agent's end of the coordinator link
 
             def predictions(
                 agent: str, _backend: Backend = vehicle.backend, _link: AgentLink = link
@@ -392,6 +420,59 @@ class MissionRun:
                 "the LiDAR) is off",
             )
 
+    def _here(self) -> list[Any]:
+        """The mission's agents this process runs (all of them, but for a :class:`Part`)."""
+        if self.part is None:
+            return list(self.mission.agents)
+        return [a for a in self.mission.agents if a.id in self.part.agents]
+
+    def _agent_link(self, agent: str) -> AgentLink:
+        if self.part is None:
+            return self.bus.agent_link(agent)
+
+        def followed(before: float, now: float) -> None:
+            self.emit("clock", agent=agent, was_s=before, now_s=now)
+
+        clock = self.clock
+        if not isinstance(clock, ScaledWallClock):  # the agent process's clock is its vehicles'
+            raise SpecError([Diagnostic(
+                Severity.ERROR, "agent-process",
+                f"agent {agent}: an agent process flies real-time vehicles (MAVLink), whose "
+                "clock follows the coordinator's; this agent's provider has its own",
+                f"agents.{agent}.backend", Location(self.mission.file))])  # fmt: skip
+        return ClockFollower(self.part.agent_links[agent], clock, followed)
+
+    def _follow_coordinator(self, timeout_s: float) -> None:
+        """An agent process: wait (up to ``timeout_s`` of wall time) for its coordinator's
+        first announcement, which sets this process's mission clock to the coordinator's
+        (:class:`~btmission.runtime.distribution.ClockFollower`); the agents' idle timers start
+        then. Without one, the run goes on on its own clock (a ``warning`` event)."""
+        assert self.part is not None
+        links = [self.agents[a].link for a in self.part.agents if a in self.agents]
+        deadline = time.monotonic() + timeout_s
+        while not all(getattr(lk, "synced", True) for lk in links):
+            left = deadline - time.monotonic()
+            if left <= 0:
+                self.emit(
+                    "warning",
+                    message=f"no announcement from the coordinator within {timeout_s:g} s: the "
+                    "agents run on their own clock until one comes",
+                )
+                break
+            for lk in links:
+                dispatch = getattr(lk, "dispatch", None)
+                if dispatch is not None:
+                    dispatch(min(0.1, left))
+        now = self.now()
+        for a in self.agents.values():
+            a.idle_since = now
+
+    def link_up(self, agent: str) -> bool:
+        """Whether ``agent``'s link to its coordinator is up (as this process sees it)."""
+        if self.part is not None and agent in self.part.agent_links:
+            return self.part.agent_links[agent].up
+        return self.bus.link_up(agent)
+
     def _emit_header(self) -> None:
         """The log's first event, from the mission alone (nothing built yet)."""
         m = self.mission
@@ -402,6 +483,7 @@ class MissionRun:
             assert impl is not None  # run_problems() checked it
             return vehicle_kind(impl).value
 
+        extra: dict[str, Any] = {} if self.part is None else {"part": self.part.describe()}
         self.emit(
             "header",
             format=LOG_FORMAT,
@@ -414,6 +496,7 @@ class MissionRun:
             world=world,
             world_ref=world_reference(world, m.base_dir),
             step_s=m.spec.runtime.sim.step_s,
+            **extra,
             auction_rate_hz=m.spec.coordination.auction_rate_hz,
             agents=[
                 {
@@ -635,7 +718,13 @@ class MissionRun:
                 _, _, fn = self._schedule.pop(0)
             fn(self)
         self._apply_commands()
-        self.coordinator_side.step(now)
+        if self.runs_coordinator:
+            self.coordinator_side.step(now)
+        if self.part is not None:  # the coordinator's messages, in this (the agents') thread
+            for link in self.part.agent_links.values():
+                dispatch = getattr(link, "dispatch", None)
+                if dispatch is not None:
+                    dispatch(0.0)
         sides = self.agent_sides
         for side in sides:
             side.tick(now)
@@ -695,7 +784,7 @@ class MissionRun:
                     tel.mode.value,
                     bool(tel.armed),
                     a.alive,
-                    self.bus.link_up(aid),
+                    self.link_up(aid),
                     a.task.id if a.task is not None else None,
                     a.action,
                     tree,
@@ -716,6 +805,8 @@ class MissionRun:
 
     def finished(self) -> str | None:
         """Why the run should end now (None: go on)."""
+        if self.part is not None:
+            return self._part_finished()
         live = [a for a in self.agents.values() if a.alive]
         pool = self.coordinator.state.pool
         if not self.coordinator.settled(self.now()):
@@ -732,6 +823,38 @@ class MissionRun:
         if all(t.state in (TaskState.DONE, TaskState.CANCELLED) for t in pool):
             return "completed"  # (what the operator cancelled is not left open)
         return "finished with open tasks"
+
+    def _part_finished(self) -> str | None:
+        """An agent process ends when its coordinator says the mission is over; the
+        coordinator's when every task is settled and every agent it hears from is at rest
+        (its last status, within the agent timeout) — or when none is left to do them."""
+        if not self.runs_coordinator:
+            ended = self.mission_end
+            return ended.reason if ended is not None else None
+        now = self.now()
+        timeout = self.coordinator.state.config.agent_timeout_s
+        heard = {a: st for a, st in self.coordinator.statuses.items() if now - st.time_s <= timeout}
+        pool = self.coordinator.state.pool
+        if not self.coordinator.settled(now):
+            return None
+        if not heard and any(not t.state.terminal for t in pool):
+            return None  # nobody to do them yet (agents may come back)
+        if not all(st.at_rest for st in heard.values()):
+            return None
+        if all(t.state in (TaskState.DONE, TaskState.CANCELLED) for t in pool):
+            return "completed"
+        return "finished with open tasks"
+
+    @property
+    def mission_end(self) -> MissionEnd | None:
+        """The coordinator's end of the mission, once an agent process has heard it."""
+        if self.part is None:
+            return None
+        for link in self.part.agent_links.values():
+            ended = getattr(link, "ended", None)
+            if ended is not None:
+                return ended  # type: ignore[no-any-return]
+        return None
 
     def run(
         self,
@@ -801,6 +924,12 @@ class MissionRun:
     def result(self, reason: str) -> RunResult:
         """How the run stands now, ended for ``reason`` (what :meth:`run` returns)."""
         now = self.now()
+        ended = self.mission_end if not self.runs_coordinator else None
+        if ended is not None:  # an agent process: the mission as its coordinator ended it
+            return RunResult(
+                reason, now, self._wall_used, self.steps, list(ended.done), dict(ended.open),
+                self.collisions,
+            )  # fmt: skip
         everything = self.coordinator.state.pool
         pool = [t for t in everything if t.info.arrival_s <= now + 1e-9]
         return RunResult(  # tasks still to arrive (``at:`` later) are neither done nor open
@@ -883,6 +1012,9 @@ class MissionRun:
         if result.cancelled:
             data["cancelled"] = result.cancelled
         self.emit("end", **data)
+        send_end = getattr(self.coordinator.link, "end", None)
+        if self.part is not None and self.runs_coordinator and send_end is not None:
+            send_end(MissionEnd(self.now(), result.reason, tuple(result.done), result.open))
 
 
 def _settle(outcomes: Iterable[tuple[Future[Outcome], Outcome]]) -> None:

@@ -48,6 +48,7 @@ from btmission.runtime.events import Event, JsonlEventLog, Observer
 from btmission.runtime.substitution import SubstitutionRules, Substitutions
 
 if TYPE_CHECKING:
+    from btmission.runtime.distribution import Part
     from btmission.runtime.report import MissionReport
     from btmission.runtime.runner import MissionRun, RunResult
     from btmission.runtime.snapshot import RunSnapshot
@@ -130,8 +131,10 @@ class RunSession:
         handle_signals: bool = False,
         notify: Callable[[str], None] | None = None,
         substitutions: Substitutions | SubstitutionRules | None = None,
+        part: Part | None = None,
     ) -> None:
-        """``mission``: a mission file or a loaded :class:`~btmission.spec.mission.Mission`.
+        """``part``: what this process runs of a mission spread over processes
+        (:mod:`btmission.runtime.distribution`). ``mission``: a mission file or a loaded :class:`~btmission.spec.mission.Mission`.
         The log goes to ``log_path``, else to a new file in ``log_dir``; with neither, no log
         is written (then :meth:`report` is not available). ``notify(text)`` receives the
         session's notes for a person (a signal was taken); default: none. ``substitutions``:
@@ -147,6 +150,7 @@ class RunSession:
         self._observers = list(observers)
         self._notify = notify
         self.substitutions = Substitutions.of(substitutions)
+        self.part = part
         self._signals = _Signals(self) if handle_signals else None
         self.mission: Mission | None = None
         self.warnings: list[Diagnostic] = []
@@ -234,6 +238,7 @@ class RunSession:
                 realtime=self.realtime,
                 speed=self.speed,
                 substitutions=self.substitutions,
+                part=self.part,
             )
         except (SpecError, VehicleUnavailable):  # nothing ran: no log
             self._drop_log()

@@ -203,6 +203,7 @@ def _assignment_head(msg: Assignment) -> dict[str, Any]:
         "time_s": msg.time_s,
         "round": msg.round,
         "tasks": dict(msg.tasks),
+        **({} if msg.sent_s is None else {"sent_s": msg.sent_s}),
     }
 
 
@@ -390,6 +391,7 @@ def _assignment(f: _Fields, announcement: Announcement | None = None) -> Assignm
         announcement
         if announcement is not None
         else _announcement_from(f.kind, f.raw("announcement")),
+        f.number("sent_s") if "sent_s" in f.data else None,
     )
 
 

@@ -24,7 +24,6 @@ faults (Python's string seeding is stable across processes and ``PYTHONHASHSEED`
 
 from __future__ import annotations
 
-import math
 import random
 from dataclasses import dataclass, field
 from typing import Generic, TypeVar
@@ -37,12 +36,12 @@ from btmission.runtime.bus import (
     Assignment,
     CoordinatorInbox,
     CoordinatorLink,
+    ForwardingAgentLink,
     OnAck,
     OnAnnouncement,
     OnAssignment,
     ProgressAck,
 )
-from btmission.types import FloatArray
 
 T = TypeVar("T")
 
@@ -229,25 +228,17 @@ class FaultyCoordinatorLink:
         return self.incoming.held + self.outgoing.held
 
 
-class FaultyAgentLink:
+class FaultyAgentLink(ForwardingAgentLink):
     """An :class:`~btmission.runtime.bus.AgentLink` whose traffic goes through
     :class:`Faults` (module docstring). One tick per :meth:`tick`."""
 
     def __init__(self, inner: AgentLink, faults: Faults) -> None:
-        self.inner = inner
+        super().__init__(inner)
         self.faults = faults
         name = inner.agent
         self.incoming: FaultyStream[Outgoing] = FaultyStream(faults, f"to-{name}")
         self.outgoing: FaultyStream[Incoming] = FaultyStream(faults, f"from-{name}")
         self._handlers: tuple[OnAnnouncement, OnAssignment, OnAck] | None = None
-
-    @property
-    def agent(self) -> str:
-        return self.inner.agent
-
-    @property
-    def up(self) -> bool:
-        return self.inner.up
 
     def connect(
         self, on_announcement: OnAnnouncement, on_assignment: OnAssignment, on_ack: OnAck
@@ -303,15 +294,3 @@ class FaultyAgentLink:
 
     def send_status(self, status: AgentStatus) -> None:
         self._send(status)
-
-    def share_prediction(self, time_s: float, positions: FloatArray) -> None:
-        self.inner.share_prediction(time_s, positions)
-
-    def predictions(
-        self,
-        time_s: float,
-        step_s: float,
-        near: FloatArray | None = None,
-        within_m: float = math.inf,
-    ) -> list[FloatArray]:
-        return self.inner.predictions(time_s, step_s, near, within_m)
