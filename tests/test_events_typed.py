@@ -193,6 +193,8 @@ SAMPLES: dict[str, dict[str, Any]] = {
     "command": {"command": "cancel_task", "by": "console:ana", "ok": False,
                 "error": "cannot cancel task 'B': it is already cancelled"},
     "withdrawn": {"agent": "R1", "task": "T3", "by": "R2", "reason": "R2 did it first"},
+    "resumed": {"log": "runs/coordinator.jsonl", "last_s": 41.25},
+    "clock": {"agent": "R1", "was_s": 0.5, "now_s": 120.0},
     "route": {"agent": "G1", "task": "A", "points": [[1.0, 1.0, 0.0], [6.0, 1.0, 0.0]],
               "length_m": 5.0},
     "tree": {"agent": "G1", "changes": [[0, "INVALID", "RUNNING"]],

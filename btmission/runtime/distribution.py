@@ -23,6 +23,7 @@ Everything here but :func:`merge_logs` (which takes events already read) is free
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Protocol
@@ -59,6 +60,11 @@ class Part:
     started_unix: float | None = None
     """A restarted coordinator: the wall time (Unix s) its mission started, so that its clock
     continues (None: the mission starts now)."""
+    resumed_from: str | None = None
+    """A restarted coordinator: the log it continues (it writes a ``resumed`` event there instead
+    of a new header)."""
+    resumed_at_s: float = 0.0
+    """The mission time of that log's last event."""
     sync_timeout_s: float = 60.0
     """An agent process waits this long (wall s) for its coordinator's first announcement,
     which sets its clock, before its agents start."""
@@ -97,8 +103,12 @@ class NoVehicles:
     realtime = True
     clock: Clock
 
-    def __init__(self, scale: float = 1.0, now_s: float = 0.0) -> None:
-        self.clock = ScaledWallClock(scale, now_s=now_s)
+    def __init__(self, scale: float = 1.0, started_unix: float | None = None) -> None:
+        """``started_unix``: when the mission's time was zero (a restarted coordinator's
+        clock continues from it); default: now."""
+        now = time.time()
+        self.started_unix = now if started_unix is None else started_unix
+        self.clock = ScaledWallClock(scale, now_s=max(0.0, now - self.started_unix) * scale)
 
     def attach(
         self, agent_id: str, kind: VehicleKind, start: Vec3, *, url: str = "", **options: Any

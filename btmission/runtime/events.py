@@ -822,6 +822,32 @@ class WithdrawnEvent(TypedEvent):
     reason: str
 
 
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class ClockEvent(TypedEvent):
+    """An agent process set its mission clock to its coordinator's (docs/distributed.md)."""
+
+    KIND = "clock"
+    agent: str
+    was_s: float
+    """What its clock said."""
+    now_s: float
+    """The coordinator's time it took."""
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class ResumedEvent(TypedEvent):
+    """A coordinator restarted from its log goes on writing it (docs/distributed.md): what it
+    logs next continues the run this log began."""
+
+    KIND = "resumed"
+    log: str
+    """The log it rebuilt its state from (this one)."""
+    last_s: float
+    """The mission time of the last event it found there."""
+
+
 def world_reference(world: Mapping[str, Any] | None, base_dir: str | Path) -> dict[str, Any]:
     """What a viewer needs, besides the header's ``world``, to load the map from the log alone:
     ``base_dir`` (the mission's directory, absolute: ``world_from_spec(world, base_dir)``

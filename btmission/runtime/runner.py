@@ -186,7 +186,10 @@ class MissionRun:
         build0 = time.perf_counter()
         # the header first: building the map and the planners can take long, and a run killed
         # meanwhile must still leave a log that `btmission report` reads (docs/running.md)
-        self._emit_header()
+        if part is not None and part.resumed_from is not None:  # a restarted coordinator
+            self.emit("resumed", log=part.resumed_from, last_s=part.resumed_at_s)
+        else:
+            self._emit_header()
         self.map = (
             voxel_map
             if voxel_map is not None
@@ -204,8 +207,7 @@ class MissionRun:
         self.provider: VehicleProvider
         if part is not None and not here:  # the coordinator's process: no vehicles
             scale = rt.mavlink.time_scale
-            since = 0.0 if part.started_unix is None else max(0.0, time.time() - part.started_unix)
-            self.provider = NoVehicles(scale, since * scale)
+            self.provider = NoVehicles(scale, part.started_unix)
         else:
             scheme = scheme_of(here[0].backend) if here else "sim"
             self.provider = provider_factory(scheme)(mission, self.map, seed)
@@ -282,10 +284,14 @@ class MissionRun:
         self.snapshot: RunSnapshot = self._snapshot()
         """The run as it stands after the last step (immutable; any thread may read it)."""
         vm = self.map
+        started: dict[str, Any] = {}
+        if isinstance(self.provider, NoVehicles):  # when this mission's clock was zero
+            started["started_unix"] = self.provider.started_unix
         self.emit(
             "built",
             map={"shape": list(vm.shape), "resolution": vm.resolution, "origin": list(vm.origin)},
             build_s=time.perf_counter() - build0,
+            **started,
         )
 
     # ---------------------------------------------------------------- construction
