@@ -43,7 +43,7 @@ def test_in_memory_rounds_and_message_sizes() -> None:
     assert len(times.assignments) == 3 and all(len(a) == 3 for a in times.assignments)
     sizes = message_sizes(3, 6, TINY)
     assert sizes == point.sizes and 0 < sizes.status < sizes.bid < sizes.announcement
-    assert sizes.assignment > sizes.announcement
+    assert sizes.assignment > sizes.announcement > sizes.assignment_named
 
 
 @pytest.mark.slow

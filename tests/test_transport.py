@@ -36,7 +36,7 @@ from btmission.runtime.bus import (
     InMemoryBus,
     ProgressAck,
 )
-from btmission.runtime.coordinator import Coordinator
+from btmission.runtime.coordinator import Coordinator, new_epoch
 from btmission.spec.mission import Mission
 from btmission.transport import keys
 from btmission.transport.acl import access_control
@@ -361,6 +361,37 @@ def test_every_message_round_trips_between_two_sessions(
         assert len(mem) == len(net) == 1
         np.testing.assert_array_equal(mem[0], net[0])
     assert coord.stats.dropped == 0 and r1.stats.dropped == 0 and r2.stats.dropped == 0
+
+
+def test_assignments_name_an_unchanged_announcement_and_carry_a_new_one(
+    star: tuple[ZenohCoordinatorLink, list[ZenohAgentLink]],
+) -> None:
+    coord, (r1, _) = star
+    g1 = Received(r1)
+    assert coord.wait_for_agents({"R1"}, WAIT_S) and r1.wait_for_coordinator(WAIT_S)
+    coord.embed_every = 3
+    ann = Announcement(1, 0.0, ANN.tasks, epoch=new_epoch())  # not any other test's
+    sizes = []
+    for k in range(1, 5):  # carried, named, named, carried (every 3rd)
+        before = coord.stats.sent_bytes
+        coord.assign(Assignment(k * 0.5, k, {"R1": "T1", "R2": None}, ann))
+        sizes.append(coord.stats.sent_bytes - before)
+    assert sizes[1] == sizes[2] < len(wire.encode(ann)) < sizes[0] == sizes[3]
+    assert pump(r1.mailbox, lambda: len(g1.messages) == 4)
+    got = [m for m in g1.messages if isinstance(m, Assignment)]
+    assert sorted(m.round for m in got) == [1, 2, 3, 4]
+    assert all(m.announcement == ann for m in got) and r1.stats.unresolved == 0
+    # naming an announcement this end never saw (another program's, say): dropped, counted
+    unknown = Announcement(2, 0.0, ANN.tasks, epoch=ann.epoch)
+    data = wire.encode(Assignment(3.0, 5, {"R1": "T3"}, unknown), embed=False)
+    coord.session.put("btmission/mine/assign", data)
+    assert wait_until(lambda: r1.stats.unresolved == 1)
+    assert "announcement 2 of epoch" in r1.stats.last_problem and r1.stats.malformed == 0
+    coord.announce(unknown)  # once seen, an assignment naming it is followed
+    assert pump(r1.mailbox, lambda: any(isinstance(m, Announcement) for m in g1.messages))
+    coord.session.put("btmission/mine/assign", data)
+    assert pump(r1.mailbox, lambda: any(getattr(m, "round", 0) == 5 for m in g1.messages))
+    assert coord.stats.dropped == 0
 
 
 def test_every_message_round_trips_between_two_processes(zenoh_ready: None) -> None:

@@ -2,18 +2,29 @@
 
 from __future__ import annotations
 
+import base64
 import json
 import math
 from typing import Any
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from btmission.allocation.auction import Announcement, Bid
 from btmission.allocation.loop import Progress
 from btmission.allocation.tasks import TaskInfo
 from btmission.runtime.bus import AgentStatus, Assignment, MissionEnd, Prediction, ProgressAck
-from btmission.runtime.wire import KINDS, WIRE_VERSION, WireError, decode, encode, to_dict
+from btmission.runtime.wire import (
+    KINDS,
+    WIRE_VERSION,
+    UnknownAnnouncement,
+    WireError,
+    decode,
+    encode,
+    to_dict,
+)
 
 ANN = Announcement(
     3,
@@ -52,7 +63,33 @@ def test_bid_round_trips_nan_and_inf_costs() -> None:
     np.testing.assert_array_equal(back.costs, bid.costs)  # NaN == NaN here
     inf = roundtrip(Bid.of("R2", 2.0, {"T1": math.inf, "P1": 0.0}))
     assert inf.costs[0] == math.inf and inf.serial is None
-    assert to_dict(bid)["costs"] == [12.25, "nan"]
+    costs = to_dict(bid)["costs"]  # version 2: base64 of little-endian float64
+    assert costs == base64.b64encode(np.array([12.25, math.nan], "<f8").tobytes()).decode()
+    assert back.costs.flags.writeable and back.costs.dtype == np.float64
+
+
+def b64(costs: list[float]) -> str:
+    return base64.b64encode(np.array(costs, dtype="<f8").tobytes()).decode()
+
+
+@given(
+    st.lists(st.floats(allow_nan=True, allow_infinity=True, width=64), max_size=60),
+    st.one_of(st.none(), st.integers(0, 2**40)),
+)
+def test_a_bid_round_trips_every_float64_exactly(costs: list[float], serial: int | None) -> None:
+    tasks = tuple(f"T{j}" for j in range(len(costs)))
+    bid = Bid("R1", 0.5, tasks, np.array(costs, dtype=np.float64), None, serial)
+    back = decode(encode(bid))
+    assert isinstance(back, Bid) and back.tasks == tasks and back.serial == serial
+    # bit for bit: -0.0, NaN and infinities included
+    assert back.costs.tobytes() == bid.costs.tobytes()
+
+
+def test_an_empty_bid_round_trips() -> None:
+    empty = Bid.of("R1", 1.0, {}, serial=2)
+    back = roundtrip(empty)
+    assert back.tasks == () and back.costs.shape == (0,) and back.serial == 2
+    assert to_dict(empty)["costs"] == "" and to_dict(empty)["tasks"] == []
 
 
 def test_status_progress_ack_and_prediction_round_trip() -> None:
@@ -100,19 +137,23 @@ def good_bid() -> dict[str, Any]:
 @pytest.mark.parametrize(
     ("change", "message"),
     [
-        ({"v": 2}, "message version 2 is not supported (expected 1)"),
+        ({"v": 3}, "message version 3 is not supported (expected 1 or 2)"),
         ({"v": None}, "message version null is not supported"),
         ({"kind": "hello"}, 'unknown message kind "hello" (expected one of: announcement, bid,'),
         ({"agent": 7}, "bid message: field 'agent' must be a string (got 7)"),
-        ({"costs": [1.0]}, "bid message: 1 costs for 2 task(s)"),
+        ({"costs": b64([1.0])}, "bid message: 1 costs for 2 task(s)"),
+        ({"costs": b64([1.0, 2.0, 3.0])}, "bid message: 3 costs for 2 task(s)"),
         (
-            {"costs": [1.0, "lots"]},
-            'bid message: field \'costs\' must be a list of numbers ("nan", "inf" and',
+            {"costs": [1.0, 2.0]},  # version 1's list in a version 2 bid
+            "bid message: field 'costs' must be base64 of little-endian float64 (8 bytes a "
+            "cost) (got list)",
         ),
-        (
-            {"costs": [1.0, True]},
-            'bid message: field \'costs\' must be a list of numbers ("nan", "inf" and',
-        ),
+        ({"costs": "AAAA*AAA"}, 'a cost), not valid base64 (got "AAAA*AAA")'),
+        ({"costs": "AAAAAAAAAA"}, "not valid base64"),  # bad padding
+        ({"costs": "AAA=AAAAAAAA"}, "not valid base64"),  # data after the padding
+        ({"costs": "AAAAAAAAAAA\n"}, "not valid base64"),
+        ({"costs": base64.b64encode(b"x" * 12).decode()}, "8 bytes a cost), not 12 bytes"),
+        ({"costs": None}, "field 'costs' must be base64 of little-endian float64"),
         ({"time_s": "nan"}, "bid message: field 'time_s' must be a finite number (got \"nan\")"),
         ({"serial": 1.5}, "bid message: field 'serial' must be an integer or null (got 1.5)"),
         ({"tasks": "T1"}, "bid message: field 'tasks' must be a list of strings"),
@@ -123,6 +164,78 @@ def test_a_bad_field_is_one_clear_error(change: dict[str, Any], message: str) ->
     with pytest.raises(WireError) as err:
         decode(json.dumps(data).encode())
     assert message in str(err.value)
+
+
+V1_BID = {"v": 1, "kind": "bid", "agent": "R1", "time_s": 1.5, "tasks": ["T1", "P1"],
+          "costs": [1.0, "inf"], "committed_to": None, "serial": 3}  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"costs": [1.0]}, "bid message: 1 costs for 2 task(s)"),
+        (
+            {"costs": [1.0, "lots"]},
+            'bid message: field \'costs\' must be a list of numbers ("nan", "inf" and',
+        ),
+        (
+            {"costs": [1.0, True]},
+            'bid message: field \'costs\' must be a list of numbers ("nan", "inf" and',
+        ),
+        ({"costs": b64([1.0, 2.0])}, "bid message: field 'costs' must be a list of numbers"),
+    ],
+)
+def test_a_bad_version_1_bid_is_one_clear_error(change: dict[str, Any], message: str) -> None:
+    with pytest.raises(WireError) as err:
+        decode(json.dumps({**V1_BID, **change}).encode())
+    assert message in str(err.value)
+
+
+def test_version_1_messages_are_still_decoded() -> None:
+    """What a sender of format version 1 writes: costs as a list, no epoch, the announcement
+    always inside the assignment."""
+    bid = decode(json.dumps(V1_BID))
+    assert isinstance(bid, Bid) and bid.tasks == ("T1", "P1") and bid.serial == 3
+    assert bid.costs.tolist() == [1.0, math.inf]
+    v1_ann = {"serial": 3, "time_s": 1.5, "tasks": to_dict(ANN)["tasks"]}
+    ann = decode(json.dumps({"v": 1, "kind": "announcement", **v1_ann}))
+    assert ann == ANN and ann.epoch == 0  # type: ignore[union-attr]
+    asg = {"v": 1, "kind": "assignment", "time_s": 1.6, "round": 17, "tasks": {"R1": "T1"},
+           "announcement": v1_ann}  # fmt: skip
+    got = decode(json.dumps(asg).encode(), known=ANN)
+    assert got == Assignment(1.6, 17, {"R1": "T1"}, ANN)
+    del asg["announcement"]  # version 1 has no assignment without its announcement
+    with pytest.raises(WireError, match=r"^assignment message: missing field 'announcement'$"):
+        decode(json.dumps(asg).encode(), known=ANN)
+    with pytest.raises(WireError, match="announcement message: field 'epoch' must be an integer"):
+        decode(json.dumps({"v": 2, "kind": "announcement", **v1_ann, "epoch": "1"}))
+
+
+def test_an_assignment_may_name_its_announcement_instead_of_carrying_it() -> None:
+    ann = Announcement(3, 1.5, ANN.tasks, epoch=2**64 - 1)
+    msg = Assignment(1.6, 17, {"R1": "T1", "R2": None}, ann)
+    short = encode(msg, embed=False)
+    assert b'"announcement"' not in short and len(short) < len(encode(msg)) // 3
+    assert to_dict(msg, embed=False)["serial"] == 3
+    assert json.loads(short) == to_dict(msg, embed=False)
+    back = decode(short, known=ann)
+    assert back == msg and back.announcement is ann  # type: ignore[union-attr]
+    known = decode(encode(ann))  # the receiver's own copy, decoded earlier
+    assert decode(short, known=known).announcement is known  # type: ignore[union-attr]
+    for other in (None, Announcement(4, 1.5, ANN.tasks, ann.epoch), ANN):  # serial, epoch
+        with pytest.raises(UnknownAnnouncement, match=r"^assignment message: announcement 3 "
+                           r"of epoch 18446744073709551615 is not known here and not embedded"):  # fmt: skip
+            decode(short, known=other)
+    assert issubclass(UnknownAnnouncement, WireError)
+    wrong = json.loads(encode(msg))
+    wrong["serial"] = 4  # names another announcement than it carries
+    with pytest.raises(WireError, match=r"names announcement 4 of epoch \d+ but carries "
+                       r"announcement 3 of epoch"):  # fmt: skip
+        decode(json.dumps(wrong), known=ann)
+    for epoch in (-1, 2**64, True, 1.0):
+        bad = {**json.loads(short), "epoch": epoch}
+        with pytest.raises(WireError, match="assignment message: field 'epoch' must be"):
+            decode(json.dumps(bad), known=ann)
 
 
 def test_missing_fields_and_bad_nested_tasks() -> None:
@@ -221,16 +334,19 @@ def test_decoding_reuses_a_known_announcement_exactly() -> None:
     bad = encode(msg).replace(b'"round":17', b'"round":"17"')
     with pytest.raises(WireError, match="field 'round' must be an integer"):
         decode(bad, known)
-    v2 = encode(msg).replace(b'"v":1', b'"v":2')
-    with pytest.raises(WireError, match="message version 2 is not supported"):
-        decode(v2, known)
-    body = b"{" + encode(ANN)[len(b'{"v":1,"kind":"announcement",') :]
+    v3 = encode(msg).replace(b'"v":2', b'"v":3')
+    with pytest.raises(WireError, match="message version 3 is not supported"):
+        decode(v3, known)
+    renamed = encode(msg).replace(b'"serial":3', b'"serial":5', 1)  # the head's, not the body's
+    with pytest.raises(WireError, match="names announcement 5 of epoch 0 but carries"):
+        decode(renamed, known)
+    body = b"{" + encode(ANN)[len(b'{"v":2,"kind":"announcement",') :]
     nested = encode(msg)[:-1] + b',"announcement":' + body + b"}"
     assert decode(nested, known) == decode(nested)  # a second top-level key: the usual path
 
 
 def test_number_lists_still_refuse_what_they_refused() -> None:
-    good = to_dict(Bid.of("R1", 1.0, {"A": 1.0, "B": 2.0}))
+    good = {**to_dict(Bid.of("R1", 1.0, {"A": 1.0, "B": 2.0})), "v": 1}  # costs: a list
     for costs, ok in (([1, 2.5], True), ([True, 1.0], False), (["inf", 1], True),
                       (["x", 1], False), (["BIG", 1], True)):  # fmt: skip
         data = json.dumps({**good, "costs": costs}).replace('"BIG"', "1e999").encode()

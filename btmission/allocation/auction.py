@@ -120,11 +120,18 @@ def cheapest(costs: FloatArray, k: int, keep: int = -1) -> NDArray[np.bool_]:
 # --------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Announcement:
-    """The announced tasks (stage 1). ``serial`` changes only when the set of tasks does."""
+    """The announced tasks (stage 1). ``serial`` changes only when the set of tasks does.
+
+    ``epoch`` names the coordinator that announced it (its incarnation: chosen when it starts,
+    a restarted coordinator has another and counts serials and rounds from the start again;
+    0: unknown, e.g. made by hand or received from a sender of wire format 1). Within one
+    epoch, serials and rounds only grow, so an agent can tell an old message delivered late
+    from a new one (:class:`btmission.runtime.agent.Freshness`)."""
 
     serial: int = 0
     time_s: float = 0.0
     tasks: tuple[TaskInfo, ...] = ()
+    epoch: int = 0
 
     @property
     def ids(self) -> tuple[str, ...]:
@@ -338,7 +345,7 @@ def announce(state: AuctionState, now: float) -> AuctionState:
     ann = state.announcement
     if ids == ann.ids and all(a is b.info for a, b in zip(ann.tasks, live)):
         return state
-    new = Announcement(ann.serial + 1, now, tuple(t.info for t in live))
+    new = Announcement(ann.serial + 1, now, tuple(t.info for t in live), ann.epoch)
     return replace(state, announcement=new)
 
 

@@ -19,7 +19,8 @@ per round, so bids change) and sends it → the coordinator waits for all of the
 confirms it with a status report. Rounds run back to back; the *rate* is rounds per second of
 wall time, the *latency* of a round is from the announcement to the last confirmation (p50,
 p99), split into bids (announce → last bid in), solve, and assign (→ last confirmation).
-Message sizes are the wire sizes (bytes of JSON) of that size's messages.
+Message sizes are the wire sizes (bytes of JSON, format version 2: a bid's costs in base64,
+an assignment naming an unchanged announcement by serial) of that size's messages.
 
 Zenoh's shared-memory transport (same-host sessions hand large payloads over in shared memory)
 is off by default, so the numbers are for bytes through TCP, as between machines. Every wait is
@@ -338,6 +339,9 @@ class Sizes:
     announcement: int
     bid: int
     assignment: int
+    """With its announcement inside."""
+    assignment_named: int
+    """Naming its announcement by serial (wire format 2), as most rounds send it."""
     status: int
 
 
@@ -361,6 +365,7 @@ def message_sizes(n_agents: int, n_tasks: int, cfg: TransportBenchConfig) -> Siz
         len(wire.encode(ann)),
         len(wire.encode(bid)),
         len(wire.encode(assignment)),
+        len(wire.encode(assignment, embed=False)),
         len(wire.encode(status)),
     )
 
@@ -646,13 +651,15 @@ SIZE_COLS = (
     "announcement B",
     "bid B",
     "assignment B",
+    "by serial B",
     "status B",
     "kB per round (Zenoh)",
 )
 CSV_HEADER = (
     "transport", "layout", "agents", "tasks", "rounds", "rate_hz", "p50_ms", "p99_ms",
     "bids_ms", "solve_ms", "assign_ms", "coordinator_cpu_ms", "agents_cpu_ms",
-    "announcement_bytes", "bid_bytes", "assignment_bytes", "status_bytes", "bytes_per_round",
+    "announcement_bytes", "bid_bytes", "assignment_bytes", "assignment_named_bytes",
+    "status_bytes", "bytes_per_round",
     "same_assignments",
 )  # fmt: skip
 
@@ -689,6 +696,7 @@ def _size_cells(p: Point, zenoh: Point | None) -> list[str]:
         f"{s.announcement:,}",
         f"{s.bid:,}",
         f"{s.assignment:,}",
+        f"{s.assignment_named:,}",
         f"{s.status:,}",
         "—" if zenoh is None else f"{zenoh.bytes_per_round / 1e3:,.0f}",
     ]
@@ -700,7 +708,8 @@ def _csv(p: Point) -> list[object]:
             round(p.p50_ms, 4), round(p.p99_ms, 4), round(p.bids_ms, 4), round(p.solve_ms, 4),
             round(p.assign_ms, 4), round(p.coordinator_cpu_ms, 3),
             "" if p.agents_cpu_ms is None else round(p.agents_cpu_ms, 3),
-            s.announcement, s.bid, s.assignment, s.status, round(p.bytes_per_round),
+            s.announcement, s.bid, s.assignment, s.assignment_named, s.status,
+            round(p.bytes_per_round),
             "" if p.same_assignments is None else p.same_assignments]  # fmt: skip
 
 
@@ -779,9 +788,11 @@ def markdown(b: TransportBench) -> str:
         "",
         "## Message sizes",
         "",
-        "Bytes of one message on the wire (JSON); *kB per round*: what the coordinator "
-        "published and received per round over Zenoh (its announcement and assignment counted "
-        "once, though Zenoh sends each agent a copy; every agent's bid and status).",
+        "Bytes of one message on the wire (JSON); *assignment B* with its announcement inside, "
+        "*by serial B* naming it (the coordinator's link embeds it when it changed and in every "
+        "10th assignment); *kB per round*: what the coordinator published and received per "
+        "round over Zenoh (its announcement and assignment counted once, though Zenoh sends "
+        "each agent a copy; every agent's bid and status).",
         "",
         *_head(SIZE_COLS, 0),
     ]

@@ -25,6 +25,11 @@ when the branch fails it reports it failed, with the reason of the action that f
 task, the idle timer runs and the default branch (e.g. return home and land) takes over after
 ``idle_timeout_s``. Progress reports are kept until the coordinator acknowledges them, so one
 made while the agent's link is down is delivered when the link returns.
+
+Over a network an older message can arrive after a newer one. The agent follows an assignment
+only if it is newer than the last one it followed, and bids on an announcement only if it is
+not older than the last one it bid on (:class:`Freshness`: the coordinator's epoch, then the
+round or the serial).
 """
 
 from __future__ import annotations
@@ -86,6 +91,50 @@ Emit = Callable[..., None]
 PROGRESS_RESEND_S = 1.0
 """A progress report the coordinator has not acknowledged after this long is sent again (the
 coordinator ignores copies it has seen)."""
+
+
+class Freshness:
+    """Which of the coordinator's messages are new enough to act on (pure bookkeeping).
+
+    Every announcement and assignment carries the coordinator's epoch (its incarnation,
+    :class:`~btmission.allocation.auction.Announcement`), and within an epoch a count that only
+    grows: an assignment's round, an announcement's serial. :meth:`accept` says whether a
+    message is to be acted on:
+
+    * within the epoch last seen, a count lower than the last accepted one of its ``stream`` is
+      old (delivered late); with ``strict``, so is an equal one (an assignment already
+      followed; an announcement is repeated every round, each time to be bid on);
+    * another epoch is accepted (the coordinator restarted; its counts start again) and the
+      previous one is retired: a message of a retired epoch is old from then on;
+    * epoch 0 (unknown: a sender of wire format 1, a message made by hand) is always accepted,
+      as before epochs existed.
+    """
+
+    RETIRED_KEPT = 16
+
+    def __init__(self) -> None:
+        self.epoch: int | None = None
+        self.last: dict[str, int] = {}
+        self.retired: list[int] = []
+        self.ignored = 0
+        """Messages :meth:`accept` refused."""
+
+    def accept(self, stream: str, epoch: int, count: int, strict: bool) -> bool:
+        if epoch == 0:
+            return True
+        if epoch != self.epoch:
+            if epoch in self.retired:
+                self.ignored += 1
+                return False
+            if self.epoch is not None:
+                self.retired = [*self.retired, self.epoch][-self.RETIRED_KEPT :]
+            self.epoch, self.last = epoch, {}
+        last = self.last.get(stream)
+        if last is not None and (count < last or (strict and count == last)):
+            self.ignored += 1
+            return False
+        self.last[stream] = count
+        return True
 
 
 @dataclass
@@ -204,6 +253,8 @@ class Agent:
         self.recalled = False
         self.ticks = 0
         self.last_announcement: Announcement | None = None
+        self.freshness = Freshness()
+        """Which announcements and assignments are new enough to act on."""
         for hook in implementations.setup_hooks:
             try:
                 hook(self.ctx)
@@ -267,6 +318,8 @@ class Agent:
         """Bid on the announced tasks (stage 2 of the auction)."""
         if not self.alive or self.recalled:
             return
+        if not self.freshness.accept("announcement", ann.epoch, ann.serial, strict=False):
+            return  # an older announcement delivered late: its bid would be stale
         self.last_announcement = ann
         now = self.clock()
         self._send_progress(now)  # the coordinator is reachable: reports queued go first
@@ -281,7 +334,13 @@ class Agent:
         self.link.send_bid(self.bidder.bid(ann, state, now))
 
     def on_assignment(self, msg: Assignment) -> None:
-        if not self.alive or self.id not in msg.tasks:
+        """Follow ``msg`` if it is newer than the last assignment followed (:class:`Freshness`;
+        an older one delivered late would undo it) and names this agent."""
+        if not self.alive:
+            return
+        if not self.freshness.accept("assignment", msg.announcement.epoch, msg.round, True):
+            return
+        if self.id not in msg.tasks:
             return
         task_id = msg.tasks[self.id]
         current = self.task.id if self.task is not None else None

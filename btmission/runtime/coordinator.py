@@ -24,12 +24,18 @@ Around that it
   point) reported late by an agent that lost the task while its link was down wins if it is the
   first: the task is credited to that agent, and the agent that held it meanwhile is withdrawn
   in the same round (``withdrawn`` event; its assignment no longer names the task).
+
+Each coordinator has an *epoch*, chosen at random when it is created (:func:`new_epoch`): its
+announcements and assignments carry it, with serials and rounds counted from the start. An
+agent follows only an assignment newer than the last it followed (a later round of the same
+epoch, or another epoch: a restarted coordinator), so one delivered late changes nothing.
 """
 
 from __future__ import annotations
 
 import math
 import queue
+import secrets
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
@@ -51,6 +57,12 @@ from btmission.runtime.bus import (
 from btmission.spec.mission import Mission
 
 Emit = Callable[..., None]
+
+
+def new_epoch() -> int:
+    """A random coordinator epoch, 1 … 2**53 - 1 (exact as a JSON number in any language;
+    0 means "unknown")."""
+    return secrets.randbelow(2**53 - 1) + 1
 
 
 class TaskError(ValueError):
@@ -79,8 +91,11 @@ class Coordinator:
         *,
         check_location: Callable[[tuple[float, float, float]], str | None] | None = None,
         places: Mapping[str, tuple[float, float, float]] | None = None,
+        epoch: int | None = None,
     ) -> None:
         self.mission = mission
+        self.epoch = new_epoch() if epoch is None else epoch
+        """This coordinator's incarnation (module docstring)."""
         self.link = link
         self._clock = clock
         self.bid_window_s = float(getattr(mission.spec.coordination, "bid_window_s", 0.0))
@@ -93,7 +108,9 @@ class Coordinator:
         self._check = check_location
         self._places = dict(places or {})
         cfg = AuctionConfig.from_spec(mission.spec.coordination)
-        state = AuctionState(cfg, pool_from_mission(mission))
+        state = AuctionState(
+            cfg, pool_from_mission(mission), announcement=Announcement(epoch=self.epoch)
+        )
         self.loop = AuctionLoop(state, _Now(clock), self._collect, self._publish)
         self.period_s = self.loop.period_s
         self.next_round = 0.0

@@ -21,6 +21,21 @@ A payload that is over ``BTMISSION_MAX_MESSAGE_BYTES``, is not a valid message, 
 kind than its key's channel, or names another agent than its key is dropped and counted
 (:class:`LinkStats`); a callback never raises.
 
+Assignments. The coordinator's link embeds the announcement in an assignment only when it is
+another announcement than the one the previous assignment carried, and every
+``embed_every``-th assignment; the others name it (epoch and serial, wire format 2). The
+announcement is also published every round, so an agent that (re)connects has it after one
+round; an assignment naming an announcement the agent has not seen is dropped and counted
+(``unresolved``), and the next one is followed.
+
+Congestion. When Zenoh's queue towards a peer is full, the coordinator's publications
+(announcements, assignments, acknowledgements) are dropped after a short wait (Zenoh's
+``wait_before_drop``, 1 ms), never blocking its loop on a slow agent: each is repeated (the
+announcement and an assignment every round; an acknowledgement answers every copy of a progress
+report, which the agent resends until acknowledged). An agent's bids, progress and statuses
+wait for room (block, bounded by Zenoh's ``wait_before_close``, after which the connection is
+closed and opened again); its predictions are dropped (the next one replaces them).
+
 Link loss. As with the in-memory bus, :meth:`ZenohAgentLink.set_link` cuts an agent off (for
 tests and drills): messages both ways are dropped and counted, and :attr:`ZenohAgentLink.up` is
 False. ``up`` is also False while the coordinator's liveliness token is not seen (its session
@@ -78,6 +93,8 @@ NEEDS_NET: Final = (
 DEFAULT_PORT: Final = 7447
 DEFAULT_ENDPOINT: Final = f"tcp/127.0.0.1:{DEFAULT_PORT}"
 MODES: Final = ("peer", "client")
+EMBED_EVERY: Final = 10
+"""The coordinator's link embeds the announcement in at least every 10th assignment."""
 
 
 class TransportError(RuntimeError):
@@ -294,6 +311,8 @@ class LinkStats:
     """Valid messages of another kind than their key's channel, or naming another agent."""
     cut: int = 0
     """Messages dropped both ways while the link was cut (:meth:`ZenohAgentLink.set_link`)."""
+    unresolved: int = 0
+    """Assignments naming an announcement this end has not seen (the next one is awaited)."""
     overflow: int = 0
     """Messages dropped because the receiving queue was full (nobody drains it)."""
     errors: int = 0
@@ -308,6 +327,7 @@ class LinkStats:
             self.oversized
             + self.malformed
             + self.mismatched
+            + self.unresolved
             + self.cut
             + self.overflow
             + self.errors
@@ -335,6 +355,7 @@ class LinkStats:
                     "oversized",
                     "malformed",
                     "mismatched",
+                    "unresolved",
                     "cut",
                     "overflow",
                     "errors",
@@ -348,21 +369,33 @@ class DecodeCache:
     announcement every round and inside every assignment, and decoding 400 tasks takes ~2 ms
     (:func:`btmission.runtime.wire.decode`'s ``known``: only an exact encoding of it is reused).
     Agents sharing a process share one, so a broadcast is decoded about once, not once per
-    agent. Messages are immutable: sharing one is what the in-memory bus does too."""
+    agent. Messages are immutable: sharing one is what the in-memory bus does too.
 
-    def __init__(self) -> None:
-        self.known: Announcement | None = None
+    It also keeps the last ``keep`` announcements seen, which an assignment that does not embed
+    its own may name (an assignment can arrive after the next announcement: Zenoh orders each
+    key, not the keys between them)."""
+
+    def __init__(self, keep: int = 8) -> None:
+        self.keep = keep
+        self.recent: tuple[Announcement, ...] = ()
+        """The last announcements seen, the latest first."""
         self.reused = 0
 
+    @property
+    def known(self) -> Announcement | None:
+        """The last announcement seen."""
+        recent = self.recent
+        return recent[0] if recent else None
+
     def decode(self, data: bytes) -> wire.Message:
-        known = self.known
-        msg = wire.decode(data, known)
+        recent = self.recent
+        msg = wire.decode(data, recent)
         ann = msg if isinstance(msg, Announcement) else getattr(msg, "announcement", None)
         if isinstance(ann, Announcement):
-            if ann is known:
+            if any(a is ann for a in recent):  # reused, or named by an assignment
                 self.reused += 1
-            else:
-                self.known = ann
+            else:  # one tuple replaces another: safe for Zenoh's threads without a lock
+                self.recent = (ann, *recent)[: self.keep]
         return msg
 
 
@@ -383,6 +416,9 @@ def _check(
         parsed = keys.parse(key)
         try:
             msg = decode(data)
+        except wire.UnknownAnnouncement as exc:
+            stats.count("unresolved", f"{key}: {exc}")
+            return None
         except wire.WireError as exc:
             stats.count("malformed", f"{key}: {exc}")
             return None
@@ -462,8 +498,9 @@ class Mailbox:
 
 
 _BLOCK, _DROP = "block", "drop"
-"""Congestion control of a publisher: wait for room in a full queue (every message but the
-predictions), or drop the message (predictions: the next one replaces it)."""
+"""Congestion control of a publisher: wait for room in a full queue (an agent's bids, progress
+and statuses), or drop the message (the coordinator's publications and the predictions: each is
+repeated or replaced; module docstring)."""
 
 
 class _Session:
@@ -503,7 +540,9 @@ class ZenohCoordinatorLink:
 
     ``session``: an open session the link uses (and does not close); or ``settings`` to open
     one it owns (default: :meth:`ZenohSettings.coordinator`). ``max_pending`` bounds the inbox
-    (messages past it are dropped and counted in ``stats.overflow``).
+    (messages past it are dropped and counted in ``stats.overflow``). ``embed_every``: an
+    assignment carries its announcement when that changed since the previous assignment and
+    at least every ``embed_every`` assignments (1: always); the others name it by serial.
     """
 
     def __init__(
@@ -513,8 +552,14 @@ class ZenohCoordinatorLink:
         settings: ZenohSettings | None = None,
         *,
         max_pending: int = 100_000,
+        embed_every: int = EMBED_EVERY,
     ) -> None:
         self.mission = keys.check_name(mission, "mission")
+        if not (isinstance(embed_every, int) and embed_every >= 1):
+            raise ValueError(f"embed_every must be a whole number ≥ 1, got {embed_every!r}")
+        self.embed_every = embed_every
+        self._embedded: Announcement | None = None
+        self._since_embedded = 0
         if session is None and settings is None:
             settings = ZenohSettings.coordinator()
         self._s = _Session(session, settings)
@@ -530,8 +575,8 @@ class ZenohCoordinatorLink:
         self._encoded: tuple[Announcement, bytes] | None = None
         self._declared: list[Any] = []
         try:
-            self._announce = self._s.publisher(keys.key(mission, keys.ANNOUNCE), _BLOCK)
-            self._assign = self._s.publisher(keys.key(mission, keys.ASSIGN), _BLOCK)
+            self._announce = self._s.publisher(keys.key(mission, keys.ANNOUNCE), _DROP)
+            self._assign = self._s.publisher(keys.key(mission, keys.ASSIGN), _DROP)
             self._end = self._s.publisher(keys.key(mission, keys.END), _BLOCK)
             self._declared += [self._announce, self._assign, self._end]
             self._acks: dict[str, Any] = {}
@@ -595,7 +640,14 @@ class ZenohCoordinatorLink:
         self._put(self._announce, data)
 
     def assign(self, assignment: Assignment) -> None:
-        self._put(self._assign, wire.encode(assignment))
+        """To every agent: with its announcement when that is another than the previous
+        assignment's, or ``embed_every`` assignments went without; else naming it."""
+        ann = assignment.announcement
+        self._since_embedded += 1
+        embed = ann is not self._embedded or self._since_embedded >= self.embed_every
+        if embed:
+            self._embedded, self._since_embedded = ann, 0
+        self._put(self._assign, wire.encode(assignment, embed=embed))
 
     def end(self, end: MissionEnd) -> None:
         """Tell every agent the mission is over (their processes stop)."""
@@ -604,7 +656,7 @@ class ZenohCoordinatorLink:
     def acknowledge(self, ack: ProgressAck) -> None:
         pub = self._acks.get(ack.agent)
         if pub is None:
-            pub = self._s.publisher(keys.key(self.mission, keys.ACK, ack.agent), _BLOCK)
+            pub = self._s.publisher(keys.key(self.mission, keys.ACK, ack.agent), _DROP)
             self._acks[ack.agent] = pub
             self._declared.append(pub)
         self._put(pub, wire.encode(ack))
