@@ -206,19 +206,21 @@ class TaskPool:
             return self
         return TaskPool({**self.tasks, **changed})
 
-    def commit(self, task_id: str, agent: str, now: float) -> TaskPool:
+    def commit(
+        self, task_id: str, agent: str, now: float, reason: str = "commit point"
+    ) -> TaskPool:
         """The agent reports passing the task's commit point (k_bt = 0 from now on)."""
         t = self._held(task_id, agent, "commit to")
         if t.state is TaskState.COMMITTED:
             return self
         if not t.info.multi_stage:
             raise PoolError(f"task '{task_id}' has no commit point (its type has no commit_after)")
-        return self.with_tasks({task_id: t.moved(now, TaskState.COMMITTED, agent, "commit point")})
+        return self.with_tasks({task_id: t.moved(now, TaskState.COMMITTED, agent, reason)})
 
-    def complete(self, task_id: str, agent: str, now: float) -> TaskPool:
+    def complete(self, task_id: str, agent: str, now: float, reason: str = "completed") -> TaskPool:
         """The agent reports the task done."""
         t = self._held(task_id, agent, "complete")
-        return self.with_tasks({task_id: t.moved(now, TaskState.DONE, agent, "completed")})
+        return self.with_tasks({task_id: t.moved(now, TaskState.DONE, agent, reason)})
 
     def fail(self, task_id: str, agent: str, now: float, reason: str = "") -> TaskPool:
         """The agent reports the task failed (it is not retried)."""
@@ -236,6 +238,16 @@ class TaskPool:
         if t.state.terminal:
             raise PoolError(f"task '{task_id}' is already {t.state.value}")
         return self.with_tasks({task_id: t.moved(now, state, agent, reason)})
+
+    def assign(self, task_id: str, agent: str, now: float, reason: str) -> TaskPool:
+        """``agent`` won the task (an auction round's result, e.g. replayed from a log)."""
+        t = self._live(task_id, "assign")
+        return self.with_tasks({task_id: t.moved(now, TaskState.ASSIGNED, agent, reason)})
+
+    def unreachable(self, task_id: str, now: float, reason: str) -> TaskPool:
+        """No agent can reach the task (it stays announced, without an agent)."""
+        t = self._live(task_id, "mark unreachable")
+        return self.with_tasks({task_id: t.moved(now, TaskState.UNREACHABLE, None, reason)})
 
     def release(self, task_id: str, now: float, reason: str) -> TaskPool:
         """Back to the pool (open, no agent), e.g. when its agent was lost."""
@@ -263,10 +275,15 @@ class TaskPool:
         info = replace(t.info, priority=priority)  # TaskInfo checks it (> 0, finite)
         return self.with_tasks({task_id: replace(t, info=info)})
 
-    def _held(self, task_id: str, agent: str, verb: str) -> PoolTask:
+    def _live(self, task_id: str, verb: str) -> PoolTask:
+        """The task, if it is not finished (done, failed or cancelled)."""
         t = self[task_id]
         if t.state.terminal:
             raise PoolError(f"cannot {verb} task '{task_id}': it is already {t.state.value}")
+        return t
+
+    def _held(self, task_id: str, agent: str, verb: str) -> PoolTask:
+        t = self._live(task_id, verb)
         if t.agent != agent:
             holder = f"held by {t.agent}" if t.agent else "not assigned"
             raise PoolError(f"agent '{agent}' cannot {verb} task '{task_id}': it is {holder}")

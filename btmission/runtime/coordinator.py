@@ -54,6 +54,7 @@ from btmission.runtime.bus import (
     ProgressKey,
     progress_key,
 )
+from btmission.runtime.recovery import Recovered, logged_key
 from btmission.spec.mission import Mission
 
 Emit = Callable[..., None]
@@ -102,7 +103,8 @@ class Coordinator:
         self._open: tuple[int, float, CoordinatorInbox] | None = None
         """The round collecting bids: (serial, closes at, what arrived so far)."""
         self._seen: dict[str, set[ProgressKey]] = {}
-        """Progress reports taken, per agent (copies of them are ignored)."""
+        """Progress reports taken, per agent, keyed with their time as the log has it
+        (:func:`~btmission.runtime.recovery.logged_key`): copies of them are ignored."""
         self._acks: dict[str, list[ProgressKey]] = {}
         self._emit = emit
         self._check = check_location
@@ -244,6 +246,31 @@ class Coordinator:
     def paused(self) -> bool:
         return self.state.paused
 
+    def restore(self, recovered: Recovered) -> None:
+        """Continue from a predecessor's log (:func:`~btmission.runtime.recovery.recover`):
+        its pool, round count (the next round is numbered after the last), assignments, the
+        operator's recalls, exclusions and pause, and the progress reports it took (resent
+        copies are ignored). Nothing the log has is logged again; what it lacks (bids,
+        statuses, unacknowledged progress) comes from the agents. Call it on a coordinator that
+        has not stepped yet."""
+        if self.state.round or self._added or self._open is not None:
+            raise RuntimeError("restore() needs a coordinator that has not run a round yet")
+        self.loop.state = replace(
+            self.state,
+            pool=recovered.pool,
+            round=recovered.round,
+            # announcements after the restart are numbered after any the predecessor made
+            # (at most one per round), so bids answering one of those are stale
+            announcement=Announcement(serial=recovered.round),
+            paused=recovered.paused,
+            excluded=recovered.excluded,
+        )
+        self.recalled = set(recovered.recalled)
+        self._added = set(recovered.added)
+        self._history_len = dict(recovered.logged)
+        self._last_assignments = dict(recovered.assignments)
+        self._seen = {agent: set(keys) for agent, keys in recovered.seen.items()}
+
     # ---------------------------------------------------------------- stepping
     def intake(self, now: float) -> None:
         """Queued tasks enter the pool now (each a ``task_added`` event)."""
@@ -358,9 +385,10 @@ class Coordinator:
         key = progress_key(p)
         self._acks.setdefault(p.agent, []).append(key)
         seen = self._seen.setdefault(p.agent, set())
-        if key in seen:
+        taken = logged_key(key)  # its time as the log has it: what a restart can rebuild
+        if taken in seen:
             return False
-        seen.add(key)
+        seen.add(taken)
         return True
 
     def _publish(self, result: RoundResult) -> None:
