@@ -361,6 +361,8 @@ def test_a_resent_report_is_a_copy_whatever_the_digits_the_log_dropped() -> None
     emitted: list[tuple[str, dict[str, Any]]] = []
     coord = Coordinator(m, bus, lambda: 2.1, lambda kind, **data: emitted.append((kind, data)))
     coord.restore(rec)
+    ann = coord.state.announcement  # its own epoch, serials after the predecessor's
+    assert (ann.epoch, ann.serial) == (coord.epoch, 2)
     history = coord.state.pool["P1"].history
     bus.send_progress(Progress("G1", "P1", "done", exact))  # resent: no ack had reached G1
     coord.step(2.1)

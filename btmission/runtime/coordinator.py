@@ -259,9 +259,9 @@ class Coordinator:
             self.state,
             pool=recovered.pool,
             round=recovered.round,
-            # announcements after the restart are numbered after any the predecessor made
-            # (at most one per round), so bids answering one of those are stale
-            announcement=Announcement(serial=recovered.round),
+            # announcements after the restart (this coordinator's epoch) are numbered after
+            # any the predecessor made (at most one per round)
+            announcement=Announcement(serial=recovered.round, epoch=self.epoch),
             paused=recovered.paused,
             excluded=recovered.excluded,
         )
