@@ -10,7 +10,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from datetime import datetime
 from pathlib import Path
 from typing import IO, Any
@@ -169,6 +169,12 @@ def common_options(fn: Any) -> Any:
 @click.option(
     "--until", type=POSITIVE, help="Stop at this mission time (s) even if the mission goes on."
 )
+@click.option(
+    "--resume",
+    type=click.Path(dir_okay=False, exists=True, path_type=Path),
+    help="Restart a coordinator that was stopped or killed: rebuild the tasks, holders and "
+    "commitments from its log, continue its mission clock, and go on writing that log.",
+)
 @common_options
 @handle_spec_errors
 def coordinator_cmd(
@@ -176,6 +182,7 @@ def coordinator_cmd(
     listen: tuple[str, ...],
     wait_agents: float,
     until: float | None,
+    resume: Path | None,
     seed: int,
     controller: str | None,
     log_dir: Path,
@@ -208,12 +215,15 @@ def coordinator_cmd(
 
     _zenoh_or_exit()
     _check_log_file(log_file)
+    if resume is not None and log_file is not None:
+        raise click.UsageError("--resume goes on writing that log: no --log-file")
     endpoints = _endpoints(listen, "--listen")
     session = _session(
-        mission_file, seed=seed, controller=controller, log_dir=log_dir, log_file=log_file,
-        backends={}, speed=speed,
+        mission_file, seed=seed, controller=controller, log_dir=log_dir,
+        log_file=resume or log_file, backends={}, speed=speed,
     )  # fmt: skip
     mission = session.mission
+    resumed = _resumable(resume, mission) if resume is not None else None
     settings = ZenohSettings.coordinator(
         endpoints, config_file=str(zenoh_config) if zenoh_config else None
     )
@@ -232,8 +242,21 @@ def coordinator_cmd(
                 "without (an agent joins when it connects)",
                 err=True,
             )
-        session.part = Part(coordinator_link=link, live_agents=lambda: link.agents)
-        code = _run_part(session, until, quiet, "coordinator")
+        part = Part(coordinator_link=link, live_agents=lambda: link.agents)
+        restore = None
+        if resumed is not None:
+            started, last_s, recovered = resumed
+            part.started_unix, part.resumed_from, part.resumed_at_s = started, str(resume), last_s
+
+            def restore(run: Any) -> None:
+                run.coordinator.restore(recovered)
+                click.echo(
+                    f"coordinator: resumed {resume} at {last_s:.1f} s (round {recovered.round})",
+                    err=True,
+                )
+
+        session.part = part
+        code = _run_part(session, until, quiet, "coordinator", prepare=restore)
     finally:
         link.close()
     if code:
@@ -351,8 +374,45 @@ def agent_cmd(
         sys.exit(code)
 
 
-def _run_part(session: Any, until: float | None, quiet: bool, what: str) -> int:
-    """Run one part of the mission and print its end; returns the exit status."""
+def _resumable(log: Path, mission: Any) -> tuple[float, float, Any]:
+    """What a coordinator restarted from ``log`` continues from: when its mission's clock was
+    zero (Unix s), the time of its last event, and the state rebuilt from it. A cut last line
+    (the process was killed while writing it) is dropped from the file first."""
+    from btmission.runtime.events import LogError, read_events
+    from btmission.runtime.recovery import recover
+
+    try:
+        contents = read_events(log)
+    except LogError as exc:
+        raise BadInput(str(exc)) from None
+    events = contents.events
+    head = events[0]
+    if head.get("mission") != mission.name or head.get("part") != "coordinator":
+        raise BadInput(
+            f"--resume {log}: not a log of {mission.name}'s coordinator (mission "
+            f"{head.get('mission')!r}, part {head.get('part', 'one process')!r})"
+        )
+    ended = [e for e in events if e.kind == "end"]
+    if ended:
+        raise BadInput(f"--resume {log}: that run has ended ({ended[-1].get('reason')})")
+    built = [e for e in events if e.kind == "built" and e.get("started_unix") is not None]
+    if not built:
+        raise BadInput(f"--resume {log}: the coordinator was stopped before it had started")
+    if contents.truncated:  # keep every whole line; the cut one cannot be read anyway
+        data = log.read_bytes()
+        log.write_bytes(data[: data.rfind(b"\n") + 1])
+    return float(built[-1].get("started_unix")), events[-1].t, recover(mission, events)
+
+
+def _run_part(
+    session: Any,
+    until: float | None,
+    quiet: bool,
+    what: str,
+    prepare: Callable[[Any], None] | None = None,
+) -> int:
+    """Run one part of the mission and print its end; returns the exit status. ``prepare(run)``
+    is called once the run is built, before its first step."""
     from btmission.backends.provider import VehicleUnavailable
     from btmission.runtime.session import RunStopped
 
@@ -363,6 +423,8 @@ def _run_part(session: Any, until: float | None, quiet: bool, what: str) -> int:
             except VehicleUnavailable as exc:
                 raise ChecksFailed(f"{exc}; nothing was run") from None
             if run is not None:
+                if prepare is not None:
+                    prepare(run)
                 if not quiet:
                     click.echo(f"{what}: running; log {session.log_path}", err=True)
                 session.run(until)
@@ -438,6 +500,8 @@ class _Child:
 
     def close(self) -> None:
         self._reader.join(timeout=2)
+        if self.proc.stdout is not None:
+            self.proc.stdout.close()
         self._out.close()
 
     def tail(self, n: int = 5) -> str:
@@ -531,11 +595,11 @@ def run_processes(
             agents.append(child)
             note(f"agent {a.id} (pid {child.proc.pid})")
         note(f"logs in {out}")
-        signalled = False
+        passed = 0
         while coordinator.proc.poll() is None:
-            if stop_asked and not signalled:
-                signalled = True
-                coordinator.signal(stop_asked[0])  # it ends the mission: the agents follow
+            while passed < len(stop_asked):  # each signal on to the coordinator (a second
+                coordinator.signal(stop_asked[passed])  # one stops it at once); it ends the
+                passed += 1  # mission, and the agents follow
             time.sleep(0.2)
         code = coordinator.proc.returncode
         deadline = time.monotonic() + 30

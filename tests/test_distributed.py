@@ -220,10 +220,11 @@ def test_sigterm_ends_the_coordinator_and_then_its_agents_with_their_logs_closed
     fleet.signal("coordinator", signal.SIGTERM)
     assert fleet.wait_exit("coordinator", 30) == 143
     for agent in ("R1", "R2"):
-        code = fleet.wait_exit(agent, 60)  # told by the coordinator's end: not a signal
+        code = fleet.wait_exit(agent, 60)  # told by the coordinator's end, not by a signal
         log = fleet.log(agent)
         assert log[-1]["ev"] == "end" and log[-1]["reason"] == "terminated", log[-1]
-        assert code == 1  # the mission ended with tasks open
+        assert not any(e["ev"] == "command" and e.get("by") == "SIGTERM" for e in log)
+        assert code == 143  # an agent process exits with its mission's status
     coord = fleet.log("coordinator")
     assert coord[-1]["ev"] == "end" and coord[-1]["reason"] == "terminated"
     assert any(e["ev"] == "command" and e.get("by") == "SIGTERM" for e in coord)
@@ -305,3 +306,40 @@ def test_an_agent_cut_off_for_20_s_keeps_working_and_reports_when_back(fleet: Fl
     took = {e["task"]: e for e in coord if e["ev"] == "task" and e.get("state") == "done"}
     for p in mine:
         assert p["task"] in took
+
+
+@pytest.mark.slow
+def test_a_coordinator_killed_and_restarted_from_its_log_completes_the_mission(
+    fleet: Fleet,
+) -> None:
+    fleet.start_mavsim()
+    fleet.start_coordinator()
+    fleet.start_agent("R1")
+    fleet.start_agent("R2")
+
+    def one_done() -> bool:
+        return any(e["ev"] == "task" and e.get("state") == "done" for e in fleet.log("coordinator"))
+
+    wait_for("a first task done", one_done, 120)
+    fleet.signal("coordinator", signal.SIGKILL)
+    fleet.wait_exit("coordinator", 10)
+    before = fleet.log("coordinator")
+    assert before[-1]["ev"] != "end"
+    time.sleep(2.0)  # the agents go on meanwhile, their reports queued
+    log = fleet.dir / "coordinator.jsonl"
+    fleet._start("coordinator-again", [*ME, "coordinator", fleet.mission, "--listen",
+                                       fleet.endpoint, "--resume", str(log), "--speed",
+                                       str(fleet.speed), "--quiet"])  # fmt: skip
+    assert fleet.wait_exit("coordinator-again", 180) == 0, fleet.output("coordinator-again")
+    after = fleet.log("coordinator")
+    assert after[: len(before)] == before  # appended to, nothing rewritten
+    assert [e["ev"] for e in after].count("header") == 1
+    (resumed,) = [e for e in after if e["ev"] == "resumed"]
+    assert resumed["last_s"] == before[-1]["t"] and resumed["t"] >= before[-1]["t"]
+    assert after[-1]["ev"] == "end" and after[-1]["reason"] == "completed"
+    _done_once(after, {"T1", "T2", "T3"})
+    assert _holders_never_two(after[len(before) :])
+    rounds = [e["round"] for e in after if e["ev"] == "round"]
+    assert rounds == sorted(rounds) and len(set(rounds)) == len(rounds)  # counted on
+    for agent in ("R1", "R2"):  # they were told the end by the restarted coordinator
+        assert fleet.wait_exit(agent, 60) == 0

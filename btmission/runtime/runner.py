@@ -187,7 +187,9 @@ class MissionRun:
         # the header first: building the map and the planners can take long, and a run killed
         # meanwhile must still leave a log that `btmission report` reads (docs/running.md)
         if part is not None and part.resumed_from is not None:  # a restarted coordinator
-            self.emit("resumed", log=part.resumed_from, last_s=part.resumed_at_s)
+            self.emit(  # (its clock is not built yet: at the log's last time)
+                "resumed", t=part.resumed_at_s, log=part.resumed_from, last_s=part.resumed_at_s
+            )
         else:
             self._emit_header()
         self.map = (
