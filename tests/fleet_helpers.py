@@ -99,6 +99,13 @@ class Fleet:
                            "--log-file", str(self.dir / f"{name}.jsonl"),
                            "--speed", str(self.speed), "--quiet"])  # fmt: skip
 
+    def start_all(self, agents: tuple[str, ...] = ("R1", "R2")) -> None:
+        """mavsim, the coordinator, and one process per agent."""
+        self.start_mavsim()
+        self.start_coordinator()
+        for agent in agents:
+            self.start_agent(agent)
+
     def log(self, name: str) -> list[dict[str, Any]]:
         return read_log(self.dir / f"{name}.jsonl")
 

@@ -212,10 +212,7 @@ def _assigned(log: list[dict[str, Any]], agent: str) -> str | None:
 def test_sigterm_ends_the_coordinator_and_then_its_agents_with_their_logs_closed(
     fleet: Fleet,
 ) -> None:
-    fleet.start_mavsim()
-    fleet.start_coordinator()
-    fleet.start_agent("R1")
-    fleet.start_agent("R2")
+    fleet.start_all()
     wait_for("a first assignment", lambda: _assigned(fleet.log("coordinator"), "R1"), 90)
     fleet.signal("coordinator", signal.SIGTERM)
     assert fleet.wait_exit("coordinator", 30) == 143
@@ -232,10 +229,7 @@ def test_sigterm_ends_the_coordinator_and_then_its_agents_with_their_logs_closed
 
 @pytest.mark.slow
 def test_a_killed_agent_loses_its_task_and_a_restarted_one_registers_again(fleet: Fleet) -> None:
-    fleet.start_mavsim()
-    fleet.start_coordinator()
-    fleet.start_agent("R1")
-    fleet.start_agent("R2")
+    fleet.start_all()
     held = wait_for("R1 to hold a task", lambda: _assigned(fleet.log("coordinator"), "R1"), 90)
     fleet.signal("R1", signal.SIGKILL)
     fleet.wait_exit("R1", 10)
@@ -312,10 +306,7 @@ def test_an_agent_cut_off_for_20_s_keeps_working_and_reports_when_back(fleet: Fl
 def test_a_coordinator_killed_and_restarted_from_its_log_completes_the_mission(
     fleet: Fleet,
 ) -> None:
-    fleet.start_mavsim()
-    fleet.start_coordinator()
-    fleet.start_agent("R1")
-    fleet.start_agent("R2")
+    fleet.start_all()
 
     def one_done() -> bool:
         return any(e["ev"] == "task" and e.get("state") == "done" for e in fleet.log("coordinator"))
