@@ -18,6 +18,7 @@ from btmission.bench.transport import (
     measure_zenoh,
     message_sizes,
     run_transport_benchmark,
+    with_earlier_runs,
 )
 from btmission.cli.main import cli
 from tests.zenoh_helpers import need_zenoh
@@ -69,6 +70,27 @@ def test_the_benchmark_runs_end_to_end_on_a_tiny_size(tmp_path: Path) -> None:
     rows = list(csv.reader((tmp_path / "transport.csv").read_text().splitlines()))
     assert tuple(rows[0]) == CSV_HEADER and len(rows) == 5
     assert any(line.startswith("wrote ") for line in lines)
+
+
+def _page(date: str, rate: str, version: int = 2) -> str:
+    return (
+        f"# Transport\n\n- date: {date}\n- load: quiet\n\n(`btmission.runtime.wire`, "
+        f"v{version})\n\n| transport | rate Hz |\n| --- | ---: |\n| zenoh | {rate} |\n\n"
+        "## Target\n\nRegenerate with `btmission bench transport`.\n"
+    )
+
+
+def test_a_new_page_keeps_the_earlier_runs_main_tables_newest_first() -> None:
+    first = _page("day 1", "27", 1)
+    assert with_earlier_runs(first, None) == first
+    second = with_earlier_runs(_page("day 2", "47"), first)
+    third = with_earlier_runs(_page("day 3", "52"), second)
+    assert third.startswith(_page("day 3", "52").rstrip())
+    earlier = third.split("## Earlier runs", 1)[1]
+    assert third.count("## Earlier runs") == 1
+    assert earlier.index("### day 2 (wire format 2)") < earlier.index("### day 1 (wire format 1)")
+    assert "| zenoh | 47 |" in earlier and "| zenoh | 27 |" in earlier
+    assert "| zenoh | 52 |" not in earlier and earlier.count("- load: quiet") == 2
 
 
 @pytest.mark.slow

@@ -114,6 +114,18 @@ def test_recovery_matches_the_live_coordinator_at_every_cut(tmp_path: Path) -> N
     assert rec.pool["X1"].history[-1].reason == "not needed"
 
 
+def test_an_operators_task_to_arrive_later_is_recovered_with_its_arrival(tmp_path: Path) -> None:
+    log = tmp_path / "run.jsonl"
+    with RunSession(PICK, controller="track", log_path=log) as s:
+        run = s.start()
+        assert run is not None
+        run.run(until=2.0)
+        run.submit(AddTask({"id": "X2", "type": "inspect", "location": [6, 2, 0], "at": 30.0}))
+        run.run(until=3.0)
+        rec = assert_recovers(run, log)  # the live pool's arrival, 30 s, not 2 s
+    assert rec.pool["X2"].info.arrival_s == 30.0
+
+
 def test_recovery_follows_recall_pause_and_exclusion(tmp_path: Path) -> None:
     """mine_inspection, three drones: the operator recalls one (between two rounds), pauses
     and resumes allocation, excludes and includes another."""

@@ -33,6 +33,7 @@ import argparse
 import csv
 import gc
 import math
+import re
 import resource
 import statistics
 import subprocess
@@ -819,6 +820,44 @@ def markdown(b: TransportBench) -> str:
     return "\n".join(lines)
 
 
+EARLIER = "## Earlier runs"
+_EARLIER_INTRO = (
+    "The main tables of earlier runs of this benchmark, newest first (kept when it writes this "
+    "file)."
+)
+
+
+def with_earlier_runs(new: str, previous: str | None) -> str:
+    """``new`` (this run's page) followed by the earlier runs' main tables: the previous page's
+    own (its date, load, wire format version and main table) first, then the ones it kept."""
+    if not previous or "| transport |" not in previous:
+        return new
+    main, _, kept = previous.partition(EARLIER)
+    date = re.search(r"^- date: (.*)$", main, re.M)
+    load = re.search(r"^- load: (.*)$", main, re.M)
+    version = re.search(r"`btmission\.runtime\.wire`, v(\d+)", main)
+    lines = main.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("| transport |"))
+    table = []
+    for line in lines[start:]:
+        if not line.startswith("|"):
+            break
+        table.append(line)
+    title = date.group(1) if date else "an earlier run"
+    if version:
+        title += f" (wire format {version.group(1)})"
+    older = kept.strip()
+    if older.startswith(_EARLIER_INTRO):
+        older = older[len(_EARLIER_INTRO) :].strip()
+    parts = [new.rstrip(), "", EARLIER, "", _EARLIER_INTRO, "", f"### {title}", ""]
+    if load:
+        parts += [f"- load: {load.group(1)}", ""]
+    parts += [*table, ""]
+    if older:
+        parts += [older, ""]
+    return "\n".join(parts)
+
+
 def run_transport_benchmark(
     cfg: TransportBenchConfig,
     out_dir: Path | str = Path("benchmarks/results"),
@@ -854,7 +893,9 @@ def run_transport_benchmark(
     b.load = _load_note(env)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "transport.md").write_text(markdown(b), encoding="utf-8")
+    page = out / "transport.md"
+    previous = page.read_text(encoding="utf-8") if page.is_file() else None
+    page.write_text(with_earlier_runs(markdown(b), previous), encoding="utf-8")
     with (out / "transport.csv").open("w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(CSV_HEADER)

@@ -341,6 +341,7 @@ class Coordinator:
             priority=info.priority,
             by=by,
             problems=problems,
+            **({"at": info.arrival_s} if info.arrival_s > t + 1e-9 else {}),
         )
 
     def _collect(self, ann: Announcement, now: float) -> Inbox:

@@ -532,6 +532,9 @@ class TaskAddedEvent(TypedEvent):
     by: str | None = optional()
     """``mission`` or ``api``."""
     problems: list[str] = field(default_factory=list)
+    at: float | None = optional()
+    """When it is to arrive, if later than it was added (an operator's task with ``at``): it is
+    announced from then on (a restarted coordinator reads it back)."""
 
 
 @register_event
