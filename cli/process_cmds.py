@@ -4,6 +4,7 @@ all on this machine, with ``mavsim`` serving the vehicles, and merges their logs
 
 from __future__ import annotations
 
+import json
 import signal
 import socket
 import subprocess
@@ -68,6 +69,7 @@ def _session(
 ) -> Any:
     """A :class:`RunSession` for one part of the mission (loaded, with the backends and the
     time scale given on the command line)."""
+    from btmission.cli.run_cmds import _StderrNotes
     from btmission.runtime.distribution import with_backends
     from btmission.runtime.session import RunSession
 
@@ -78,6 +80,7 @@ def _session(
         realtime=True,
         log_dir=log_dir,
         log_path=log_file,
+        observers=[_StderrNotes()],  # warnings and leaf errors as they come, once each
         handle_signals=True,
         notify=lambda text: click.echo(f"\n{text}", err=True),
     )
@@ -596,7 +599,9 @@ def run_processes(
             note(f"agent {a.id} (pid {child.proc.pid})")
         note(f"logs in {out}")
         passed = 0
+        follow = _Progress(out / "coordinator.jsonl", note)
         while coordinator.proc.poll() is None:
+            follow.poll()
             while passed < len(stop_asked):  # each signal on to the coordinator (a second
                 coordinator.signal(stop_asked[passed])  # one stops it at once); it ends the
                 passed += 1  # mission, and the agents follow
@@ -617,6 +622,37 @@ def run_processes(
         for s, handler in previous.items():
             signal.signal(s, handler)
     return _merge_and_report(mission, out, log_dir, seed, stamp, code, quiet, no_png)
+
+
+class _Progress:
+    """``run --processes`` without --quiet: what the coordinator's log says as it grows (tasks
+    done or failed, agents dropped), one line each."""
+
+    def __init__(self, log: Path, note: Callable[[str], None]) -> None:
+        self.log = log
+        self.note = note
+        self._pos = 0
+
+    def poll(self) -> None:
+        try:
+            with self.log.open("rb") as f:
+                f.seek(self._pos)
+                data = f.read()
+        except OSError:
+            return
+        end = data.rfind(b"\n") + 1  # whole lines only (the last may be being written)
+        self._pos += end
+        for line in data[:end].splitlines():
+            try:
+                ev = json.loads(line)
+            except ValueError:
+                continue
+            t, kind = ev.get("t", 0.0), ev.get("ev")
+            if kind == "task" and ev.get("state") in ("done", "failed", "unreachable"):
+                by = f" by {ev['agent']}" if ev.get("agent") else ""
+                self.note(f"{t:7.1f} s  {ev.get('task')} {ev.get('state')}{by}")
+            elif kind == "round" and ev.get("dropped"):
+                self.note(f"{t:7.1f} s  not heard from: {', '.join(ev['dropped'])}")
 
 
 def _merge_and_report(
