@@ -209,19 +209,26 @@ def _assigned(log: list[dict[str, Any]], agent: str) -> str | None:
 
 
 @pytest.mark.slow
-def test_sigterm_ends_the_coordinator_and_then_its_agents_with_their_logs_closed(
+def test_sigterm_ends_an_agent_alone_or_the_coordinator_and_then_its_agents(
     fleet: Fleet,
 ) -> None:
     fleet.start_all()
     wait_for("a first assignment", lambda: _assigned(fleet.log("coordinator"), "R1"), 90)
+    # an agent process alone: it ends its own log; the mission goes on without it
+    fleet.signal("R2", signal.SIGTERM)
+    assert fleet.wait_exit("R2", 30) == 143
+    r2 = fleet.log("R2")
+    assert r2[-1]["ev"] == "end" and r2[-1]["reason"] == "terminated"
+    assert any(e["ev"] == "command" and e.get("by") == "SIGTERM" for e in r2)
+    assert fleet.procs["coordinator"].poll() is None and fleet.procs["R1"].poll() is None
+    # the coordinator: it ends its log and the mission, and R1 ends with it
     fleet.signal("coordinator", signal.SIGTERM)
     assert fleet.wait_exit("coordinator", 30) == 143
-    for agent in ("R1", "R2"):
-        code = fleet.wait_exit(agent, 60)  # told by the coordinator's end, not by a signal
-        log = fleet.log(agent)
-        assert log[-1]["ev"] == "end" and log[-1]["reason"] == "terminated", log[-1]
-        assert not any(e["ev"] == "command" and e.get("by") == "SIGTERM" for e in log)
-        assert code == 143  # an agent process exits with its mission's status
+    code = fleet.wait_exit("R1", 60)  # told by the coordinator's end, not by a signal
+    r1 = fleet.log("R1")
+    assert r1[-1]["ev"] == "end" and r1[-1]["reason"] == "terminated", r1[-1]
+    assert not any(e["ev"] == "command" and e.get("by") == "SIGTERM" for e in r1)
+    assert code == 143  # an agent process exits with its mission's status
     coord = fleet.log("coordinator")
     assert coord[-1]["ev"] == "end" and coord[-1]["reason"] == "terminated"
     assert any(e["ev"] == "command" and e.get("by") == "SIGTERM" for e in coord)
@@ -334,3 +341,20 @@ def test_a_coordinator_killed_and_restarted_from_its_log_completes_the_mission(
     assert rounds == sorted(rounds) and len(set(rounds)) == len(rounds)  # counted on
     for agent in ("R1", "R2"):  # they were told the end by the restarted coordinator
         assert fleet.wait_exit(agent, 60) == 0
+
+
+@pytest.mark.slow
+def test_several_agents_in_one_process(fleet: Fleet) -> None:
+    fleet.start_mavsim()
+    fleet.start_coordinator()
+    fleet._start("agents", [*ME, "agent", fleet.mission, "--id", "R1", "--id", "R2",
+                            "--connect", fleet.endpoint, "--log-file",
+                            str(fleet.dir / "agents.jsonl"), "--speed", str(fleet.speed),
+                            "--quiet"])  # fmt: skip
+    assert fleet.wait_exit("coordinator", 180) == 0
+    assert fleet.wait_exit("agents", 60) == 0
+    coord, agents = fleet.log("coordinator"), fleet.log("agents")
+    _done_once(coord, {"T1", "T2", "T3"})
+    assert agents[0]["part"] == "agents R1, R2"
+    assert {e["agent"] for e in agents if e["ev"] == "pose"} == {"R1", "R2"}
+    assert agents[-1]["ev"] == "end" and agents[-1]["reason"] == "completed"
