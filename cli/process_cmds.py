@@ -204,7 +204,7 @@ def coordinator_cmd(
     with its log closed.
 
     \b
-    Example (three terminals, or see run --processes):
+    Example (four terminals, or see run --processes):
       btmission mavsim --mission docs/examples/processes_small.yaml
       btmission coordinator docs/examples/processes_small.yaml
       btmission agent docs/examples/processes_small.yaml --id R1
