@@ -600,8 +600,15 @@ def run_processes(
         note(f"logs in {out}")
         passed = 0
         follow = _Progress(out / "coordinator.jsonl", note)
+        failed: list[_Child] = []
         while coordinator.proc.poll() is None:
             follow.poll()
+            if not failed and all(c.proc.poll() not in (None, 0) for c in agents):
+                failed = agents  # every agent failed: nothing can do the tasks
+                for child in agents:
+                    click.echo(f"agent {child.name} exited {child.proc.returncode}:", err=True)
+                    click.echo(child.tail(3), err=True)
+                coordinator.signal(signal.SIGTERM)
             while passed < len(stop_asked):  # each signal on to the coordinator (a second
                 coordinator.signal(stop_asked[passed])  # one stops it at once); it ends the
                 passed += 1  # mission, and the agents follow
@@ -621,6 +628,8 @@ def run_processes(
             child.close()
         for s, handler in previous.items():
             signal.signal(s, handler)
+    if failed:
+        raise ChecksFailed(f"every agent process failed (their output is in {out})")
     return _merge_and_report(mission, out, log_dir, seed, stamp, code, quiet, no_png)
 
 

@@ -16,7 +16,7 @@ import pytest
 from btmission.runtime.bus import Assignment, InMemoryBus
 from btmission.runtime.clock import ScaledWallClock
 from btmission.runtime.distribution import (
-    CLOCK_FOLLOW_S,
+    CLOCK_FOLLOW_WALL_S,
     ClockFollower,
     MergeError,
     merge_logs,
@@ -75,23 +75,30 @@ def test_an_agent_clock_follows_the_coordinators_assignments() -> None:
     link = ClockFollower(bus.agent_link("R1"), clock, lambda was, now: seen.append((was, now)))
     got: list[Assignment] = []
     link.connect(lambda a: None, got.append, lambda a: None)
+    slack = CLOCK_FOLLOW_WALL_S * 10.0
     assert not link.synced
     bus.assign(Assignment(0.0, 1, {"R1": None}, _ann(), sent_s=120.0))
     assert link.synced and abs(clock.now() - 120.0) < 0.5 and len(got) == 1
     assert len(seen) == 1 and seen[0][1] == 120.0
-    # within CLOCK_FOLLOW_S: left alone (no jumps from message latency)
-    bus.assign(Assignment(0.0, 2, {"R1": None}, _ann(), sent_s=clock.now() + CLOCK_FOLLOW_S / 2))
+    # ahead by less than the slack: left alone (no jumps from message latency)
+    bus.assign(Assignment(0.0, 2, {"R1": None}, _ann(), sent_s=clock.now() + slack / 2))
     assert len(seen) == 1
-    # a coordinator restarted on another clock: followed
-    bus.assign(Assignment(0.0, 3, {"R1": None}, _ann(), sent_s=50.0))
-    assert len(seen) == 2 and abs(clock.now() - 50.0) < 0.5
-    assert link.agent == "R1" and link.up
+    # an assignment that waited in the mailbox (older than the clock): never set back
+    bus.assign(Assignment(0.0, 3, {"R1": None}, _ann(), sent_s=clock.now() - 5.0))
+    assert len(seen) == 1 and clock.now() > 120.0
+    # behind by more than the slack: set forward
+    bus.assign(Assignment(0.0, 4, {"R1": None}, _ann(), sent_s=clock.now() + 3 * slack))
+    assert len(seen) == 2 and seen[1][1] - seen[1][0] > 2 * slack
+    # a coordinator of another epoch (restarted on another clock): followed, back too
+    bus.assign(Assignment(0.0, 1, {"R1": None}, _ann(epoch=7), sent_s=50.0))
+    assert len(seen) == 3 and abs(clock.now() - 50.0) < 0.5
+    assert link.agent == "R1" and link.up and len(got) == 5
 
 
-def _ann() -> Any:
+def _ann(epoch: int = 0) -> Any:
     from btmission.allocation.auction import Announcement
 
-    return Announcement()
+    return Announcement(epoch=epoch)
 
 
 def test_backends_and_time_scale_are_replaced_for_one_process() -> None:
@@ -99,6 +106,11 @@ def test_backends_and_time_scale_are_replaced_for_one_process() -> None:
     out = with_backends(m, {"R2": "mavlink+udp://127.0.0.1:15000"}, 3.0)
     assert [a.backend for a in out.agents] == [m.agents[0].backend, "mavlink+udp://127.0.0.1:15000"]
     assert out.spec.runtime.mavlink.time_scale == 3.0 and m.spec.runtime.mavlink.time_scale == 5
+    assert not out.spec.runtime.mavlink.map_sensors  # MAVLink agents: as the mission says
+    sim = load_mission(ROOT / "missions" / "mine_inspection.yaml")
+    flown = with_backends(sim, {"R1": "mavlink+udp://127.0.0.1:15001"}, None)
+    assert flown.spec.runtime.mavlink.map_sensors  # a simulator agent keeps its LiDAR
+    assert flown.spec.runtime.mavlink.time_scale == sim.spec.runtime.mavlink.time_scale
     assert remote_bid_window(1.0, 5.0) == 0.5 and remote_bid_window(10.0, 4.0) == 1.0
 
 

@@ -85,12 +85,21 @@ def with_backends(
 ) -> Mission:
     """``mission`` with these agents' ``backend`` replaced (``btmission agent --backend``: the
     MAVLink vehicle that serves an agent of a simulator mission) and, if given, its
-    ``runtime.mavlink.time_scale``."""
+    ``runtime.mavlink.time_scale``. A simulator agent given a MAVLink vehicle keeps its sensors:
+    ``runtime.mavlink.map_sensors`` is turned on (LiDAR and camera from the mission map at the
+    pose the vehicle reports, as the simulator gave them)."""
+    from btmission.backends.provider import scheme_of
+
     agents = [replace(a, backend=backends.get(a.id, a.backend)) for a in mission.agents]
     spec = mission.spec
+    rt = spec.runtime
+    update: dict[str, Any] = {}
     if time_scale is not None:
-        rt = spec.runtime
-        mav = rt.mavlink.model_copy(update={"time_scale": float(time_scale)})
+        update["time_scale"] = float(time_scale)
+    if any(scheme_of(a.backend) == "sim" and a.id in backends for a in mission.agents):
+        update["map_sensors"] = True
+    if update:
+        mav = rt.mavlink.model_copy(update=update)
         spec = spec.model_copy(update={"runtime": rt.model_copy(update={"mavlink": mav})})
     return replace(mission, agents=agents, spec=spec)
 
@@ -133,17 +142,23 @@ def remote_bid_window(period_s: float, time_scale: float) -> float:
     return min(0.5 * period_s, REMOTE_BID_WINDOW_WALL_S * time_scale)
 
 
-CLOCK_FOLLOW_S = 0.5
-"""An agent's clock is set to its coordinator's when they differ by more than this (its first
-announcement; a coordinator restarted with another clock)."""
+CLOCK_FOLLOW_WALL_S = 0.1
+"""An agent's clock is set forward to its coordinator's when it is behind by more than this much
+wall time (times the clock's speed-up, in mission seconds)."""
 
 
 class ClockFollower(ForwardingAgentLink):
     """An agent's link whose coordinator's assignments (their ``sent_s``, the coordinator's
     clock when it sent them: one every round) set the agent process's mission clock
-    (``set_now``) when it is more than :data:`CLOCK_FOLLOW_S` off: an agent process started or
-    restarted at any time runs on its coordinator's mission time. Everything else goes to the
-    wrapped link (and what this class does not define, e.g. ``dispatch``, to it as well)."""
+    (``set_now``): an agent process started or restarted at any time runs on its
+    coordinator's mission time.
+
+    An assignment arrives after it was sent, so the coordinator's clock is at least its
+    ``sent_s`` when it is read: the agent's clock is set forward when it is behind by more than
+    :data:`CLOCK_FOLLOW_WALL_S` of wall time, never back for an assignment that merely waited
+    (a backlog after a busy step) — except the first one, and the first of a coordinator of
+    another epoch (one restarted on another clock). Everything else goes to the wrapped link
+    (and what this class does not define, e.g. ``dispatch``, to it as well)."""
 
     def __init__(
         self, link: AgentLink, clock: SettableClock, on_set: Callable[[float, float], None]
@@ -152,23 +167,27 @@ class ClockFollower(ForwardingAgentLink):
         self._clock = clock
         self._on_set = on_set
         self.synced = False
+        self._epoch: int | None = None
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.inner, name)
 
-    def _follow(self, t: float) -> None:
+    def _follow(self, t: float, epoch: int) -> None:
         now = self._clock.now()
-        if not self.synced or abs(now - t) > CLOCK_FOLLOW_S:
+        slack = CLOCK_FOLLOW_WALL_S * self._clock.scale
+        anew = not self.synced or epoch != self._epoch
+        if (anew and abs(now - t) > slack) or t - now > slack or not self.synced:
             self._clock.set_now(t)
-            self.synced = True
             self._on_set(now, t)
+        self.synced = True
+        self._epoch = epoch
 
     def connect(
         self, on_announcement: OnAnnouncement, on_assignment: OnAssignment, on_ack: OnAck
     ) -> None:
         def assigned(msg: Assignment) -> None:
             if msg.sent_s is not None:
-                self._follow(msg.sent_s)
+                self._follow(msg.sent_s, msg.announcement.epoch)
             on_assignment(msg)
 
         self.inner.connect(on_announcement, assigned, on_ack)
@@ -178,6 +197,9 @@ class SettableClock(Protocol):
     def now(self) -> float: ...
 
     def set_now(self, t: float) -> None: ...
+
+    @property
+    def scale(self) -> float: ...
 
 
 # ---------------------------------------------------------------------------------- the logs

@@ -165,7 +165,9 @@ class MissionRun:
         from btmission.planning.risk import RiskParams
         from btmission.world.build import world_from_spec
 
-        problems = run_problems(mission)  # the checks `validate` makes too
+        problems = run_problems(  # the checks `validate` makes too (the vehicles: this part's)
+            mission, agents=part.agents if part is not None else None
+        )
         if problems:
             raise SpecError(problems)
         self.substitutions = Substitutions.of(substitutions)

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import difflib
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 from btmission.diagnostics import Diagnostic, Location, Severity
@@ -193,11 +193,12 @@ def library_problems(mission: Mission) -> list[Diagnostic]:
     return out
 
 
-def backend_problems(mission: Mission) -> list[Diagnostic]:
+def backend_problems(mission: Mission, agents: Collection[str] | None = None) -> list[Diagnostic]:
     """Agents whose ``backend:`` no installed vehicle provider serves (its URL scheme is not in
     the ``btmission.providers`` entry-point group), and fleets that mix providers: a run has one
-    clock, and simulated time cannot be mixed with the wall clock. Entry points are looked up,
-    not loaded (:mod:`btmission.backends.provider`)."""
+    clock, and simulated time cannot be mixed with the wall clock. ``agents``: those one process
+    of a distributed run flies (the others' vehicles are another process's). Entry points are
+    looked up, not loaded (:mod:`btmission.backends.provider`)."""
     from btmission.backends.provider import installed_providers, scheme_of, unknown_scheme_message
 
     installed = list(installed_providers())
@@ -213,10 +214,11 @@ def backend_problems(mission: Mission) -> list[Diagnostic]:
         if scheme not in installed:
             refuse(i, "unknown-backend",
                    f"backend '{agent.backend}': {unknown_scheme_message(scheme, installed)}")  # fmt: skip
-    if out or not mission.agents:
+    here = [(i, a) for i, a in enumerate(mission.agents) if agents is None or a.id in agents]
+    if out or not here:
         return out
-    first = mission.agents[0]
-    for i, agent in enumerate(mission.agents):
+    first = here[0][1]
+    for i, agent in here:
         if scheme_of(agent.backend) != scheme_of(first.backend):
             refuse(i, "mixed-backends",
                    f"backend '{agent.backend}': agent '{first.id}' uses '{first.backend}'; "
@@ -226,10 +228,15 @@ def backend_problems(mission: Mission) -> list[Diagnostic]:
     return out
 
 
-def run_problems(mission: Mission, *, abstract_ok: bool = False) -> list[Diagnostic]:
+def run_problems(
+    mission: Mission, *, abstract_ok: bool = False, agents: Collection[str] | None = None
+) -> list[Diagnostic]:
     """Everything that stops a loaded mission from running (module docstring); ``abstract_ok``
-    as in :func:`implementation_problems` (``validate`` passes True)."""
-    out = backend_problems(mission) + implementation_problems(mission, abstract_ok=abstract_ok)
+    as in :func:`implementation_problems` (``validate`` passes True); ``agents`` as in
+    :func:`backend_problems`."""
+    out = backend_problems(mission, agents) + implementation_problems(
+        mission, abstract_ok=abstract_ok
+    )
     if not out:
         out.extend(library_problems(mission))
     settings = mission.spec.runtime.settings
