@@ -88,7 +88,10 @@ class FileMap(_Strict):
 
 
 def _map_kind(v: Any) -> str:
-    return "File" if isinstance(v, dict) and "file" in v else "Generated"
+    """The tag of a ``map``: a mapping while validating, a model while serialising."""
+    return (
+        "File" if isinstance(v, FileMap) or (isinstance(v, dict) and "file" in v) else "Generated"
+    )
 
 
 class GeodeticSpec(_Strict):
