@@ -11,9 +11,8 @@ from types import ModuleType
 import numpy as np
 import pytest
 
-from btmission.runtime.events import JsonlEventLog
 from btmission.runtime.report import report_from_log, report_json
-from btmission.runtime.runner import MissionRun
+from btmission.runtime.session import RunSession
 from btmission.spec.mission import load_mission
 from btmission.world.checks import check_mission_world
 from btmission.world.io import load_map
@@ -66,10 +65,9 @@ def test_the_mission_has_the_papers_agents_and_tasks_on_its_map() -> None:
 def test_a_run_is_within_20_percent_of_tables_ii_and_iii(tmp_path: Path) -> None:
     m = load_mission(MISSION)
     log = tmp_path / "field.jsonl"
-    with JsonlEventLog(log) as sink:
-        run = MissionRun(m, controller="track", observers=[sink])
-        result = run.run()
-        run.end(result)
+    with RunSession(MISSION, controller="track", log_path=log) as session:
+        result = session.run()
+    assert result is not None and result.reason == "completed"
     lines = [json.loads(x) for x in log.read_text().splitlines()]
     # every task done exactly once, by the agent of Table III
     done = [e for e in lines if e["ev"] == "task" and e["state"] == "done"]
