@@ -140,12 +140,14 @@ runtime:
     lidar_range_m: 1.5
     dust_points: 2
     detection_noise_px: 0
+    max_speed_m_s: 0.2
     artifacts: [{label: survivor, position: [9, 5, 2], size_m: 0.6}]
 """,
         "m.yaml",
     )
     config = sim_config(m)
     assert (config.lidar_range_m, config.dust_points, config.detection_noise_px) == (1.5, 2, 0.0)
+    assert config.max_speed_m_s == 0.2
     sensors = MapSensors(
         SimWorld(room(), mission_artifacts(m)),
         config,

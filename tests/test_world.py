@@ -318,6 +318,17 @@ def _walled(tmp_path: Path) -> Path:
     return path
 
 
+def test_file_map_serialises_without_warning(tmp_path: Path) -> None:
+    """A ``{file: ...}`` map dumps as itself (the run log's header), with no pydantic warning."""
+    import warnings
+
+    m = load_mission(_walled(tmp_path))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        world = m.spec.world.model_dump(mode="json")
+    assert world["map"] == {"file": "walls.npz"}
+
+
 def test_check_mission_map_reports_each_problem_with_file_line(tmp_path: Path) -> None:
     m = load_mission(_walled(tmp_path))
     diags = check_mission_world(m)

@@ -676,6 +676,7 @@ def sim_config(mission: Mission) -> SimConfig:
         lidar_range_m=spec.lidar_range_m,
         dust_points=spec.dust_points,
         detection_noise_px=spec.detection_noise_px,
+        max_speed_m_s=spec.max_speed_m_s,
     )
 
 

@@ -88,7 +88,10 @@ class FileMap(_Strict):
 
 
 def _map_kind(v: Any) -> str:
-    return "File" if isinstance(v, dict) and "file" in v else "Generated"
+    """The tag of a ``map``: a mapping while validating, a model while serialising."""
+    return (
+        "File" if isinstance(v, FileMap) or (isinstance(v, dict) and "file" in v) else "Generated"
+    )
 
 
 class GeodeticSpec(_Strict):
@@ -351,6 +354,12 @@ class SimSpec(_Strict):
     )
     detection_noise_px: FiniteFloat = Field(
         2.0, ge=0, description="Standard deviation of artifact detection boxes (pixels)."
+    )
+    max_speed_m_s: FiniteFloat = Field(
+        3.0,
+        gt=0,
+        description="Horizontal speed limit of the simulated autopilot's position and velocity"
+        " loops (m/s, PX4 MPC_XY_VEL_MAX); the NMPC's attitude setpoints are not limited.",
     )
     artifacts: list[ArtifactSpec] = Field(
         default_factory=list, description="Objects the simulated camera can detect (COMPRA)."
