@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from btmission.control.examples import head_on
+from btmission.control.scenes import box_distance, shelf_outline
 from btmission.control.unicycle_nmpc import (
     UnicycleConfig,
     UnicycleNmpc,
@@ -23,28 +24,6 @@ R_OBS = 0.3
 R_STATIC = 0.3
 SHELF = (1.5, 2.5, 0.1, 1.1)
 """x0, x1, y0, y1 of a 1 m shelf whose corner the straight line y = 0 passes 0.1 m from."""
-
-
-def outline(x0: float, x1: float, y0: float, y1: float, step: float = 0.05) -> np.ndarray:
-    """Points every ``step`` along a rectangle's sides (what a LiDAR sees of a shelf)."""
-    xs = np.arange(x0, x1 + 1e-9, step)
-    ys = np.arange(y0, y1 + 1e-9, step)
-    return np.vstack(
-        [
-            np.column_stack([xs, np.full_like(xs, y0)]),
-            np.column_stack([xs, np.full_like(xs, y1)]),
-            np.column_stack([np.full_like(ys, x0), ys]),
-            np.column_stack([np.full_like(ys, x1), ys]),
-        ]
-    )
-
-
-def box_distance(p: np.ndarray, box: tuple[float, float, float, float]) -> float:
-    """Exact distance from ``p`` to the filled rectangle (0 inside)."""
-    x0, x1, y0, y1 = box
-    dx = max(x0 - p[0], 0.0, p[0] - x1)
-    dy = max(y0 - p[1], 0.0, p[1] - y1)
-    return math.hypot(dx, dy)
 
 
 def drive_past_shelf(
@@ -73,7 +52,7 @@ def test_shelf_corner_is_kept_at_the_safety_distance() -> None:
     """The straight line to the way-point passes 0.1 m from a shelf's corner: with the shelf's
     outline as obstacle points the robot swings round it at ≥ r_static (0.3 m) to the shelf
     itself (not only to the sampled points) and still reaches the way-point."""
-    x, closest, violations = drive_past_shelf(outline(*SHELF))
+    x, closest, violations = drive_past_shelf(shelf_outline(*SHELF))
     assert closest >= R_STATIC
     assert max(violations) <= UnicycleConfig().violation_tol_m
     assert np.linalg.norm(x[:2] - [4.0, 0.0]) < 0.1
@@ -90,7 +69,7 @@ def test_robots_pass_head_on_in_an_aisle_between_shelves() -> None:
     """Eq. 12 and the safe corridor together: two robots meet head-on in a 1.6 m aisle between
     two shelves; they pass each other at ≥ r_obs and keep ≥ r_static from both shelves."""
     lower, upper = (-1.0, 5.0, -1.8, -0.8), (-1.0, 5.0, 0.8, 1.8)
-    shelves = np.vstack([outline(*lower), outline(*upper)])
+    shelves = np.vstack([shelf_outline(*lower), shelf_outline(*upper)])
     cfg = UnicycleConfig(v_min=0.0, q_heading=0.5)
     a, b = UnicycleNmpc(cfg), UnicycleNmpc(cfg)
     xa, xb = np.array([0.0, -0.05, 0.0]), np.array([4.0, 0.05, math.pi])
