@@ -18,7 +18,8 @@ Path following (seed 000 §IV-C3, seed 002 §3.2.2-3.2.3, seed 003 §VI):
              with the adaptive position weight of eq. 4 from the APF's raw repulsion) → attitude
              and thrust setpoints; ground robot: the seed 003 unicycle NMPC
              (:class:`~btmission.control.unicycle_nmpc.UnicycleNmpc`, eq. 11-12) with the other
-             robots' shared predictions → [u_v, u_ω].
+             robots' shared predictions and a safe corridor from the LiDAR points at the
+             robot's height (shelves, walls) → [u_v, u_ω].
    ``track`` multirotor: a position + velocity setpoint that the autopilot's own cascaded
              controller tracks (what PX4 does with offboard position setpoints); ground robot:
              pure pursuit of the carrot. Much cheaper: for large fleets.
@@ -43,6 +44,11 @@ CONTROLLERS = ("nmpc", "track")
 KEEP_RIGHT_M = 1.2
 """A robot this close in front makes a ground robot keep to the right (NMPC)."""
 KEEP_RIGHT_OFFSET_M = 0.5
+GROUND_OBSTACLE_BAND_M = (0.05, 0.35)
+"""LiDAR points between these heights above a ground robot's base are obstacles for its NMPC
+(the floor is below; a TurtleBot-sized body, 0.3 m across, below the top)."""
+SHARED_BODY_M = 0.35
+"""LiDAR points this close (x-y) to another robot's shared position are that robot."""
 PROGRESS_M = 0.1
 """Progress along a route counts when the distance left shrinks by this much."""
 SETTLED_M_S = 0.5
@@ -705,6 +711,23 @@ class Navigator:
                 return goal + KEEP_RIGHT_OFFSET_M * right
         return goal
 
+    def _static_points(self, tel: Telemetry, shared: Sequence[FloatArray]) -> FloatArray:
+        """The LiDAR's points at the robot's height, in world x-y, for the ground NMPC's safe
+        corridor: floor returns and the points on the other robots that share their
+        predictions (eq. 12 keeps clear of those) are left out. (0, 2) without sensors."""
+        if self.sensors is None:
+            return np.zeros((0, 2))
+        pts = np.asarray(self.sensors.lidar(), dtype=float).reshape(-1, 3)
+        lo, hi = GROUND_OBSTACLE_BAND_M
+        pts = pts[(pts[:, 2] > lo) & (pts[:, 2] < hi)]
+        if len(pts) == 0:
+            return np.zeros((0, 2))
+        world = yaw_frame_to_world(pts, tel.yaw)[:, :2] + tel.position[:2]
+        for other in shared:
+            near = np.hypot(*(world - other[0, :2]).T) < SHARED_BODY_M
+            world = world[~near]
+        return np.unique(np.round(world, 3), axis=0)
+
     def _drive(self, now: float, tel: Telemetry, goal: FloatArray | None) -> None:
         """[u_v, u_ω] towards ``goal`` (None: stop), streamed as a velocity setpoint."""
         psi = tel.yaw
@@ -721,7 +744,12 @@ class Navigator:
                 target = x[:2] if goal is None else self._keep_right(x, goal, shared)
                 d = target - x[:2]
                 heading = math.atan2(d[1], d[0]) if float(np.hypot(*d)) > 0.05 else x[2]
-                res = self._uni.solve(x, np.array([target[0], target[1], heading]), others)
+                res = self._uni.solve(
+                    x,
+                    np.array([target[0], target[1], heading]),
+                    others,
+                    obstacles=self._static_points(tel, shared),
+                )
                 self.solve_times.append(res.solve_time_s)
                 self._uni_u = res.u
                 self.prediction = res.predicted_positions
