@@ -128,20 +128,24 @@ def safe_halfspaces(
         return out
     rel = o[None, :, :] - c[:, None, :]  # (M, P, 2)
     dist = np.sqrt((rel**2).sum(axis=2))
-    for j in range(len(c)):
-        near = np.flatnonzero((dist[j] <= query_radius) & (dist[j] > 1e-9))
-        if len(near) == 0:
-            continue
-        near = near[np.argsort(dist[j, near])]
-        cand = o[near]
-        for k in range(max_halfspaces):
-            if len(cand) == 0:
-                break
-            closest = cand[0]
-            d = closest - c[j]
-            n = d / float(np.hypot(d[0], d[1]))
-            out[j, k] = (n[0], n[1], float(n @ closest) - r_static)
-            cand = cand[cand @ n < float(n @ closest) - 1e-9]  # the rest are behind the plane
+    used = dist.min(axis=0) <= query_radius  # near some step: the rest never count
+    o, rel, dist = o[used], rel[:, used], dist[:, used]
+    if len(o) == 0:
+        return out
+    dist[(dist > query_radius) | (dist <= 1e-9)] = np.inf  # not candidates
+    rows = np.arange(len(c))
+    for k in range(max_halfspaces):  # every step's greedy construction at once
+        idx = np.argmin(dist, axis=1)
+        d = dist[rows, idx]
+        live = np.isfinite(d)
+        if not live.any():
+            break
+        n = rel[rows, idx] / np.where(live, d, 1.0)[:, None]
+        edge = (n * o[idx]).sum(axis=1)  # n_kᵀ o_k
+        out[live, k, :2] = n[live]
+        out[live, k, 2] = edge[live] - r_static
+        behind = (o @ n.T).T >= edge[:, None] - 1e-9  # covered by this plane (o_k included)
+        dist[behind & live[:, None]] = np.inf
     return out
 
 
