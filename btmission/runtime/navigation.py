@@ -295,6 +295,26 @@ def track_unicycle(
     return float(np.clip(uv, 0.0, v_max)), uw
 
 
+def ground_obstacle_points(
+    points: ArrayLike, position: ArrayLike, yaw: float, others: Sequence[ArrayLike] = ()
+) -> FloatArray:
+    """A ground robot's LiDAR points (yaw frame, relative to its base at ``position``) as world
+    x-y obstacle points for its NMPC's safe corridor: only those between the heights of
+    :data:`GROUND_OBSTACLE_BAND_M` (no floor; what the body can touch), less those within
+    :data:`SHARED_BODY_M` of an ``others`` position (robots that share their predictions: eq. 12
+    keeps clear of them), rounded to the millimetre and de-duplicated."""
+    pts = np.asarray(points, dtype=float).reshape(-1, 3)
+    lo, hi = GROUND_OBSTACLE_BAND_M
+    pts = pts[(pts[:, 2] > lo) & (pts[:, 2] < hi)]
+    if len(pts) == 0:
+        return np.zeros((0, 2))
+    world = yaw_frame_to_world(pts, yaw)[:, :2] + np.asarray(position, dtype=float)[:2]
+    for other in others:
+        o = np.asarray(other, dtype=float)[:2]
+        world = world[np.hypot(world[:, 0] - o[0], world[:, 1] - o[1]) >= SHARED_BODY_M]
+    return np.unique(np.round(world, 3), axis=0)
+
+
 class Navigator:
     """One agent's motion layer (module docstring). Call :meth:`step` every control period."""
 
@@ -712,21 +732,13 @@ class Navigator:
         return goal
 
     def _static_points(self, tel: Telemetry, shared: Sequence[FloatArray]) -> FloatArray:
-        """The LiDAR's points at the robot's height, in world x-y, for the ground NMPC's safe
-        corridor: floor returns and the points on the other robots that share their
-        predictions (eq. 12 keeps clear of those) are left out. (0, 2) without sensors."""
+        """The ground NMPC's obstacle points (:func:`ground_obstacle_points`) from the LiDAR;
+        (0, 2) without sensors."""
         if self.sensors is None:
             return np.zeros((0, 2))
-        pts = np.asarray(self.sensors.lidar(), dtype=float).reshape(-1, 3)
-        lo, hi = GROUND_OBSTACLE_BAND_M
-        pts = pts[(pts[:, 2] > lo) & (pts[:, 2] < hi)]
-        if len(pts) == 0:
-            return np.zeros((0, 2))
-        world = yaw_frame_to_world(pts, tel.yaw)[:, :2] + tel.position[:2]
-        for other in shared:
-            near = np.hypot(*(world - other[0, :2]).T) < SHARED_BODY_M
-            world = world[~near]
-        return np.unique(np.round(world, 3), axis=0)
+        return ground_obstacle_points(
+            self.sensors.lidar(), tel.position, tel.yaw, [o[0, :2] for o in shared]
+        )
 
     def _drive(self, now: float, tel: Telemetry, goal: FloatArray | None) -> None:
         """[u_v, u_ω] towards ``goal`` (None: stop), streamed as a velocity setpoint."""
