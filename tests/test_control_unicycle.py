@@ -27,7 +27,7 @@ SHELF = (1.5, 2.5, 0.1, 1.1)
 
 
 def drive_past_shelf(
-    obstacles: np.ndarray | None, steps: int = 160
+    obstacles: np.ndarray | None, steps: int = 160, shelf: tuple[float, float, float, float] = SHELF
 ) -> tuple[np.ndarray, float, list[float]]:
     """A forward-only robot (as the navigator runs it) from the origin to (4, 0), the way-point
     straight ahead; returns the final state, the closest approach to SHELF and the static
@@ -44,7 +44,7 @@ def drive_past_shelf(
         assert r.success
         violations.append(r.static_violation_m)
         x = unicycle_step(x, r.u, 0.1)
-        closest = min(closest, box_distance(x, SHELF))
+        closest = min(closest, box_distance(x, shelf))
     return x, closest, violations
 
 
@@ -63,6 +63,18 @@ def test_without_the_corridor_it_would_clip_the_shelf() -> None:
     x, closest, _ = drive_past_shelf(None)
     assert closest < 0.15
     assert np.linalg.norm(x[:2] - [4.0, 0.0]) < 0.1
+
+
+def test_a_shelf_across_the_path_stops_the_robot_at_the_safety_distance() -> None:
+    """A shelf straight across the line to the way-point: the robot stops in front of it at
+    ≥ r_static (finding a way round is the planner's job: a local minimum of the tracking cost);
+    without the corridor it drives through the shelf."""
+    across = (1.5, 2.5, -0.4, 0.6)
+    x, closest, _ = drive_past_shelf(shelf_outline(*across), steps=80, shelf=across)
+    assert closest >= R_STATIC
+    assert x[0] < across[0]  # still in front of it
+    _, closest, _ = drive_past_shelf(None, steps=80, shelf=across)
+    assert closest == 0.0  # inside it
 
 
 def test_robots_pass_head_on_in_an_aisle_between_shelves() -> None:
