@@ -79,6 +79,7 @@ def test_bench_control_nmpc_compares_both_solvers(tmp_path: Path) -> None:
         ("nmpc (MAV, N=20)", "ipopt"),
         ("nmpc (unicycle, N=50)", "fatrop"),
         ("nmpc (unicycle, N=50)", "ipopt"),
+        ("nmpc (unicycle, N=50, shelves)", "fatrop"),
     ]
     assert rows[0].runs == 8 and rows[2].runs == 8  # 4 steps × 2 robots
     assert rows[0].met is not None and rows[2].met is None  # targets only for the MAV NMPC

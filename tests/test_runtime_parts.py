@@ -14,7 +14,7 @@ from btmission.planning.dstar import Planner
 from btmission.planning.risk import CostMap, RiskParams
 from btmission.runtime.bus import InMemoryBus
 from btmission.runtime.events import Recorder
-from btmission.runtime.navigation import Polyline
+from btmission.runtime.navigation import Polyline, ground_obstacle_points
 from btmission.runtime.paths import PathCosts, inflate
 from btmission.runtime.runner import MissionRun
 from btmission.spec.mission import load_mission_text
@@ -111,6 +111,25 @@ def test_bus_predictions_are_shifted_and_ordered() -> None:
         2,
     )
     assert [len(p) for p in bus.predictions("A", 0.0, 0.1)] == [1]  # never one's own
+
+
+def test_ground_obstacle_points_keep_what_the_robot_can_hit() -> None:
+    """The ground NMPC's obstacle points from a LiDAR scan (yaw frame, relative to the base):
+    a shelf face at the body's height is kept (rotated into the world), the floor, a shelf
+    edge above the body and the points on a robot that shares its predictions are not."""
+    body = [
+        [1.0, 0.0, 0.125],  # shelf face 1 m ahead, at the robot's height
+        [1.0, 0.0, 0.125],  # the same point twice
+        [0.5, 0.5, 0.0],  # floor
+        [1.0, 0.0, 0.625],  # the same shelf, above the robot
+        [0.0, 1.0, 0.15],  # on another robot, 1 m to the left
+        [0.0, 1.1, 0.2],
+    ]
+    pts = ground_obstacle_points(body, [2.0, 3.0, 0.0], math.pi / 2, [[1.0, 3.0]])
+    np.testing.assert_allclose(pts, [[2.0, 4.0]], atol=1e-9)  # ahead = +y at ψ = 90°
+    alone = ground_obstacle_points(body, [2.0, 3.0, 0.0], math.pi / 2)
+    np.testing.assert_allclose(alone, [[0.9, 3.0], [1.0, 3.0], [2.0, 4.0]], atol=1e-9)
+    assert ground_obstacle_points(np.zeros((0, 3)), [0.0, 0.0, 0.0], 0.0).shape == (0, 2)
 
 
 def test_warehouse_world() -> None:

@@ -9,7 +9,9 @@ geometric inputs (:mod:`btmission.control.scenes`):
   and z), warm-started as in flight. Every solve's wall time (the CasADi call, perf_counter) is
   kept; median, p99 and max are reported for **fatrop** and **ipopt** on the *same* NLP, side by
   side. Issue target: median ≤ 3 ms and p99 ≤ 15 ms. Also timed: the ground-robot NMPC (seed 003,
-  N = 50, one other agent) in the head-on scenario of the tests (report only, no target).
+  N = 50, one other agent) in the head-on scenario of the tests, and (fatrop) the same pair
+  meeting in a 1.6 m aisle between two shelves, with the safe corridor on (report only, no
+  target).
 * **apf** — :meth:`PotentialField.step` (eq. 3 + Alg. 1) on a 30,000-point VLP-16-like scan
   (16 rings × 1,875 azimuths) taken 0.5 m off the centre of a 3 m corridor, ``repeat`` times.
   Target: median ≤ 1 ms.
@@ -116,8 +118,18 @@ def time_nmpc(solver: str, steps: int = 200) -> tuple[list[float], int, float, f
     return times, failures, build, float(np.linalg.norm(x[:3] - goal))
 
 
-def time_unicycle(solver: str, steps: int = 100) -> tuple[list[float], int, float]:
-    """Two ground robots head-on (seed 003): (per-solve times s, failures, closest distance m)."""
+AISLE_SHELVES = ((-1.0, 5.0, -1.8, -0.8), (-1.0, 5.0, 0.8, 1.8))
+"""Two shelves (x0, x1, y0, y1) with a 1.6 m aisle between them along y = 0."""
+
+
+def time_unicycle(
+    solver: str, steps: int = 100, shelves: bool = False
+) -> tuple[list[float], int, float]:
+    """Two ground robots head-on (seed 003): (per-solve times s, failures, closest distance m).
+
+    ``shelves``: they meet in the aisle between :data:`AISLE_SHELVES`, whose outlines (points
+    every 5 cm) are the obstacle points of the safe corridor."""
+    from btmission.control.scenes import shelf_outline
     from btmission.control.unicycle_nmpc import (
         UnicycleConfig,
         UnicycleNmpc,
@@ -130,12 +142,13 @@ def time_unicycle(solver: str, steps: int = 100) -> tuple[list[float], int, floa
     n = cfg.horizon
     xa, xb = np.array([0.0, 0.05, 0.0]), np.array([4.0, 0.0, math.pi])
     pa, pb = np.tile(xa[:2], (n + 1, 1)), np.tile(xb[:2], (n + 1, 1))
+    points = np.vstack([shelf_outline(*box) for box in AISLE_SHELVES]) if shelves else None
     times: list[float] = []
     failures = 0
     closest = math.inf
     for _ in range(steps):
-        ra = a.solve(xa, [4.0, 0.05], [shift_prediction(pb)])
-        rb = b.solve(xb, [0.0, 0.0], [shift_prediction(pa)])
+        ra = a.solve(xa, [4.0, 0.05], [shift_prediction(pb)], obstacles=points)
+        rb = b.solve(xb, [0.0, 0.0], [shift_prediction(pa)], obstacles=points)
         times += [ra.solve_time_s, rb.solve_time_s]
         failures += (not ra.success) + (not rb.success)
         pa, pb = ra.predicted_positions, rb.predicted_positions
@@ -261,6 +274,10 @@ def run_control_benchmark(
             note = f"{ufail} failed, closest approach {closest:.3f} m (r_obs 0.3 m)"
             emit(_summary("nmpc (unicycle, N=50)", solver, utimes, None, None, note))
             notes.append(f"unicycle {solver}: {note}")
+        utimes, ufail, closest = time_unicycle("fatrop", max(steps // 2, 1), shelves=True)
+        note = f"{ufail} failed, closest approach {closest:.3f} m (r_obs 0.3 m)"
+        emit(_summary("nmpc (unicycle, N=50, shelves)", "fatrop", utimes, None, None, note))
+        notes.append(f"unicycle fatrop in an aisle between shelves: {note}")
     else:
         for line in _table_head():
             echo(line)
@@ -314,7 +331,8 @@ def _markdown(
         "",
         f"Per-call wall time (ms). *nmpc*: every solve of a {steps}-step closed loop (MAV, 20 Hz, "
         "N = 20, warm-started), fatrop and ipopt on the same NLP; the unicycle rows are the "
-        "seed 003 NMPC (N = 50) of two robots passing head-on. *apf*: eq. 3 + Alg. 1 on a "
+        "seed 003 NMPC (N = 50) of two robots passing head-on (*shelves*: in a 1.6 m aisle "
+        "between two shelves, with the safe corridor). *apf*: eq. 3 + Alg. 1 on a "
         "VLP-16-like scan. *dphr*: close + k-means + centroid on a 640×480 depth image. "
         "See `btmission/bench/control.py` for the exact scenarios.",
         "",

@@ -26,8 +26,10 @@ __all__ = [
     "DepthCamera",
     "Tunnel",
     "bending_tunnel",
+    "box_distance",
     "depth_image",
     "lidar_scan",
+    "shelf_outline",
     "straight_corridor",
 ]
 
@@ -46,6 +48,31 @@ class Tunnel:
         starts = np.vstack([self.left[:-1], self.right[:-1]])
         ends = np.vstack([self.left[1:], self.right[1:]])
         return starts, ends - starts
+
+
+def shelf_outline(x0: float, x1: float, y0: float, y1: float, step: float = 0.05) -> FloatArray:
+    """(P, 2) points every ``step`` along the sides of the rectangle [x0, x1] × [y0, y1]: a shelf
+    (or any box) as a planar LiDAR at the robot's height sees it, for the ground NMPC."""
+    xs = np.arange(x0, x1 + 1e-9, step)
+    ys = np.arange(y0, y1 + 1e-9, step)
+    return np.vstack(
+        [
+            np.column_stack([xs, np.full_like(xs, y0)]),
+            np.column_stack([xs, np.full_like(xs, y1)]),
+            np.column_stack([np.full_like(ys, x0), ys]),
+            np.column_stack([np.full_like(ys, x1), ys]),
+        ]
+    )
+
+
+def box_distance(p: ArrayLike, box: tuple[float, float, float, float]) -> float:
+    """Exact distance from the point ``p`` (x, y) to the filled rectangle ``box`` = (x0, x1, y0,
+    y1) (0 inside)."""
+    x0, x1, y0, y1 = box
+    q = np.asarray(p, dtype=float)
+    dx = max(x0 - float(q[0]), 0.0, float(q[0]) - x1)
+    dy = max(y0 - float(q[1]), 0.0, float(q[1]) - y1)
+    return math.hypot(dx, dy)
 
 
 def straight_corridor(

@@ -18,7 +18,8 @@ Path following (seed 000 §IV-C3, seed 002 §3.2.2-3.2.3, seed 003 §VI):
              with the adaptive position weight of eq. 4 from the APF's raw repulsion) → attitude
              and thrust setpoints; ground robot: the seed 003 unicycle NMPC
              (:class:`~btmission.control.unicycle_nmpc.UnicycleNmpc`, eq. 11-12) with the other
-             robots' shared predictions → [u_v, u_ω].
+             robots' shared predictions and a safe corridor from the LiDAR points at the
+             robot's height (shelves, walls) → [u_v, u_ω].
    ``track`` multirotor: a position + velocity setpoint that the autopilot's own cascaded
              controller tracks (what PX4 does with offboard position setpoints); ground robot:
              pure pursuit of the carrot. Much cheaper: for large fleets.
@@ -43,6 +44,11 @@ CONTROLLERS = ("nmpc", "track")
 KEEP_RIGHT_M = 1.2
 """A robot this close in front makes a ground robot keep to the right (NMPC)."""
 KEEP_RIGHT_OFFSET_M = 0.5
+GROUND_OBSTACLE_BAND_M = (0.05, 0.35)
+"""LiDAR points between these heights above a ground robot's base are obstacles for its NMPC
+(the floor is below; a TurtleBot-sized body, 0.3 m across, below the top)."""
+SHARED_BODY_M = 0.35
+"""LiDAR points this close (x-y) to another robot's shared position are that robot."""
 PROGRESS_M = 0.1
 """Progress along a route counts when the distance left shrinks by this much."""
 SETTLED_M_S = 0.5
@@ -287,6 +293,26 @@ def track_unicycle(
     if speed < 1e-6:  # standing reference: approach it, slowing down
         uv = min(uv, 0.8 * dist)
     return float(np.clip(uv, 0.0, v_max)), uw
+
+
+def ground_obstacle_points(
+    points: ArrayLike, position: ArrayLike, yaw: float, others: Sequence[ArrayLike] = ()
+) -> FloatArray:
+    """A ground robot's LiDAR points (yaw frame, relative to its base at ``position``) as world
+    x-y obstacle points for its NMPC's safe corridor: only those between the heights of
+    :data:`GROUND_OBSTACLE_BAND_M` (no floor; what the body can touch), less those within
+    :data:`SHARED_BODY_M` of an ``others`` position (robots that share their predictions: eq. 12
+    keeps clear of them), rounded to the millimetre and de-duplicated."""
+    pts = np.asarray(points, dtype=float).reshape(-1, 3)
+    lo, hi = GROUND_OBSTACLE_BAND_M
+    pts = pts[(pts[:, 2] > lo) & (pts[:, 2] < hi)]
+    if len(pts) == 0:
+        return np.zeros((0, 2))
+    world = yaw_frame_to_world(pts, yaw)[:, :2] + np.asarray(position, dtype=float)[:2]
+    for other in others:
+        o = np.asarray(other, dtype=float)[:2]
+        world = world[np.hypot(world[:, 0] - o[0], world[:, 1] - o[1]) >= SHARED_BODY_M]
+    return np.unique(np.round(world, 3), axis=0)
 
 
 class Navigator:
@@ -705,6 +731,15 @@ class Navigator:
                 return goal + KEEP_RIGHT_OFFSET_M * right
         return goal
 
+    def _static_points(self, tel: Telemetry, shared: Sequence[FloatArray]) -> FloatArray:
+        """The ground NMPC's obstacle points (:func:`ground_obstacle_points`) from the LiDAR;
+        (0, 2) without sensors."""
+        if self.sensors is None:
+            return np.zeros((0, 2))
+        return ground_obstacle_points(
+            self.sensors.lidar(), tel.position, tel.yaw, [o[0, :2] for o in shared]
+        )
+
     def _drive(self, now: float, tel: Telemetry, goal: FloatArray | None) -> None:
         """[u_v, u_ω] towards ``goal`` (None: stop), streamed as a velocity setpoint."""
         psi = tel.yaw
@@ -721,7 +756,12 @@ class Navigator:
                 target = x[:2] if goal is None else self._keep_right(x, goal, shared)
                 d = target - x[:2]
                 heading = math.atan2(d[1], d[0]) if float(np.hypot(*d)) > 0.05 else x[2]
-                res = self._uni.solve(x, np.array([target[0], target[1], heading]), others)
+                res = self._uni.solve(
+                    x,
+                    np.array([target[0], target[1], heading]),
+                    others,
+                    obstacles=self._static_points(tel, shared),
+                )
                 self.solve_times.append(res.solve_time_s)
                 self._uni_u = res.u
                 self.prediction = res.predicted_positions
