@@ -265,12 +265,13 @@ def test_mine_inspection_seed_000_field_mission(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_warehouse_under_the_ground_nmpc_keeps_clear_of_shelves_and_robots(seed: int) -> None:
+def test_warehouse_under_the_ground_nmpc_keeps_clear_of_shelves_and_robots() -> None:
     """Seed 003 scenarios 2-3 with the unicycle NMPC: its safe corridor keeps the robots off the
     shelves (no collision, clearance ≥ 0) and eq. 12 keeps them r_obs = 0.3 m apart, less the
     0.04 m seed 003 reports on real robots — checked at every simulator step, not only at the
-    logged poses."""
+    logged poses. One seed: warehouse has no dust and no sensor noise, so seeds 0-3 give the same
+    run, step for step (measured); several seeds need a noise source first (issue #18)."""
+    seed = 0
     m = load_mission(MISSIONS / "warehouse.yaml")
     rec = Recorder()
     run = MissionRun(m, controller="nmpc", seed=seed, observers=[rec])
