@@ -12,7 +12,6 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
-from datetime import datetime
 from pathlib import Path
 from typing import IO, Any
 
@@ -293,7 +292,7 @@ def coordinator_cmd(
     type=NON_NEGATIVE,
     default=60.0,
     show_default=True,
-    help="Wall seconds to wait for the coordinator's first announcement (it sets this process's "
+    help="Wall seconds to wait for the coordinator's first assignment (it sets this process's "
     "mission clock) before the agents start on their own clock.",
 )
 @common_options
@@ -523,7 +522,7 @@ def run_processes(
     coordinator and one process per agent on this machine; their logs merged into one."""
     from btmission.backends.mavlink_url import parse_mavlink_url
     from btmission.backends.provider import scheme_of
-    from btmission.runtime.session import RunSession
+    from btmission.runtime.session import RunSession, log_path_for
 
     _zenoh_or_exit()
     probe = RunSession(mission_file, log_dir=None)
@@ -546,13 +545,10 @@ def run_processes(
                 "(run --processes serves simulator and loopback MAVLink agents with mavsim)"
             )
     scale = speed if speed is not None else mission.spec.runtime.mavlink.time_scale
-    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
-    out = log_dir / f"{mission.name}-{stamp}-seed{seed}-processes"
-    n = 1
-    while out.exists():
-        n += 1
-        out = log_dir / f"{mission.name}-{stamp}-seed{seed}-processes-{n}"
-    out.mkdir(parents=True)
+    log_dir.mkdir(parents=True, exist_ok=True)
+    merged = log_path_for(log_dir, mission.name, seed)  # the merged log; the parts beside it
+    out = merged.with_name(f"{merged.stem}-processes")
+    out.mkdir()
     endpoint = listen or f"tcp/127.0.0.1:{free_port()}"
     me = [sys.executable, "-m", "btmission"]
     common = ["--seed", str(seed), "--speed", f"{scale:g}", "--quiet"]
@@ -630,7 +626,7 @@ def run_processes(
             signal.signal(s, handler)
     if failed:
         raise ChecksFailed(f"every agent process failed (their output is in {out})")
-    return _merge_and_report(mission, out, log_dir, seed, stamp, code, quiet, no_png)
+    return _merge_and_report(mission, out, merged, code, quiet, no_png)
 
 
 class _Progress:
@@ -665,13 +661,11 @@ class _Progress:
 
 
 def _merge_and_report(
-    mission: Any, out: Path, log_dir: Path, seed: int, stamp: str, code: int, quiet: bool,
-    no_png: bool,
-) -> int:  # fmt: skip
+    mission: Any, out: Path, merged: Path, code: int, quiet: bool, no_png: bool
+) -> int:
     from btmission.runtime.events import LogError
     from btmission.runtime.report import format_report, format_warnings, merge_log_files
 
-    merged = log_dir / f"{mission.name}-{stamp}-seed{seed}.jsonl"
     agents = [out / f"{a.id}.jsonl" for a in mission.agents if (out / f"{a.id}.jsonl").exists()]
     try:
         rep = merge_log_files(out / "coordinator.jsonl", agents, merged)
@@ -683,7 +677,7 @@ def _merge_and_report(
         from btmission.cli.run_cmds import _write_pngs
 
         try:
-            for p in _write_pngs(rep, log_dir, merged.stem):
+            for p in _write_pngs(rep, merged.parent, merged.stem):
                 click.echo(f"wrote {p}", err=True)
         except Exception as exc:  # a figure must never hide the report
             click.echo(f"note: could not draw the PNGs ({exc})", err=True)

@@ -15,13 +15,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from tests.mavlink_helpers import free_port
+
 ME = [sys.executable, "-m", "btmission"]
-
-
-def free_port(kind: int = socket.SOCK_STREAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def read_log(path: Path) -> list[dict[str, Any]]:
@@ -56,7 +52,7 @@ class Fleet:
         self.dir = directory
         self.mission = mission
         self.speed = speed
-        self.port = free_port()
+        self.port = free_port(socket.SOCK_STREAM)
         self.endpoint = f"tcp/127.0.0.1:{self.port}"
         self.procs: dict[str, subprocess.Popen[str]] = {}
         self._files: list[Any] = []
@@ -134,7 +130,7 @@ class CuttableProxy:
 
     def __init__(self, target_port: int) -> None:
         self.target = target_port
-        self.port = free_port()
+        self.port = free_port(socket.SOCK_STREAM)
         self._lock = threading.Lock()
         self._conns: list[socket.socket] = []
         self._server: socket.socket | None = None

@@ -5,6 +5,7 @@ each with real processes on 127.0.0.1."""
 from __future__ import annotations
 
 import signal
+import socket
 import subprocess
 import time
 from collections import Counter
@@ -153,7 +154,7 @@ def test_an_existing_log_file_is_never_overwritten(tmp_path: Path) -> None:
 
 
 def test_an_agent_without_its_coordinator_says_so(tmp_path: Path) -> None:
-    port = free_port()
+    port = free_port(socket.SOCK_STREAM)
     out = _cli("agent", str(SMALL), "--id", "R1", "--connect", f"tcp/127.0.0.1:{port}",
                "--log", str(tmp_path))  # fmt: skip
     assert out.returncode == 1, out.stderr
@@ -166,7 +167,7 @@ def _small(tmp: Path) -> str:
     """processes_small on free UDP ports (tests may run side by side)."""
     text = SMALL.read_text()
     for old in ("14660", "14661"):
-        text = text.replace(old, str(free_port(__import__("socket").SOCK_DGRAM)))
+        text = text.replace(old, str(free_port(socket.SOCK_DGRAM)))
     path = tmp / "processes_small.yaml"
     path.write_text(text)
     return str(path)

@@ -14,7 +14,7 @@ given a :class:`Part`:
 * an **agent** process (``btmission agent --id R1``): its agents' trees, navigators and
   vehicles (MAVLink: one ``mavsim`` serves every process's vehicles in one shared world), each
   over its own :class:`~btmission.runtime.bus.AgentLink`; its mission clock follows the
-  coordinator's (set from the first announcement it hears, :class:`ClockFollower`); it ends
+  coordinator's (set from the assignments it hears, :class:`ClockFollower`); it ends
   when the coordinator says the mission is over.
 
 Each process writes its own event log; :func:`merge_logs` makes one log of them for the report.
@@ -66,7 +66,7 @@ class Part:
     resumed_at_s: float = 0.0
     """The mission time of that log's last event."""
     sync_timeout_s: float = 60.0
-    """An agent process waits this long (wall s) for its coordinator's first announcement,
+    """An agent process waits this long (wall s) for its coordinator's first assignment,
     which sets its clock, before its agents start."""
     live_agents: Callable[[], Iterable[str]] | None = None
     """The agents the coordinator's link can reach now (Zenoh's liveliness), for the early end

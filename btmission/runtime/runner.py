@@ -257,6 +257,13 @@ class MissionRun:
         self.coordinator_side = CoordinatorRuntime(self.coordinator, self.services, self.errors)
         self.runs_coordinator = part is None or part.runs_coordinator
         """This process runs the coordinator (one process, or the coordinator's of several)."""
+        self._dispatchers: list[Callable[[float], Any]] = [
+            d
+            for link in (part.agent_links.values() if part is not None else ())
+            if (d := getattr(link, "dispatch", None)) is not None
+        ]
+        """An agent process's links' ``dispatch``: the coordinator's messages, handed to the
+        agents in this (their) thread."""
         if part is not None and part.runs_coordinator:
             self.coordinator.expect = part.live_agents
             if self.coordinator.bid_window_s <= 0:  # bids come back over a network
@@ -454,7 +461,7 @@ class MissionRun:
 
     def _follow_coordinator(self, timeout_s: float) -> None:
         """An agent process: wait (up to ``timeout_s`` of wall time) for its coordinator's
-        first announcement, which sets this process's mission clock to the coordinator's
+        first assignment, which sets this process's mission clock to the coordinator's
         (:class:`~btmission.runtime.distribution.ClockFollower`); the agents' idle timers start
         then. Without one, the run goes on on its own clock (a ``warning`` event)."""
         assert self.part is not None
@@ -465,14 +472,12 @@ class MissionRun:
             if left <= 0:
                 self.emit(
                     "warning",
-                    message=f"no announcement from the coordinator within {timeout_s:g} s: the "
+                    message=f"no assignment from the coordinator within {timeout_s:g} s: the "
                     "agents run on their own clock until one comes",
                 )
                 break
-            for lk in links:
-                dispatch = getattr(lk, "dispatch", None)
-                if dispatch is not None:
-                    dispatch(min(0.1, left))
+            for dispatch in self._dispatchers:
+                dispatch(min(0.1, left))
         now = self.now()
         for a in self.agents.values():
             a.idle_since = now
@@ -730,11 +735,8 @@ class MissionRun:
         self._apply_commands()
         if self.runs_coordinator:
             self.coordinator_side.step(now)
-        if self.part is not None:  # the coordinator's messages, in this (the agents') thread
-            for link in self.part.agent_links.values():
-                dispatch = getattr(link, "dispatch", None)
-                if dispatch is not None:
-                    dispatch(0.0)
+        for dispatch in self._dispatchers:  # the coordinator's messages, to the agents here
+            dispatch(0.0)
         sides = self.agent_sides
         for side in sides:
             side.tick(now)
