@@ -4,6 +4,7 @@ each with real processes on 127.0.0.1."""
 
 from __future__ import annotations
 
+import json
 import signal
 import socket
 import subprocess
@@ -151,6 +152,22 @@ def test_an_existing_log_file_is_never_overwritten(tmp_path: Path) -> None:
     out = _cli("coordinator", str(SMALL), "--log-file", str(log))
     assert out.returncode == 2 and "exists already" in out.stderr
     assert log.read_text() == "keep\n"
+
+
+def test_resume_refuses_a_log_it_cannot_continue(tmp_path: Path) -> None:
+    example = ROOT / "docs" / "examples" / "pick_and_deliver.jsonl"
+    out = _cli("coordinator", str(SMALL), "--resume", str(example))
+    assert out.returncode == 2, out.stderr
+    assert "not a log of processes_small's coordinator (mission 'pick_and_deliver'" in out.stderr
+    lines = [json.loads(line) for line in example.read_text().splitlines()]
+    lines[0].update(mission="processes_small", part="coordinator")
+    ended = tmp_path / "ended.jsonl"
+    ended.write_text("".join(json.dumps(e) + "\n" for e in lines))
+    before = ended.read_bytes()
+    out = _cli("coordinator", str(SMALL), "--resume", str(ended))
+    assert out.returncode == 2, out.stderr
+    assert "that run has ended (completed)" in out.stderr and "Traceback" not in out.stderr
+    assert ended.read_bytes() == before  # nothing written
 
 
 def test_an_agent_without_its_coordinator_says_so(tmp_path: Path) -> None:
