@@ -118,6 +118,49 @@ def control_bench(only: str, steps: int, repeat: int, out: Path) -> None:
     run_control_benchmark(parts, steps=steps, repeat=repeat, out_dir=out, echo=click.echo)
 
 
+@bench.command("paper")
+@click.option(
+    "--only",
+    default="",
+    help="Comma-separated sections to re-run (seed000, seed002, seed003, seed004); the others' "
+    "stored results are kept. [default: all]",
+)
+@click.option(
+    "--quick",
+    is_flag=True,
+    help="Short runs of the same experiments (a smoke test); the page goes to OUT/fidelity.md, "
+    "never over docs/fidelity.md.",
+)
+@output_file_option(
+    "--doc",
+    help="The page to rewrite. [default: docs/fidelity.md if ./docs exists, else OUT/fidelity.md]",
+)
+@out_option("paper/<section>.json and .md (each section's stored result)")
+def paper_bench(only: str, quick: bool, doc: Path | None, out: Path) -> None:
+    """The four seed papers' reported results reproduced side by side (docs/fidelity.md).
+
+    Each section runs btmission's version of one paper's experiment (seed 000's field test,
+    seed 002's COMPRA flights, seed 003's NMPC safety distances, seed 004's dispatch tables),
+    stores its result under OUT/paper/ and the page is rebuilt from every stored section, so
+    one section can be re-run alone. A full run takes tens of minutes on a 2-core machine.
+
+    \b
+    Examples:
+      btmission bench paper                    # every section; rewrites docs/fidelity.md
+      btmission bench paper --only seed000     # one section, the others kept
+      btmission bench paper --quick --out /tmp/paper
+    """
+    from btmission.bench.paper import parse_only, run_paper_benchmark
+
+    try:
+        keys = parse_only(only)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--only") from None
+    if doc is None:
+        doc = Path("docs/fidelity.md") if Path("docs").is_dir() else out / "fidelity.md"
+    run_paper_benchmark(keys, quick=quick, out_dir=out, doc=doc, echo=click.echo)
+
+
 def _names(text: str, known: Sequence[str], name: str, what: str) -> list[str]:
     """The comma-separated ``text`` as a list of names, each one of ``known``."""
     names = [s.strip() for s in text.split(",") if s.strip()]

@@ -20,6 +20,7 @@ runs or hours); its page says it is quick and is never written over docs/fidelit
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import json
 import time
 from collections.abc import Callable, Sequence
@@ -43,7 +44,7 @@ mine, a C# implementation on a desktop PC); btmission runs them in its simulator
 named under each section, so numbers such as solver times are compared for their order, not their
 digits.
 
-This page is generated: `btmission bench paper` re-runs every section (about {minutes} minutes on a
+This page is generated: `btmission bench paper` re-runs every section ({minutes} on a
 2-core machine) and rewrites it; `btmission bench paper --only seed004` re-runs one section and
 keeps the others' stored results (`benchmarks/results/paper/*.json`).
 """
@@ -83,16 +84,25 @@ def section_module(key: str) -> ModuleType:
     return importlib.import_module(f"btmission.bench.paper_{key}")
 
 
+def available() -> list[str]:
+    """The sections whose module this installation has, in page order."""
+    return [k for k in SECTIONS if importlib.util.find_spec(f"btmission.bench.paper_{k}")]
+
+
 def parse_only(only: str) -> list[str]:
-    """``--only`` → section keys in page order; ``ValueError`` names an unknown one."""
+    """``--only`` → section keys in page order (all available ones when empty); ``ValueError``
+    names an unknown or unavailable one."""
     if not only.strip():
-        return list(SECTIONS)
+        return available()
     wanted = [k.strip() for k in only.split(",") if k.strip()]
     unknown = [k for k in wanted if k not in SECTIONS]
     if unknown:
         raise ValueError(
             f"unknown section(s) {', '.join(unknown)}; expected some of {', '.join(SECTIONS)}"
         )
+    missing = [k for k in wanted if k not in available()]
+    if missing:
+        raise ValueError(f"section(s) {', '.join(missing)} not available in this version")
     return [k for k in SECTIONS if k in wanted]
 
 
@@ -141,7 +151,8 @@ def assemble(out: Path) -> str:
             wall_s=float(record.get("wall_s", 0.0)),
         )
         bodies.append(section_markdown(record["title"], result))
-    parts.append(INTRO.format(minutes=max(1, round(total_s / 60))))
+    minutes = max(1, round(total_s / 60))
+    parts.append(INTRO.format(minutes=f"about {minutes} minute{'s' if minutes > 1 else ''}"))
     for body in bodies:
         parts += [body, ""]
     return "\n".join(parts).rstrip() + "\n"
