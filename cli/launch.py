@@ -1,7 +1,7 @@
 """The ``btmission`` console script: start the CLI, quietly even if Ctrl-C comes during start-up.
 
-Importing the commands (numpy, scipy, pydantic, py_trees ...) takes about a second; a Ctrl-C in
-that second would otherwise print a ``KeyboardInterrupt`` traceback. This module imports nothing
+Importing a command (numpy, scipy, pydantic, py_trees ... behind it) takes up to a second; a
+Ctrl-C in that second would otherwise print a ``KeyboardInterrupt`` traceback. This module imports nothing
 heavy itself (``import btmission`` is lazy), so the window before our handling is milliseconds.
 """
 

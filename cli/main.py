@@ -7,30 +7,46 @@ Exit status: 0 ok, 1 checks failed, 2 bad input (unreadable or invalid files, un
 from __future__ import annotations
 
 import errno
+import importlib
 import os
 import sys
+from collections.abc import Iterator
 from typing import Any, NoReturn
 
 import click
+from click.utils import make_default_short_help
 
 from btmission import __version__
-from btmission.cli import (
-    auction_cmds,
-    bench_cmds,
-    console_cmds,
-    control_cmds,
-    dispatch_cmds,
-    library_cmds,
-    map_cmds,
-    mavsim_cmds,
-    mission_cmds,
-    process_cmds,
-    reloc_cmds,
-    run_cmds,
-    synth_cmds,
-    view_cmds,
-)
 from btmission.cli.common import EXIT_BAD_INPUT, EXIT_INTERRUPTED, report_internal_error
+
+COMMANDS: dict[str, tuple[str, str, str]] = {
+    "library": ("library_cmds", "library", "Capability libraries: list, show, check, scaffold a plugin."),
+    "synth": ("synth_cmds", "synth", "Synthesise the behaviour tree that achieves --goal from library REF (name or YAML path)."),
+    "validate": ("mission_cmds", "validate", "Validate a mission file without running it."),
+    "mission": ("mission_cmds", "mission", "Inspect a mission's per-agent trees."),
+    "coordinator": ("process_cmds", "coordinator_cmd", "Run a mission's coordinator: the auction, the task pool and the event log, for agents in other processes or on other machines (btmission agent), over Zenoh."),
+    "agent": ("process_cmds", "agent_cmd", "Run agents of a mission (their trees, bids, navigation and vehicles) in this process, linked to the mission's coordinator (btmission coordinator) over Zenoh."),
+    "schema": ("mission_cmds", "schema", "Print the JSON Schema of a library or mission file, for editor validation."),
+    "bench": ("bench_cmds", "bench", "Run benchmarks; each prints a table and writes it under --out (default benchmarks/results)."),
+    "control": ("control_cmds", "control", "Reactive navigation: NMPC, APF, DPHR and COMPRA exploration (seed 002, seed 003)."),
+    "auction": ("auction_cmds", "auction", "Run one auction round on MISSION (agents at their start positions unless moved)."),
+    "map": ("map_cmds", "map_group", "Voxel maps: generate a mine, show a map (summary and top-view picture)."),
+    "plan": ("map_cmds", "plan_cmd", "Plan the D*+ risk-aware path between two points of a map (seed 000 eq."),
+    "dispatch": ("dispatch_cmds", "dispatch", "GA fleet dispatch for haul trucks on topological mine maps (seed 004)."),
+    "run": ("run_cmds", "run_cmd", "Run a mission and print its report."),
+    "report": ("run_cmds", "report_cmd", "Print the report of a run from its event log (seed 000 Tables III and II)."),
+    "reloc": ("reloc_cmds", "reloc", "Global relocalization: find an agent in the shared map from one LiDAR scan (seed 000 §IV-C1: place descriptors, then coarse-to-fine ICP)."),
+    "mavsim": ("mavsim_cmds", "mavsim", "Simulated MAVLink vehicles for flying missions without hardware."),
+    "view": ("view_cmds", "view_cmd", "Replay a finished run in the browser, from its event log alone."),
+    "task": ("console_cmds", "task_group", "Add, cancel or reprioritise a task of a running mission."),
+    "status": ("console_cmds", "status_cmd", "Show the agents and tasks of the running mission at URL (a table; --json for scripts)."),
+    "fleet": ("console_cmds", "fleet_group", "Recall, exclude or include an agent, cut its link (simulator drills), pause or resume allocation, or stop a running mission (its console at URL; see btmission task)."),
+}  # fmt: skip
+"""Every top-level command: name → (module under ``btmission.cli``, attribute, short help).
+
+A command's module (numpy, pydantic, scipy, py_trees ... behind it) is imported only when the
+command runs or is looked up, so ``btmission --help`` and ``--version`` start in a tenth of a
+second. The short help is the command's own (``get_short_help_str``); a test keeps them equal."""
 
 # An OSError with one of these numbers is the environment refusing (disk full, no permission,
 # read-only file system ...), not a bug: a clear message and exit status 2, no traceback file.
@@ -71,8 +87,83 @@ def _environment_message(exc: OSError, what: str | None = None) -> str:
     return f"{where}: {reason}" if where else reason
 
 
+class _LazyCommands(dict[str, click.Command]):
+    """``Group.commands`` that imports a command's module on first access (see :data:`COMMANDS`).
+
+    A dict of name → command like click's own, so ``cli.commands[name]``, ``.get``, ``.items``
+    and ``.values`` work as before; only the import is deferred."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._pending = dict(COMMANDS)
+
+    def _load(self, name: str) -> click.Command:
+        module, attr, _ = self._pending.pop(name)
+        command = getattr(importlib.import_module(f"btmission.cli.{module}"), attr)
+        assert isinstance(command, click.Command)
+        dict.__setitem__(self, name, command)
+        return command
+
+    def __getitem__(self, name: str) -> click.Command:
+        if name in self._pending:
+            return self._load(name)
+        return dict.__getitem__(self, name)
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._pending or dict.__contains__(self, name)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter([*dict.keys(self), *self._pending])
+
+    def __len__(self) -> int:
+        return dict.__len__(self) + len(self._pending)
+
+    def keys(self) -> Any:
+        return list(self)
+
+    def get(self, name: str, default: Any = None) -> Any:
+        return self[name] if name in self else default
+
+    def values(self) -> Any:
+        return [self[n] for n in list(self)]
+
+    def items(self) -> Any:
+        return [(n, self[n]) for n in list(self)]
+
+    def short_help(self, name: str) -> str | None:
+        """The command's short help without importing it (None once it is loaded)."""
+        spec = self._pending.get(name)
+        return None if spec is None else spec[2]
+
+
 class _Cli(click.Group):
-    """The top-level group; its :meth:`invoke` is btmission's last-resort error handler."""
+    """The top-level group; its :meth:`invoke` is btmission's last-resort error handler.
+
+    Its commands are :class:`_LazyCommands`: ``--help`` lists them from :data:`COMMANDS`
+    without importing any."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.commands = _LazyCommands()
+
+    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        lazy = self.commands
+        assert isinstance(lazy, _LazyCommands)
+        rows = []
+        limit = formatter.width - 6 - max((len(n) for n in lazy), default=0)
+        for name in self.list_commands(ctx):
+            text = lazy.short_help(name)
+            if text is None:
+                command = lazy[name]
+                if command.hidden:
+                    continue
+                text = command.get_short_help_str(limit)
+            else:
+                text = make_default_short_help(text, limit)
+            rows.append((name, text))
+        if rows:
+            with formatter.section("Commands"):
+                formatter.write_dl(rows)
 
     def invoke(self, ctx: click.Context) -> Any:
         try:
@@ -128,29 +219,6 @@ def cli(debug: bool) -> None:
 
     Exit status: 0 ok, 1 checks failed, 2 bad input, 70 internal error, 130 interrupted.
     """
-
-
-cli.add_command(library_cmds.library)
-cli.add_command(synth_cmds.synth)
-cli.add_command(mission_cmds.validate)
-cli.add_command(mission_cmds.mission)
-cli.add_command(process_cmds.coordinator_cmd)
-cli.add_command(process_cmds.agent_cmd)
-cli.add_command(mission_cmds.schema)
-cli.add_command(bench_cmds.bench)
-cli.add_command(control_cmds.control)
-cli.add_command(auction_cmds.auction)
-cli.add_command(map_cmds.map_group)
-cli.add_command(map_cmds.plan_cmd)
-cli.add_command(dispatch_cmds.dispatch)
-cli.add_command(run_cmds.run_cmd)
-cli.add_command(run_cmds.report_cmd)
-cli.add_command(reloc_cmds.reloc)
-cli.add_command(mavsim_cmds.mavsim)
-cli.add_command(view_cmds.view_cmd)
-cli.add_command(console_cmds.task_group)
-cli.add_command(console_cmds.status_cmd)
-cli.add_command(console_cmds.fleet_group)
 
 
 def main() -> None:

@@ -368,3 +368,40 @@ def test_library_check_warns_of_a_leaf_named_like_a_btcpp_node_type(
     ) in err
     code, _, err = run(runner, "synth", str(lib), "--goal", "rested", "-f", "xml")
     assert code == 2 and "'Sleep' is the name of one of BehaviorTree.CPP's own node types" in err
+
+
+def test_top_level_help_lists_every_command_with_its_own_short_help() -> None:
+    import click
+
+    from btmission.cli.main import COMMANDS
+
+    ctx = click.Context(cli)
+    for name, (_, _, short) in COMMANDS.items():
+        command = cli.commands[name]
+        assert command.name == name
+        assert command.get_short_help_str(1000) == short, name
+    assert sorted(cli.list_commands(ctx)) == sorted(COMMANDS)
+
+
+def test_help_and_version_import_no_command_module() -> None:
+    import subprocess
+    import sys
+
+    probe = (
+        "import sys\n"
+        "from btmission.cli.main import cli\n"
+        "for args in (['--help'], ['--version']):\n"
+        "    try:\n"
+        "        cli.main(args, prog_name='btmission')\n"
+        "    except SystemExit:\n"
+        "        pass\n"
+        "heavy = sorted(m for m in ('numpy', 'pydantic', 'scipy', 'py_trees', 'yaml')"
+        " if m in sys.modules)\n"
+        "cmds = sorted(m for m in sys.modules if m.endswith('_cmds'))\n"
+        "print('LOADED', heavy, cmds)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, timeout=60, check=True
+    ).stdout
+    assert "Commands:" in out and "validate     Validate a mission file" in out
+    assert out.strip().splitlines()[-1] == "LOADED [] []"
