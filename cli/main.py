@@ -14,7 +14,6 @@ from collections.abc import Iterator
 from typing import Any, NoReturn
 
 import click
-from click.utils import make_default_short_help
 
 from btmission import __version__
 from btmission.cli.common import EXIT_BAD_INPUT, EXIT_INTERRUPTED, report_internal_error
@@ -159,7 +158,7 @@ class _Cli(click.Group):
                     continue
                 text = command.get_short_help_str(limit)
             else:
-                text = make_default_short_help(text, limit)
+                text = click.Command(name, help=text).get_short_help_str(limit)
             rows.append((name, text))
         if rows:
             with formatter.section("Commands"):
