@@ -377,3 +377,27 @@ def test_unknown_voxel_is_a_warning() -> None:
     vm.state[2, 2, 0] = UNKNOWN
     codes = {(d.code, d.severity.value) for d in check_mission_map(m, vm)}
     assert ("unknown-voxel", "warning") in codes
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 10_000), density=st.floats(0.2, 0.6))
+def test_reachable_from_agrees_with_the_planners_one_to_all(seed: int, density: float) -> None:
+    """Labelling 26-connected non-rock voxels answers exactly what a D*+ search would."""
+    from btmission.planning.dstar import Planner
+    from btmission.planning.risk import CostMap, RiskParams
+    from btmission.world.checks import reachable_from
+
+    rng = np.random.default_rng(seed)
+    state = rng.choice(
+        np.array([FREE, OCCUPIED, UNKNOWN], np.uint8),
+        size=(9, 8, 3),
+        p=[1 - density, density * 0.8, density * 0.2],
+    )
+    state[0, 0, 0] = FREE
+    vm = VoxelMap(state, 1.0)
+    starts = [(0.5, 0.5, 0.5)]
+    points = [tuple(float(v) + 0.5 for v in idx) for idx in np.argwhere(state != OCCUPIED)]
+    field = Planner(CostMap(vm, RiskParams(0.0, 0.0))).one_to_all(starts)
+    expected = [bool(np.isfinite(field.at(p)[0])) for p in points]
+    assert reachable_from(vm, starts, points) == expected  # type: ignore[arg-type]
+    assert expected[points.index(starts[0])]  # the start reaches itself

@@ -3,9 +3,9 @@ or unreachable from every agent (DESIGN §4.3: "a location inside rock or outsid
 input).
 
 A task's positions are the fields its type reads (goal and cost symbols) whose value is a list of
-three numbers. Reachability uses the planner's own one-to-all search from all valid agent starts at
-once, so "reachable" means exactly "the planner finds a path" (through free or unknown voxels,
-never through rock).
+three numbers. Reachable means exactly "the planner finds a path" from some valid agent start
+(through free or unknown voxels, never through rock): :func:`reachable_from` labels the planner's
+26-connected components instead of searching.
 """
 
 from __future__ import annotations
@@ -47,15 +47,35 @@ def point_problem(vm: VoxelMap, p: tuple[float, float, float]) -> tuple[str, str
     return None
 
 
+def reachable_from(
+    voxel_map: VoxelMap,
+    starts: Sequence[tuple[float, float, float]],
+    points: Sequence[tuple[float, float, float]],
+) -> list[bool]:
+    """Whether each of ``points`` has a D*+ path from one of ``starts`` (all inside the map).
+
+    The planner moves between 26-neighbours and enters any voxel that is not rock (unknown ones
+    at a cost, eq. 4), so a path exists exactly when both lie in one 26-connected component of
+    the non-rock voxels: one ``scipy.ndimage.label`` pass, ~20x cheaper than a one-to-all
+    search (no numba kernels to load), with the same answer (a test compares the two).
+    """
+    from scipy import ndimage
+
+    labels, _ = ndimage.label(voxel_map.state != OCCUPIED, structure=np.ones((3, 3, 3), bool))
+
+    def label(p: tuple[float, float, float]) -> int:
+        return int(labels[tuple(voxel_map.world_to_index(p))])
+
+    ours = {label(s) for s in starts} - {0}
+    return [label(p) in ours for p in points]
+
+
 def check_mission_map(mission: Any, voxel_map: VoxelMap) -> list[Diagnostic]:
     """Every agent start and task position checked against ``voxel_map``; one diagnostic each.
 
     Errors: ``outside-map``, ``in-rock``, ``unreachable`` (no path from any agent's start).
     Warning: ``unknown-voxel`` (a position the map has not seen; paths there pay c_u).
     """
-    from btmission.planning.dstar import Planner
-    from btmission.planning.risk import CostMap, RiskParams
-
     diags: list[Diagnostic] = []
 
     def add(sev: Severity, code: str, item: str, message: str, where: Location) -> None:
@@ -103,11 +123,9 @@ def check_mission_map(mission: Any, voxel_map: VoxelMap) -> list[Diagnostic]:
 
     if not positions or not starts:
         return diags
-    # Reachability needs only "not rock": no risk layer (and no distance transform) to build.
-    field = Planner(CostMap(voxel_map, RiskParams(0.0, 0.0))).one_to_all(starts)
-    for item, what, p, where in positions:
-        cost, _ = field.at(p)
-        if not np.isfinite(cost):
+    reachable = reachable_from(voxel_map, starts, [p for _, _, p, _ in positions])
+    for (item, what, _, where), ok in zip(positions, reachable, strict=True):
+        if not ok:
             add(
                 Severity.ERROR,
                 "unreachable",
