@@ -66,7 +66,7 @@ def _localizer(ctx: AgentContext) -> Any:
 def _step_explorer(ctx: AgentContext, dphr: bool) -> Any:
     """One step of Alg. 2's loop: localise what the camera detects, then the explorer's
     command (with the DPHR yaw rate while exploring)."""
-    from btmission.control.dphr import DphrConfig, deepest_point_heading
+    from btmission.control.dphr import DphrConfig, deepest_point_heading, yaw_rate_limit_for_speed
 
     tel = ctx.telemetry()
     now = ctx.now()
@@ -79,7 +79,10 @@ def _step_explorer(ctx: AgentContext, dphr: bool) -> Any:
             loc.add(det, frame.depth_m, frame.intrinsics, frame.rotation, frame.translation)
         loc.update(now)
         if dphr:
-            rate = deepest_point_heading(frame.depth_m, DphrConfig(stride=1)).yaw_rate
+            limit = yaw_rate_limit_for_speed(float(ctx.setting("speed_m_s", 1.0)))
+            rate = deepest_point_heading(
+                frame.depth_m, DphrConfig(stride=1, yaw_rate_max=limit)
+            ).yaw_rate
     return _explorer(ctx).step(
         now, tel.position, tel.yaw, tel.height_above_ground, dphr_yaw_rate=rate
     )

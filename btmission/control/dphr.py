@@ -35,7 +35,22 @@ from numpy.typing import ArrayLike, NDArray
 
 from btmission.types import FloatArray
 
-__all__ = ["DphrConfig", "DphrResult", "deepest_point_heading"]
+__all__ = ["DphrConfig", "DphrResult", "deepest_point_heading", "yaw_rate_limit_for_speed"]
+
+TURN_RADIUS_M = 1.5
+"""Tightest turn the heading regulation must allow: about half a 3-4 m tunnel's width."""
+
+
+def yaw_rate_limit_for_speed(
+    speed_m_s: float, turn_radius_m: float = TURN_RADIUS_M, floor: float = 0.5
+) -> float:
+    """ψ̇_max for a cruise speed: max(floor, v / R). Seed 002 maps s̄_x linearly to
+    ψ̇_ref ∈ [min, max] without giving the bounds; a fixed 0.5 rad/s turns a 2.3 m/s MAV on a
+    4.6 m radius, wider than the tunnel it must follow round a bend, so the bound grows with the
+    speed to keep the turn radius v/ψ̇_max within ``turn_radius_m``."""
+    if speed_m_s < 0 or turn_radius_m <= 0 or floor <= 0:
+        raise ValueError("need speed >= 0 and a positive turn radius and floor")
+    return max(floor, speed_m_s / turn_radius_m)
 
 
 @dataclass(frozen=True)
