@@ -80,12 +80,31 @@ def _step_explorer(ctx: AgentContext, dphr: bool) -> Any:
         loc.update(now)
         if dphr:
             limit = yaw_rate_limit_for_speed(float(ctx.setting("speed_m_s", 1.0)))
-            rate = deepest_point_heading(
-                frame.depth_m, DphrConfig(stride=1, yaw_rate_max=limit)
-            ).yaw_rate
+            prefer = ctx.state.get("dphr_branch")
+            res = deepest_point_heading(
+                frame.depth_m, DphrConfig(stride=1, yaw_rate_max=limit), prefer_offset=prefer
+            )
+            rate = res.yaw_rate
+            _commit_branch(ctx, res)
     return _explorer(ctx).step(
         now, tel.position, tel.yaw, tel.height_above_ground, dphr_yaw_rate=rate
     )
+
+
+def _commit_branch(ctx: AgentContext, res: Any) -> None:
+    """Remember the branch DPHR follows at a junction (several deep regions) so the next frames
+    keep to it (``prefer_offset``), and log the choice once per junction as a ``junction`` event
+    (the branches' offsets and the chosen one); one deep region again ends the junction."""
+    if len(res.branches) > 1:
+        if ctx.state.get("dphr_branch") is None:
+            ctx.events(
+                "junction",
+                offsets=[round(b.offset, 3) for b in res.branches],
+                chosen=res.chosen,
+            )
+        ctx.state["dphr_branch"] = res.offset
+    else:
+        ctx.state["dphr_branch"] = None
 
 
 # ------------------------------------------------------------------------------- conditions
