@@ -49,6 +49,9 @@ def _explorer(ctx: AgentContext) -> Any:
     return ex
 
 
+DEAD_END_M = 2.0
+"""Nothing deeper than this in view: a dead end, DPHR turns round (DphrConfig.dead_end_m)."""
+
 WIDTHS_M = {"survivor": (0.4, 0.8), "backpack": (0.3, 0.7), "drill": (0.1, 0.5)}
 """Metric width interval of each known object class: seed 002 §3.3.1's second outlier check
 (a box whose centre falls on the wall behind an object gives a width far outside it)."""
@@ -82,7 +85,9 @@ def _step_explorer(ctx: AgentContext, dphr: bool) -> Any:
             limit = yaw_rate_limit_for_speed(float(ctx.setting("speed_m_s", 1.0)))
             prefer = ctx.state.get("dphr_branch")
             res = deepest_point_heading(
-                frame.depth_m, DphrConfig(stride=1, yaw_rate_max=limit), prefer_offset=prefer
+                frame.depth_m,
+                DphrConfig(stride=1, yaw_rate_max=limit, dead_end_m=DEAD_END_M),
+                prefer_offset=prefer,
             )
             rate = res.yaw_rate
             _commit_branch(ctx, res)

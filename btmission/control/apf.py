@@ -150,26 +150,32 @@ def limit_approach_speed(
     stand_off_m: float,
     decel_m_s2: float,
     reaction_s: float,
-    nearest: int = 32,
+    passes: int = 6,
 ) -> FloatArray:
-    """``velocity`` with its component towards each of the ``nearest`` points of ``points``
-    (same frame, relative to the MAV) bounded by the speed that can still stop before coming
-    within ``stand_off_m`` of it (:func:`stopping_speed` of ‖ρ‖ − stand-off). Components along
-    the rock (sliding past a wall) and away from it are kept: only the approach is limited."""
+    """``velocity`` with its component towards every point of ``points`` (same frame, relative
+    to the MAV) bounded by the speed that can still stop before coming within ``stand_off_m`` of
+    it (:func:`stopping_speed` of ‖ρ‖ − stand-off). Components along the rock (sliding past a
+    wall) and away from it are kept: only the approach is limited.
+
+    Each pass removes the largest excess (the most constraining point); ``passes`` bounds the
+    work, enough for a wall ahead, one beside it and the floor or roof at a corner.
+    """
     v = np.asarray(velocity, dtype=float).copy()
     pts = np.asarray(points, dtype=float).reshape(-1, 3)
-    if len(pts) == 0 or not np.any(v):
+    d = np.sqrt(np.einsum("ij,ij->i", pts, pts)) if len(pts) else np.zeros(0)
+    ok = d > 0
+    if not ok.any() or not np.any(v):
         return v
-    d = np.sqrt(np.einsum("ij,ij->i", pts, pts))
-    keep = np.argsort(d)[:nearest]
-    for i in keep:
-        if d[i] <= 0:
-            continue
-        u = pts[i] / d[i]
-        allowed = stopping_speed(float(d[i]) - stand_off_m, decel_m_s2, reaction_s)
-        along = float(v @ u)
-        if along > allowed:
-            v -= (along - allowed) * u
+    units = pts[ok] / d[ok, None]
+    at = decel_m_s2 * reaction_s
+    room = np.maximum(d[ok] - stand_off_m, 0.0)
+    allowed = -at + np.sqrt(at * at + 2.0 * decel_m_s2 * room)  # stopping_speed, vectorised
+    for _ in range(passes):
+        excess = units @ v - allowed
+        i = int(np.argmax(excess))
+        if excess[i] <= 1e-12:
+            break
+        v -= excess[i] * units[i]
     return v
 
 

@@ -91,6 +91,10 @@ class DphrConfig:
     """A connected region of the deepest cluster smaller than this share of it is not a branch."""
     switch_ratio: float = 2.0
     """With ``prefer_offset``: leave the preferred branch only for one this many times larger."""
+    dead_end_m: float = 0.0
+    """When even the deepest cluster is nearer than this, nothing ahead is open (a dead end, a
+    wall filling the view): turn at ψ̇_max to the left until an opening comes into view, instead
+    of the paper's ψ̇ = l·s̄_x, which is ~0 on a flat wall. 0 = never."""
 
     def __post_init__(self) -> None:
         if self.clusters < 2:
@@ -234,11 +238,14 @@ def deepest_point_heading(
     if flat:
         offset = 0.0
     yaw_rate = float(np.clip(-gain * offset, -cfg.yaw_rate_max, cfg.yaw_rate_max))
+    deepest_m = float(values[mask.ravel()].mean())
+    if deepest_m < cfg.dead_end_m:
+        yaw_rate = cfg.yaw_rate_max
     return DphrResult(
         yaw_rate=yaw_rate,
         offset=offset,
         centroid=(s_x, s_y),
-        deepest_depth_m=float(values[mask.ravel()].mean()),
+        deepest_depth_m=deepest_m,
         centers=np.asarray(centers, dtype=float),
         mask=mask,
         branches=tuple(branches),

@@ -77,6 +77,15 @@ BRAKE_REACTION_S = 0.4
 """Time before full braking acts (APF rate saturation, the NMPC's tilt-rate limit of eq. 2,
 attitude lag): with the MAV's tilt-limited deceleration it sizes the APF's radius of influence
 for the cruise speed (:func:`~btmission.control.apf.influence_radius_for_speed`)."""
+APPROACH_REACTION_S = 0.6
+"""Reaction time the approach-speed bound counts on: the NMPC's measured lag in following a
+lowered velocity reference (its velocity weight against the position lead, the attitude lag)."""
+APPROACH_MARGIN_M = 0.1
+"""The approach-speed bound stops the MAV this much outside the safety-critical radius r_c."""
+APPROACH_DECEL_M_S2 = 1.5
+"""Deceleration the approach-speed bound counts on: what the NMPC's closed loop achieves from
+2 m/s (measured in the COMPRA runs: ~2 m/s² with its input-rate limits), not the 3.6 m/s² of
+full tilt, with which it stopped ~0.2 m inside the stand-off."""
 ROUTE_EVENT_POINTS = 200
 """A ``route`` event carries at most this many points of the path (:func:`route_points`)."""
 
@@ -588,13 +597,12 @@ class Navigator:
             ref, vel, yaw, repulsion = self._follow_reference(now, tel, cmd)
         elif isinstance(cmd, _Goto):
             ref, vel, _, repulsion = self._apf_reference(tel, cmd.waypoint, cfg.speed_m_s)
-            scale = adaptive_speed_scale(repulsion)
-            ref, vel = p + (ref - p) * scale, vel * scale
-            limited = self._stopping_limit(tel, vel)
-            n_vel = float(np.linalg.norm(vel))
-            if n_vel > 1e-9 and not np.array_equal(limited, vel):
-                ref = p + limited / n_vel * float(np.linalg.norm(ref - p))
-                vel = limited
+            vel = self._stopping_limit(tel, vel * adaptive_speed_scale(repulsion))
+            # the position reference consistent with that velocity: where the NMPC's lead puts
+            # it (or the autopilot's position loop flies at it), not the 1 m carrot, which alone
+            # drives the NMPC at ~0.7 m/s — into the rock the bound is stopping it for
+            lead_s = NMPC_LEAD_S if self._nmpc is not None else 1.0 / POSITION_GAIN
+            ref = p + vel * lead_s
             yaw, yaw_rate = cmd.yaw, cmd.yaw_rate
         elif isinstance(cmd, _Track):
             ref, vel = cmd.reference(now), cmd.velocity
@@ -640,7 +648,11 @@ class Navigator:
             return vel
         body = world_to_yaw_frame(vel, tel.yaw)
         limited = limit_approach_speed(
-            body, points, self._apf.config.r_critical_m, braking_decel(), BRAKE_REACTION_S
+            body,
+            points,
+            self._apf.config.r_critical_m + APPROACH_MARGIN_M,
+            APPROACH_DECEL_M_S2,
+            APPROACH_REACTION_S,
         )
         return yaw_frame_to_world(limited, tel.yaw)
 
@@ -744,7 +756,7 @@ class Navigator:
                 [tel.roll, tel.pitch],
             ]
         )
-        lead = max(1.0, NMPC_LEAD_S * float(np.linalg.norm(vel)))
+        lead = max(1.0, NMPC_LEAD_S * float(np.linalg.norm(vel)))  # ≥ the Goto's own lead
         target = tel.position + (ref - tel.position) * min(
             1.0, lead / max(float(np.linalg.norm(ref - tel.position)), 1e-9)
         )
