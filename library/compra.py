@@ -52,6 +52,9 @@ def _explorer(ctx: AgentContext) -> Any:
 DEAD_END_M = 2.0
 """Nothing deeper than this in view: a dead end, DPHR turns round (DphrConfig.dead_end_m)."""
 
+SWITCH_OFFSET = 0.5
+"""A jump of the followed branch's s̄_x by more than this within one junction is a switch."""
+
 WIDTHS_M = {"survivor": (0.4, 0.8), "backpack": (0.3, 0.7), "drill": (0.1, 0.5)}
 """Metric width interval of each known object class: seed 002 §3.3.1's second outlier check
 (a box whose centre falls on the wall behind an object gives a width far outside it)."""
@@ -98,15 +101,17 @@ def _step_explorer(ctx: AgentContext, dphr: bool) -> Any:
 
 def _commit_branch(ctx: AgentContext, res: Any) -> None:
     """Remember the branch DPHR follows at a junction (several deep regions) so the next frames
-    keep to it (``prefer_offset``), and log the choice once per junction as a ``junction`` event
-    (the branches' offsets and the chosen one); one deep region again ends the junction."""
+    keep to it (``prefer_offset``). Logged: a ``junction`` event when one begins (the branches'
+    offsets s̄_x and the chosen one), a ``junction_switch`` event if the followed branch jumps to
+    another (a change of more than :data:`SWITCH_OFFSET` in s̄_x: dithering between two); one
+    deep region again ends the junction."""
+    prefer = ctx.state.get("dphr_branch")
     if len(res.branches) > 1:
-        if ctx.state.get("dphr_branch") is None:
-            ctx.events(
-                "junction",
-                offsets=[round(b.offset, 3) for b in res.branches],
-                chosen=res.chosen,
-            )
+        offsets = [round(b.offset, 3) for b in res.branches]
+        if prefer is None:
+            ctx.events("junction", offsets=offsets, chosen=res.chosen)
+        elif abs(res.offset - prefer) > SWITCH_OFFSET:
+            ctx.events("junction_switch", offsets=offsets, chosen=res.chosen, was=round(prefer, 3))
         ctx.state["dphr_branch"] = res.offset
     else:
         ctx.state["dphr_branch"] = None

@@ -151,6 +151,8 @@ def limit_approach_speed(
     decel_m_s2: float,
     reaction_s: float,
     passes: int = 6,
+    corridor_m: float = np.inf,
+    heading: ArrayLike | None = None,
 ) -> FloatArray:
     """``velocity`` with its component towards every point of ``points`` (same frame, relative
     to the MAV) bounded by the speed that can still stop before coming within ``stand_off_m`` of
@@ -159,6 +161,10 @@ def limit_approach_speed(
 
     Each pass removes the largest excess (the most constraining point); ``passes`` bounds the
     work, enough for a wall ahead, one beside it and the floor or roof at a corner.
+
+    Only points within ``corridor_m`` of the line along ``velocity`` — or along ``heading``, the
+    way the MAV actually moves — count: a straight path passes farther ones by, and the floor
+    ahead of a MAV flying level over it is not something it approaches.
     """
     v = np.asarray(velocity, dtype=float).copy()
     pts = np.asarray(points, dtype=float).reshape(-1, 3)
@@ -166,6 +172,18 @@ def limit_approach_speed(
     ok = d > 0
     if not ok.any() or not np.any(v):
         return v
+    if np.isfinite(corridor_m):
+        near = np.zeros(len(pts), dtype=bool)
+        for line in (v, heading):
+            if line is None or not np.any(line):
+                continue
+            u = np.asarray(line, dtype=float) / float(np.linalg.norm(line))
+            along = pts @ u
+            lateral2 = d * d - along * along
+            near |= (along > 0) & (lateral2 <= corridor_m * corridor_m)
+        ok &= near
+        if not ok.any():
+            return v
     units = pts[ok] / d[ok, None]
     at = decel_m_s2 * reaction_s
     room = np.maximum(d[ok] - stand_off_m, 0.0)

@@ -80,6 +80,10 @@ for the cruise speed (:func:`~btmission.control.apf.influence_radius_for_speed`)
 APPROACH_REACTION_S = 0.6
 """Reaction time the approach-speed bound counts on: the NMPC's measured lag in following a
 lowered velocity reference (its velocity weight against the position lead, the attitude lag)."""
+APPROACH_CORRIDOR_M = 1.0
+"""The approach bound counts the rock within this of the MAV's line of motion (its velocity
+reference's and its actual velocity's): r_c, the body and a margin. The floor 1.5 m below and
+the walls of a tunnel's middle lie outside it, so cruising level down a tunnel is not slowed."""
 APPROACH_MARGIN_M = 0.1
 """The approach-speed bound stops the MAV this much outside the safety-critical radius r_c."""
 APPROACH_DECEL_M_S2 = 1.5
@@ -653,6 +657,8 @@ class Navigator:
             self._apf.config.r_critical_m + APPROACH_MARGIN_M,
             APPROACH_DECEL_M_S2,
             APPROACH_REACTION_S,
+            corridor_m=APPROACH_CORRIDOR_M,
+            heading=world_to_yaw_frame(tel.velocity, tel.yaw),
         )
         return yaw_frame_to_world(limited, tel.yaw)
 
