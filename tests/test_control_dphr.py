@@ -134,3 +134,25 @@ def test_committed_branch_is_kept_unless_another_is_much_larger() -> None:
     assert switched.offset < 0
     with pytest.raises(ValueError, match="no branch"):
         choose_branch([])
+
+
+def test_dead_end_turns_round_and_speed_widens_the_yaw_rate_bound() -> None:
+    from btmission.control.dphr import yaw_rate_limit_for_speed
+
+    wall = np.full((48, 64), 1.2)  # a flat wall 1.2 m ahead fills the view
+    wall[:, 40:] = 1.3  # slightly deeper on the right: the paper's rule turns right, barely
+    plain = deepest_point_heading(wall, DphrConfig(stride=1, close_size=1))
+    assert plain.yaw_rate <= 0
+    dead = deepest_point_heading(wall, DphrConfig(stride=1, close_size=1, dead_end_m=2.0))
+    assert dead.yaw_rate == pytest.approx(DphrConfig().yaw_rate_max)  # turns round (left)
+    open_ = _two_branches(slice(4, 24), slice(44, 58))
+    cfg = DphrConfig(stride=1, close_size=1, dead_end_m=2.0)
+    assert (
+        deepest_point_heading(open_, cfg).yaw_rate
+        == deepest_point_heading(open_, DphrConfig(stride=1, close_size=1)).yaw_rate
+    )  # an opening in view: the ordinary rule
+    assert yaw_rate_limit_for_speed(0.5) == 0.5  # the floor: DphrConfig's default
+    assert yaw_rate_limit_for_speed(1.0) == pytest.approx(1.0 / 1.5)
+    assert yaw_rate_limit_for_speed(2.3) == pytest.approx(2.3 / 1.5)
+    with pytest.raises(ValueError):
+        yaw_rate_limit_for_speed(-1.0)
