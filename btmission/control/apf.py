@@ -41,7 +41,6 @@ __all__ = [
     "ApfResult",
     "PotentialField",
     "braking_distance",
-    "free_distance_ahead",
     "influence_radius_for_speed",
     "limit_approach_speed",
     "repulsive_force",
@@ -127,21 +126,6 @@ def stopping_speed(distance_m: float, decel_m_s2: float, reaction_s: float) -> f
         return 0.0
     at = decel_m_s2 * reaction_s
     return float(-at + np.sqrt(at * at + 2.0 * decel_m_s2 * distance_m))
-
-
-def free_distance_ahead(points: ArrayLike, direction: ArrayLike, corridor_m: float) -> float:
-    """Distance along the unit ``direction`` to the nearest point of ``points`` (body frame,
-    (M, 3)) inside a corridor of radius ``corridor_m`` around that ray (inf when none)."""
-    pts = np.asarray(points, dtype=float).reshape(-1, 3)
-    u = np.asarray(direction, dtype=float)
-    n = float(np.linalg.norm(u))
-    if n == 0 or len(pts) == 0:
-        return float("inf")
-    u = u / n
-    along = pts @ u
-    lateral2 = np.einsum("ij,ij->i", pts, pts) - along * along
-    ahead = (along > 0) & (lateral2 <= corridor_m * corridor_m)
-    return float(along[ahead].min()) if ahead.any() else float("inf")
 
 
 def limit_approach_speed(
