@@ -49,6 +49,12 @@ def _explorer(ctx: AgentContext) -> Any:
     return ex
 
 
+DEAD_END_M = 2.0
+"""Nothing deeper than this in view: a dead end, DPHR turns round (DphrConfig.dead_end_m)."""
+
+SWITCH_OFFSET = 0.5
+"""A jump of the followed branch's s̄_x by more than this within one junction is a switch."""
+
 WIDTHS_M = {"survivor": (0.4, 0.8), "backpack": (0.3, 0.7), "drill": (0.1, 0.5)}
 """Metric width interval of each known object class: seed 002 §3.3.1's second outlier check
 (a box whose centre falls on the wall behind an object gives a width far outside it)."""
@@ -66,7 +72,7 @@ def _localizer(ctx: AgentContext) -> Any:
 def _step_explorer(ctx: AgentContext, dphr: bool) -> Any:
     """One step of Alg. 2's loop: localise what the camera detects, then the explorer's
     command (with the DPHR yaw rate while exploring)."""
-    from btmission.control.dphr import DphrConfig, deepest_point_heading
+    from btmission.control.dphr import DphrConfig, deepest_point_heading, yaw_rate_limit_for_speed
 
     tel = ctx.telemetry()
     now = ctx.now()
@@ -79,10 +85,36 @@ def _step_explorer(ctx: AgentContext, dphr: bool) -> Any:
             loc.add(det, frame.depth_m, frame.intrinsics, frame.rotation, frame.translation)
         loc.update(now)
         if dphr:
-            rate = deepest_point_heading(frame.depth_m, DphrConfig(stride=1)).yaw_rate
+            limit = yaw_rate_limit_for_speed(float(ctx.setting("speed_m_s", 1.0)))
+            prefer = ctx.state.get("dphr_branch")
+            res = deepest_point_heading(
+                frame.depth_m,
+                DphrConfig(stride=1, yaw_rate_max=limit, dead_end_m=DEAD_END_M),
+                prefer_offset=prefer,
+            )
+            rate = res.yaw_rate
+            _commit_branch(ctx, res)
     return _explorer(ctx).step(
         now, tel.position, tel.yaw, tel.height_above_ground, dphr_yaw_rate=rate
     )
+
+
+def _commit_branch(ctx: AgentContext, res: Any) -> None:
+    """Remember the branch DPHR follows at a junction (several deep regions) so the next frames
+    keep to it (``prefer_offset``). Logged: a ``junction`` event when one begins (the branches'
+    offsets s̄_x and the chosen one), a ``junction_switch`` event if the followed branch jumps to
+    another (a change of more than :data:`SWITCH_OFFSET` in s̄_x: dithering between two); one
+    deep region again ends the junction."""
+    prefer = ctx.state.get("dphr_branch")
+    if len(res.branches) > 1:
+        offsets = [round(b.offset, 3) for b in res.branches]
+        if prefer is None:
+            ctx.events("junction", offsets=offsets, chosen=res.chosen)
+        elif abs(res.offset - prefer) > SWITCH_OFFSET:
+            ctx.events("junction_switch", offsets=offsets, chosen=res.chosen, was=round(prefer, 3))
+        ctx.state["dphr_branch"] = res.offset
+    else:
+        ctx.state["dphr_branch"] = None
 
 
 # ------------------------------------------------------------------------------- conditions

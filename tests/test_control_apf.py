@@ -155,3 +155,78 @@ def test_lidar_scan_is_vlp16_like_and_hits_the_walls() -> None:
     assert np.all(on_wall | on_floor_or_ceiling)
     elev = np.degrees(np.arcsin(pts[:, 2] / np.linalg.norm(pts, axis=1)))
     assert elev.min() == pytest.approx(-15) and elev.max() == pytest.approx(15)
+
+
+def test_braking_distance_and_stopping_speed_are_inverse() -> None:
+    from btmission.control.apf import braking_distance, stopping_speed
+
+    for v in (0.0, 0.5, 1.0, 2.3, 4.0):
+        d = braking_distance(v, 3.6, 0.4)
+        assert d == pytest.approx(v * 0.4 + v * v / 7.2)
+        assert stopping_speed(d, 3.6, 0.4) == pytest.approx(v, abs=1e-9)
+    assert stopping_speed(-0.1, 3.6, 0.4) == 0.0
+    with pytest.raises(ValueError):
+        braking_distance(1.0, 0.0, 0.4)
+
+
+def test_influence_radius_grows_with_speed_only_past_the_configured_one() -> None:
+    from btmission.control.apf import influence_radius_for_speed
+
+    cfg = ApfConfig()
+    assert influence_radius_for_speed(1.0, cfg, 3.6, 0.4) == cfg.r_influence_m
+    fast = influence_radius_for_speed(2.3, cfg, 3.6, 0.4)
+    assert fast == pytest.approx(cfg.r_critical_m + 2.3 * 0.4 + 2.3**2 / 7.2)
+    assert fast > cfg.r_influence_m
+
+
+def test_approach_speed_is_limited_towards_rock_but_not_along_it() -> None:
+    from btmission.control.apf import limit_approach_speed, stopping_speed
+
+    wall_ahead = np.array([[1.0, y, 0.0] for y in np.linspace(-1, 1, 9)])
+    v = limit_approach_speed([2.3, 0.0, 0.0], wall_ahead, 0.6, 3.6, 0.4)
+    assert v[0] <= stopping_speed(0.4, 3.6, 0.4) + 1e-9  # 1 m to the wall, 0.6 m stand-off
+    # sliding along a wall beside the MAV (1.25 m off, a 2.5 m tunnel's centre) is untouched, and so
+    # is moving away from it
+    wall_left = np.array([[x, 1.25, 0.0] for x in np.linspace(-3, 3, 25)])
+    np.testing.assert_allclose(limit_approach_speed([2.3, 0, 0], wall_left, 0.6, 3.6, 0.4)[0], 2.3)
+    np.testing.assert_allclose(
+        limit_approach_speed([0, -1.0, 0], wall_left, 0.6, 3.6, 0.4), [0, -1.0, 0]
+    )
+    # approaching it: no faster than can stop 0.6 m short of it; inside the stand-off, not at all
+    limit = stopping_speed(1.25 - 0.6, 3.6, 0.4)
+    assert limit_approach_speed([0, 2.0, 0], wall_left, 0.6, 3.6, 0.4)[1] <= limit + 1e-9
+    close = wall_left * [1.0, 0.4, 1.0]
+    assert limit_approach_speed([0, 1.0, 0], close, 0.6, 3.6, 0.4)[1] <= 1e-9
+
+
+def test_approach_bound_ignores_rock_off_the_line_of_motion() -> None:
+    """Flying level 1.5 m over a floor, with a wall 2 m ahead: only the wall counts once the
+    corridor is set — without it, the floor ahead-below looks like an approach and slows the MAV."""
+    from btmission.control.apf import limit_approach_speed, stopping_speed
+
+    floor = np.array([[x, y, -1.5] for x in np.linspace(-3, 3, 13) for y in np.linspace(-2, 2, 9)])
+    v = np.array([2.3, 0.0, 0.0])
+    free = limit_approach_speed(v, floor, 0.7, 1.5, 0.6, corridor_m=1.0)
+    np.testing.assert_allclose(free, v)
+    assert limit_approach_speed(v, floor, 0.7, 1.5, 0.6)[0] < 2.3  # no corridor: slowed
+    wall = np.array([[2.0, y, z] for y in np.linspace(-1, 1, 5) for z in np.linspace(-1, 1, 5)])
+    limited = limit_approach_speed(v, np.vstack([floor, wall]), 0.7, 1.5, 0.6, corridor_m=1.0)
+    assert limited[0] <= stopping_speed(2.0 - 0.7, 1.5, 0.6) + 1e-9
+    # a wall beside the way the MAV actually moves (``heading``) counts too
+    side = np.array([[x, 1.5, 0.0] for x in np.linspace(0.2, 2.0, 10)])
+    turned = limit_approach_speed(
+        [0, 2.0, 0], side, 0.7, 1.5, 0.6, corridor_m=0.5, heading=[1, 1, 0]
+    )
+    assert turned[1] < 2.0
+
+
+def test_adaptive_speed_scale_is_eq4_normalised() -> None:
+    from btmission.control.nmpc import NmpcConfig, adaptive_position_weight
+    from btmission.runtime.navigation import adaptive_speed_scale
+
+    cfg = NmpcConfig()
+    assert adaptive_speed_scale(0.0) == pytest.approx(1.0)
+    for f in (0.1, 0.5, 1.0, 3.0):
+        q = adaptive_position_weight(f, cfg.q_position_min[0], cfg.q_position[0], cfg.force_gain)
+        assert adaptive_speed_scale(f) == pytest.approx(float(q) / cfg.q_position[0])
+    assert adaptive_speed_scale(0.5) > adaptive_speed_scale(1.0) > cfg.q_position_min[0] / 4.0

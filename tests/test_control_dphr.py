@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from btmission.control.dphr import DphrConfig, deepest_point_heading
+from btmission.control.dphr import DphrConfig, choose_branch, deepest_point_heading
 from btmission.control.scenes import DepthCamera, bending_tunnel, depth_image, straight_corridor
 
 EYE = [0.0, 0.0, 1.5]
@@ -91,3 +91,68 @@ def test_bad_inputs() -> None:
         DphrConfig(yaw_rate_max=-math.pi)
     with pytest.raises(ValueError, match="bend"):
         bending_tunnel("up")
+
+
+def _two_branches(left_cols: slice, right_cols: slice, right_depth: float = 6.0) -> np.ndarray:
+    """A junction seen head-on: rock at 2 m, a branch opening on each side."""
+    img = np.full((48, 64), 2.0)
+    img[10:38, left_cols] = 6.0
+    img[10:38, right_cols] = right_depth
+    return img
+
+
+def test_junction_branch_choice_is_explicit_and_deterministic() -> None:
+    cfg = DphrConfig(stride=1, close_size=1)
+    img = _two_branches(slice(4, 24), slice(44, 58))  # left opening 20 px wide, right 14 px
+    res = deepest_point_heading(img, cfg)
+    assert len(res.branches) == 2
+    left, right = sorted(res.branches, key=lambda b: b.offset)
+    assert left.offset < 0 < right.offset
+    # the larger opening (the left one) is chosen, and the heading goes there — not to the rock
+    # between the two, where the centroid of both would point
+    assert res.branches[res.chosen] == left
+    assert res.offset == pytest.approx(left.offset) and res.yaw_rate > 0
+    union = (left.offset * left.pixels + right.offset * right.pixels) / (left.pixels + right.pixels)
+    assert abs(res.offset - union) > 0.2
+    assert deepest_point_heading(img, cfg).offset == res.offset  # same image, same choice
+    # equal openings: the deeper one wins
+    tie = deepest_point_heading(_two_branches(slice(4, 18), slice(44, 58), 5.5), cfg)
+    assert tie.branches[tie.chosen].offset < 0
+
+
+def test_committed_branch_is_kept_unless_another_is_much_larger() -> None:
+    cfg = DphrConfig(stride=1, close_size=1)
+    img = _two_branches(slice(4, 24), slice(44, 58))
+    first = deepest_point_heading(img, cfg)
+    right = max(first.branches, key=lambda b: b.offset)
+    # committed to the right branch: kept, although the left one is larger (20 vs 14 px)
+    kept = deepest_point_heading(img, cfg, prefer_offset=right.offset)
+    assert kept.offset == pytest.approx(right.offset) and kept.yaw_rate < 0
+    # a left branch more than switch_ratio times larger takes over
+    wide = _two_branches(slice(0, 40), slice(48, 58))
+    switched = deepest_point_heading(wide, cfg, prefer_offset=0.6)
+    assert switched.offset < 0
+    with pytest.raises(ValueError, match="no branch"):
+        choose_branch([])
+
+
+def test_dead_end_turns_round_and_speed_widens_the_yaw_rate_bound() -> None:
+    from btmission.control.dphr import yaw_rate_limit_for_speed
+
+    wall = np.full((48, 64), 1.2)  # a flat wall 1.2 m ahead fills the view
+    wall[:, 40:] = 1.3  # slightly deeper on the right: the paper's rule turns right, barely
+    plain = deepest_point_heading(wall, DphrConfig(stride=1, close_size=1))
+    assert plain.yaw_rate <= 0
+    dead = deepest_point_heading(wall, DphrConfig(stride=1, close_size=1, dead_end_m=2.0))
+    assert dead.yaw_rate == pytest.approx(DphrConfig().yaw_rate_max)  # turns round (left)
+    open_ = _two_branches(slice(4, 24), slice(44, 58))
+    cfg = DphrConfig(stride=1, close_size=1, dead_end_m=2.0)
+    assert (
+        deepest_point_heading(open_, cfg).yaw_rate
+        == deepest_point_heading(open_, DphrConfig(stride=1, close_size=1)).yaw_rate
+    )  # an opening in view: the ordinary rule
+    assert yaw_rate_limit_for_speed(0.5) == 0.5  # the floor: DphrConfig's default
+    assert yaw_rate_limit_for_speed(1.0) == pytest.approx(1.0 / 1.5)
+    assert yaw_rate_limit_for_speed(2.3) == pytest.approx(2.3 / 1.5)
+    with pytest.raises(ValueError):
+        yaw_rate_limit_for_speed(-1.0)

@@ -165,6 +165,8 @@ SAMPLES: dict[str, dict[str, Any]] = {
               "step_ms": 0.3, "assignments": {"G1": "A", "G2": None}, "dropped": ["G3"]},
     "agent_task": {"agent": "G1", "task": None},
     "stage": {"agent": "G1", "task": "A", "action": "drive_path(location)"},
+    "junction": {"agent": "M1", "offsets": [-0.79, 0.15], "chosen": 1},
+    "junction_switch": {"agent": "M1", "offsets": [-0.81, 0.11], "chosen": 0, "was": 0.145},
     "committed": {"agent": "G1", "task": "A"},
     "progress": {"agent": "G1", "task": "A", "event": "failed", "reason": "no path"},
     "pose": {"agent": "G1", "p": [1.0, 2.0, 0.0], "v": [0.0, 0.1, 0.0], "yaw": 0.5,

@@ -36,7 +36,17 @@ from numpy.typing import ArrayLike
 
 from btmission.types import FloatArray, Vec3
 
-__all__ = ["ApfConfig", "ApfResult", "PotentialField", "repulsive_force", "shape_force"]
+__all__ = [
+    "ApfConfig",
+    "ApfResult",
+    "PotentialField",
+    "braking_distance",
+    "influence_radius_for_speed",
+    "limit_approach_speed",
+    "repulsive_force",
+    "shape_force",
+    "stopping_speed",
+]
 
 
 @dataclass(frozen=True)
@@ -93,6 +103,99 @@ class ApfResult:
     """N_ρc: points inside r_c."""
     critical_ignored: bool
     """True when 0 < N_ρc ≤ n and the static r_c term was dropped as dust."""
+
+
+def braking_distance(speed_m_s: float, decel_m_s2: float, reaction_s: float) -> float:
+    """Distance to stop from ``speed_m_s``: d = v·t_r + v² / (2 a) (reaction, then full braking).
+
+    ``reaction_s`` covers what passes before the full deceleration ``decel_m_s2`` acts: the APF's
+    rate saturation ΔF_max ramping the repulsion up, the NMPC's input-rate limit (eq. 2) tilting
+    the MAV back and the attitude loop's lag.
+    """
+    if speed_m_s < 0 or decel_m_s2 <= 0 or reaction_s < 0:
+        raise ValueError("need speed >= 0, decel > 0 and reaction time >= 0")
+    return speed_m_s * reaction_s + speed_m_s**2 / (2.0 * decel_m_s2)
+
+
+def stopping_speed(distance_m: float, decel_m_s2: float, reaction_s: float) -> float:
+    """The largest speed that can still stop within ``distance_m``: the root v ≥ 0 of
+    v·t_r + v² / (2 a) = d (0 when d ≤ 0)."""
+    if decel_m_s2 <= 0 or reaction_s < 0:
+        raise ValueError("need decel > 0 and reaction time >= 0")
+    if distance_m <= 0:
+        return 0.0
+    at = decel_m_s2 * reaction_s
+    return float(-at + np.sqrt(at * at + 2.0 * decel_m_s2 * distance_m))
+
+
+def limit_approach_speed(
+    velocity: ArrayLike,
+    points: ArrayLike,
+    stand_off_m: float,
+    decel_m_s2: float,
+    reaction_s: float,
+    passes: int = 6,
+    corridor_m: float = np.inf,
+    heading: ArrayLike | None = None,
+) -> FloatArray:
+    """``velocity`` with its component towards every point of ``points`` (same frame, relative
+    to the MAV) bounded by the speed that can still stop before coming within ``stand_off_m`` of
+    it (:func:`stopping_speed` of ‖ρ‖ − stand-off). Components along the rock (sliding past a
+    wall) and away from it are kept: only the approach is limited.
+
+    Each pass removes the largest excess (the most constraining point); ``passes`` bounds the
+    work, enough for a wall ahead, one beside it and the floor or roof at a corner.
+
+    Only points within ``corridor_m`` of the line along ``velocity`` — or along ``heading``, the
+    way the MAV actually moves — count: a straight path passes farther ones by, and the floor
+    ahead of a MAV flying level over it is not something it approaches.
+    """
+    v = np.asarray(velocity, dtype=float).copy()
+    pts = np.asarray(points, dtype=float).reshape(-1, 3)
+    d = np.sqrt(np.einsum("ij,ij->i", pts, pts)) if len(pts) else np.zeros(0)
+    ok = d > 0
+    if not ok.any() or not np.any(v):
+        return v
+    if np.isfinite(corridor_m):
+        near = np.zeros(len(pts), dtype=bool)
+        for line in (v, heading):
+            if line is None or not np.any(line):
+                continue
+            u = np.asarray(line, dtype=float) / float(np.linalg.norm(line))
+            along = pts @ u
+            lateral2 = d * d - along * along
+            near |= (along > 0) & (lateral2 <= corridor_m * corridor_m)
+        ok &= near
+        if not ok.any():
+            return v
+    units = pts[ok] / d[ok, None]
+    at = decel_m_s2 * reaction_s
+    room = np.maximum(d[ok] - stand_off_m, 0.0)
+    allowed = -at + np.sqrt(at * at + 2.0 * decel_m_s2 * room)  # stopping_speed, vectorised
+    for _ in range(passes):
+        excess = units @ v - allowed
+        i = int(np.argmax(excess))
+        if excess[i] <= 1e-12:
+            break
+        v -= excess[i] * units[i]
+    return v
+
+
+def influence_radius_for_speed(
+    speed_m_s: float, config: ApfConfig, decel_m_s2: float, reaction_s: float
+) -> float:
+    """r_F for a cruise speed: at least the configured r_F, and wide enough that a wall entering
+    it can still be stopped for before it reaches the safety-critical radius r_c::
+
+        r_F(v) = max(r_F, r_c + v·t_r + v² / (2 a))
+
+    Seed 002 gives no r_F; its tuning flew 0.9-1 m/s, and §4.5 names safety distances that adapt
+    to the manoeuvre as the next step. With a fixed r_F the repulsion of eq. 3 starts too late at
+    2.3 m/s: the MAV needs ~2 m to stop, more than the whole 1.6 m field (the clearance loss the
+    speed runs showed). At 1 m/s the configured r_F is kept unchanged.
+    """
+    need = config.r_critical_m + braking_distance(speed_m_s, decel_m_s2, reaction_s)
+    return max(config.r_influence_m, need)
 
 
 def _direction(v: FloatArray) -> FloatArray:

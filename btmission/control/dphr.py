@@ -23,6 +23,15 @@ Choices the paper leaves open, and why:
   to within a few full-resolution pixels, and the whole step stays within a few milliseconds.
 * k-means starts from N_clusters depths evenly spaced between the nearest and the farthest
   (deterministic, one centre per layer); a cluster that empties keeps its previous centre.
+* **Branch choice at junctions.** At a junction the deepest cluster falls apart into several
+  regions, one per branch, and the centroid of them all lies on the rock between them. The
+  paper's rule is "the deepest cluster"; here it is applied explicitly to the branches: the
+  deepest cluster's mask is split into connected regions (8-connectivity; regions below
+  ``min_branch_fraction`` of it are noise), and one is chosen, deterministically: the largest
+  (the widest opening, the deepest *cluster* of pixels), ties broken by the greater mean depth,
+  then by the smaller offset (straighter on). To commit to a branch once chosen, a caller passes
+  the previous choice's offset as ``prefer_offset``: the region nearest it is kept unless another
+  is more than ``switch_ratio`` times its size (:func:`choose_branch`).
 """
 
 from __future__ import annotations
@@ -35,7 +44,29 @@ from numpy.typing import ArrayLike, NDArray
 
 from btmission.types import FloatArray
 
-__all__ = ["DphrConfig", "DphrResult", "deepest_point_heading"]
+__all__ = [
+    "Branch",
+    "DphrConfig",
+    "DphrResult",
+    "choose_branch",
+    "deepest_point_heading",
+    "yaw_rate_limit_for_speed",
+]
+
+TURN_RADIUS_M = 1.5
+"""Tightest turn the heading regulation must allow: about half a 3-4 m tunnel's width."""
+
+
+def yaw_rate_limit_for_speed(
+    speed_m_s: float, turn_radius_m: float = TURN_RADIUS_M, floor: float = 0.5
+) -> float:
+    """ψ̇_max for a cruise speed: max(floor, v / R). Seed 002 maps s̄_x linearly to
+    ψ̇_ref ∈ [min, max] without giving the bounds; a fixed 0.5 rad/s turns a 2.3 m/s MAV on a
+    4.6 m radius, wider than the tunnel it must follow round a bend, so the bound grows with the
+    speed to keep the turn radius v/ψ̇_max within ``turn_radius_m``."""
+    if speed_m_s < 0 or turn_radius_m <= 0 or floor <= 0:
+        raise ValueError("need speed >= 0 and a positive turn radius and floor")
+    return max(floor, speed_m_s / turn_radius_m)
 
 
 @dataclass(frozen=True)
@@ -56,6 +87,14 @@ class DphrConfig:
     gain: float | None = None
     """l (rad/s per unit offset); None = ``yaw_rate_max``."""
     seed: int = 0
+    min_branch_fraction: float = 0.1
+    """A connected region of the deepest cluster smaller than this share of it is not a branch."""
+    switch_ratio: float = 2.0
+    """With ``prefer_offset``: leave the preferred branch only for one this many times larger."""
+    dead_end_m: float = 0.0
+    """When even the deepest cluster is nearer than this, nothing ahead is open (a dead end, a
+    wall filling the view): turn at ψ̇_max to the left until an opening comes into view, instead
+    of the paper's ψ̇ = l·s̄_x, which is ~0 on a flat wall. 0 = never."""
 
     def __post_init__(self) -> None:
         if self.clusters < 2:
@@ -66,6 +105,38 @@ class DphrConfig:
             raise ValueError("sample_size must be at least the number of clusters")
         if self.max_range_m <= 0 or self.yaw_rate_max <= 0:
             raise ValueError("max_range_m and yaw_rate_max must be positive")
+        if not 0 <= self.min_branch_fraction < 1 or self.switch_ratio < 1:
+            raise ValueError("need 0 <= min_branch_fraction < 1 and switch_ratio >= 1")
+
+
+@dataclass(frozen=True)
+class Branch:
+    """One connected region of the deepest cluster: a way on."""
+
+    pixels: int
+    mean_depth_m: float
+    offset: float
+    """s̄_x of the region's centroid, in [−1, 1] (negative = left)."""
+
+
+def choose_branch(
+    branches: list[Branch], prefer_offset: float | None = None, switch_ratio: float = 2.0
+) -> int:
+    """Index of the branch to follow (module docstring): the largest, then the deepest, then the
+    straightest; with ``prefer_offset``, the one nearest it unless another is more than
+    ``switch_ratio`` times larger."""
+    if not branches:
+        raise ValueError("no branch to choose from")
+    best = min(
+        range(len(branches)),
+        key=lambda i: (-branches[i].pixels, -branches[i].mean_depth_m, abs(branches[i].offset)),
+    )
+    if prefer_offset is None or len(branches) == 1:
+        return best
+    kept = min(range(len(branches)), key=lambda i: abs(branches[i].offset - prefer_offset))
+    if branches[best].pixels > switch_ratio * branches[kept].pixels:
+        return best
+    return kept
 
 
 @dataclass(frozen=True)
@@ -83,15 +154,24 @@ class DphrResult:
     centers: FloatArray
     """The cluster centres (depths, ascending)."""
     mask: NDArray[np.bool_]
-    """The deepest cluster on the reduced image (the paper's Fig. 3, right)."""
+    """The chosen branch of the deepest cluster on the reduced image (the paper's Fig. 3,
+    right)."""
+    branches: tuple[Branch, ...] = ()
+    """Every branch of the deepest cluster (more than one: a junction)."""
+    chosen: int = 0
+    """Index of the followed branch in :attr:`branches`."""
 
 
 def deepest_point_heading(
-    depth: ArrayLike, config: DphrConfig | None = None, principal_x: float | None = None
+    depth: ArrayLike,
+    config: DphrConfig | None = None,
+    principal_x: float | None = None,
+    prefer_offset: float | None = None,
 ) -> DphrResult:
     """Yaw-rate reference towards the deepest region of ``depth`` (H, W metres, 0 = no return).
 
-    ``principal_x`` is the principal point's column c_x (default: the image centre).
+    ``principal_x`` is the principal point's column c_x (default: the image centre);
+    ``prefer_offset`` the offset of the branch followed so far (see :func:`choose_branch`).
     """
     from scipy import ndimage
     from scipy.cluster.vq import kmeans2
@@ -133,7 +213,23 @@ def deepest_point_heading(
             / np.maximum(np.bincount(labels, minlength=centers.size), 1)
         )
     )
-    mask = (labels == deepest).reshape(filled.shape)
+    deep = (labels == deepest).reshape(filled.shape)
+    regions, count = ndimage.label(deep, structure=np.ones((3, 3), dtype=int))
+    sizes = np.bincount(regions.ravel(), minlength=count + 1)[1:]
+    keep = [k + 1 for k in range(count) if sizes[k] >= cfg.min_branch_fraction * deep.sum()]
+    branches: list[Branch] = []
+    for k in keep:
+        r_mask = regions == k
+        col = float(np.nonzero(r_mask)[1].mean()) * cfg.stride
+        branches.append(
+            Branch(
+                pixels=int(sizes[k - 1]),
+                mean_depth_m=float(filled[r_mask].mean()),
+                offset=float(np.clip((col - cx) / cx, -1.0, 1.0)),
+            )
+        )
+    chosen = choose_branch(branches, prefer_offset, cfg.switch_ratio) if branches else 0
+    mask = regions == keep[chosen] if branches else deep
     rows, cols = np.nonzero(mask)
     s_x = float(cols.mean()) * cfg.stride
     s_y = float(rows.mean()) * cfg.stride
@@ -142,11 +238,16 @@ def deepest_point_heading(
     if flat:
         offset = 0.0
     yaw_rate = float(np.clip(-gain * offset, -cfg.yaw_rate_max, cfg.yaw_rate_max))
+    deepest_m = float(values[mask.ravel()].mean())
+    if deepest_m < cfg.dead_end_m:
+        yaw_rate = cfg.yaw_rate_max
     return DphrResult(
         yaw_rate=yaw_rate,
         offset=offset,
         centroid=(s_x, s_y),
-        deepest_depth_m=float(values[mask.ravel()].mean()),
+        deepest_depth_m=deepest_m,
         centers=np.asarray(centers, dtype=float),
         mask=mask,
+        branches=tuple(branches),
+        chosen=chosen,
     )

@@ -676,6 +676,32 @@ class ObjectsEvent(TypedEvent):
 
 @register_event
 @dataclass(frozen=True, kw_only=True)
+class JunctionEvent(TypedEvent):
+    """DPHR saw several deep regions (a junction) and chose one to follow (library ``compra``)."""
+
+    KIND = "junction"
+    agent: str
+    offsets: list[float]
+    """Each branch's normalised centroid column s̄_x ∈ [−1, 1] (negative = left)."""
+    chosen: int
+    """Index of the followed branch in ``offsets``."""
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class JunctionSwitchEvent(TypedEvent):
+    """Within one junction DPHR left the branch it followed for another (s̄_x ``was`` → the
+    chosen one's), because the other grew more than ``switch_ratio`` times larger."""
+
+    KIND = "junction_switch"
+    agent: str
+    offsets: list[float]
+    chosen: int
+    was: float
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
 class RelocalizedEvent(TypedEvent):
     """An agent localised itself in the map from one LiDAR scan (library ``aerial_mine``)."""
 

@@ -36,7 +36,14 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from btmission.backends.base import Backend, Mode, Sensors, Telemetry, VehicleKind
-from btmission.control.apf import ApfConfig, PotentialField, repulsive_force, shape_force
+from btmission.control.apf import (
+    ApfConfig,
+    PotentialField,
+    influence_radius_for_speed,
+    limit_approach_speed,
+    repulsive_force,
+    shape_force,
+)
 from btmission.control.mav_model import world_to_yaw_frame, wrap_angle, yaw_frame_to_world
 from btmission.types import FloatArray
 
@@ -59,6 +66,33 @@ HEADING_GAIN = 1.0
 """Gain of the autopilot's heading loop (rad/s per rad), to turn a yaw rate into a heading."""
 POSITION_GAIN = 1.0
 """Gain of the autopilot's position loop (1/s): velocity = gain · position error."""
+NMPC_LEAD_S = 0.7
+"""The NMPC's position target sits at most max(1 m, ``NMPC_LEAD_S``·speed) ahead, with the
+velocity reference F·speed: with the weights of :class:`~btmission.control.nmpc.NmpcConfig` the
+closed loop then cruises at the commanded speed (0.7 s: measured, see
+``tests/test_control_nmpc.py::test_cruise_lead_holds_the_commanded_speed``). A fixed 1 m target
+(seed 002's carrot) holds it to ~1.8 m/s whatever the speed asked (the paper raises Q_p for its
+2.3 m/s run instead). Up to 1.43 m/s the 1 m floor rules and nothing changes."""
+BRAKE_REACTION_S = 0.4
+"""Time before full braking acts (APF rate saturation, the NMPC's tilt-rate limit of eq. 2,
+attitude lag): with the MAV's tilt-limited deceleration it sizes the APF's radius of influence
+for the cruise speed (:func:`~btmission.control.apf.influence_radius_for_speed`)."""
+APPROACH_REACTION_S = 0.6
+"""Reaction time the approach-speed bound counts on: the NMPC's measured lag in following a
+lowered velocity reference (its velocity weight against the position lead, the attitude lag)."""
+APPROACH_CORRIDOR_M = 1.0
+"""The approach bound counts the rock within this of the MAV's line of motion (its velocity
+reference's and its actual velocity's): r_c, the body and a margin. The floor 1.5 m below and
+the walls of a tunnel's middle lie outside it, so cruising level down a tunnel is not slowed."""
+APPROACH_MARGIN_M = 0.1
+"""The approach-speed bound stops the MAV this much outside the safety-critical radius r_c."""
+APPROACH_DECEL_M_S2 = 1.5
+"""Deceleration the approach-speed bound counts on (with :data:`APPROACH_REACTION_S`). The NMPC
+stops from 2.3 m/s in 1.9 m when its velocity reference steps to zero (1.7 m/s² on average, the
+attitude lag and the tilt-rate limit of eq. 2 included), but the bound lowers the reference
+progressively, which the closed loop follows more slowly (~1.55 m/s² in the COMPRA runs). Fitting
+the hard stop instead (2.5 m/s², 0.45 s) gained 0.05-0.09 m/s on average and let the MAV within
+0.17 m of a wall; the full tilt's 3.6 m/s² let it stop ~0.2 m inside the stand-off."""
 ROUTE_EVENT_POINTS = 200
 """A ``route`` event carries at most this many points of the path (:func:`route_points`)."""
 
@@ -118,6 +152,37 @@ SETTINGS_DOC: dict[str, str] = {
     "apf_gain": "APF gain L per m² of rock surface seen by the LiDAR (seed 002 eq. 3)",
     "clearance_m": "paths keep this far from rock: the map is inflated by it for planning (m)",
 }
+
+
+def braking_decel(model_g: float = 9.81, tilt_max_rad: float = 0.35) -> float:
+    """The MAV's horizontal deceleration at full tilt, g·tan(θ_max) (NMPC and autopilot alike
+    limit the tilt to ~0.35 rad: 3.6 m/s²)."""
+    return model_g * math.tan(tilt_max_rad)
+
+
+def adaptive_speed_scale(force_norm: float) -> float:
+    """Seed 002 eq. 4 as a speed factor: Q_p(‖F_r‖) / Q_p,max ∈ (Q_p,min/Q_p,max, 1].
+
+    In the paper the speed comes from the position weight alone (the carrot is the only
+    reference), so lowering Q_p near obstacles slows the MAV ("the dips ... where the adaptive
+    weights scheme reduced the speed due to the proximity of an obstacle", §4.3). Here the
+    cruise speed is also a velocity reference, which eq. 4 alone would leave untouched; scaling
+    it (and the position lead) by the same ratio gives the slow-down the paper describes.
+    """
+    from btmission.control.nmpc import NmpcConfig, adaptive_position_weight
+
+    nc = NmpcConfig()
+    q = adaptive_position_weight(force_norm, nc.q_position_min[0], nc.q_position[0], nc.force_gain)
+    return float(q) / nc.q_position[0]
+
+
+def multirotor_apf_config(gain: float, speed_m_s: float) -> ApfConfig:
+    """The multirotor APF for a cruise speed: gain L per point, r_F widened with the braking
+    distance (:func:`~btmission.control.apf.influence_radius_for_speed`; unchanged up to
+    1.5 m/s)."""
+    base = ApfConfig(gain=(gain, gain, gain))
+    r_f = influence_radius_for_speed(speed_m_s, base, braking_decel(), BRAKE_REACTION_S)
+    return ApfConfig(gain=(gain, gain, gain), r_influence_m=r_f)
 
 
 class Polyline:
@@ -359,7 +424,7 @@ class Navigator:
         self._last_route: FloatArray | None = None
         g = cfg.apf_gain * point_area_m2
         if self.kind is VehicleKind.MULTIROTOR:
-            self._apf = PotentialField(ApfConfig(gain=(g, g, g)))
+            self._apf = PotentialField(multirotor_apf_config(g, cfg.speed_m_s))
             if controller == "nmpc":
                 from btmission.control.nmpc import MavNmpc, NmpcConfig
 
@@ -539,6 +604,12 @@ class Navigator:
             ref, vel, yaw, repulsion = self._follow_reference(now, tel, cmd)
         elif isinstance(cmd, _Goto):
             ref, vel, _, repulsion = self._apf_reference(tel, cmd.waypoint, cfg.speed_m_s)
+            vel = self._stopping_limit(tel, vel * adaptive_speed_scale(repulsion))
+            # the position reference consistent with that velocity: where the NMPC's lead puts
+            # it (or the autopilot's position loop flies at it), not the 1 m carrot, which alone
+            # drives the NMPC at ~0.7 m/s — into the rock the bound is stopping it for
+            lead_s = NMPC_LEAD_S if self._nmpc is not None else 1.0 / POSITION_GAIN
+            ref = p + vel * lead_s
             yaw, yaw_rate = cmd.yaw, cmd.yaw_rate
         elif isinstance(cmd, _Track):
             ref, vel = cmd.reference(now), cmd.velocity
@@ -571,6 +642,28 @@ class Navigator:
         ref = p + force * max(1.0, speed * norm / POSITION_GAIN)
         vel = force * speed
         return ref, vel, None, float(np.linalg.norm(raw))
+
+    def _stopping_limit(self, tel: Telemetry, vel: FloatArray) -> FloatArray:
+        """``vel`` (world) with its approach to the rock bounded by the stopping distance: towards
+        each near LiDAR point, no faster than can still stop before the safety-critical radius
+        r_c (:func:`~btmission.control.apf.limit_approach_speed`); sliding along a wall and
+        moving away from it are untouched."""
+        if self.sensors is None or self._apf is None:
+            return vel
+        points = self.sensors.lidar()
+        if len(points) == 0:
+            return vel
+        body = world_to_yaw_frame(vel, tel.yaw)
+        limited = limit_approach_speed(
+            body,
+            points,
+            self._apf.config.r_critical_m + APPROACH_MARGIN_M,
+            APPROACH_DECEL_M_S2,
+            APPROACH_REACTION_S,
+            corridor_m=APPROACH_CORRIDOR_M,
+            heading=world_to_yaw_frame(tel.velocity, tel.yaw),
+        )
+        return yaw_frame_to_world(limited, tel.yaw)
 
     def _agent_force(self, tel: Telemetry, wp_body: FloatArray) -> FloatArray:
         """Repulsion (body frame) from the other agents' shared positions: eq. 3 with one point
@@ -672,8 +765,9 @@ class Navigator:
                 [tel.roll, tel.pitch],
             ]
         )
-        target = tel.position + (ref - tel.position) / max(
-            1.0, float(np.linalg.norm(ref - tel.position))
+        lead = max(1.0, NMPC_LEAD_S * float(np.linalg.norm(vel)))  # ≥ the Goto's own lead
+        target = tel.position + (ref - tel.position) * min(
+            1.0, lead / max(float(np.linalg.norm(ref - tel.position)), 1e-9)
         )
         x_ref = np.concatenate(
             [world_to_yaw_frame(target, psi), world_to_yaw_frame(vel, psi), [0.0, 0.0]]
