@@ -141,6 +141,10 @@ runtime:
     dust_points: 2
     detection_noise_px: 0
     max_speed_m_s: 0.2
+    velocity_noise: 0.05
+    velocity_noise_tau_s: 2
+    pose_noise_m: 0.002
+    heading_noise_rad: 0.01
     artifacts: [{label: survivor, position: [9, 5, 2], size_m: 0.6}]
 """,
         "m.yaml",
@@ -148,6 +152,8 @@ runtime:
     config = sim_config(m)
     assert (config.lidar_range_m, config.dust_points, config.detection_noise_px) == (1.5, 2, 0.0)
     assert config.max_speed_m_s == 0.2
+    assert (config.velocity_noise, config.velocity_noise_tau_s) == (0.05, 2.0)
+    assert (config.pose_noise_m, config.heading_noise_rad) == (0.002, 0.01)
     sensors = MapSensors(
         SimWorld(room(), mission_artifacts(m)),
         config,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -251,3 +252,109 @@ def test_world_surfaces_and_ground_heights() -> None:
     # faces are sampled at their centres: the nearest lies up to half a voxel (diagonally) aside
     assert world.wall_distance(np.array([5.0, 5.0, 2.0])) == pytest.approx(3.0, abs=0.03)
     assert world.wall_distance(np.array([5.0, 1.5, 3.0])) == pytest.approx(1.0, abs=0.12)
+
+
+# ------------------------------------------------------------------------------------- noise
+def _drive(seed: int, config: SimConfig, steps: int = 200) -> tuple[np.ndarray, np.ndarray]:
+    """A ground robot on a constant cmd_vel: (true states, reported [x, y, ψ]) per step."""
+    sim = Simulator(room(), config, seed=seed)
+    g = sim.add_ground("G1", (2, 5, 0))
+    truth, told = [], []
+    for _ in range(steps):
+        g.set_velocity_setpoint((0.3, 0.0, 0.0), 0.1)
+        sim.step()
+        tel = g.telemetry()
+        truth.append(sim.vehicle("G1").x.copy())
+        told.append([tel.position[0], tel.position[1], tel.yaw])
+    return np.array(truth), np.array(told)
+
+
+NOISY = SimConfig(velocity_noise=0.05, pose_noise_m=0.002, heading_noise_rad=0.01)
+
+
+def test_noise_is_the_same_for_a_seed_and_differs_across_seeds() -> None:
+    a, told_a = _drive(0, NOISY)
+    b, told_b = _drive(0, NOISY)
+    c, _ = _drive(1, NOISY)
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(told_a, told_b)
+    assert np.abs(a - c).max() > 0.01  # another seed drives another path
+    quiet, told = _drive(0, SimConfig())  # off by default: exactly the command, told the truth
+    np.testing.assert_array_equal(quiet, told)
+    assert np.array_equal(quiet, _drive(5, SimConfig())[0])  # and no seed changes it
+
+
+def test_velocity_noise_is_a_gauss_markov_error_of_the_command() -> None:
+    """e ← a·e + √(1−a²)·σ·ξ with a = exp(−dt/τ): standard deviation σ, lag-one correlation a;
+    the robot drives (1 + e) times its command."""
+    cfg = SimConfig(velocity_noise=0.1, velocity_noise_tau_s=0.5)
+    sim = Simulator(room(), cfg, seed=3)
+    g = sim.add_ground("G1", (5, 5, 0))
+    v = sim.vehicle("G1")
+    errors, speeds = [], []
+    for _ in range(20_000):
+        g.set_velocity_setpoint((0.2, 0.0, 0.0), 0.0)
+        before = v.drive_error.copy()
+        sim.step()
+        errors.append(before)
+        speeds.append(v.sp_vel_body)
+        v.x[:2] = (5.0, 5.0)  # keep it in the room
+    e = np.array(errors)
+    assert e.std(axis=0) == pytest.approx([0.1, 0.1], rel=0.15)
+    a = math.exp(-cfg.step_s / cfg.velocity_noise_tau_s)
+    lag1 = [np.corrcoef(e[:-1, k], e[1:, k])[0, 1] for k in range(2)]
+    assert lag1 == pytest.approx([a, a], abs=0.02)
+    np.testing.assert_allclose(speeds, 0.2 * (1 + e[:, 0]), atol=1e-12)
+
+
+def test_pose_noise_is_in_the_telemetry_only() -> None:
+    """The vehicle reports its pose with the configured error; it moves, collides and senses
+    at its true pose, and turning the noise on changes neither the dust nor the detections
+    (each vehicle has its own generator)."""
+    truth, told = _drive(2, SimConfig(pose_noise_m=0.01, heading_noise_rad=0.02), steps=2000)
+    err = told - truth
+    assert err[:, :2].std() == pytest.approx(0.01, rel=0.1)
+    assert err[:, 2].std() == pytest.approx(0.02, rel=0.1)
+    assert abs(err.mean(axis=0)).max() < 0.002
+    quiet, _ = _drive(2, SimConfig(), steps=2000)
+    np.testing.assert_array_equal(truth, quiet)  # pose noise alone does not move it
+    scans = []
+    for cfg in (
+        SimConfig(dust_points=3),
+        SimConfig(dust_points=3, pose_noise_m=0.01, velocity_noise=0.1),
+    ):
+        sim = Simulator(room(), cfg, seed=4)
+        sim.add_ground("G1", (5, 1.5, 0))
+        sim.step()
+        scans.append(sim.backends["G1"].lidar())
+    np.testing.assert_array_equal(scans[0], scans[1])
+
+
+def test_a_vehicles_noise_does_not_depend_on_the_others() -> None:
+    def errors(ids: list[str], of: str = "G1") -> np.ndarray:
+        sim = Simulator(room(), SimConfig(pose_noise_m=0.01), seed=7)
+        for k, vid in enumerate(ids):
+            sim.add_ground(vid, (2 + 2 * k, 5, 0))
+        out = []
+        for _ in range(20):
+            sim.step()
+            out.append(sim.vehicle(of).estimate_error.copy())
+        return np.array(out)
+
+    np.testing.assert_array_equal(errors(["G1"]), errors(["G0", "G1", "G2"]))
+    assert not np.array_equal(errors(["G1"]), errors(["G2"], of="G2"))  # its own stream
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"velocity_noise": 0.8}, "velocity_noise must be in [0, 0.5]"),
+        ({"velocity_noise": -0.1}, "velocity_noise must be in [0, 0.5]"),
+        ({"velocity_noise_tau_s": 0.0}, "velocity_noise_tau_s positive"),
+        ({"pose_noise_m": -1.0}, "pose_noise_m and heading_noise_rad must be >= 0"),
+        ({"heading_noise_rad": -1.0}, "pose_noise_m and heading_noise_rad must be >= 0"),
+    ],
+)
+def test_bad_noise_settings_are_refused(kwargs: dict[str, float], message: str) -> None:
+    with pytest.raises(ValueError, match=re.escape(message)):
+        SimConfig(**kwargs)  # type: ignore[arg-type]

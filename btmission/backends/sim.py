@@ -37,6 +37,20 @@ with noisy boxes and probabilities (for the COMPRA object localiser). The full-r
 (``lidar_scan``, for global relocalization) casts every beam of an OS1-32-like sensor through the
 voxel map, gravity-aligned, with range noise from the simulator's seeded generator.
 
+**Noise** (off unless the mission sets it; ``runtime.sim``, docs/running.md). Seed 003's
+TurtleBots took their pose from a Vicon motion-capture system, so what set a real run apart from
+its model was mostly the robots not driving exactly what they were told (wheel slip, the motors'
+speed loops, the floor) plus a millimetre-level pose estimate. So a ground robot drives its
+command scaled by (1 + e): e = [e_v, e_ω] is a first-order Gauss-Markov process per robot
+(stationary standard deviation ``velocity_noise``, correlation time ``velocity_noise_tau_s``:
+``e ← a·e + √(1−a²)·σ·ξ``, a = exp(−dt/τ)), the result clipped to the motors' limits; and every
+vehicle's telemetry reports its x-y position and heading with white Gaussian errors
+(``pose_noise_m``, ``heading_noise_rad``), drawn once per step, while collisions, clearances,
+the odometer and the sensors use the true pose (a LiDAR scan is taken where the vehicle is and
+read where it thinks it is). Each vehicle draws from its own generator, seeded by the run's seed
+and the vehicle's id, so turning noise on changes neither the dust nor the detections, a
+vehicle's noise does not depend on the others, and a run is still the same for the same seed.
+
 **Collisions.** A vehicle is a sphere of radius ``body_radius_m`` whose bottom touches the
 ground when landed. It collides with rock when the sphere reaches a wall or roof face, when its
 centre enters a rock voxel, or when it hits the ground faster than 2 m/s; with another vehicle
@@ -47,6 +61,7 @@ roof face (the floor under a vehicle is where it lands, so it is not counted).
 from __future__ import annotations
 
 import math
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import partial
@@ -83,6 +98,9 @@ WALL_QUERY_M = 5.0
 HEADING_P = 1.0
 """Heading loop gain (rad/s per rad) for position setpoints with a yaw."""
 CMD_VEL_TIMEOUT_S = 0.5
+NOISE_STREAM = 3
+"""Mixed into each vehicle's noise generator seed (with the run's seed and the id's CRC-32), so
+its stream is unrelated to the simulator's own (dust, detections, scans)."""
 
 
 @dataclass(frozen=True)
@@ -106,12 +124,33 @@ class SimConfig:
     camera_size: tuple[int, int] = (64, 48)
     camera_hfov_deg: float = 86.0
     camera_range_m: float = 6.0
+    velocity_noise: float = 0.0
+    """Ground robots: standard deviation of the relative error between the commanded and the
+    driven speed and turn rate (0.05: 5 %; module docstring)."""
+    velocity_noise_tau_s: float = 1.0
+    """Correlation time of that error (s)."""
+    pose_noise_m: float = 0.0
+    """Standard deviation of the telemetry's x and y about the true position (m)."""
+    heading_noise_rad: float = 0.0
+    """Standard deviation of the telemetry's heading about the true one (rad)."""
 
     def __post_init__(self) -> None:
         if not 0 < self.step_s <= 0.2:
             raise ValueError(f"step_s must be in (0, 0.2], got {self.step_s}")
         if self.lidar_range_m <= 0 or self.dust_points < 0:
             raise ValueError("lidar_range_m must be positive and dust_points >= 0")
+        if not 0 <= self.velocity_noise <= 0.5 or self.velocity_noise_tau_s <= 0:
+            raise ValueError(
+                "velocity_noise must be in [0, 0.5] and velocity_noise_tau_s positive, got "
+                f"{self.velocity_noise}, {self.velocity_noise_tau_s}"
+            )
+        if self.pose_noise_m < 0 or self.heading_noise_rad < 0:
+            raise ValueError("pose_noise_m and heading_noise_rad must be >= 0")
+
+    @property
+    def noisy(self) -> bool:
+        """Whether any per-vehicle noise is on (then every vehicle gets a noise generator)."""
+        return self.velocity_noise > 0 or self.pose_noise_m > 0 or self.heading_noise_rad > 0
 
 
 @dataclass(frozen=True)
@@ -244,6 +283,12 @@ class _Vehicle(AutopilotFields):
     sp_vel_body: float = 0.0
     v_max: float | None = None
     """This ground vehicle's top speed (m/s); None: ``SimConfig.ground_v_max``."""
+    noise: np.random.Generator | None = None
+    """This vehicle's own noise generator (None: the simulator has no noise on)."""
+    drive_error: FloatArray = field(default_factory=lambda: np.zeros(2))
+    """[e_v, e_ω]: a ground robot drives (1 + e) times its command (module docstring)."""
+    estimate_error: FloatArray = field(default_factory=lambda: np.zeros(3))
+    """[δx, δy, δψ]: the telemetry's error about the true pose, drawn every step."""
 
 
 class Simulator:
@@ -261,6 +306,7 @@ class Simulator:
         self.config = config or SimConfig()
         self.world = SimWorld(voxel_map, artifacts)
         self.params = params or MavParams()
+        self.seed = seed
         self.rng = np.random.default_rng(seed)
         self.time_s = 0.0
         self.steps = 0
@@ -302,6 +348,11 @@ class Simulator:
     def _add(self, v: _Vehicle) -> SimVehicle:
         if v.id in self._vehicles:
             raise ValueError(f"vehicle '{v.id}' exists already")
+        if self.config.noisy:
+            v.noise = np.random.default_rng([self.seed, NOISE_STREAM, zlib.crc32(v.id.encode())])
+            if v.kind is VehicleKind.GROUND and self.config.velocity_noise > 0:
+                v.drive_error = v.noise.normal(0.0, self.config.velocity_noise, 2)  # stationary
+            self._draw_estimate(v)
         self._vehicles[v.id] = v
         backend = SimVehicle(self, v)
         self.backends[v.id] = backend
@@ -325,9 +376,32 @@ class Simulator:
                 self._step_multirotor(v, dt)
             else:
                 self._step_ground(v, t, dt)
+        if self.config.noisy:
+            for v in self._vehicles.values():
+                self._draw_noise(v, dt)
         self.time_s = round(t + dt, 9)
         self.steps += 1
         return self._collisions()
+
+    # ---- noise (module docstring)
+    def _draw_noise(self, v: _Vehicle, dt: float) -> None:
+        """Advance ``v``'s drive error one step and draw its next pose-estimate error."""
+        cfg = self.config
+        assert v.noise is not None
+        if v.kind is VehicleKind.GROUND and cfg.velocity_noise > 0:
+            a = math.exp(-dt / cfg.velocity_noise_tau_s)
+            v.drive_error = a * v.drive_error + math.sqrt(1.0 - a * a) * v.noise.normal(
+                0.0, cfg.velocity_noise, 2
+            )
+        self._draw_estimate(v)
+
+    def _draw_estimate(self, v: _Vehicle) -> None:
+        cfg = self.config
+        assert v.noise is not None
+        if cfg.pose_noise_m > 0 or cfg.heading_noise_rad > 0:
+            v.estimate_error = v.noise.normal(0.0, 1.0, 3) * np.array(
+                [cfg.pose_noise_m, cfg.pose_noise_m, cfg.heading_noise_rad]
+            )
 
     # ---- multirotor
     def _autopilot(self, v: _Vehicle, t: float) -> None:
@@ -436,6 +510,10 @@ class Simulator:
             v_max = cfg.ground_v_max if v.v_max is None else v.v_max
             uv = float(np.clip(uv, cfg.ground_v_min, v_max))
             uw = float(np.clip(v.sp_yaw_rate, -cfg.ground_omega_max, cfg.ground_omega_max))
+            if cfg.velocity_noise > 0:  # the wheels do not quite drive the command
+                scale = np.maximum(1.0 + v.drive_error, 0.0)
+                uv = float(np.clip(uv * scale[0], cfg.ground_v_min, v_max))
+                uw = float(np.clip(uw * scale[1], -cfg.ground_omega_max, cfg.ground_omega_max))
         new = unicycle_step(v.x, np.array([uv, uw]), dt)
         p_new = np.array([new[0], new[1], v.z + cfg.ground_radius_m])
         if self.world.occupied(p_new):
@@ -554,16 +632,24 @@ class SimVehicle(OffboardCommands):
 
     # ------------------------------------------------------------------ telemetry
     def telemetry(self) -> Telemetry:
+        """The vehicle's state as it estimates it: the true state, plus the pose-estimate
+        error when the simulator has pose noise on (module docstring)."""
         v = self._v
         if v.kind is VehicleKind.MULTIROTOR:
             roll, pitch = float(v.x[6]), float(v.x[7])
         else:
             roll = pitch = 0.0
+        position = v.position.copy()
+        yaw = float(v.yaw)
+        if v.noise is not None:
+            err = v.estimate_error
+            position[:2] += err[:2]
+            yaw += float(err[2])
         return Telemetry(
             time_s=self._sim.time_s,
-            position=v.position.copy(),
+            position=position,
             velocity=v.velocity.copy(),
-            yaw=float(v.yaw),
+            yaw=yaw,
             roll=roll,
             pitch=pitch,
             yaw_rate=float(v.yaw_rate),
@@ -677,6 +763,10 @@ def sim_config(mission: Mission) -> SimConfig:
         dust_points=spec.dust_points,
         detection_noise_px=spec.detection_noise_px,
         max_speed_m_s=spec.max_speed_m_s,
+        velocity_noise=spec.velocity_noise,
+        velocity_noise_tau_s=spec.velocity_noise_tau_s,
+        pose_noise_m=spec.pose_noise_m,
+        heading_noise_rad=spec.heading_noise_rad,
     )
 
 

@@ -361,6 +361,31 @@ class SimSpec(_Strict):
         description="Horizontal speed limit of the simulated autopilot's position and velocity"
         " loops (m/s, PX4 MPC_XY_VEL_MAX); the NMPC's attitude setpoints are not limited.",
     )
+    velocity_noise: FiniteFloat = Field(
+        0.0,
+        ge=0,
+        le=0.5,
+        description="Ground robots drive (1 + e) times their commanded speed and turn rate, e a "
+        "seeded random error with this standard deviation (0.05: 5 %), correlated over "
+        "velocity_noise_tau_s (wheel slip, motor speed loops); 0: exactly the command.",
+    )
+    velocity_noise_tau_s: FiniteFloat = Field(
+        1.0, gt=0, le=60, description="Correlation time of velocity_noise's error (s)."
+    )
+    pose_noise_m: FiniteFloat = Field(
+        0.0,
+        ge=0,
+        le=0.5,
+        description="Standard deviation of the x and y the vehicles report about their true "
+        "position (m; the localisation's error, drawn every step, seeded).",
+    )
+    heading_noise_rad: FiniteFloat = Field(
+        0.0,
+        ge=0,
+        le=0.5,
+        description="Standard deviation of the heading the vehicles report about their true "
+        "heading (rad; drawn every step, seeded).",
+    )
     artifacts: list[ArtifactSpec] = Field(
         default_factory=list, description="Objects the simulated camera can detect (COMPRA)."
     )
