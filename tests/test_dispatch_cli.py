@@ -89,6 +89,13 @@ def test_dynamic_prints_table_6_columns(runner: CliRunner, tmp_path: Path) -> No
     row = next(line for line in out.splitlines() if line.startswith("| 2 |"))
     assert "±" in row
     assert (tmp_path / "d.png").exists()
+    assert "not settled" not in out
+    code, out, _ = run(
+        runner, "dispatch", "dynamic", "--map", "mine_table6", "--vehicles", "2", "--hours",
+        "0.2", "--budget", "0.05", "--generations", "20", "--no-settle",
+    )  # fmt: skip
+    assert code == 0, out
+    assert "map mine_table6" in out and "plans not settled" in out
 
 
 def test_dynamic_bad_map_exit_2(runner: CliRunner) -> None:
