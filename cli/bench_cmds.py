@@ -408,14 +408,26 @@ def dispatch_bench(vehicles: str, runs: int, tau: float, seed: int, out: Path) -
 @click.option("--hours", type=HOURS, default=4.0, show_default=True,
               help="Simulated hours per run.")  # fmt: skip
 @positive_float_option("--budget", default=0.5, help="GA wall-clock budget per optimisation (s).")
+@click.option("--map", "map_name", type=click.Choice(["mine_table6", "mine"]),
+              default="mine_table6", show_default=True,
+              help="The Fig. 1 mine scaled to Table 6's trip length, or as drawn.")  # fmt: skip
+@positive_float_option("--tau", default=3.0,
+                       help="Simulated time charged per optimisation and vehicle (s).")  # fmt: skip
 @seed_option("Random seed.")
 @out_option("dispatch_dynamic.md and .csv")
 def dispatch_dynamic_bench(
-    vehicles: str, runs: int, hours: float, budget: float, seed: int, out: Path
+    vehicles: str,
+    runs: int,
+    hours: float,
+    budget: float,
+    map_name: str,
+    tau: float,
+    seed: int,
+    out: Path,
 ) -> None:
     """Dynamic planning on the Fig. 1 mine: Table 6 (C, i_t, i_p) for 2-5 trucks.
 
-    The full run (5 × 4 h per size) takes about 8 min here.
+    The full run (5 × 4 h per size) takes about 12 min here.
 
     \b
     Example:
@@ -427,8 +439,9 @@ def dispatch_dynamic_bench(
     sizes = int_list(vehicles, "--vehicles")
     with progress_bar(len(sizes) * runs, "mine: dynamic runs") as advance:
         run_dynamic_benchmark(
-            sizes, runs, hours, budget, seed, out, echo=click.echo, on_run=lambda _: advance(1)
-        )
+            sizes, runs, hours, budget, seed, out, echo=click.echo, on_run=lambda _: advance(1),
+            map_name=map_name, tau_s=tau,
+        )  # fmt: skip
 
 
 @bench.command("sim")

@@ -247,6 +247,8 @@ def static_cmd(
               help="GA wall-clock budget per optimisation in s.")  # fmt: skip
 @click.option("--opt-time", type=POSITIVE, default=3.0, show_default=True,
               help="Simulated time one optimisation takes (causality: plans apply after it).")  # fmt: skip
+@click.option("--settle/--no-settle", default=True, show_default=True,
+              help="Shorten the adopted plans' idle stops (see docs/dispatch.md).")  # fmt: skip
 @generations_option
 @seed_option
 @delta_option
@@ -256,7 +258,7 @@ def static_cmd(
 @handle_spec_errors
 def dynamic_cmd(
     map_ref: str, vehicles: str, hours: float, runs: int, budget: float, opt_time: float,
-    generations: int | None, seed: int, delta: float, gantt: Path | None,
+    settle: bool, generations: int | None, seed: int, delta: float, gantt: Path | None,
 ) -> None:  # fmt: skip
     """Dynamic planning (§5, §6.2): re-plan after every loading/offloading; Table 6 metrics.
 
@@ -278,7 +280,9 @@ def dynamic_cmd(
     results: dict[int, list[DynamicResult]] = {}
     try:
         cfgs = [
-            DynamicConfig(L, T, opt_time_s=opt_time, ga=params, delta=delta, seed=seed + k)
+            DynamicConfig(
+                L, T, opt_time_s=opt_time, ga=params, delta=delta, seed=seed + k, settle=settle
+            )
             for L in sizes
             for k in range(runs)
         ]
@@ -298,6 +302,7 @@ def dynamic_cmd(
     click.echo(
         f"map {tmap.name}, {hours:g} h, {runs} run(s) per size, GA budget {budget:g} s, "
         f"optimisation time {opt_time:g} s (simulated), seed {seed}"
+        + ("" if settle else ", plans not settled")
     )
     for line in dynamic_table(results):
         click.echo(line)

@@ -13,10 +13,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from btmission.diagnostics import SpecError
-from btmission.dispatch.dynamic import DynamicConfig, DynamicPlanner, executed_tracks
+from btmission.dispatch.dynamic import (
+    DynamicConfig,
+    DynamicPlanner,
+    executed_tracks,
+    settle_waits,
+)
 from btmission.dispatch.evaluate import Evaluator, evaluate_reference, timeline
 from btmission.dispatch.ga import GAParams, optimize
-from btmission.dispatch.maps import mine_map, static_map
+from btmission.dispatch.maps import BUILTIN_MAPS, TABLE6_SCALE, mine_map, static_map
 from btmission.dispatch.missions import (
     FleetMission,
     Mission,
@@ -179,6 +184,24 @@ def test_mine_map_speeds_follow_section_6_2() -> None:
     assert m.ttime[r1, r0] == pytest.approx(3 * m.ttime[r0, r1], rel=1e-3)
     pauses_near_o = [p for p in m.pauses if m.dist[p, o] < 60]
     assert len(pauses_near_o) >= 2
+
+
+def test_mine_table6_is_the_mine_scaled_to_table_6s_round_trip() -> None:
+    """Every traversal time is 0.7 × the mine's, and the mean Π0 round trip O → loading site → O
+    is the ≈ 874 s that Table 6's two-truck row leaves for driving (maps.py derives it)."""
+    m, t6 = mine_map(), BUILTIN_MAPS["mine_table6"]()
+    assert t6.name == "mine_table6" and [n.name for n in t6.nodes] == [n.name for n in m.nodes]
+    joined = m.edge >= 0
+    assert np.allclose(t6.ttime[joined], TABLE6_SCALE * m.ttime[joined], atol=0.01)
+    o = t6.id("O")
+    loading = [x for x in t6.terminals if x != o]
+    trip = float(np.mean([t6.dist[o, x] + t6.dist[x, o] for x in loading]))
+    assert trip == pytest.approx(874, abs=2)
+    assert float(np.mean([m.dist[o, x] + m.dist[x, o] for x in loading])) == pytest.approx(
+        1249, abs=2
+    )
+    with pytest.raises(ValueError, match="scale"):
+        mine_map(0.0)
 
 
 # ------------------------------------------------------------------------------ missions
@@ -484,6 +507,42 @@ def test_executed_dynamic_plan_is_collision_free() -> None:
     conflicts, _ = evaluate_reference(mine_map(), tracks)
     assert conflicts == []
     assert 0 <= res.idle_terminal < 1 and 0 <= res.idle_pause < 1
+
+
+def test_settle_shortens_a_needed_wait_to_the_shortest_feasible_one() -> None:
+    """V0 drives B → X → A (at X from 20 s); V1 waits at P for it. Any wait < 6 s collides (V1
+    would be on X → B while V0 is on B → X, or at X within δ = 2 s of V0); settling turns V1's
+    40 s into 6 s, and the plan stays collision-free and ends earlier."""
+    m = corridor()
+    f = fleet(m, (["B", "X", "A"], [0, 0, 0]), (["A", "X", "P", "X", "B"], [0, 0, 40.0, 0, 0]))
+    ev = evaluator(m, xi_min=4)
+    assert evaluate_reference(m, f)[0] == []
+    out = settle_waits(f, ev)
+    assert 6.0 <= out[1].waits[2] <= 6.05
+    assert evaluate_reference(m, out)[0] == []
+    assert ev.evaluate(out).duration < ev.evaluate(f).duration
+    assert ev(out) >= ev(f)
+
+
+def test_settle_removes_idle_stops_of_trucks_that_do_not_finish_last() -> None:
+    """A truck's stop that does not decide when the last truck arrives costs nothing under eq. 2
+    (a plateau of the score); settling takes it to its lower bound (min_wait for the first free
+    item) and leaves the score as it was."""
+    m = mine_map()
+    far = make_mission(m, m.path(m.id("O"), m.id("L3n")), t0=0.0)  # ~440 s, finishes last
+    short = make_mission(
+        m, m.path(m.id("L1n"), m.id("L1s")), [50.0, 0.0, 0.0], t0=0.0, min_wait=20.0
+    )
+    ev = Evaluator(m, fleet_items((far, short)), beta=1e-6, t_ref=0.0)
+    before = ev.evaluate((far, short))
+    assert before.feasible
+    out = settle_waits((far, short), ev)
+    assert out[1].waits[0] == pytest.approx(20.0)  # its lower bound, not 0
+    after = ev.evaluate(out)
+    assert after.feasible and after.score == pytest.approx(before.score)
+    # an infeasible plan is left alone
+    clash = fleet(corridor(), (["A", "X", "B"], [0, 0, 0]), (["B", "X", "A"], [0, 0, 0]))
+    assert settle_waits(clash, evaluator(corridor())) == clash
 
 
 def test_dynamic_needs_one_offloading_site() -> None:

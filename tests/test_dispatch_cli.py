@@ -89,6 +89,13 @@ def test_dynamic_prints_table_6_columns(runner: CliRunner, tmp_path: Path) -> No
     row = next(line for line in out.splitlines() if line.startswith("| 2 |"))
     assert "±" in row
     assert (tmp_path / "d.png").exists()
+    assert "not settled" not in out
+    code, out, _ = run(
+        runner, "dispatch", "dynamic", "--map", "mine_table6", "--vehicles", "2", "--hours",
+        "0.2", "--budget", "0.05", "--generations", "20", "--no-settle",
+    )  # fmt: skip
+    assert code == 0, out
+    assert "map mine_table6" in out and "plans not settled" in out
 
 
 def test_dynamic_bad_map_exit_2(runner: CliRunner) -> None:
@@ -130,6 +137,20 @@ def test_bench_dispatch_dynamic_writes_results(runner: CliRunner, tmp_path: Path
         "--budget", "0.05", "--out", str(tmp_path),
     )  # fmt: skip
     assert code == 0, out
-    assert "| 2 | 1 |" in out and "Table 6" in (tmp_path / "dispatch_dynamic.md").read_text()
+    first = (tmp_path / "dispatch_dynamic.md").read_text()
+    assert "| 2 | 1 |" in out and "Table 6" in first and "Map `mine_table6`" in first
+    assert "Earlier runs" not in first
+    # a second run keeps the first one's table below its own, and so on
+    for _ in range(2):
+        code, out, _ = run(
+            runner, "bench", "dispatch-dynamic", "--vehicles", "2", "--runs", "1", "--hours",
+            "0.1", "--budget", "0.05", "--map", "mine", "--out", str(tmp_path),
+        )  # fmt: skip
+        assert code == 0, out
+    text = (tmp_path / "dispatch_dynamic.md").read_text()
+    head, _, earlier = text.partition("## Earlier runs")
+    assert "Map `mine` " in head and text.count("## Earlier runs") == 1
+    assert earlier.count("### Run before this one") == 2 and "Map `mine_table6`" in earlier
+    assert earlier.count("| vehicles | runs |") == 2
     code, _, err = run(runner, "bench", "dispatch", "--vehicles", "x", "--out", str(tmp_path))
     assert code == 2 and "comma-separated integers" in err
