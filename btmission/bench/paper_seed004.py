@@ -45,9 +45,9 @@ class Protocol:
     tau_s: float
 
 
-FULL = Protocol(dyn_runs=2, dyn_hours=4.0, dyn_budget_s=0.5, dyn_generations=None,
+FULL = Protocol(dyn_runs=5, dyn_hours=4.0, dyn_budget_s=0.5, dyn_generations=None,
                 static_runs=10, tau_s=0.3)  # fmt: skip
-"""The page's run: two 4-h runs per fleet size (the paper: five), 10 static instances per size
+"""The page's run: five 4-h runs per fleet size (as the paper), 10 static instances per size
 and map (the paper: 1,000) with τ = 0.3 s per vehicle (the paper: 3 s)."""
 QUICK = Protocol(dyn_runs=1, dyn_hours=0.5, dyn_budget_s=0.05, dyn_generations=40,
                  static_runs=1, tau_s=0.02)  # fmt: skip
