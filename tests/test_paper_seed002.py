@@ -48,21 +48,22 @@ def test_exploration_stats_from_events() -> None:
 
 
 def test_after_the_acceleration_counts_from_the_first_sample_at_1_6_m_s() -> None:
-    """Speeds 0, 0.8, 1.6, 2.4, then 2.4 and one dip to 1.8: the average after the acceleration
-    is path length / time from the 1.6 m/s sample, the slowest is the dip (speed magnitude,
-    vertical included), and the acceleration's samples count in neither."""
-    speeds = [0.0, 0.8, 1.6, 2.4, 2.4, 1.8, 2.4]
+    """A climb at 1.8 m/s (not the acceleration down the tunnel: horizontally 0.6 m/s), then
+    horizontal speeds 0.8, 1.6, 2.4, 2.4, a dip to 1.8 with a 1.0 m/s sink, 2.4: the average after
+    the acceleration is path length / time from the 1.6 m/s sample, the slowest is the smallest
+    speed magnitude after it, and the earlier samples count in neither."""
+    vel = [(0.6, 1.7), (0.8, 0.0), (1.6, 0.0), (2.4, 0.0), (2.4, 0.0), (1.8, -1.0), (2.4, 0.0)]
     events: list[dict[str, object]] = [{"ev": "stage", "t": 0.0, "action": "explore"}]
     x = 0.0
-    for k, v in enumerate(speeds):
-        events.append(
-            {"ev": "pose", "t": k * 1.0, "p": [x, 0.0, 1.5], "v": [0.0, v * 0.6, v * 0.8]}
-        )
-        x += v
+    for k, (h, vz) in enumerate(vel):
+        events.append({"ev": "pose", "t": k * 1.0, "p": [x, 0.0, 1.5], "v": [h * 0.6, h * 0.8, vz]})
+        x += h
     st = sec.exploration_stats(events)
     assert st["accelerated_s"] == 2.0
-    assert st["cruise_m_s"] == pytest.approx(sum(speeds[2:-1]) / 4)
+    assert st["cruise_m_s"] == pytest.approx(sum(h for h, _ in vel[2:-1]) / 4)
     assert st["cruise_min_m_s"] == pytest.approx(1.6)
+    events[6]["v"] = [0.9, 1.2, -0.4]  # the dip: 1.5 m/s horizontally, 1.55 m/s in all
+    assert sec.exploration_stats(events)["cruise_min_m_s"] == pytest.approx(math.hypot(1.5, 0.4))
     slow = sec.exploration_stats(events[:3])
     assert slow["accelerated_s"] == math.inf and slow["cruise_m_s"] == 0.0
 
