@@ -118,6 +118,22 @@ def control_bench(only: str, steps: int, repeat: int, out: Path) -> None:
     run_control_benchmark(parts, steps=steps, repeat=repeat, out_dir=out, echo=click.echo)
 
 
+@bench.command("startup")
+@int_option("--repeat", default=10, max=1000, help="Timed runs of each command (the median is reported).")
+@out_option("startup.md and startup.csv")
+def startup_bench(repeat: int, out: Path) -> None:
+    """Start-up time of the command line: --version, --help and validate on the mine mission,
+    beside the interpreter alone. Targets: --help <= 0.15 s, validate <= 0.5 s (median).
+
+    \b
+    Example:
+      btmission bench startup --repeat 3 --out /tmp/results
+    """
+    from btmission.bench.startup import run_startup_benchmark
+
+    run_startup_benchmark(repeat=repeat, out_dir=out, echo=click.echo)
+
+
 @bench.command("paper")
 @click.option(
     "--only",

@@ -21,6 +21,7 @@ SCRIPTED = (
     "planner",
     "reloc",
     "sim",
+    "startup",
     "synth",
     "transport",
     "viewer",

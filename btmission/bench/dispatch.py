@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from btmission.bench.synth import environment, header_lines
+from btmission.bench.synth import earlier_runs, environment, header_lines
 from btmission.dispatch.dynamic import DynamicResult, mean_std
 from btmission.dispatch.evaluate import Evaluator, default_beta
 from btmission.dispatch.ga import GAParams, default_wait_max
@@ -224,21 +224,6 @@ def dynamic_runs(
     return table, results
 
 
-def _earlier_runs(path: Path) -> list[str]:
-    """The tables of a previous ``dispatch_dynamic.md`` (its own earlier runs included), to keep
-    below the new one under "Earlier runs"."""
-    if not path.exists():
-        return []
-    text = path.read_text(encoding="utf-8")
-    body = text.split("\n", 1)[1] if text.startswith("# ") else text
-    marker = "## Earlier runs"
-    head, _, older = body.partition(marker)
-    lines = ["## Earlier runs", "", "### Run before this one", "", head.strip()]
-    if older.strip():
-        lines += ["", older.strip()]
-    return [*lines, ""]
-
-
 def run_dynamic_benchmark(
     vehicles: Sequence[int] = (2, 3, 4, 5),
     runs: int = 5,
@@ -263,7 +248,7 @@ def run_dynamic_benchmark(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     target = out / "dispatch_dynamic.md"
-    earlier = _earlier_runs(target)
+    earlier = earlier_runs(target)
     md = [
         "# Dynamic GA dispatch benchmark (seed 004 Table 6)",
         "",

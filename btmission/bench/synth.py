@@ -441,6 +441,21 @@ def load_note(env: dict[str, str]) -> str:
     return describe_load(float(env["load_start"]), end, own)
 
 
+def earlier_runs(path: Path) -> list[str]:
+    """The body of a previous results page ``path`` (its own earlier runs included), to keep below
+    the new one under "Earlier runs" (issue 19: every benchmark keeps its previous numbers)."""
+    if not path.exists():
+        return []
+    text = path.read_text(encoding="utf-8")
+    body = text.split("\n", 1)[1] if text.startswith("# ") else text
+    marker = "## Earlier runs"
+    head, _, older = body.partition(marker)
+    lines = ["## Earlier runs", "", "### Run before this one", "", head.strip()]
+    if older.strip():
+        lines += ["", older.strip()]
+    return [*lines, ""]
+
+
 def header_lines(env: dict[str, str]) -> list[str]:
     """The lines every results file starts with (under its title): date, machine, measured
     load, Python and btmission versions. Call it when the run has finished (it reads the load)."""

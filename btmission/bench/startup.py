@@ -1,0 +1,140 @@
+"""``btmission bench startup``: how long the command line takes before it does anything useful.
+
+Each case runs a fresh interpreter (``python -m btmission ARGS``) ``repeat`` times, alternating
+the cases so that a passing load spike hits them alike, and reports the median and the fastest
+wall time. The peer row is the interpreter alone (``python -c pass``), the floor no command can
+go below. Targets (issue 19): ``--help`` ≤ 0.15 s, ``validate`` on the mine mission ≤ 0.5 s.
+"""
+
+from __future__ import annotations
+
+import csv
+import statistics
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from btmission.bench.synth import earlier_runs, environment, header_lines
+
+MINE = Path(__file__).resolve().parents[2] / "missions" / "mine_inspection.yaml"
+
+
+@dataclass(frozen=True)
+class Case:
+    name: str
+    argv: tuple[str, ...]
+    """Arguments after the interpreter."""
+    target_s: float | None = None
+
+
+CASES: tuple[Case, ...] = (
+    Case("python -c pass (the interpreter alone)", ("-c", "pass")),
+    Case("btmission --version", ("-m", "btmission", "--version")),
+    Case("btmission --help", ("-m", "btmission", "--help"), 0.15),
+    Case("btmission validate missions/mine_inspection.yaml", ("-m", "btmission", "validate", str(MINE)), 0.5),
+)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Timing:
+    case: Case
+    times_s: tuple[float, ...]
+
+    @property
+    def median_s(self) -> float:
+        return statistics.median(self.times_s)
+
+    @property
+    def best_s(self) -> float:
+        return min(self.times_s)
+
+    @property
+    def met(self) -> str:
+        if self.case.target_s is None:
+            return "—"
+        return "yes" if self.median_s <= self.case.target_s else "no"
+
+
+def time_once(argv: Sequence[str]) -> float:
+    """Wall time of one ``python ARGV`` run (its output discarded); raises if it fails."""
+    t0 = time.perf_counter()
+    subprocess.run(
+        [sys.executable, *argv],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        check=True,
+        timeout=120,
+    )
+    return time.perf_counter() - t0
+
+
+def measure(
+    cases: Sequence[Case], repeat: int, clock: Callable[[Sequence[str]], float] = time_once
+) -> list[Timing]:
+    """Each case ``repeat`` times, round-robin, after one untimed warm-up run of each."""
+    for c in cases:
+        clock(c.argv)  # warm the OS file cache and Python's bytecode cache
+    times: dict[str, list[float]] = {c.name: [] for c in cases}
+    for _ in range(repeat):
+        for c in cases:
+            times[c.name].append(clock(c.argv))
+    return [Timing(c, tuple(times[c.name])) for c in cases]
+
+
+HEAD = ["command", "median s", "fastest s", "target s", "met"]
+
+
+def rows(timings: Sequence[Timing]) -> list[list[str]]:
+    return [
+        [
+            t.case.name,
+            f"{t.median_s:.3f}",
+            f"{t.best_s:.3f}",
+            "—" if t.case.target_s is None else f"≤ {t.case.target_s:g}",
+            t.met,
+        ]
+        for t in timings
+    ]
+
+
+def markdown(timings: Sequence[Timing], repeat: int, env: dict[str, str]) -> str:
+    lines = ["# Start-up benchmark", "", *header_lines(env), ""]
+    lines.append(
+        f"Wall time of a fresh `python -m btmission ...` ({repeat} runs each, cases alternated, "
+        "after one warm-up run each). The first row is the interpreter alone: the floor."
+    )
+    lines += ["", "| " + " | ".join(HEAD) + " |", "|" + "---|" * len(HEAD)]
+    lines += ["| " + " | ".join(r) + " |" for r in rows(timings)]
+    lines += ["", "Regenerate with `btmission bench startup`.", ""]
+    return "\n".join(lines)
+
+
+def run_startup_benchmark(
+    repeat: int = 10,
+    out_dir: Path = Path("benchmarks/results"),
+    echo: Callable[[str], object] = print,
+    cases: Sequence[Case] = CASES,
+) -> list[Timing]:
+    """Measure, echo the table and write ``startup.md`` (the previous page's tables kept under
+    "Earlier runs") and ``startup.csv`` under ``out_dir``."""
+    env = environment()
+    timings = measure(cases, repeat)
+    echo("| " + " | ".join(HEAD) + " |")
+    for r in rows(timings):
+        echo("| " + " | ".join(r) + " |")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    page = out_dir / "startup.md"
+    kept = earlier_runs(page)
+    page.write_text("\n".join([markdown(timings, repeat, env), *kept]), encoding="utf-8")
+    with (out_dir / "startup.csv").open("w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(
+            ["command", "median_s", "best_s", "target_s", *(f"run{i}" for i in range(repeat))]
+        )
+        for t in timings:
+            w.writerow([t.case.name, t.median_s, t.best_s, t.case.target_s or "", *t.times_s])
+    echo(f"wrote {out_dir / 'startup.md'} and {out_dir / 'startup.csv'}")
+    return timings
