@@ -603,8 +603,9 @@ class Navigator:
         elif isinstance(cmd, _Follow):
             ref, vel, yaw, repulsion = self._follow_reference(now, tel, cmd)
         elif isinstance(cmd, _Goto):
-            ref, vel, _, repulsion = self._apf_reference(tel, cmd.waypoint, cfg.speed_m_s)
-            vel = self._stopping_limit(tel, vel * adaptive_speed_scale(repulsion))
+            scan = self._lidar()  # one scan for the APF and the approach bound
+            ref, vel, _, repulsion = self._apf_reference(tel, cmd.waypoint, cfg.speed_m_s, scan)
+            vel = self._stopping_limit(tel, vel * adaptive_speed_scale(repulsion), scan)
             # the position reference consistent with that velocity: where the NMPC's lead puts
             # it (or the autopilot's position loop flies at it), not the 1 m carrot, which alone
             # drives the NMPC at ~0.7 m/s — into the rock the bound is stopping it for
@@ -621,16 +622,22 @@ class Navigator:
         else:
             self.backend.set_position_setpoint(p)
 
+    def _lidar(self) -> FloatArray:
+        """This step's LiDAR points (yaw frame); none without sensors."""
+        return self.sensors.lidar() if self.sensors is not None else np.zeros((0, 3))
+
     def _apf_reference(
-        self, tel: Telemetry, goal: FloatArray, speed: float
+        self, tel: Telemetry, goal: FloatArray, speed: float, points: FloatArray | None = None
     ) -> tuple[FloatArray, FloatArray, float | None, float]:
-        """APF (seed 002 eq. 3, Alg. 1) on the LiDAR scan, plus the other agents' shared
-        positions: reference point and velocity, and ‖F^r‖ before shaping (for eq. 4)."""
+        """APF (seed 002 eq. 3, Alg. 1) on the LiDAR scan (``points``, or this step's), plus
+        the other agents' shared positions: reference point and velocity, and ‖F^r‖ before
+        shaping (for eq. 4)."""
         p = tel.position
         assert self._apf is not None
         cfg = self._apf.config
         wp_body = world_to_yaw_frame(goal - p, tel.yaw)
-        points = self.sensors.lidar() if self.sensors is not None else np.zeros((0, 3))
+        if points is None:
+            points = self._lidar()
         raw, _, _, _ = repulsive_force(points, cfg)
         raw = raw + self._agent_force(tel, wp_body)
         total, fr, _ = shape_force(raw, self._apf_previous, wp_body, cfg)
@@ -643,15 +650,12 @@ class Navigator:
         vel = force * speed
         return ref, vel, None, float(np.linalg.norm(raw))
 
-    def _stopping_limit(self, tel: Telemetry, vel: FloatArray) -> FloatArray:
+    def _stopping_limit(self, tel: Telemetry, vel: FloatArray, points: FloatArray) -> FloatArray:
         """``vel`` (world) with its approach to the rock bounded by the stopping distance: towards
-        each near LiDAR point, no faster than can still stop before the safety-critical radius
-        r_c (:func:`~btmission.control.apf.limit_approach_speed`); sliding along a wall and
-        moving away from it are untouched."""
-        if self.sensors is None or self._apf is None:
-            return vel
-        points = self.sensors.lidar()
-        if len(points) == 0:
+        each near LiDAR point (``points``, yaw frame), no faster than can still stop before the
+        safety-critical radius r_c (:func:`~btmission.control.apf.limit_approach_speed`);
+        sliding along a wall and moving away from it are untouched."""
+        if self._apf is None or len(points) == 0:
             return vel
         body = world_to_yaw_frame(vel, tel.yaw)
         limited = limit_approach_speed(
