@@ -358,3 +358,77 @@ def test_a_vehicles_noise_does_not_depend_on_the_others() -> None:
 def test_bad_noise_settings_are_refused(kwargs: dict[str, float], message: str) -> None:
     with pytest.raises(ValueError, match=re.escape(message)):
         SimConfig(**kwargs)  # type: ignore[arg-type]
+
+
+# ---- the fast paths of a step give the vector forms' results, to the bit (issue 19)
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(st.floats(-5, 5), min_size=8, max_size=8),
+    st.floats(0, 20),
+    st.floats(-0.4, 0.4),
+    st.floats(-0.4, 0.4),
+)
+def test_the_float_rk4_step_is_the_vector_one(
+    x: list[float], thrust: float, phi: float, theta: float
+) -> None:
+    from btmission.control.mav_model import mav_rk4_floats, rk4_step
+
+    p = MavParams()
+    u = [thrust, phi, theta]
+    vec = rk4_step(lambda s, w: mav_dynamics(s, w, p), np.array(x), np.array(u), 0.05)
+    assert np.array_equal(np.array(mav_rk4_floats(x, u, 0.05, p)), vec)
+
+
+def _mine_world() -> SimWorld:
+    from btmission.world.minegen import generate_mine
+
+    return SimWorld(generate_mine(seed=3, size=(60.0, 40.0, 8.0), resolution=0.5).map)
+
+
+def test_the_world_queries_agree_with_the_voxel_map() -> None:
+    world = _mine_world()
+    vm = world.map
+    rng = np.random.default_rng(0)
+    lo, hi = vm.bounds
+    pts = rng.uniform(np.asarray(lo) - 2.0, np.asarray(hi) + 2.0, (3000, 3))
+    for p in pts:
+        idx = vm.world_to_index(p)
+        inside = bool(vm.in_bounds(idx))
+        assert world.occupied(p) == (inside and vm.state[tuple(idx)] == OCCUPIED)
+        assert world.ground_z(p) == vm.ground_z(p)
+    assert not world.occupied((math.nan, 1.0, 1.0))
+    assert not world.occupied((math.inf, 1.0, 1.0))
+    batched = world.wall_distances(pts[:500])
+    assert np.array_equal(batched, [world.wall_distance(p) for p in pts[:500]])
+    assert any(np.isfinite(batched)) and any(np.isinf(batched))
+
+
+def test_a_fleet_sees_and_touches_each_other_as_before() -> None:
+    """LiDAR returns of other vehicles and vehicle-vehicle contacts, computed for all at once,
+    are the per-pair vector tests: 25 vehicles at random spots, some touching, some in range."""
+    from btmission.backends.mapsensors import _UP, _bodies_in_range
+
+    sim = Simulator(VoxelMap.empty((40, 40, 6), 0.5, origin=(0.0, 0.0, -0.5)), SimConfig())
+    rng = np.random.default_rng(1)
+    for i in range(25):
+        sim.add_multirotor(f"V{i}", [*rng.uniform(5, 12, 2), 0.0])
+    pairs = sim.bodies()
+    bodies = [b for _, b in pairs]
+    for k, (v, _) in enumerate(pairs):
+        p = v.position
+        others = [b for j, b in enumerate(bodies) if j != k]
+        want = [
+            b.centre - p + 0.0
+            for b in others
+            if float(np.linalg.norm(b.centre - _UP * b.radius - p)) < 4.0
+        ]
+        got = _bodies_in_range(others, p, 4.0)
+        assert 0 < len(got) == len(want) < len(others)
+        assert all(np.allclose(g.mean(axis=0), w, atol=0.05) for g, w in zip(got, want))
+    touching = []
+    for i, (a, ba) in enumerate(pairs):
+        for b, bb in pairs[i + 1 :]:
+            if float(np.linalg.norm(ba.centre - bb.centre)) < ba.radius + bb.radius:
+                touching += [(a.id, b.id), (b.id, a.id)]
+    assert touching, "the layout should put some vehicles in touch"
+    assert [(e.vehicle, e.other) for e in sim._collisions()] == touching

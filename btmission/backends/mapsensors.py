@@ -136,11 +136,7 @@ class MapSensors:
         pose = self.pose()
         p = pose.position
         pts = self.world.surface_points(p, cfg.lidar_range_m) - p
-        others = [
-            b.centre - p + _SPHERE * b.radius
-            for b in self.others()
-            if float(np.linalg.norm(b.centre - _UP * b.radius - p)) < cfg.lidar_range_m
-        ]
+        others = _bodies_in_range(list(self.others()), p, cfg.lidar_range_m)
         if others:  # other vehicles are seen as points on their body spheres
             pts = np.vstack([pts, *others])
         if cfg.dust_points:
@@ -228,6 +224,23 @@ def _fibonacci_sphere(n: int) -> FloatArray:
 
 _SPHERE = _fibonacci_sphere(VEHICLE_POINTS)
 _UP = np.array([0.0, 0.0, 1.0])
+
+
+def _bodies_in_range(bodies: list[Body], p: FloatArray, range_m: float) -> list[FloatArray]:
+    """The LiDAR points (relative to ``p``) of the bodies whose reference point lies within
+    ``range_m`` of ``p``: ‖c − r·e_z − p‖ < range for all bodies at once, the exact test kept
+    for the few near the edge (a fleet's LiDARs each look at every other vehicle every step)."""
+    if not bodies:
+        return []
+    centres = np.array([b.centre for b in bodies])
+    radii = np.array([b.radius for b in bodies])
+    rel = centres - _UP * radii[:, None] - p
+    d2 = np.einsum("ij,ij->i", rel, rel)
+    out = []
+    for i in np.flatnonzero(d2 < (range_m + 1e-6) ** 2).tolist():
+        if math.sqrt(float(rel[i] @ rel[i])) < range_m:
+            out.append(bodies[i].centre - p + _SPHERE * bodies[i].radius)
+    return out
 
 
 def _ray_sphere(origin: FloatArray, dirs: FloatArray, centre: FloatArray, r: float) -> FloatArray:

@@ -68,6 +68,7 @@ from functools import partial
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import numpy.typing as npt
 
 from btmission.backends.autopilot import AutopilotFields, G, OffboardCommands, autopilot_rules
 from btmission.backends.base import (
@@ -79,7 +80,7 @@ from btmission.backends.base import (
 )
 from btmission.backends.mapsensors import Body, MapSensors, SensorPose
 from btmission.backends.provider import Vehicle, VehicleEvent
-from btmission.control.mav_model import MavParams, mav_dynamics, rk4_step, world_to_yaw_frame
+from btmission.control.mav_model import MavParams, mav_rk4_floats
 from btmission.localization.scan import LidarSensor
 from btmission.types import FloatArray, Vec3
 from btmission.world.voxel import OCCUPIED, VoxelMap
@@ -91,10 +92,12 @@ LAND_SPEED = 0.7
 TILT_MAX = 0.35
 IMPACT_SPEED = 2.0
 YAW_RATE_MAX = 0.8
+"""Heading-loop rate limit (rad/s), about PX4's MPC_YAWRAUTO_MAX."""
 CONTACT_GAP_S = 0.5
 WALL_QUERY_M = 5.0
 """Clearances beyond this are reported as inf (nothing near enough to matter)."""
-"""Heading-loop rate limit (rad/s), about PX4's MPC_YAWRAUTO_MAX."""
+GROUND_TABLE_MAX_VOXELS = 64_000_000
+"""Maps up to this size keep a per-voxel ground table (2 bytes a voxel) for fast ground_z."""
 HEADING_P = 1.0
 """Heading loop gain (rad/s per rad) for position setpoints with a yaw."""
 CMD_VEL_TIMEOUT_S = 0.5
@@ -203,16 +206,52 @@ class SimWorld:
         self._kd_all = cKDTree(self.surface) if len(self.surface) else None
         self._kd_walls = cKDTree(self.walls) if len(self.walls) else None
         self._occ = occ
+        self._origin = tuple(float(o) for o in voxel_map.origin)
+        self._res = float(res)
+        self._shape = tuple(int(n) for n in occ.shape)
+        # the highest rock voxel at or below each voxel of its column (-1: none): ground_z in
+        # O(1) per query instead of a column scan (the world is static)
+        nz = occ.shape[2]
+        self._below: npt.NDArray[np.int16] | None = None
+        if nz < 2**15 and occ.size <= GROUND_TABLE_MAX_VOXELS:
+            levels = np.where(occ, np.arange(nz, dtype=np.int16), np.int16(-1))
+            self._below = np.maximum.accumulate(levels, axis=2)
 
     # ------------------------------------------------------------------ queries
-    def occupied(self, p: FloatArray) -> bool:
-        idx = self.map.world_to_index(p)
-        if not bool(self.map.in_bounds(idx)):
-            return False
-        return bool(self._occ[idx[0], idx[1], idx[2]])
+    def _index(self, p: Sequence[float] | FloatArray) -> tuple[int, int, int] | None:
+        """The voxel holding ``p`` (None outside the map, or for a non-finite point), with the
+        arithmetic of :meth:`VoxelMap.world_to_index` done on scalars (the hot path of every
+        simulator step)."""
+        o, r = self._origin, self._res
+        fx, fy, fz = (p[0] - o[0]) / r, (p[1] - o[1]) / r, (p[2] - o[2]) / r
+        if not (math.isfinite(fx) and math.isfinite(fy) and math.isfinite(fz)):
+            return None
+        i, j, k = math.floor(fx), math.floor(fy), math.floor(fz)
+        nx, ny, nz = self._shape
+        if 0 <= i < nx and 0 <= j < ny and 0 <= k < nz:
+            return i, j, k
+        return None
 
-    def ground_z(self, p: FloatArray) -> float:
-        return self.map.ground_z(p)
+    def occupied(self, p: Sequence[float] | FloatArray) -> bool:
+        idx = self._index(p)
+        return idx is not None and bool(self._occ[idx])
+
+    def ground_z(self, p: Sequence[float] | FloatArray) -> float:
+        """:meth:`VoxelMap.ground_z <btmission.world.voxel.VoxelMap.ground_z>`, from the
+        precomputed column table."""
+        below = self._below
+        if below is None:
+            return self.map.ground_z(p)
+        o, r = self._origin, self._res
+        fx, fy, fz = (p[0] - o[0]) / r, (p[1] - o[1]) / r, (p[2] - o[2]) / r
+        nx, ny, nz = self._shape
+        if not (math.isfinite(fx) and math.isfinite(fy) and math.isfinite(fz)):
+            return self.map.ground_z(p)  # (its own handling of the odd cases)
+        i, j, k = math.floor(fx), math.floor(fy), math.floor(fz)
+        if not (0 <= i < nx and 0 <= j < ny) or k < 0:
+            return o[2]
+        top = int(below[i, j, min(k, nz - 1)])
+        return o[2] if top < 0 else o[2] + (top + 1) * r
 
     def wall_distance(self, p: FloatArray) -> float:
         """Distance from ``p`` to the nearest wall or roof face (inf if there is none)."""
@@ -220,6 +259,14 @@ class SimWorld:
             return math.inf
         d, _ = self._kd_walls.query(p, distance_upper_bound=WALL_QUERY_M)
         return float(d)
+
+    def wall_distances(self, points: FloatArray) -> FloatArray:
+        """:meth:`wall_distance` of each of ``points`` (n, 3), in one query."""
+        if self._kd_walls is None or len(points) == 0:
+            return np.full(len(points), math.inf)
+        d, _ = self._kd_walls.query(points, distance_upper_bound=WALL_QUERY_M)
+        out: FloatArray = np.asarray(d, dtype=float)
+        return out
 
     def surface_points(self, p: FloatArray, radius: float) -> FloatArray:
         if self._kd_all is None:
@@ -312,6 +359,7 @@ class Simulator:
         self.steps = 0
         self._vehicles: dict[str, _Vehicle] = {}
         self.backends: dict[str, SimVehicle] = {}
+        self._bodies: tuple[tuple[int, int], list[tuple[_Vehicle, Body]]] | None = None
 
     # ------------------------------------------------------------------ vehicles
     def add_multirotor(self, vid: str, start: Sequence[float], yaw: float = 0.0) -> SimVehicle:
@@ -408,93 +456,119 @@ class Simulator:
         """PX4-like mode logic: failsafes and automatic disarming."""
         autopilot_rules(v, t, lambda: v.x[:3].copy())
 
-    def _attitude_command(self, v: _Vehicle) -> FloatArray:
-        """[T, φ_ref, θ_ref] from the active mode and setpoint."""
-        p, vel = v.x[:3], v.x[3:6]
+    def _attitude_command(self, v: _Vehicle) -> list[float]:
+        """[T, φ_ref, θ_ref] from the active mode and setpoint (on plain floats: the arithmetic
+        of the vector form, element by element, in the same order)."""
+        x = v.x
+        px, py, pz = float(x[0]), float(x[1]), float(x[2])
         cfg = self.config
-        if v.mode is Mode.OFFBOARD and v.sp_kind == "attitude":
-            return v.sp_att.copy()
-        if v.mode is Mode.OFFBOARD and v.sp_kind == "position":
-            v_des = v.sp_vel + 1.0 * (v.sp_pos - p)
-        elif v.mode is Mode.OFFBOARD and v.sp_kind == "velocity":
-            v_des = v.sp_vel.copy()
-        elif v.mode is Mode.TAKEOFF or v.mode is Mode.HOLD:
-            v_des = 1.0 * (v.hold - p)
-        elif v.mode is Mode.LAND:
-            v_des = np.array([0.0, 0.0, -LAND_SPEED])
-            v_des[:2] = 1.0 * (v.hold[:2] - p[:2])
+        mode = v.mode
+        if mode is Mode.OFFBOARD and v.sp_kind == "attitude":
+            return [float(a) for a in v.sp_att]
+        if mode is Mode.OFFBOARD and v.sp_kind == "position":
+            sv, sp = v.sp_vel, v.sp_pos
+            dx = float(sv[0]) + 1.0 * (float(sp[0]) - px)
+            dy = float(sv[1]) + 1.0 * (float(sp[1]) - py)
+            dz = float(sv[2]) + 1.0 * (float(sp[2]) - pz)
+        elif mode is Mode.OFFBOARD and v.sp_kind == "velocity":
+            dx, dy, dz = (float(a) for a in v.sp_vel)
+        elif mode is Mode.TAKEOFF or mode is Mode.HOLD:
+            hold = v.hold
+            dx, dy, dz = (
+                1.0 * (float(hold[0]) - px),
+                1.0 * (float(hold[1]) - py),
+                1.0 * (float(hold[2]) - pz),
+            )
+        elif mode is Mode.LAND:
+            hold = v.hold
+            dx, dy, dz = 1.0 * (float(hold[0]) - px), 1.0 * (float(hold[1]) - py), -LAND_SPEED
         else:
-            return np.array([0.0, 0.0, 0.0])
-        h = float(np.hypot(v_des[0], v_des[1]))
+            return [0.0, 0.0, 0.0]
+        h = float(np.hypot(dx, dy))
         if h > cfg.max_speed_m_s:
-            v_des[:2] *= cfg.max_speed_m_s / h
-        v_des[2] = float(np.clip(v_des[2], -cfg.max_climb_m_s, cfg.max_climb_m_s))
-        acc = 1.2 * (v_des - vel) + np.asarray(self.params.drag) * vel
-        return thrust_attitude(acc, v.yaw, self.params.g)
+            scale = cfg.max_speed_m_s / h
+            dx, dy = dx * scale, dy * scale
+        dz = min(max(dz, -cfg.max_climb_m_s), cfg.max_climb_m_s)
+        vx, vy, vz = float(x[3]), float(x[4]), float(x[5])
+        ax, ay, az = self.params.drag
+        return _thrust_attitude(
+            1.2 * (dx - vx) + ax * vx,
+            1.2 * (dy - vy) + ay * vy,
+            1.2 * (dz - vz) + az * vz,
+            v.yaw,
+            self.params.g,
+        )
 
     def _step_multirotor(self, v: _Vehicle, dt: float) -> None:
+        """One step of the seed 002 model (RK4 in the yaw frame), the yaw loop, rock and
+        ground contact, landing, battery and odometer — on plain floats (one call per vehicle
+        per step: numpy's per-call cost on 3- and 8-vectors was most of the simulator's time)."""
         t = self.time_s
         if v.frozen:
             return
-        u = self._attitude_command(v) if v.armed else np.zeros(3)
+        u = self._attitude_command(v) if v.armed else [0.0, 0.0, 0.0]
         if v.armed and v.mode is not Mode.MANUAL:
-            u[1] = float(np.clip(u[1], -TILT_MAX, TILT_MAX))
-            u[2] = float(np.clip(u[2], -TILT_MAX, TILT_MAX))
-        v.thrust = float(u[0])
+            u[1] = min(max(u[1], -TILT_MAX), TILT_MAX)
+            u[2] = min(max(u[2], -TILT_MAX), TILT_MAX)
+        v.thrust = u[0]
+        g = self.params.g
         # yaw: the commanded rate, or a P loop on the heading setpoint
         if v.mode is Mode.OFFBOARD and v.sp_kind in ("velocity", "attitude"):
             rate = v.sp_yaw_rate
         elif v.mode is Mode.OFFBOARD and v.sp_yaw is not None:
-            rate = float(np.clip(HEADING_P * _wrap(v.sp_yaw - v.yaw), -YAW_RATE_MAX, YAW_RATE_MAX))
+            rate = min(max(HEADING_P * _wrap(v.sp_yaw - v.yaw), -YAW_RATE_MAX), YAW_RATE_MAX)
         else:
             rate = 0.0
-        if v.landed and v.thrust < self.params.g * 1.01:
+        if v.landed and v.thrust < g * 1.01:
             rate = 0.0
         v.yaw_rate = rate
-        old = v.x[:3].copy()
-        if v.landed and v.thrust <= self.params.g:
-            v.x[3:] = 0.0  # resting on the ground
+        x = [float(a) for a in v.x]
+        old = x[0], x[1], x[2]
+        if v.landed and v.thrust <= g:
+            x[3:] = [0.0] * 5  # resting on the ground
         else:
             # the model lives in the yaw frame (seed 002 §3.2.2): integrate there, rotate back
             # (ṗ = v only: integrate from p = 0 and rotate the displacement back)
-            params = self.params
             c, sn = math.cos(v.yaw), math.sin(v.yaw)
-            vx, vy = v.x[3], v.x[4]
-            xy = v.x.copy()
-            xy[0:3] = 0.0
-            xy[3], xy[4] = c * vx + sn * vy, -sn * vx + c * vy
-            xy = rk4_step(lambda s, w: mav_dynamics(s, w, params), xy, u, dt)
-            new = xy.copy()
-            new[0] = v.x[0] + c * xy[0] - sn * xy[1]
-            new[1] = v.x[1] + sn * xy[0] + c * xy[1]
-            new[2] = v.x[2] + xy[2]
-            new[3], new[4] = c * xy[3] - sn * xy[4], sn * xy[3] + c * xy[4]
-            if self.world.occupied(new[:3] + np.array([0.0, 0.0, self.config.body_radius_m])):
+            vx, vy = x[3], x[4]
+            xy = [0.0, 0.0, 0.0, c * vx + sn * vy, -sn * vx + c * vy, x[5], x[6], x[7]]
+            xy = mav_rk4_floats(xy, u, dt, self.params)
+            new = [
+                x[0] + c * xy[0] - sn * xy[1],
+                x[1] + sn * xy[0] + c * xy[1],
+                x[2] + xy[2],
+                c * xy[3] - sn * xy[4],
+                sn * xy[3] + c * xy[4],
+                xy[5],
+                xy[6],
+                xy[7],
+            ]
+            if self.world.occupied((new[0], new[1], new[2] + self.config.body_radius_m)):
                 v.contact["rock"] = True  # bumped into rock: stopped at the last free position
-                new[0:3] = v.x[0:3]
-                new[3:6] = 0.0
-            v.x = new
+                new[0:3] = x[0:3]
+                new[3:6] = [0.0, 0.0, 0.0]
+            x = new
         v.yaw = _wrap(v.yaw + rate * dt)
-        ground = self.world.ground_z(v.x[:3] + np.array([0.0, 0.0, 0.05]))
+        ground = self.world.ground_z((x[0], x[1], x[2] + 0.05))
         v.ground = ground
-        if v.x[2] <= ground:
-            if v.x[5] < -IMPACT_SPEED:
+        if x[2] <= ground:
+            if x[5] < -IMPACT_SPEED:
                 v.contact["impact"] = True
-            v.x[2] = ground
-            v.x[3:8] = 0.0
+            x[2] = ground
+            x[3:8] = [0.0] * 5
+        v.x = np.array(x)
         was_landed = v.landed
-        v.landed = v.x[2] - ground < 0.05 and v.x[5] <= 0.3 and v.thrust <= self.params.g * 1.05
+        v.landed = x[2] - ground < 0.05 and x[5] <= 0.3 and v.thrust <= g * 1.05
         if v.landed and not was_landed:
             v.landed_at = t
-            if v.mode is Mode.TAKEOFF:
-                pass
         if not v.landed:
             v.took_off = True
-        if v.mode is Mode.TAKEOFF and abs(v.x[2] - v.hold[2]) < 0.1:
+        if v.mode is Mode.TAKEOFF and abs(x[2] - v.hold[2]) < 0.1:
             v.mode = Mode.HOLD
         if v.armed:
             v.battery = max(0.0, v.battery - dt / self.config.battery_s)
-        v.odometer_m += float(np.linalg.norm(v.x[:3] - old))
+        d = np.array([x[0] - old[0], x[1] - old[1], x[2] - old[2]])
+        v.odometer_m += math.sqrt(float(d @ d))  # = np.linalg.norm, to the bit
 
     # ---- ground robot
     def _step_ground(self, v: _Vehicle, t: float, dt: float) -> None:
@@ -540,27 +614,51 @@ class Simulator:
         c: FloatArray = v.position + np.array([0.0, 0.0, self._radius(v)])
         return c
 
+    def bodies(self) -> list[tuple[_Vehicle, Body]]:
+        """Every vehicle with its body sphere at this step (built once per step and shared by
+        the collision check and every vehicle's LiDAR)."""
+        key = (self.steps, len(self._vehicles))
+        cached = self._bodies
+        if cached is None or cached[0] != key:
+            cached = self._bodies = (
+                key,
+                [(v, Body(self._centre(v), self._radius(v))) for v in self._vehicles.values()],
+            )
+        return cached[1]
+
     def _collisions(self) -> list[SimEvent]:
         out: list[SimEvent] = []
         t = self.time_s
-        vs = list(self._vehicles.values())
-        centres = {v.id: self._centre(v) for v in vs}
-        for v in vs:
-            r = self._radius(v)
-            c = centres[v.id]
-            gap = self.world.wall_distance(c) - r
+        bodies = self.bodies()
+        if not bodies:
+            return out
+        centres = np.array([b.centre for _, b in bodies])
+        radii = np.array([b.radius for _, b in bodies])
+        walls = self.world.wall_distances(centres)
+        world = self.world
+        for i, (v, body) in enumerate(bodies):
+            gap = float(walls[i]) - body.radius
             measured = not v.landed or v.kind is VehicleKind.GROUND
             if measured and math.isfinite(gap):
                 v.clearance_min = min(v.clearance_min, gap)
-            hit = gap < -0.02 or self.world.occupied(c) or v.contact.pop("impact", False)
+            hit = gap < -0.02 or world.occupied(body.centre) or v.contact.pop("impact", False)
             hit = hit or v.contact.pop("rock", False)
-            self._episode(v, "rock", hit, out, t, c)
-        for i, a in enumerate(vs):
-            for b in vs[i + 1 :]:
-                d = float(np.linalg.norm(centres[a.id] - centres[b.id]))
-                hit = d < self._radius(a) + self._radius(b)
-                self._episode(a, b.id, hit, out, t, centres[a.id])
-                self._episode(b, a.id, hit, out, t, centres[b.id])
+            self._episode(v, "rock", hit, out, t, body.centre)
+        if len(bodies) < 2:
+            return out
+        # pairs in touch: every pair's squared distance at once, then the exact test of the
+        # vector form (‖c_a − c_b‖ < r_a + r_b) on the few that come near it
+        diff = centres[:, None, :] - centres[None, :, :]
+        d2 = np.einsum("ijk,ijk->ij", diff, diff)
+        reach = radii[:, None] + radii[None, :]
+        near = np.argwhere(np.triu(d2 < (reach + 1e-6) ** 2, k=1))
+        for i, j in near.tolist():  # (row-major: the order of the pair loop)
+            a, ba = bodies[i]
+            b, bb = bodies[j]
+            delta = ba.centre - bb.centre
+            if math.sqrt(float(delta @ delta)) < ba.radius + bb.radius:
+                self._episode(a, b.id, True, out, t, ba.centre)
+                self._episode(b, a.id, True, out, t, bb.centre)
         return out
 
     def _episode(
@@ -593,8 +691,15 @@ def thrust_attitude(acc: FloatArray, yaw: float, g: float = G) -> FloatArray:
     with t = R_z(−ψ)(acc + g e_z): T = ‖t‖, φ = asin(−t_y / T), θ = atan2(t_x, t_z). The thrust
     vector is first tilted back inside the tilt limit (keeping its vertical part).
     """
-    tw = np.array([acc[0], acc[1], max(acc[2] + g, 0.2 * g)])
-    tx, ty, tz = world_to_yaw_frame(tw, yaw)
+    return np.array(_thrust_attitude(float(acc[0]), float(acc[1]), float(acc[2]), yaw, g))
+
+
+def _thrust_attitude(ax: float, ay: float, az: float, yaw: float, g: float) -> list[float]:
+    """:func:`thrust_attitude` on plain floats (R_z(−ψ) as in
+    :func:`~btmission.control.mav_model.world_to_yaw_frame`)."""
+    tz = max(az + g, 0.2 * g)
+    c, s = math.cos(-yaw), math.sin(-yaw)
+    tx, ty = c * ax - s * ay, s * ax + c * ay
     horiz = math.hypot(tx, ty)
     limit = tz * math.tan(TILT_MAX)
     if horiz > limit:
@@ -602,7 +707,7 @@ def thrust_attitude(acc: FloatArray, yaw: float, g: float = G) -> FloatArray:
     thrust = math.sqrt(tx * tx + ty * ty + tz * tz)
     phi = math.asin(max(-1.0, min(1.0, -ty / thrust)))
     theta = math.atan2(tx, tz)
-    return np.array([thrust, phi, theta])
+    return [thrust, phi, theta]
 
 
 def _wrap(a: float) -> float:
@@ -698,10 +803,8 @@ class SimVehicle(OffboardCommands):
         return SensorPose(self._sim.time_s, v.position, v.yaw)
 
     def _other_bodies(self) -> list[Body]:
-        sim = self._sim
-        return [
-            Body(sim._centre(o), sim._radius(o)) for o in sim._vehicles.values() if o is not self._v
-        ]
+        me = self._v
+        return [b for o, b in self._sim.bodies() if o is not me]
 
 
 class SimProvider:

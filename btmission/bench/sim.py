@@ -178,6 +178,77 @@ def run_scale(
     )
 
 
+FLEET_SIZES = (3, 10, 30, 100)
+"""Fleet sizes of the scaling table (issue 19: speed against the number of drones)."""
+
+FLEET_DURATION_S = 60.0
+"""Simulated seconds of each fleet run (every drone has taken off and is flying a task)."""
+
+
+def fleet_mission_text(drones: int, seed: int = 0, controller: str = "track") -> str:
+    """The seed 000 mine (seed 7, 200 m × 120 m × 12 m) with ``drones`` aerial agents and
+    ⌈7·drones/3⌉ inspections (the field mission's ratio: 7 tasks for 3 drones).
+
+    Starts and tasks are points every 2 m along the mine's drift centrelines, nearest drifts to
+    the launch area first: the drones stand on the floor at the first ``drones`` of them (none
+    closer than 2 m to another), the tasks are drawn (generator ``seed``) from the rest, 2 m
+    above the local floor. Deterministic for a seed.
+    """
+    import math
+
+    from btmission.world.minegen import generate_mine
+    from btmission.world.voxel import OCCUPIED
+
+    mine = generate_mine(seed=7, size=(200.0, 120.0, 12.0), resolution=0.5)
+    vm = mine.map
+    tunnels = sorted(mine.tunnels, key=lambda t: (math.dist(t.a, mine.launch), t.a, t.b))
+    floor: list[tuple[float, float, float]] = []
+    for t in tunnels:
+        a, b = np.asarray(t.a, dtype=float), np.asarray(t.b, dtype=float)
+        k = max(int(float(np.linalg.norm(b - a)) // 2.0), 1)
+        for i in range(k + 1):
+            x, y, z = a + (b - a) * i / k
+            gz = vm.ground_z((x, y, z + 0.3))
+            above = vm.state_at((x, y, gz + 2.0))
+            if above is None or above == OCCUPIED:
+                continue
+            if all(math.dist((x, y, gz), q) >= 2.0 for q in floor):
+                floor.append((round(float(x), 1), round(float(y), 1), round(float(gz), 2)))
+    n_tasks = math.ceil(7 * drones / 3)
+    if drones + n_tasks > len(floor):
+        raise ValueError(
+            f"the mine has room for {len(floor)} starts and tasks, not {drones} drones"
+        )
+    rng = np.random.default_rng(seed)
+    picks = rng.choice(np.arange(drones, len(floor)), size=n_tasks, replace=False)
+    lines = [
+        f"mission: fleet{drones}",
+        "version: 1",
+        f"description: {drones} drones, {n_tasks} inspections in the seed 000 mine",
+        "world:",
+        "  map: {generate: mine, seed: 7, size: [200, 120, 12]}",
+        "  resolution: 0.5",
+        "agents:",
+        *(
+            f"  - {{id: R{i + 1}, library: aerial, start: [{x:g}, {y:g}, {z:g}], backend: sim}}"
+            for i, (x, y, z) in enumerate(floor[:drones])
+        ),
+        "tasks:",
+        *(
+            f"  - {{id: T{j + 1}, type: inspect, location: "
+            f"[{floor[i][0]:g}, {floor[i][1]:g}, {floor[i][2] + 2.0:g}]}}"
+            for j, i in enumerate(sorted(int(i) for i in picks))
+        ),
+        "task_types:",
+        "  inspect: {goal: at_goal(location), cost: path_cost(location)}",
+        "coordination: {auction_rate_hz: 10, participation: 1.0, priority_scale: 1000, "
+        "switch_cost: 5}",
+        f"runtime: {{controller: {controller}}}",
+        "",
+    ]
+    return "\n".join(lines)
+
+
 # ------------------------------------------------------------------------------- output
 def _row(cells: Sequence[object]) -> str:
     return "| " + " | ".join(str(c) for c in cells) + " |"
