@@ -406,29 +406,32 @@ def test_the_world_queries_agree_with_the_voxel_map() -> None:
 def test_a_fleet_sees_and_touches_each_other_as_before() -> None:
     """LiDAR returns of other vehicles and vehicle-vehicle contacts, computed for all at once,
     are the per-pair vector tests: 25 vehicles at random spots, some touching, some in range."""
-    from btmission.backends.mapsensors import _UP, _bodies_in_range
+    from btmission.backends.mapsensors import Bodies, _bodies_in_range
 
     sim = Simulator(VoxelMap.empty((40, 40, 6), 0.5, origin=(0.0, 0.0, -0.5)), SimConfig())
     rng = np.random.default_rng(1)
     for i in range(25):
         sim.add_multirotor(f"V{i}", [*rng.uniform(5, 12, 2), 0.0])
-    pairs = sim.bodies()
-    bodies = [b for _, b in pairs]
-    for k, (v, _) in enumerate(pairs):
+    table = sim.bodies()
+    r = sim.config.body_radius_m
+    for k, v in enumerate(table.vehicles):
         p = v.position
-        others = [b for j, b in enumerate(bodies) if j != k]
+        others = sim.other_bodies(v.id)
+        assert len(others.radii) == 24
+        assert not any(np.array_equal(c, table.centres[k]) for c in others.centres)
         want = [
-            b.centre - p + 0.0
-            for b in others
-            if float(np.linalg.norm(b.centre - _UP * b.radius - p)) < 4.0
+            o.position + np.array([0.0, 0.0, r]) - p
+            for o in table.vehicles
+            if o is not v and float(np.linalg.norm(o.position - p)) < 4.0
         ]
-        got = _bodies_in_range(others, p, 4.0)
-        assert 0 < len(got) == len(want) < len(others)
+        got = _bodies_in_range(Bodies(others.centres, others.radii), p, 4.0)
+        assert 0 < len(got) == len(want) < 24
         assert all(np.allclose(g.mean(axis=0), w, atol=0.05) for g, w in zip(got, want))
     touching = []
-    for i, (a, ba) in enumerate(pairs):
-        for b, bb in pairs[i + 1 :]:
-            if float(np.linalg.norm(ba.centre - bb.centre)) < ba.radius + bb.radius:
+    vs = table.vehicles
+    for i, a in enumerate(vs):
+        for b in vs[i + 1 :]:
+            if float(np.linalg.norm(a.position - b.position)) < 2 * r:
                 touching += [(a.id, b.id), (b.id, a.id)]
     assert touching, "the layout should put some vehicles in touch"
     assert [(e.vehicle, e.other) for e in sim._collisions()] == touching

@@ -90,6 +90,15 @@ class Body(NamedTuple):
     radius: float
 
 
+class Bodies(NamedTuple):
+    """Other vehicles as arrays (what a simulator holding a whole fleet hands its sensors)."""
+
+    centres: FloatArray
+    """(m, 3) sphere centres (m)."""
+    radii: FloatArray
+    """(m,) radii (m)."""
+
+
 def body_at(position: Vec3 | FloatArray, radius: float) -> Body:
     """The body sphere of a vehicle at ``position`` (its reference point, e.g. the position it
     reports): the sphere of ``radius`` resting on that point."""
@@ -112,7 +121,7 @@ class MapSensors:
         config: SimConfig,
         rng: np.random.Generator,
         pose: Callable[[], PoseSource],
-        others: Callable[[], Iterable[Body]] = no_bodies,
+        others: Callable[[], Iterable[Body] | Bodies] = no_bodies,
         *,
         scan_sensor: LidarSensor = OS1_32,
         lidar_mount_m: float = LIDAR_MOUNT_M,
@@ -136,7 +145,14 @@ class MapSensors:
         pose = self.pose()
         p = pose.position
         pts = self.world.surface_points(p, cfg.lidar_range_m) - p
-        others = _bodies_in_range(list(self.others()), p, cfg.lidar_range_m)
+        bodies = self.others()
+        if not isinstance(bodies, Bodies):
+            listed = list(bodies)
+            bodies = Bodies(
+                np.array([b.centre for b in listed]).reshape(-1, 3),
+                np.array([b.radius for b in listed], dtype=float),
+            )
+        others = _bodies_in_range(bodies, p, cfg.lidar_range_m)
         if others:  # other vehicles are seen as points on their body spheres
             pts = np.vstack([pts, *others])
         if cfg.dust_points:
@@ -226,20 +242,19 @@ _SPHERE = _fibonacci_sphere(VEHICLE_POINTS)
 _UP = np.array([0.0, 0.0, 1.0])
 
 
-def _bodies_in_range(bodies: list[Body], p: FloatArray, range_m: float) -> list[FloatArray]:
+def _bodies_in_range(bodies: Bodies, p: FloatArray, range_m: float) -> list[FloatArray]:
     """The LiDAR points (relative to ``p``) of the bodies whose reference point lies within
     ``range_m`` of ``p``: ‖c − r·e_z − p‖ < range for all bodies at once, the exact test kept
     for the few near the edge (a fleet's LiDARs each look at every other vehicle every step)."""
-    if not bodies:
+    centres, radii = bodies
+    if len(radii) == 0:
         return []
-    centres = np.array([b.centre for b in bodies])
-    radii = np.array([b.radius for b in bodies])
     rel = centres - _UP * radii[:, None] - p
     d2 = np.einsum("ij,ij->i", rel, rel)
     out = []
     for i in np.flatnonzero(d2 < (range_m + 1e-6) ** 2).tolist():
         if math.sqrt(float(rel[i] @ rel[i])) < range_m:
-            out.append(bodies[i].centre - p + _SPHERE * bodies[i].radius)
+            out.append(centres[i] - p + _SPHERE * radii[i])
     return out
 
 

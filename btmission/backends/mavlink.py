@@ -736,7 +736,6 @@ class MavlinkVehicle:
                 mavlink.MAV_CMD_DO_SET_MODE, set_mode_params(self.autopilot, wanted), 0
             )
 
-
     def set_mode(self, mode: Mode) -> Ack:
         if mode is Mode.TAKEOFF:
             return self.takeoff(self.options.takeoff_alt_m)
@@ -1141,8 +1140,10 @@ class MavlinkProvider:
                 return
             if st.ekf_flags is None and st.estimator_ok is None and time.monotonic() > quiet_until:
                 return  # it does not report its estimator
-            if not said and self._progress is not None and (
-                st.ekf_flags is not None or st.estimator_ok is not None
+            if (
+                not said
+                and self._progress is not None
+                and (st.ekf_flags is not None or st.estimator_ok is not None)
             ):
                 self._progress(f"{vehicle.id}: waiting for its estimator (EKF) to have a position")
                 said = True
@@ -1215,7 +1216,9 @@ class MavlinkProvider:
             if refused and self._progress is not None:
                 self._progress(
                     "MAVLink messages refused: "
-                    + ", ".join(f"{why.replace('_', ' ')} {n}" for why, n in sorted(refused.items()))
+                    + ", ".join(
+                        f"{why.replace('_', ' ')} {n}" for why, n in sorted(refused.items())
+                    )
                 )
         finally:
             self._io.close()

@@ -78,7 +78,7 @@ from btmission.backends.base import (
     Telemetry,
     VehicleKind,
 )
-from btmission.backends.mapsensors import Body, MapSensors, SensorPose
+from btmission.backends.mapsensors import Bodies, MapSensors, SensorPose
 from btmission.backends.provider import Vehicle, VehicleEvent
 from btmission.control.mav_model import MavParams, mav_rk4_floats
 from btmission.localization.scan import LidarSensor
@@ -338,6 +338,17 @@ class _Vehicle(AutopilotFields):
     """[δx, δy, δψ]: the telemetry's error about the true pose, drawn every step."""
 
 
+@dataclass(frozen=True)
+class _BodyTable:
+    """Every vehicle's body sphere at one step (:meth:`Simulator.bodies`)."""
+
+    key: tuple[int, int]
+    vehicles: list[_Vehicle]
+    centres: FloatArray
+    radii: FloatArray
+    index: dict[str, int]
+
+
 class Simulator:
     """All vehicles in one world, advanced together by a fixed step (module docstring)."""
 
@@ -359,7 +370,7 @@ class Simulator:
         self.steps = 0
         self._vehicles: dict[str, _Vehicle] = {}
         self.backends: dict[str, SimVehicle] = {}
-        self._bodies: tuple[tuple[int, int], list[tuple[_Vehicle, Body]]] | None = None
+        self._bodies: _BodyTable | None = None
 
     # ------------------------------------------------------------------ vehicles
     def add_multirotor(self, vid: str, start: Sequence[float], yaw: float = 0.0) -> SimVehicle:
@@ -614,37 +625,47 @@ class Simulator:
         c: FloatArray = v.position + np.array([0.0, 0.0, self._radius(v)])
         return c
 
-    def bodies(self) -> list[tuple[_Vehicle, Body]]:
+    def bodies(self) -> _BodyTable:
         """Every vehicle with its body sphere at this step (built once per step and shared by
         the collision check and every vehicle's LiDAR)."""
         key = (self.steps, len(self._vehicles))
-        cached = self._bodies
-        if cached is None or cached[0] != key:
-            cached = self._bodies = (
+        table = self._bodies
+        if table is None or table.key != key:
+            vs = list(self._vehicles.values())
+            table = self._bodies = _BodyTable(
                 key,
-                [(v, Body(self._centre(v), self._radius(v))) for v in self._vehicles.values()],
+                vs,
+                np.array([self._centre(v) for v in vs]).reshape(-1, 3),
+                np.array([self._radius(v) for v in vs], dtype=float),
+                {v.id: i for i, v in enumerate(vs)},
             )
-        return cached[1]
+        return table
+
+    def other_bodies(self, vid: str) -> Bodies:
+        """The body spheres of every vehicle but ``vid`` (for its LiDAR)."""
+        table = self.bodies()
+        i = table.index[vid]
+        return Bodies(np.delete(table.centres, i, axis=0), np.delete(table.radii, i))
 
     def _collisions(self) -> list[SimEvent]:
         out: list[SimEvent] = []
         t = self.time_s
-        bodies = self.bodies()
-        if not bodies:
+        table = self.bodies()
+        vs, centres, radii = table.vehicles, table.centres, table.radii
+        if not vs:
             return out
-        centres = np.array([b.centre for _, b in bodies])
-        radii = np.array([b.radius for _, b in bodies])
         walls = self.world.wall_distances(centres)
         world = self.world
-        for i, (v, body) in enumerate(bodies):
-            gap = float(walls[i]) - body.radius
+        for i, v in enumerate(vs):
+            c = centres[i]
+            gap = float(walls[i]) - float(radii[i])
             measured = not v.landed or v.kind is VehicleKind.GROUND
             if measured and math.isfinite(gap):
                 v.clearance_min = min(v.clearance_min, gap)
-            hit = gap < -0.02 or world.occupied(body.centre) or v.contact.pop("impact", False)
+            hit = gap < -0.02 or world.occupied(c) or v.contact.pop("impact", False)
             hit = hit or v.contact.pop("rock", False)
-            self._episode(v, "rock", hit, out, t, body.centre)
-        if len(bodies) < 2:
+            self._episode(v, "rock", hit, out, t, c)
+        if len(vs) < 2:
             return out
         # pairs in touch: every pair's squared distance at once, then the exact test of the
         # vector form (‖c_a − c_b‖ < r_a + r_b) on the few that come near it
@@ -653,12 +674,11 @@ class Simulator:
         reach = radii[:, None] + radii[None, :]
         near = np.argwhere(np.triu(d2 < (reach + 1e-6) ** 2, k=1))
         for i, j in near.tolist():  # (row-major: the order of the pair loop)
-            a, ba = bodies[i]
-            b, bb = bodies[j]
-            delta = ba.centre - bb.centre
-            if math.sqrt(float(delta @ delta)) < ba.radius + bb.radius:
-                self._episode(a, b.id, True, out, t, ba.centre)
-                self._episode(b, a.id, True, out, t, bb.centre)
+            delta = centres[i] - centres[j]
+            if math.sqrt(float(delta @ delta)) < float(radii[i]) + float(radii[j]):
+                a, b = vs[i], vs[j]
+                self._episode(a, b.id, True, out, t, centres[i])
+                self._episode(b, a.id, True, out, t, centres[j])
         return out
 
     def _episode(
@@ -802,9 +822,8 @@ class SimVehicle(OffboardCommands):
         v = self._v
         return SensorPose(self._sim.time_s, v.position, v.yaw)
 
-    def _other_bodies(self) -> list[Body]:
-        me = self._v
-        return [b for o, b in self._sim.bodies() if o is not me]
+    def _other_bodies(self) -> Bodies:
+        return self._sim.other_bodies(self._v.id)
 
 
 class SimProvider:

@@ -35,7 +35,7 @@ is delivered when the link returns.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -194,6 +194,12 @@ class InMemoryBus:
         self._agents: dict[str, _Endpoint] = {}
         self._inbox = CoordinatorInbox()
         self._predictions: dict[str, Prediction] = {}
+        # where each agent's prediction starts, one row per agent in the order of the dict
+        # above (a row is appended when an agent first shares; NaN once it has gone): the
+        # neighbours of a position are found for all agents at once (:meth:`predictions`)
+        self._rows: dict[str, int] = {}
+        self._row_names: list[str] = []
+        self._starts = np.full((8, 2), np.nan)
         self.dropped = 0
         """Messages lost on cut links."""
 
@@ -214,6 +220,9 @@ class InMemoryBus:
     def disconnect(self, agent: str) -> None:
         self._agents.pop(agent, None)
         self._predictions.pop(agent, None)
+        row = self._rows.pop(agent, None)
+        if row is not None:
+            self._starts[row] = np.nan
 
     def set_link(self, agent: str, up: bool) -> None:
         """Cut (``up=False``) or restore an agent's link to the coordinator."""
@@ -273,7 +282,17 @@ class InMemoryBus:
     # ---------------------------------------------------------------- agent ↔ agent
     def share_prediction(self, agent: str, time_s: float, positions: FloatArray) -> None:
         """Publish an agent's predicted (N+1, 2) positions (seed 003 §VI)."""
-        self._predictions[agent] = Prediction(agent, time_s, np.asarray(positions, dtype=float))
+        pred = Prediction(agent, time_s, np.asarray(positions, dtype=float))
+        self._predictions[agent] = pred
+        row = self._rows.get(agent)
+        if row is None:
+            row = self._rows[agent] = len(self._row_names)
+            self._row_names.append(agent)
+            if row >= len(self._starts):
+                grown = np.full((2 * len(self._starts), 2), np.nan)
+                grown[:row] = self._starts
+                self._starts = grown
+        self._starts[row] = pred.positions[0, :2]
 
     def predictions(
         self,
@@ -283,8 +302,18 @@ class InMemoryBus:
         near: FloatArray | None = None,
         within_m: float = math.inf,
     ) -> list[FloatArray]:
-        """The other agents' predictions (:func:`advance_predictions`)."""
-        return advance_predictions(self._predictions, agent, time_s, step_s, near, within_m)
+        """The other agents' predictions (:func:`advance_predictions`); with a finite
+        ``within_m`` the candidates come from one vectorised distance test over every agent's
+        start (a fleet's agents each ask every control step)."""
+        if near is None or not math.isfinite(within_m):
+            return advance_predictions(self._predictions, agent, time_s, step_s, near, within_m)
+        rel = self._starts[: len(self._row_names)] - np.asarray(near, dtype=float)[:2]
+        d2 = np.einsum("ij,ij->i", rel, rel)
+        names = self._row_names
+        close = [names[i] for i in np.flatnonzero(d2 <= (within_m + 1e-6) ** 2).tolist()]
+        return advance_predictions(
+            self._predictions, agent, time_s, step_s, near, within_m, only=close
+        )
 
 
 def advance_predictions(
@@ -294,14 +323,18 @@ def advance_predictions(
     step_s: float,
     near: FloatArray | None = None,
     within_m: float = math.inf,
+    only: Sequence[str] | None = None,
 ) -> list[FloatArray]:
     """The predictions of the agents other than ``agent`` in ``shared`` (each agent's latest) —
     (N+1, 2) or (N+1, 3) positions, a vehicle that only shares where it is gives one row —
     advanced to ``time_s`` (shifted by the steps of ``step_s`` since they were published, the
     last point repeated), nearest to ``near`` first, those farther than ``within_m`` left out.
-    Pure: every transport's :meth:`AgentLink.predictions` gives the same answer."""
+    Pure: every transport's :meth:`AgentLink.predictions` gives the same answer. ``only``: the
+    agents worth looking at (a superset of those within ``within_m``, in ``shared``'s order),
+    when the caller has found them faster."""
     out: list[tuple[float, FloatArray]] = []
-    for other, pred in shared.items():
+    items = shared.items() if only is None else ((o, shared[o]) for o in only)
+    for other, pred in items:
         if other == agent:
             continue
         pts = pred.positions
