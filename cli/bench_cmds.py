@@ -119,7 +119,9 @@ def control_bench(only: str, steps: int, repeat: int, out: Path) -> None:
 
 
 @bench.command("startup")
-@int_option("--repeat", default=10, max=1000, help="Timed runs of each command (the median is reported).")
+@int_option(
+    "--repeat", default=10, max=1000, help="Timed runs of each command (the median is reported)."
+)
 @out_option("startup.md and startup.csv")
 def startup_bench(repeat: int, out: Path) -> None:
     """Start-up time of the command line: --version, --help and validate on the mine mission,
@@ -132,6 +134,50 @@ def startup_bench(repeat: int, out: Path) -> None:
     from btmission.bench.startup import run_startup_benchmark
 
     run_startup_benchmark(repeat=repeat, out_dir=out, echo=click.echo)
+
+
+@bench.command("fleet")
+@list_option("--sizes", default="3,10,30,100", help="Comma-separated fleet sizes (drones) to fly.")
+@list_option("--controllers", default="track", help="Comma-separated controllers (track, nmpc).")
+@positive_float_option(
+    "--warmup", default=10.0, help="Simulated seconds flown before the timed window."
+)
+@positive_float_option("--duration", default=60.0, help="Simulated seconds of the timed window.")
+@out_option("fleet.md, fleet.csv and fleet.png")
+def fleet_bench(sizes: str, controllers: str, warmup: float, duration: float, out: Path) -> None:
+    """Simulator speed against fleet size: 3, 10, 30 and 100 drones in the seed 000 mine (7
+    inspections per 3 drones), the whole system in one process. Targets (tracking controller):
+    3 drones >= 100x, 30 drones >= 25x real time.
+
+    \b
+    Example (quick):
+      btmission bench fleet --sizes 3,10 --warmup 2 --duration 5 --out /tmp/results
+    """
+    from btmission.bench.fleet import run_fleet_benchmark
+
+    ctrls = [c.strip() for c in controllers.split(",") if c.strip()]
+    bad = [c for c in ctrls if c not in ("track", "nmpc")]
+    if bad or not ctrls:
+        raise click.BadParameter(
+            f"unknown controller(s) {', '.join(bad) or '(none given)'}: track or nmpc",
+            param_hint="--controllers",
+        )
+    fleet: list[int] = []
+    for item in (s.strip() for s in sizes.split(",") if s.strip()):
+        if not item.isdigit() or not 1 <= int(item) <= MAX_FLEET:
+            raise click.BadParameter(
+                f"expected a number of drones from 1 to {MAX_FLEET}, got '{item}'",
+                param_hint="--sizes",
+            )
+        fleet.append(int(item))
+    if not fleet:
+        raise click.BadParameter("give at least one fleet size", param_hint="--sizes")
+    run_fleet_benchmark(fleet, ctrls, warmup, duration, out, click.echo)
+
+
+MAX_FLEET = 150
+"""The most drones ``bench fleet`` flies: the seed 000 mine has room for ~600 starts and tasks
+at 7 tasks per 3 drones."""
 
 
 @bench.command("paper")

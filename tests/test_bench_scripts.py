@@ -18,6 +18,7 @@ SCRIPTED = (
     "auction",
     "console",
     "control",
+    "fleet",
     "planner",
     "reloc",
     "sim",

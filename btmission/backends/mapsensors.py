@@ -97,6 +97,8 @@ class Bodies(NamedTuple):
     """(m, 3) sphere centres (m)."""
     radii: FloatArray
     """(m,) radii (m)."""
+    skip: int = -1
+    """A row to leave out (the vehicle itself, in a table of the whole fleet); -1: none."""
 
 
 def body_at(position: Vec3 | FloatArray, radius: float) -> Body:
@@ -246,14 +248,14 @@ def _bodies_in_range(bodies: Bodies, p: FloatArray, range_m: float) -> list[Floa
     """The LiDAR points (relative to ``p``) of the bodies whose reference point lies within
     ``range_m`` of ``p``: ‖c − r·e_z − p‖ < range for all bodies at once, the exact test kept
     for the few near the edge (a fleet's LiDARs each look at every other vehicle every step)."""
-    centres, radii = bodies
+    centres, radii, skip = bodies
     if len(radii) == 0:
         return []
     rel = centres - _UP * radii[:, None] - p
     d2 = np.einsum("ij,ij->i", rel, rel)
     out = []
     for i in np.flatnonzero(d2 < (range_m + 1e-6) ** 2).tolist():
-        if math.sqrt(float(rel[i] @ rel[i])) < range_m:
+        if i != skip and math.sqrt(float(rel[i] @ rel[i])) < range_m:
             out.append(centres[i] - p + _SPHERE * radii[i])
     return out
 

@@ -642,10 +642,10 @@ class Simulator:
         return table
 
     def other_bodies(self, vid: str) -> Bodies:
-        """The body spheres of every vehicle but ``vid`` (for its LiDAR)."""
+        """The body spheres of every vehicle but ``vid`` (for its LiDAR): the whole table, with
+        ``vid``'s row to skip."""
         table = self.bodies()
-        i = table.index[vid]
-        return Bodies(np.delete(table.centres, i, axis=0), np.delete(table.radii, i))
+        return Bodies(table.centres, table.radii, table.index[vid])
 
     def _collisions(self) -> list[SimEvent]:
         out: list[SimEvent] = []

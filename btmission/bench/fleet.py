@@ -1,0 +1,331 @@
+"""Fleet scaling benchmark: how the simulator's speed falls as the fleet grows.
+
+``btmission bench fleet`` (or ``python benchmarks/bench_fleet.py``) flies 3, 10, 30 and 100
+drones (:data:`FLEET_SIZES`) in the seed 000 mine, each fleet with the field mission's ratio of
+7 inspections per 3 drones (:func:`fleet_mission_text`), and reports simulated time over wall
+time. Every run is the whole system in one process, as ``btmission run`` runs it: the simulator,
+every agent's tree ticks, D*+ bids and path following (APF on the LiDAR), and the coordinator's
+auction rounds.
+
+A run is timed in two parts: the *warm-up* (the first ``warmup_s`` simulated seconds: the first
+auction round, which runs one D*+ search per task, and the take-off) and the *window* after it
+(``duration_s`` simulated seconds of the fleet flying its tasks), whose speed-up is the one the
+targets apply to (issue 19: 3 drones ≥ 100×, 30 drones ≥ 25× with the tracking controller).
+
+Times are wall-clock (``time.perf_counter``); the results say when and where they were measured
+and, from the load average, whether other work shared the machine; each run keeps the previous
+page's numbers below its own (:func:`~btmission.bench.synth.earlier_runs`).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from btmission.bench.synth import earlier_runs, environment, header_lines
+
+FLEET_SIZES = (3, 10, 30, 100)
+"""Fleet sizes of the scaling table."""
+
+TARGETS = {3: 100.0, 30: 25.0}
+"""Speed-up the window must reach, by fleet size (issue 19)."""
+
+WARMUP_S = 10.0
+DURATION_S = 60.0
+
+
+def fleet_mission_text(drones: int, seed: int = 0, controller: str = "track") -> str:
+    """The seed 000 mine (seed 7, 200 m × 120 m × 12 m) with ``drones`` aerial agents and
+    ⌈7·drones/3⌉ inspections (the field mission's ratio: 7 tasks for 3 drones).
+
+    Starts and tasks are points every 2 m along the mine's drift centrelines, nearest drifts to
+    the launch area first: the drones stand on the floor at the first ``drones`` of them (none
+    closer than 2 m to another), the tasks are drawn (generator ``seed``) from the rest, 2 m
+    above the local floor. Deterministic for a seed.
+    """
+    from btmission.world.minegen import generate_mine
+    from btmission.world.voxel import OCCUPIED
+
+    if drones < 1:
+        raise ValueError(f"a fleet needs at least one drone, got {drones}")
+    mine = generate_mine(seed=7, size=(200.0, 120.0, 12.0), resolution=0.5)
+    vm = mine.map
+    tunnels = sorted(mine.tunnels, key=lambda t: (math.dist(t.a, mine.launch), t.a, t.b))
+    floor: list[tuple[float, float, float]] = []
+    for t in tunnels:
+        a, b = np.asarray(t.a, dtype=float), np.asarray(t.b, dtype=float)
+        k = max(int(float(np.linalg.norm(b - a)) // 2.0), 1)
+        for i in range(k + 1):
+            x, y, z = a + (b - a) * i / k
+            gz = vm.ground_z((x, y, z + 0.3))
+            above = vm.state_at((x, y, gz + 2.0))
+            if above is None or above == OCCUPIED:
+                continue
+            q = (round(float(x), 1), round(float(y), 1), round(float(gz), 2))
+            if all(math.dist(q, other) >= 2.0 for other in floor):
+                floor.append(q)
+    n_tasks = math.ceil(7 * drones / 3)
+    if drones + n_tasks > len(floor):
+        raise ValueError(
+            f"the mine has room for {len(floor)} starts and tasks, not {drones} drones "
+            f"and {n_tasks} tasks"
+        )
+    rng = np.random.default_rng(seed)
+    picks = sorted(int(i) for i in rng.choice(np.arange(drones, len(floor)), n_tasks, False))
+    lines = [
+        f"mission: fleet{drones}",
+        "version: 1",
+        f"description: {drones} drones, {n_tasks} inspections in the seed 000 mine",
+        "world:",
+        "  map: {generate: mine, seed: 7, size: [200, 120, 12]}",
+        "  resolution: 0.5",
+        "agents:",
+        *(
+            f"  - {{id: R{i + 1}, library: aerial, start: [{x:g}, {y:g}, {z:g}], backend: sim}}"
+            for i, (x, y, z) in enumerate(floor[:drones])
+        ),
+        "tasks:",
+        *(
+            f"  - {{id: T{j + 1}, type: inspect, location: "
+            f"[{floor[i][0]:g}, {floor[i][1]:g}, {floor[i][2] + 2.0:g}]}}"
+            for j, i in enumerate(picks)
+        ),
+        "task_types:",
+        "  inspect: {goal: at_goal(location), cost: path_cost(location)}",
+        "coordination: {auction_rate_hz: 10, participation: 1.0, priority_scale: 1000, "
+        "switch_cost: 5}",
+        f"runtime: {{controller: {controller}}}",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+@dataclass(frozen=True)
+class FleetPoint:
+    drones: int
+    tasks: int
+    controller: str
+    build_s: float
+    warmup_sim_s: float
+    warmup_wall_s: float
+    sim_s: float
+    wall_s: float
+    done: int
+    collisions: int
+
+    @property
+    def speedup(self) -> float:
+        return self.sim_s / self.wall_s if self.wall_s > 0 else math.inf
+
+    @property
+    def target(self) -> float | None:
+        return TARGETS.get(self.drones) if self.controller == "track" else None
+
+    @property
+    def met(self) -> bool | None:
+        return None if self.target is None else self.speedup >= self.target
+
+
+def run_fleet(
+    drones: int,
+    controller: str = "track",
+    warmup_s: float = WARMUP_S,
+    duration_s: float = DURATION_S,
+) -> FleetPoint:
+    """Build and fly a fleet of ``drones``: warm-up and window timed apart (module docstring)."""
+    from btmission.runtime.runner import MissionRun
+    from btmission.spec.mission import load_mission_text
+
+    m = load_mission_text(fleet_mission_text(drones, controller=controller), "fleet.yaml")
+    t0 = time.perf_counter()
+    run = MissionRun(m, controller=controller)
+    build = time.perf_counter() - t0
+    try:
+        warm = run.run(until=warmup_s)
+        res = run.run(until=warmup_s + duration_s)
+    finally:
+        run.close()
+    return FleetPoint(
+        drones,
+        len(m.spec.tasks),
+        controller,
+        build,
+        warm.time_s,
+        warm.wall_s,
+        res.time_s - warm.time_s,
+        res.wall_s,
+        len(res.done),
+        res.collisions,
+    )
+
+
+HEAD = (
+    "drones",
+    "tasks",
+    "controller",
+    "build s",
+    "warm-up: simulated s",
+    "warm-up: wall s",
+    "window: simulated s",
+    "window: wall s",
+    "speed-up",
+    "target",
+    "met",
+    "tasks done",
+    "collisions",
+)
+
+
+def _row(cells: Sequence[object]) -> str:
+    return "| " + " | ".join(str(c) for c in cells) + " |"
+
+
+def _cells(p: FleetPoint) -> list[str]:
+    return [
+        str(p.drones),
+        str(p.tasks),
+        p.controller,
+        f"{p.build_s:.2f}",
+        f"{p.warmup_sim_s:.1f}",
+        f"{p.warmup_wall_s:.1f}",
+        f"{p.sim_s:.1f}",
+        f"{p.wall_s:.1f}",
+        f"{p.speedup:.1f}×",
+        "—" if p.target is None else f"≥ {p.target:g}×",
+        "—" if p.met is None else ("yes" if p.met else "**no**"),
+        f"{p.done}/{p.tasks}",
+        str(p.collisions),
+    ]
+
+
+def markdown(
+    points: Sequence[FleetPoint],
+    env: dict[str, str],
+    warmup_s: float,
+    duration_s: float,
+    earlier: Sequence[str] = (),
+    plot: str | None = None,
+) -> str:
+    lines = [
+        "# Fleet scaling benchmark",
+        "",
+        *header_lines(env),
+        "",
+        f"Drones in the seed 000 mine, 7 inspections per 3 drones (`fleet_mission_text`), the "
+        f"whole system in one process. *Warm-up* = the first {warmup_s:g} simulated s (the "
+        f"first auction round runs one D*+ search per task; take-off); *window* = the next "
+        f"{duration_s:g} s, whose simulated time over wall time is the speed-up.",
+        "",
+        _row(HEAD),
+        _row(["---"] * len(HEAD)),
+        *(_row(_cells(p)) for p in points),
+        "",
+    ]
+    if plot:
+        lines += [f"![speed-up against fleet size]({plot})", ""]
+    lines += ["Regenerate with `btmission bench fleet` or `python benchmarks/bench_fleet.py`.", ""]
+    return "\n".join([*lines, *earlier])
+
+
+def plot_scaling(points: Sequence[FleetPoint], path: Path) -> Path | None:
+    """Speed-up against fleet size (log-log), with the targets; None without matplotlib."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:  # pragma: no cover - matplotlib is a dependency
+        return None
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for ctrl in sorted({p.controller for p in points}):
+        pts = sorted((p for p in points if p.controller == ctrl), key=lambda p: p.drones)
+        ax.plot([p.drones for p in pts], [p.speedup for p in pts], "o-", label=ctrl)
+    for n, target in TARGETS.items():
+        ax.plot([n], [target], "r_", markersize=18, mew=2)
+    ax.axhline(1.0, color="0.6", lw=0.8, ls="--")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("drones")
+    ax.set_ylabel("simulated time / wall time")
+    ax.set_title("Simulator speed against fleet size (red: targets)")
+    ax.legend()
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def run_fleet_benchmark(
+    sizes: Sequence[int] = FLEET_SIZES,
+    controllers: Sequence[str] = ("track",),
+    warmup_s: float = WARMUP_S,
+    duration_s: float = DURATION_S,
+    out_dir: Path | str = Path("benchmarks/results"),
+    echo: Callable[[str], object] = print,
+) -> list[FleetPoint]:
+    """Measure, echo the table as it fills, write ``fleet.md``, ``fleet.csv``, ``fleet.png``."""
+    env = environment()
+    echo(f"fleet scaling benchmark; {env['machine']}, {env['cpus']} CPU(s), {env['python']}")
+    echo(_row(HEAD))
+    echo(_row(["---"] * len(HEAD)))
+    points = []
+    for ctrl in controllers:
+        for n in sizes:
+            p = run_fleet(n, ctrl, warmup_s, duration_s)
+            points.append(p)
+            echo(_row(_cells(p)))
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    page = out / "fleet.md"
+    earlier = earlier_runs(page)
+    png = plot_scaling(points, out / "fleet.png")
+    page.write_text(
+        markdown(points, env, warmup_s, duration_s, earlier, png.name if png else None),
+        encoding="utf-8",
+    )
+    with (out / "fleet.csv").open("w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(
+            [
+                "drones",
+                "tasks",
+                "controller",
+                "build_s",
+                "warmup_wall_s",
+                "sim_s",
+                "wall_s",
+                "speedup",
+                "done",
+                "collisions",
+            ]
+        )
+        for p in points:
+            w.writerow(
+                [
+                    p.drones,
+                    p.tasks,
+                    p.controller,
+                    f"{p.build_s:.3f}",
+                    f"{p.warmup_wall_s:.3f}",
+                    f"{p.sim_s:.2f}",
+                    f"{p.wall_s:.3f}",
+                    f"{p.speedup:.2f}",
+                    p.done,
+                    p.collisions,
+                ]
+            )
+    for p in points:
+        if p.met is not None:
+            echo(
+                f"target {p.drones} drones: {p.speedup:.1f}× ≥ {p.target:g}× — "
+                f"{'met' if p.met else 'NOT met'}"
+            )
+    echo(f"wrote {page}, {out / 'fleet.csv'}" + (f" and {png}" if png else ""))
+    return points
