@@ -39,6 +39,7 @@ from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import numpy as np
+import numpy.typing as npt
 
 from btmission.allocation.auction import Announcement, Bid, cheapest, participation_k
 from btmission.allocation.tasks import TaskInfo
@@ -141,9 +142,9 @@ class _Plan:
         self._fields = fields
         self._places = places
         self._rows = rows
-        self._batches: list[tuple[list[int], tuple[Point, ...]]] | None = None
+        self._batches: list[tuple[npt.NDArray[np.intp], tuple[Point, ...]]] | None = None
 
-    def batches(self) -> list[tuple[list[int], tuple[Point, ...]]]:
+    def batches(self) -> list[tuple[npt.NDArray[np.intp], tuple[Point, ...]]]:
         """(rows, goals) per batched type; raises :class:`BidError` for a bad position."""
         if self._batches is None:
             out = []
@@ -152,7 +153,7 @@ class _Plan:
                 assert name is not None
                 tasks = [self._tasks[j] for j in rows]
                 goals = tuple(_point(t, t.fields.get(name), self._places) for t in tasks)
-                out.append((rows, goals))
+                out.append((np.array(rows, dtype=np.intp), goals))
             self._batches = out
         return self._batches
 

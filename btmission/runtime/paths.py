@@ -261,7 +261,7 @@ class PathCosts:
             return np.full(len(goals), np.inf)
         rows = self._goal_rows(goals)
         if rows is not None:
-            out: npt.NDArray[np.float64] = self._rows[rows, s].astype(np.float64)
+            out: npt.NDArray[np.float64] = self._rows[:, s].take(rows).astype(np.float64)
             return out
         out = np.full(len(goals), np.inf)  # more fields than max_bytes holds: one at a time
         for i, g in enumerate(goals):
