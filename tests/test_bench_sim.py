@@ -48,3 +48,16 @@ def test_the_scaling_mission_is_valid() -> None:
     m = load_mission_text(scale_mission_text(5, 20, 0.3, seed=1), "scale.yaml")
     assert len(m.agents) == 5 and len(m.tasks) == 20
     assert m.spec.coordination.participation == 0.3
+
+
+def test_the_scaling_point_alone_keeps_the_earlier_runs(runner: CliRunner, tmp_path: Path) -> None:
+    """`--controllers ''` measures the scaling point alone; the page says the mission was not
+    measured and keeps the previous page (its numbers) under "Earlier runs"."""
+    (tmp_path / "sim.md").write_text("# Simulator benchmark\n\n| track | 1.00 | 36.5× |\n")
+    args = ["bench", "sim", "--controllers", "", "--scale", "3x6", "--duration", "1"]
+    result = runner.invoke(cli, [*args, "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    md = (tmp_path / "sim.md").read_text()
+    new, _, earlier = md.partition("## Earlier runs")
+    assert "| 3 × 6 |" in new and "Not measured in this run (`--controllers ''`)" in new
+    assert "| track | 1.00 | 36.5× |" in earlier

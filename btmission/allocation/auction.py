@@ -25,9 +25,9 @@ that calls it is :class:`btmission.allocation.loop.AuctionLoop`.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Hashable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -40,6 +40,8 @@ from btmission.allocation.solvers import (
 )
 from btmission.allocation.tasks import PoolTask, TaskInfo, TaskPool, TaskState
 from btmission.types import FloatArray
+
+_T = TypeVar("_T")
 
 SOLVERS: tuple[str, ...] = ("assignment", "ilp-scip", "dense", "sparse")
 """``AuctionConfig.solver``: a mission's ``assignment`` (dense or sparse chosen automatically) or
@@ -161,6 +163,18 @@ class Announcement:
 
     def __len__(self) -> int:
         return len(self.tasks)
+
+    def memo(self, key: Hashable, make: Callable[[], _T]) -> _T:
+        """``make()``, computed once per ``key`` for this announcement and kept with it: what
+        every agent derives from the same announced tasks (a bidder's plan)."""
+        memo = self.__dict__.get("_memo")
+        if memo is None:
+            memo = {}
+            object.__setattr__(self, "_memo", memo)
+        if key in memo:
+            return memo[key]  # type: ignore[no-any-return]
+        value = memo[key] = make()
+        return value
 
 
 @dataclass(frozen=True, eq=False)

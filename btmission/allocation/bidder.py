@@ -20,6 +20,13 @@ less than that no longer trade tasks back and forth as they move.
 cheapest announced tasks — plus the task it is executing, so it never drops its own task just
 because others look cheaper. Tasks it cannot do (its library lacks the goal) or cannot reach
 (``inf`` from the provider) are reported as such, not bid on.
+
+**Repeated bids.** An announcement is repeated every round while its tasks are unchanged. When
+every task the agent bids on costs ``path_cost(field)`` and the provider says what its costs
+from a start depend on (``start_key(start)``: the D*+ service's start voxel and map version), a
+bidder whose key, current task and settings are those of its previous bid on the same
+announcement sends that bid's costs again instead of recomputing them: the same numbers,
+computed once.
 """
 
 from __future__ import annotations
@@ -32,6 +39,7 @@ from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import numpy as np
+import numpy.typing as npt
 
 from btmission.allocation.auction import Announcement, Bid, cheapest, participation_k
 from btmission.allocation.tasks import TaskInfo
@@ -46,8 +54,12 @@ class CostProvider(Protocol):
     """Path costs for bids. Implemented by :class:`StraightLine` and by the D*+ planner.
 
     A provider may also offer ``path_costs(start, goals) -> array``, the costs from one start to
-    many goals in one call (the runtime's D*+ fields answer it with one lookup per goal); the
-    bidder then uses it for every task type whose cost is exactly ``path_cost(field)``."""
+    many goals in one call (the runtime's D*+ fields answer it with one gather); the bidder then
+    uses it for every task type whose cost is exactly ``path_cost(field)``. It passes the same
+    ``goals`` tuple every round while the announcement is unchanged (a provider may remember
+    what it resolved them to, by identity). A provider with ``path_costs`` may also offer
+    ``start_key(start) -> hashable``: starts with equal keys have equal ``path_costs`` to any
+    goals (the bidder then repeats a bid instead of recomputing it; module docstring)."""
 
     def path_cost(self, start: Point, goal: Point) -> float:
         """Cost of the best path from ``start`` to ``goal``; ``math.inf`` if there is none."""
@@ -102,6 +114,48 @@ def _single_path_cost(tt: TaskType) -> str | None:
 
 _MISSING = object()
 _SINGLE: dict[str, object] = {}
+
+
+class _Plan:
+    """How a bidder computes its costs on one announcement; the same for every agent whose
+    bidder has the same task types and places, so it is kept with the announcement
+    (:meth:`Announcement.memo`): the tasks whose cost is ``path_cost(field)`` by type (one
+    :meth:`path_costs` call each, with the same goals tuple every round) and those evaluated
+    task by task (:meth:`Bidder.f_cost`). Tasks of types the bidder cannot do get no bid."""
+
+    def __init__(
+        self,
+        tasks: Sequence[TaskInfo],
+        fields: Mapping[str, str | None],
+        places: Mapping[str, Point],
+    ) -> None:
+        self.single: list[int] = []
+        rows: dict[str, list[int]] = {}
+        for j, t in enumerate(tasks):
+            if t.type not in fields:
+                continue  # f_cost is NaN: no bid
+            if fields[t.type] is None:
+                self.single.append(j)
+            else:
+                rows.setdefault(t.type, []).append(j)
+        self._tasks = tasks
+        self._fields = fields
+        self._places = places
+        self._rows = rows
+        self._batches: list[tuple[npt.NDArray[np.intp], tuple[Point, ...]]] | None = None
+
+    def batches(self) -> list[tuple[npt.NDArray[np.intp], tuple[Point, ...]]]:
+        """(rows, goals) per batched type; raises :class:`BidError` for a bad position."""
+        if self._batches is None:
+            out = []
+            for ttype, rows in self._rows.items():
+                name = self._fields[ttype]
+                assert name is not None
+                tasks = [self._tasks[j] for j in rows]
+                goals = tuple(_point(t, t.fields.get(name), self._places) for t in tasks)
+                out.append((np.array(rows, dtype=np.intp), goals))
+            self._batches = out
+        return self._batches
 
 
 class BidError(ValueError):
@@ -160,6 +214,12 @@ class Bidder:
         """Named places task fields may refer to (nodes of the mission's topological map)."""
         self._cache: OrderedDict[tuple[Point, Point], float] = OrderedDict()
         self._cache_size = cache_size
+        self._places_key = tuple(sorted((k, tuple(v)) for k, v in self.places.items()))
+        self._last: tuple[object, Announcement, FloatArray] | None = None
+        """The previous bid's key, announcement and costs (a repeated bid sends them again)."""
+        self.repeated = 0
+        """Bids that repeated the previous one's costs (module docstring) instead of computing
+        them."""
 
     @classmethod
     def for_agent(
@@ -235,26 +295,49 @@ class Bidder:
                 out[announcement.index[agent.task]] = 0.0  # f_cost · k_bt with k_bt = 0
             return out
         batch = getattr(self.provider, "path_costs", None)
-        direct: dict[str, list[int]] = {}
-        for j, t in enumerate(tasks):
-            tt = self.task_types.get(t.type)
-            if batch is not None and tt is not None and _single_path_cost(tt) is not None:
-                direct.setdefault(t.type, []).append(j)  # evaluated together below
-                continue
+        fields = tuple(
+            sorted(
+                (name, _single_path_cost(tt) if batch is not None else None)
+                for name, tt in self.task_types.items()
+            )
+        )
+        plan = announcement.memo(
+            ("bid-plan", fields, self._places_key),
+            lambda: _Plan(tasks, dict(fields), self.places),
+        )
+        key = None
+        start_key = getattr(self.provider, "start_key", None)
+        if start_key is not None and not plan.single:
+            key = (
+                self.provider,
+                start_key(agent.position),
+                agent.task,
+                self.switch_cost,
+                self.participation,
+            )
+            last = self._last
+            if last is not None and last[1] is announcement and last[0] == key:
+                self.repeated += 1  # not moved to another voxel: the same costs
+                return last[2].copy()
+        for j in plan.single:
+            t = tasks[j]
             out[j] = self.f_cost(t, agent) * k_bt(agent, t.id)
-        for ttype, rows in direct.items():
-            field = _single_path_cost(self.task_types[ttype])
-            assert field is not None and batch is not None
-            goals = [_point(tasks[j], tasks[j].fields.get(field), self.places) for j in rows]
+        for rows, goals in plan.batches():
+            assert batch is not None
             out[rows] = np.asarray(batch(agent.position, goals), dtype=np.float64)
         # k_bt = 1 on every task here: an agent past its commit point returned above (eq. 8)
         if self.switch_cost and agent.task is not None:
-            others = np.array([t.id != agent.task for t in tasks])
+            others = np.ones(len(tasks), dtype=bool)
+            mine = announcement.index.get(agent.task)
+            if mine is not None:
+                others[mine] = False
             out[others] += self.switch_cost
         k = participation_k(self.participation, len(tasks))
         if k < len(tasks):
             keep = announcement.index.get(agent.task, -1) if agent.task is not None else -1
             out[~cheapest(out, k, keep)] = np.nan
+        if key is not None:
+            self._last = (key, announcement, out.copy())
         return out
 
     def bid(self, announcement: Announcement, agent: AgentState, now: float) -> Bid:

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from btmission.bench.synth import environment, header_lines
+from btmission.bench.synth import earlier_runs, environment, header_lines
 
 TARGETS = {"track": 50.0, "nmpc": 5.0}
 """Speed-up over real time the mine mission must reach with each controller."""
@@ -76,6 +76,9 @@ class ScalePoint:
     bid_ms: float
     searches: int
     done: int
+    repeated_pct: float
+    """Share of the bids (one per agent per round) that repeated the agent's previous costs
+    (not moved to another voxel, same announcement: :mod:`btmission.allocation.bidder`)."""
 
     @property
     def round_hz(self) -> float:
@@ -161,6 +164,7 @@ def run_scale(
     res = run.run(until=duration_s)
     rounds = run.coordinator.rounds
     later = rounds[1:] or rounds
+    repeated = sum(a.bidder.repeated for a in run.agents.values())
     return ScalePoint(
         agents,
         tasks,
@@ -175,6 +179,7 @@ def run_scale(
         1000 * statistics.median(run.coordinator.bid_times[1:] or run.coordinator.bid_times),
         run.paths.searches,
         len(res.done),
+        100.0 * repeated / max(1, len(rounds) * agents),
     )
 
 
@@ -206,6 +211,7 @@ SCALE_HEAD = (
     "round rate Hz",
     "bidding ms (all agents)",
     "bid ms per agent",
+    "bids repeated",
     "D*+ searches",
     "simulated s",
     "wall s",
@@ -240,6 +246,7 @@ def _scale_cells(p: ScalePoint) -> list[str]:
         f"{p.round_hz:.1f}",
         f"{p.bid_ms:.1f}",
         f"{p.bid_ms_per_agent:.2f}",
+        f"{p.repeated_pct:.0f} %",
         str(p.searches),
         f"{p.sim_s:.1f}",
         f"{p.wall_s:.1f}",
@@ -247,9 +254,20 @@ def _scale_cells(p: ScalePoint) -> list[str]:
     ]
 
 
+def _table(head: Sequence[str], rows: Sequence[Sequence[str]], flag: str) -> list[str]:
+    """A table, or a line saying it was not measured this time (``flag`` left it out)."""
+    if not rows:
+        return [f"Not measured in this run ({flag}); see Earlier runs for the last numbers."]
+    return [_row(head), _row(["---"] * len(head)), *(_row(r) for r in rows)]
+
+
 def markdown(
-    missions: Sequence[MissionPoint], scale: Sequence[ScalePoint], env: dict[str, str]
+    missions: Sequence[MissionPoint],
+    scale: Sequence[ScalePoint],
+    env: dict[str, str],
+    earlier: Sequence[str] = (),
 ) -> str:
+    """The results page; ``earlier``: the previous page's runs (:func:`earlier_runs`)."""
     lines = [
         "# Simulator benchmark",
         "",
@@ -260,23 +278,23 @@ def markdown(
         "Speed-up = simulated time / wall time of the run (the build — map, risk layer, "
         "KD-trees, controllers — is timed apart).",
         "",
-        _row(MISSION_HEAD),
-        _row(["---"] * len(MISSION_HEAD)),
-        *(_row(_mission_cells(p)) for p in missions),
+        *_table(MISSION_HEAD, [_mission_cells(p) for p in missions], "`--controllers ''`"),
         "",
         "## Scaling point (seed 003 Fig. 4/5: 50 agents × 400 tasks)",
         "",
         "Ground robots with the tracking controller on a 100 m × 100 m floor (1 m voxels), every "
         "task open from 0 s. A round = announce, every agent's bid (D*+ cost-to-goal lookups "
         "for its participation share of the tasks), allocation, publication. The first round "
-        "also runs one backward D*+ search per task.",
+        "also runs one backward D*+ search per task. *Bids repeated*: the share of bids that "
+        "sent the agent's previous costs again (it had not moved to another voxel and the "
+        "announced tasks and the map were unchanged).",
         "",
-        _row(SCALE_HEAD),
-        _row(["---"] * len(SCALE_HEAD)),
-        *(_row(_scale_cells(p)) for p in scale),
+        *_table(SCALE_HEAD, [_scale_cells(p) for p in scale], "`--scale ''`"),
         "",
-        "Regenerate with `btmission bench sim` or `python benchmarks/bench_sim.py`.",
+        "Regenerate with `btmission bench sim` or `python benchmarks/bench_sim.py`; "
+        "`--controllers ''` measures the scaling point alone, `--scale ''` the mission alone.",
         "",
+        *earlier,
     ]
     return "\n".join(lines)
 
@@ -289,7 +307,8 @@ def run_sim_benchmark(
     echo: Callable[[str], object] = print,
     mission: Path = MINE,
 ) -> tuple[list[MissionPoint], list[ScalePoint]]:
-    """Measure, echo the tables as they fill, and write ``sim.md`` / ``sim.csv``."""
+    """Measure, echo the tables as they fill, and write ``sim.md`` (the previous page kept
+    under "Earlier runs") and ``sim.csv``."""
     env = environment()
     echo(f"simulator benchmark; {env['machine']}, {env['cpus']} CPU(s), {env['python']}")
     echo("")
@@ -310,7 +329,8 @@ def run_sim_benchmark(
         echo(_row(_scale_cells(q)))
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "sim.md").write_text(markdown(missions, points, env), encoding="utf-8")
+    page = out / "sim.md"
+    page.write_text(markdown(missions, points, env, earlier_runs(page)), encoding="utf-8")
     with (out / "sim.csv").open("w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(

@@ -38,8 +38,16 @@ Point = tuple[float, float, float]
 @dataclass
 class _GoalField:
     field: CostField
-    length: npt.NDArray[np.float32]
-    """Path length (m) from every padded voxel to the goal (inf where unreachable)."""
+    row: int
+    """Its row of :attr:`PathCosts._rows`: the path length (m) from every padded voxel to the
+    goal (inf where unreachable)."""
+
+
+_NO_PATH = 0
+"""The row of :attr:`PathCosts._rows` that is inf everywhere: a goal with no field."""
+
+_GOAL_SETS = 8
+"""Goal tuples :meth:`PathCosts.path_costs` keeps resolved to rows (the bidders' current ones)."""
 
 
 @dataclass(frozen=True)
@@ -71,18 +79,38 @@ class PathCosts:
         snap_m: float = 1.5,
         max_bytes: int = 1 << 30,
     ) -> None:
-        self.map = voxel_map
         self.clearance_m = clearance_m
         self.snap_m = snap_m
-        self.cost_map = CostMap(inflate(voxel_map, clearance_m), risk)
-        self.planner = Planner(self.cost_map)
+        self.risk = risk
         self.max_bytes = max_bytes
+        self.searches = 0
+        """Backward searches run so far (one per distinct goal voxel, plus re-runs)."""
+        self.version = -1
+        """Counts the maps this service has planned on (:meth:`set_map`): costs are equal for
+        equal :meth:`start_key` only within one version."""
+        self.set_map(voxel_map)
+
+    def set_map(self, voxel_map: VoxelMap) -> None:
+        """Plan on ``voxel_map`` from now on (rock appeared or went): every field is dropped
+        (searched again when next asked for) and :attr:`version` moves on."""
+        self.map = voxel_map
+        self.cost_map = CostMap(inflate(voxel_map, self.clearance_m), self.risk)
+        self.planner = Planner(self.cost_map)
         self._fields: OrderedDict[int, _GoalField | None] = OrderedDict()
+        self._rows = np.full((1, self.cost_map.padded.size), np.inf, dtype=np.float32)
+        """Every field's lengths, one row each (row 0: no path), so that the costs to many
+        goals are one gather (:meth:`path_costs`)."""
+        self._free_rows: list[int] = []
+        self._in_use = 1
+        self._layout = 0
+        """Moves on whenever a field's row is freed (eviction): resolved goal sets are stale."""
+        self._sets: OrderedDict[int, tuple[tuple[Point, ...], int, npt.NDArray[np.intp]]] = (
+            OrderedDict()
+        )
         self._snapped: dict[int, int] = {}
         self._goal_voxel: dict[Point, int] = {}
         self._last_start: tuple[Point, int] | None = None
-        self.searches = 0
-        """Backward searches run so far (one per distinct goal voxel, plus re-runs)."""
+        self.version += 1
 
     # ---------------------------------------------------------------- indices
     def _flat(self, point: Sequence[float]) -> int:
@@ -131,6 +159,12 @@ class PathCosts:
         self._snapped[flat] = best
         return best
 
+    def start_key(self, start: Point) -> tuple[int, int]:
+        """What :meth:`path_costs` from ``start`` depends on: the open voxel it starts from and
+        the map :attr:`version`. Starts with equal keys have equal costs to every goal (a bidder
+        that has not moved to another voxel may send its previous costs again)."""
+        return (self.version, self._start(start))
+
     def _start(self, start: Sequence[float]) -> int:
         key = (float(start[0]), float(start[1]), float(start[2]))
         if self._last_start is not None and self._last_start[0] == key:
@@ -154,18 +188,59 @@ class PathCosts:
             centre = self.map.index_to_world(self.cost_map.unpad_index(np.array([root]))[0])
             field = self.planner.one_to_all(centre, reverse=True)
             self.searches += 1
-            pad = np.full(self.cost_map.padded.shape, np.inf, dtype=np.float32)
+            row = self._new_row()
+            pad = self._rows[row].reshape(self.cost_map.padded.shape)
+            pad[...] = np.inf
             pad[1:-1, 1:-1, 1:-1] = field.length_m
-            entry = _GoalField(field, pad.ravel())
+            entry = _GoalField(field, row)
             field.drop_dense()  # keep the float32 copy only
         self._fields[f] = entry
         self._evict()
         return entry
 
+    def _new_row(self) -> int:
+        """A free row of :attr:`_rows` (grown by doubling, within ``max_bytes``)."""
+        if self._free_rows:
+            return self._free_rows.pop()
+        n, size = self._rows.shape
+        if self._in_use == n:
+            most = max(1, self.max_bytes // (size * 4)) + 2  # one over while evicting
+            grown = np.empty((max(n + 1, min(2 * n, most)), size), dtype=np.float32)
+            grown[:n] = self._rows
+            self._rows = grown
+        self._in_use += 1
+        return self._in_use - 1
+
     def _evict(self) -> None:
         per = self.cost_map.padded.size * 4
         while len(self._fields) > 1 and len(self._fields) * per > self.max_bytes:
-            self._fields.popitem(last=False)
+            _, old = self._fields.popitem(last=False)
+            if old is not None:
+                self._free_rows.append(old.row)
+                self._layout += 1
+
+    def _row_of(self, goal: Point) -> int:
+        entry = self._goal(goal)
+        return _NO_PATH if entry is None else entry.row
+
+    def _goal_rows(self, goals: Sequence[Point]) -> npt.NDArray[np.intp] | None:
+        """Each goal's row of :attr:`_rows` (None: its fields do not all fit in ``max_bytes``
+        at once). A tuple of goals is remembered by identity (a bidder passes the same one
+        every round until the announced tasks change)."""
+        key = id(goals)
+        hit = self._sets.get(key)
+        if hit is not None and hit[0] is goals and hit[1] == self._layout:
+            return hit[2]
+        layout = self._layout
+        rows = np.fromiter((self._row_of(g) for g in goals), dtype=np.intp, count=len(goals))
+        if self._layout != layout:  # a field was evicted while others were searched
+            return None
+        if isinstance(goals, tuple):
+            self._sets[key] = (goals, layout, rows)
+            self._sets.move_to_end(key)
+            if len(self._sets) > _GOAL_SETS:
+                self._sets.popitem(last=False)
+        return rows
 
     # ---------------------------------------------------------------- queries
     def path_cost(self, start: Point, goal: Point) -> float:
@@ -176,18 +251,23 @@ class PathCosts:
         entry = self._goal(goal)
         if entry is None:
             return math.inf
-        return float(entry.length[s])
+        return float(self._rows[entry.row, s])
 
     def path_costs(self, start: Point, goals: Sequence[Point]) -> npt.NDArray[np.float64]:
-        """:meth:`path_cost` to each of ``goals`` (the start's voxel is found once)."""
-        out = np.full(len(goals), np.inf)
+        """:meth:`path_cost` to each of ``goals``: the start's voxel is found once and the
+        lengths are one gather from the stacked fields."""
         s = self._start(start)
         if s < 0:
+            return np.full(len(goals), np.inf)
+        rows = self._goal_rows(goals)
+        if rows is not None:
+            out: npt.NDArray[np.float64] = self._rows[:, s].take(rows).astype(np.float64)
             return out
+        out = np.full(len(goals), np.inf)  # more fields than max_bytes holds: one at a time
         for i, g in enumerate(goals):
             entry = self._goal(g)
             if entry is not None:
-                out[i] = entry.length[s]
+                out[i] = self._rows[entry.row, s]
         return out
 
     def route(self, start: Point, goal: Point) -> Route | None:
@@ -196,14 +276,15 @@ class PathCosts:
         if entry is None:
             return None
         s = self._start(start)
-        if s < 0 or not math.isfinite(float(entry.length[s])):
+        length = float(self._rows[entry.row, s]) if s >= 0 else math.inf
+        if not math.isfinite(length):
             return None
         centre = self.map.index_to_world(self.cost_map.unpad_index(np.array([s]))[0])
         pts = entry.field.path_to(centre)
         if len(pts) == 0:
             return None
         pts = thin_path(self.cost_map, pts)  # waypoints where a straight line would be worse
-        return Route((float(goal[0]), float(goal[1]), float(goal[2])), pts, float(entry.length[s]))
+        return Route((float(goal[0]), float(goal[1]), float(goal[2])), pts, length)
 
     def problem(self, point: Sequence[float]) -> str | None:
         """Why ``point`` cannot be a goal (outside the map, inside rock), or None."""

@@ -1,0 +1,158 @@
+"""Repeated bids (issue 19): an agent that has not moved to another voxel and sees the same
+announcement sends its previous costs again. Every bid of a running mission — agents moving,
+tasks arriving, finishing, re-prioritised and cancelled, rock appearing — must equal the bid
+computed from scratch, task by task."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from btmission.allocation.auction import Bid
+from btmission.allocation.bidder import AgentState, Bidder, Point
+from btmission.bench.sim import scale_mission_text
+from btmission.runtime.paths import PathCosts
+from btmission.runtime.runner import MissionRun
+from btmission.spec.mission import load_mission_text
+from btmission.world.voxel import OCCUPIED, VoxelMap
+
+
+class OneByOne:
+    """The D*+ service seen through ``path_cost`` alone: no batches, no start keys, so a
+    bidder on it evaluates every task's cost expression for itself every round."""
+
+    def __init__(self, paths: PathCosts) -> None:
+        self.paths = paths
+
+    def path_cost(self, start: Point, goal: Point) -> float:
+        return self.paths.path_cost(start, goal)
+
+
+def mission_text() -> str:
+    """The scaling floor, small: 6 ground robots, 30 inspections, two more of another type
+    arriving later, a switch cost (bids depend on the task each agent holds)."""
+    text = scale_mission_text(6, 30, 0.3, seed=3)
+    text = text.replace("  inspect: {goal:", "  late: {goal:").replace(
+        "task_types:\n",
+        "task_types:\n  inspect: {goal: at_goal(location), cost: path_cost(location)}\n",
+    )
+    text = text.replace(
+        "task_types:",
+        "  - {id: L1, type: late, location: [50, 50, 0], at: 2.5}\n"
+        "  - {id: L2, type: late, location: [20, 70, 0], at: 5.2}\n"
+        "task_types:",
+    )
+    return text.replace("participation: 0.3}", "participation: 0.3, switch_cost: 2.0}")
+
+
+def test_every_repeated_bid_equals_the_bid_computed_from_scratch() -> None:
+    m = load_mission_text(mission_text(), "bids.yaml")
+    run = MissionRun(m)
+    checked: list[tuple[float, str]] = []
+    changed_by_rock: list[str] = []
+    rock_at = 4.0
+
+    def state_of(agent_id: str) -> AgentState:
+        agent = run.agents[agent_id]
+        p = agent.ctx.telemetry().position
+        return AgentState(
+            agent.id,
+            (float(p[0]), float(p[1]), float(p[2])),
+            agent.task.id if agent.task is not None else None,
+            agent.committed,
+        )
+
+    def from_scratch(agent_id: str) -> np.ndarray:
+        b = run.agents[agent_id].bidder
+        fresh = Bidder(
+            b.task_types, OneByOne(run.paths), b.participation, switch_cost=b.switch_cost
+        )
+        ann = run.agents[agent_id].last_announcement
+        assert ann is not None
+        return fresh.costs(ann, state_of(agent_id))
+
+    def rock(run: MissionRun) -> None:
+        """An 80 m wall of rock across the floor: some agents' costs change where they stand."""
+        vm = run.paths.map
+        new = type(vm)(vm.state.copy(), vm.resolution, vm.origin, dict(vm.meta))
+        new.state[10:90, 50, :] = OCCUPIED
+        before = {a: from_scratch(a) for a in run.agents}
+        run.paths.set_map(new)
+        for a, costs in before.items():
+            if not np.array_equal(costs, from_scratch(a), equal_nan=True):
+                changed_by_rock.append(a)
+
+    run.at(rock_at, rock)
+    run.at(3.0, lambda run: run.set_priority("T5", 3.0))
+    run.at(6.0, lambda run: run.cancel_task("T7"))
+    send = run.bus.send_bid
+
+    def spy(bid: Bid) -> None:
+        ann = run.agents[bid.agent].last_announcement
+        assert ann is not None and bid.serial == ann.serial
+        np.testing.assert_array_equal(bid.costs, from_scratch(bid.agent))
+        checked.append((run.now(), bid.agent))
+        send(bid)
+
+    run.bus.send_bid = spy  # type: ignore[method-assign]
+    res = run.run(until=8.0)
+
+    bidders = [a.bidder for a in run.agents.values()]
+    repeated = sum(b.repeated for b in bidders)
+    assert len(checked) == 6 * 80  # every agent bid in every round, each bid checked
+    assert repeated > len(checked) // 2  # most bids were repeats …
+    assert repeated < len(checked) - 6  # … not all: agents moved and the tasks changed
+    assert res.done  # tasks finished (the announcement shrank)
+    # the wall changed what agents bid from where they stood: a repeated bid that ignored the
+    # map would have differed from the one computed from scratch after it
+    assert changed_by_rock and any(t >= rock_at for t, _ in checked)
+
+
+def floor_with_wall() -> VoxelMap:
+    vm = VoxelMap.empty((16, 10, 2), 0.5)
+    vm.state[8, 0:8, :] = OCCUPIED  # a wall at x = 4 m with a gap at the far side
+    return vm
+
+
+GOALS = (
+    (7.25, 1.25, 0.25),
+    (1.25, 4.25, 0.75),
+    (4.25, 1.25, 0.25),  # in the wall
+    (40.0, 1.0, 0.0),  # outside the map
+    (6.75, 4.75, 0.75),
+    (7.25, 1.25, 0.25),  # twice
+)
+STARTS = ((0.25, 0.25, 0.25), (3.0, 2.0, 0.5), (7.9, 4.9, 0.9), (4.25, 3.25, 0.25), (-5.0, 0, 0))
+
+
+def one_by_one(pc: PathCosts, start: Point, goals: tuple[Point, ...]) -> np.ndarray:
+    return np.array([pc.path_cost(start, g) for g in goals])
+
+
+def test_path_costs_are_path_cost_to_each_goal_however_many_fields_fit() -> None:
+    """The stacked fields' gather gives each goal's own path_cost, bit for bit, also when the
+    memory bound evicts fields between and during calls (then goals are taken one at a time)."""
+    ref = PathCosts(floor_with_wall())
+    per = ref.cost_map.padded.size * 4
+    for max_bytes in (1 << 30, 3 * per, per):
+        pc = PathCosts(floor_with_wall(), max_bytes=max_bytes)
+        for _ in range(2):  # the second time, the tuple's rows are remembered (or stale)
+            for s in STARTS:
+                np.testing.assert_array_equal(pc.path_costs(s, GOALS), one_by_one(ref, s, GOALS))
+                np.testing.assert_array_equal(
+                    pc.path_costs(s, list(GOALS[::-1])), one_by_one(ref, s, GOALS[::-1])
+                )
+        assert np.isinf(pc.path_costs(STARTS[0], GOALS)[[2, 3]]).all()
+        assert np.isfinite(pc.path_costs(STARTS[0], GOALS)[[0, 1, 4, 5]]).all()
+    assert ref.searches == 3  # one per goal voxel with a path
+
+
+def test_a_new_map_drops_the_fields_and_changes_the_start_keys() -> None:
+    pc = PathCosts(floor_with_wall())
+    before = pc.path_costs(STARTS[0], GOALS)
+    key = pc.start_key(STARTS[0])
+    walled = floor_with_wall()
+    walled.state[8, 8:, :] = OCCUPIED  # the gap closes: the far side is cut off
+    pc.set_map(walled)
+    after = pc.path_costs(STARTS[0], GOALS)
+    np.testing.assert_array_equal(after, one_by_one(PathCosts(walled), STARTS[0], GOALS))
+    assert not np.array_equal(before, after) and pc.start_key(STARTS[0]) != key
