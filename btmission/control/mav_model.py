@@ -169,6 +169,9 @@ def wrap_angle(a: float) -> float:
 def _rot_z(vec: ArrayLike, psi: float) -> FloatArray:
     v = np.asarray(vec, dtype=float)
     c, s = math.cos(psi), math.sin(psi)
+    if v.shape == (3,):  # one vector (most calls): the same products, without the fancy indexing
+        x, y = float(v[0]), float(v[1])
+        return np.array([c * x - s * y, s * x + c * y, float(v[2])])
     out = v.copy()
     out[..., 0] = c * v[..., 0] - s * v[..., 1]
     out[..., 1] = s * v[..., 0] + c * v[..., 1]

@@ -43,6 +43,7 @@ from btmission.control.apf import (
     limit_approach_speed,
     repulsive_force,
     shape_force,
+    vector_norm,
 )
 from btmission.control.mav_model import world_to_yaw_frame, wrap_angle, yaw_frame_to_world
 from btmission.types import FloatArray
@@ -579,7 +580,7 @@ class Navigator:
         if isinstance(cmd, _Land):
             if cmd.hold is None:
                 cmd.hold = p.copy()
-            speed = float(np.linalg.norm(tel.velocity))
+            speed = vector_norm(tel.velocity)
             if tel.mode is not Mode.LAND and tel.armed and not tel.landed and speed > 0.3:
                 self._command_multirotor(tel, cmd.hold, np.zeros(3), None, 0.0, 0.0)
                 return  # brake over the landing spot first: AUTO.LAND lands where it is
@@ -648,7 +649,7 @@ class Navigator:
         norm = float(math.sqrt(force @ force))
         ref = p + force * max(1.0, speed * norm / POSITION_GAIN)
         vel = force * speed
-        return ref, vel, None, float(np.linalg.norm(raw))
+        return ref, vel, None, vector_norm(raw)
 
     def _stopping_limit(self, tel: Telemetry, vel: FloatArray, points: FloatArray) -> FloatArray:
         """``vel`` (world) with its approach to the rock bounded by the stopping distance: towards
@@ -689,10 +690,10 @@ class Navigator:
         force, n, _, _ = repulsive_force(rel, AGENT_APF[self.kind])
         if n == 0:
             return force
-        ahead = wp_body / max(float(np.linalg.norm(wp_body)), 1e-9)
-        if float(force @ ahead) < -0.7 * float(np.linalg.norm(force)):
+        ahead = wp_body / max(vector_norm(wp_body), 1e-9)
+        if float(force @ ahead) < -0.7 * vector_norm(force):
             right = np.array([ahead[1], -ahead[0], 0.0])
-            force = force + 0.5 * float(np.linalg.norm(force)) * right
+            force = force + 0.5 * vector_norm(force) * right
         return force
 
     def _route_step(
