@@ -25,7 +25,11 @@ from tests.test_allocation_solvers import brute_force, check_matching, instances
 
 
 def pruned_or_dense(problem: AssignmentProblem, k: int) -> Matching:
-    got = pruned.solve_pruned(problem, k)
+    """The pruned solver, rescanning however many agents fail (so that small k exercises the
+    rescans), else the dense one (as ``solve`` does)."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(pruned, "MAX_FAILED_SHARE", 1.0)
+        got = pruned.solve_pruned(problem, k)
     return got if got is not None else solve(problem, "dense")
 
 
@@ -92,6 +96,8 @@ def test_rescans_and_the_dense_hand_over_are_exact(monkeypatch: pytest.MonkeyPat
     costs[:, :5] = rng.uniform(0, 0.01, (40, 5))
     p = AssignmentProblem.dense(costs)
     want = evaluate(p, solve(p, "dense"))
+    assert pruned.solve_pruned(p, 1) is None  # most agents fail: straight to dense
+    monkeypatch.setattr(pruned, "MAX_FAILED_SHARE", 1.0)
     got = pruned.solve_pruned(p, 1)
     assert got is not None and got.method == "pruned"
     assert evaluate(p, got).same_as(want)
@@ -120,9 +126,10 @@ def test_benchmark_instance_same_pairs_as_dense(
 
 
 def test_auto_prunes_large_matrices_only() -> None:
-    assert choose_method(AssignmentProblem.dense(np.ones((1000, 1000)))) == "pruned"
+    assert choose_method(AssignmentProblem.dense(np.ones((500, 1000)))) == "pruned"
     assert choose_method(AssignmentProblem.dense(np.ones((50, 400)))) == "dense"
     assert choose_method(AssignmentProblem.dense(np.ones((10_000, 60)))) != "pruned"
+    assert choose_method(AssignmentProblem.dense(np.ones((1000, 1999)))) != "pruned"
     edges = AssignmentProblem.sparse(1000, 1000, [0], [0], [1.0])
     assert choose_method(edges) != "pruned"
     assert solve(edges, "pruned").as_dict() == {0: 0}  # edges: handed to dense/sparse
