@@ -7,6 +7,9 @@ included.
 
 from __future__ import annotations
 
+import threading
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -156,3 +159,37 @@ def test_incumbent_kept_on_exact_ties() -> None:
         got = pruned.solve_pruned(p, 1)
         assert got is not None
         assert all(got.as_dict()[a] == t for a, t in enumerate(held) if t >= 0)
+
+
+def test_the_scan_does_not_wait_for_a_stalled_helper(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The helper thread claims a block and then gets no CPU (as on a busy machine): the caller
+    computes that block itself and returns the same result as a scan on one thread, without
+    waiting for the helper."""
+    kern = pruned._kernels()
+    stalled, release, gave_up = threading.Event(), threading.Event(), threading.Event()
+
+    def scan_rows(*args: object) -> None:
+        if threading.current_thread() is threading.main_thread():
+            stalled.wait(5)  # let the helper claim a block first
+        else:
+            stalled.set()
+            if not release.wait(5):  # a caller that waited for the helper would see this
+                gave_up.set()
+        kern.scan_rows(*args)
+
+    costs = instance_costs(60, 3000, 0.3, 0)
+    bonus, inc, rows = np.zeros(3000), np.full(60, -1), np.arange(60)
+    alone = pruned._scan(costs, bonus, inc, rows, 5)
+    fake = SimpleNamespace(scan_rows=scan_rows)
+    monkeypatch.setattr(pruned, "_kernels", lambda: fake)
+    monkeypatch.setattr(pruned, "PARALLEL_MIN_CELLS", 1)
+    monkeypatch.setattr(pruned, "BLOCK_CELLS", 3000 * 7)
+    monkeypatch.setattr(pruned, "_threads", lambda: 2)
+    try:
+        shared = pruned._scan(costs, bonus, inc, rows, 5)
+        assert stalled.is_set() and not gave_up.is_set()  # returned while the helper hung
+    finally:
+        release.set()
+    for a, b in zip((alone.cols, alone.x, alone.next_x, alone.stats),
+                    (shared.cols, shared.x, shared.next_x, shared.stats)):  # fmt: skip
+        np.testing.assert_array_equal(a, b)

@@ -5,8 +5,8 @@ can use one) most cells can never be in the optimum, and the dense solver spends
 them: filling the ``n_agents × n_tasks`` matrix of shifted costs, then scanning every column of
 it on every augmenting path. This solver reads the matrix once instead:
 
-1. **Scan** (numba, one pass, the rows split between two threads when there are two cores): each
-   agent's ``k`` best bids by ``x = cost − bonus`` (its incumbent task always kept too), the
+1. **Scan** (numba, one pass; two threads take blocks of rows in turn when there are two
+   cores): each agent's ``k`` best bids by ``x = cost − bonus`` (its incumbent task always kept too), the
    smallest ``x`` it leaves out, its number of bids, and the ranges the profit transform needs.
 2. **Solve** the small problem — those edges, with exactly the shifted costs ``q`` of the dense
    solver (:func:`btmission.allocation.solvers._dense_q`: same float operations), plus a private
@@ -34,7 +34,7 @@ import itertools
 import os
 import threading
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -112,41 +112,47 @@ def _scan(
     costs: FloatArray, bonus: FloatArray, incumbent: IntArray, rows: IntArray, k: int
 ) -> _Scan:
     """Run :func:`scan_rows` on ``rows`` in blocks of rows, which two threads take in turn when it
-    pays (a thread that gets no core takes none, so a busy machine costs no waiting). Each block's
-    result goes to its own rows whoever computes it, so the result does not depend on the
-    scheduling."""
+    pays. Each block is a pure function of the input, written to its own arrays; the first
+    result of a block is kept. When the calling thread runs out of blocks it computes any block
+    the helper thread still holds instead of waiting for it (on a busy machine the helper may
+    not get a core for tens of milliseconds), so the helper can only save time, never cost it,
+    and the result does not depend on the scheduling."""
     scan_rows = _kernels().scan_rows
-    n = len(rows)
-    cols = np.full((n, k + 1), -1, dtype=np.int64)
-    x = np.full((n, k + 1), np.inf)
-    stats = np.empty((n, 4))
-    nt = costs.shape[1]
+    n, nt = len(rows), costs.shape[1]
     step = max(1, BLOCK_CELLS // max(nt, 1))
-    starts = range(0, n, step)
-    blocks = itertools.count()  # next() is atomic under the GIL
+    starts = list(range(0, n, step))
+    done: list[tuple[IntArray, FloatArray, FloatArray] | None] = [None] * len(starts)
+    claims = itertools.count()  # next() is atomic under the GIL
+    lock = threading.Lock()
 
-    failures: list[BaseException] = []
+    def block(b: int) -> None:
+        sub = rows[starts[b] : starts[b] + step]
+        cols = np.full((len(sub), k + 1), -1, dtype=np.int64)
+        x = np.full((len(sub), k + 1), np.inf)
+        stats = np.empty((len(sub), 4))
+        scan_rows(costs, bonus, incumbent, sub, MAX_COST, cols, x, stats)
+        with lock:
+            if done[b] is None:
+                done[b] = (cols, x, stats)
 
-    def work() -> None:
+    def helper() -> None:
         try:
-            while (b := next(blocks)) < len(starts) and not failures:
-                lo, hi = starts[b], min(n, starts[b] + step)
-                scan_rows(
-                    costs, bonus, incumbent, rows[lo:hi], MAX_COST,
-                    cols[lo:hi], x[lo:hi], stats[lo:hi],
-                )  # fmt: skip
-        except BaseException as exc:  # re-raised by the caller: no half-scanned result
-            failures.append(exc)
+            while (b := next(claims)) < len(starts):
+                block(b)
+        except Exception:  # the caller computes every block left undone itself (and raises)
+            return
 
     if n * nt >= PARALLEL_MIN_CELLS and len(starts) > 1 and _threads() >= 2:
-        other = threading.Thread(target=work, name="btmission-prune-scan")
-        other.start()
-        work()
-        other.join()
-    else:
-        work()
-    if failures:
-        raise failures[0]
+        threading.Thread(target=helper, name="btmission-prune-scan", daemon=True).start()
+    while (b := next(claims)) < len(starts):
+        block(b)
+    for b in range(len(starts)):  # blocks the helper has not finished (yet)
+        if done[b] is None:
+            block(b)
+    parts = cast(list[tuple[IntArray, FloatArray, FloatArray]], done)
+    cols = np.concatenate([c for c, _, _ in parts])
+    x = np.concatenate([v for _, v, _ in parts])
+    stats = np.concatenate([st for _, _, st in parts])
     return _Scan(cols[:, :k], x[:, :k], x[:, k].copy(), stats)
 
 
