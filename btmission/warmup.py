@@ -67,7 +67,9 @@ def _pruned_assignment() -> None:
     from btmission.allocation.pruned import solve_pruned
     from btmission.allocation.solvers import AssignmentProblem
 
-    solve_pruned(AssignmentProblem.dense(np.arange(12.0).reshape(3, 4), incumbent=[0, -1, 2]))
+    costs = np.arange(12.0).reshape(3, 4)
+    for bonus in (None, np.ones(4)):  # compiled apart: with and without priorities
+        solve_pruned(AssignmentProblem.dense(costs, bonus=bonus, incumbent=[0, -1, 2]))
 
 
 def _calls() -> list[tuple[str, Callable[[], None]]]:

@@ -146,10 +146,11 @@ def test_empty_and_holes() -> None:
     assert solve(AssignmentProblem.dense(costs), "pruned").as_dict() == {2: 1}
 
 
+@pytest.mark.parametrize("bonus", [None, [5.0, 0.0]])
 @pytest.mark.parametrize("bad", [-1.0, -np.inf, 1e13])
-def test_out_of_range_costs_are_rejected(bad: float) -> None:
+def test_out_of_range_costs_are_rejected(bad: float, bonus: list[float] | None) -> None:
     with pytest.raises(ValueError, match="bid costs must be in"):
-        solve(AssignmentProblem.dense(np.array([[1.0, bad]])), "pruned")
+        solve(AssignmentProblem.dense(np.array([[1.0, bad]]), bonus=bonus), "pruned")
 
 
 def test_incumbent_kept_on_exact_ties() -> None:
@@ -178,7 +179,7 @@ def test_the_scan_does_not_wait_for_a_stalled_helper(monkeypatch: pytest.MonkeyP
         kern.scan_rows(*args)
 
     costs = instance_costs(60, 3000, 0.3, 0)
-    bonus, inc, rows = np.zeros(3000), np.full(60, -1), np.arange(60)
+    bonus, inc, rows = None, np.full(60, -1), np.arange(60)
     alone = pruned._scan(costs, bonus, inc, rows, 5)
     fake = SimpleNamespace(scan_rows=scan_rows)
     monkeypatch.setattr(pruned, "_kernels", lambda: fake)

@@ -56,7 +56,8 @@ def test_the_pruning_warm_up_compiles_the_signatures_a_large_solve_uses() -> Non
     assert all(before)
     costs = instance_costs(200, 5000, 0.3, 0)
     inc = np.arange(200) * 3
-    solve_pruned(AssignmentProblem.dense(costs, bonus=np.zeros(5000), incumbent=inc), k=1)
+    for bonus in (None, np.zeros(5000)):
+        solve_pruned(AssignmentProblem.dense(costs, bonus=bonus, incumbent=inc), k=1)
     assert [len(f.signatures) for f in kernels] == before
 
 

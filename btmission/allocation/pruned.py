@@ -66,7 +66,7 @@ BLOCK_CELLS = 200_000
 MIN_CELLS = 500_000
 """``auto`` uses this solver for dense problems from this many cells (and ≥ 4 k tasks)."""
 
-STAT_BIDS, STAT_XLO, STAT_XHI, STAT_BAD = range(4)
+STAT_XHI, STAT_LO, STAT_HI = range(3)
 
 
 def _kernels() -> Any:
@@ -105,11 +105,11 @@ class _Scan:
     next_x: FloatArray
     """The smallest ``cost − bonus`` left out (incumbent aside; +inf if none)."""
     stats: FloatArray
-    """``(rows, 4)``: bids, ``x`` min and max, whether a cost is out of range."""
+    """``(rows, 3)``: max ``x``, min cost (−inf included), max finite cost."""
 
 
 def _scan(
-    costs: FloatArray, bonus: FloatArray, incumbent: IntArray, rows: IntArray, k: int
+    costs: FloatArray, bonus: FloatArray | None, incumbent: IntArray, rows: IntArray, k: int
 ) -> _Scan:
     """Run :func:`scan_rows` on ``rows`` in blocks of rows, which two threads take in turn when it
     pays. Each block is a pure function of the input, written to its own arrays; the first
@@ -129,8 +129,8 @@ def _scan(
         sub = rows[starts[b] : starts[b] + step]
         cols = np.full((len(sub), k + 1), -1, dtype=np.int64)
         x = np.full((len(sub), k + 1), np.inf)
-        stats = np.empty((len(sub), 4))
-        scan_rows(costs, bonus, incumbent, sub, MAX_COST, cols, x, stats)
+        stats = np.empty((len(sub), 3))
+        scan_rows(costs, bonus, incumbent, sub, cols, x, stats)
         with lock:
             if done[b] is None:
                 done[b] = (cols, x, stats)
@@ -168,8 +168,8 @@ def solve_pruned(problem: AssignmentProblem, k: int | None = None) -> Matching |
     if na == 0 or nt == 0:
         return Matching(empty, empty, "pruned")
     costs = np.ascontiguousarray(problem.costs, dtype=np.float64)
-    bonus = np.zeros(nt) if problem.bonus is None else problem.bonus
-    if not np.all(np.isfinite(bonus)):
+    bonus = problem.bonus
+    if bonus is not None and not np.all(np.isfinite(bonus)):
         return None
     inc = np.full(na, -1, dtype=np.int64)
     if problem.incumbent is not None:
@@ -177,12 +177,14 @@ def solve_pruned(problem: AssignmentProblem, k: int | None = None) -> Matching |
     k = max(1, min(DEFAULT_K if k is None else k, nt))
     scan = _scan(costs, bonus, inc, np.arange(na, dtype=np.int64), k)
     st = scan.stats
-    if np.any(st[:, STAT_BAD]):  # the other solvers' message, from the whole matrix
-        _check_range(*_finite_range(costs))
-    if not np.any(st[:, STAT_BIDS]):
-        return Matching(empty, empty, "pruned")
-    shift = _make_shift(float(st[:, STAT_XLO].min()), float(st[:, STAT_XHI].max()), min(na, nt))
     inc_x = _incumbent_x(costs, bonus, inc)
+    # each row's smallest x is its first kept one or its incumbent's
+    row_lo = np.fmin(scan.x[:, 0], inc_x)  # NaN (no incumbent bid) ignored
+    if not np.any(row_lo < np.inf):  # no bids (as the other solvers: nothing to check)
+        return Matching(empty, empty, "pruned")
+    if st[:, STAT_LO].min() < 0 or st[:, STAT_HI].max() > MAX_COST:
+        _check_range(*_finite_range(costs))  # the other solvers' message
+    shift = _make_shift(float(row_lo.min()), float(st[:, STAT_XHI].max()), min(na, nt))
     cols, x, nxt = scan.cols, scan.x, scan.next_x
     for _ in range(MAX_ROUNDS):
         col4row, failed = _solve_small(cols, x, nxt, inc, inc_x, shift, nt)
@@ -210,13 +212,14 @@ def _widen(a: np.ndarray, width: int, fill: float) -> np.ndarray:
     return out
 
 
-def _incumbent_x(costs: FloatArray, bonus: FloatArray, inc: IntArray) -> FloatArray:
+def _incumbent_x(costs: FloatArray, bonus: FloatArray | None, inc: IntArray) -> FloatArray:
     """``cost − bonus`` of each agent's incumbent task (NaN: none, or no bid on it)."""
     out = np.full(len(inc), np.nan)
     a = np.nonzero(inc >= 0)[0]
     c = costs[a, inc[a]]
-    bid = c < np.inf  # NaN and +inf: no bid
-    out[a[bid]] = c[bid] - bonus[inc[a[bid]]]
+    bid = np.abs(c) < np.inf  # NaN and ±inf: no bid
+    a, c = a[bid], c[bid]
+    out[a] = c if bonus is None else c - bonus[inc[a]]
     return out
 
 
