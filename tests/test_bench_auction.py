@@ -74,7 +74,8 @@ def test_rounds_scale_and_crossover() -> None:
     pts = measure_crossover(6, 20, 0.5, TINY)
     assert [p.form for p in pts] == ["matrix", "edges"]
     assert all(p.same_optimum and p.bids_per_agent == 10 for p in pts)
-    assert pts[0].density == 0.5 and pts[0].faster in ("dense", "sparse")
+    assert pts[0].density == 0.5 and pts[0].faster in ("dense", "sparse", "pruned")
+    assert pts[0].pruned_ms is not None and pts[1].pruned_ms is None  # pruned: matrix only
 
 
 def test_run_writes_table_csv_and_plot(tmp_path: Path) -> None:

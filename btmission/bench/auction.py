@@ -19,7 +19,8 @@ instances:
   which picks the pruned solver there) and the dense solver (the default before issue 19) on the
   same instances, interleaved, with their optima compared.
 * **Dense vs sparse** — both assignment solvers on the same bids given as edges, from a handful
-  to most tasks per agent: where each is faster (the ``auto`` choice's cost model comes from it).
+  to most tasks per agent: where each is faster (the ``auto`` choice's cost model comes from it);
+  the pruned solver beside them when the bids come as a matrix.
 
 Instances: agents and tasks uniformly random in a 100 m × 100 m area, costs the straight-line
 distances, each agent bidding on its ``ceil(p · n_tasks)`` cheapest tasks (as an agent following
@@ -345,6 +346,9 @@ class CrossPoint:
     sparse_ms: float
     auto: str
     same_optimum: bool
+    """All the solvers timed reach the same optimum."""
+    pruned_ms: float | None = None
+    """The pruned solver (bids as a matrix only)."""
 
     @property
     def density(self) -> float:
@@ -352,11 +356,14 @@ class CrossPoint:
 
     @property
     def faster(self) -> str:
-        return "dense" if self.dense_ms <= self.sparse_ms else "sparse"
+        """The fastest solver of those timed."""
+        times = {"dense": self.dense_ms, "sparse": self.sparse_ms, "pruned": self.pruned_ms}
+        return min((t, m) for m, t in times.items() if t is not None)[1]
 
 
 def measure_crossover(na: int, nt: int, bids: float, cfg: BenchConfig) -> list[CrossPoint]:
-    """Both assignment solvers on the same bids, given as a matrix and as edges."""
+    """Both assignment solvers on the same bids, given as a matrix and as edges, and the pruned
+    one on the matrix."""
     from btmission.allocation.solvers import choose_method
 
     k = min(nt, int(bids) if bids >= 1 else max(1, math.ceil(bids * nt)))
@@ -374,7 +381,11 @@ def measure_crossover(na: int, nt: int, bids: float, cfg: BenchConfig) -> list[C
         d_ms, dm = _median_ms(lambda: solve(make(), "dense"), reps)  # noqa: B023
         s_ms, sm = _median_ms(lambda: solve(make(), "sparse"), reps)  # noqa: B023
         same = evaluate(edges, dm).same_as(evaluate(edges, sm))
-        out.append(CrossPoint(na, nt, k, form, d_ms, s_ms, choose_method(make()), same))
+        p_ms = None
+        if form == "matrix":
+            p_ms, pm = _median_ms(lambda: solve(make(), "pruned"), reps)  # noqa: B023
+            same = same and evaluate(edges, dm).same_as(evaluate(edges, pm))
+        out.append(CrossPoint(na, nt, k, form, d_ms, s_ms, choose_method(make()), same, p_ms))
     return out
 
 
@@ -556,6 +567,7 @@ CROSS_COLS = (
     "bids as",
     "dense ms",
     "sparse ms",
+    "pruned ms",
     "faster",
     "auto picks",
     "same optimum",
@@ -571,6 +583,7 @@ def _cross_cells(c: CrossPoint) -> list[str]:
         c.form,
         f"{c.dense_ms:.2f}",
         f"{c.sparse_ms:.2f}",
+        _opt(c.pruned_ms, ".2f"),
         c.faster,
         c.auto,
         "yes" if c.same_optimum else "**NO**",
@@ -630,7 +643,9 @@ def csv_rows(b: AuctionBench) -> list[list[str]]:
         rows.append(
             ["dense_vs_sparse", str(c.agents), str(c.tasks), f"{c.density:g}",
              str(c.bids_per_agent * c.agents), c.auto, "", "", "", "", _b(c.same_optimum), "", "",
-             "", _f(c.dense_ms), _f(c.sparse_ms), f"bids as {c.form}; faster: {c.faster}"]
+             "", _f(c.dense_ms), _f(c.sparse_ms),
+             f"bids as {c.form}; faster: {c.faster}"
+             + ("" if c.pruned_ms is None else f"; pruned_ms: {c.pruned_ms:.4f}")]
         )  # fmt: skip
     return rows
 
@@ -693,7 +708,9 @@ def markdown(b: AuctionBench) -> str:
             "The same bids given as a matrix (as the auctioneer holds them) and as edges; *dense* = "
             "`linear_sum_assignment` on the full matrix, *sparse* = "
             "`min_weight_full_bipartite_matching` on the edges, each including the conversion it "
-            "needs; *auto picks* = the cost model's choice (`estimate_us`).",
+            "needs; *pruned* = the pruned solver on the matrix (`btmission.allocation.pruned`); "
+            "*auto picks* = `choose_method` (pruned for a large matrix with twice as many tasks "
+            "as agents, else the cost model `estimate_us`); *same optimum*: every solver timed.",
             "",
             *_head(CROSS_COLS),
             *(_row(_cross_cells(c)) for c in b.crossover),
