@@ -194,3 +194,36 @@ def test_the_scan_does_not_wait_for_a_stalled_helper(monkeypatch: pytest.MonkeyP
     for a, b in zip((alone.cols, alone.x, alone.next_x, alone.stats),
                     (shared.cols, shared.x, shared.next_x, shared.stats)):  # fmt: skip
         np.testing.assert_array_equal(a, b)
+
+
+def test_auction_rounds_at_fleet_scale_match_the_dense_solver() -> None:
+    """Whole auction rounds (participation 30 %, priorities, then the holders as incumbents in
+    the next rounds while the agents move): the mission's default solver prunes and gives every
+    round the same assignment as the dense solver."""
+    from btmission.allocation.auction import AuctionConfig, AuctionState, Bid, auction_round
+    from btmission.allocation.tasks import TaskInfo, TaskPool
+
+    na, nt = 60, 8500  # 510,000 cells, > 2 tasks per agent: auto prunes
+    rng = np.random.default_rng(9)
+    task_xy = rng.uniform(0, 100, (nt, 2))
+    ids = [f"T{j:05d}" for j in range(nt)]
+    pool = TaskPool().add_all(
+        TaskInfo(tid, "inspect", {}, priority=float(rng.choice([1.0, 1.0, 2.0]))) for tid in ids
+    )
+    agents = [f"R{i:03d}" for i in range(na)]
+    states = {
+        solver: AuctionState(AuctionConfig(participation=0.3, solver=solver), pool)
+        for solver in ("assignment", "dense")
+    }
+    pos = rng.uniform(0, 100, (na, 2))
+    for rnd in range(3):
+        pos = pos + rng.normal(0, 2.0, pos.shape)
+        costs = np.linalg.norm(pos[:, None] - task_xy[None], axis=2)
+        out = {}
+        for solver, st_ in states.items():  # bids by task id (the first round announces)
+            bids = [Bid.of(a, float(rnd), dict(zip(ids, costs[i]))) for i, a in enumerate(agents)]
+            assignments, states[solver], report = auction_round(st_, bids, float(rnd))
+            out[solver] = (assignments, report.method)
+        assert out["assignment"][1] == "pruned" and out["dense"][1] == "dense"
+        assert out["assignment"][0] == out["dense"][0]
+        assert sum(t is not None for t in out["dense"][0].values()) == na
