@@ -66,7 +66,8 @@ PARALLEL_MIN_CELLS = 1_000_000
 BLOCK_CELLS = 200_000
 """Cells per block of rows the scan threads take in turn (~0.4 ms of work each)."""
 MIN_CELLS = 500_000
-"""``auto`` uses this solver for dense problems from this many cells (and ≥ 4 k tasks)."""
+"""``auto`` uses this solver for dense problems from this many cells (and at least twice as many
+tasks as agents: :func:`worth_it`)."""
 
 STAT_XHI, STAT_LO, STAT_HI = range(3)
 
