@@ -1,9 +1,9 @@
 """Compile btmission's numba kernels ahead of their first use (``make install`` runs this).
 
-The D*+ planner, the GA dispatcher's evaluator and the LiDAR ray casters are numba functions
-compiled on their first call and cached on disk (``cache=True``, next to their modules). On a
-fresh install the first mission, planner query or dispatch would otherwise pay that compilation
-(about half a minute on a 2-core machine) in the middle of its work. This module runs each of
+The D*+ planner, the GA dispatcher's evaluator, the LiDAR ray casters and the pruned assignment
+solver are numba functions compiled on their first call and cached on disk (``cache=True``, next
+to their modules). On a fresh install the first mission, planner query or dispatch would otherwise
+pay that compilation (about half a minute on a 2-core machine) in the middle of its work. This module runs each of
 them once, on tiny inputs, through the same code paths a run uses, so that the argument types —
 and so the compiled signatures — are exactly those of real use: a command where one runs the kernel,
 else the function that does (:func:`_calls`)::
@@ -59,9 +59,22 @@ def _viewer_mesh() -> None:
     surface_mesh(vmap)
 
 
+def _pruned_assignment() -> None:
+    """The pruned assignment solver (:mod:`btmission.allocation.pruned`), which ``auto`` picks
+    only for large bid matrices, on a small one (the same argument types)."""
+    import numpy as np
+
+    from btmission.allocation.pruned import solve_pruned
+    from btmission.allocation.solvers import AssignmentProblem
+
+    costs = np.arange(12.0).reshape(3, 4)
+    for bonus in (None, np.ones(4)):  # compiled apart: with and without priorities
+        solve_pruned(AssignmentProblem.dense(costs, bonus=bonus, incumbent=[0, -1, 2]))
+
+
 def _calls() -> list[tuple[str, Callable[[], None]]]:
     """Kernels no command runs on its own: the functions that run them."""
-    return [("viewer surface mesh", _viewer_mesh)]
+    return [("viewer surface mesh", _viewer_mesh), ("assignment pruning", _pruned_assignment)]
 
 
 def warm_up(echo: Callable[[str], None] = print) -> float:

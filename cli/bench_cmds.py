@@ -360,7 +360,7 @@ def auction_bench(
     reach the same optimum; then a whole coordinator round at 50 x 400, the assignment solver at
     1,000 x 10,000 and dense vs sparse solvers. Writes a table (Markdown + CSV) and a plot.
     Targets: ≥ 1,000x faster than SCIP at 50 x 400 (p = 0.9), rounds ≥ 200 Hz, 1,000 x 10,000
-    in < 100 ms.
+    in ≤ 50 ms.
 
     \b
     Examples:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -69,10 +70,12 @@ def test_rounds_scale_and_crossover() -> None:
     assert 0 < r.median_ms <= r.p90_ms and r.rate_hz == pytest.approx(1e3 / r.median_ms)
     s = measure_scale(8, 30, 1.0, TINY)
     assert (s.bids, s.assigned) == (240, 8)
+    assert s.dense_ms is not None and s.same_optimum is True and s.same_pairs is True
     pts = measure_crossover(6, 20, 0.5, TINY)
     assert [p.form for p in pts] == ["matrix", "edges"]
     assert all(p.same_optimum and p.bids_per_agent == 10 for p in pts)
-    assert pts[0].density == 0.5 and pts[0].faster in ("dense", "sparse")
+    assert pts[0].density == 0.5 and pts[0].faster in ("dense", "sparse", "pruned")
+    assert pts[0].pruned_ms is not None and pts[1].pruned_ms is None  # pruned: matrix only
 
 
 def test_run_writes_table_csv_and_plot(tmp_path: Path) -> None:
@@ -106,6 +109,27 @@ def test_run_writes_table_csv_and_plot(tmp_path: Path) -> None:
     assert lines[-1].startswith("wrote ") and any(line.startswith("target:") for line in lines)
 
 
+def test_scale_compares_the_pruned_default_with_dense() -> None:
+    """Large enough for ``auto`` to prune (500,000 cells, 50× more tasks than agents): the
+    same pairs as the dense solver, which the point reports."""
+    s = measure_scale(100, 5000, 0.3, BenchConfig(scale_repeat=1))
+    assert s.method == "pruned" and s.assigned == 100 and s.bids == 100 * 1500
+    assert s.same_optimum is True and s.same_pairs is True and s.dense_ms is not None
+
+
+def test_a_second_run_keeps_the_first_under_earlier_runs(tmp_path: Path) -> None:
+    cfg = replace(TINY, agents=(3,), tasks=(5,), participation=(1.0,), scip=False, crossover=())
+    run_auction_benchmark(cfg, tmp_path, echo=lambda _: None)
+    first = (tmp_path / "auction.md").read_text()
+    run_auction_benchmark(cfg, tmp_path, echo=lambda _: None)
+    run_auction_benchmark(cfg, tmp_path, echo=lambda _: None)
+    md = (tmp_path / "auction.md").read_text()
+    assert md.startswith("# Auction benchmark") and md.count("# Auction benchmark") == 1
+    assert md.count("## Earlier runs") == 1 and md.count("### Run before this one") == 2
+    body = first.split("\n", 1)[1].strip()
+    assert body in md.split("## Earlier runs")[1]  # the first run's tables, word for word
+
+
 def _sweep(speedup_ms: float, same: bool) -> SweepPoint:
     return SweepPoint("fig4", 50, 400, 0.9, 18000, "dense", 0.5, 50, 5.0, speedup_ms, same)
 
@@ -115,11 +139,15 @@ def test_targets() -> None:
     assert [met for *_, met in b.targets()] == [None, None, None]
     b.sweeps = [_sweep(600.0, True)]
     b.rounds = RoundPoint(50, 400, 0.9, 10, 4.0, 6.0, "dense", 0)
-    b.scale = [ScalePoint(1000, 10_000, 0.3, 1, "dense", 99.0, 1000)]
+    b.scale = [ScalePoint(1000, 10_000, 0.3, 1, "pruned", 50.0, 1000, 70.0, True, True)]
     assert [met for *_, met in b.targets()] == [True, True, True]
+    assert "p = 0.3: 50.0 ms (dense 70.0 ms)" in b.targets()[2][1]
+    b.scale = [ScalePoint(1000, 10_000, 0.3, 1, "pruned", 20.0, 1000, 70.0, False, False)]
+    assert b.targets()[2][2] is False  # fast but not the same optimum
     b.sweeps = [_sweep(400.0, True)]  # 800x
     b.rounds = RoundPoint(50, 400, 0.9, 10, 5.5, 6.0, "dense", 0)
-    b.scale.append(ScalePoint(1000, 10_000, 0.9, 1, "dense", 100.0, 1000))
+    b.scale = [ScalePoint(1000, 10_000, 0.3, 1, "dense", 49.0, 1000)]
+    b.scale.append(ScalePoint(1000, 10_000, 0.9, 1, "dense", 50.5, 1000))
     assert [met for *_, met in b.targets()] == [False, False, False]
     b.sweeps = [_sweep(6000.0, False)]
     assert b.targets()[0][2] is False and "same optimum: NO" in b.targets()[0][1]

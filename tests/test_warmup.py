@@ -35,14 +35,35 @@ def test_the_warm_up_steps_name_real_files_and_commands(tmp_path: Path) -> None:
 
 
 def test_the_warm_up_calls_the_kernels_no_command_runs() -> None:
-    assert [name for name, _ in warmup._calls()] == ["viewer surface mesh"]
+    assert [name for name, _ in warmup._calls()] == ["viewer surface mesh", "assignment pruning"]
     for _, call in warmup._calls():
         call()
+
+
+def test_the_pruning_warm_up_compiles_the_signatures_a_large_solve_uses() -> None:
+    """After the warm-up's tiny problem, a benchmark-shaped one (two scan threads, priorities,
+    incumbents, rescans) compiles nothing new: the warm-up's signatures are those of real use."""
+    import numpy as np
+
+    from btmission.allocation import _prune_kernel as kern
+    from btmission.allocation.pruned import solve_pruned
+    from btmission.allocation.solvers import AssignmentProblem
+    from btmission.bench.auction import instance_costs
+
+    warmup._pruned_assignment()
+    kernels = (kern.scan_rows, kern.shortest_augmenting_paths)
+    before = [len(f.signatures) for f in kernels]
+    assert all(before)
+    costs = instance_costs(200, 5000, 0.3, 0)
+    inc = np.arange(200) * 3
+    for bonus in (None, np.zeros(5000)):
+        solve_pruned(AssignmentProblem.dense(costs, bonus=bonus, incumbent=inc), k=1)
+    assert [len(f.signatures) for f in kernels] == before
 
 
 @pytest.mark.slow
 def test_the_warm_up_runs_every_step() -> None:
     lines: list[str] = []
     total = warmup.warm_up(lines.append)
-    assert len(lines) == 6 and all(" compiled in " in line for line in lines), lines
+    assert len(lines) == 7 and all(" compiled in " in line for line in lines), lines
     assert total > 0

@@ -35,6 +35,11 @@ order above (1, 2, 3). The paper's ILP (eq. 6-7) maximizes ``Σ ρ x``.
     ``BIG + u`` so a full matching always exists. Faster when the bids are few: below about 1 %
     of the pairs when they come as a matrix, up to about 30 % when they come as edges
     (:func:`estimate_us`, fitted to ``btmission bench auction``).
+``pruned``
+    For a large bid matrix: each agent's few best bids, read in one pass over the matrix, solved
+    exactly by shortest augmenting paths, the answer proven optimal for the whole matrix by the
+    duals (else more bids, else ``dense``); :mod:`btmission.allocation.pruned`. ``auto`` picks
+    it from 500,000 cells with at least twice as many tasks as agents.
 ``ilp-scip``
     The paper's reference: the ILP of eq. 6-7 with one binary variable per bid, built with
     OR-Tools' model builder and solved by SCIP (default settings, ``limits/gap = 0``). Seconds at
@@ -55,8 +60,8 @@ from btmission.types import FloatArray
 
 IntArray = NDArray[np.intp]
 
-Method = Literal["auto", "dense", "sparse", "ilp-scip"]
-METHODS: tuple[str, ...] = ("auto", "dense", "sparse", "ilp-scip")
+Method = Literal["auto", "dense", "sparse", "pruned", "ilp-scip"]
+METHODS: tuple[str, ...] = ("auto", "dense", "sparse", "pruned", "ilp-scip")
 
 MISSION_SOLVERS = {"assignment": "auto", "ilp-scip": "ilp-scip"}
 """``coordination.solver`` in a mission → solver method."""
@@ -400,15 +405,29 @@ def estimate_us(problem: AssignmentProblem) -> dict[str, float]:
 
 
 def choose_method(problem: AssignmentProblem) -> str:
-    """``dense`` or ``sparse``, whichever the measured cost model predicts to be faster."""
+    """``pruned`` for a large bid matrix (:func:`btmission.allocation.pruned.worth_it`), else
+    ``dense`` or ``sparse``, whichever the measured cost model predicts to be faster."""
+    from btmission.allocation.pruned import worth_it
+
+    if worth_it(problem):
+        return "pruned"
     est = estimate_us(problem)
     return "sparse" if est["sparse"] < est["dense"] else "dense"
 
 
 def solve(problem: AssignmentProblem, method: str = "auto") -> Matching:
-    """Optimal matching (module docstring) by ``method``: auto, dense, sparse or ilp-scip."""
+    """Optimal matching (module docstring) by ``method``: auto, dense, sparse, pruned or
+    ilp-scip. ``pruned`` hands the problem to ``dense`` when it cannot prove its answer."""
     if method == "auto":
         method = choose_method(problem)
+    if method == "pruned":  # before n_bids: it counts the bids in its own pass
+        from btmission.allocation.pruned import solve_pruned
+
+        if problem.is_dense:
+            found = solve_pruned(problem)
+            if found is not None:
+                return found
+        method = "dense" if problem.is_dense else choose_method(problem)
     if problem.n_agents == 0 or problem.n_tasks == 0 or problem.n_bids == 0:
         empty = np.zeros(0, dtype=np.intp)
         return Matching(empty, empty, method)
