@@ -96,6 +96,8 @@ YAW_RATE_MAX = 0.8
 CONTACT_GAP_S = 0.5
 WALL_QUERY_M = 5.0
 """Clearances beyond this are reported as inf (nothing near enough to matter)."""
+SMALL_FLEET = 6
+"""Up to this many vehicles the contact test loops over the pairs (numpy's set-up costs more)."""
 GROUND_TABLE_MAX_VOXELS = 64_000_000
 """Maps up to this size keep a per-voxel ground table (2 bytes a voxel) for fast ground_z."""
 HEADING_P = 1.0
@@ -667,13 +669,16 @@ class Simulator:
             self._episode(v, "rock", hit, out, t, c)
         if len(vs) < 2:
             return out
-        # pairs in touch: every pair's squared distance at once, then the exact test of the
-        # vector form (‖c_a − c_b‖ < r_a + r_b) on the few that come near it
-        diff = centres[:, None, :] - centres[None, :, :]
-        d2 = np.einsum("ijk,ijk->ij", diff, diff)
-        reach = radii[:, None] + radii[None, :]
-        near = np.argwhere(np.triu(d2 < (reach + 1e-6) ** 2, k=1))
-        for i, j in near.tolist():  # (row-major: the order of the pair loop)
+        if len(vs) <= SMALL_FLEET:  # a few vehicles: every pair, in the pair loop's order
+            near = [(i, j) for i in range(len(vs)) for j in range(i + 1, len(vs))]
+        else:
+            # pairs in touch: every pair's squared distance at once, then the exact test of the
+            # vector form (‖c_a − c_b‖ < r_a + r_b) on the few that come near it
+            diff = centres[:, None, :] - centres[None, :, :]
+            d2 = np.einsum("ijk,ijk->ij", diff, diff)
+            reach = radii[:, None] + radii[None, :]
+            near = np.argwhere(np.triu(d2 < (reach + 1e-6) ** 2, k=1)).tolist()
+        for i, j in near:  # (row-major: the order of the pair loop)
             delta = centres[i] - centres[j]
             if math.sqrt(float(delta @ delta)) < float(radii[i]) + float(radii[j]):
                 a, b = vs[i], vs[j]

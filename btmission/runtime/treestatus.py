@@ -48,12 +48,17 @@ def blackboard_value(value: Any) -> Any:
     4 decimals; NaN and infinities as text), strings, booleans and None as they are, short
     sequences (a location) as lists of those, anything else as a shortened ``repr``."""
     if value is None or isinstance(value, (bool, int, str)):
-        return value if not isinstance(value, str) or len(value) <= BLACKBOARD_TEXT else (
-            value[: BLACKBOARD_TEXT - 1] + "…"
+        return (
+            value
+            if not isinstance(value, str) or len(value) <= BLACKBOARD_TEXT
+            else (value[: BLACKBOARD_TEXT - 1] + "…")
         )
     if isinstance(value, float):
         return round(value, 4) if math.isfinite(value) else str(value)
-    if hasattr(value, "tolist") and getattr(value, "size", BLACKBOARD_ITEMS + 1) <= BLACKBOARD_ITEMS:
+    if (
+        hasattr(value, "tolist")
+        and getattr(value, "size", BLACKBOARD_ITEMS + 1) <= BLACKBOARD_ITEMS
+    ):
         value = value.tolist()  # a small numpy array or scalar
     if isinstance(value, (list, tuple)) and len(value) <= BLACKBOARD_ITEMS:
         items = [blackboard_value(v) for v in value]
@@ -178,6 +183,10 @@ class StatusChanges(py_trees.visitors.VisitorBase):
         return self.changes
 
 
+_STATUS_NAMES: dict[Status, str] = {s: s.value for s in Status}
+"""Each status's name (an enum's ``.value`` is a slow descriptor; snapshots take ~70 a tick)."""
+
+
 class TreeStatusLogger:
     """Publishes an agent's tree status changes as throttled ``tree`` events (module
     docstring). ``publish(changes, nodes)`` receives the net changes (and, the first time, the
@@ -217,7 +226,8 @@ class TreeStatusLogger:
     def status(self) -> Mapping[int, str]:
         """uid → status (py_trees' ``INVALID``/``RUNNING``/``SUCCESS``/``FAILURE``) as of the
         last tick: a read-only copy."""
-        return MappingProxyType({i: s.value for i, s in enumerate(self.visitor.last)})
+        names = _STATUS_NAMES
+        return MappingProxyType({i: names[s] for i, s in enumerate(self.visitor.last)})
 
     def _post_tick(self, tree: py_trees.trees.BehaviourTree) -> None:
         self._note(self.visitor.changes)
