@@ -670,7 +670,7 @@ class Simulator:
         if len(vs) < 2:
             return out
         if len(vs) <= SMALL_FLEET:  # a few vehicles: every pair, in the pair loop's order
-            near = [(i, j) for i in range(len(vs)) for j in range(i + 1, len(vs))]
+            near: list[list[int]] = [[i, j] for i in range(len(vs)) for j in range(i + 1, len(vs))]
         else:
             # pairs in touch: every pair's squared distance at once, then the exact test of the
             # vector form (‖c_a − c_b‖ < r_a + r_b) on the few that come near it
