@@ -267,3 +267,19 @@ def test_benchmarks_collect_only_their_own_garbage() -> None:
         assert gc.get_freeze_count() == frozen
     finally:
         gc.unfreeze()
+
+
+def test_a_results_page_keeps_the_runs_before_it(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from btmission.bench.synth import write_page
+
+    page = tmp_path / "x.md"
+    write_page(page, "# X benchmark\n\n| a |\n| 1 |\n")
+    assert page.read_text() == "# X benchmark\n\n| a |\n| 1 |\n"
+    write_page(page, "# X benchmark\n\n| a |\n| 2 |\n")
+    write_page(page, "# X benchmark\n\n| a |\n| 3 |\n")
+    text = page.read_text()
+    assert text.startswith("# X benchmark\n\n| a |\n| 3 |\n")
+    new, _, older = text.partition("## Earlier runs")
+    assert "| 3 |" in new and "| 2 |" not in new
+    assert older.index("| 2 |") < older.index("| 1 |")  # newest first, nothing lost
+    assert text.count("## Earlier runs") == 1

@@ -64,7 +64,7 @@ from pathlib import Path
 from typing import Any
 
 from btmission.bench.sim import _row
-from btmission.bench.synth import environment, header_lines
+from btmission.bench.synth import environment, header_lines, write_page
 from btmission.bench.viewer import (
     DRAIN_S,
     LOSSY_KINDS,
@@ -1080,9 +1080,7 @@ def run_console_benchmark(
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
-        (out / "console.md").write_text(
-            markdown(cfg, points, env, command, refused_what), encoding="utf-8"
-        )
+        write_page(out / "console.md", markdown(cfg, points, env, command, refused_what))
         write_csv(out / "console.csv", points)
         say(f"wrote {out / 'console.md'} and {out / 'console.csv'}")
     return points

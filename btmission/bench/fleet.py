@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from btmission.bench.synth import earlier_runs, environment, header_lines
+from btmission.bench.synth import environment, header_lines, write_page
 
 FLEET_SIZES = (3, 10, 30, 100)
 """Fleet sizes of the scaling table."""
@@ -209,7 +209,6 @@ def markdown(
     env: dict[str, str],
     warmup_s: float,
     duration_s: float,
-    earlier: Sequence[str] = (),
     plot: str | None = None,
 ) -> str:
     lines = [
@@ -230,7 +229,7 @@ def markdown(
     if plot:
         lines += [f"![speed-up against fleet size]({plot})", ""]
     lines += ["Regenerate with `btmission bench fleet` or `python benchmarks/bench_fleet.py`.", ""]
-    return "\n".join([*lines, *earlier])
+    return "\n".join(lines)
 
 
 def plot_scaling(points: Sequence[FleetPoint], path: Path) -> Path | None:
@@ -284,12 +283,8 @@ def run_fleet_benchmark(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     page = out / "fleet.md"
-    earlier = earlier_runs(page)
     png = plot_scaling(points, out / "fleet.png")
-    page.write_text(
-        markdown(points, env, warmup_s, duration_s, earlier, png.name if png else None),
-        encoding="utf-8",
-    )
+    write_page(page, markdown(points, env, warmup_s, duration_s, png.name if png else None))
     with (out / "fleet.csv").open("w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from btmission.bench.synth import environment, header_lines
+from btmission.bench.synth import environment, header_lines, write_page
 
 GOAL_VEHICLES = 30
 GOAL_P99_MS = 10.0
@@ -227,7 +227,7 @@ def run_mavlink_benchmark(
             f"CPU {p.cpu_ms_per_vehicle:.1f} + {p.sim_cpu_ms_per_vehicle:.1f} ms/s per vehicle"
         )
     out.mkdir(parents=True, exist_ok=True)
-    (out / "mavlink.md").write_text(markdown(points, env), encoding="utf-8")
+    write_page(out / "mavlink.md", markdown(points, env))
     with (out / "mavlink.csv").open("w", newline="", encoding="utf-8") as f:
         w = csv.writer(f)
         w.writerow(COLUMNS)

@@ -47,7 +47,7 @@ from typing import Any
 import numpy as np
 
 from btmission.bench.planner import _md_row
-from btmission.bench.synth import environment, header_lines
+from btmission.bench.synth import environment, header_lines, write_page
 
 SIZE = (200.0, 120.0, 12.0)
 SEEDS = (7, 11)
@@ -298,9 +298,9 @@ def run_reloc_benchmark(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     md_path, csv_path = out / "reloc.md", out / "reloc.csv"
-    md_path.write_text(
+    write_page(
+        md_path,
         _markdown(rows, env, seeds, size, resolution, poses, robustness, mines, stages, calib),
-        encoding="utf-8",
     )
     with csv_path.open("w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)

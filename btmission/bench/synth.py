@@ -456,6 +456,14 @@ def earlier_runs(path: Path) -> list[str]:
     return [*lines, ""]
 
 
+def write_page(path: Path, text: str) -> None:
+    """Write the results page ``path``, the previous page's runs kept below the new one under
+    "Earlier runs" (:func:`earlier_runs`)."""
+    earlier = earlier_runs(path)
+    body = "\n".join([text.rstrip("\n"), "", *earlier]) if earlier else text
+    path.write_text(body, encoding="utf-8")
+
+
 def header_lines(env: dict[str, str]) -> list[str]:
     """The lines every results file starts with (under its title): date, machine, measured
     load, Python and btmission versions. Call it when the run has finished (it reads the load)."""
@@ -533,7 +541,7 @@ def run_synth_benchmark(
     out.mkdir(parents=True, exist_ok=True)
     md_path = out / "synth.md"
     csv_path = out / "synth.csv"
-    md_path.write_text(_markdown(results, repeat, env), encoding="utf-8")
+    write_page(md_path, _markdown(results, repeat, env))
     with csv_path.open("w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh)
         writer.writerow(CSV_HEADER)

@@ -62,7 +62,7 @@ from pathlib import Path
 from typing import Any
 
 from btmission.bench.sim import _row
-from btmission.bench.synth import environment, header_lines
+from btmission.bench.synth import environment, header_lines, write_page
 
 POSE_HZ = 10.0
 """The live feed's pose sampling rate (``run --view``'s)."""
@@ -917,7 +917,7 @@ def run_viewer_benchmark(
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
-        (out / "viewer.md").write_text(markdown(cfg, points, env, command), encoding="utf-8")
+        write_page(out / "viewer.md", markdown(cfg, points, env, command))
         write_csv(out / "viewer.csv", points)
         echo(f"wrote {out / 'viewer.md'} and {out / 'viewer.csv'}")
     return points
