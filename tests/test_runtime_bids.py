@@ -5,10 +5,13 @@ computed from scratch, task by task."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from btmission.allocation.auction import Bid
 from btmission.allocation.bidder import AgentState, Bidder, Point
+from btmission.allocation.tasks import PoolTask, TaskInfo, TaskPool, TaskState
 from btmission.bench.sim import scale_mission_text
 from btmission.runtime.paths import PathCosts
 from btmission.runtime.runner import MissionRun
@@ -156,3 +159,43 @@ def test_a_new_map_drops_the_fields_and_changes_the_start_keys() -> None:
     after = pc.path_costs(STARTS[0], GOALS)
     np.testing.assert_array_equal(after, one_by_one(PathCosts(walled), STARTS[0], GOALS))
     assert not np.array_equal(before, after) and pc.start_key(STARTS[0]) != key
+
+
+def plain_announced(pool: TaskPool, now: float) -> list[PoolTask]:
+    """What TaskPool.announced returned before it kept its order: a sort every call."""
+    live = [t for t in pool if not t.state.terminal and t.arrived(now)]
+    return sorted(live, key=lambda t: (t.info.arrival_s, t.id))
+
+
+def test_the_announced_order_kept_by_the_pool_is_a_fresh_sort() -> None:
+    """The pool keeps its (arrival, id) order across the changes a round makes; every change
+    that could move a task in that order (a new task, another arrival) sorts again."""
+    rng = np.random.default_rng(5)
+    pool = TaskPool()
+    for i in rng.permutation(40):
+        arrival = float(rng.integers(0, 6))  # ties on arrival: the id decides
+        pool = pool.add(TaskInfo(f"T{i}", "inspect", {"location": [1, 2, 0]}, 1.0, arrival))
+    agents = [f"A{i}" for i in range(5)]
+    for step in range(200):
+        now = step * 0.05
+        ids = [t.id for t in pool if not t.state.terminal]
+        tid = ids[int(rng.integers(len(ids)))]
+        t, a = pool[tid], agents[int(rng.integers(len(agents)))]
+        op = int(rng.integers(7))
+        if op == 0:
+            pool = pool.with_tasks({tid: t.moved(now, TaskState.ASSIGNED, a, "won")})
+        elif op == 1 and t.agent is not None:
+            pool = pool.complete(tid, t.agent, now)
+        elif op == 2:
+            pool = pool.release(tid, now, "lost")
+        elif op == 3 and len(ids) > 10:
+            pool = pool.cancel(tid, now, "operator")
+        elif op == 4:
+            pool = pool.reprioritised(tid, float(rng.integers(1, 4)))
+        elif op == 5:  # another arrival: the order must be sorted again
+            info = replace(t.info, arrival_s=float(rng.integers(0, 12)))
+            pool = pool.with_tasks({tid: replace(t, info=info)})
+        elif op == 6:
+            pool = pool.add(TaskInfo(f"N{step}", "inspect", {"location": [1, 2, 0]}, 1.0, now))
+        assert pool.announced(now) == plain_announced(pool, now)
+        assert pool.announced(now + 3) == plain_announced(pool, now + 3)

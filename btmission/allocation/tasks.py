@@ -54,6 +54,10 @@ class TaskState(str, enum.Enum):
         return not self.terminal
 
 
+_ANNOUNCED = frozenset(s for s in TaskState if s.announced)
+"""The states in which an arrived task is announced (:attr:`TaskState.announced`)."""
+
+
 @dataclass(frozen=True)
 class TaskInfo:
     """What is announced about a task: enough for any agent to compute its bid."""
@@ -164,10 +168,24 @@ class TaskPool:
     def get(self, task_id: str) -> PoolTask | None:
         return self.tasks.get(task_id)
 
+    def _order(self) -> tuple[str, ...]:
+        """Every task's key by (arrival, id): computed once per pool, and handed on by
+        :meth:`with_tasks` (which changes no task's arrival or id, so not the order)."""
+        order = self.__dict__.get("_sorted")
+        if order is None:
+            ranked = sorted(self.tasks.items(), key=lambda kv: (kv[1].info.arrival_s, kv[1].id))
+            order = tuple(k for k, _ in ranked)
+            object.__setattr__(self, "_sorted", order)
+        return order  # type: ignore[no-any-return]
+
     def announced(self, now: float) -> list[PoolTask]:
         """Tasks to announce at ``now``: arrived and not finished, by (arrival, id)."""
-        live = [t for t in self.tasks.values() if t.state.announced and t.arrived(now)]
-        live.sort(key=lambda t: (t.info.arrival_s, t.id))
+        tasks = self.tasks
+        live = []
+        for k in self._order():
+            t = tasks[k]
+            if t.state in _ANNOUNCED and t.info.arrival_s <= now:  # t.arrived(now)
+                live.append(t)
         return live
 
     def held_by(self, agent: str) -> PoolTask | None:
@@ -204,7 +222,16 @@ class TaskPool:
         """The pool with ``changed`` tasks replaced (they must already be in it)."""
         if not changed:
             return self
-        return TaskPool({**self.tasks, **changed})
+        pool = TaskPool({**self.tasks, **changed})
+        order = self.__dict__.get("_sorted")
+        if order is not None and all(
+            (old := self.tasks.get(k)) is not None
+            and t.id == old.id
+            and t.info.arrival_s == old.info.arrival_s
+            for k, t in changed.items()
+        ):
+            object.__setattr__(pool, "_sorted", order)
+        return pool
 
     def commit(
         self, task_id: str, agent: str, now: float, reason: str = "commit point"

@@ -126,6 +126,9 @@ class Coordinator:
         """Wall time (s) of each round (announce, bids, allocation, publication)."""
         self.bid_times: list[float] = []
         """Wall time (s) of each round's bidding stage (every agent's bid, in this process)."""
+        self.round_cpu: list[float] = []
+        """CPU time (s) this thread spent on each round run in one step (no bid window):
+        unlike :attr:`rounds`, it does not grow when other processes share the CPU."""
         self.last: RoundResult | None = None
         self._last_assignments: dict[str, str] = {}
         self.recalled: set[str] = set()
@@ -304,7 +307,10 @@ class Coordinator:
         if self.next_round <= now:  # a long step: skip to the next slot
             self.next_round = (math.floor(now / self.period_s) + 1) * self.period_s
         if self.bid_window_s <= 0:
-            return self.loop.step()  # announce, collect (_collect) and allocate now
+            c0 = time.thread_time()
+            result = self.loop.step()  # announce, collect (_collect) and allocate now
+            self.round_cpu.append(time.thread_time() - c0)
+            return result
         early = self._collect_early()
         ann = self.loop.open_round(now)
         self._announce(ann)
