@@ -530,8 +530,8 @@ def dispatch_dynamic_bench(
 def sim_bench(
     controllers: str, scale: str, participation: float, duration: float, out: Path
 ) -> None:
-    """Simulator speed: mine_inspection vs real time per controller (targets: track >= 50x,
-    nmpc >= 5x) and the seed 003 scaling point (round rate, bid time, wall time).
+    """Simulator speed: mine_inspection vs real time per controller (targets: track >= 100x,
+    nmpc >= 20x) and the seed 003 scaling point (round rate, bid time, wall time).
 
     \b
     Example (quick):
