@@ -79,8 +79,8 @@ class CostField:
     full arrays of the map's shape on first use (``inf`` where unreachable and in rock).
 
     The field reads the planner's work arrays directly, so creating it copies nothing. Before the
-    planner searches again it copies the reached voxels out (in voxel order, about 1 ms for a
-    large mine) so that the field stays valid however long it is kept.
+    planner searches again it copies the reached voxels out (in voxel order, about 1.5 ms for
+    a 2 M-voxel mine) so that the field stays valid however long it is kept.
     """
 
     def __init__(
@@ -316,9 +316,9 @@ class Planner:
         w = self._work()
         src = np.asarray(sources, dtype=np.int64)
         tgt = np.asarray(targets, dtype=np.int64)
+        assert self._pool is not None
         while True:
             self._run += 1
-            assert self._pool is not None
             expanded, reached, best = K.search(
                 self.cost_map.flat_padded(),
                 self._off,
