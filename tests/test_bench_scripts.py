@@ -89,3 +89,9 @@ def test_bench_planner_on_a_small_mine_replans_where_it_can(
     table = (tmp_path / "planner.md").read_text()
     rows = [line for line in table.splitlines() if line.startswith("| replan (")]
     assert len(rows) == 2 and all("MISMATCH" not in row for row in rows)
+    assert "| one-to-all while the caller keeps the previous field |" in table
+    # a second run keeps the first one's table under "Earlier runs"
+    r = runner.invoke(cli, ["bench", "planner", *args, "--out", str(tmp_path)])
+    assert r.exit_code == 0, r.output
+    again = (tmp_path / "planner.md").read_text()
+    assert again.count("| metric |") == 2 and "## Earlier runs" in again

@@ -9,7 +9,9 @@ on the first call; that first call is reported on its own):
   transform + eq. 3-4), and a **local update** — a 2 m cube of rock appearing (and going again)
   with :meth:`~btmission.planning.risk.CostMap.set_box`;
 * **one-to-all** — optimal costs from the launch area to every voxel: ours
-  (:meth:`~btmission.planning.dstar.Planner.one_to_all`), ``scipy.sparse.csgraph.dijkstra`` on the
+  (:meth:`~btmission.planning.dstar.Planner.one_to_all`) with nothing else alive and while the
+  caller keeps its previous field (which the planner copies out before searching again; issue 19
+  asks ≤ 20 ms both ways), ``scipy.sparse.csgraph.dijkstra`` on the
   same graph (its CSR graph build timed apart from its search), ``skimage.graph.MCP_Geometric`` on
   the voxel-cost array (a different edge-cost convention — mean of the two voxels' costs times
   the step — so a peer for speed only) and, on the small map only, ``networkx``;
@@ -23,8 +25,9 @@ on the first call; that first call is reported on its own):
   point (:meth:`~btmission.planning.dstar.Planner.plan`) and the median of the repairs is the
   "typical" figure.
 
-Results go to ``planner.md`` and ``planner.csv`` under ``out_dir``. The committed table says when
-and where it was measured and, from the load average, whether other work shared the machine.
+Results go to ``planner.md`` and ``planner.csv`` under ``out_dir``; ``planner.md`` keeps the
+previous page's tables under "Earlier runs". The committed table says when and where it was
+measured and, from the load average, whether other work shared the machine.
 """
 
 from __future__ import annotations
@@ -40,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from btmission.bench.synth import _median_ms, environment, header_lines
+from btmission.bench.synth import _median_ms, earlier_runs, environment, header_lines
 
 SIZE = (200.0, 120.0, 10.0)
 SMALL = (60.0, 40.0, 8.0)
@@ -200,14 +203,22 @@ def run_planner_benchmark(
     from scipy.sparse.csgraph import dijkstra
 
     src_node = int(np.flatnonzero(flat_map == vm.flat(vm.world_to_index(start)))[0])
-    # ours and scipy alternate, run by run, so that a busy moment hits both alike
+    # ours (the previous field kept, then none alive) and scipy alternate, run by run, so that a
+    # busy moment hits all alike
     t_ours: list[float] = []
+    t_kept: list[float] = []
     t_sp: list[float] = []
+    planner.one_to_all(start)  # untimed: copies `field` out (it is used below) once and for all
     for _ in range(repeat):
+        previous = planner.one_to_all(start)  # untimed: the field the caller keeps
+        ms, latest = _timed(partial(planner.one_to_all, start))
+        t_kept.append(ms)
+        del previous, latest  # nothing alive: the next search has nothing to copy out
         t_ours.append(_timed(partial(planner.one_to_all, start))[0])
         ms, sp = _timed(partial(dijkstra, graph, indices=src_node))
         t_sp.append(ms)
     ota_ms, sp_ms = statistics.median(t_ours), statistics.median(t_sp)
+    kept_ms = statistics.median(t_kept)
     ours_on_nodes = field.cost.ravel()[flat_map]
     same = bool(np.allclose(np.asarray(sp), ours_on_nodes, rtol=1e-9, atol=1e-9))
     add(
@@ -217,9 +228,21 @@ def run_planner_benchmark(
             ota_ms,
             "scipy dijkstra (search)",
             sp_ms,
-            "≤ 30 ms; ≥ 1.5× scipy",
-            ota_ms <= 30 and sp_ms / ota_ms >= 1.5,
+            "≤ 20 ms; ≥ 1.5× scipy",
+            ota_ms <= 20 and sp_ms / ota_ms >= 1.5,
             note=f"same costs: {same}; {field.expanded:,} voxels reached",
+        )
+    )
+    add(
+        Row(
+            "one-to-all while the caller keeps the previous field",
+            label,
+            kept_ms,
+            "scipy dijkstra (search)",
+            sp_ms,
+            "≤ 20 ms",
+            kept_ms <= 20,
+            note=f"copying the kept field out: {kept_ms - ota_ms:+.2f} ms",
         )
     )
     add(
@@ -413,7 +436,11 @@ def run_planner_benchmark(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     md_path, csv_path = out / "planner.md", out / "planner.csv"
-    md_path.write_text(_markdown(rows, repeat, queries, env, label, first_ms), encoding="utf-8")
+    kept_pages = earlier_runs(md_path)
+    md_path.write_text(
+        "\n".join([_markdown(rows, repeat, queries, env, label, first_ms), *kept_pages]),
+        encoding="utf-8",
+    )
     with csv_path.open("w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(CSV_HEADER)

@@ -13,7 +13,10 @@ machine code next to this file, so only the first run on a machine pays the comp
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from llvmlite import ir as llir
+from numba import njit, types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 INF = np.inf
 
@@ -42,18 +45,25 @@ def _octile(p, q, sx, sy, res):
 
 
 # ------------------------------------------------------------------------------------ search
-@njit(cache=True, inline="always")
-def _bucket_push(v, b, head, nxt, prv, bkt, mask):
-    """Put voxel v at the front of bucket b (intrusive doubly linked list; the number of
-    buckets is a power of two, ``mask`` = that number - 1)."""
-    sl = b & mask
-    bkt[v] = sl
-    h0 = head[sl]
-    nxt[v] = h0
-    prv[v] = -1
-    if h0 >= 0:
-        prv[h0] = v
-    head[sl] = v
+@intrinsic
+def _prefetch(typingctx, arr, idx):
+    """Hint the CPU to load ``arr[idx]`` into cache (LLVM's ``llvm.prefetch``; no bounds check,
+    and a prefetch never faults)."""
+    sig = types.void(arr, idx)
+
+    def codegen(context, builder, signature, args):
+        aryty = signature.args[0]
+        ary = context.make_array(aryty)(context, builder, args[0])
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [args[1]], wraparound=False)
+        i8p = llir.IntType(8).as_pointer()
+        i32 = llir.IntType(32)
+        fnty = llir.FunctionType(llir.VoidType(), [i8p, i32, i32, i32])
+        fn = builder.module.declare_intrinsic("llvm.prefetch", [i8p], fnty=fnty)
+        # read, keep in all cache levels, data cache
+        builder.call(fn, [builder.bitcast(ptr, i8p), i32(0), i32(3), i32(1)])
+        return context.get_dummy_value()
+
+    return sig, codegen
 
 
 @njit(cache=True, inline="always")
@@ -85,6 +95,8 @@ def search(
     hfield,
     hshift,
     tree,
+    prev,
+    pool,
 ):
     """Dijkstra (or A* with the octile heuristic when ``heuristic`` and one target) from every
     voxel in ``sources`` (cost 0) over the padded grid, with a bucket queue (Dial's algorithm).
@@ -95,8 +107,17 @@ def search(
     With A* the key ``g + h`` can stay level along a step, so a voxel improved after its
     expansion is re-queued and expanded again (label correcting); the search stops only once the
     goal's bucket is drained, which keeps it exact. ``n_buckets`` must exceed the largest key
-    increase of one step divided by ``delta`` and be a power of two (a circular array of buckets; intrusive doubly
-    linked lists, so a voxel sits in one bucket at a time).
+    increase of one step divided by ``delta`` and be a power of two (a circular array of buckets).
+
+    Each bucket is a stack (last in, first out) of entries ``(voxel, g when queued)`` kept in
+    ``pool`` = (entries (cap, 2) int32: voxel and the entry below it, g (cap,) float64). A voxel
+    whose cost drops is pushed again and its older entry is left in place: an entry is current
+    only while its g equals the voxel's g (each push lowers g strictly), so stale entries are
+    skipped when they come up. That pops voxels in exactly the order of a doubly linked list per
+    bucket with decrease-key (the previous implementation), without three per-voxel link arrays.
+    When the pool is full the search stops and returns ``expanded = -1``: the caller grows the
+    pool and searches again (passing ``prev`` = the returned count, which resets the voxels this
+    attempt reached).
 
     ``hfield`` (optional, empty to skip) is a lower bound on each voxel's cost to the goal known
     from an earlier search (a cost-to-goal field before the map changed); the heuristic is then
@@ -117,14 +138,25 @@ def search(
     With ``reverse`` the edges are walked backwards (the step ``v → u`` costs ``step + cost[u]``),
     so ``g`` is the cost *to* the sources: the backward tree D* Lite starts from.
 
-    ``w`` is the tuple of work arrays kept by the caller between searches (so no page of them is
-    allocated or cleared per search): g, parent, length, seen, done, nxt, prv, bkt, touched. A voxel
-    counts as reached in this search only where ``seen == run`` (and settled where
-    ``done == run``), so nothing needs resetting; ``touched[:n]`` lists the voxels reached.
-    Stops when every target is settled (all voxels when ``targets`` is empty). Returns
-    (expansions, n reached).
+    ``w`` = (g, parent, length, done, touched) are kept by the caller between searches, so no page
+    of them is allocated or cleared per search. ``g`` is ``inf`` on every voxel the search has not
+    reached: the voxels the previous search reached, ``touched[:prev]``, are reset to ``inf`` first
+    (a few thousand writes instead of filling 2 M entries), and ``touched[:n]`` lists the voxels
+    this one reaches. ``done[t] == -run`` marks a target until it is settled. Stops when every
+    target is settled (all voxels when ``targets`` is empty). Returns (expansions, n reached, best
+    voxel).
+
+    Each expansion first compares all 26 neighbours without a branch (``g[u] + step + cost[v] <
+    g[v]`` is false for rock, whose cost is inf, and for voxels already settled), then updates the
+    few that improve, in the same neighbour order as a single loop would: same results, far fewer
+    mispredicted branches. It also asks the CPU to fetch the neighbourhood of the next voxel in
+    the bucket while this one is worked on.
     """
-    g, parent, length, seen, done, nxt, prv, bkt, touched = w
+    g, parent, length, done, touched = w
+    ent, eg = pool
+    cap = len(eg)
+    for i in range(prev):
+        g[touched[i]] = INF
     gnext, chg, fid, memo, stack = tree
     use_tree = len(gnext) > 0
     best = INF
@@ -141,13 +173,16 @@ def search(
     mask = n_buckets - 1
     inv_delta = 1.0 / delta  # bucket = int(key * inv_delta); a rounding at a bucket edge only
     # re-opens a voxel (handled below), it never costs exactness
-    queued = 0
+    nnb = len(off)
+    if len(sources) + nnb > cap:
+        return -1, 0, -1
+    n_ent = 0  # pool entries used (every push takes a new one)
+    live = 0  # entries in the buckets, current or stale
     nt = 0
     cur = -1
     for s in sources:
-        if seen[s] == run:
+        if g[s] < INF:
             continue
-        seen[s] = run
         touched[nt] = s
         nt += 1
         g[s] = 0.0
@@ -157,73 +192,79 @@ def search(
         if hs == INF:  # cannot reach the goal at all
             continue
         b = int(hs * inv_delta)
-        _bucket_push(s, b, head, nxt, prv, bkt, mask)
-        queued += 1
+        sl = b & mask
+        ent[n_ent, 0] = s
+        ent[n_ent, 1] = head[sl]
+        eg[n_ent] = 0.0
+        head[sl] = n_ent
+        n_ent += 1
+        live += 1
         cur = b if cur < 0 else min(cur, b)
     stop_bucket = -1
     expanded = 0
-    nnb = len(off)
-    while queued > 0:
+    better = np.zeros(nnb, dtype=np.bool_)
+    while live > 0:
         if stop_bucket >= 0 and cur > stop_bucket:
             break
         sl = cur & mask
-        u = head[sl]
-        if u < 0:
+        e = head[sl]
+        if e < 0:
             cur += 1
             continue
-        q = nxt[u]
-        head[sl] = q
-        if q >= 0:
-            prv[q] = -1
-        queued -= 1
-        if n_targets > 0 and done[u] == -run:
-            remaining -= 1
-        done[u] = run
+        below = ent[e, 1]
+        head[sl] = below
+        live -= 1
+        u = ent[e, 0]
+        gu = g[u]
+        if gu != eg[e]:
+            continue  # stale: u was improved (or settled) since this entry was pushed
+        if below >= 0:  # the next voxel of this bucket, most likely the next one expanded
+            nxt = ent[below, 0]
+            for a in range(-sx, sx + 1, sx):
+                for c in range(-sy, sy + 1, sy):
+                    _prefetch(cost, nxt + a + c)
+                    _prefetch(g, nxt + a + c)
+        if n_targets > 0:
+            if done[u] == -run:
+                remaining -= 1
+            done[u] = run
         expanded += 1
         if n_targets > 0 and remaining == 0:
             if not use_h:
                 break
             if stop_bucket < 0:
-                stop_bucket = int(g[u] * inv_delta)
+                stop_bucket = int(gu * inv_delta)
         if use_tree and _clean_path(u, goal, gnext, chg, fid, memo, run, stack):
-            c = g[u] + hfield[u]
+            c = gu + hfield[u]
             if c < best:
                 best = c
                 best_node = u
                 stop_bucket = int(best * inv_delta)
             continue
-        gu = g[u]
+        if n_ent + nnb > cap:
+            return -1, nt, best_node  # pool full: the caller grows it and searches again
         lu = length[u]
         cu = cost[u]
+        # unsigned indices: numba adds no negative-index wraparound to these loads
+        if reverse:
+            for k in range(nnb):
+                v = np.uint64(u + off[k])
+                better[k] = (gu + (step[k] + cu) < g[v]) & (cost[v] != INF)
+        else:
+            for k in range(nnb):
+                v = np.uint64(u + off[k])
+                better[k] = gu + (step[k] + cost[v]) < g[v]
         for k in range(nnb):
+            if not better[k]:
+                continue
             v = u + off[k]
-            cv = cost[v]
-            if cv == INF:
-                continue
-            nd = gu + (step[k] + (cu if reverse else cv))
-            seen_v = seen[v] == run
-            if seen_v and nd >= g[v]:
-                continue
+            nd = gu + (step[k] + (cu if reverse else cost[v]))
             hv = 0.0
             if use_h:
                 hv = _heur(v, goal, sx, sy, res, hfield, hshift)
                 if hv == INF:  # the field says v cannot reach the goal: prune it
                     continue
-            if seen_v:
-                if done[v] != run:  # queued: unlink from its bucket
-                    p = prv[v]
-                    q = nxt[v]
-                    if p >= 0:
-                        nxt[p] = q
-                    else:
-                        head[bkt[v]] = q
-                    if q >= 0:
-                        prv[q] = p
-                    queued -= 1
-                else:
-                    done[v] = 0  # re-opened (A* only)
-            else:
-                seen[v] = run
+            if g[v] == INF:
                 touched[nt] = v
                 nt += 1
             g[v] = nd
@@ -236,9 +277,35 @@ def search(
                 b = min(b, cur + n_buckets - 1)
             else:
                 b = int(nd * inv_delta)
-            _bucket_push(v, max(b, cur), head, nxt, prv, bkt, mask)
-            queued += 1
+            sl = max(b, cur) & mask
+            ent[n_ent, 0] = v
+            ent[n_ent, 1] = head[sl]
+            eg[n_ent] = nd
+            head[sl] = n_ent
+            n_ent += 1
+            live += 1
     return expanded, nt, best_node
+
+
+@njit(cache=True)
+def reached_tree(g, length, parent, n):
+    """(voxels in increasing order, g, length, parent) of the ``n`` voxels with a finite ``g``
+    (any further ones are left out): one pass over the map, cheaper than sorting the voxels a
+    search reached."""
+    ids = np.empty(n, dtype=np.int64)
+    gs = np.empty(n)
+    lengths = np.empty(n)
+    parents = np.empty(n, dtype=np.int64)
+    m = 0
+    for i in range(len(g)):
+        x = g[i]
+        if x < INF and m < n:
+            ids[m] = i
+            gs[m] = x
+            lengths[m] = length[i]
+            parents[m] = parent[i]
+            m += 1
+    return ids, gs, lengths, parents
 
 
 @njit(cache=True)

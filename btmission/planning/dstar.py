@@ -79,15 +79,14 @@ class CostField:
     full arrays of the map's shape on first use (``inf`` where unreachable and in rock).
 
     The field reads the planner's work arrays directly, so creating it copies nothing. Before the
-    planner searches again it copies the reached voxels out (sorted, a few ms for a large mine) so
-    that the field stays valid however long it is kept.
+    planner searches again it copies the reached voxels out (in voxel order, about 1.5 ms for
+    a 2 M-voxel mine) so that the field stays valid however long it is kept.
     """
 
     def __init__(
         self,
         planner: Planner,
         start: tuple[float, float, float],
-        run: int,
         reached: int,
         expanded: int,
         reverse: bool = False,
@@ -96,7 +95,6 @@ class CostField:
         self.start = start
         self.reverse = reverse
         """True when the field holds costs *to* ``start`` (see the class docstring)."""
-        self._run = run
         self.reached = reached
         """Number of voxels with a finite cost."""
         self.expanded = expanded
@@ -109,20 +107,16 @@ class CostField:
         """Copy the reached voxels out of the planner's work arrays (before they are reused)."""
         if self._ids is not None:
             return
-        ids, g, length, parent = self._planner._last_tree(self.reached)
-        order = np.argsort(ids, kind="stable")
-        self._g, self._length, self._parent = g[order], length[order], parent[order]
-        self._ids = ids[order]
+        self._ids, self._g, self._length, self._parent = self._planner._last_tree()
 
     def _dense(self, name: str) -> npt.NDArray[np.float64]:
         if name not in self._full:
             cm = self._planner.cost_map
-            full = np.full(cm.padded.size, np.inf)
-            if self._ids is None:
-                g, _, length, seen = self._planner._work()[:4]
-                mask = seen == self._run
-                full[mask] = (g if name == "cost" else length)[mask]
+            if self._ids is None:  # g is inf wherever the last search did not reach
+                g, _, length = self._planner._work()[:3]
+                full = g.copy() if name == "cost" else np.where(g < np.inf, length, np.inf)
             else:
+                full = np.full(cm.padded.size, np.inf)
                 full[self._ids] = self._g if name == "cost" else self._length
             self._full[name] = full.reshape(cm.padded.shape)[1:-1, 1:-1, 1:-1]
         return self._full[name]
@@ -158,8 +152,8 @@ class CostField:
         if f is None:
             return np.inf, np.inf
         if self._ids is None:
-            g, _, length, seen = self._planner._work()[:4]
-            if seen[f] != self._run:
+            g, _, length = self._planner._work()[:3]
+            if g[f] == np.inf:
                 return np.inf, np.inf
             return float(g[f]), float(length[f])
         k = self._slot(f)
@@ -229,7 +223,9 @@ class Planner:
         need = int(np.ceil(2.0 * worst / self._delta)) + 3
         self._n_buckets = 1 << max(4, (need - 1).bit_length())  # a power of two: bucket & mask
         self._w: tuple[npt.NDArray[Any], ...] | None = None
+        self._pool: tuple[npt.NDArray[np.int32], npt.NDArray[np.float64]] | None = None
         self._run = 0
+        self._n_reached = 0  # voxels the last search reached (touched[:n]): reset by the next
         self._live: weakref.ref[CostField] | None = None
         self._best_node = -1
 
@@ -271,23 +267,33 @@ class Planner:
 
     # -------------------------------------------------------------- searches
     def _work(self) -> tuple[npt.NDArray[Any], ...]:
-        """The search's work arrays, allocated once per planner (see :func:`_kernels.search`)."""
+        """The search's work arrays, allocated once per planner (see :func:`_kernels.search`):
+        g (inf where the last search did not reach), parent, length, done (run numbers), touched
+        (the voxels the last search reached, in the order reached)."""
         n = self.cost_map.padded.size
         if self._w is None or len(self._w[0]) != n or self._run > 2**30:
             i32 = np.int32
             self._w = (
-                np.empty(n),  # g
+                np.full(n, np.inf),  # g
                 np.empty(n, dtype=i32),  # parent
                 np.empty(n),  # length
-                np.zeros(n, dtype=i32),  # seen (run number)
                 np.zeros(n, dtype=i32),  # done (run number)
-                np.empty(n, dtype=i32),  # nxt
-                np.empty(n, dtype=i32),  # prv
-                np.empty(n, dtype=i32),  # bkt
                 np.empty(n, dtype=i32),  # touched
             )
             self._run = 0
+            self._n_reached = 0
+            cap = n // 4 + 64  # bucket entries: a mine takes ~1.4 per voxel reached
+            self._pool = (np.empty((cap, 2), dtype=i32), np.empty(cap))
         return self._w
+
+    def _grow_pool(self, reached: int) -> None:
+        """More bucket entries after a search ran out of them having reached ``reached`` voxels:
+        enough for the whole free map at the rate seen so far, at least twice as many."""
+        assert self._pool is not None
+        cap = len(self._pool[1])
+        n_free = int(np.count_nonzero(np.isfinite(self.cost_map.flat_padded())))
+        new = max(2 * cap, int(1.25 * cap / max(reached, 1) * n_free))
+        self._pool = (np.empty((new, 2), dtype=np.int32), np.empty(new))
 
     def _search(
         self,
@@ -300,7 +306,7 @@ class Planner:
         tree: tuple[Any, ...] | None = None,
     ) -> tuple[int, int]:
         """Run the compiled search; returns (expansions, voxels reached). Results stay in the
-        work arrays until the next search: g/parent/length where ``seen == self._run``."""
+        work arrays until the next search: g/parent/length where ``g`` is finite."""
         from btmission.planning import _kernels as K
 
         live = self._live() if self._live is not None else None
@@ -308,46 +314,59 @@ class Planner:
             live._detach()  # a CostField still reads the work arrays: give it its own copy
         self._live = None
         w = self._work()
-        self._run += 1
-        expanded, reached, best = K.search(
-            self.cost_map.flat_padded(),
-            self._off,
-            self._step,
-            np.asarray(sources, dtype=np.int64),
-            np.asarray(targets, dtype=np.int64),
-            heuristic,
-            reverse,
-            self._sx,
-            self._sy,
-            self.cost_map.resolution,
-            self._delta,
-            self._n_buckets,
-            w,
-            self._run,
-            _NO_FIELD if hfield is None else hfield,
-            float(hshift),
-            _NO_TREE if tree is None else tree,
-        )
+        src = np.asarray(sources, dtype=np.int64)
+        tgt = np.asarray(targets, dtype=np.int64)
+        assert self._pool is not None
+        while True:
+            self._run += 1
+            expanded, reached, best = K.search(
+                self.cost_map.flat_padded(),
+                self._off,
+                self._step,
+                src,
+                tgt,
+                heuristic,
+                reverse,
+                self._sx,
+                self._sy,
+                self.cost_map.resolution,
+                self._delta,
+                self._n_buckets,
+                w,
+                self._run,
+                _NO_FIELD if hfield is None else hfield,
+                float(hshift),
+                _NO_TREE if tree is None else tree,
+                self._n_reached,
+                self._pool,
+            )
+            self._n_reached = int(reached)
+            if expanded >= 0:
+                break
+            self._grow_pool(int(reached))  # out of bucket entries: again, from the start
         self._best_node = int(best)
         return int(expanded), int(reached)
 
     def _reached(self, flat: npt.NDArray[np.int64]) -> npt.NDArray[np.bool_]:
         """Whether voxels ``flat`` were reached by the last search."""
-        out: npt.NDArray[np.bool_] = self._work()[3][flat] == self._run
+        out: npt.NDArray[np.bool_] = self._work()[0][flat] < np.inf
         return out
 
     def _last_tree(
-        self, reached: int
+        self,
     ) -> tuple[
         npt.NDArray[np.int64],
         npt.NDArray[np.float64],
         npt.NDArray[np.float64],
         npt.NDArray[np.int64],
     ]:
-        """(voxels, g, length, parent) of every voxel the last search reached (copies)."""
-        g, parent, length, *_rest, touched = self._work()
-        ids = touched[:reached].astype(np.int64)
-        return ids, g[ids], length[ids], parent[ids].astype(np.int64)
+        """(voxels in increasing order, g, length, parent) of every voxel the last search reached
+        (copies; one pass over the map, about 1.5 ms for 2 M voxels, instead of sorting them)."""
+        from btmission.planning import _kernels as K
+
+        g, parent, length = self._work()[:3]
+        ids, gs, lengths, parents = K.reached_tree(g, length, parent, self._n_reached)
+        return ids, gs, lengths, parents
 
     def plan(
         self, start: Point, goal: Point, *, snap: bool = False, snap_radius_m: float = 5.0
@@ -397,7 +416,7 @@ class Planner:
         srcs = [self.resolve(p, "start", snap=snap)[0] for p in (pts if many else [pts])]
         expanded, reached = self._search(srcs, [], False, reverse=reverse)
         sp = tuple(float(v) for v in (pts[0] if many else pts))
-        field = CostField(self, (sp[0], sp[1], sp[2]), self._run, reached, expanded, reverse)
+        field = CostField(self, (sp[0], sp[1], sp[2]), reached, expanded, reverse)
         self._live = weakref.ref(field)
         return field
 
@@ -524,7 +543,7 @@ class IncrementalPlanner:
         consistent (``g = rhs``) and the open list empty."""
         p = self._planner
         expanded, reached = p._search([self.goal_flat], [], False, reverse=True)
-        ids, g_reached, _, parent = p._last_tree(reached)
+        ids, g_reached, _, parent = p._last_tree()
         n = self.cost_map.padded.size
         g = np.full(n, np.inf)
         g[ids] = g_reached
