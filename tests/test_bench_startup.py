@@ -7,7 +7,7 @@ from pathlib import Path
 
 from click.testing import CliRunner
 
-from btmission.bench.startup import CASES, Case, case_env, measure, rows
+from btmission.bench.startup import CASES, Case, Sample, case_env, measure, rows
 from tests.test_cli import run
 
 
@@ -18,10 +18,11 @@ def test_cases_are_timed_round_robin_after_a_warm_up_and_judged_by_their_median(
     fake = {"a": [9.0, 1.0, 2.0, 3.0], "b": [9.0, 0.1, 0.3, 0.2]}
     caches: set[str | None] = set()
 
-    def clock(argv: Sequence[str], env: Mapping[str, str]) -> float:
+    def clock(argv: Sequence[str], env: Mapping[str, str]) -> Sample:
         calls.append(argv[0])
         caches.add(env.get("PYTHONPYCACHEPREFIX"))
-        return fake[argv[0]].pop(0)
+        wall = fake[argv[0]].pop(0)
+        return Sample(wall, wall / 2)
 
     cases = [Case("A", ("a",), 1.5), Case("B", ("b",), 0.25)]
     timings = measure(cases, 3, clock, tmp_path)
@@ -29,8 +30,8 @@ def test_cases_are_timed_round_robin_after_a_warm_up_and_judged_by_their_median(
     assert caches == {str(tmp_path)}  # one bytecode cache, which the warm-up fills
     assert [t.times_s for t in timings] == [(1.0, 2.0, 3.0), (0.1, 0.3, 0.2)]
     assert rows(timings) == [
-        ["A", "2.000", "1.000", "≤ 1.5", "no"],
-        ["B", "0.200", "0.100", "≤ 0.25", "yes"],
+        ["A", "2.000", "1.000", "≤ 1.5", "no", "1.000"],
+        ["B", "0.200", "0.100", "≤ 0.25", "yes", "0.100"],
     ]
 
 
@@ -58,10 +59,11 @@ def test_the_command_times_real_runs_and_writes_its_tables(
     md = (tmp_path / "startup.md").read_text()
     assert "| btmission --help |" in md and "- load: " in md
     csv_rows = (tmp_path / "startup.csv").read_text().splitlines()
-    assert csv_rows[0] == "command,median_s,best_s,target_s,run0"
+    assert csv_rows[0] == "command,median_s,best_s,target_s,cpu_median_s,run0"
     assert len(csv_rows) == 1 + len(CASES)
     for line in csv_rows[1:]:
-        assert float(line.rsplit(",", 1)[1]) > 0  # a measured wall time, not a placeholder
+        cpu, wall = (float(x) for x in line.rsplit(",", 2)[1:])
+        assert wall > 0 and cpu > 0  # measured times, not placeholders
     # a second run keeps the first one's table under "Earlier runs"
     code, _, _ = run(runner, "bench", "startup", "--repeat", "1", "--out", str(tmp_path))
     page = (tmp_path / "startup.md").read_text()
