@@ -10,10 +10,10 @@ The public API, one import away::
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from btmission._version import __version__
+from btmission.lazy import lazy_attributes
 
 # The API is imported on first use (PEP 562), so that `import btmission` (and so the start of the
 # `btmission` command, before its Ctrl-C handling exists) costs milliseconds, not half a second.
@@ -44,18 +44,7 @@ _LAZY: dict[str, str] = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'btmission' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_LAZY))
-
+__getattr__, __dir__ = lazy_attributes(__name__, globals(), _LAZY)
 
 if TYPE_CHECKING:
     from btmission.diagnostics import Diagnostic, Severity, SpecError

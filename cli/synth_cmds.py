@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import click
 
@@ -18,12 +19,14 @@ from btmission.cli.common import (
     write_output,
 )
 from btmission.diagnostics import errors
-from btmission.export import FORMATS, GraphvizFailed, GraphvizMissing, export_tree
+from btmission.export import FORMATS
 from btmission.plugins import load_library
 from btmission.spec.library import require_usable
 from btmission.synthesis.backchain import Synthesizer, parse_goals
-from btmission.synthesis.dryrun import conditions_in, dry_run
 from btmission.synthesis.tree import Node, leaf_signatures
+
+if TYPE_CHECKING:
+    from btmission.synthesis.dryrun import DryRunResult
 
 format_option = click.option(
     "-f",
@@ -53,6 +56,8 @@ def emit_tree(
     unicode: bool = True,
 ) -> None:
     """Export ``tree`` in ``fmt`` to ``output`` or stdout, with clear errors for graphviz."""
+    from btmission.export import GraphvizFailed, GraphvizMissing, export_tree
+
     if any(leaf_name == name for _, leaf_name in leaf_signatures(tree)):
         name = f"{name}_tree"  # a BT.CPP tree ID must differ from every node type's ID
     try:
@@ -149,6 +154,8 @@ def synth(
     result = Synthesizer(lib).synthesize(atoms, strict=strict)
     echo_diagnostics(result.diagnostics)
     if dry_run:
+        from btmission.synthesis.dryrun import conditions_in
+
         initial = {str(a): True for a in parse_goals(true_conds, lib, option="--true")}
         in_tree = set(conditions_in(result.tree))
         for cond in initial:
@@ -162,8 +169,7 @@ def synth(
             )
         except RecursionError:  # py_trees recurses per level; the limit raised for it is capped
             raise BadInput(
-                f"the tree is too deep to dry-run ({result.size} nodes); "
-                "export it with -o instead"
+                f"the tree is too deep to dry-run ({result.size} nodes); export it with -o instead"
             ) from None
         click.echo(run.format_trace(unicode=not ascii_only))
         if output is not None:
@@ -184,4 +190,9 @@ def synth(
         raise ChecksFailed("synthesis reported errors")
 
 
-dry_run_fn = dry_run
+def dry_run_fn(*args: Any, **kwargs: Any) -> DryRunResult:
+    """:func:`btmission.synthesis.dryrun.dry_run` (tests replace this); py_trees is imported only
+    when a dry run happens."""
+    from btmission.synthesis.dryrun import dry_run
+
+    return dry_run(*args, **kwargs)

@@ -383,25 +383,42 @@ def test_top_level_help_lists_every_command_with_its_own_short_help() -> None:
     assert sorted(cli.list_commands(ctx)) == sorted(COMMANDS)
 
 
-def test_help_and_version_import_no_command_module() -> None:
+def modules_after(commands: list[list[str]], loaded_if: str) -> tuple[str, list[str]]:
+    """Run ``btmission COMMAND`` for each of ``commands`` in one fresh interpreter: its output
+    (with ``EXIT n`` after each command) and the imported modules ``m`` for which the expression
+    ``loaded_if`` holds."""
+    import ast
     import subprocess
     import sys
 
     probe = (
         "import sys\n"
         "from btmission.cli.main import cli\n"
-        "for args in (['--help'], ['--version']):\n"
+        f"for args in {commands!r}:\n"
         "    try:\n"
         "        cli.main(args, prog_name='btmission')\n"
-        "    except SystemExit:\n"
-        "        pass\n"
-        "heavy = sorted(m for m in ('numpy', 'pydantic', 'scipy', 'py_trees', 'yaml')"
-        " if m in sys.modules)\n"
-        "cmds = sorted(m for m in sys.modules if m.endswith('_cmds'))\n"
-        "print('LOADED', heavy, cmds)\n"
+        "    except SystemExit as exc:\n"
+        "        print('EXIT', exc.code)\n"
+        f"print('LOADED', sorted(m for m in sys.modules if {loaded_if}))\n"
     )
     out = subprocess.run(
-        [sys.executable, "-c", probe], capture_output=True, text=True, timeout=60, check=True
+        [sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, check=True
     ).stdout
+    head, _, loaded = out.rpartition("LOADED ")
+    return head, ast.literal_eval(loaded)
+
+
+def test_help_and_version_import_no_command_module() -> None:
+    heavy = ("numpy", "pydantic", "scipy", "py_trees", "yaml")
+    out, loaded = modules_after([["--help"], ["--version"]], f"m in {heavy} or m.endswith('_cmds')")
     assert "Commands:" in out and "validate     Validate a mission file" in out
-    assert out.strip().splitlines()[-1] == "LOADED [] []"
+    assert loaded == []
+
+
+def test_validate_imports_no_scipy_no_exporter_and_no_dry_run() -> None:
+    """validate's path (issue 19): reachability labels runs with numpy (no scipy.ndimage, no numba
+    kernels), and neither the exporters nor the dry run are imported to parse its options."""
+    banned = ("scipy", "numba", "btmission.export.", "btmission.synthesis.dryrun")
+    out, loaded = modules_after([["validate", MINE]], f"m.startswith({banned})")
+    assert "mission 'mine_inspection' OK" in out and out.strip().endswith("EXIT 0")
+    assert loaded == []

@@ -8,19 +8,40 @@ levels deep are fine. Only svg/png run a program (Graphviz ``dot``, see :mod:`.g
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from btmission.export.ascii import render_ascii
-from btmission.export.btcpp import parse_btcpp_xml, render_btcpp_xml
-from btmission.export.dot import render_dot
-from btmission.export.graphviz import (
-    GraphvizFailed,
-    GraphvizMissing,
-    graphviz_available,
-    render_graphviz,
-)
-from btmission.export.jsonfmt import parse_json, render_json, tree_from_dict, tree_to_dict
-from btmission.synthesis.tree import Node
+from btmission.lazy import lazy_attributes
+
+if TYPE_CHECKING:
+    from btmission.export.ascii import render_ascii
+    from btmission.export.btcpp import parse_btcpp_xml, render_btcpp_xml
+    from btmission.export.dot import render_dot
+    from btmission.export.graphviz import (
+        GraphvizFailed,
+        GraphvizMissing,
+        graphviz_available,
+        render_graphviz,
+    )
+    from btmission.export.jsonfmt import parse_json, render_json, tree_from_dict, tree_to_dict
+    from btmission.synthesis.tree import Node
+
+# The exporters are imported on first use (PEP 562): `btmission validate` and `mission tree`'s
+# option parsing need FORMATS, not the XML name patterns, ElementTree or subprocess behind them.
+_LAZY: dict[str, str] = {
+    "render_ascii": "btmission.export.ascii",
+    "parse_btcpp_xml": "btmission.export.btcpp",
+    "render_btcpp_xml": "btmission.export.btcpp",
+    "render_dot": "btmission.export.dot",
+    "GraphvizFailed": "btmission.export.graphviz",
+    "GraphvizMissing": "btmission.export.graphviz",
+    "graphviz_available": "btmission.export.graphviz",
+    "render_graphviz": "btmission.export.graphviz",
+    "parse_json": "btmission.export.jsonfmt",
+    "render_json": "btmission.export.jsonfmt",
+    "tree_from_dict": "btmission.export.jsonfmt",
+    "tree_to_dict": "btmission.export.jsonfmt",
+}
+__getattr__, __dir__ = lazy_attributes(__name__, globals(), _LAZY)
 
 __all__ = [
     "BINARY_FORMATS",
@@ -70,13 +91,24 @@ def export_tree(
         GraphvizMissing, GraphvizFailed: svg/png without a working Graphviz.
     """
     if fmt == "ascii":
+        from btmission.export.ascii import render_ascii
+
         return render_ascii(root, unicode=unicode)
-    if fmt == "dot":
-        return render_dot(root, name=name)
-    if fmt in ("svg", "png"):
-        return render_graphviz(render_dot(root, name=name), "svg" if fmt == "svg" else "png")
+    if fmt in ("dot", "svg", "png"):
+        from btmission.export.dot import render_dot
+
+        dot = render_dot(root, name=name)
+        if fmt == "dot":
+            return dot
+        from btmission.export.graphviz import render_graphviz
+
+        return render_graphviz(dot, "svg" if fmt == "svg" else "png")
     if fmt == "xml":
+        from btmission.export.btcpp import render_btcpp_xml
+
         return render_btcpp_xml(root, tree_id=name)
     if fmt == "json":
+        from btmission.export.jsonfmt import render_json
+
         return render_json(root, name=name, **dict(extra or {}))
     raise ValueError(f"unknown export format {fmt!r}; choose one of {', '.join(FORMATS)}")

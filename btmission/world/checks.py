@@ -5,7 +5,7 @@ input).
 A task's positions are the fields its type reads (goal and cost symbols) whose value is a list of
 three numbers. Reachable means exactly "the planner finds a path" from some valid agent start
 (through free or unknown voxels, never through rock): :func:`reachable_from` labels the planner's
-26-connected components instead of searching.
+26-connected components (:mod:`btmission.world.connectivity`) instead of searching.
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from btmission.diagnostics import Diagnostic, Location, Severity
+from btmission.world.connectivity import components
 from btmission.world.voxel import OCCUPIED, UNKNOWN, VoxelMap
 
 
@@ -56,17 +57,16 @@ def reachable_from(
 
     The planner moves between 26-neighbours and enters any voxel that is not rock (unknown ones
     at a cost, eq. 4), so a path exists exactly when both lie in one 26-connected component of
-    the non-rock voxels: one ``scipy.ndimage.label`` pass, ~20x cheaper than a one-to-all
-    search (no numba kernels to load), with the same answer (a test compares the two).
+    the non-rock voxels. :func:`~btmission.world.connectivity.components` labels them from the
+    map's runs with numpy alone (no numba kernels to load, no scipy to import) and gives the same
+    answer as a one-to-all search (a test compares the two).
     """
-    from scipy import ndimage
-
-    labels, _ = ndimage.label(voxel_map.state != OCCUPIED, structure=np.ones((3, 3, 3), bool))
+    comps = components(voxel_map.state != OCCUPIED)
 
     def label(p: tuple[float, float, float]) -> int:
-        return int(labels[tuple(voxel_map.world_to_index(p))])
+        return comps.label(voxel_map.world_to_index(p))
 
-    ours = {label(s) for s in starts} - {0}
+    ours = {label(s) for s in starts} - {-1}
     return [label(p) in ours for p in points]
 
 
