@@ -76,6 +76,10 @@ class NmpcConfig:
     solver: str = "fatrop"
     max_iter: int = 100
     tol: float = 1e-6
+    compiled: bool = False
+    """Call gcc-compiled NLP functions (built once, cached; see :mod:`~btmission.control.ocp`)."""
+    warm_mu_init: float | None = None
+    """fatrop's initial barrier parameter for warm-started solves (``None``: 0.1, as cold)."""
     model: MavParams = field(default_factory=MavParams)
     hold_kp: float = 1.0
     hold_kd: float = 1.6
@@ -244,6 +248,8 @@ class MavNmpc:
             max_iter=cfg.max_iter,
             tol=cfg.tol,
             name=f"mav_nmpc_{cfg.solver}",
+            compiled=cfg.compiled,
+            warm_mu_init=cfg.warm_mu_init,
         )
         self._u_last = cfg.hover_input
         self._guess: FloatArray | None = None
