@@ -32,8 +32,8 @@ from __future__ import annotations
 import math
 import os
 import threading
-from collections.abc import Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, TypedDict, Unpack
 
@@ -306,9 +306,9 @@ class MavNmpc:
         controller must collect its result before it solves again.
         """
         xs, params, qp = self._prepare(x, x_ref, options)
-        future = nmpc_pool().submit(self.ocp.solve, xs, self._u_last, params, self._guess)
+        collect = self.ocp.solve_on(nmpc_pool(), xs, self._u_last, params, self._guess)
         self._pending = True
-        return PendingSolve(self, xs, qp, future)
+        return PendingSolve(self, xs, qp, collect)
 
     def _prepare(
         self, x: ArrayLike, x_ref: ArrayLike, options: SolveOptions
@@ -372,15 +372,15 @@ class PendingSolve:
     """A :meth:`MavNmpc.solve_async` in flight; :meth:`result` waits for it and finishes it."""
 
     def __init__(
-        self, nmpc: MavNmpc, xs: FloatArray, qp: FloatArray, future: Future[OcpSolution]
+        self, nmpc: MavNmpc, xs: FloatArray, qp: FloatArray, collect: Callable[[], OcpSolution]
     ) -> None:
-        self._nmpc, self._xs, self._qp, self._future = nmpc, xs, qp, future
+        self._nmpc, self._xs, self._qp, self._collect = nmpc, xs, qp, collect
         self._result: NmpcResult | None = None
 
     def result(self) -> NmpcResult:
         """The :class:`NmpcResult` :meth:`MavNmpc.solve` would have returned (idempotent)."""
         if self._result is None:
-            self._result = self._nmpc._finish(self._xs, self._qp, self._future.result())
+            self._result = self._nmpc._finish(self._xs, self._qp, self._collect())
         return self._result
 
 

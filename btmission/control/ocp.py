@@ -44,6 +44,7 @@ import tempfile
 import time
 import warnings
 from collections.abc import Callable, Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -78,6 +79,16 @@ COMPILE_FLAGS = ("-O1", "-fPIC", "-shared")
 loaded 2-core machine) for no measurable gain in the solve."""
 COMPILE_TIMEOUT_S = 600.0
 """A compile that takes longer is abandoned (the SX solver is used, with a warning)."""
+
+
+def _timed_call(nlpsol: Any, args: dict[str, Any]) -> tuple[Any, float]:
+    """(the solver's outputs or its ``RuntimeError``, wall time s) of one call."""
+    t0 = time.perf_counter()
+    try:
+        res = nlpsol(**args)
+    except RuntimeError as exc:
+        return exc, time.perf_counter() - t0
+    return res, time.perf_counter() - t0
 
 
 def cache_dir() -> Path:
@@ -345,6 +356,22 @@ class StagewiseOcp:
         Never raises on a solver failure: a CasADi exception or a non-finite result comes back as
         ``success=False`` with the reason in ``status`` (the caller decides on a fallback).
         """
+        return self.solve_on(None, x0, u_prev, params, guess)()
+
+    def solve_on(
+        self,
+        executor: Executor | None,
+        x0: ArrayLike,
+        u_prev: ArrayLike,
+        params: ArrayLike,
+        guess: ArrayLike | None = None,
+    ) -> Callable[[], OcpSolution]:
+        """:meth:`solve` with only the solver call on ``executor`` (``None``: now, here).
+
+        Returns a function that waits for the call and builds the :class:`OcpSolution` in the
+        thread that calls it: the worker runs nothing but the CasADi call (which releases the
+        GIL), the Python around it stays in the caller's thread.
+        """
         x0 = np.asarray(x0, dtype=float).ravel()
         u_prev_arr = np.clip(np.asarray(u_prev, dtype=float).ravel(), self.u_lower, self.u_upper)
         p = np.concatenate([x0, u_prev_arr, np.asarray(params, dtype=float).ravel()])
@@ -352,10 +379,18 @@ class StagewiseOcp:
             w0, nlpsol = self.initial_guess(x0, u_prev_arr), self._solver
         else:
             w0, nlpsol = np.asarray(guess, dtype=float), self._solver_warm
-        t0 = time.perf_counter()
-        try:
-            res = nlpsol(x0=w0, p=p, lbx=self._lbw, ubx=self._ubw, lbg=self._lbg, ubg=self._ubg)
-            wall = time.perf_counter() - t0
+        args = {"x0": w0, "p": p, "lbx": self._lbw, "ubx": self._ubw}
+        args.update(lbg=self._lbg, ubg=self._ubg)
+        if executor is None:
+            done = _timed_call(nlpsol, args)
+            return lambda: self._solution(nlpsol, *done)
+        future = executor.submit(_timed_call, nlpsol, args)
+        return lambda: self._solution(nlpsol, *future.result())
+
+    def _solution(
+        self, nlpsol: Any, res: dict[str, Any] | RuntimeError, wall: float
+    ) -> OcpSolution:
+        if isinstance(res, dict):
             stats = nlpsol.stats()
             self.last_stats = dict(stats)
             primal = np.asarray(res["x"], dtype=float).ravel()
@@ -363,11 +398,10 @@ class StagewiseOcp:
             success = bool(stats.get("success", False))
             status = str(stats.get("return_status", "unknown"))
             iterations = int(stats.get("iter_count", -1))
-        except RuntimeError as exc:  # CasADi reports evaluation errors (NaN, …) this way
-            wall = time.perf_counter() - t0
+        else:  # CasADi reports evaluation errors (NaN, …) as a RuntimeError
             primal = np.full(self.n_variables, np.nan)
             cost, success, iterations = math.nan, False, -1
-            status = f"exception: {str(exc).strip().splitlines()[-1]}"
+            status = f"exception: {str(res).strip().splitlines()[-1]}"
         if success and not np.all(np.isfinite(primal)):
             success, status = False, "non-finite solution"
         if self.solver_name == "fatrop" and status == "0":
