@@ -69,20 +69,37 @@ def test_bench_control_runs_and_writes_tables(runner: CliRunner, tmp_path: Path)
     assert tuple(rows[0]) == CSV_HEADER
     assert [r[0] for r in rows[1:]] == ["apf", "dphr"]
     assert all(float(r[3]) > 0 for r in rows[1:])
+    # a second run keeps the first one's table under "Earlier runs" (issue 19)
+    first_table = md.split("\n| component")[1].split("\n\n")[0]
+    result = runner.invoke(
+        cli, ["bench", "control", "--only", "apf", "--repeat", "2", "--out", str(tmp_path)]
+    )
+    assert result.exit_code == 0, result.output
+    again = (tmp_path / "control.md").read_text(encoding="utf-8")
+    new, _, kept = again.partition("## Earlier runs")
+    assert "| apf | 30,000-point scan | 2 |" in new and "| dphr |" not in new
+    assert first_table in kept
 
 
-def test_bench_control_nmpc_compares_both_solvers(tmp_path: Path) -> None:
+def test_bench_control_nmpc_compares_both_solvers(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import btmission.bench.control as bench
+
+    # the runtime row as configured, but on the SX solver: no 20 s compile in a test
+    monkeypatch.setitem(bench.RUNTIME_NMPC, "compiled", False)
     lines: list[str] = []
     rows = run_control_benchmark(["nmpc"], steps=8, out_dir=tmp_path, echo=lines.append)
     assert [(r.component, r.case) for r in rows] == [
         ("nmpc (MAV, N=20)", "fatrop"),
         ("nmpc (MAV, N=20)", "ipopt"),
+        ("nmpc (MAV, N=20)", "fatrop, compiled, warm μ (runtime)"),
         ("nmpc (unicycle, N=50)", "fatrop"),
         ("nmpc (unicycle, N=50)", "ipopt"),
         ("nmpc (unicycle, N=50, shelves)", "fatrop"),
     ]
-    assert rows[0].runs == 8 and rows[2].runs == 8  # 4 steps × 2 robots
-    assert rows[0].met is not None and rows[2].met is None  # targets only for the MAV NMPC
+    assert rows[0].runs == 8 and rows[3].runs == 8  # 4 steps × 2 robots
+    assert rows[0].met is not None and rows[3].met is None  # targets only for the MAV NMPC
     assert any("0 failed" in line for line in lines)
 
 

@@ -305,3 +305,146 @@ def test_cruise_lead_holds_the_commanded_speed(speed: float) -> None:
     assert cruise(NMPC_LEAD_S * speed) == pytest.approx(speed, rel=0.05)
     if speed > 2:
         assert cruise(1.0) < 0.9 * speed
+
+
+# ---------------------------------------------------------------------------------------------
+# compiled NLP and warm barrier start (performance options: same optimum)
+# ---------------------------------------------------------------------------------------------
+def _closed_loop_commands(nmpc: MavNmpc, steps: int) -> np.ndarray:
+    """Commands of a flight to a set-point and on to a second, every solve warm-started."""
+    nmpc.reset()
+    x = np.zeros(8)
+    x[2] = 1.0
+    out = []
+    for k in range(steps):
+        goal = [2.0, -1.5, 2.5] if k < steps // 2 else [0.5, 1.0, 1.5]
+        res = nmpc.solve(x, goal, repulsive_force=0.3 * (k % 3))
+        assert res.success, res.status
+        out.append(res.u)
+        x = simulate(x, res.u, nmpc.config.dt_s, nmpc.config.model)
+    return np.array(out)
+
+
+def test_compiled_nlp_gives_the_commands_of_the_sx_solver_and_is_cached(
+    tmp_path: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """gcc-compiled functions evaluate the same expressions as CasADi's SX virtual machine: the
+    closed loop is the same (bit for bit on this machine; 1e-12 allows another compiler's
+    rounding). N = 3 keeps the compile to a few seconds."""
+    import subprocess
+
+    monkeypatch.setenv("BTMISSION_CACHE_DIR", str(tmp_path))
+    sx = MavNmpc(NmpcConfig(horizon=3))
+    compiled = MavNmpc(NmpcConfig(horizon=3, compiled=True))
+    assert compiled.ocp.compiled and not sx.ocp.compiled
+    libraries = list((tmp_path / "casadi").glob("nlp_*.so"))
+    assert len(libraries) == 1
+    np.testing.assert_allclose(
+        _closed_loop_commands(compiled, 40), _closed_loop_commands(sx, 40), rtol=0, atol=1e-12
+    )
+
+    # a second build loads the cached library: no compiler runs
+    def no_compiler(*args: object, **kwargs: object) -> None:
+        raise AssertionError("gcc ran although the library was cached")
+
+    monkeypatch.setattr(subprocess, "run", no_compiler)
+    again = MavNmpc(NmpcConfig(horizon=3, compiled=True))
+    assert again.ocp.compiled
+    # a different problem (another horizon) does not load it
+    monkeypatch.undo()
+    monkeypatch.setenv("BTMISSION_CACHE_DIR", str(tmp_path))
+    MavNmpc(NmpcConfig(horizon=2, compiled=True))
+    assert len(list((tmp_path / "casadi").glob("nlp_*.so"))) == 2
+
+
+def test_compiled_nlp_without_gcc_falls_back_with_a_warning(
+    tmp_path: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import btmission.control.ocp as ocp
+
+    monkeypatch.setenv("BTMISSION_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(ocp.shutil, "which", lambda name: None)
+    with pytest.warns(RuntimeWarning, match="no C compiler 'gcc'"):
+        nmpc = MavNmpc(NmpcConfig(horizon=3, compiled=True))
+    assert not nmpc.ocp.compiled
+    np.testing.assert_array_equal(
+        _closed_loop_commands(nmpc, 10), _closed_loop_commands(MavNmpc(NmpcConfig(horizon=3)), 10)
+    )
+
+
+def test_compiled_nlp_compile_failure_falls_back_with_a_warning(
+    tmp_path: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import btmission.control.ocp as ocp
+
+    monkeypatch.setenv("BTMISSION_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(ocp, "COMPILE_FLAGS", ("-fno-such-flag", "-shared"))
+    with pytest.warns(RuntimeWarning, match="compiling the NMPC's NLP failed"):
+        nmpc = MavNmpc(NmpcConfig(horizon=3, compiled=True))
+    assert not nmpc.ocp.compiled
+    assert not list((tmp_path / "casadi").glob("nlp_*.so"))
+
+
+def test_warm_barrier_start_reaches_the_same_optimum_in_fewer_iterations() -> None:
+    """``warm_mu_init`` changes the interior-point path, not the problem: the commands stay
+    within the solver tolerance of an accurate (tol 1e-9) solution, as the default's do."""
+    tol = 1e-4
+    default = MavNmpc(NmpcConfig(tol=tol))
+    warm = MavNmpc(NmpcConfig(tol=tol, warm_mu_init=1e-3))
+    accurate = MavNmpc(NmpcConfig(tol=1e-9))
+    u_ref = _closed_loop_commands(accurate, 60)
+    u_default = _closed_loop_commands(default, 60)
+    u_warm = _closed_loop_commands(warm, 60)
+    err_default = np.abs(u_default - u_ref).max()
+    err_warm = np.abs(u_warm - u_ref).max()
+    assert err_warm <= max(2 * err_default, 1e-3)
+    # the warm solves take fewer iterations on the same closed loop
+    warm.reset()
+    default.reset()
+    x = np.zeros(8)
+    x[2] = 1.0
+    iters = {"default": 0, "warm": 0}
+    for _ in range(30):
+        a = default.solve(x, [2.0, -1.5, 2.5])
+        b = warm.solve(x, [2.0, -1.5, 2.5])
+        iters["default"] += a.iterations
+        iters["warm"] += b.iterations
+        x = simulate(x, a.u, 0.05)
+    assert iters["warm"] < iters["default"]
+    with pytest.raises(ValueError, match="warm_mu_init"):
+        MavNmpc(NmpcConfig(warm_mu_init=0.0))
+
+
+def test_async_solves_of_several_controllers_equal_the_serial_solves() -> None:
+    """Three MAVs' NMPCs solved at once on the thread pool, collected in a fixed order: the
+    same closed loops, bit for bit, as solving them one after another."""
+    starts = [np.array([0.0, 0.0, 1.0, 0, 0, 0, 0, 0]) + 0.1 * i for i in range(3)]
+    goals = [[2.0, -1.5, 2.5], [-1.0, 1.0, 1.5], [0.5, 2.0, 2.0]]
+
+    def fly(parallel: bool) -> np.ndarray:
+        nmpcs = [MavNmpc(NmpcConfig(tol=1e-4, warm_mu_init=1e-3)) for _ in range(3)]
+        xs = [s.copy() for s in starts]
+        log = []
+        for _ in range(25):
+            if parallel:
+                pending = [n.solve_async(x, g) for n, x, g in zip(nmpcs, xs, goals)]
+                results = [p.result() for p in pending]
+            else:
+                results = [n.solve(x, g) for n, x, g in zip(nmpcs, xs, goals)]
+            for i, r in enumerate(results):
+                assert r.success, r.status
+                xs[i] = simulate(xs[i], r.u, 0.05)
+            log.append(np.concatenate([r.u for r in results]))
+        return np.array(log)
+
+    np.testing.assert_array_equal(fly(parallel=True), fly(parallel=False))
+
+
+def test_async_solve_must_be_collected_before_the_next(fatrop_nmpc: MavNmpc) -> None:
+    fatrop_nmpc.reset()
+    pending = fatrop_nmpc.solve_async(np.zeros(8), [1.0, 0.0, 0.0])
+    with pytest.raises(RuntimeError, match="in flight"):
+        fatrop_nmpc.solve(np.zeros(8), [1.0, 0.0, 0.0])
+    first = pending.result()
+    assert first.success and pending.result() is first
+    assert fatrop_nmpc.solve(np.zeros(8), [1.0, 0.0, 0.0]).success

@@ -49,7 +49,7 @@ def test_only_names_sections_in_page_order_and_refuses_unknown_ones(
     monkeypatch.setattr(paper, "available", lambda: ["seed000", "seed004"])
     assert parse_only("") == ["seed000", "seed004"]
     assert parse_only("seed004, seed000") == ["seed000", "seed004"]
-    with pytest.raises(ValueError, match="unknown section.*seed9.*expected some of seed000"):
+    with pytest.raises(ValueError, match=r"unknown section.*seed9.*expected some of seed000"):
         parse_only("seed9")
     with pytest.raises(ValueError, match="seed002 not available"):
         parse_only("seed002")

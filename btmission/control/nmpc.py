@@ -30,9 +30,12 @@ is dropped so the next solve starts afresh.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+import os
+import threading
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypedDict, Unpack
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -45,8 +48,11 @@ __all__ = [
     "MavNmpc",
     "NmpcConfig",
     "NmpcResult",
+    "PendingSolve",
+    "SolveOptions",
     "adaptive_position_weight",
     "hold_position_command",
+    "nmpc_pool",
 ]
 
 
@@ -76,6 +82,10 @@ class NmpcConfig:
     solver: str = "fatrop"
     max_iter: int = 100
     tol: float = 1e-6
+    compiled: bool = False
+    """Call gcc-compiled NLP functions (built once, cached; see :mod:`~btmission.control.ocp`)."""
+    warm_mu_init: float | None = None
+    """fatrop's initial barrier parameter for warm-started solves (``None``: 0.1, as cold)."""
     model: MavParams = field(default_factory=MavParams)
     hold_kp: float = 1.0
     hold_kd: float = 1.6
@@ -172,6 +182,15 @@ def _project(u: ArrayLike, u_prev: ArrayLike, config: NmpcConfig) -> FloatArray:
     return np.asarray(np.clip(np.asarray(u, dtype=float), lo, hi), dtype=float)
 
 
+class SolveOptions(TypedDict, total=False):
+    """The keyword options of :meth:`MavNmpc.solve` and :meth:`MavNmpc.solve_async`."""
+
+    u_ref: ArrayLike | None
+    u_prev: ArrayLike | None
+    q_position: ArrayLike | None
+    repulsive_force: float | None
+
+
 @dataclass
 class NmpcResult:
     """What :meth:`MavNmpc.solve` returns each control step."""
@@ -244,10 +263,13 @@ class MavNmpc:
             max_iter=cfg.max_iter,
             tol=cfg.tol,
             name=f"mav_nmpc_{cfg.solver}",
+            compiled=cfg.compiled,
+            warm_mu_init=cfg.warm_mu_init,
         )
         self._u_last = cfg.hover_input
         self._guess: FloatArray | None = None
         self._hold: FloatArray | None = None
+        self._pending = False
 
     @property
     def last_input(self) -> FloatArray:
@@ -260,16 +282,7 @@ class MavNmpc:
         self._guess = None
         self._hold = None
 
-    def solve(
-        self,
-        x: ArrayLike,
-        x_ref: ArrayLike,
-        *,
-        u_ref: ArrayLike | None = None,
-        u_prev: ArrayLike | None = None,
-        q_position: ArrayLike | None = None,
-        repulsive_force: float | None = None,
-    ) -> NmpcResult:
+    def solve(self, x: ArrayLike, x_ref: ArrayLike, **options: Unpack[SolveOptions]) -> NmpcResult:
         """One control step from state ``x`` towards set-point ``x_ref`` (both 8 values).
 
         ``x_ref`` may also be a 3-vector (a position; zero velocity and attitude). ``u_ref``
@@ -277,7 +290,35 @@ class MavNmpc:
         is ``q_position`` if given, else eq. 4 of ``‖F_r‖ = repulsive_force`` if given, else
         Q_p,max. Raises ``ValueError`` for a malformed or non-finite state/reference.
         """
+        xs, params, qp = self._prepare(x, x_ref, options)
+        return self._finish(xs, qp, self.ocp.solve(xs, self._u_last, params, self._guess))
+
+    def solve_async(
+        self, x: ArrayLike, x_ref: ArrayLike, **options: Unpack[SolveOptions]
+    ) -> PendingSolve:
+        """:meth:`solve`, with the CasADi call on the NMPC thread pool (:func:`nmpc_pool`).
+
+        The arguments are checked and the problem set up now, in the caller's thread; the
+        solver runs in a worker (CasADi releases the GIL while it solves), and
+        :meth:`PendingSolve.result` — called in the caller's thread — updates the warm start,
+        the previous input and the fallback exactly as :meth:`solve` does, so the result is the
+        same, whichever thread solved it. Several controllers' solves can run at once; one
+        controller must collect its result before it solves again.
+        """
+        xs, params, qp = self._prepare(x, x_ref, options)
+        collect = self.ocp.solve_on(nmpc_pool(), xs, self._u_last, params, self._guess)
+        self._pending = True
+        return PendingSolve(self, xs, qp, collect)
+
+    def _prepare(
+        self, x: ArrayLike, x_ref: ArrayLike, options: SolveOptions
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Check the inputs; (state, solver parameters, position weight). Sets u_prev if given."""
+        if self._pending:
+            raise RuntimeError("this NMPC has a solve in flight: collect its result() first")
         cfg = self.config
+        u_ref, u_prev = options.get("u_ref"), options.get("u_prev")
+        q_position, repulsive_force = options.get("q_position"), options.get("repulsive_force")
         xs = _vector(x, NX, "state x")
         ref_in = np.asarray(x_ref, dtype=float).ravel()
         if ref_in.size == 3:
@@ -296,8 +337,12 @@ class MavNmpc:
             )
         else:
             qp = np.asarray(cfg.q_position, dtype=float)
-        params = np.concatenate([ref, uref, qp])
-        sol: OcpSolution = self.ocp.solve(xs, self._u_last, params, self._guess)
+        return xs, np.concatenate([ref, uref, qp]), qp
+
+    def _finish(self, xs: FloatArray, qp: FloatArray, sol: OcpSolution) -> NmpcResult:
+        """The command from a solution (or the fallback); updates warm start and u_{k−1}."""
+        cfg = self.config
+        self._pending = False
         if sol.success:
             u = _project(sol.inputs[0], self._u_last, cfg)
             self._guess = self.ocp.shifted(sol.primal)
@@ -321,6 +366,37 @@ class MavNmpc:
             predicted_inputs=sol.inputs,
             q_position=qp,
         )
+
+
+class PendingSolve:
+    """A :meth:`MavNmpc.solve_async` in flight; :meth:`result` waits for it and finishes it."""
+
+    def __init__(
+        self, nmpc: MavNmpc, xs: FloatArray, qp: FloatArray, collect: Callable[[], OcpSolution]
+    ) -> None:
+        self._nmpc, self._xs, self._qp, self._collect = nmpc, xs, qp, collect
+        self._result: NmpcResult | None = None
+
+    def result(self) -> NmpcResult:
+        """The :class:`NmpcResult` :meth:`MavNmpc.solve` would have returned (idempotent)."""
+        if self._result is None:
+            self._result = self._nmpc._finish(self._xs, self._qp, self._collect())
+        return self._result
+
+
+_POOL: ThreadPoolExecutor | None = None
+_POOL_LOCK = threading.Lock()
+
+
+def nmpc_pool() -> ThreadPoolExecutor:
+    """The threads :meth:`MavNmpc.solve_async` solves on: one per CPU, at most two (the
+    development machine's cores), created on first use and shared by every controller."""
+    global _POOL
+    with _POOL_LOCK:
+        if _POOL is None:
+            workers = max(1, min(2, os.cpu_count() or 1))
+            _POOL = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="nmpc")
+        return _POOL
 
 
 def _vector(values: ArrayLike | Sequence[float], n: int, what: str) -> FloatArray:

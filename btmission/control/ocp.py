@@ -19,14 +19,34 @@ stage order, so ``structure_detection="auto"`` finds the structure. The same NLP
 
 The NLP is built once into a CasADi ``nlpsol`` function (no per-call symbolic work); weights,
 references and obstacle data enter as parameters so they can change every step without rebuilding.
+
+``compiled=True`` makes the solver call machine code instead of CasADi's SX virtual machine for
+the NLP's functions (objective, constraints, their derivatives and the Lagrangian's Hessian):
+:func:`compiled_nlp` writes them out as C once, compiles them with gcc (``-O1``) into a shared
+library under :func:`cache_dir` named by a hash of the functions, and the solver loads that
+library (``nlpsol(name, solver, "….so")``). Same functions, same numbers: on 945 recorded mine
+mission states the commands were bit for bit those of the SX solver. The first build compiles
+(about 20 s on the 2-core machine); later builds, in any process, load the cached library in
+milliseconds. Without gcc (or if compiling fails) the SX solver is used and a ``RuntimeWarning``
+says why. ``warm_mu_init`` starts warm-started fatrop solves from a smaller barrier parameter:
+the guess is the previous optimum shifted, so the interior-point method need not start far
+from the bounds (seed 002's MAV NMPC: 4.35 → 3.09 iterations a solve).
 """
 
 from __future__ import annotations
 
+import hashlib
 import math
+import os
+import shutil
+import subprocess
+import tempfile
 import time
+import warnings
 from collections.abc import Callable, Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -34,7 +54,15 @@ from numpy.typing import ArrayLike
 
 from btmission.types import FloatArray
 
-__all__ = ["SOLVERS", "OcpSolution", "StagewiseOcp", "check_solver"]
+__all__ = [
+    "COMPILE_FLAGS",
+    "SOLVERS",
+    "OcpSolution",
+    "StagewiseOcp",
+    "cache_dir",
+    "check_solver",
+    "compiled_nlp",
+]
 
 SOLVERS = ("fatrop", "ipopt")
 """NLP solvers the OCP can use (both ship in CasADi's PyPI wheel)."""
@@ -44,6 +72,88 @@ def check_solver(name: str) -> None:
     """Raise ``ValueError`` unless ``name`` is one of :data:`SOLVERS`."""
     if name not in SOLVERS:
         raise ValueError(f"unknown solver '{name}' (choose one of {', '.join(SOLVERS)})")
+
+
+COMPILE_FLAGS = ("-O1", "-fPIC", "-shared")
+"""gcc flags for the compiled NLP. ``-O2`` compiled twice as long (43 s against 16-25 s on the
+loaded 2-core machine) for no measurable gain in the solve."""
+COMPILE_TIMEOUT_S = 600.0
+"""A compile that takes longer is abandoned (the SX solver is used, with a warning)."""
+
+
+def _timed_call(nlpsol: Any, args: dict[str, Any]) -> tuple[Any, float]:
+    """(the solver's outputs or its ``RuntimeError``, wall time s) of one call."""
+    t0 = time.perf_counter()
+    try:
+        res = nlpsol(**args)
+    except RuntimeError as exc:
+        return exc, time.perf_counter() - t0
+    return res, time.perf_counter() - t0
+
+
+def cache_dir() -> Path:
+    """Where compiled NLPs are kept: ``$BTMISSION_CACHE_DIR``, else ``$XDG_CACHE_HOME/btmission``,
+    else ``~/.cache/btmission``; the libraries go in its ``casadi`` folder."""
+    root = os.environ.get("BTMISSION_CACHE_DIR")
+    if not root:
+        xdg = os.environ.get("XDG_CACHE_HOME")
+        root = str(Path(xdg) / "btmission") if xdg else str(Path.home() / ".cache" / "btmission")
+    return Path(root) / "casadi"
+
+
+def compiled_nlp(solver: Any, compiler: str = "gcc") -> Path | None:
+    """The shared library of ``solver``'s NLP functions, compiled once and cached (module doc).
+
+    The file name is a hash of the generated C source, the flags and the CasADi version, so a
+    changed problem never loads a stale library. Returns ``None`` (after a ``RuntimeWarning``)
+    if ``compiler`` is missing, fails or times out; the caller then keeps the SX solver.
+    """
+    import casadi as ca
+
+    gcc = shutil.which(compiler)
+    if gcc is None:
+        warnings.warn(
+            f"no C compiler '{compiler}' found: the NMPC runs on CasADi's SX virtual machine "
+            "(correct, about twice as slow); install gcc for the compiled solver",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+        return None
+    # what ``solver.generate_dependencies`` writes, but as a string (that one writes to the cwd)
+    gen = ca.CodeGenerator("nlp", {})
+    gen.add(solver.oracle())
+    for fn in solver.get_function():
+        gen.add(solver.get_function(fn))
+    code = gen.dump().encode()
+    key = hashlib.sha256(code + " ".join(COMPILE_FLAGS).encode() + ca.CasadiMeta.version().encode())
+    folder = cache_dir()
+    target = folder / f"nlp_{key.hexdigest()[:24]}.so"
+    if target.exists():
+        return target
+    folder.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="btmission-nlp-", dir=folder) as tmp:
+        source = Path(tmp) / "nlp.c"
+        source.write_bytes(code)
+        built = Path(tmp) / target.name
+        try:
+            subprocess.run(
+                [gcc, *COMPILE_FLAGS, str(source), "-o", str(built)],
+                check=True,
+                capture_output=True,
+                timeout=COMPILE_TIMEOUT_S,
+            )
+        except (OSError, subprocess.SubprocessError) as exc:
+            detail = getattr(exc, "stderr", b"") or b""
+            warnings.warn(
+                f"compiling the NMPC's NLP failed ({type(exc).__name__}: "
+                f"{detail.decode(errors='replace').strip()[:200] or exc}); "
+                "using CasADi's SX virtual machine",
+                RuntimeWarning,
+                stacklevel=3,
+            )
+            return None
+        os.replace(built, target)  # atomic: a concurrent build writes the same bytes
+    return target
 
 
 StageCost = Callable[[int, Any, Any, Any, Any], Any]
@@ -82,6 +192,9 @@ class StagewiseOcp:
         rate_limits: per-input max change per step (length ``nu``; ``inf`` = not rate-limited).
         solver: ``"fatrop"`` or ``"ipopt"``.
         max_iter, tol: solver iteration cap and tolerance.
+        compiled: call gcc-compiled NLP functions (module docstring; cached).
+        warm_mu_init: fatrop's initial barrier parameter for warm-started solves (``None``: the
+            cold-start value 0.1 for every solve). Ignored by ipopt.
     """
 
     def __init__(
@@ -101,6 +214,8 @@ class StagewiseOcp:
         max_iter: int = 100,
         tol: float = 1e-6,
         name: str = "nmpc",
+        compiled: bool = False,
+        warm_mu_init: float | None = None,
     ) -> None:
         import casadi as ca
 
@@ -175,18 +290,42 @@ class StagewiseOcp:
             "g": ca.vertcat(*g),
             "p": ca.vertcat(x0, u_prev, p_user),
         }
-        opts: dict[str, Any] = {"expand": True, "print_time": False, "error_on_fail": False}
-        if solver == "fatrop":
-            opts["structure_detection"] = "auto"
-            opts["equality"] = equality
-            opts["fatrop"] = {"print_level": 0, "max_iter": max_iter, "tol": tol, "mu_init": 0.1}
-        else:
-            opts["ipopt"] = {"print_level": 0, "sb": "yes", "max_iter": max_iter, "tol": tol}
-        self._solver = ca.nlpsol(name, solver, nlp, opts)
-        self._lbw = np.asarray(lbw)
-        self._ubw = np.asarray(ubw)
-        self._lbg = np.asarray(lbg)
-        self._ubg = np.asarray(ubg)
+        if warm_mu_init is not None and not warm_mu_init > 0:
+            raise ValueError(f"warm_mu_init must be positive, got {warm_mu_init}")
+
+        def options(mu_init: float) -> dict[str, Any]:
+            opts: dict[str, Any] = {"print_time": False, "error_on_fail": False}
+            if solver == "fatrop":
+                opts["structure_detection"] = "auto"
+                opts["equality"] = equality
+                opts["fatrop"] = {
+                    "print_level": 0,
+                    "max_iter": max_iter,
+                    "tol": tol,
+                    "mu_init": mu_init,
+                }
+            else:
+                opts["ipopt"] = {"print_level": 0, "sb": "yes", "max_iter": max_iter, "tol": tol}
+            return opts
+
+        self._solver = ca.nlpsol(name, solver, nlp, {"expand": True, **options(0.1)})
+        self.compiled = False
+        """True when the solver calls the gcc-compiled NLP (``compiled=True`` and gcc worked)."""
+        library: Path | None = None
+        if compiled:
+            library = compiled_nlp(self._solver)
+            if library is not None:
+                self._solver = ca.nlpsol(name, solver, str(library), options(0.1))
+                self.compiled = True
+        self._solver_warm = self._solver
+        if warm_mu_init is not None and solver == "fatrop":
+            source = str(library) if library is not None else nlp
+            extra = {} if library is not None else {"expand": True}
+            self._solver_warm = ca.nlpsol(name, solver, source, {**extra, **options(warm_mu_init)})
+        self._lbw = ca.DM(lbw)  # DM once: converting numpy bounds on every call cost ~0.1 ms
+        self._ubw = ca.DM(ubw)
+        self._lbg = ca.DM(lbg)
+        self._ubg = ca.DM(ubg)
         self.n_variables = len(lbw)
         self.last_stats: dict[str, Any] = {}
         """The solver's statistics of the last :meth:`solve` (fatrop adds the detected
@@ -217,28 +356,52 @@ class StagewiseOcp:
         Never raises on a solver failure: a CasADi exception or a non-finite result comes back as
         ``success=False`` with the reason in ``status`` (the caller decides on a fallback).
         """
+        return self.solve_on(None, x0, u_prev, params, guess)()
+
+    def solve_on(
+        self,
+        executor: Executor | None,
+        x0: ArrayLike,
+        u_prev: ArrayLike,
+        params: ArrayLike,
+        guess: ArrayLike | None = None,
+    ) -> Callable[[], OcpSolution]:
+        """:meth:`solve` with only the solver call on ``executor`` (``None``: now, here).
+
+        Returns a function that waits for the call and builds the :class:`OcpSolution` in the
+        thread that calls it: the worker runs nothing but the CasADi call (which releases the
+        GIL), the Python around it stays in the caller's thread.
+        """
         x0 = np.asarray(x0, dtype=float).ravel()
         u_prev_arr = np.clip(np.asarray(u_prev, dtype=float).ravel(), self.u_lower, self.u_upper)
         p = np.concatenate([x0, u_prev_arr, np.asarray(params, dtype=float).ravel()])
-        w0 = self.initial_guess(x0, u_prev_arr) if guess is None else np.asarray(guess, float)
-        t0 = time.perf_counter()
-        try:
-            res = self._solver(
-                x0=w0, p=p, lbx=self._lbw, ubx=self._ubw, lbg=self._lbg, ubg=self._ubg
-            )
-            wall = time.perf_counter() - t0
-            stats = self._solver.stats()
+        if guess is None:
+            w0, nlpsol = self.initial_guess(x0, u_prev_arr), self._solver
+        else:
+            w0, nlpsol = np.asarray(guess, dtype=float), self._solver_warm
+        args = {"x0": w0, "p": p, "lbx": self._lbw, "ubx": self._ubw}
+        args.update(lbg=self._lbg, ubg=self._ubg)
+        if executor is None:
+            done = _timed_call(nlpsol, args)
+            return lambda: self._solution(nlpsol, *done)
+        future = executor.submit(_timed_call, nlpsol, args)
+        return lambda: self._solution(nlpsol, *future.result())
+
+    def _solution(
+        self, nlpsol: Any, res: dict[str, Any] | RuntimeError, wall: float
+    ) -> OcpSolution:
+        if isinstance(res, dict):
+            stats = nlpsol.stats()
             self.last_stats = dict(stats)
             primal = np.asarray(res["x"], dtype=float).ravel()
             cost = float(res["f"])
             success = bool(stats.get("success", False))
             status = str(stats.get("return_status", "unknown"))
             iterations = int(stats.get("iter_count", -1))
-        except RuntimeError as exc:  # CasADi reports evaluation errors (NaN, …) this way
-            wall = time.perf_counter() - t0
+        else:  # CasADi reports evaluation errors (NaN, …) as a RuntimeError
             primal = np.full(self.n_variables, np.nan)
             cost, success, iterations = math.nan, False, -1
-            status = f"exception: {str(exc).strip().splitlines()[-1]}"
+            status = f"exception: {str(res).strip().splitlines()[-1]}"
         if success and not np.all(np.isfinite(primal)):
             success, status = False, "non-finite solution"
         if self.solver_name == "fatrop" and status == "0":

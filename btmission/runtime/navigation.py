@@ -31,6 +31,7 @@ import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from enum import Enum
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -47,6 +48,9 @@ from btmission.control.apf import (
 )
 from btmission.control.mav_model import world_to_yaw_frame, wrap_angle, yaw_frame_to_world
 from btmission.types import FloatArray
+
+if TYPE_CHECKING:  # the NMPC (CasADi) is imported when a navigator first needs it
+    from btmission.control.nmpc import NmpcResult, PendingSolve
 
 CONTROLLERS = ("nmpc", "track")
 KEEP_RIGHT_M = 1.2
@@ -419,6 +423,12 @@ class Navigator:
         self._last_uni_t = -math.inf
         self._uni_u = np.zeros(2)
         self.solve_times: list[float] = []
+        self.defer_nmpc = False
+        """Run the MAV NMPC's solve on the NMPC thread pool and apply its command in
+        :meth:`finish_step` (the runner calls it for every agent, in a fixed order, after all
+        agents' control steps): the agents' solves of one step overlap on the machine's cores,
+        and the commands — each solve's result depends on its own inputs only — stay the same."""
+        self._pending: tuple[PendingSolve, float] | None = None
         self.on_route: Callable[[FloatArray, float], None] | None = None
         """Called with the points and the length (m) of every route :meth:`follow` adopts that
         differs from the last one (the agent publishes it: ``route`` events)."""
@@ -430,8 +440,11 @@ class Navigator:
                 from btmission.control.nmpc import MavNmpc, NmpcConfig
 
                 # tol 1e-4: the same commands to a fraction of a percent, ~20 % fewer
-                # interior-point iterations than the 1e-6 default
-                self._nmpc = MavNmpc(NmpcConfig(dt_s=control_dt, tol=1e-4))
+                # interior-point iterations than the 1e-6 default; compiled NLP functions and a
+                # warm barrier start: the same optimum, ~2.5x faster solves (docs/control.md)
+                self._nmpc = MavNmpc(
+                    NmpcConfig(dt_s=control_dt, tol=1e-4, compiled=True, warm_mu_init=1e-3)
+                )
         elif controller == "nmpc":
             from btmission.control.unicycle_nmpc import UnicycleConfig, UnicycleNmpc
 
@@ -777,12 +790,21 @@ class Navigator:
         x_ref = np.concatenate(
             [world_to_yaw_frame(target, psi), world_to_yaw_frame(vel, psi), [0.0, 0.0]]
         )
-        res = self._nmpc.solve(x, x_ref, repulsive_force=repulsion)
+        rate = yaw_rate_pd(psi, yaw, tel.yaw_rate) if yaw is not None else yaw_rate
+        if self.defer_nmpc:
+            self._pending = (self._nmpc.solve_async(x, x_ref, repulsive_force=repulsion), rate)
+            return
+        self._apply_nmpc(self._nmpc.solve(x, x_ref, repulsive_force=repulsion), rate)
+
+    def finish_step(self) -> None:
+        """Apply the command of a deferred NMPC solve (:attr:`defer_nmpc`); a no-op otherwise."""
+        if self._pending is not None:
+            pending, rate = self._pending
+            self._pending = None
+            self._apply_nmpc(pending.result(), rate)
+
+    def _apply_nmpc(self, res: NmpcResult, rate: float) -> None:
         self.solve_times.append(res.solve_time_s)
-        if yaw is not None:
-            rate = yaw_rate_pd(psi, yaw, tel.yaw_rate)
-        else:
-            rate = yaw_rate
         self.backend.set_attitude_setpoint(float(res.u[0]), float(res.u[1]), float(res.u[2]), rate)
 
     # ---------------------------------------------------------------- ground robots

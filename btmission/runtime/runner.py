@@ -410,6 +410,7 @@ class MissionRun:
                 ground_at=self.map.ground_z,
                 point_area_m2=self.map.resolution**2,
             )
+            nav.defer_nmpc = True  # the agents' NMPC solves overlap; step() collects them
             self.agents[spec.id] = Agent(
                 self.mission,
                 spec.id,
@@ -742,6 +743,8 @@ class MissionRun:
             side.tick(now)
         for side in sides:
             side.control(now)
+        for side in sides:  # the deferred NMPC solves of this step, collected in a fixed order
+            side.agent.navigator.finish_step()
         for side in sides:
             if side.report(now):
                 self._pose(side.id)
