@@ -6,6 +6,7 @@ test_viewer_browser.py."""
 from __future__ import annotations
 
 import json
+import os
 import signal
 import socket
 import subprocess
@@ -128,7 +129,9 @@ def test_no_task_event_is_lost_behind_a_slow_reader() -> None:
                                                          "agent": None, "reason": ""}))  # fmt: skip
         queued.flush()
     records, _, _, _ = feed.read(0)
-    assert [r["task"] for r in records if r["ev"] == "task"] == [f"T{i}" for i in range(0, 2000, 10)]
+    assert [r["task"] for r in records if r["ev"] == "task"] == [
+        f"T{i}" for i in range(0, 2000, 10)
+    ]
 
 
 def test_tree_events_carry_the_blackboard_keys_that_changed(mine_log: Path) -> None:
@@ -153,6 +156,31 @@ def test_blackboard_values_are_shown_short_and_json_safe() -> None:
     text = blackboard_value(object())
     assert isinstance(text, str) and text.startswith("<object")
     json.dumps([blackboard_value(v) for v in ((1, 2), {"a": 1}, None, True, np.float32(2.5))])
+    assert (
+        blackboard_value(frozenset({("P2", 1), ("P1", 2)})) == "frozenset({('P1', 2), ('P2', 1)})"
+    )
+    assert blackboard_value({"b", "a"}) == "{'a', 'b'}" and blackboard_value(set()) == "set()"
+
+
+def test_a_set_on_the_blackboard_is_logged_the_same_in_every_process() -> None:
+    """Sets iterate in their items' hash order, which changes with PYTHONHASHSEED: the log must
+    not (the same seed gives the same log)."""
+    code = (
+        "from btmission.runtime.treestatus import blackboard_value as b;"
+        "print(b(frozenset(f'P{i}' for i in range(12))), repr(frozenset(f'P{i}' for i in range(12))))"
+    )
+    outs = [
+        subprocess.run(
+            [sys.executable, "-c", code],
+            env={**os.environ, "PYTHONHASHSEED": seed},
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.split(" frozenset(")
+        for seed in ("1", "2", "3")
+    ]
+    assert len({o[0] for o in outs}) == 1  # ours: the same text in every process
+    assert len({o[1] for o in outs}) > 1  # (while the plain repr differs: the test can fail)
 
 
 # ---------------------------------------------------------------------------- the scene
@@ -358,7 +386,9 @@ def test_the_live_viewer_watches_any_provider(tmp_path: Path) -> None:
     assert sorted(done) == ["T1", "T2"]
 
 
-def test_a_viewer_off_loopback_is_announced_with_a_warning(capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_viewer_off_loopback_is_announced_with_a_warning(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
     from btmission.cli.view_cmds import announce_server
 
     announce_server("http://127.0.0.1:8470/", "127.0.0.1")
@@ -368,7 +398,9 @@ def test_a_viewer_off_loopback_is_announced_with_a_warning(capsys: pytest.Captur
     assert err.startswith("warning: the viewer listens on 0.0.0.0: anyone who can reach")
 
 
-def test_view_latest_and_the_viewer_options_need_their_command(mine_log: Path, tmp_path: Path) -> None:
+def test_view_latest_and_the_viewer_options_need_their_command(
+    mine_log: Path, tmp_path: Path
+) -> None:
     runs = tmp_path / "runs"
     runs.mkdir()
     (runs / "old.jsonl").write_text(mine_log.read_text())
@@ -380,7 +412,9 @@ def test_view_latest_and_the_viewer_options_need_their_command(mine_log: Path, t
     r = CliRunner().invoke(cli, ["view", "--latest", str(tmp_path / "none")])
     assert r.exit_code == 2 and "no such directory" in r.output
     r = CliRunner().invoke(cli, ["run", str(MINE), "--port", "0", "--log", str(tmp_path / "x")])
-    assert r.exit_code == 2 and "--host, --port and --tls-* are the viewer's: add --view" in r.output
+    assert (
+        r.exit_code == 2 and "--host, --port and --tls-* are the viewer's: add --view" in r.output
+    )
     assert not (tmp_path / "x").exists()
 
 

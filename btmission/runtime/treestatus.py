@@ -66,8 +66,18 @@ def blackboard_value(value: Any) -> Any:
             return items
     if isinstance(value, (int, float, bool, str)) or value is None:  # a numpy scalar's tolist()
         return blackboard_value(value)
-    text = repr(value)
+    text = _set_repr(value) if isinstance(value, (set, frozenset)) else repr(value)
     return text if len(text) <= BLACKBOARD_TEXT else text[: BLACKBOARD_TEXT - 1] + "…"
+
+
+def _set_repr(value: set[Any] | frozenset[Any]) -> str:
+    """A set's ``repr`` with its items in sorted order: a set iterates in the order of its
+    items' hashes, which for strings change with every process (``PYTHONHASHSEED``), and the
+    same seed must give the same log."""
+    if not value:
+        return repr(value)
+    inner = "{" + ", ".join(sorted(repr(v) for v in value)) + "}"
+    return inner if type(value) is set else f"{type(value).__name__}({inner})"
 
 
 def node_kind(behaviour: py_trees.behaviour.Behaviour) -> str:
