@@ -220,23 +220,23 @@ class SimWorld:
             self._below = np.maximum.accumulate(levels, axis=2)
 
     # ------------------------------------------------------------------ queries
-    def _index(self, p: Sequence[float] | FloatArray) -> tuple[int, int, int] | None:
-        """The voxel holding ``p`` (None outside the map, or for a non-finite point), with the
+    def _voxel(self, p: Sequence[float] | FloatArray) -> tuple[int, int, int] | None:
+        """The voxel index of ``p``, not bounds-checked (None for a non-finite point), with the
         arithmetic of :meth:`VoxelMap.world_to_index` done on scalars (the hot path of every
         simulator step)."""
         o, r = self._origin, self._res
         fx, fy, fz = (p[0] - o[0]) / r, (p[1] - o[1]) / r, (p[2] - o[2]) / r
         if not (math.isfinite(fx) and math.isfinite(fy) and math.isfinite(fz)):
             return None
-        i, j, k = math.floor(fx), math.floor(fy), math.floor(fz)
-        nx, ny, nz = self._shape
-        if 0 <= i < nx and 0 <= j < ny and 0 <= k < nz:
-            return i, j, k
-        return None
+        return math.floor(fx), math.floor(fy), math.floor(fz)
 
     def occupied(self, p: Sequence[float] | FloatArray) -> bool:
-        idx = self._index(p)
-        return idx is not None and bool(self._occ[idx])
+        idx = self._voxel(p)
+        if idx is None:
+            return False
+        i, j, k = idx
+        nx, ny, nz = self._shape
+        return 0 <= i < nx and 0 <= j < ny and 0 <= k < nz and bool(self._occ[i, j, k])
 
     def ground_z(self, p: Sequence[float] | FloatArray) -> float:
         """:meth:`VoxelMap.ground_z <btmission.world.voxel.VoxelMap.ground_z>`, from the
@@ -244,12 +244,12 @@ class SimWorld:
         below = self._below
         if below is None:
             return self.map.ground_z(p)
-        o, r = self._origin, self._res
-        fx, fy, fz = (p[0] - o[0]) / r, (p[1] - o[1]) / r, (p[2] - o[2]) / r
-        nx, ny, nz = self._shape
-        if not (math.isfinite(fx) and math.isfinite(fy) and math.isfinite(fz)):
+        idx = self._voxel(p)
+        if idx is None:
             return self.map.ground_z(p)  # (its own handling of the odd cases)
-        i, j, k = math.floor(fx), math.floor(fy), math.floor(fz)
+        i, j, k = idx
+        o, r = self._origin, self._res
+        nx, ny, nz = self._shape
         if not (0 <= i < nx and 0 <= j < ny) or k < 0:
             return o[2]
         top = int(below[i, j, min(k, nz - 1)])

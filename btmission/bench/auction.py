@@ -53,7 +53,7 @@ from btmission.allocation.solvers import (
 )
 from btmission.allocation.tasks import TaskInfo, TaskPool
 from btmission.bench.synth import _median_ms as median_ms
-from btmission.bench.synth import earlier_runs, environment, header_lines, own_heap
+from btmission.bench.synth import environment, header_lines, own_heap, write_page
 from btmission.types import FloatArray
 
 T = TypeVar("T")
@@ -822,8 +822,7 @@ def run_auction_benchmark(
 
     out.mkdir(parents=True, exist_ok=True)
     md_path, csv_path = out / "auction.md", out / "auction.csv"
-    earlier = earlier_runs(md_path)  # issue 19: the previous numbers stay beside the new ones
-    md_path.write_text("\n".join([markdown(b), *earlier]), encoding="utf-8")
+    write_page(md_path, markdown(b))  # issue 19: the previous numbers stay beside the new ones
     with csv_path.open("w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(CSV_HEADER)

@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from btmission.bench.synth import earlier_runs, environment, header_lines, own_heap
+from btmission.bench.synth import environment, header_lines, own_heap, write_page
 
 __all__ = [
     "CSV_HEADER",
@@ -311,8 +311,7 @@ def run_control_benchmark(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     md_path, csv_path = out / "control.md", out / "control.csv"
-    kept = earlier_runs(md_path)
-    md_path.write_text("\n".join([_markdown(rows, notes, env, steps), *kept]), encoding="utf-8")
+    write_page(md_path, _markdown(rows, notes, env, steps))
     with csv_path.open("w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh)
         writer.writerow(CSV_HEADER)

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from btmission.bench.synth import earlier_runs, environment, header_lines
+from btmission.bench.synth import environment, header_lines, write_page
 from btmission.dispatch.dynamic import DynamicResult, mean_std
 from btmission.dispatch.evaluate import Evaluator, default_beta
 from btmission.dispatch.ga import GAParams, default_wait_max
@@ -248,7 +248,6 @@ def run_dynamic_benchmark(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     target = out / "dispatch_dynamic.md"
-    earlier = earlier_runs(target)
     md = [
         "# Dynamic GA dispatch benchmark (seed 004 Table 6)",
         "",
@@ -269,9 +268,8 @@ def run_dynamic_benchmark(
         "",
         "Regenerate with `btmission bench dispatch-dynamic`.",
         "",
-        *earlier,
     ]
-    (out / "dispatch_dynamic.md").write_text("\n".join(md).rstrip() + "\n", encoding="utf-8")
+    write_page(target, "\n".join(md))
     with (out / "dispatch_dynamic.csv").open("w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(["vehicles", "run", "hours", "C", "i_t", "i_p", "optimisations", "failures"])

@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from btmission.bench.synth import _median_ms, earlier_runs, environment, header_lines
+from btmission.bench.synth import _median_ms, environment, header_lines, write_page
 
 SIZE = (200.0, 120.0, 10.0)
 SMALL = (60.0, 40.0, 8.0)
@@ -436,11 +436,7 @@ def run_planner_benchmark(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     md_path, csv_path = out / "planner.md", out / "planner.csv"
-    kept_pages = earlier_runs(md_path)
-    md_path.write_text(
-        "\n".join([_markdown(rows, repeat, queries, env, label, first_ms), *kept_pages]),
-        encoding="utf-8",
-    )
+    write_page(md_path, _markdown(rows, repeat, queries, env, label, first_ms))
     with csv_path.open("w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(CSV_HEADER)

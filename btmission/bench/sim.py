@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from btmission.bench.synth import earlier_runs, environment, header_lines
+from btmission.bench.synth import environment, header_lines, write_page
 
 TARGETS = {"track": 100.0, "nmpc": 20.0}
 """Speed-up over real time the mine mission must reach with each controller."""
@@ -271,9 +271,8 @@ def markdown(
     missions: Sequence[MissionPoint],
     scale: Sequence[ScalePoint],
     env: dict[str, str],
-    earlier: Sequence[str] = (),
 ) -> str:
-    """The results page; ``earlier``: the previous page's runs (:func:`earlier_runs`)."""
+    """The results page (the previous runs are kept below it by :func:`write_page`)."""
     lines = [
         "# Simulator benchmark",
         "",
@@ -302,7 +301,6 @@ def markdown(
         "Regenerate with `btmission bench sim` or `python benchmarks/bench_sim.py`; "
         "`--controllers ''` measures the scaling point alone, `--scale ''` the mission alone.",
         "",
-        *earlier,
     ]
     return "\n".join(lines)
 
@@ -338,7 +336,7 @@ def run_sim_benchmark(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     page = out / "sim.md"
-    page.write_text(markdown(missions, points, env, earlier_runs(page)), encoding="utf-8")
+    write_page(page, markdown(missions, points, env))
     with (out / "sim.csv").open("w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(

@@ -26,7 +26,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from btmission.bench.synth import earlier_runs, environment, header_lines
+from btmission.bench.synth import environment, header_lines, write_page
 
 MINE = Path(__file__).resolve().parents[2] / "missions" / "mine_inspection.yaml"
 
@@ -203,8 +203,7 @@ def run_startup_benchmark(
         echo("| " + " | ".join(r) + " |")
     out_dir.mkdir(parents=True, exist_ok=True)
     page = out_dir / "startup.md"
-    kept = earlier_runs(page)
-    page.write_text("\n".join([markdown(timings, repeat, env), *kept]), encoding="utf-8")
+    write_page(page, markdown(timings, repeat, env))
     with (out_dir / "startup.csv").open("w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(

@@ -75,6 +75,11 @@ class AgentRuntime:
         """This control period's setpoints (every step)."""
         self.agent.control_step(now)
 
+    def finish_control(self) -> None:
+        """Apply this period's deferred setpoints (an NMPC solve running on the thread pool:
+        :attr:`~btmission.runtime.navigation.Navigator.defer_nmpc`); a no-op otherwise."""
+        self.agent.navigator.finish_step()
+
     def report(self, now: float) -> bool:
         """Send the agent's status if one is due; True when it was due."""
         if not self._status.due(now):
@@ -88,6 +93,7 @@ class AgentRuntime:
         """Everything due at ``now``: tick, control, status."""
         self.tick(now)
         self.control(now)
+        self.finish_control()
         self.report(now)
 
 

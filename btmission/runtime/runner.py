@@ -744,7 +744,7 @@ class MissionRun:
         for side in sides:
             side.control(now)
         for side in sides:  # the deferred NMPC solves of this step, collected in a fixed order
-            side.agent.navigator.finish_step()
+            side.finish_control()
         for side in sides:
             if side.report(now):
                 self._pose(side.id)
