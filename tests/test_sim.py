@@ -403,10 +403,38 @@ def test_the_world_queries_agree_with_the_voxel_map() -> None:
     assert any(np.isfinite(batched)) and any(np.isinf(batched))
 
 
+def test_the_surface_ball_query_is_the_brute_force_one() -> None:
+    """The cell-sorted face points give, for balls anywhere (inside, at the edge, outside the
+    map, of several radii), exactly the points within the radius, each once; the LiDAR's scan
+    is those points relative to the vehicle, rotated into its yaw frame."""
+    from btmission.backends.mapsensors import _SPHERE, Bodies
+
+    world = _mine_world()
+    surf = world.surface
+    rng = np.random.default_rng(5)
+    lo, hi = world.map.bounds
+    none = Bodies(np.zeros((0, 3)), np.zeros(0))
+    counts = []
+    for _ in range(300):
+        p = rng.uniform(np.asarray(lo) - 1.0, np.asarray(hi) + 1.0)
+        r = float(rng.choice([0.4, 2.0, 3.7]))
+        got = world.surface_points(p, r)
+        d2 = np.einsum("ij,ij->i", surf - p, surf - p)
+        want = surf[d2 <= r * r]
+        counts.append(len(want))
+        assert len(got) == len(want)
+        key = lambda a: a[np.lexsort(a.T[::-1])]  # noqa: E731
+        assert np.array_equal(key(got), key(want))
+        yaw = float(rng.uniform(-math.pi, math.pi))
+        scan = world.scan_points(p, r, yaw, none, _SPHERE)
+        assert np.allclose(scan, world_to_yaw_frame(got - p, yaw), atol=1e-12)
+    assert max(counts) > 50 and min(counts) == 0
+
+
 def test_a_fleet_sees_and_touches_each_other_as_before() -> None:
     """LiDAR returns of other vehicles and vehicle-vehicle contacts, computed for all at once,
     are the per-pair vector tests: 25 vehicles at random spots, some touching, some in range."""
-    from btmission.backends.mapsensors import Bodies, _bodies_in_range
+    from btmission.backends.mapsensors import _SPHERE, VEHICLE_POINTS, Bodies
 
     sim = Simulator(VoxelMap.empty((40, 40, 6), 0.5, origin=(0.0, 0.0, -0.5)), SimConfig())
     rng = np.random.default_rng(1)
@@ -423,10 +451,17 @@ def test_a_fleet_sees_and_touches_each_other_as_before() -> None:
             for o in table.vehicles
             if o is not v and float(np.linalg.norm(o.position - p)) < 4.0
         ]
-        got = _bodies_in_range(others, p, 4.0)
-        assert len(got) == len(_bodies_in_range(Bodies(others.centres, others.radii), p, 4.0)) - 1
+        seen = sim.world.scan_points(p, 4.0, 0.0, others, _SPHERE)  # yaw 0: world axes
+        unskipped = sim.world.scan_points(
+            p, 4.0, 0.0, Bodies(others.centres, others.radii), _SPHERE
+        )
+        assert len(unskipped) == len(seen) + VEHICLE_POINTS  # itself, when not skipped
+        got = seen.reshape(-1, VEHICLE_POINTS, 3)
         assert 0 < len(got) == len(want) < 24
         assert all(np.allclose(g.mean(axis=0), w, atol=0.05) for g, w in zip(got, want))
+        assert all(
+            np.allclose(np.linalg.norm(g - g.mean(axis=0), axis=1), r, atol=0.02) for g in got
+        )
     touching = []
     vs = table.vehicles
     for i, a in enumerate(vs):

@@ -35,9 +35,38 @@ def test_the_warm_up_steps_name_real_files_and_commands(tmp_path: Path) -> None:
 
 
 def test_the_warm_up_calls_the_kernels_no_command_runs() -> None:
-    assert [name for name, _ in warmup._calls()] == ["viewer surface mesh", "assignment pruning"]
+    assert [name for name, _ in warmup._calls()] == [
+        "viewer surface mesh",
+        "assignment pruning",
+        "vehicle control (LiDAR, APF, route)",
+    ]
     for _, call in warmup._calls():
         call()
+
+
+def test_the_control_warm_up_compiles_the_signatures_a_drone_mission_uses() -> None:
+    """After the warm-up's one control step, a drone flying its route in the mine among others
+    (LiDAR on rock and bodies, APF with the others' push, carrot chasing) compiles nothing new."""
+    from btmission.backends import _surface_kernels as surf
+    from btmission.control import _apf_kernels as apf
+    from btmission.runtime import _route_kernels as route
+    from btmission.runtime.runner import MissionRun
+    from btmission.spec.mission import load_mission_text
+
+    warmup._vehicle_control()
+    kernels = (
+        apf.navigator_force, apf.repulsive, apf.shape, route.project, route.point_at,
+        surf.ball_points, surf.scan_points,
+    )  # fmt: skip
+    before = [len(f.signatures) for f in kernels]
+    assert all(before)
+    from btmission.bench.fleet import fleet_mission_text
+
+    run = MissionRun(load_mission_text(fleet_mission_text(3), "fleet.yaml"), controller="track")
+    run.run(until=25)
+    heights = [v.backend.telemetry().height_above_ground for v in run.vehicles.values()]
+    assert min(heights) > 1.0, heights  # all three flying their routes by then
+    assert [len(f.signatures) for f in kernels] == before
 
 
 def test_the_pruning_warm_up_compiles_the_signatures_a_large_solve_uses() -> None:

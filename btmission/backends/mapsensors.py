@@ -146,7 +146,6 @@ class MapSensors:
         cfg = self.config
         pose = self.pose()
         p = pose.position
-        pts = self.world.surface_points(p, cfg.lidar_range_m) - p
         bodies = self.others()
         if not isinstance(bodies, Bodies):
             listed = list(bodies)
@@ -154,13 +153,11 @@ class MapSensors:
                 np.array([b.centre for b in listed]).reshape(-1, 3),
                 np.array([b.radius for b in listed], dtype=float),
             )
-        others = _bodies_in_range(bodies, p, cfg.lidar_range_m)
-        if others:  # other vehicles are seen as points on their body spheres
-            pts = np.vstack([pts, *others])
+        pts = self.world.scan_points(p, cfg.lidar_range_m, pose.yaw, bodies, _SPHERE)
         if cfg.dust_points:
             dust = self.rng.normal(0.0, 0.25, (cfg.dust_points, 3))
-            pts = np.vstack([pts, dust])
-        return world_to_yaw_frame(pts, pose.yaw)
+            pts = np.vstack([pts, world_to_yaw_frame(dust, pose.yaw)])
+        return pts
 
     def lidar_scan(self) -> LidarScan:
         """A full turn of the 3D LiDAR at the pose: every beam of :attr:`scan_sensor` ray-cast
@@ -241,23 +238,6 @@ def _fibonacci_sphere(n: int) -> FloatArray:
 
 
 _SPHERE = _fibonacci_sphere(VEHICLE_POINTS)
-_UP = np.array([0.0, 0.0, 1.0])
-
-
-def _bodies_in_range(bodies: Bodies, p: FloatArray, range_m: float) -> list[FloatArray]:
-    """The LiDAR points (relative to ``p``) of the bodies whose reference point lies within
-    ``range_m`` of ``p``: ‖c − r·e_z − p‖ < range for all bodies at once, the exact test kept
-    for the few near the edge (a fleet's LiDARs each look at every other vehicle every step)."""
-    centres, radii, skip = bodies
-    if len(radii) == 0:
-        return []
-    rel = centres - _UP * radii[:, None] - p
-    d2 = np.einsum("ij,ij->i", rel, rel)
-    out = []
-    for i in np.flatnonzero(d2 < (range_m + 1e-6) ** 2).tolist():
-        if i != skip and math.sqrt(float(rel[i] @ rel[i])) < range_m:
-            out.append(centres[i] - p + _SPHERE * radii[i])
-    return out
 
 
 def _ray_sphere(origin: FloatArray, dirs: FloatArray, centre: FloatArray, r: float) -> FloatArray:

@@ -99,6 +99,8 @@ WALL_QUERY_M = 5.0
 SMALL_FLEET = 6
 """Up to this many vehicles the contact test loops over the pairs (numpy's set-up costs more)."""
 GROUND_TABLE_MAX_VOXELS = 64_000_000
+SURFACE_CELLS_MAX = 4_000_000
+"""Most cells of the grid the rock-face points are sorted into (its start table: 8 bytes each)."""
 """Maps up to this size keep a per-voxel ground table (2 bytes a voxel) for fast ground_z."""
 HEADING_P = 1.0
 """Heading loop gain (rad/s per rad) for position setpoints with a yaw."""
@@ -169,6 +171,52 @@ SimEvent = VehicleEvent
 """Something the simulator detected: a collision (with ``rock`` or another vehicle's id)."""
 
 
+class _SurfaceCells:
+    """The rock-face points sorted into cubic cells, for ball queries
+    (:mod:`btmission.backends._surface_kernels`). Cells of 1 m (at least two voxels), larger
+    where a huge map would need more than :data:`SURFACE_CELLS_MAX` of them."""
+
+    def __init__(self, points: FloatArray, resolution: float) -> None:
+        pts = np.ascontiguousarray(points, dtype=float).reshape(-1, 3)
+        lo = pts.min(axis=0) if len(pts) else np.zeros(3)
+        span = (pts.max(axis=0) - lo) if len(pts) else np.zeros(3)
+        cell = max(1.0, 2.0 * resolution)
+        while float(np.prod(np.floor(span / cell) + 1)) > SURFACE_CELLS_MAX:
+            cell *= 2.0
+        dims = (np.floor(span / cell) + 1).astype(np.int64)
+        ijk = np.minimum(np.floor((pts - lo) / cell).astype(np.int64), dims - 1)
+        flat = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+        order = np.argsort(flat, kind="stable")
+        self.points = np.ascontiguousarray(pts[order])
+        self.starts = np.searchsorted(flat[order], np.arange(int(np.prod(dims)) + 1)).astype(
+            np.int64
+        )
+        self.lo = lo
+        self.cell = cell
+        self.dims = dims
+
+    def ball(self, p: FloatArray, radius: float) -> FloatArray:
+        from btmission.backends._surface_kernels import ball_points
+
+        out: FloatArray = ball_points(
+            self.points, self.starts, self.lo, self.cell, self.dims, p, radius
+        )
+        return out
+
+    def scan(
+        self, p: FloatArray, radius: float, yaw: float, bodies: Bodies, sphere: FloatArray
+    ) -> FloatArray:
+        from btmission.backends._surface_kernels import scan_points
+
+        centres, radii, skip = bodies
+        out: FloatArray = scan_points(
+            self.points, self.starts, self.lo, self.cell, self.dims, p, radius, float(yaw),
+            np.ascontiguousarray(centres, dtype=float).reshape(-1, 3),
+            np.ascontiguousarray(radii, dtype=float), int(skip), sphere,
+        )  # fmt: skip
+        return out
+
+
 class SimWorld:
     """The static world: voxel map, rock surfaces (KD-trees), ground heights, ray casting."""
 
@@ -205,7 +253,7 @@ class SimWorld:
                 up[start : start + len(block)] = True
             start += len(block)
         self.walls = self.surface[~up]
-        self._kd_all = cKDTree(self.surface) if len(self.surface) else None
+        self._cells = _SurfaceCells(self.surface, float(res))
         self._kd_walls = cKDTree(self.walls) if len(self.walls) else None
         self._occ = occ
         self._origin = tuple(float(o) for o in voxel_map.origin)
@@ -271,10 +319,16 @@ class SimWorld:
         return out
 
     def surface_points(self, p: FloatArray, radius: float) -> FloatArray:
-        if self._kd_all is None:
-            return np.zeros((0, 3))
-        idx = self._kd_all.query_ball_point(p, radius)
-        return self.surface[idx] if idx else np.zeros((0, 3))
+        """The rock-face points (world) within ``radius`` of ``p``."""
+        return self._cells.ball(np.asarray(p, dtype=float), float(radius))
+
+    def scan_points(
+        self, p: FloatArray, radius: float, yaw: float, bodies: Bodies, sphere: FloatArray
+    ) -> FloatArray:
+        """What the short-range LiDAR at ``p`` sees within ``radius``, relative to ``p`` in the
+        yaw frame of ``yaw``: the rock-face points, then ``sphere`` (unit points) scaled onto
+        each of ``bodies`` whose reference point (the bottom of its sphere) is in range."""
+        return self._cells.scan(np.asarray(p, dtype=float), float(radius), yaw, bodies, sphere)
 
     def raycast(self, origin: FloatArray, dirs: FloatArray, max_range: float) -> FloatArray:
         """Distance along each unit direction to the first rock voxel (inf beyond ``max_range``).
@@ -752,6 +806,7 @@ class SimVehicle(OffboardCommands):
         self.kind = vehicle.kind
         self.sensors = MapSensors(sim.world, sim.config, sim.rng, self._pose, self._other_bodies)
         """The vehicle's LiDAR and camera, ray-cast at its true pose."""
+        self._telemetry: tuple[tuple[object, ...], Telemetry] | None = None
 
     # ---------------------------------------------- commands and setpoints: OffboardCommands
     def _ap_time(self) -> float:
@@ -763,8 +818,23 @@ class SimVehicle(OffboardCommands):
     # ------------------------------------------------------------------ telemetry
     def telemetry(self) -> Telemetry:
         """The vehicle's state as it estimates it: the true state, plus the pose-estimate
-        error when the simulator has pose noise on (module docstring)."""
+        error when the simulator has pose noise on (module docstring).
+
+        Built once per simulation step and autopilot state (its agent, tree leaves, neighbours
+        and the run's snapshot each ask several times a step); its arrays are read-only, as the
+        record is shared."""
         v = self._v
+        key = (self._sim.steps, v.mode, v.armed, v.landed, v.battery, v.ground, v.z)
+        cached = self._telemetry
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        tel = self._build_telemetry(v)
+        tel.position.flags.writeable = False
+        tel.velocity.flags.writeable = False
+        self._telemetry = (key, tel)
+        return tel
+
+    def _build_telemetry(self, v: _Vehicle) -> Telemetry:
         if v.kind is VehicleKind.MULTIROTOR:
             roll, pitch = float(v.x[6]), float(v.x[7])
         else:

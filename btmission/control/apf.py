@@ -23,14 +23,16 @@ each assignment are on norms, and only this reading makes the assignments meet t
 (‖F^r‖ = F_max, ‖F^r_k − F^r_{k−1}‖ = ΔF_max); an element-wise sign would turn a force along x into
 a diagonal of norm √3·F_max and break the very rate limit it is meant to impose.
 
-Everything is vectorised numpy (no Python loop over points): one pass of squared norms, two masks
-and two weighted sums.
+The sums and Alg. 1 run as compiled loops (:mod:`btmission.control._apf_kernels`): a scan holds a
+few to a few hundred points, and every vehicle evaluates the field every control period, so numpy's
+per-call overhead outweighed the arithmetic.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -82,6 +84,16 @@ class ApfConfig:
             raise ValueError(f"dust_points must be >= 0, got {self.dust_points}")
         if self.force_max <= 0 or self.force_rate_max <= 0:
             raise ValueError("force_max and force_rate_max must be positive")
+
+    @cached_property
+    def packed(self) -> FloatArray:
+        """(r_F, r_c, L_x, L_y, L_z, L_c, n, F_max, ΔF_max): the parameters as the compiled
+        kernels take them."""
+        return np.array(
+            [self.r_influence_m, self.r_critical_m, *self.gain, self.gain_critical,
+             self.dust_points, self.force_max, self.force_rate_max],
+            dtype=float,
+        )  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -206,11 +218,6 @@ def vector_norm(v: ArrayLike) -> float:
     return math.sqrt(float(a @ a))
 
 
-def _direction(v: FloatArray) -> FloatArray:
-    n = vector_norm(v)
-    return v / n if n > 0 else np.zeros_like(v)
-
-
 def repulsive_force(points: ArrayLike, config: ApfConfig) -> tuple[FloatArray, int, int, bool]:
     """F^r of seed 002 eq. 3 for an (M, 3) body-frame point cloud.
 
@@ -220,21 +227,20 @@ def repulsive_force(points: ArrayLike, config: ApfConfig) -> tuple[FloatArray, i
     pts = np.asarray(points, dtype=float)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"points must be an (M, 3) array, got shape {pts.shape}")
-    d2 = np.einsum("ij,ij->i", pts, pts)
-    rf2 = config.r_influence_m**2
-    inside = (d2 <= rf2) & (d2 > 0)  # NaN compares False: dropped here
-    if not inside.any():
+    from btmission.control._apf_kernels import repulsive
+
+    force = np.zeros(3)
+    if len(pts) == 0:
+        return force, 0, 0, False
+    c = config
+    g = c.gain
+    n, n_crit = repulsive(
+        np.ascontiguousarray(pts), c.r_influence_m, c.r_critical_m, float(g[0]), float(g[1]),
+        float(g[2]), c.gain_critical, c.dust_points, force,
+    )  # fmt: skip
+    if n == 0:
         return np.zeros(3), 0, 0, False
-    near = pts[inside]
-    d = np.sqrt(d2[inside])
-    weight = (1.0 - d / config.r_influence_m) ** 2 / d  # (1 − ‖ρ‖/r_F)² / ‖ρ‖
-    force = -(weight @ near) * np.asarray(config.gain)
-    critical = d <= config.r_critical_m
-    n_crit = int(critical.sum())
-    ignored = 0 < n_crit <= config.dust_points
-    if n_crit > config.dust_points:
-        force -= config.gain_critical * ((1.0 / d[critical]) @ near[critical])
-    return force, int(near.shape[0]), n_crit, ignored
+    return force, int(n), int(n_crit), bool(0 < n_crit <= c.dust_points)
 
 
 def shape_force(
@@ -246,20 +252,19 @@ def shape_force(
     (‖F^r_k‖ ≤ F_max and ‖F^r_k − F^r_{k−1}‖ ≤ ΔF_max, given a previous force within F_max) and F^a
     the normalised attraction.
     """
-    fr = np.asarray(repulsive, dtype=float).copy()
-    prev = np.asarray(previous, dtype=float)
-    fa = np.asarray(attractive, dtype=float).copy()
-    if vector_norm(fr) > config.force_max:
-        fr = _direction(fr) * config.force_max
-    change = fr - prev
-    if vector_norm(change) > config.force_rate_max:
-        fr = prev + _direction(change) * config.force_rate_max
-    if vector_norm(fa) > 1.0:
-        fa = _direction(fa)
-    total = fr + fa
-    if vector_norm(total) > 1.0:
-        total = _direction(total)
-    return total, fr, fa
+    from btmission.control._apf_kernels import shape
+
+    out = np.empty(9)
+    shape(
+        _vec(repulsive), _vec(previous), _vec(attractive), config.force_max,
+        config.force_rate_max, out,
+    )  # fmt: skip
+    return out[0:3], out[3:6], out[6:9]
+
+
+def _vec(v: ArrayLike) -> FloatArray:
+    a: FloatArray = np.ascontiguousarray(v, dtype=float).reshape(3)
+    return a
 
 
 class PotentialField:

@@ -45,6 +45,10 @@ from btmission.allocation.auction import Announcement, Bid
 from btmission.allocation.loop import Inbox, Progress
 from btmission.types import FloatArray
 
+SMALL_FLEET = 8
+"""Up to this many sharing agents a neighbour query tests each one (the vectorised test over
+every agent's start costs more)."""
+
 
 @dataclass(frozen=True)
 class Assignment:
@@ -305,7 +309,7 @@ class InMemoryBus:
         """The other agents' predictions (:func:`advance_predictions`); with a finite
         ``within_m`` the candidates come from one vectorised distance test over every agent's
         start (a fleet's agents each ask every control step)."""
-        if near is None or not math.isfinite(within_m):
+        if near is None or not math.isfinite(within_m) or len(self._row_names) <= SMALL_FLEET:
             return advance_predictions(self._predictions, agent, time_s, step_s, near, within_m)
         rel = self._starts[: len(self._row_names)] - np.asarray(near, dtype=float)[:2]
         d2 = np.einsum("ij,ij->i", rel, rel)

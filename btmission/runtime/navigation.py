@@ -42,8 +42,6 @@ from btmission.control.apf import (
     PotentialField,
     influence_radius_for_speed,
     limit_approach_speed,
-    repulsive_force,
-    shape_force,
     vector_norm,
 )
 from btmission.control.mav_model import world_to_yaw_frame, wrap_angle, yaw_frame_to_world
@@ -190,8 +188,12 @@ def multirotor_apf_config(gain: float, speed_m_s: float) -> ApfConfig:
     return ApfConfig(gain=(gain, gain, gain), r_influence_m=r_f)
 
 
+_NO_POSITIONS = np.zeros((0, 3))
+
+
 class Polyline:
-    """A route as a polyline with its arc length, for carrot chasing."""
+    """A route as a polyline with its arc length, for carrot chasing (the projection and the
+    carrot are compiled: :mod:`btmission.runtime._route_kernels`)."""
 
     def __init__(self, points: FloatArray) -> None:
         self.points = np.asarray(points, dtype=float).reshape(-1, 3)
@@ -201,6 +203,14 @@ class Polyline:
         self.seg_len = np.sqrt(self.seg_len2)
         self.arc = np.concatenate([[0.0], np.cumsum(self.seg_len)])
         """Arc length (m) at each point."""
+        n = len(self.points)
+        table = np.zeros((n, 9))
+        table[:, 0:3] = self.points
+        table[: n - 1, 3:6] = seg
+        table[: n - 1, 6] = self.seg_len2
+        table[: n - 1, 7] = self.seg_len
+        table[:, 8] = self.arc
+        self._table = table
 
     @property
     def length(self) -> float:
@@ -209,28 +219,19 @@ class Polyline:
     def project(self, position: FloatArray, start: int = 0) -> tuple[int, float]:
         """(segment, arc length) of the point of the route closest to ``position``, searching
         ``CARROT_WINDOW`` segments forward from ``start`` (progress only moves forward)."""
-        n = len(self.seg)
-        if n == 0:
-            return 0, 0.0
-        stop = min(n, start + CARROT_WINDOW)
-        a = self.points[start:stop]
-        ab = self.seg[start:stop]
-        ll = self.seg_len2[start:stop]
-        t = np.clip(np.einsum("ij,ij->i", position - a, ab) / np.where(ll > 0, ll, 1.0), 0.0, 1.0)
-        d = position - (a + t[:, None] * ab)
-        k = int(np.argmin(np.einsum("ij,ij->i", d, d)))
-        seg = start + k
-        return seg, float(self.arc[seg] + t[k] * self.seg_len[seg])
+        from btmission.runtime._route_kernels import project
+
+        seg, arc = project(
+            self._table, float(position[0]), float(position[1]), float(position[2]),
+            int(start), CARROT_WINDOW,
+        )  # fmt: skip
+        return int(seg), float(arc)
 
     def at(self, s: float) -> FloatArray:
         """The point at arc length ``s`` (clamped to the ends)."""
-        pts: FloatArray = self.points
-        if s <= 0 or len(self.seg) == 0 or s >= self.arc[-1]:
-            end: FloatArray = np.array(pts[0] if s <= 0 else pts[-1], dtype=float)
-            return end
-        j = int(np.searchsorted(self.arc, s, side="right")) - 1
-        frac = float((s - self.arc[j]) / self.seg_len[j]) if self.seg_len[j] > 0 else 0.0
-        out: FloatArray = pts[j] + frac * self.seg[j]
+        from btmission.runtime._route_kernels import point_at
+
+        out: FloatArray = point_at(self._table, float(s))
         return out
 
 
@@ -644,25 +645,33 @@ class Navigator:
         self, tel: Telemetry, goal: FloatArray, speed: float, points: FloatArray | None = None
     ) -> tuple[FloatArray, FloatArray, float | None, float]:
         """APF (seed 002 eq. 3, Alg. 1) on the LiDAR scan (``points``, or this step's), plus
-        the other agents' shared positions: reference point and velocity, and ‖F^r‖ before
-        shaping (for eq. 4)."""
-        p = tel.position
+        the other agents' shared positions (:meth:`_agent_positions`): reference point and
+        velocity, and ‖F^r‖ before shaping (for eq. 4). One compiled call
+        (:func:`~btmission.control._apf_kernels.navigator_force`): p_ref = F + p̂ (seed 002),
+        stretched at cruise so that the autopilot's position loop (v = K_p·(p_ref − p̂)) flies
+        at ‖F‖·speed; near the goal (‖F‖ < 1) p_ref is the goal."""
+        from btmission.control._apf_kernels import navigator_force
+
         assert self._apf is not None
-        cfg = self._apf.config
-        wp_body = world_to_yaw_frame(goal - p, tel.yaw)
         if points is None:
             points = self._lidar()
-        raw, _, _, _ = repulsive_force(points, cfg)
-        raw = raw + self._agent_force(tel, wp_body)
-        total, fr, _ = shape_force(raw, self._apf_previous, wp_body, cfg)
-        self._apf_previous = fr
-        force = yaw_frame_to_world(total, tel.yaw)
-        # p_ref = F + p̂ (seed 002), stretched at cruise so that the autopilot's position loop
-        # (v = K_p·(p_ref − p̂)) flies at ‖F‖·speed; near the goal (‖F‖ < 1) p_ref is the goal
-        norm = float(math.sqrt(force @ force))
-        ref = p + force * max(1.0, speed * norm / POSITION_GAIN)
-        vel = force * speed
-        return ref, vel, None, vector_norm(raw)
+        out = navigator_force(
+            np.ascontiguousarray(points, dtype=float),
+            self._agent_positions(tel),
+            float(tel.position[0]),
+            float(tel.position[1]),
+            float(tel.position[2]),
+            np.array(goal, dtype=float),
+            float(tel.yaw),
+            self._apf_previous,
+            self.kind is VehicleKind.GROUND,
+            float(speed),
+            POSITION_GAIN,
+            self._apf.config.packed,
+            AGENT_APF[self.kind].packed,
+        )
+        self._apf_previous = out[6:9]
+        return out[0:3], out[3:6], None, float(out[9])
 
     def _stopping_limit(self, tel: Telemetry, vel: FloatArray, points: FloatArray) -> FloatArray:
         """``vel`` (world) with its approach to the rock bounded by the stopping distance: towards
@@ -683,31 +692,26 @@ class Navigator:
         )
         return yaw_frame_to_world(limited, tel.yaw)
 
-    def _agent_force(self, tel: Telemetry, wp_body: FloatArray) -> FloatArray:
-        """Repulsion (body frame) from the other agents' shared positions: eq. 3 with one point
-        per agent and its own radii (:data:`AGENT_APF`), so that vehicles keep apart before their
-        LiDARs would push them. When it opposes the way ahead the vehicle also sidesteps to
-        its right, so two vehicles meeting head-on in a tunnel pass each other."""
+    def _agent_positions(self, tel: Telemetry) -> FloatArray:
+        """The other agents' shared positions (k, 3), nearest first, for their repulsion in
+        :meth:`_apf_reference`: eq. 3 with one point per agent and its own radii
+        (:data:`AGENT_APF`), so that vehicles keep apart before their LiDARs would push them.
+        When it opposes the way ahead the vehicle also sidesteps to its right, so two vehicles
+        meeting head-on in a tunnel pass each other. A vehicle that shares a 2D position is
+        taken at this vehicle's height."""
         if self._predictions is None:
-            return np.zeros(3)
-        p = tel.position
-        near = [
-            pred[0, :3] - p if pred.shape[1] >= 3 else np.append(pred[0, :2] - p[:2], 0.0)
-            for pred in self._predictions(self.agent)
-        ]
-        if not near:
-            return np.zeros(3)
-        rel = world_to_yaw_frame(np.array(near), tel.yaw)
-        if self.kind is VehicleKind.GROUND:
-            rel[:, 2] = 0.0
-        force, n, _, _ = repulsive_force(rel, AGENT_APF[self.kind])
-        if n == 0:
-            return force
-        ahead = wp_body / max(vector_norm(wp_body), 1e-9)
-        if float(force @ ahead) < -0.7 * vector_norm(force):
-            right = np.array([ahead[1], -ahead[0], 0.0])
-            force = force + 0.5 * vector_norm(force) * right
-        return force
+            return _NO_POSITIONS
+        shared = self._predictions(self.agent)
+        if not shared:
+            return _NO_POSITIONS
+        out = np.empty((len(shared), 3))
+        for i, pred in enumerate(shared):
+            if pred.shape[1] >= 3:
+                out[i] = pred[0, :3]
+            else:
+                out[i, :2] = pred[0, :2]
+                out[i, 2] = tel.position[2]
+        return out
 
     def _route_step(
         self, now: float, tel: Telemetry, cmd: _Follow
