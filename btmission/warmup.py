@@ -74,7 +74,8 @@ def _pruned_assignment() -> None:
 
 def _vehicle_control() -> None:
     """A simulated drone's control step: its short-range LiDAR (rock faces and another
-    vehicle), the APF on it with the other agents' push, and carrot chasing on a route — the
+    vehicle), the APF on it with the other agents' push, carrot chasing on a route and the
+    simulator's step (clearance to the walls) — the
     kernels of :mod:`btmission.backends._surface_kernels`, :mod:`btmission.control._apf_kernels`
     and :mod:`btmission.runtime._route_kernels`, through the simulator and the navigator."""
     import numpy as np
@@ -85,13 +86,15 @@ def _vehicle_control() -> None:
     from btmission.world.voxel import OCCUPIED, VoxelMap
 
     vmap = VoxelMap.empty((4.0, 4.0, 3.0), 0.5)
-    vmap.state[:, :, 0] = OCCUPIED
+    vmap.state[:, :, 0] = OCCUPIED  # a floor
+    vmap.state[:, 7, :] = OCCUPIED  # and a wall
     sim = Simulator(vmap, SimConfig(lidar_range_m=3.0))
     a = sim.add_multirotor("A", (1.0, 1.0, 0.5))
     sim.add_multirotor("B", (2.0, 1.5, 0.5))
     nav = Navigator("A", a, a, "track", predictions=lambda _agent: [np.array([[2.0, 1.5, 0.5]])])
     nav.follow(np.array([[1.0, 1.0, 1.0], [3.0, 3.0, 1.0]]), np.array([3.0, 3.0, 1.0]), 0.0)
     nav.step(0.0)
+    sim.step()  # its contact test: the clearance to the walls
     sim.world.surface_points(np.array([1.0, 1.0, 0.5]), 1.0)
     PotentialField().step(np.ones((2, 3)), (1.0, 0.0, 0.0))
 

@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from btmission.backends.autopilot import DISARM_LAND_S, OFFBOARD_LOSS_S
 from btmission.backends.base import Backend, Mode, Sensors
 from btmission.backends.sim import (
+    WALL_QUERY_M,
     Artifact,
     SimConfig,
     Simulator,
@@ -429,6 +430,17 @@ def test_the_surface_ball_query_is_the_brute_force_one() -> None:
         scan = world.scan_points(p, r, yaw, none, _SPHERE)
         assert np.allclose(scan, world_to_yaw_frame(got - p, yaw), atol=1e-12)
     assert max(counts) > 50 and min(counts) == 0
+    # the nearest wall face, as a brute-force minimum (inf from WALL_QUERY_M on)
+    queries = rng.uniform(np.asarray(lo) - 3.0, np.asarray(hi) + 3.0, (400, 3))
+    d = np.array(
+        [np.sqrt(np.einsum("ij,ij->i", world.walls - q, world.walls - q).min()) for q in queries]
+    )
+    want = np.where(d < WALL_QUERY_M, d, np.inf)
+    got = world.wall_distances(queries)
+    assert np.allclose(got, want, rtol=0, atol=1e-12) and np.array_equal(
+        np.isinf(got), np.isinf(want)
+    )
+    assert 0 < np.isinf(want).sum() < 300
 
 
 def test_a_fleet_sees_and_touches_each_other_as_before() -> None:

@@ -56,7 +56,7 @@ def test_the_control_warm_up_compiles_the_signatures_a_drone_mission_uses() -> N
     warmup._vehicle_control()
     kernels = (
         apf.navigator_force, apf.repulsive, apf.shape, route.project, route.point_at,
-        surf.ball_points, surf.scan_points,
+        surf.ball_points, surf.scan_points, surf.nearest_distances,
     )  # fmt: skip
     before = [len(f.signatures) for f in kernels]
     assert all(before)

@@ -107,3 +107,43 @@ def scan_points(
             out[a, 1] = s * x + c * y
             out[a, 2] = oz + sphere[k, 2] * radii[b]
     return out
+
+
+@njit(cache=True)
+def nearest_distances(pts, starts, lo, cell, dims, queries, max_d):  # pragma: no cover - jit
+    """Distance from each row of ``queries`` to the nearest of ``pts`` (inf when none lies
+    closer than ``max_d``). Searches cubes of cells growing from the query's own cell: the cube
+    of half-width h·cell holds every point within h·cell, so once the nearest found lies within
+    that, no cell farther out can hold a nearer one."""
+    nx, ny, nz = dims[0], dims[1], dims[2]
+    out = np.empty(queries.shape[0])
+    for qi in range(queries.shape[0]):
+        px, py, pz = queries[qi, 0], queries[qi, 1], queries[qi, 2]
+        best2 = np.inf
+        reach = cell
+        while True:
+            reach = min(reach, max_d)
+            i0 = max(math.floor((px - reach - lo[0]) / cell), 0)
+            i1 = min(math.floor((px + reach - lo[0]) / cell), nx - 1)
+            j0 = max(math.floor((py - reach - lo[1]) / cell), 0)
+            j1 = min(math.floor((py + reach - lo[1]) / cell), ny - 1)
+            k0 = max(math.floor((pz - reach - lo[2]) / cell), 0)
+            k1 = min(math.floor((pz + reach - lo[2]) / cell), nz - 1)
+            for i in range(i0, i1 + 1):
+                for j in range(j0, j1 + 1):
+                    c = (i * ny + j) * nz
+                    if k1 < k0:
+                        continue
+                    for q in range(starts[c + k0], starts[c + k1 + 1]):
+                        dx = pts[q, 0] - px
+                        dy = pts[q, 1] - py
+                        dz = pts[q, 2] - pz
+                        d2 = dx * dx + dy * dy + dz * dz
+                        if d2 < best2:
+                            best2 = d2
+            if best2 <= reach * reach or reach >= max_d:
+                break
+            reach *= 2.0
+        d = math.sqrt(best2)
+        out[qi] = d if d < max_d else np.inf
+    return out

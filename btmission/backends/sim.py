@@ -195,6 +195,18 @@ class _SurfaceCells:
         self.cell = cell
         self.dims = dims
 
+    def nearest(self, queries: FloatArray, max_d: float) -> FloatArray:
+        """Distance from each query point to the nearest point (inf beyond ``max_d``)."""
+        if len(self.points) == 0:
+            return np.full(len(queries), math.inf)
+        from btmission.backends._surface_kernels import nearest_distances
+
+        out: FloatArray = nearest_distances(
+            self.points, self.starts, self.lo, self.cell, self.dims,
+            np.ascontiguousarray(queries, dtype=float), float(max_d),
+        )  # fmt: skip
+        return out
+
     def ball(self, p: FloatArray, radius: float) -> FloatArray:
         from btmission.backends._surface_kernels import ball_points
 
@@ -218,11 +230,10 @@ class _SurfaceCells:
 
 
 class SimWorld:
-    """The static world: voxel map, rock surfaces (KD-trees), ground heights, ray casting."""
+    """The static world: voxel map, rock surfaces (face points sorted into cells), ground
+    heights, ray casting."""
 
     def __init__(self, voxel_map: VoxelMap, artifacts: Sequence[Artifact] = ()) -> None:
-        from scipy.spatial import cKDTree
-
         self.map = voxel_map
         self.artifacts = tuple(artifacts)
         st = voxel_map.state
@@ -254,7 +265,7 @@ class SimWorld:
             start += len(block)
         self.walls = self.surface[~up]
         self._cells = _SurfaceCells(self.surface, float(res))
-        self._kd_walls = cKDTree(self.walls) if len(self.walls) else None
+        self._wall_cells = _SurfaceCells(self.walls, float(res))
         self._occ = occ
         self._origin = tuple(float(o) for o in voxel_map.origin)
         self._res = float(res)
@@ -304,19 +315,15 @@ class SimWorld:
         return o[2] if top < 0 else o[2] + (top + 1) * r
 
     def wall_distance(self, p: FloatArray) -> float:
-        """Distance from ``p`` to the nearest wall or roof face (inf if there is none)."""
-        if self._kd_walls is None:
-            return math.inf
-        d, _ = self._kd_walls.query(p, distance_upper_bound=WALL_QUERY_M)
-        return float(d)
+        """Distance from ``p`` to the nearest wall or roof face (inf if there is none within
+        :data:`WALL_QUERY_M`)."""
+        return float(self.wall_distances(np.asarray(p, dtype=float).reshape(1, 3))[0])
 
     def wall_distances(self, points: FloatArray) -> FloatArray:
-        """:meth:`wall_distance` of each of ``points`` (n, 3), in one query."""
-        if self._kd_walls is None or len(points) == 0:
-            return np.full(len(points), math.inf)
-        d, _ = self._kd_walls.query(points, distance_upper_bound=WALL_QUERY_M)
-        out: FloatArray = np.asarray(d, dtype=float)
-        return out
+        """:meth:`wall_distance` of each of ``points`` (n, 3), in one call."""
+        return self._wall_cells.nearest(
+            np.asarray(points, dtype=float).reshape(-1, 3), WALL_QUERY_M
+        )
 
     def surface_points(self, p: FloatArray, radius: float) -> FloatArray:
         """The rock-face points (world) within ``radius`` of ``p``."""
