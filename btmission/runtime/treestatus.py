@@ -160,6 +160,8 @@ class StatusChanges(py_trees.visitors.VisitorBase):
         self._ticked: set[int] = set()
         self.changes: list[Change] = []
         """The changes seen since :meth:`initialise` (the last tick's, after a tick)."""
+        self.version = 0
+        """Counts the changes ever seen: :attr:`last` is the same while it is."""
 
     def initialise(self) -> None:
         self.changes = []
@@ -179,6 +181,7 @@ class StatusChanges(py_trees.visitors.VisitorBase):
         old = self.last[uid]
         if status is not old:
             self.last[uid] = status
+            self.version += 1
             if status is Status.INVALID:
                 self._active.discard(uid)
             else:
@@ -213,6 +216,7 @@ class TreeStatusLogger:
         """``dirty()`` True: something else the event carries changed (the blackboard), so an
         event goes out at its time even if no status changed."""
         self.visitor = StatusChanges(tree.root)
+        self._status: tuple[int, Mapping[int, str]] | None = None
         self._dirty = dirty
         self.period_s = period_s
         self._publish = publish
@@ -235,9 +239,14 @@ class TreeStatusLogger:
     @property
     def status(self) -> Mapping[int, str]:
         """uid → status (py_trees' ``INVALID``/``RUNNING``/``SUCCESS``/``FAILURE``) as of the
-        last tick: a read-only copy."""
-        names = _STATUS_NAMES
-        return MappingProxyType({i: names[s] for i, s in enumerate(self.visitor.last)})
+        last tick: a read-only copy (the same one while no status changed)."""
+        visitor = self.visitor
+        cached = self._status
+        if cached is None or cached[0] != visitor.version:
+            names = _STATUS_NAMES
+            status = MappingProxyType({i: names[s] for i, s in enumerate(visitor.last)})
+            cached = self._status = (visitor.version, status)
+        return cached[1]
 
     def _post_tick(self, tree: py_trees.trees.BehaviourTree) -> None:
         self._note(self.visitor.changes)
