@@ -113,6 +113,33 @@ def test_bus_predictions_are_shifted_and_ordered() -> None:
     assert [len(p) for p in bus.predictions("A", 0.0, 0.1)] == [1]  # never one's own
 
 
+def test_a_fleet_bus_finds_the_same_neighbours_as_the_pure_function() -> None:
+    """Past SMALL_FLEET agents the bus picks neighbours with one vectorised test; the answer is
+    advance_predictions' to the bit: the same arrays in the same order (ties too), own left out,
+    multi-row predictions shifted."""
+    from btmission.runtime.bus import SMALL_FLEET, advance_predictions
+
+    rng = np.random.default_rng(4)
+    bus = InMemoryBus()
+    n = 5 * SMALL_FLEET
+    for i in range(n):
+        rows = 1 if i % 3 else 4
+        pos = rng.uniform(0.0, 20.0, (rows, 2 if i % 2 else 3)).round(1)  # ties in distance
+        bus.share_prediction(f"A{i}", float(rng.choice([0.0, 0.1, 0.3])), pos)
+    bus.share_prediction("A0", 0.2, np.array([[10.0, 10.0, 1.0]]))  # again: keeps its row
+    checked = 0
+    for k in range(200):
+        near = rng.uniform(0.0, 20.0, 3).round(1)
+        within = float(rng.choice([0.0, 2.0, 6.0, 100.0]))
+        me = f"A{k % n}"
+        got = bus.predictions(me, 0.4, 0.1, near=near, within_m=within)
+        want = advance_predictions(bus._predictions, me, 0.4, 0.1, near, within)
+        assert len(got) == len(want)
+        assert all(np.array_equal(g, w) for g, w in zip(got, want))
+        checked += len(want)
+    assert checked > 500
+
+
 def test_ground_obstacle_points_keep_what_the_robot_can_hit() -> None:
     """The ground NMPC's obstacle points from a LiDAR scan (yaw frame, relative to the base):
     a shelf face at the body's height is kept (rotated into the world), the floor, a shelf

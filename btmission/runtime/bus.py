@@ -35,7 +35,7 @@ is delivered when the link returns.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -309,15 +309,20 @@ class InMemoryBus:
         """The other agents' predictions (:func:`advance_predictions`); with a finite
         ``within_m`` the candidates come from one vectorised distance test over every agent's
         start (a fleet's agents each ask every control step)."""
-        if near is None or not math.isfinite(within_m) or len(self._row_names) <= SMALL_FLEET:
+        rows = len(self._row_names)
+        if near is None or not math.isfinite(within_m) or rows <= SMALL_FLEET:
             return advance_predictions(self._predictions, agent, time_s, step_s, near, within_m)
-        rel = self._starts[: len(self._row_names)] - np.asarray(near, dtype=float)[:2]
+        rel = self._starts[:rows] - np.asarray(near, dtype=float)[:2]
         d2 = np.einsum("ij,ij->i", rel, rel)
+        cand = np.flatnonzero(d2 <= (within_m + 1e-6) ** 2)
+        dist = np.sqrt(d2[cand])  # √(dx² + dy²): advance_predictions' distance, to the bit
         names = self._row_names
-        close = [names[i] for i in np.flatnonzero(d2 <= (within_m + 1e-6) ** 2).tolist()]
-        return advance_predictions(
-            self._predictions, agent, time_s, step_s, near, within_m, only=close
-        )
+        out = []
+        for j in np.argsort(dist, kind="stable").tolist():  # nearest first, ties in row order
+            name = names[int(cand[j])]
+            if name != agent and dist[j] <= within_m:
+                out.append(_advanced(self._predictions[name], time_s, step_s))
+        return out
 
 
 def advance_predictions(
@@ -327,33 +332,39 @@ def advance_predictions(
     step_s: float,
     near: FloatArray | None = None,
     within_m: float = math.inf,
-    only: Sequence[str] | None = None,
 ) -> list[FloatArray]:
     """The predictions of the agents other than ``agent`` in ``shared`` (each agent's latest) —
     (N+1, 2) or (N+1, 3) positions, a vehicle that only shares where it is gives one row —
     advanced to ``time_s`` (shifted by the steps of ``step_s`` since they were published, the
     last point repeated), nearest to ``near`` first, those farther than ``within_m`` left out.
-    Pure: every transport's :meth:`AgentLink.predictions` gives the same answer. ``only``: the
-    agents worth looking at (a superset of those within ``within_m``, in ``shared``'s order),
-    when the caller has found them faster."""
+    Pure: every transport's :meth:`AgentLink.predictions` gives the same answer (the distance is
+    √(dx² + dy²) from ``near`` to each prediction's first point; equal ones keep ``shared``'s
+    order)."""
     out: list[tuple[float, FloatArray]] = []
-    items = shared.items() if only is None else ((o, shared[o]) for o in only)
-    for other, pred in items:
+    for other, pred in shared.items():
         if other == agent:
             continue
-        pts = pred.positions
         d = 0.0
         if near is not None:
-            d = math.dist(pts[0, :2], near[:2])
+            dx = float(pred.positions[0, 0] - near[0])
+            dy = float(pred.positions[0, 1] - near[1])
+            d = math.sqrt(dx * dx + dy * dy)
             if d > within_m:
                 continue
-        k = max(0, round((time_s - pred.time_s) / step_s))
-        if k and len(pts) > 1:
-            k = min(k, len(pts) - 1)
-            pts = np.vstack([pts[k:], np.repeat(pts[-1:], k, axis=0)])
-        out.append((d, pts))
+        out.append((d, _advanced(pred, time_s, step_s)))
     out.sort(key=lambda x: x[0])
     return [p for _, p in out]
+
+
+def _advanced(pred: Prediction, time_s: float, step_s: float) -> FloatArray:
+    """``pred``'s positions shifted by the steps of ``step_s`` since it was made (the last point
+    repeated)."""
+    pts = pred.positions
+    k = max(0, round((time_s - pred.time_s) / step_s))
+    if k and len(pts) > 1:
+        k = min(k, len(pts) - 1)
+        pts = np.vstack([pts[k:], np.repeat(pts[-1:], k, axis=0)])
+    return pts
 
 
 class InMemoryAgentLink:
