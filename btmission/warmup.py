@@ -99,6 +99,40 @@ def _vehicle_control() -> None:
     PotentialField().step(np.ones((2, 3)), (1.0, 0.0, 0.0))
 
 
+def _planner() -> None:
+    """A run's path costs and route on a tiny map (:class:`btmission.runtime.paths.PathCosts`:
+    backward one-to-all D*+ searches with a risk layer, the gather of bids, a path), and an
+    A* query."""
+    from btmission.planning.risk import RiskParams
+    from btmission.runtime.paths import PathCosts
+    from btmission.world.voxel import VoxelMap
+
+    paths = PathCosts(VoxelMap.empty((3.0, 2.0, 1.0), 0.5), RiskParams(), clearance_m=0.25)
+    start, goal = (0.25, 0.25, 0.25), (2.75, 1.75, 0.75)
+    paths.path_costs(start, (goal, (2.75, 0.25, 0.25)))
+    paths.route(start, goal)
+    paths.planner.plan(start, goal)
+
+
+_prepared = False
+
+
+def prepare_run() -> None:
+    """Load what a mission run's loop would otherwise load on its first steps — the planner's
+    and the vehicle control's numba kernels (from the cache; compiled if missing) and the
+    assignment solver's scipy module — so that the loop does not stall for a second at its
+    first auction round (a real-time run would miss its deadlines). Once per process;
+    :class:`~btmission.runtime.runner.MissionRun` calls it while it builds."""
+    global _prepared
+    if _prepared:
+        return
+    import scipy.optimize  # noqa: F401  (the assignment's linear_sum_assignment)
+
+    _planner()
+    _vehicle_control()
+    _prepared = True
+
+
 def _calls() -> list[tuple[str, Callable[[], None]]]:
     """Kernels no command runs on its own: the functions that run them."""
     return [

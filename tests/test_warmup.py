@@ -44,29 +44,38 @@ def test_the_warm_up_calls_the_kernels_no_command_runs() -> None:
         call()
 
 
-def test_the_control_warm_up_compiles_the_signatures_a_drone_mission_uses() -> None:
-    """After the warm-up's one control step, a drone flying its route in the mine among others
-    (LiDAR on rock and bodies, APF with the others' push, carrot chasing) compiles nothing new."""
+def test_a_run_loads_its_loop_kernels_while_it_builds() -> None:
+    """What prepare_run (called by MissionRun's build) loads covers the loop: a drone mission in
+    the mine (D*+ fields and routes, bids, LiDAR on rock and bodies, APF with the others' push,
+    carrot chasing, the clearance to the walls) then compiles or loads no kernel of the planner
+    or the vehicle control, and the assignment's scipy module is already there."""
+    import sys
+
+    from numba.core.registry import CPUDispatcher
+
     from btmission.backends import _surface_kernels as surf
+    from btmission.bench.fleet import fleet_mission_text
     from btmission.control import _apf_kernels as apf
+    from btmission.planning import _kernels as plan
     from btmission.runtime import _route_kernels as route
     from btmission.runtime.runner import MissionRun
     from btmission.spec.mission import load_mission_text
 
-    warmup._vehicle_control()
-    kernels = (
-        apf.navigator_force, apf.repulsive, apf.shape, route.project, route.point_at,
-        surf.ball_points, surf.scan_points, surf.nearest_distances,
-    )  # fmt: skip
-    before = [len(f.signatures) for f in kernels]
-    assert all(before)
-    from btmission.bench.fleet import fleet_mission_text
-
+    warmup.prepare_run()
+    assert "scipy.optimize" in sys.modules
+    kernels = [
+        f for mod in (apf, route, surf, plan) for f in vars(mod).values()
+        if isinstance(f, CPUDispatcher)
+    ]  # fmt: skip
+    before = {f.__name__: len(f.signatures) for f in kernels}
+    used = {"navigator_force", "project", "point_at", "scan_points", "nearest_distances"}
+    assert used <= set(before) and all(before[k] for k in used)
     run = MissionRun(load_mission_text(fleet_mission_text(3), "fleet.yaml"), controller="track")
     run.run(until=25)
     heights = [v.backend.telemetry().height_above_ground for v in run.vehicles.values()]
     assert min(heights) > 1.0, heights  # all three flying their routes by then
-    assert [len(f.signatures) for f in kernels] == before
+    assert run.paths.searches > 0
+    assert {f.__name__: len(f.signatures) for f in kernels} == before
 
 
 def test_the_pruning_warm_up_compiles_the_signatures_a_large_solve_uses() -> None:

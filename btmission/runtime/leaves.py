@@ -325,6 +325,26 @@ class GuardedLeaf(py_trees.behaviour.Behaviour):
             if not getattr(fn, "__btmission_guarded__", False):
                 setattr(cls, name, guard(fn))
 
+    def tick(self) -> Iterator[py_trees.behaviour.Behaviour]:
+        """py_trees' ``Behaviour.tick`` — initialise unless RUNNING, update, stop unless
+        RUNNING, take the new status, yield itself — without formatting a debug message on
+        every call (a fleet's leaves tick hundreds of thousands of times; the guard on
+        ``update`` already turns anything but a ``Status`` into FAILURE)."""
+        if self.status is not Status.RUNNING:
+            self.initialise()
+        new_status = self.update()
+        if new_status is not Status.RUNNING:
+            self.stop(new_status)
+        self.status = new_status
+        yield self
+
+    def stop(self, new_status: Status) -> None:
+        """py_trees' ``Behaviour.stop`` (terminate, take the status, a fresh tick iterator)
+        without its debug message."""
+        self.terminate(new_status)
+        self.status = new_status
+        self.iterator = self.tick()
+
     def _leaf_failed(self, phase: str, exc: Exception) -> None:
         ctx = self.ctx
         agent = ctx.agent

@@ -98,6 +98,7 @@ from btmission.runtime.substitution import SubstitutionRules, Substitutions
 from btmission.spec.mission import Mission
 from btmission.spec.runcheck import run_problems
 from btmission.spec.source import format_path
+from btmission.warmup import prepare_run
 from btmission.world.voxel import VoxelMap
 
 if TYPE_CHECKING:
@@ -224,6 +225,7 @@ class MissionRun:
             RiskParams(rt.risk_radius_m, rt.unknown_cost),
             clearance_m=self.nav_config.clearance_m,
         )
+        prepare_run()  # the loop's kernels and solver loaded now, not at its first round
         self.roads = self._roads()
         self.places = self.roads.places if self.roads is not None else {}
         self.bus = InMemoryBus()
