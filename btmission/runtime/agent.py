@@ -202,8 +202,8 @@ class Agent:
         self._resume_offboard_until: float | None = None
         self._mode_before_loss: Mode | None = None
         self.mission_tree = build_mission_tree(mission, agent_id)
-        self.root = build_behaviour_tree(
-            self.mission_tree.tree, self._leaf_factory(implementations, substitutions)
+        self.root = build_behaviour_tree(  # quiet: the status visitor needs no yields
+            self.mission_tree.tree, self._leaf_factory(implementations, substitutions), quiet=True
         )
         self._branches = {
             child.name: child for child in self.root.children if child.name.startswith("task(")

@@ -28,7 +28,8 @@ class QuietSelector(py_trees.composites.Selector):
     node, which makes a 1,000-action chain take seconds a tick. A parent composite only acts on
     the yield of the child itself, which is always the last one, so ticking the subtree to the end
     and yielding ``self`` once changes nothing but that cost. Use only where nobody visits the
-    yielded behaviours (the dry run; not a ``BehaviourTree`` with visitors).
+    yielded behaviours: the dry run, and the agents' trees, whose status visitor
+    (:class:`~btmission.runtime.treestatus.StatusChanges`) compares every node after the tick.
     """
 
     def tick(self) -> Iterator[py_trees.behaviour.Behaviour]:
