@@ -81,14 +81,21 @@ COMPILE_TIMEOUT_S = 600.0
 """A compile that takes longer is abandoned (the SX solver is used, with a warning)."""
 
 
-def _timed_call(nlpsol: Any, args: dict[str, Any]) -> tuple[Any, float]:
-    """(the solver's outputs or its ``RuntimeError``, wall time s) of one call."""
+def _timed_call(
+    nlpsol: Any, args: dict[str, Any]
+) -> tuple[tuple[FloatArray, float, dict[str, Any]] | RuntimeError, float]:
+    """One call of the solver: ((primal, cost, the solver's statistics) or its ``RuntimeError``,
+    wall time s). Everything that touches CasADi happens here, in the thread that solves: each
+    CasADi call releases and retakes the GIL, which costs the caller's thread a wait on every
+    call while another thread holds it (the deferred solves of a fleet)."""
     t0 = time.perf_counter()
     try:
         res = nlpsol(**args)
     except RuntimeError as exc:
         return exc, time.perf_counter() - t0
-    return res, time.perf_counter() - t0
+    wall = time.perf_counter() - t0
+    primal = np.asarray(res["x"], dtype=float).ravel()
+    return (primal, float(res["f"]), nlpsol.stats()), wall
 
 
 def cache_dir() -> Path:
@@ -383,18 +390,18 @@ class StagewiseOcp:
         args.update(lbg=self._lbg, ubg=self._ubg)
         if executor is None:
             done = _timed_call(nlpsol, args)
-            return lambda: self._solution(nlpsol, *done)
+            return lambda: self._solution(*done)
         future = executor.submit(_timed_call, nlpsol, args)
-        return lambda: self._solution(nlpsol, *future.result())
+        return lambda: self._solution(*future.result())
 
     def _solution(
-        self, nlpsol: Any, res: dict[str, Any] | RuntimeError, wall: float
+        self,
+        res: tuple[FloatArray, float, dict[str, Any]] | RuntimeError,
+        wall: float,
     ) -> OcpSolution:
-        if isinstance(res, dict):
-            stats = nlpsol.stats()
-            self.last_stats = dict(stats)
-            primal = np.asarray(res["x"], dtype=float).ravel()
-            cost = float(res["f"])
+        if isinstance(res, tuple):
+            primal, cost, stats = res
+            self.last_stats = stats
             success = bool(stats.get("success", False))
             status = str(stats.get("return_status", "unknown"))
             iterations = int(stats.get("iter_count", -1))
