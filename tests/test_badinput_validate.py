@@ -128,6 +128,7 @@ class TestRuntimeSettings:
         for name, message in (
             ("mission_max_duration_zero", "runtime.max_duration_s: Input should be greater than 0"),
             ("mission_runtime_unknown_key", "runtime.tick_rate: unknown key 'tick_rate'"),
+            ("mission_path_fields_too_small", "runtime.path_fields_mb: Input should be greater"),
             ("mission_participation_over_1", "coordination.participation: Input should be less"),
         ):
             result = invoke(runner, "validate", str(CORPUS / f"{name}.yaml"))

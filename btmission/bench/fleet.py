@@ -76,6 +76,11 @@ def fleet_mission_text(drones: int, seed: int = 0, controller: str = "track") ->
             f"the mine has room for {len(floor)} starts and tasks, not {drones} drones "
             f"and {n_tasks} tasks"
         )
+    # one D*+ cost-to-goal field per task goal and per home (float32 over the padded map): a
+    # large fleet needs more than the default budget, or evicted fields are searched again
+    field_mb = 4 * math.prod(n + 2 for n in vm.shape) / 2**20
+    need_mb = math.ceil(1.1 * (n_tasks + drones) * field_mb)
+    fields = f", path_fields_mb: {need_mb}" if need_mb > 1024 else ""
     rng = np.random.default_rng(seed)
     picks = sorted(int(i) for i in rng.choice(np.arange(drones, len(floor)), n_tasks, False))
     lines = [
@@ -100,7 +105,7 @@ def fleet_mission_text(drones: int, seed: int = 0, controller: str = "track") ->
         "  inspect: {goal: at_goal(location), cost: path_cost(location)}",
         "coordination: {auction_rate_hz: 10, participation: 1.0, priority_scale: 1000, "
         "switch_cost: 5}",
-        f"runtime: {{controller: {controller}}}",
+        f"runtime: {{controller: {controller}{fields}}}",
         "",
     ]
     return "\n".join(lines)

@@ -83,11 +83,15 @@ class PathCosts:
         clearance_m: float = 0.0,
         snap_m: float = 1.5,
         max_bytes: int = 1 << 30,
+        reserve: int = 0,
     ) -> None:
         self.clearance_m = clearance_m
         self.snap_m = snap_m
         self.risk = risk
         self.max_bytes = max_bytes
+        self.reserve = reserve
+        """Fields to make room for at once (besides :data:`INITIAL_ROWS`): the goals the
+        caller expects, so that their fields need no copy of the others to fit."""
         self.searches = 0
         """Backward searches run so far (one per distinct goal voxel, plus re-runs)."""
         self.version = -1
@@ -104,7 +108,7 @@ class PathCosts:
         self._fields: OrderedDict[int, _GoalField | None] = OrderedDict()
         size = self.cost_map.padded.size
         most = max(1, self.max_bytes // (size * 4)) + 2
-        self._rows = np.empty((min(most, INITIAL_ROWS), size), dtype=np.float32)
+        self._rows = np.empty((min(most, max(INITIAL_ROWS, self.reserve + 1)), size), np.float32)
         """Every field's lengths, one row each (row 0: no path), so that the costs to many
         goals are one gather (:meth:`path_costs`). Room for :data:`INITIAL_ROWS` from the start:
         rows not in use are never touched, so the memory behind them is not taken (it is

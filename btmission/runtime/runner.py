@@ -224,6 +224,8 @@ class MissionRun:
             self.map,
             RiskParams(rt.risk_radius_m, rt.unknown_cost),
             clearance_m=self.nav_config.clearance_m,
+            max_bytes=rt.path_fields_mb << 20,
+            reserve=len(mission.tasks) + len(mission.agents),  # their goals, and home
         )
         prepare_run()  # the loop's kernels and solver loaded now, not at its first round
         self.roads = self._roads()

@@ -464,6 +464,13 @@ class RuntimeSpec(_Strict):
     )
     risk_radius_m: FiniteFloat = Field(1.5, ge=0, description="D*+ risk radius r (eq. 3).")
     unknown_cost: FiniteFloat = Field(10.0, ge=0, description="D*+ unknown-voxel cost c_u (eq. 4).")
+    path_fields_mb: int = Field(
+        1024,
+        ge=16,
+        le=1_048_576,
+        description="Memory for the bidders' D*+ cost-to-goal fields (MB; one field per task "
+        "goal, 4 bytes a voxel): a mission whose goals need more searches evicted ones again.",
+    )
     settings: dict[Identifier, SettingValue] = Field(
         default_factory=dict,
         description="Settings of the libraries' implementations, e.g. {speed_m_s: 1.5}.",
