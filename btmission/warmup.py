@@ -96,6 +96,12 @@ def _vehicle_control() -> None:
     nav.step(0.0)
     sim.step()  # its contact test: the clearance to the walls
     sim.world.surface_points(np.array([1.0, 1.0, 0.5]), 1.0)
+    from btmission.runtime.bus import SMALL_FLEET, InMemoryBus
+
+    bus = InMemoryBus()  # a fleet's neighbour query (past SMALL_FLEET agents)
+    for i in range(SMALL_FLEET + 1):
+        bus.share_prediction(f"V{i}", 0.0, np.array([[float(i), 0.0, 1.0]]))
+    bus.neighbour_positions("V0", 0.0, 0.1, np.array([0.0, 0.0, 1.0]), 6.0)
     PotentialField().step(np.ones((2, 3)), (1.0, 0.0, 0.0))
 
 

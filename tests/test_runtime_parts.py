@@ -117,7 +117,7 @@ def test_a_fleet_bus_finds_the_same_neighbours_as_the_pure_function() -> None:
     """Past SMALL_FLEET agents the bus picks neighbours with one vectorised test; the answer is
     advance_predictions' to the bit: the same arrays in the same order (ties too), own left out,
     multi-row predictions shifted."""
-    from btmission.runtime.bus import SMALL_FLEET, advance_predictions
+    from btmission.runtime.bus import SMALL_FLEET, advance_predictions, first_points
 
     rng = np.random.default_rng(4)
     bus = InMemoryBus()
@@ -136,8 +136,20 @@ def test_a_fleet_bus_finds_the_same_neighbours_as_the_pure_function() -> None:
         want = advance_predictions(bus._predictions, me, 0.4, 0.1, near, within)
         assert len(got) == len(want)
         assert all(np.array_equal(g, w) for g, w in zip(got, want))
+        # where they are now: the first point of each, stacked, z NaN for a 2D one
+        now = bus.neighbour_positions(me, 0.4, 0.1, near, within)
+        assert np.array_equal(now, first_points(want), equal_nan=True)
+        assert now.shape == (len(want), 3)
+        assert all(np.array_equal(r[: w.shape[1]], w[0]) for r, w in zip(now, want))
         checked += len(want)
     assert checked > 500
+    small = InMemoryBus()  # a small fleet: the same through advance_predictions
+    small.share_prediction("A", 0.0, np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]]))
+    small.share_prediction("B", 0.2, np.array([[5.0, 0.0, 1.5]]))
+    np.testing.assert_array_equal(
+        small.neighbour_positions("C", 0.2, 0.1, np.array([4.0, 0.0]), 10.0),
+        [[5.0, 0.0, 1.5], [2.0, 0.0, np.nan]],
+    )
 
 
 def test_ground_obstacle_points_keep_what_the_robot_can_hit() -> None:

@@ -57,6 +57,7 @@ def test_a_run_loads_its_loop_kernels_while_it_builds() -> None:
     from btmission.bench.fleet import fleet_mission_text
     from btmission.control import _apf_kernels as apf
     from btmission.planning import _kernels as plan
+    from btmission.runtime import _neighbour_kernels as near
     from btmission.runtime import _route_kernels as route
     from btmission.runtime.runner import MissionRun
     from btmission.spec.mission import load_mission_text
@@ -64,16 +65,17 @@ def test_a_run_loads_its_loop_kernels_while_it_builds() -> None:
     warmup.prepare_run()
     assert "scipy.optimize" in sys.modules
     kernels = [
-        f for mod in (apf, route, surf, plan) for f in vars(mod).values()
+        f for mod in (apf, route, surf, plan, near) for f in vars(mod).values()
         if isinstance(f, CPUDispatcher)
     ]  # fmt: skip
     before = {f.__name__: len(f.signatures) for f in kernels}
     used = {"navigator_force", "project", "point_at", "scan_points", "nearest_distances"}
+    used |= {"near_rows"}  # a fleet's neighbour query (ten drones: past SMALL_FLEET)
     assert used <= set(before) and all(before[k] for k in used)
-    run = MissionRun(load_mission_text(fleet_mission_text(3), "fleet.yaml"), controller="track")
+    run = MissionRun(load_mission_text(fleet_mission_text(10), "fleet.yaml"), controller="track")
     run.run(until=25)
     heights = [v.backend.telemetry().height_above_ground for v in run.vehicles.values()]
-    assert min(heights) > 1.0, heights  # all three flying their routes by then
+    assert min(heights) > 1.0, heights  # all ten flying their routes by then
     assert run.paths.searches > 0
     assert {f.__name__: len(f.signatures) for f in kernels} == before
 

@@ -35,7 +35,7 @@ is delivered when the link returns.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -203,7 +203,10 @@ class InMemoryBus:
         # neighbours of a position are found for all agents at once (:meth:`predictions`)
         self._rows: dict[str, int] = {}
         self._row_names: list[str] = []
-        self._starts = np.full((8, 2), np.nan)
+        self._starts = np.full((8, 3), np.nan)
+        """Each row's first predicted position (z NaN for a 2D prediction)."""
+        self._multi = np.zeros(8, dtype=bool)
+        """Each row's prediction has more than one point (its first moves with time)."""
         self.dropped = 0
         """Messages lost on cut links."""
 
@@ -293,10 +296,16 @@ class InMemoryBus:
             row = self._rows[agent] = len(self._row_names)
             self._row_names.append(agent)
             if row >= len(self._starts):
-                grown = np.full((2 * len(self._starts), 2), np.nan)
+                grown = np.full((2 * len(self._starts), 3), np.nan)
                 grown[:row] = self._starts
                 self._starts = grown
-        self._starts[row] = pred.positions[0, :2]
+                multi = np.zeros(2 * len(self._multi), dtype=bool)
+                multi[:row] = self._multi
+                self._multi = multi
+        pts = pred.positions
+        self._starts[row] = np.nan
+        self._starts[row, : min(3, pts.shape[1])] = pts[0, :3]
+        self._multi[row] = len(pts) > 1
 
     def predictions(
         self,
@@ -309,20 +318,53 @@ class InMemoryBus:
         """The other agents' predictions (:func:`advance_predictions`); with a finite
         ``within_m`` the candidates come from one vectorised distance test over every agent's
         start (a fleet's agents each ask every control step)."""
-        rows = len(self._row_names)
-        if near is None or not math.isfinite(within_m) or rows <= SMALL_FLEET:
+        rows = self._near_rows(agent, near, within_m)
+        if rows is None:
             return advance_predictions(self._predictions, agent, time_s, step_s, near, within_m)
-        rel = self._starts[:rows] - np.asarray(near, dtype=float)[:2]
-        d2 = np.einsum("ij,ij->i", rel, rel)
-        cand = np.flatnonzero(d2 <= (within_m + 1e-6) ** 2)
-        dist = np.sqrt(d2[cand])  # √(dx² + dy²): advance_predictions' distance, to the bit
         names = self._row_names
-        out = []
-        for j in np.argsort(dist, kind="stable").tolist():  # nearest first, ties in row order
-            name = names[int(cand[j])]
-            if name != agent and dist[j] <= within_m:
-                out.append(_advanced(self._predictions[name], time_s, step_s))
+        return [_advanced(self._predictions[names[r]], time_s, step_s) for r in rows]
+
+    def neighbour_positions(
+        self, agent: str, time_s: float, step_s: float, near: FloatArray, within_m: float
+    ) -> FloatArray:
+        """The first point of each of :meth:`predictions` (same order), stacked (k, 3), z NaN
+        for a 2D prediction: where the neighbours are now, without a list of arrays (every
+        agent asks every control step)."""
+        rows = self._near_rows(agent, near, within_m)
+        if rows is None:
+            return first_points(
+                advance_predictions(self._predictions, agent, time_s, step_s, near, within_m)
+            )
+        out = self._starts[rows]
+        names = self._row_names
+        for i, r in enumerate(rows):
+            if self._multi[r]:  # a trajectory: its point at time_s
+                out[i] = first_points([_advanced(self._predictions[names[r]], time_s, step_s)])[0]
         return out
+
+    def _near_rows(self, agent: str, near: FloatArray | None, within_m: float) -> list[int] | None:
+        """The rows of the agents other than ``agent`` whose prediction starts within
+        ``within_m`` of ``near``, nearest first (equal distances in row order): one vectorised
+        test over every agent's start. None for a small fleet or no bound (the caller asks
+        :func:`advance_predictions`, which gives the same answer)."""
+        n = len(self._row_names)
+        if near is None or not math.isfinite(within_m) or n <= SMALL_FLEET:
+            return None
+        from btmission.runtime._neighbour_kernels import near_rows
+
+        rows: list[int] = near_rows(
+            self._starts, n, float(near[0]), float(near[1]), float(within_m),
+            self._rows.get(agent, -1),
+        ).tolist()  # fmt: skip
+        return rows
+
+
+def first_points(predictions: Sequence[FloatArray]) -> FloatArray:
+    """The first point of each prediction, stacked (k, 3); z is NaN for a 2D prediction."""
+    out = np.full((len(predictions), 3), np.nan)
+    for i, pts in enumerate(predictions):
+        out[i, : min(3, pts.shape[1])] = pts[0, :3]
+    return out
 
 
 def advance_predictions(
@@ -411,6 +453,12 @@ class InMemoryAgentLink:
     ) -> list[FloatArray]:
         return self._bus.predictions(self._agent, time_s, step_s, near, within_m)
 
+    def neighbour_positions(
+        self, time_s: float, step_s: float, near: FloatArray, within_m: float
+    ) -> FloatArray:
+        """:meth:`InMemoryBus.neighbour_positions` (:func:`neighbour_positions`)."""
+        return self._bus.neighbour_positions(self._agent, time_s, step_s, near, within_m)
+
 
 class ForwardingAgentLink:
     """An :class:`AgentLink` around another (``inner``) that forwards everything to it; a
@@ -455,3 +503,17 @@ class ForwardingAgentLink:
         within_m: float = math.inf,
     ) -> list[FloatArray]:
         return self.inner.predictions(time_s, step_s, near, within_m)
+
+
+def neighbour_positions(
+    link: AgentLink, time_s: float, step_s: float, near: FloatArray, within_m: float
+) -> FloatArray:
+    """Where the other agents within ``within_m`` of ``near`` are at ``time_s``: the first
+    point of each of ``link.predictions(...)``, stacked (k, 3), nearest first, z NaN for a 2D
+    prediction — from the link's own ``neighbour_positions`` when it has one (the in-memory
+    bus, vectorised over the fleet), else from its predictions."""
+    fast = getattr(link, "neighbour_positions", None)
+    if fast is not None:
+        out: FloatArray = fast(time_s, step_s, near, within_m)
+        return out
+    return first_points(link.predictions(time_s, step_s, near, within_m))

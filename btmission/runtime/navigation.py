@@ -399,6 +399,7 @@ class Navigator:
         *,
         control_dt: float = 0.05,
         predictions: Predictions | None = None,
+        neighbours: Callable[[str], FloatArray] | None = None,
         ground_at: Callable[[FloatArray], float] | None = None,
         point_area_m2: float = 0.25,
     ) -> None:
@@ -412,6 +413,9 @@ class Navigator:
         self.kind = backend.kind
         self.control_dt = control_dt
         self._predictions = predictions
+        self._neighbours = neighbours
+        """Where the other agents are, (k, 3) (z NaN: at this vehicle's height), nearest first:
+        the first points of ``predictions`` without the list (None: taken from those)."""
         self._ground_at = ground_at
         self._cmd: _Command = _Hold(np.asarray(backend.telemetry().position, dtype=float))
         self._status = NavStatus(NavState.IDLE, "", "hold")
@@ -699,6 +703,12 @@ class Navigator:
         When it opposes the way ahead the vehicle also sidesteps to its right, so two vehicles
         meeting head-on in a tunnel pass each other. A vehicle that shares a 2D position is
         taken at this vehicle's height."""
+        if self._neighbours is not None:
+            out = self._neighbours(self.agent)
+            flat = np.isnan(out[:, 2])
+            if flat.any():
+                out[flat, 2] = tel.position[2]
+            return out
         if self._predictions is None:
             return _NO_POSITIONS
         shared = self._predictions(self.agent)

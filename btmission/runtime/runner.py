@@ -54,7 +54,7 @@ from btmission.backends.provider import (
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
 from btmission.plugins import Implementations
 from btmission.runtime.agent import Agent
-from btmission.runtime.bus import AgentLink, InMemoryBus, MissionEnd
+from btmission.runtime.bus import AgentLink, InMemoryBus, MissionEnd, neighbour_positions
 from btmission.runtime.clock import Clock, ManualClock, ScaledWallClock
 from btmission.runtime.commands import (
     AddTask,
@@ -98,6 +98,7 @@ from btmission.runtime.substitution import SubstitutionRules, Substitutions
 from btmission.spec.mission import Mission
 from btmission.spec.runcheck import run_problems
 from btmission.spec.source import format_path
+from btmission.types import FloatArray
 from btmission.warmup import prepare_run
 from btmission.world.voxel import VoxelMap
 
@@ -403,6 +404,12 @@ class MissionRun:
                 pos = _backend.telemetry().position
                 return _link.predictions(self.now(), 0.1, pos, NEIGHBOUR_RANGE_M)
 
+            def neighbours(
+                agent: str, _backend: Backend = vehicle.backend, _link: AgentLink = link
+            ) -> FloatArray:
+                pos = _backend.telemetry().position
+                return neighbour_positions(_link, self.now(), 0.1, pos, NEIGHBOUR_RANGE_M)
+
             nav = Navigator(
                 spec.id,
                 vehicle.backend,
@@ -411,6 +418,7 @@ class MissionRun:
                 self.nav_config,
                 control_dt=control_dt,
                 predictions=predictions,
+                neighbours=neighbours,
                 ground_at=self.map.ground_z,
                 point_area_m2=self.map.resolution**2,
             )
