@@ -37,6 +37,11 @@ class QuietSelector(py_trees.composites.Selector):
             pass
         yield self
 
+    def stop(self, new_status: py_trees.common.Status = py_trees.common.Status.INVALID) -> None:
+        """py_trees' ``Selector.stop`` without formatting its debug message on every call (it
+        only logs, then does ``Composite.stop``)."""
+        py_trees.composites.Composite.stop(self, new_status)
+
 
 class QuietSequence(py_trees.composites.Sequence):
     """The ``Sequence`` counterpart of :class:`QuietSelector`."""
@@ -45,6 +50,10 @@ class QuietSequence(py_trees.composites.Sequence):
         for _ in super().tick():
             pass
         yield self
+
+    def stop(self, new_status: py_trees.common.Status = py_trees.common.Status.INVALID) -> None:
+        """py_trees' ``Sequence.stop`` without its debug message (as :class:`QuietSelector`)."""
+        py_trees.composites.Composite.stop(self, new_status)
 
 
 def build_behaviour_tree(
