@@ -308,6 +308,28 @@ def test_velocity_noise_is_a_gauss_markov_error_of_the_command() -> None:
     np.testing.assert_allclose(speeds, 0.2 * (1 + e[:, 0]), atol=1e-12)
 
 
+def test_telemetry_is_one_read_only_record_per_step_and_autopilot_state() -> None:
+    """The simulator builds a vehicle's telemetry once per step: asked again within the step it
+    is the same record, with read-only arrays; a command that changes the autopilot's state
+    (arm, take-off) shows at once, and the next step gives a new record."""
+    sim = Simulator(room(), SimConfig())
+    d = sim.add_multirotor("D1", (5, 5, 0))
+    first = d.telemetry()
+    assert d.telemetry() is first and not first.armed
+    with pytest.raises(ValueError, match="read-only"):
+        first.position[0] = 1.0
+    assert d.arm().accepted
+    armed = d.telemetry()
+    assert armed is not first and armed.armed and armed.time_s == first.time_s
+    assert d.takeoff(2.0).accepted
+    assert d.telemetry().mode is Mode.TAKEOFF
+    for _ in range(20):
+        sim.step()
+    later = d.telemetry()
+    assert later.time_s > first.time_s and later.position[2] > 0.1
+    assert later.position[2] == sim.vehicle("D1").x[2]  # the state now, not a stale copy
+
+
 def test_pose_noise_is_in_the_telemetry_only() -> None:
     """The vehicle reports its pose with the configured error; it moves, collides and senses
     at its true pose, and turning the noise on changes neither the dust nor the detections

@@ -58,7 +58,8 @@ ACCEPTED = Ack(True)
 
 @dataclass(frozen=True)
 class Telemetry:
-    """The vehicle's state as its autopilot reports it."""
+    """The vehicle's state as its autopilot reports it. Read-only: a backend may hand the same
+    record (and arrays) to every caller within a step."""
 
     time_s: float
     position: FloatArray
