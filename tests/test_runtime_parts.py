@@ -98,6 +98,15 @@ def test_polyline_projection_and_arc_length() -> None:
     np.testing.assert_allclose(line.at(-1.0), [0.0, 0.0, 0.0])
     seg, s = line.project(np.array([5.0, 2.0, 0.0]), start=1)
     assert (seg, s) == (1, 6.0)
+    # the first of equally close segments; a start past the end is clamped to the last
+    assert line.project(np.array([4.0, 0.0, 0.0])) == (0, 4.0)
+    assert line.project(np.array([0.0, 0.0, 0.0]), start=9) == (1, 4.0)
+    np.testing.assert_allclose(line.at(4.0), [4.0, 0.0, 0.0])  # a vertex: the next segment's start
+    one = Polyline(np.array([[1.0, 2.0, 3.0]]))  # a route to where it is
+    assert one.length == 0.0 and one.project(np.zeros(3)) == (0, 0.0)
+    np.testing.assert_allclose(one.at(0.5), [1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match="at least one point"):
+        Polyline(np.zeros((0, 3)))
 
 
 def test_bus_predictions_are_shifted_and_ordered() -> None:

@@ -197,6 +197,8 @@ class Polyline:
 
     def __init__(self, points: FloatArray) -> None:
         self.points = np.asarray(points, dtype=float).reshape(-1, 3)
+        if len(self.points) == 0:
+            raise ValueError("a route needs at least one point")
         seg = np.diff(self.points, axis=0)
         self.seg = seg
         self.seg_len2 = np.einsum("ij,ij->i", seg, seg)
