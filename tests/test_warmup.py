@@ -105,5 +105,7 @@ def test_the_pruning_warm_up_compiles_the_signatures_a_large_solve_uses() -> Non
 def test_the_warm_up_runs_every_step() -> None:
     lines: list[str] = []
     total = warmup.warm_up(lines.append)
-    assert len(lines) == 7 and all(" compiled in " in line for line in lines), lines
+    steps = len(warmup._commands(Path("/tmp"))) + len(warmup._calls())
+    assert steps == 8 and len(lines) == steps, lines
+    assert all(" compiled in " in line for line in lines), lines
     assert total > 0
