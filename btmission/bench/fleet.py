@@ -49,6 +49,7 @@ def fleet_mission_text(drones: int, seed: int = 0, controller: str = "track") ->
     closer than 2 m to another), the tasks are drawn (generator ``seed``) from the rest, 2 m
     above the local floor. Deterministic for a seed.
     """
+    from btmission.runtime.paths import field_bytes
     from btmission.world.minegen import generate_mine
     from btmission.world.voxel import OCCUPIED
 
@@ -78,7 +79,7 @@ def fleet_mission_text(drones: int, seed: int = 0, controller: str = "track") ->
         )
     # one D*+ cost-to-goal field per task goal and per home (float32 over the padded map): a
     # large fleet needs more than the default budget, or evicted fields are searched again
-    field_mb = 4 * math.prod(n + 2 for n in vm.shape) / 2**20
+    field_mb = field_bytes(vm.shape) / 2**20
     need_mb = math.ceil(1.1 * (n_tasks + drones) * field_mb)
     fields = f", path_fields_mb: {need_mb}" if need_mb > 1024 else ""
     rng = np.random.default_rng(seed)

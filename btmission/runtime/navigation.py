@@ -707,22 +707,15 @@ class Navigator:
         taken at this vehicle's height."""
         if self._neighbours is not None:
             out = self._neighbours(self.agent)
-            flat = np.isnan(out[:, 2])
-            if flat.any():
-                out[flat, 2] = tel.position[2]
-            return out
-        if self._predictions is None:
+        elif self._predictions is not None:
+            from btmission.runtime.bus import first_points
+
+            out = first_points(self._predictions(self.agent))
+        else:
             return _NO_POSITIONS
-        shared = self._predictions(self.agent)
-        if not shared:
-            return _NO_POSITIONS
-        out = np.empty((len(shared), 3))
-        for i, pred in enumerate(shared):
-            if pred.shape[1] >= 3:
-                out[i] = pred[0, :3]
-            else:
-                out[i, :2] = pred[0, :2]
-                out[i, 2] = tel.position[2]
+        flat = np.isnan(out[:, 2])
+        if flat.any():
+            out[flat, 2] = tel.position[2]
         return out
 
     def _route_step(

@@ -55,6 +55,12 @@ copy of the rows in use: 0.2 s for 8 fields of the 2 M-voxel mine, a stall in th
 run)."""
 
 
+def field_bytes(shape: Sequence[int]) -> int:
+    """Memory of one cost-to-goal field of :class:`PathCosts` on a map of ``shape`` voxels:
+    float32 over the map padded by a voxel on every side."""
+    return 4 * math.prod(int(n) + 2 for n in shape)
+
+
 @dataclass(frozen=True)
 class Route:
     """A path to a goal: waypoints from the agent's voxel to the goal's (the D*+ voxel path
@@ -106,9 +112,10 @@ class PathCosts:
         self.cost_map = CostMap(inflate(voxel_map, self.clearance_m), self.risk)
         self.planner = Planner(self.cost_map)
         self._fields: OrderedDict[int, _GoalField | None] = OrderedDict()
-        size = self.cost_map.padded.size
-        most = max(1, self.max_bytes // (size * 4)) + 2
-        self._rows = np.empty((min(most, max(INITIAL_ROWS, self.reserve + 1)), size), np.float32)
+        self._field_bytes = field_bytes(voxel_map.shape)
+        self._most_rows = max(1, self.max_bytes // self._field_bytes) + 2  # one over: evicting
+        rows = min(self._most_rows, max(INITIAL_ROWS, self.reserve + 1))
+        self._rows = np.empty((rows, self.cost_map.padded.size), np.float32)
         """Every field's lengths, one row each (row 0: no path), so that the costs to many
         goals are one gather (:meth:`path_costs`). Room for :data:`INITIAL_ROWS` from the start:
         rows not in use are never touched, so the memory behind them is not taken (it is
@@ -218,15 +225,14 @@ class PathCosts:
             return self._free_rows.pop()
         n, size = self._rows.shape
         if self._in_use == n:
-            most = max(1, self.max_bytes // (size * 4)) + 2  # one over while evicting
-            grown = np.empty((max(n + 1, min(2 * n, most)), size), dtype=np.float32)
+            grown = np.empty((max(n + 1, min(2 * n, self._most_rows)), size), dtype=np.float32)
             grown[:n] = self._rows
             self._rows = grown
         self._in_use += 1
         return self._in_use - 1
 
     def _evict(self) -> None:
-        per = self.cost_map.padded.size * 4
+        per = self._field_bytes
         while len(self._fields) > 1 and len(self._fields) * per > self.max_bytes:
             _, old = self._fields.popitem(last=False)
             if old is not None:
