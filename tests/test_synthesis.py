@@ -399,3 +399,134 @@ def test_check_skips_reachability_noise_when_loading_failed() -> None:
     report = check_library(lib, diags)
     codes = {d.code for d in report.diagnostics}
     assert "undefined-condition" in codes and not codes & {"unused-condition", "unreachable-action"}
+
+
+# ---- the quiet composites' lean tick is py_trees' own, step for step (issue 19)
+_STATUSES = ("SUCCESS", "FAILURE", "RUNNING")
+
+
+def _scripted_leaf(
+    guarded: bool, name: str, script: list[str], log: list[tuple[str, ...]]
+) -> object:
+    """A leaf whose update returns ``script[tick]`` (cycling) and that logs every initialise,
+    update and terminate: a py_trees ``Behaviour`` or the runtime's ``GuardedLeaf``."""
+    import py_trees
+
+    from btmission.runtime.leaves import GuardedLeaf
+
+    base = GuardedLeaf if guarded else py_trees.behaviour.Behaviour
+
+    class Leaf(base):  # type: ignore[misc, valid-type]
+        def initialise(self) -> None:
+            log.append(("initialise", name))
+
+        def update(self) -> py_trees.common.Status:
+            status = py_trees.common.Status[script[self.calls % len(script)]]
+            self.calls += 1
+            log.append(("update", name, status.value))
+            return status
+
+        def terminate(self, new_status: py_trees.common.Status) -> None:
+            log.append(("terminate", name, new_status.value))
+
+    leaf = Leaf(name=name)
+    leaf.calls = 0
+    return leaf
+
+
+def _tree_pair(data: object) -> tuple[object, object, list[tuple[str, ...]], list[tuple[str, ...]]]:
+    """The same random tree twice: py_trees' composites with py_trees leaves, and the quiet
+    composites with (mostly) guarded leaves; each with its own call log."""
+    import py_trees
+    from hypothesis import strategies as st
+
+    from btmission.synthesis.pytrees import QuietSelector, QuietSequence
+
+    ref_log: list[tuple[str, ...]] = []
+    new_log: list[tuple[str, ...]] = []
+    counter = [0]
+
+    def build(depth: int) -> tuple[object, object]:
+        if depth == 0 or data.draw(st.booleans()):  # type: ignore[attr-defined]
+            counter[0] += 1
+            name = f"L{counter[0]}"
+            script = data.draw(st.lists(st.sampled_from(_STATUSES), min_size=1, max_size=4))  # type: ignore[attr-defined]
+            guarded = data.draw(st.integers(0, 4)) > 0  # type: ignore[attr-defined]
+            return (
+                _scripted_leaf(False, name, script, ref_log),
+                _scripted_leaf(guarded, name, script, new_log),
+            )
+        n = data.draw(st.integers(0, 3))  # type: ignore[attr-defined]
+        kids = [build(depth - 1) for _ in range(n)]
+        counter[0] += 1
+        name = f"C{counter[0]}"
+        if data.draw(st.booleans()):  # type: ignore[attr-defined]
+            ref = py_trees.composites.Selector(name, memory=False, children=[k[0] for k in kids])
+            new = QuietSelector(name, memory=False, children=[k[1] for k in kids])
+        else:
+            ref = py_trees.composites.Sequence(name, memory=False, children=[k[0] for k in kids])
+            new = QuietSequence(name, memory=False, children=[k[1] for k in kids])
+        return ref, new
+
+    ref, new = build(4)
+    return ref, new, ref_log, new_log
+
+
+def _state(root: object) -> list[tuple[str, str, str | None]]:
+    return [
+        (b.name, b.status.value, getattr(getattr(b, "current_child", None), "name", None))
+        for b in root.iterate()  # type: ignore[attr-defined]
+    ]
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_the_quiet_composites_tick_as_py_trees_does() -> None:
+    """Random trees of selectors, sequences and scripted leaves ticked many times (with a stop
+    between some ticks): every call to a leaf, every status and every current child is the
+    same under py_trees' composites and under the quiet ones' lean tick."""
+    import py_trees
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    @settings(max_examples=300, deadline=None)
+    @given(st.data())
+    def check(data: st.DataObject) -> None:
+        ref, new, ref_log, new_log = _tree_pair(data)
+        for _ in range(data.draw(st.integers(1, 8))):
+            ref.tick_once()  # type: ignore[attr-defined]
+            for _node in new.tick():  # type: ignore[attr-defined]
+                pass
+            assert new_log == ref_log
+            assert _state(new) == _state(ref)
+            if data.draw(st.integers(0, 5)) == 0:
+                ref.stop(py_trees.common.Status.INVALID)  # type: ignore[attr-defined]
+                new.stop(py_trees.common.Status.INVALID)  # type: ignore[attr-defined]
+                assert new_log == ref_log and _state(new) == _state(ref)
+
+    check()
+
+
+def test_a_leaf_with_its_own_tick_keeps_it() -> None:
+    """A ``GuardedLeaf`` subclass that defines ``tick`` has no lean ``tick_now``: the quiet
+    composites run its generator, so its own tick is what happens."""
+    import py_trees
+
+    from btmission.runtime.leaves import GuardedLeaf
+    from btmission.synthesis.pytrees import QuietSequence, tick_behaviour
+
+    calls: list[str] = []
+
+    class Own(GuardedLeaf):
+        def tick(self):  # type: ignore[no-untyped-def]
+            calls.append("own tick")
+            self.status = py_trees.common.Status.SUCCESS
+            yield self
+
+        def update(self) -> py_trees.common.Status:
+            raise AssertionError("not called: its own tick does not update")
+
+    leaf = Own(name="own")
+    assert leaf.tick_now is None  # type: ignore[comparison-overlap]
+    root = QuietSequence("root", memory=False, children=[leaf])
+    tick_behaviour(root)
+    assert calls == ["own tick"] and root.status is py_trees.common.Status.SUCCESS

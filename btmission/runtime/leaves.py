@@ -324,19 +324,27 @@ class GuardedLeaf(py_trees.behaviour.Behaviour):
             fn = getattr(cls, name)  # through the MRO: a mixin's override is guarded too
             if not getattr(fn, "__btmission_guarded__", False):
                 setattr(cls, name, guard(fn))
+        if "tick" in cls.__dict__:  # its own tick() runs, not the lean one
+            cls.tick_now = None  # type: ignore[assignment]
 
     def tick(self) -> Iterator[py_trees.behaviour.Behaviour]:
+        """py_trees' ``Behaviour.tick`` (:meth:`tick_now`), then yield itself."""
+        self.tick_now()
+        yield self
+
+    def tick_now(self) -> None:
         """py_trees' ``Behaviour.tick`` — initialise unless RUNNING, update, stop unless
-        RUNNING, take the new status, yield itself — without formatting a debug message on
-        every call (a fleet's leaves tick hundreds of thousands of times; the guard on
-        ``update`` already turns anything but a ``Status`` into FAILURE)."""
+        RUNNING, take the new status — as a plain call (the quiet composites call it instead
+        of running a generator: a fleet's leaves tick hundreds of thousands of times), and
+        without formatting a debug message on every call (the guard on ``update`` already
+        turns anything but a ``Status`` into FAILURE). A subclass that defines its own
+        ``tick`` has no ``tick_now``, so its ``tick`` is what runs."""
         if self.status is not Status.RUNNING:
             self.initialise()
         new_status = self.update()
         if new_status is not Status.RUNNING:
             self.stop(new_status)
         self.status = new_status
-        yield self
 
     def stop(self, new_status: Status) -> None:
         """py_trees' ``Behaviour.stop`` (terminate, take the status, a fresh tick iterator)

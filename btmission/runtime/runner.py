@@ -17,7 +17,11 @@ and advances it in fixed steps of simulated time (``runtime.sim.step_s``). One s
 4. the vehicle provider advances (the simulator: every vehicle by one step) and reports
    collisions;
 5. an immutable :class:`~btmission.runtime.snapshot.RunSnapshot` of the run is published
-   (:attr:`MissionRun.snapshot`) for readers on other threads.
+   (:attr:`MissionRun.snapshot`) for readers on other threads — when
+   :data:`SNAPSHOT_PERIOD_S` of wall time has passed since the last one (a real-time run: every
+   step; a fast simulated one takes hundreds of steps a second, which no viewer or console
+   reads), after every applied command and at the end. The thread that steps the run always
+   reads the last step's.
 
 Time comes from the vehicle provider's clock: the simulator's (or the fake provider's) fixed
 steps, never the wall clock, so a simulated run is deterministic for a seed and goes as fast as
@@ -111,6 +115,10 @@ LATE_STEPS_WARNING = 400
 
 NEIGHBOUR_RANGE_M = 6.0
 """Agents farther than this are left out of each other's avoidance (APF, NMPC constraints)."""
+
+SNAPSHOT_PERIOD_S = 0.01
+"""Wall time between the snapshots the steps publish (module docstring, item 5): readers on other
+threads (viewer, console) poll a few times a second at most."""
 
 
 @dataclass
@@ -297,8 +305,10 @@ class MissionRun:
         ]
         self._trees: dict[str, tuple[tuple[int, Any], Mapping[int, str]]] = {}
         self._nodes: dict[str, tuple[tuple[str, int, str], ...]] = {}
-        self.snapshot: RunSnapshot = self._snapshot()
-        """The run as it stands after the last step (immutable; any thread may read it)."""
+        self._owner = threading.get_ident()
+        """The thread that steps the run (:attr:`snapshot`)."""
+        self._published_wall = 0.0
+        self._published: RunSnapshot = self._publish()
         vm = self.map
         started: dict[str, Any] = {}
         if isinstance(self.provider, NoVehicles):  # when this mission's clock was zero
@@ -671,7 +681,7 @@ class MissionRun:
                 error = str(exc)
             settled.append((future, self._log_command(command, error)))
         if settled:  # whoever waits for an outcome then reads a snapshot that shows it
-            self.snapshot = self._snapshot()
+            self._publish()
             _settle(settled)
 
     def _log_command(self, command: Command, error: str) -> Outcome:
@@ -764,7 +774,8 @@ class MissionRun:
         for ev in self.provider.step(self.dt):
             self.collisions += 1
             self.emit("collision", agent=ev.vehicle, other=ev.other, p=list(ev.position))
-        self.snapshot = self._snapshot()
+        if time.perf_counter() - self._published_wall >= SNAPSHOT_PERIOD_S:
+            self._publish()
 
     def _pose(self, aid: str) -> None:
         """A ``pose`` event: the vehicle's telemetry, and the provider's ground truth (the
@@ -792,6 +803,22 @@ class MissionRun:
                 (str(n[0]), int(n[1]), str(n[2])) for n in agent.tree_nodes
             )
         return nodes
+
+    @property
+    def snapshot(self) -> RunSnapshot:
+        """The run as it stands (immutable; any thread may read it and keep it). On the thread
+        that steps the run it is the last step's; on others it is at most
+        :data:`SNAPSHOT_PERIOD_S` of wall time older (module docstring, item 5)."""
+        snap = self._published
+        if snap.steps != self.steps and snap.ended is None and threading.get_ident() == self._owner:
+            snap = self._publish()
+        return snap
+
+    def _publish(self, ended: str | None = None) -> RunSnapshot:
+        """Build and publish the snapshot of now (module docstring, item 5)."""
+        snap = self._published = self._snapshot(ended)
+        self._published_wall = time.perf_counter()
+        return snap
 
     def _snapshot(self, ended: str | None = None) -> RunSnapshot:
         agents = []
@@ -894,6 +921,7 @@ class MissionRun:
         continue. ``progress(run)`` is called every ``progress_every_s`` of mission time."""
         limit = self.mission.spec.runtime.max_duration_s
         stop_at = limit if until is None else min(until, limit)
+        self._owner = threading.get_ident()
         wall0 = time.perf_counter()
         steps0 = self.steps
         clock0 = self.clock.now()
@@ -1024,7 +1052,7 @@ class MissionRun:
             ))
             for command, future in self.commands.take()
         ]  # fmt: skip
-        self.snapshot = self._snapshot(result.reason)
+        self._publish(result.reason)
         _settle(settled)
         for a in self.agents.values():
             a.flush_tree_events()

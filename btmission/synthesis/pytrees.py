@@ -20,6 +20,24 @@ LeafFactory = Callable[[Node], py_trees.behaviour.Behaviour]
 T = TypeVar("T")
 
 
+_RUNNING = py_trees.common.Status.RUNNING
+_SUCCESS = py_trees.common.Status.SUCCESS
+_FAILURE = py_trees.common.Status.FAILURE
+_INVALID = py_trees.common.Status.INVALID
+
+
+def tick_behaviour(behaviour: py_trees.behaviour.Behaviour) -> None:
+    """Tick ``behaviour`` once, to the end (its ``status`` is then the outcome): its
+    ``tick_now()`` when it has one (quiet composites, the runtime's guarded leaves), otherwise
+    by running py_trees' ``tick()`` generator out."""
+    lean = getattr(behaviour, "tick_now", None)
+    if lean is not None:
+        lean()
+        return
+    for _ in behaviour.tick():
+        pass
+
+
 class QuietSelector(py_trees.composites.Selector):
     """A py_trees ``Selector`` whose ``tick()`` yields only itself, once, at the end.
 
@@ -30,28 +48,104 @@ class QuietSelector(py_trees.composites.Selector):
     and yielding ``self`` once changes nothing but that cost. Use only where nobody visits the
     yielded behaviours: the dry run, and the agents' trees, whose status visitor
     (:class:`~btmission.runtime.treestatus.StatusChanges`) compares every node after the tick.
-    """
+
+    Without ``memory`` (every synthesised tree) the tick is :meth:`tick_now`: py_trees'
+    ``Selector.tick`` step for step — initialise unless RUNNING; tick the children in order
+    until one is RUNNING or SUCCESS; if that is not the child that ran before, stop (INVALID)
+    every child after it; take its status (stopping on SUCCESS), or FAILURE when all failed —
+    as plain calls instead of nested generators (a fleet's trees tick thousands of composites a
+    second)."""
 
     def tick(self) -> Iterator[py_trees.behaviour.Behaviour]:
-        for _ in super().tick():
-            pass
+        self.tick_now()
         yield self
 
-    def stop(self, new_status: py_trees.common.Status = py_trees.common.Status.INVALID) -> None:
+    def tick_now(self) -> None:
+        """One tick to the end (class docstring)."""
+        if self.memory:
+            for _ in py_trees.composites.Selector.tick(self):
+                pass
+            return
+        children = self.children
+        if self.status is not _RUNNING:
+            self.current_child = children[0] if children else None
+            self.initialise()
+        if not children:
+            self.current_child = None
+            self.stop(_FAILURE)
+            return
+        previous = self.current_child
+        for child in children:
+            tick_behaviour(child)
+            status = child.status
+            if status is _RUNNING or status is _SUCCESS:
+                self.current_child = child
+                if previous is not child:  # interrupted: invalidate the lower priorities
+                    passed = False
+                    for other in children:
+                        if passed and other.status is not _INVALID:
+                            other.stop(_INVALID)
+                        passed = passed or other is child
+                if status is _SUCCESS:
+                    self.stop(status)
+                else:
+                    self.status = status
+                return
+        self.stop(_FAILURE)
+        self.current_child = children[-1]
+
+    def stop(self, new_status: py_trees.common.Status = _INVALID) -> None:
         """py_trees' ``Selector.stop`` without formatting its debug message on every call (it
         only logs, then does ``Composite.stop``)."""
         py_trees.composites.Composite.stop(self, new_status)
 
 
 class QuietSequence(py_trees.composites.Sequence):
-    """The ``Sequence`` counterpart of :class:`QuietSelector`."""
+    """The ``Sequence`` counterpart of :class:`QuietSelector`; without ``memory`` its
+    :meth:`tick_now` is py_trees' ``Sequence.tick`` step for step: unless RUNNING, stop every
+    child that is not INVALID and initialise; tick the children in order while they succeed;
+    at the first that does not, stop (INVALID) the children after it and take its status
+    (stopping unless RUNNING); SUCCESS when all succeeded."""
 
     def tick(self) -> Iterator[py_trees.behaviour.Behaviour]:
-        for _ in super().tick():
-            pass
+        self.tick_now()
         yield self
 
-    def stop(self, new_status: py_trees.common.Status = py_trees.common.Status.INVALID) -> None:
+    def tick_now(self) -> None:
+        """One tick to the end (class docstring)."""
+        if self.memory:
+            for _ in py_trees.composites.Sequence.tick(self):
+                pass
+            return
+        children = self.children
+        self.current_child = children[0] if children else None
+        if self.status is not _RUNNING:
+            for child in children:
+                if child.status is not _INVALID:
+                    child.stop(_INVALID)
+            self.initialise()
+        if not children:
+            self.current_child = None
+            self.stop(_SUCCESS)
+            return
+        last = len(children) - 1
+        for index, child in enumerate(children):
+            tick_behaviour(child)
+            status = child.status
+            if status is not _SUCCESS:
+                for other in children[index + 1 :]:  # kill dangling runners
+                    if other.status is not _INVALID:
+                        other.stop(_INVALID)
+                if status is not _RUNNING:
+                    self.stop(status)
+                else:
+                    self.status = status
+                return
+            if index < last:
+                self.current_child = children[index + 1]
+        self.stop(_SUCCESS)
+
+    def stop(self, new_status: py_trees.common.Status = _INVALID) -> None:
         """py_trees' ``Sequence.stop`` without its debug message (as :class:`QuietSelector`)."""
         py_trees.composites.Composite.stop(self, new_status)
 
