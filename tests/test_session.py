@@ -240,6 +240,32 @@ def test_snapshots_are_immutable_and_follow_the_run(tmp_path: Path) -> None:
     assert run.snapshot.ended == "completed" and run.snapshot.counts() == {"done": 2}
 
 
+def test_snapshots_are_published_at_most_every_period_and_fresh_on_the_stepping_thread(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A fast run publishes a snapshot when SNAPSHOT_PERIOD_S of wall time has passed (other
+    threads see that one); the thread that steps the run always reads the last step's."""
+    import btmission.runtime.runner as runner_module
+
+    m = load_mission_text(textwrap.dedent(ROBOTS), str(tmp_path / "m.yaml"))
+    run = MissionRun(m)
+    monkeypatch.setattr(runner_module, "SNAPSHOT_PERIOD_S", 3600.0)  # none published by steps
+    for _ in range(5):
+        run.step()
+    seen: list[Any] = []
+    reader = threading.Thread(target=lambda: seen.append(run.snapshot))
+    reader.start()
+    reader.join()
+    assert seen[0].steps == 0  # another thread: the one published at the start
+    assert run.snapshot.steps == run.steps == 5  # the stepping thread: this step's
+    monkeypatch.setattr(runner_module, "SNAPSHOT_PERIOD_S", 0.0)  # every step publishes
+    run.step()
+    reader = threading.Thread(target=lambda: seen.append(run.snapshot))
+    reader.start()
+    reader.join()
+    assert seen[1].steps == run.steps == 6
+
+
 def test_a_reader_thread_steers_the_run_through_snapshots_and_commands(tmp_path: Path) -> None:
     """Another thread reads snapshots while the loop runs and stops it with a command."""
     seen: list[float] = []
