@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 
@@ -391,21 +392,77 @@ def test_bad_noise_settings_are_refused(kwargs: dict[str, float], message: str) 
     st.floats(-0.4, 0.4),
     st.floats(-0.4, 0.4),
 )
-def test_the_float_rk4_step_is_the_vector_one(
+def test_the_compiled_rk4_step_is_the_vector_one(
     x: list[float], thrust: float, phi: float, theta: float
 ) -> None:
-    from btmission.control.mav_model import mav_rk4_floats, rk4_step
+    from btmission.backends import _multirotor_kernels as kernels
+    from btmission.backends.sim import Simulator
+    from btmission.control.mav_model import rk4_step
 
     p = MavParams()
     u = [thrust, phi, theta]
     vec = rk4_step(lambda s, w: mav_dynamics(s, w, p), np.array(x), np.array(u), 0.05)
-    assert np.array_equal(np.array(mav_rk4_floats(x, u, 0.05, p)), vec)
+    packed = Simulator(VoxelMap.empty((4, 4, 4), 1.0), params=p)._packed
+    assert np.array_equal(kernels.rk4(np.array(x), np.array(u), 0.05, packed), vec)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.floats(-2, 62), st.floats(-2, 42), st.floats(-2, 10))
+def test_the_compiled_ground_and_rock_queries_are_the_worlds(x: float, y: float, z: float) -> None:
+    """The multirotor step's own ``occupied`` and ``ground_z`` (a column scan) answer as the
+    world's (its ground table, and ``VoxelMap.ground_z``) do, in and around the map."""
+    from btmission.backends import _multirotor_kernels as kernels
+
+    world = _shared_mine_world()
+    assert kernels.occupied(world._occ, world._grid, x, y, z) == world.occupied((x, y, z))
+    assert kernels.ground_z(world._occ, world._grid, x, y, z) == world.ground_z((x, y, z))
+    assert kernels.ground_z(world._occ, world._grid, x, y, z) == world.map.ground_z((x, y, z))
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(st.floats(-3, 3), min_size=5, max_size=5),
+    st.floats(-3.1, 3.1),
+    st.floats(5, 15),
+    st.floats(-0.3, 0.3),
+    st.floats(-0.3, 0.3),
+)
+def test_the_compiled_step_flies_the_model_in_the_yaw_frame(
+    v: list[float], yaw: float, thrust: float, phi: float, theta: float
+) -> None:
+    """In open air, under an attitude setpoint, one step is an RK4 step of the vector model in
+    the yaw frame, rotated back to the world (seed 002 §3.2.2), and the distance flown."""
+    from btmission.backends import _multirotor_kernels as kernels
+    from btmission.backends.sim import Simulator
+    from btmission.control.mav_model import rk4_step, world_to_yaw_frame, yaw_frame_to_world
+
+    sim = Simulator(VoxelMap.empty((40, 40, 40), 1.0))
+    x = np.array([20.0, 20.0, 20.0, *v])
+    out = np.zeros(kernels.N_OUT)
+    att = np.array([thrust, phi, theta])
+    kernels.step(
+        x, yaw, kernels.CMD_ATTITUDE, np.zeros(3), np.zeros(3), att, True,
+        kernels.YAW_NONE, 0.0, False, 0.05, sim._packed, sim.world._occ, sim.world._grid, out,
+    )  # fmt: skip
+    body = np.concatenate([[0.0, 0.0, 0.0], world_to_yaw_frame(x[3:6], yaw), x[6:]])
+    p = MavParams()
+    ref = rk4_step(lambda s, w: mav_dynamics(s, w, p), body, att, 0.05)
+    want = np.concatenate(
+        [x[:3] + yaw_frame_to_world(ref[:3], yaw), yaw_frame_to_world(ref[3:6], yaw), ref[6:]]
+    )
+    assert np.allclose(out[:8], want, rtol=0, atol=1e-12)
+    assert out[kernels.OUT_ROCK] == 0 and out[kernels.OUT_YAW] == pytest.approx(yaw, abs=1e-12)
+    assert out[kernels.OUT_ODOMETER] == pytest.approx(float(np.linalg.norm(want[:3] - x[:3])))
 
 
 def _mine_world() -> SimWorld:
     from btmission.world.minegen import generate_mine
 
     return SimWorld(generate_mine(seed=3, size=(60.0, 40.0, 8.0), resolution=0.5).map)
+
+
+_shared_mine_world = functools.cache(_mine_world)
+"""One mine for the property tests that only query it."""
 
 
 def test_the_world_queries_agree_with_the_voxel_map() -> None:

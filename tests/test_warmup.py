@@ -47,12 +47,13 @@ def test_the_warm_up_calls_the_kernels_no_command_runs() -> None:
 def test_a_run_loads_its_loop_kernels_while_it_builds() -> None:
     """What prepare_run (called by MissionRun's build) loads covers the loop: a drone mission in
     the mine (D*+ fields and routes, bids, LiDAR on rock and bodies, APF with the others' push,
-    carrot chasing, the clearance to the walls) then compiles or loads no kernel of the planner
+    carrot chasing, the clearance to the walls, the multirotors' step) then compiles or loads no kernel of the planner
     or the vehicle control, and the assignment's scipy module is already there."""
     import sys
 
     from numba.core.registry import CPUDispatcher
 
+    from btmission.backends import _multirotor_kernels as multirotor
     from btmission.backends import _surface_kernels as surf
     from btmission.bench.fleet import fleet_mission_text
     from btmission.control import _apf_kernels as apf
@@ -65,12 +66,13 @@ def test_a_run_loads_its_loop_kernels_while_it_builds() -> None:
     warmup.prepare_run()
     assert "scipy.optimize" in sys.modules
     kernels = [
-        f for mod in (apf, route, surf, plan, near) for f in vars(mod).values()
+        f for mod in (apf, route, surf, plan, near, multirotor) for f in vars(mod).values()
         if isinstance(f, CPUDispatcher)
     ]  # fmt: skip
     before = {f.__name__: len(f.signatures) for f in kernels}
     used = {"navigator_force", "project", "point_at", "scan_points", "nearest_distances"}
     used |= {"near_rows"}  # a fleet's neighbour query (ten drones: past SMALL_FLEET)
+    used |= {"step"}  # the simulator's multirotor step
     assert used <= set(before) and all(before[k] for k in used)
     run = MissionRun(load_mission_text(fleet_mission_text(10), "fleet.yaml"), controller="track")
     run.run(until=25)

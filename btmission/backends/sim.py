@@ -80,7 +80,7 @@ from btmission.backends.base import (
 )
 from btmission.backends.mapsensors import Bodies, MapSensors, SensorPose
 from btmission.backends.provider import Vehicle, VehicleEvent
-from btmission.control.mav_model import MavParams, mav_rk4_floats
+from btmission.control.mav_model import MavParams
 from btmission.localization.scan import LidarSensor
 from btmission.types import FloatArray, Vec3
 from btmission.world.voxel import OCCUPIED, VoxelMap
@@ -99,9 +99,13 @@ WALL_QUERY_M = 5.0
 SMALL_FLEET = 6
 """Up to this many vehicles the contact test loops over the pairs (numpy's set-up costs more)."""
 GROUND_TABLE_MAX_VOXELS = 64_000_000
+"""Maps up to this size keep a per-voxel ground table (2 bytes a voxel) for fast ground_z."""
 SURFACE_CELLS_MAX = 4_000_000
 """Most cells of the grid the rock-face points are sorted into (its start table: 8 bytes each)."""
-"""Maps up to this size keep a per-voxel ground table (2 bytes a voxel) for fast ground_z."""
+POSITION_GAIN = 1.0
+"""The autopilot's position loop: velocity command (m/s) per metre of position error."""
+VELOCITY_GAIN = 1.2
+"""The autopilot's velocity loop: acceleration command (m/s²) per m/s of velocity error."""
 HEADING_P = 1.0
 """Heading loop gain (rad/s per rad) for position setpoints with a yaw."""
 CMD_VEL_TIMEOUT_S = 0.5
@@ -269,6 +273,8 @@ class SimWorld:
         self._occ = occ
         self._origin = tuple(float(o) for o in voxel_map.origin)
         self._res = float(res)
+        self._grid = np.array([*self._origin, self._res], dtype=float)
+        """Origin and resolution, for the compiled multirotor step."""
         self._shape = tuple(int(n) for n in occ.shape)
         # the highest rock voxel at or below each voxel of its column (-1: none): ground_z in
         # O(1) per query instead of a column scan (the world is static)
@@ -427,6 +433,9 @@ class Simulator:
         self.config = config or SimConfig()
         self.world = SimWorld(voxel_map, artifacts)
         self.params = params or MavParams()
+        self._packed = self._pack()
+        self._out = np.zeros(16)
+        """The compiled multirotor step's result (:meth:`_step_multirotor`)."""
         self.seed = seed
         self.rng = np.random.default_rng(seed)
         self.time_s = 0.0
@@ -530,119 +539,100 @@ class Simulator:
         """PX4-like mode logic: failsafes and automatic disarming."""
         autopilot_rules(v, t, lambda: v.x[:3].copy())
 
-    def _attitude_command(self, v: _Vehicle) -> list[float]:
-        """[T, φ_ref, θ_ref] from the active mode and setpoint (on plain floats: the arithmetic
-        of the vector form, element by element, in the same order)."""
-        x = v.x
-        px, py, pz = float(x[0]), float(x[1]), float(x[2])
-        cfg = self.config
-        mode = v.mode
-        if mode is Mode.OFFBOARD and v.sp_kind == "attitude":
-            return [float(a) for a in v.sp_att]
-        if mode is Mode.OFFBOARD and v.sp_kind == "position":
-            sv, sp = v.sp_vel, v.sp_pos
-            dx = float(sv[0]) + 1.0 * (float(sp[0]) - px)
-            dy = float(sv[1]) + 1.0 * (float(sp[1]) - py)
-            dz = float(sv[2]) + 1.0 * (float(sp[2]) - pz)
-        elif mode is Mode.OFFBOARD and v.sp_kind == "velocity":
-            dx, dy, dz = (float(a) for a in v.sp_vel)
-        elif mode is Mode.TAKEOFF or mode is Mode.HOLD:
-            hold = v.hold
-            dx, dy, dz = (
-                1.0 * (float(hold[0]) - px),
-                1.0 * (float(hold[1]) - py),
-                1.0 * (float(hold[2]) - pz),
-            )
-        elif mode is Mode.LAND:
-            hold = v.hold
-            dx, dy, dz = 1.0 * (float(hold[0]) - px), 1.0 * (float(hold[1]) - py), -LAND_SPEED
-        else:
-            return [0.0, 0.0, 0.0]
-        h = float(np.hypot(dx, dy))
-        if h > cfg.max_speed_m_s:
-            scale = cfg.max_speed_m_s / h
-            dx, dy = dx * scale, dy * scale
-        dz = min(max(dz, -cfg.max_climb_m_s), cfg.max_climb_m_s)
-        vx, vy, vz = float(x[3]), float(x[4]), float(x[5])
-        ax, ay, az = self.params.drag
-        return _thrust_attitude(
-            1.2 * (dx - vx) + ax * vx,
-            1.2 * (dy - vy) + ay * vy,
-            1.2 * (dz - vz) + az * vz,
-            v.yaw,
-            self.params.g,
+    def _pack(self) -> FloatArray:
+        """The model's, autopilot's and simulator's parameters for the compiled step."""
+        from btmission.backends._multirotor_kernels import pack_params
+
+        mp, cfg = self.params, self.config
+        return pack_params(
+            mp.g,
+            mp.drag,
+            mp.gain_roll,
+            mp.tau_roll_s,
+            mp.gain_pitch,
+            mp.tau_pitch_s,
+            cfg.max_speed_m_s,
+            cfg.max_climb_m_s,
+            cfg.body_radius_m,
+            TILT_MAX,
+            HEADING_P,
+            YAW_RATE_MAX,
+            LAND_SPEED,
+            IMPACT_SPEED,
+            POSITION_GAIN,
+            VELOCITY_GAIN,
         )
 
     def _step_multirotor(self, v: _Vehicle, dt: float) -> None:
         """One step of the seed 002 model (RK4 in the yaw frame), the yaw loop, rock and
-        ground contact, landing, battery and odometer — on plain floats (one call per vehicle
-        per step: numpy's per-call cost on 3- and 8-vectors was most of the simulator's time)."""
+        ground contact and landing in one compiled call
+        (:func:`~btmission.backends._multirotor_kernels.step`: Python's per-call cost on a dozen
+        floats was most of the simulator's time at fleet scale); then the mode, battery and
+        odometer."""
+        from btmission.backends import _multirotor_kernels as kernels
+
         t = self.time_s
         if v.frozen:
             return
-        u = self._attitude_command(v) if v.armed else [0.0, 0.0, 0.0]
-        if v.armed and v.mode is not Mode.MANUAL:
-            u[1] = min(max(u[1], -TILT_MAX), TILT_MAX)
-            u[2] = min(max(u[2], -TILT_MAX), TILT_MAX)
-        v.thrust = u[0]
-        g = self.params.g
+        mode, armed, kind = v.mode, v.armed, v.sp_kind
+        offboard = mode is Mode.OFFBOARD
+        command = kernels.CMD_NONE
+        target = v.hold
+        if not armed:
+            pass
+        elif offboard and kind == "attitude":
+            command = kernels.CMD_ATTITUDE
+        elif offboard and kind == "position":
+            command, target = kernels.CMD_POSITION, v.sp_pos
+        elif offboard and kind == "velocity":
+            command = kernels.CMD_VELOCITY
+        elif mode is Mode.TAKEOFF or mode is Mode.HOLD:
+            command = kernels.CMD_HOLD
+        elif mode is Mode.LAND:
+            command = kernels.CMD_LAND
         # yaw: the commanded rate, or a P loop on the heading setpoint
-        if v.mode is Mode.OFFBOARD and v.sp_kind in ("velocity", "attitude"):
-            rate = v.sp_yaw_rate
-        elif v.mode is Mode.OFFBOARD and v.sp_yaw is not None:
-            rate = min(max(HEADING_P * _wrap(v.sp_yaw - v.yaw), -YAW_RATE_MAX), YAW_RATE_MAX)
-        else:
-            rate = 0.0
-        if v.landed and v.thrust < g * 1.01:
-            rate = 0.0
-        v.yaw_rate = rate
-        x = [float(a) for a in v.x]
-        old = x[0], x[1], x[2]
-        if v.landed and v.thrust <= g:
-            x[3:] = [0.0] * 5  # resting on the ground
-        else:
-            # the model lives in the yaw frame (seed 002 §3.2.2): integrate there, rotate back
-            # (ṗ = v only: integrate from p = 0 and rotate the displacement back)
-            c, sn = math.cos(v.yaw), math.sin(v.yaw)
-            vx, vy = x[3], x[4]
-            xy = [0.0, 0.0, 0.0, c * vx + sn * vy, -sn * vx + c * vy, x[5], x[6], x[7]]
-            xy = mav_rk4_floats(xy, u, dt, self.params)
-            new = [
-                x[0] + c * xy[0] - sn * xy[1],
-                x[1] + sn * xy[0] + c * xy[1],
-                x[2] + xy[2],
-                c * xy[3] - sn * xy[4],
-                sn * xy[3] + c * xy[4],
-                xy[5],
-                xy[6],
-                xy[7],
-            ]
-            if self.world.occupied((new[0], new[1], new[2] + self.config.body_radius_m)):
-                v.contact["rock"] = True  # bumped into rock: stopped at the last free position
-                new[0:3] = x[0:3]
-                new[3:6] = [0.0, 0.0, 0.0]
-            x = new
-        v.yaw = _wrap(v.yaw + rate * dt)
-        ground = self.world.ground_z((x[0], x[1], x[2] + 0.05))
+        yaw_mode, yaw_sp = kernels.YAW_NONE, 0.0
+        if offboard and kind in ("velocity", "attitude"):
+            yaw_mode, yaw_sp = kernels.YAW_RATE, float(v.sp_yaw_rate)
+        elif offboard and v.sp_yaw is not None:
+            yaw_mode, yaw_sp = kernels.YAW_HEADING, float(v.sp_yaw)
+        out = self._out
+        kernels.step(
+            v.x,
+            float(v.yaw),
+            command,
+            target,
+            v.sp_vel,
+            v.sp_att,
+            armed and mode is not Mode.MANUAL,
+            yaw_mode,
+            yaw_sp,
+            v.landed,
+            dt,
+            self._packed,
+            self.world._occ,
+            self.world._grid,
+            out,
+        )
+        x = out[:8].copy()
+        v.x = x
+        v.yaw, v.yaw_rate, v.thrust, ground, rock, impact, landed, flown = out[8:].tolist()
         v.ground = ground
-        if x[2] <= ground:
-            if x[5] < -IMPACT_SPEED:
-                v.contact["impact"] = True
-            x[2] = ground
-            x[3:8] = [0.0] * 5
-        v.x = np.array(x)
+        if rock:
+            v.contact["rock"] = True  # bumped into rock: stopped at the last free position
+        if impact:
+            v.contact["impact"] = True
         was_landed = v.landed
-        v.landed = x[2] - ground < 0.05 and x[5] <= 0.3 and v.thrust <= g * 1.05
+        v.landed = landed > 0
         if v.landed and not was_landed:
             v.landed_at = t
         if not v.landed:
             v.took_off = True
-        if v.mode is Mode.TAKEOFF and abs(x[2] - v.hold[2]) < 0.1:
+        if v.mode is Mode.TAKEOFF and abs(float(x[2]) - v.hold[2]) < 0.1:
             v.mode = Mode.HOLD
         if v.armed:
             v.battery = max(0.0, v.battery - dt / self.config.battery_s)
-        d = np.array([x[0] - old[0], x[1] - old[1], x[2] - old[2]])
-        v.odometer_m += math.sqrt(float(d @ d))  # = np.linalg.norm, to the bit
+        v.odometer_m += flown
 
     # ---- ground robot
     def _step_ground(self, v: _Vehicle, t: float, dt: float) -> None:
@@ -775,29 +765,15 @@ def thrust_attitude(acc: FloatArray, yaw: float, g: float = G) -> FloatArray:
 
     In the yaw frame the model's acceleration is [T cos φ sin θ, −T sin φ, T cos φ cos θ − g], so
     with t = R_z(−ψ)(acc + g e_z): T = ‖t‖, φ = asin(−t_y / T), θ = atan2(t_x, t_z). The thrust
-    vector is first tilted back inside the tilt limit (keeping its vertical part).
+    vector is first tilted back inside the tilt limit (keeping its vertical part); the
+    simulator's autopilot does this every step
+    (:func:`~btmission.backends._multirotor_kernels.thrust_attitude`).
     """
-    return np.array(_thrust_attitude(float(acc[0]), float(acc[1]), float(acc[2]), yaw, g))
+    from btmission.backends._multirotor_kernels import thrust_attitude as compiled
 
-
-def _thrust_attitude(ax: float, ay: float, az: float, yaw: float, g: float) -> list[float]:
-    """:func:`thrust_attitude` on plain floats (R_z(−ψ) as in
-    :func:`~btmission.control.mav_model.world_to_yaw_frame`)."""
-    tz = max(az + g, 0.2 * g)
-    c, s = math.cos(-yaw), math.sin(-yaw)
-    tx, ty = c * ax - s * ay, s * ax + c * ay
-    horiz = math.hypot(tx, ty)
-    limit = tz * math.tan(TILT_MAX)
-    if horiz > limit:
-        tx, ty = tx * limit / horiz, ty * limit / horiz
-    thrust = math.sqrt(tx * tx + ty * ty + tz * tz)
-    phi = math.asin(max(-1.0, min(1.0, -ty / thrust)))
-    theta = math.atan2(tx, tz)
-    return [thrust, phi, theta]
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
+    return np.array(
+        compiled(float(acc[0]), float(acc[1]), float(acc[2]), float(yaw), float(g), TILT_MAX)
+    )
 
 
 class SimVehicle(OffboardCommands):

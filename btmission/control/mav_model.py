@@ -26,7 +26,7 @@ the NMPC); a test checks they agree. :func:`rk4_step` integrates either one.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -127,24 +127,6 @@ def rk4_step(f: Callable[[_S, Any], _S], x: _S, u: Any, dt: float, substeps: int
         k4: Any = f(x + h * k3, u)  # type: ignore[operator]
         x = x + (h / 6) * (k1 + 2 * k2 + 2 * k3 + k4)  # type: ignore[operator]
     return x
-
-
-def mav_rk4_floats(
-    x: Sequence[float], u: Sequence[float], dt: float, params: MavParams = MavParams()
-) -> list[float]:
-    """One RK4 step of :func:`mav_dynamics` on plain floats: ``rk4_step(mav_dynamics, x, u, dt)``
-    with the same operations in the same order (so the same bits), without numpy's per-call
-    cost on eight-element vectors — the simulator takes one such step per multirotor per step.
-    """
-    cos, sin = math.cos, math.sin
-    h2, h6 = dt / 2, dt / 6
-    k1 = _rhs(x, u, params, cos, sin)
-    k2 = _rhs([a + h2 * b for a, b in zip(x, k1)], u, params, cos, sin)
-    k3 = _rhs([a + h2 * b for a, b in zip(x, k2)], u, params, cos, sin)
-    k4 = _rhs([a + dt * b for a, b in zip(x, k3)], u, params, cos, sin)
-    return [
-        a + h6 * (b + 2 * c + 2 * d + e) for a, b, c, d, e in zip(x, k1, k2, k3, k4, strict=True)
-    ]
 
 
 def simulate(
