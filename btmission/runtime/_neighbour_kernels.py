@@ -39,3 +39,19 @@ def near_rows(starts, n, x, y, within, own):  # pragma: no cover - jit
             rows[j] = r
             k += 1
     return rows[:k]
+
+
+@njit(cache=True)
+def near_points(starts, multi, n, x, y, within, own):  # pragma: no cover - jit
+    """:func:`near_rows`, with those rows' points (k, 3) and whether any of them is a
+    trajectory's first point (``multi``: the caller then takes its point at the time asked)."""
+    rows = near_rows(starts, n, x, y, within, own)
+    out = np.empty((len(rows), 3))
+    trajectory = False
+    for i in range(len(rows)):
+        r = rows[i]
+        out[i, 0] = starts[r, 0]
+        out[i, 1] = starts[r, 1]
+        out[i, 2] = starts[r, 2]
+        trajectory = trajectory or multi[r]
+    return rows, out, trajectory

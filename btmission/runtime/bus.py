@@ -330,17 +330,24 @@ class InMemoryBus:
         """The first point of each of :meth:`predictions` (same order), stacked (k, 3), z NaN
         for a 2D prediction: where the neighbours are now, without a list of arrays (every
         agent asks every control step)."""
-        rows = self._near_rows(agent, near, within_m)
-        if rows is None:
+        n = len(self._row_names)
+        if not math.isfinite(within_m) or n <= SMALL_FLEET:
             return first_points(
                 advance_predictions(self._predictions, agent, time_s, step_s, near, within_m)
             )
-        out = self._starts[rows]
-        names = self._row_names
-        for i, r in enumerate(rows):
-            if self._multi[r]:  # a trajectory: its point at time_s
-                out[i] = first_points([_advanced(self._predictions[names[r]], time_s, step_s)])[0]
-        return out
+        from btmission.runtime._neighbour_kernels import near_points
+
+        rows, out, trajectory = near_points(
+            self._starts, self._multi, n, float(near[0]), float(near[1]), float(within_m),
+            self._rows.get(agent, -1),
+        )  # fmt: skip
+        if trajectory:  # a trajectory's point at time_s
+            names = self._row_names
+            for i, r in enumerate(rows.tolist()):
+                if self._multi[r]:
+                    pred = _advanced(self._predictions[names[r]], time_s, step_s)
+                    out[i] = first_points([pred])[0]
+        return out  # type: ignore[no-any-return]
 
     def _near_rows(self, agent: str, near: FloatArray | None, within_m: float) -> list[int] | None:
         """The rows of the agents other than ``agent`` whose prediction starts within
