@@ -206,6 +206,32 @@ def test_invalid_and_out_of_order_bids_are_ignored_with_reasons() -> None:
     assert s.board["A"].time_s == 5.0
 
 
+@settings(max_examples=300, deadline=None)
+@given(
+    st.lists(
+        st.one_of(
+            st.floats(-10, 10),
+            st.sampled_from([math.nan, math.inf, -math.inf, 0.0, -0.0]),
+            st.floats(0.5e12, 2e13),
+        ),
+        max_size=6,
+    )
+)
+def test_a_bid_is_refused_exactly_when_a_cost_is_out_of_range(costs: list[float]) -> None:
+    """Bid.problem's quick test (three reductions) refuses what the definition refuses: a cost
+    below 0 (−inf too) or a finite one above MAX_COST; NaN (no bid) and inf (unreachable) pass;
+    the message names the first bad one."""
+    from btmission.allocation.solvers import MAX_COST
+
+    tasks = tuple(f"T{i}" for i in range(len(costs)))
+    problem = Bid("A", 0.0, tasks, np.array(costs, dtype=float)).problem()
+    bad = [i for i, c in enumerate(costs) if c < 0 or (math.isfinite(c) and c > MAX_COST)]
+    if not bad:
+        assert problem is None
+    else:
+        assert problem is not None and f"for task 'T{bad[0]}' is out of range" in problem
+
+
 def test_commit_reports_that_do_not_fit_are_ignored() -> None:
     s = state(info("T1"), info("T2"))
     _, s, _ = step(s, 0.0, A={"T1": 1.0}, B={"T2": 1.0})

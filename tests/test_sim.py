@@ -561,3 +561,17 @@ def test_a_fleet_sees_and_touches_each_other_as_before() -> None:
                 touching += [(a.id, b.id), (b.id, a.id)]
     assert touching, "the layout should put some vehicles in touch"
     assert [(e.vehicle, e.other) for e in sim._collisions()] == touching
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.tuples(st.floats(-3, 63), st.floats(-3, 43), st.floats(-3, 11)), max_size=20))
+def test_the_vectorised_rock_test_is_the_pointwise_one(
+    points: list[tuple[float, float, float]],
+) -> None:
+    """SimWorld.occupied_rows (every body at once, for the contact test) answers as
+    SimWorld.occupied does point by point, in the map, at its edges and outside it."""
+    world = _shared_mine_world()
+    pts = np.array(points, dtype=float).reshape(-1, 3)
+    if len(pts):
+        pts[0] = (np.nan, 1.0, 1.0)  # a non-finite point is not in rock
+    assert world.occupied_rows(pts) == [world.occupied(p) for p in pts]

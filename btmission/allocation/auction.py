@@ -251,8 +251,15 @@ class Bid:
             return f"bid from {self.agent}: time is not finite"
         if self.costs.shape != (len(self.tasks),):
             return f"bid from {self.agent}: {self.costs.shape} costs for {len(self.tasks)} task(s)"
-        bad = (self.costs < 0) | ((self.costs > MAX_COST) & np.isfinite(self.costs))
-        if np.any(bad):
+        costs = self.costs
+        # the common case in three ufunc calls (every bid of every round comes here): no cost
+        # below 0 (fmin skips NaN) and no finite one above MAX_COST
+        low = np.fmin.reduce(costs, initial=np.inf)
+        high = np.fmax.reduce(costs, where=np.isfinite(costs), initial=-np.inf)
+        if low >= 0 and high <= MAX_COST:
+            return None
+        bad = (costs < 0) | ((costs > MAX_COST) & np.isfinite(costs))
+        if np.logical_or.reduce(bad):
             i = int(np.nonzero(bad)[0][0])
             return (
                 f"bid from {self.agent}: cost {self.costs[i]:g} for task '{self.tasks[i]}' is "

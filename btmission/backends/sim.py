@@ -303,6 +303,20 @@ class SimWorld:
         nx, ny, nz = self._shape
         return 0 <= i < nx and 0 <= j < ny and 0 <= k < nz and bool(self._occ[i, j, k])
 
+    def occupied_rows(self, points: FloatArray) -> list[bool]:
+        """:meth:`occupied` of each of ``points`` (n, 3), with its arithmetic, in one pass."""
+        pts = np.asarray(points, dtype=float).reshape(-1, 3)
+        f = (pts - np.array(self._origin)) / self._res
+        idx = np.floor(f)
+        shape = np.array(self._shape, dtype=float)
+        inside = np.isfinite(f).all(axis=1) & ((idx >= 0) & (idx < shape)).all(axis=1)
+        out = np.zeros(len(pts), dtype=bool)
+        rows = np.nonzero(inside)[0]
+        if len(rows):
+            i, j, k = idx[rows].astype(np.intp).T
+            out[rows] = self._occ[i, j, k]
+        return out.tolist()  # type: ignore[no-any-return]
+
     def ground_z(self, p: Sequence[float] | FloatArray) -> float:
         """:meth:`VoxelMap.ground_z <btmission.world.voxel.VoxelMap.ground_z>`, from the
         precomputed column table."""
@@ -674,10 +688,6 @@ class Simulator:
             else self.config.ground_radius_m
         )
 
-    def _centre(self, v: _Vehicle) -> FloatArray:
-        c: FloatArray = v.position + np.array([0.0, 0.0, self._radius(v)])
-        return c
-
     def bodies(self) -> _BodyTable:
         """Every vehicle with its body sphere at this step (built once per step and shared by
         the collision check and every vehicle's LiDAR)."""
@@ -685,12 +695,11 @@ class Simulator:
         table = self._bodies
         if table is None or table.key != key:
             vs = list(self._vehicles.values())
+            radii = [self._radius(v) for v in vs]
+            centres = np.array([v.position for v in vs]).reshape(-1, 3)
+            centres[:, 2] += radii  # (the body's centre: its radius above the reference point)
             table = self._bodies = _BodyTable(
-                key,
-                vs,
-                np.array([self._centre(v) for v in vs]).reshape(-1, 3),
-                np.array([self._radius(v) for v in vs], dtype=float),
-                {v.id: i for i, v in enumerate(vs)},
+                key, vs, centres, np.array(radii, dtype=float), {v.id: i for i, v in enumerate(vs)}
             )
         return table
 
@@ -707,17 +716,17 @@ class Simulator:
         vs, centres, radii = table.vehicles, table.centres, table.radii
         if not vs:
             return out
-        walls = self.world.wall_distances(centres)
-        world = self.world
+        gaps = (self.world.wall_distances(centres) - radii).tolist()
+        inside = self.world.occupied_rows(centres)
         for i, v in enumerate(vs):
-            c = centres[i]
-            gap = float(walls[i]) - float(radii[i])
+            gap = gaps[i]
             measured = not v.landed or v.kind is VehicleKind.GROUND
             if measured and math.isfinite(gap):
                 v.clearance_min = min(v.clearance_min, gap)
-            hit = gap < -0.02 or world.occupied(c) or v.contact.pop("impact", False)
-            hit = hit or v.contact.pop("rock", False)
-            self._episode(v, "rock", hit, out, t, c)
+            contact = v.contact
+            hit = gap < -0.02 or inside[i] or contact.pop("impact", False)
+            if hit or contact.pop("rock", False):
+                self._episode(v, "rock", True, out, t, centres[i])
         if len(vs) < 2:
             return out
         if len(vs) <= SMALL_FLEET:  # a few vehicles: every pair, in the pair loop's order

@@ -714,7 +714,7 @@ class Navigator:
         else:
             return _NO_POSITIONS
         flat = np.isnan(out[:, 2])
-        if flat.any():
+        if np.logical_or.reduce(flat):  # (the ufunc: ndarray.any's Python wrapper costs more)
             out[flat, 2] = tel.position[2]
         return out
 
@@ -755,8 +755,8 @@ class Navigator:
             goal = self.flight_target(cmd.target)
         ref, vel, _, repulsion = self._apf_reference(tel, goal, cfg.speed_m_s)
         ahead = cmd.route.at(arc + 2 * cfg.lookahead_m)
-        heading = ahead[:2] - p[:2]
-        yaw = math.atan2(heading[1], heading[0]) if np.hypot(*heading) > 0.3 else None
+        hx, hy = float(ahead[0]) - float(p[0]), float(ahead[1]) - float(p[1])
+        yaw = math.atan2(hy, hx) if math.hypot(hx, hy) > 0.3 else None
         return ref, vel, yaw, repulsion
 
     def _command_multirotor(
