@@ -225,9 +225,12 @@ class Agent:
         navigator.on_route = self._route_event
         depth = behaviour_depth(self.root)
         need = recursion_for_depth(depth, frames_per_level=4)
-        self._recursion: int | None = need if need > sys.getrecursionlimit() else None
+        deep = 4 * depth > sys.getrecursionlimit() // 2  # more than half the frames left
+        self._recursion: int | None = need if deep else None
         """py_trees ticks and stops recurse once per level: a deep tree (a long chain library)
-        gets the recursion limit it needs around those calls (see btmission.recursion)."""
+        gets the recursion limit it needs around those calls (see btmission.recursion); a
+        tree that needs less than half the limit is ticked as it is (raising and restoring the
+        limit at every tick cost a fleet's loop a few per cent)."""
         if need > main_thread_limit():  # the process would crash (SIGSEGV), not raise
             path = ("agents", next(i for i, a in enumerate(mission.agents) if a.id == agent_id))
             raise SpecError([Diagnostic(
