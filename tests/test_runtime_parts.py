@@ -109,6 +109,22 @@ def test_polyline_projection_and_arc_length() -> None:
         Polyline(np.zeros((0, 3)))
 
 
+def test_the_carrots_are_the_projection_and_the_points_ahead_of_it() -> None:
+    """Polyline.carrots (one compiled call per control step) gives, to the bit, what project
+    then at(arc + d1) and at(arc + d2) give, on random routes, positions and starts (a one-point
+    route, the ends and past them included)."""
+    rng = np.random.default_rng(5)
+    for trial in range(300):
+        n = int(rng.integers(1, 8))
+        line = Polyline(np.cumsum(rng.normal(0.0, 2.0, (n, 3)), axis=0))
+        p = rng.normal(0.0, 5.0, 3)
+        start = int(rng.integers(0, n + 2))
+        d1 = float(rng.uniform(0.0, 3.0)) if trial % 7 else 100.0
+        seg, arc, c1, c2 = line.carrots(p, start, d1, 2 * d1)
+        assert (seg, arc) == line.project(p, start)
+        assert np.array_equal(c1, line.at(arc + d1)) and np.array_equal(c2, line.at(arc + 2 * d1))
+
+
 def test_bus_predictions_are_shifted_and_ordered() -> None:
     bus = InMemoryBus()
     bus.share_prediction("A", 0.0, np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]]))

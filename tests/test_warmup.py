@@ -70,8 +70,8 @@ def test_a_run_loads_its_loop_kernels_while_it_builds() -> None:
         if isinstance(f, CPUDispatcher)
     ]  # fmt: skip
     before = {f.__name__: len(f.signatures) for f in kernels}
-    used = {"navigator_force", "project", "point_at", "scan_points", "nearest_distances"}
-    used |= {"near_rows", "near_points"}  # a fleet's neighbour query (past SMALL_FLEET)
+    used = {"navigator_force", "carrots", "scan_points", "nearest_distances"}
+    used |= {"near_points"}  # a fleet's neighbour query (past SMALL_FLEET)
     used |= {"step"}  # the simulator's multirotor step
     assert used <= set(before) and all(before[k] for k in used)
     run = MissionRun(load_mission_text(fleet_mission_text(10), "fleet.yaml"), controller="track")

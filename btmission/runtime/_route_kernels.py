@@ -45,14 +45,13 @@ def project(table, px, py, pz, start, window):  # pragma: no cover - jit
 
 
 @njit(cache=True)
-def point_at(table, s):  # pragma: no cover - jit
-    """The point at arc length ``s``, clamped to the ends."""
+def _point_into(table, s, out, o):  # pragma: no cover - jit
+    """Write the point at arc length ``s`` (clamped to the ends) to out[o:o + 3]."""
     n = table.shape[0] - 1
-    out = np.empty(3)
     if s <= 0 or n <= 0 or s >= table[n, 8]:
         k = 0 if s <= 0 else n
-        out[0], out[1], out[2] = table[k, 0], table[k, 1], table[k, 2]
-        return out
+        out[o], out[o + 1], out[o + 2] = table[k, 0], table[k, 1], table[k, 2]
+        return
     lo, hi = 0, n + 1  # the last point with arc ≤ s (searchsorted side="right", minus one)
     while lo < hi:
         mid = (lo + hi) // 2
@@ -63,7 +62,26 @@ def point_at(table, s):  # pragma: no cover - jit
     j = lo - 1
     seg_len = table[j, 7]
     frac = (s - table[j, 8]) / seg_len if seg_len > 0 else 0.0
-    out[0] = table[j, 0] + frac * table[j, 3]
-    out[1] = table[j, 1] + frac * table[j, 4]
-    out[2] = table[j, 2] + frac * table[j, 5]
+    out[o] = table[j, 0] + frac * table[j, 3]
+    out[o + 1] = table[j, 1] + frac * table[j, 4]
+    out[o + 2] = table[j, 2] + frac * table[j, 5]
+
+
+@njit(cache=True)
+def point_at(table, s):  # pragma: no cover - jit
+    """The point at arc length ``s``, clamped to the ends."""
+    out = np.empty(3)
+    _point_into(table, s, out, 0)
+    return out
+
+
+@njit(cache=True)
+def carrots(table, px, py, pz, start, window, ahead1, ahead2):  # pragma: no cover - jit
+    """:func:`project`, then the points ``ahead1`` and ``ahead2`` further along the route, in one
+    call: [segment, arc length, point 1 (3), point 2 (3)]."""
+    seg, arc = project(table, px, py, pz, start, window)
+    out = np.empty(8)
+    out[0], out[1] = seg, arc
+    _point_into(table, arc + ahead1, out, 2)
+    _point_into(table, arc + ahead2, out, 5)
     return out

@@ -229,6 +229,20 @@ class Polyline:
         )  # fmt: skip
         return int(seg), float(arc)
 
+    def carrots(
+        self, position: FloatArray, start: int, ahead1: float, ahead2: float
+    ) -> tuple[int, float, FloatArray, FloatArray]:
+        """:meth:`project`, then :meth:`at` ``ahead1`` and ``ahead2`` past the projection, in
+        one compiled call (the carrot and the point the heading looks at, every control step):
+        (segment, arc length, point 1, point 2)."""
+        from btmission.runtime._route_kernels import carrots
+
+        out = carrots(
+            self._table, float(position[0]), float(position[1]), float(position[2]),
+            int(start), CARROT_WINDOW, float(ahead1), float(ahead2),
+        )  # fmt: skip
+        return int(out[0]), float(out[1]), out[2:5], out[5:8]
+
     def at(self, s: float) -> FloatArray:
         """The point at arc length ``s`` (clamped to the ends)."""
         from btmission.runtime._route_kernels import point_at
@@ -720,29 +734,33 @@ class Navigator:
 
     def _route_step(
         self, now: float, tel: Telemetry, cmd: _Follow
-    ) -> tuple[str, FloatArray, float]:
+    ) -> tuple[str, FloatArray, float, FloatArray]:
         """Where a route stands — ``arrived`` (stopped at the target), ``stuck`` (no progress for
-        ``stuck_s``) or ``go`` — with the carrot and the arc length of the closest point."""
+        ``stuck_s``) or ``go`` — with the carrot, the arc length of the closest point and the
+        point twice the lookahead along (where the heading looks)."""
         cfg = self.config
-        cmd.seg, arc = cmd.route.project(tel.position, cmd.seg)
+        lookahead = cfg.lookahead_m
+        cmd.seg, arc, carrot, ahead = cmd.route.carrots(
+            tel.position, cmd.seg, lookahead, 2 * lookahead
+        )
         left = cmd.route.length - arc
         if left < cmd.best_left - PROGRESS_M:
             cmd.best_left = left
             cmd.progress_t = now
         if self.at(cmd.target, tel):
             self._finish(True)
-            return "arrived", cmd.target, arc
+            return "arrived", cmd.target, arc, ahead
         if now - cmd.progress_t > cfg.stuck_s:
             self._finish(False, f"no progress along the route for {cfg.stuck_s:g} s")
-            return "stuck", tel.position, arc
-        return "go", cmd.route.at(arc + cfg.lookahead_m), arc
+            return "stuck", tel.position, arc, ahead
+        return "go", carrot, arc, ahead
 
     def _follow_reference(
         self, now: float, tel: Telemetry, cmd: _Follow
     ) -> tuple[FloatArray, FloatArray, float | None, float]:
         p = tel.position
         cfg = self.config
-        state, c, arc = self._route_step(now, tel, cmd)
+        state, c, arc, ahead = self._route_step(now, tel, cmd)
         if state != "go":
             hold = p.copy()
             if state == "arrived" and not cmd.ground_goal:
@@ -754,7 +772,6 @@ class Navigator:
         if cmd.ground_goal and left < cfg.lookahead_m:
             goal = self.flight_target(cmd.target)
         ref, vel, _, repulsion = self._apf_reference(tel, goal, cfg.speed_m_s)
-        ahead = cmd.route.at(arc + 2 * cfg.lookahead_m)
         hx, hy = float(ahead[0]) - float(p[0]), float(ahead[1]) - float(p[1])
         yaw = math.atan2(hy, hx) if math.hypot(hx, hy) > 0.3 else None
         return ref, vel, yaw, repulsion
@@ -835,7 +852,7 @@ class Navigator:
             self.backend.set_velocity_setpoint(heading * uv, uw)
             return
         assert isinstance(cmd, _Follow)
-        state, c, _ = self._route_step(now, tel, cmd)
+        state, c, _, _ = self._route_step(now, tel, cmd)
         if state != "go":
             self._cmd = _Hold(p.copy())
             self._drive(now, tel, None)
