@@ -108,15 +108,19 @@ def _vehicle_control() -> None:
 
 def _planner() -> None:
     """A run's path costs and route on a tiny map (:class:`btmission.runtime.paths.PathCosts`:
-    backward one-to-all D*+ searches with a risk layer, the gather of bids, a path), and an
-    A* query."""
+    backward one-to-all D*+ searches with a risk layer, the gather of bids and their range
+    check, a path), and an A* query."""
+    import numpy as np
+
+    from btmission.allocation.auction import Bid
     from btmission.planning.risk import RiskParams
     from btmission.runtime.paths import PathCosts
     from btmission.world.voxel import VoxelMap
 
     paths = PathCosts(VoxelMap.empty((3.0, 2.0, 1.0), 0.5), RiskParams(), clearance_m=0.25)
     start, goal = (0.25, 0.25, 0.25), (2.75, 1.75, 0.75)
-    paths.path_costs(start, (goal, (2.75, 0.25, 0.25)))
+    costs = paths.path_costs(start, (goal, (2.75, 0.25, 0.25)))
+    Bid("A", 0.0, ("T1", "T2"), np.asarray(costs, dtype=np.float64)).problem()  # its check
     paths.route(start, goal)
     paths.planner.plan(start, goal)
 

@@ -224,12 +224,15 @@ def test_a_bid_is_refused_exactly_when_a_cost_is_out_of_range(costs: list[float]
     from btmission.allocation.solvers import MAX_COST
 
     tasks = tuple(f"T{i}" for i in range(len(costs)))
-    problem = Bid("A", 0.0, tasks, np.array(costs, dtype=float)).problem()
     bad = [i for i, c in enumerate(costs) if c < 0 or (math.isfinite(c) and c > MAX_COST)]
-    if not bad:
-        assert problem is None
-    else:
-        assert problem is not None and f"for task 'T{bad[0]}' is out of range" in problem
+    own = np.array(costs, dtype=float)  # (the compiled check)
+    strided = np.repeat(own, 2)[::2]  # (not contiguous: numpy's)
+    for array in (own, strided):
+        problem = Bid("A", 0.0, tasks, array).problem()
+        if not bad:
+            assert problem is None
+        else:
+            assert problem is not None and f"for task 'T{bad[0]}' is out of range" in problem
 
 
 def test_commit_reports_that_do_not_fit_are_ignored() -> None:

@@ -53,6 +53,7 @@ def test_a_run_loads_its_loop_kernels_while_it_builds() -> None:
 
     from numba.core.registry import CPUDispatcher
 
+    from btmission.allocation import _bid_kernels as bids
     from btmission.backends import _multirotor_kernels as multirotor
     from btmission.backends import _surface_kernels as surf
     from btmission.bench.fleet import fleet_mission_text
@@ -66,13 +67,14 @@ def test_a_run_loads_its_loop_kernels_while_it_builds() -> None:
     warmup.prepare_run()
     assert "scipy.optimize" in sys.modules
     kernels = [
-        f for mod in (apf, route, surf, plan, near, multirotor) for f in vars(mod).values()
+        f for mod in (apf, route, surf, plan, near, multirotor, bids)
+        for f in vars(mod).values()
         if isinstance(f, CPUDispatcher)
     ]  # fmt: skip
     before = {f.__name__: len(f.signatures) for f in kernels}
     used = {"navigator_force", "carrots", "scan_points", "nearest_distances"}
     used |= {"near_points"}  # a fleet's neighbour query (past SMALL_FLEET)
-    used |= {"step"}  # the simulator's multirotor step
+    used |= {"step", "first_bad_cost"}  # the simulator's multirotor step; bids' range check
     assert used <= set(before) and all(before[k] for k in used)
     run = MissionRun(load_mission_text(fleet_mission_text(10), "fleet.yaml"), controller="track")
     run.run(until=25)

@@ -252,17 +252,16 @@ class Bid:
         if self.costs.shape != (len(self.tasks),):
             return f"bid from {self.agent}: {self.costs.shape} costs for {len(self.tasks)} task(s)"
         costs = self.costs
-        # the common case in three ufunc calls (every bid of every round comes here): no cost
-        # below 0 (fmin skips NaN) and no finite one above MAX_COST
-        low = np.fmin.reduce(costs, initial=np.inf)
-        high = np.fmax.reduce(costs, where=np.isfinite(costs), initial=-np.inf)
-        if low >= 0 and high <= MAX_COST:
-            return None
-        bad = (costs < 0) | ((costs > MAX_COST) & np.isfinite(costs))
-        if np.logical_or.reduce(bad):
-            i = int(np.nonzero(bad)[0][0])
+        if costs.dtype == np.float64 and costs.flags.c_contiguous:  # a bid's own array
+            from btmission.allocation._bid_kernels import first_bad_cost
+
+            i = int(first_bad_cost(costs, MAX_COST))
+        else:
+            bad = (costs < 0) | ((costs > MAX_COST) & np.isfinite(costs))
+            i = int(np.nonzero(bad)[0][0]) if np.logical_or.reduce(bad) else -1
+        if i >= 0:
             return (
-                f"bid from {self.agent}: cost {self.costs[i]:g} for task '{self.tasks[i]}' is "
+                f"bid from {self.agent}: cost {costs[i]:g} for task '{self.tasks[i]}' is "
                 f"out of range (expected 0 … {MAX_COST:g}, NaN for no bid, inf for unreachable)"
             )
         return None

@@ -303,6 +303,10 @@ class InMemoryBus:
                 multi[:row] = self._multi
                 self._multi = multi
         pts = pred.positions
+        if pts.shape == (1, 3):  # where it is now (every drone, every control step)
+            self._starts[row] = pts[0]
+            self._multi[row] = False
+            return
         self._starts[row] = np.nan
         self._starts[row, : min(3, pts.shape[1])] = pts[0, :3]
         self._multi[row] = len(pts) > 1

@@ -291,9 +291,11 @@ class Coordinator:
     def step(self, now: float) -> RoundResult | None:
         """Take queued tasks, report arrivals, and run a round if one is due."""
         self.intake(now)
-        for t in self.state.pool:
-            if t.id not in self._added and t.info.arrival_s <= now:
-                self._emit_added(t.info, t.info.arrival_s, "mission")
+        pool = self.state.pool
+        if len(self._added) < len(pool):  # some task has not arrived yet
+            for t in pool:
+                if t.id not in self._added and t.info.arrival_s <= now:
+                    self._emit_added(t.info, t.info.arrival_s, "mission")
         if self._open is not None:  # a round is collecting bids (bid window)
             serial, closes, inbox = self._open
             self._take(self.link.drain(), inbox)

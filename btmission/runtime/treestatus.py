@@ -169,9 +169,11 @@ class StatusChanges(py_trees.visitors.VisitorBase):
         """Nothing per ticked behaviour: :meth:`finalise` compares them all."""
 
     def finalise(self) -> None:
+        now = [b.status for b in self.behaviours]
+        if now == self.last:  # (a C loop; the usual tick changes nothing or a few nodes)
+            return
         last = self.last
-        for uid, b in enumerate(self.behaviours):
-            status = b.status
+        for uid, status in enumerate(now):
             if status is not last[uid]:
                 self._changed(uid, status)
 
