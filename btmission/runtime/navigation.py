@@ -727,9 +727,9 @@ class Navigator:
             out = first_points(self._predictions(self.agent))
         else:
             return _NO_POSITIONS
-        flat = np.isnan(out[:, 2])
-        if np.logical_or.reduce(flat):  # (the ufunc: ndarray.any's Python wrapper costs more)
-            out[flat, 2] = tel.position[2]
+        zs = out[:, 2]
+        if any(z != z for z in zs.tolist()):  # a NaN (a few rows: cheaper than numpy's any)
+            zs[np.isnan(zs)] = tel.position[2]
         return out
 
     def _route_step(

@@ -71,6 +71,16 @@ class Route:
     length_m: float
 
 
+def _cell(u: float, n: int) -> int:
+    """The index along one axis of a map ``n`` voxels long for ``u`` voxels from its origin (less
+    than half a voxel outside counts as the edge voxel: :meth:`PathCosts._flat`)."""
+    if -0.5 <= u < 0:
+        return 0
+    if n <= u < n + 0.5:
+        return n - 1
+    return math.floor(u)
+
+
 class PathCosts:
     """D*+ path lengths and paths to goals, one backward search per goal (module docstring).
 
@@ -109,6 +119,8 @@ class PathCosts:
         """Plan on ``voxel_map`` from now on (rock appeared or went): every field is dropped
         (searched again when next asked for) and :attr:`version` moves on."""
         self.map = voxel_map
+        self._grid = (*(float(o) for o in voxel_map.origin), float(voxel_map.resolution))
+        self._shape = tuple(int(n) for n in voxel_map.shape)
         self.cost_map = CostMap(inflate(voxel_map, self.clearance_m), self.risk)
         self.planner = Planner(self.cost_map)
         self._fields: OrderedDict[int, _GoalField | None] = OrderedDict()
@@ -138,18 +150,11 @@ class PathCosts:
         """Padded flat index of the voxel holding ``point`` (-1 outside the map). A point less
         than half a voxel outside counts as in the edge voxel: a real vehicle resting on a map
         whose floor is its edge reports z a few millimetres below it (estimator noise)."""
-        vm = self.map
-        res = vm.resolution
-        nx, ny, nz = vm.shape
-        idx = []
-        for axis, n in enumerate((nx, ny, nz)):
-            u = (point[axis] - vm.origin[axis]) / res
-            if -0.5 <= u < 0:
-                u = 0.0
-            elif n <= u < n + 0.5:
-                u = n - 1.0
-            idx.append(math.floor(u))
-        i, j, k = idx
+        ox, oy, oz, res = self._grid
+        nx, ny, nz = self._shape
+        i = _cell((point[0] - ox) / res, nx)
+        j = _cell((point[1] - oy) / res, ny)
+        k = _cell((point[2] - oz) / res, nz)
         if not (0 <= i < nx and 0 <= j < ny and 0 <= k < nz):
             return -1
         return ((i + 1) * (ny + 2) + (j + 1)) * (nz + 2) + (k + 1)  # padded C-order index
