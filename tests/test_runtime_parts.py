@@ -168,6 +168,21 @@ def test_a_fleet_bus_finds_the_same_neighbours_as_the_pure_function() -> None:
         assert all(np.array_equal(r[: w.shape[1]], w[0]) for r, w in zip(now, want))
         checked += len(want)
     assert checked > 500
+    # every agent back to a single 3D point (one leaves the bus): no trajectory is left, and
+    # the compiled query that skips them gives the same answer
+    assert bus._trajectories > 0
+    for i in range(n):
+        bus.share_prediction(f"A{i}", 0.5, rng.uniform(0.0, 20.0, (1, 3)).round(1))
+    bus.disconnect("A1")
+    assert bus._trajectories == 0
+    for k in range(50):
+        near = rng.uniform(0.0, 20.0, 3).round(1)
+        me = f"A{k % n}"
+        want = advance_predictions(bus._predictions, me, 0.6, 0.1, near, 6.0)
+        got = bus.neighbour_positions(me, 0.6, 0.1, near, 6.0)
+        assert np.array_equal(got, first_points(want), equal_nan=True)
+    bus.share_prediction("A2", 0.6, np.array([[1.0, 1.0], [2.0, 1.0]]))  # a trajectory again
+    assert bus._trajectories == 1
     small = InMemoryBus()  # a small fleet: the same through advance_predictions
     small.share_prediction("A", 0.0, np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]]))
     small.share_prediction("B", 0.2, np.array([[5.0, 0.0, 1.5]]))

@@ -42,16 +42,13 @@ def near_rows(starts, n, x, y, within, own):  # pragma: no cover - jit
 
 
 @njit(cache=True)
-def near_points(starts, multi, n, x, y, within, own):  # pragma: no cover - jit
-    """:func:`near_rows`, with those rows' points (k, 3) and whether any of them is a
-    trajectory's first point (``multi``: the caller then takes its point at the time asked)."""
+def near_points(starts, n, x, y, within, own):  # pragma: no cover - jit
+    """The points (k, 3) of :func:`near_rows`' rows, in its order."""
     rows = near_rows(starts, n, x, y, within, own)
     out = np.empty((len(rows), 3))
-    trajectory = False
     for i in range(len(rows)):
         r = rows[i]
         out[i, 0] = starts[r, 0]
         out[i, 1] = starts[r, 1]
         out[i, 2] = starts[r, 2]
-        trajectory = trajectory or multi[r]
-    return rows, out, trajectory
+    return out

@@ -207,6 +207,8 @@ class InMemoryBus:
         """Each row's first predicted position (z NaN for a 2D prediction)."""
         self._multi = np.zeros(8, dtype=bool)
         """Each row's prediction has more than one point (its first moves with time)."""
+        self._trajectories = 0
+        """Rows whose :attr:`_multi` is set (none: a neighbour's point is its row's start)."""
         self.dropped = 0
         """Messages lost on cut links."""
 
@@ -230,6 +232,7 @@ class InMemoryBus:
         row = self._rows.pop(agent, None)
         if row is not None:
             self._starts[row] = np.nan
+            self._set_multi(row, False)
 
     def set_link(self, agent: str, up: bool) -> None:
         """Cut (``up=False``) or restore an agent's link to the coordinator."""
@@ -305,11 +308,17 @@ class InMemoryBus:
         pts = pred.positions
         if pts.shape == (1, 3):  # where it is now (every drone, every control step)
             self._starts[row] = pts[0]
-            self._multi[row] = False
+            if self._trajectories:
+                self._set_multi(row, False)
             return
         self._starts[row] = np.nan
         self._starts[row, : min(3, pts.shape[1])] = pts[0, :3]
-        self._multi[row] = len(pts) > 1
+        self._set_multi(row, len(pts) > 1)
+
+    def _set_multi(self, row: int, multi: bool) -> None:
+        """Mark ``row``'s prediction as a trajectory (or not), keeping :attr:`_trajectories`."""
+        self._trajectories += int(multi) - int(self._multi[row])
+        self._multi[row] = multi
 
     def predictions(
         self,
@@ -339,19 +348,23 @@ class InMemoryBus:
             return first_points(
                 advance_predictions(self._predictions, agent, time_s, step_s, near, within_m)
             )
-        from btmission.runtime._neighbour_kernels import near_points
-
-        rows, out, trajectory = near_points(
-            self._starts, self._multi, n, float(near[0]), float(near[1]), float(within_m),
-            self._rows.get(agent, -1),
-        )  # fmt: skip
-        if trajectory:  # a trajectory's point at time_s
+        if self._trajectories:  # some agent shares a trajectory: its point at time_s
+            rows = self._near_rows(agent, near, within_m)
+            assert rows is not None
+            out = self._starts[rows]
             names = self._row_names
-            for i, r in enumerate(rows.tolist()):
+            for i, r in enumerate(rows):
                 if self._multi[r]:
                     pred = _advanced(self._predictions[names[r]], time_s, step_s)
                     out[i] = first_points([pred])[0]
-        return out  # type: ignore[no-any-return]
+            return out
+        from btmission.runtime._neighbour_kernels import near_points
+
+        points: FloatArray = near_points(
+            self._starts, n, float(near[0]), float(near[1]), float(within_m),
+            self._rows.get(agent, -1),
+        )  # fmt: skip
+        return points
 
     def _near_rows(self, agent: str, near: FloatArray | None, within_m: float) -> list[int] | None:
         """The rows of the agents other than ``agent`` whose prediction starts within
