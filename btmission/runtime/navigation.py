@@ -415,7 +415,7 @@ class Navigator:
         *,
         control_dt: float = 0.05,
         predictions: Predictions | None = None,
-        neighbours: Callable[[str], FloatArray] | None = None,
+        neighbours: Callable[[str, FloatArray], FloatArray] | None = None,
         ground_at: Callable[[FloatArray], float] | None = None,
         point_area_m2: float = 0.25,
     ) -> None:
@@ -430,8 +430,9 @@ class Navigator:
         self.control_dt = control_dt
         self._predictions = predictions
         self._neighbours = neighbours
-        """Where the other agents are, (k, 3) (z NaN: at this vehicle's height), nearest first:
-        the first points of ``predictions`` without the list (None: taken from those)."""
+        """``neighbours(agent, position)``: where the other agents near ``position`` (this
+        vehicle's, from its telemetry) are, (k, 3) (z NaN: at this vehicle's height), nearest
+        first: the first points of ``predictions`` without the list (None: taken from those)."""
         self._ground_at = ground_at
         self._cmd: _Command = _Hold(np.asarray(backend.telemetry().position, dtype=float))
         self._status = NavStatus(NavState.IDLE, "", "hold")
@@ -720,7 +721,7 @@ class Navigator:
         meeting head-on in a tunnel pass each other. A vehicle that shares a 2D position is
         taken at this vehicle's height."""
         if self._neighbours is not None:
-            out = self._neighbours(self.agent)
+            out = self._neighbours(self.agent, tel.position)
         elif self._predictions is not None:
             from btmission.runtime.bus import first_points
 

@@ -414,10 +414,7 @@ class MissionRun:
                 pos = _backend.telemetry().position
                 return _link.predictions(self.now(), 0.1, pos, NEIGHBOUR_RANGE_M)
 
-            def neighbours(
-                agent: str, _backend: Backend = vehicle.backend, _link: AgentLink = link
-            ) -> FloatArray:
-                pos = _backend.telemetry().position
+            def neighbours(agent: str, pos: FloatArray, _link: AgentLink = link) -> FloatArray:
                 return neighbour_positions(_link, self.now(), 0.1, pos, NEIGHBOUR_RANGE_M)
 
             nav = Navigator(

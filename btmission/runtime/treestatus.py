@@ -23,6 +23,7 @@ tree's blackboard next to its statuses from the log alone (Groot2's blackboard p
 from __future__ import annotations
 
 import math
+import operator
 from collections.abc import Callable, Mapping
 from types import MappingProxyType
 from typing import Any
@@ -143,6 +144,9 @@ class LeanBehaviourTree(py_trees.trees.BehaviourTree):
         self.count += 1
 
 
+_STATUS_OF = operator.attrgetter("status")
+
+
 class StatusChanges(py_trees.visitors.VisitorBase):
     """A visitor collecting the behaviours whose status differs from the one it saw last
     (module docstring): when a tick is over (:meth:`finalise`) it compares every behaviour of
@@ -169,7 +173,7 @@ class StatusChanges(py_trees.visitors.VisitorBase):
         """Nothing per ticked behaviour: :meth:`finalise` compares them all."""
 
     def finalise(self) -> None:
-        now = [b.status for b in self.behaviours]
+        now = list(map(_STATUS_OF, self.behaviours))
         if now == self.last:  # (a C loop; the usual tick changes nothing or a few nodes)
             return
         last = self.last
