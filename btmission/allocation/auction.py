@@ -531,14 +531,19 @@ def auction_round(
     for j, a in winner.items():
         assignments[a] = ann.ids[j]
 
+    # why no task got an agent this round, whatever the task (None: it depends on the task)
+    overall: str | None = None
+    if not agents:
+        overall = "no agents are bidding"
+    elif state.paused:
+        overall = "allocation paused by the operator"
+    elif all(a in state.excluded for a in agents):
+        overall = "every agent is out of the auction (excluded by the operator)"
+
     def why(j: int) -> tuple[str, TaskState]:
         """Why announced task ``j`` got no agent, and the state that goes with it."""
-        if not agents:
-            return "no agents are bidding", TaskState.OPEN
-        if state.paused:
-            return "allocation paused by the operator", TaskState.OPEN
-        if all(a in state.excluded for a in agents):
-            return "every agent is out of the auction (excluded by the operator)", TaskState.OPEN
+        if overall is not None:
+            return overall, TaskState.OPEN
         if n_fin[j]:
             return f"outbid: its {int(n_fin[j])} bidder(s) won other tasks", TaskState.OPEN
         who = [agents[i] for i in np.nonzero(covered[:, j])[0]]

@@ -217,6 +217,9 @@ class Bidder:
         self._places_key = tuple(sorted((k, tuple(v)) for k, v in self.places.items()))
         self._last: tuple[object, Announcement, FloatArray] | None = None
         """The previous bid's key, announcement and costs (a repeated bid sends them again)."""
+        self._fields: dict[bool, tuple[tuple[str, str | None], ...]] = {}
+        """Per task type, the single path cost its cost is (or None), sorted: the bid plan's
+        key, with and without a batch-capable provider (:meth:`costs`)."""
         self.repeated = 0
         """Bids that repeated the previous one's costs (module docstring) instead of computing
         them."""
@@ -289,18 +292,20 @@ class Bidder:
         """``c_kj`` for every announced task, in announcement order (eq. 8), participation
         applied: NaN = no bid, ``inf`` = unreachable."""
         tasks = announcement.tasks
-        out = np.full(len(tasks), np.nan)
         if agent.committed:
+            out = np.full(len(tasks), np.nan)
             if agent.task is not None and agent.task in announcement.index:
                 out[announcement.index[agent.task]] = 0.0  # f_cost · k_bt with k_bt = 0
             return out
         batch = getattr(self.provider, "path_costs", None)
-        fields = tuple(
-            sorted(
-                (name, _single_path_cost(tt) if batch is not None else None)
-                for name, tt in self.task_types.items()
+        fields = self._fields.get(batch is not None)
+        if fields is None:  # (the task types and the provider do not change)
+            fields = self._fields[batch is not None] = tuple(
+                sorted(
+                    (name, _single_path_cost(tt) if batch is not None else None)
+                    for name, tt in self.task_types.items()
+                )
             )
-        )
         plan = announcement.memo(
             ("bid-plan", fields, self._places_key),
             lambda: _Plan(tasks, dict(fields), self.places),
@@ -319,6 +324,7 @@ class Bidder:
             if last is not None and last[1] is announcement and last[0] == key:
                 self.repeated += 1  # not moved to another voxel: the same costs
                 return last[2].copy()
+        out = np.full(len(tasks), np.nan)
         for j in plan.single:
             t = tasks[j]
             out[j] = self.f_cost(t, agent) * k_bt(agent, t.id)
