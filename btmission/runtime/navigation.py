@@ -606,6 +606,10 @@ class Navigator:
         cmd = self._cmd
         p = tel.position
         self.prediction = p[None, :].copy()  # shared with the others: where this vehicle is
+        if isinstance(cmd, _Follow):  # (most steps of a mission: first, nothing allocated)
+            f_ref, f_vel, f_yaw, f_repulsion = self._follow_reference(now, tel, cmd)
+            self._command_multirotor(tel, f_ref, f_vel, f_yaw, 0.0, f_repulsion)
+            return
         cfg = self.config
         ref = p.copy()
         vel = np.zeros(3)
@@ -636,8 +640,6 @@ class Navigator:
             if abs(p[2] - cmd.point[2]) < 0.2 and not tel.landed:
                 self._finish(True)
                 self._cmd = _Hold(cmd.point.copy())
-        elif isinstance(cmd, _Follow):
-            ref, vel, yaw, repulsion = self._follow_reference(now, tel, cmd)
         elif isinstance(cmd, _Goto):
             scan = self._lidar()  # one scan for the APF and the approach bound
             ref, vel, _, repulsion = self._apf_reference(tel, cmd.waypoint, cfg.speed_m_s, scan)
