@@ -92,6 +92,10 @@ def _vehicle_control() -> None:
     sim = Simulator(vmap, SimConfig(lidar_range_m=3.0))
     a = sim.add_multirotor("A", (1.0, 1.0, 0.5))
     sim.add_multirotor("B", (2.0, 1.5, 0.5))
+    from btmission.backends.sim import SMALL_FLEET
+
+    for i in range(SMALL_FLEET):  # a fleet's contact test (past SMALL_FLEET vehicles)
+        sim.add_multirotor(f"F{i}", (0.5 + 0.5 * i, 2.5, 0.5))
     nav = Navigator("A", a, a, "track", predictions=lambda _agent: [np.array([[2.0, 1.5, 0.5]])])
     nav.follow(np.array([[1.0, 1.0, 1.0], [3.0, 3.0, 1.0]]), np.array([3.0, 3.0, 1.0]), 0.0)
     nav.step(0.0)

@@ -575,3 +575,35 @@ def test_the_vectorised_rock_test_is_the_pointwise_one(
     if len(pts):
         pts[0] = (np.nan, 1.0, 1.0)  # a non-finite point is not in rock
     assert world.occupied_rows(pts) == [world.occupied(p) for p in pts]
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(
+        st.tuples(st.floats(0, 4), st.floats(0, 4), st.floats(0, 2), st.sampled_from([0.25, 0.3])),
+        min_size=2,
+        max_size=25,
+    )
+)
+def test_the_contact_tests_candidate_pairs_hold_every_touching_pair(
+    bodies: list[tuple[float, float, float, float]],
+) -> None:
+    """near_pairs (a fleet's contact test) keeps, in row-major order, every pair whose spheres
+    touch (the exact test the simulator then applies), and only pairs near touching."""
+    from btmission.backends._multirotor_kernels import near_pairs
+
+    centres = np.array([b[:3] for b in bodies], dtype=float)
+    radii = np.array([b[3] for b in bodies], dtype=float)
+    got = near_pairs(centres, radii, 1e-6).tolist()
+    assert got == sorted(got) and all(i < j for i, j in got)
+    n = len(bodies)
+    touching = [
+        [i, j]
+        for i in range(n)
+        for j in range(i + 1, n)
+        if math.sqrt(float((centres[i] - centres[j]) @ (centres[i] - centres[j])))
+        < radii[i] + radii[j]
+    ]
+    assert all(pair in got for pair in touching)
+    for i, j in got:
+        assert float(np.linalg.norm(centres[i] - centres[j])) < radii[i] + radii[j] + 1e-5

@@ -530,3 +530,23 @@ def test_a_leaf_with_its_own_tick_keeps_it() -> None:
     root = QuietSequence("root", memory=False, children=[leaf])
     tick_behaviour(root)
     assert calls == ["own tick"] and root.status is py_trees.common.Status.SUCCESS
+
+
+def test_a_stopped_behaviour_still_hands_out_a_fresh_tick_generator() -> None:
+    """py_trees keeps a fresh tick generator in ``iterator``; the quiet composites and the
+    runtime's leaves make it when it is read (not at every stop): running it out ticks."""
+    import py_trees
+
+    from btmission.synthesis.pytrees import QuietSequence
+
+    log: list[tuple[str, ...]] = []
+    leaf = _scripted_leaf(True, "L", ["SUCCESS"], log)
+    root = QuietSequence("root", memory=False, children=[leaf])  # type: ignore[list-item]
+    root.stop(py_trees.common.Status.INVALID)
+    assert [b.name for b in root.iterator] == ["root"]
+    assert root.status is py_trees.common.Status.SUCCESS and log[-1] == (
+        "terminate",
+        "L",
+        "SUCCESS",
+    )
+    assert [b.name for b in leaf.iterator] == ["L"]  # type: ignore[attr-defined]

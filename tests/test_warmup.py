@@ -75,6 +75,7 @@ def test_a_run_loads_its_loop_kernels_while_it_builds() -> None:
     used = {"navigator_force", "carrots", "scan_points", "nearest_distances"}
     used |= {"near_points"}  # a fleet's neighbour query (past SMALL_FLEET)
     used |= {"step", "first_bad_cost"}  # the simulator's multirotor step; bids' range check
+    used |= {"rock_rows", "near_pairs"}  # the simulator's contact test (past SMALL_FLEET)
     assert used <= set(before) and all(before[k] for k in used)
     run = MissionRun(load_mission_text(fleet_mission_text(10), "fleet.yaml"), controller="track")
     run.run(until=25)

@@ -308,3 +308,33 @@ def step(
     out[OUT_LANDED] = 1.0 if now_landed else 0.0
     d0, d1, d2 = out[0] - x[0], out[1] - x[1], out[2] - x[2]
     out[OUT_ODOMETER] = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+
+
+# ---- the contact test (every body, every step)
+@njit(cache=True)
+def rock_rows(occ, grid, centres):  # pragma: no cover - jit
+    """:func:`occupied` of each row of ``centres`` (n, 3)."""
+    out = np.zeros(centres.shape[0], dtype=np.bool_)
+    for i in range(centres.shape[0]):
+        out[i] = occupied(occ, grid, centres[i, 0], centres[i, 1], centres[i, 2])
+    return out
+
+
+@njit(cache=True)
+def near_pairs(centres, radii, margin):  # pragma: no cover - jit
+    """The pairs (i < j, row-major order) whose spheres come within ``margin`` of touching:
+    ‖c_i − c_j‖² < (r_i + r_j + margin)² — the candidates for the exact test."""
+    n = centres.shape[0]
+    out = np.empty((n * (n - 1) // 2, 2), dtype=np.int64)
+    k = 0
+    for i in range(n):
+        for j in range(i + 1, n):
+            dx = centres[i, 0] - centres[j, 0]
+            dy = centres[i, 1] - centres[j, 1]
+            dz = centres[i, 2] - centres[j, 2]
+            reach = radii[i] + radii[j] + margin
+            if dx * dx + dy * dy + dz * dz < reach * reach:
+                out[k, 0] = i
+                out[k, 1] = j
+                k += 1
+    return out[:k]

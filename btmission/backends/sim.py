@@ -304,18 +304,12 @@ class SimWorld:
         return 0 <= i < nx and 0 <= j < ny and 0 <= k < nz and bool(self._occ[i, j, k])
 
     def occupied_rows(self, points: FloatArray) -> list[bool]:
-        """:meth:`occupied` of each of ``points`` (n, 3), with its arithmetic, in one pass."""
-        pts = np.asarray(points, dtype=float).reshape(-1, 3)
-        f = (pts - np.array(self._origin)) / self._res
-        idx = np.floor(f)
-        shape = np.array(self._shape, dtype=float)
-        inside = np.isfinite(f).all(axis=1) & ((idx >= 0) & (idx < shape)).all(axis=1)
-        out = np.zeros(len(pts), dtype=bool)
-        rows = np.nonzero(inside)[0]
-        if len(rows):
-            i, j, k = idx[rows].astype(np.intp).T
-            out[rows] = self._occ[i, j, k]
-        return out.tolist()  # type: ignore[no-any-return]
+        """:meth:`occupied` of each of ``points`` (n, 3), with its arithmetic, in one compiled
+        pass (:func:`~btmission.backends._multirotor_kernels.rock_rows`)."""
+        from btmission.backends._multirotor_kernels import rock_rows
+
+        pts = np.ascontiguousarray(points, dtype=float).reshape(-1, 3)
+        return rock_rows(self._occ, self._grid, pts).tolist()  # type: ignore[no-any-return]
 
     def ground_z(self, p: Sequence[float] | FloatArray) -> float:
         """:meth:`VoxelMap.ground_z <btmission.world.voxel.VoxelMap.ground_z>`, from the
@@ -732,12 +726,11 @@ class Simulator:
         if len(vs) <= SMALL_FLEET:  # a few vehicles: every pair, in the pair loop's order
             near: list[list[int]] = [[i, j] for i in range(len(vs)) for j in range(i + 1, len(vs))]
         else:
-            # pairs in touch: every pair's squared distance at once, then the exact test of the
-            # vector form (‖c_a − c_b‖ < r_a + r_b) on the few that come near it
-            diff = centres[:, None, :] - centres[None, :, :]
-            d2 = np.einsum("ijk,ijk->ij", diff, diff)
-            reach = radii[:, None] + radii[None, :]
-            near = np.argwhere(np.triu(d2 < (reach + 1e-6) ** 2, k=1)).tolist()
+            # pairs in touch: the few that come near it in one compiled pass, then the exact
+            # test of the vector form (‖c_a − c_b‖ < r_a + r_b) on them
+            from btmission.backends._multirotor_kernels import near_pairs
+
+            near = near_pairs(centres, radii, 1e-6).tolist()
         for i, j in near:  # (row-major: the order of the pair loop)
             delta = centres[i] - centres[j]
             if math.sqrt(float(delta @ delta)) < float(radii[i]) + float(radii[j]):

@@ -31,6 +31,7 @@ import py_trees
 from py_trees.common import Status
 
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
+from btmission.synthesis.pytrees import FreshIterator
 from btmission.synthesis.tree import Node
 
 if TYPE_CHECKING:
@@ -310,7 +311,7 @@ _GUARDS: dict[str, Callable[[Any], Any]] = {
 }
 
 
-class GuardedLeaf(py_trees.behaviour.Behaviour):
+class GuardedLeaf(FreshIterator, py_trees.behaviour.Behaviour):
     """A leaf whose ``initialise`` / ``update`` / ``terminate`` — its own and any subclass's
     overrides — never raise: an exception becomes FAILURE for that tick and a ``leaf_error``
     event (type, message, traceback) through the agent's context, and the run goes on."""
@@ -347,11 +348,10 @@ class GuardedLeaf(py_trees.behaviour.Behaviour):
         self.status = new_status
 
     def stop(self, new_status: Status) -> None:
-        """py_trees' ``Behaviour.stop`` (terminate, take the status, a fresh tick iterator)
-        without its debug message."""
+        """py_trees' ``Behaviour.stop`` (terminate, take the status) without its debug message;
+        its fresh tick generator is made when ``iterator`` is read."""
         self.terminate(new_status)
         self.status = new_status
-        self.iterator = self.tick()
 
     def _leaf_failed(self, phase: str, exc: Exception) -> None:
         ctx = self.ctx

@@ -26,6 +26,34 @@ _FAILURE = py_trees.common.Status.FAILURE
 _INVALID = py_trees.common.Status.INVALID
 
 
+def _stop_composite(
+    composite: py_trees.composites.Composite, new_status: py_trees.common.Status
+) -> None:
+    """py_trees' ``Composite.stop`` — on INVALID forget the current child and stop every child
+    that is not INVALID; terminate; take the status — without its debug message and without
+    making a fresh tick generator that nothing reads (:class:`FreshIterator`)."""
+    if new_status is _INVALID:
+        composite.current_child = None
+        for child in composite.children:
+            if child.status is not _INVALID:
+                child.stop(new_status)
+    composite.terminate(new_status)
+    composite.status = new_status
+
+
+class FreshIterator:
+    """py_trees keeps a fresh tick generator in ``iterator`` (made at every ``stop``; py_trees
+    itself never reads it): here it is made when read. A base class of the quiet composites and the runtime's leaves."""
+
+    @property
+    def iterator(self) -> Iterator[py_trees.behaviour.Behaviour]:
+        return self.tick()  # type: ignore[attr-defined, no-any-return]
+
+    @iterator.setter
+    def iterator(self, _value: object) -> None:
+        pass
+
+
 def tick_behaviour(behaviour: py_trees.behaviour.Behaviour) -> None:
     """Tick ``behaviour`` once, to the end (its ``status`` is then the outcome): its
     ``tick_now()`` when it has one (quiet composites, the runtime's guarded leaves), otherwise
@@ -38,7 +66,7 @@ def tick_behaviour(behaviour: py_trees.behaviour.Behaviour) -> None:
         pass
 
 
-class QuietSelector(py_trees.composites.Selector):
+class QuietSelector(FreshIterator, py_trees.composites.Selector):
     """A py_trees ``Selector`` whose ``tick()`` yields only itself, once, at the end.
 
     A composite's ``tick()`` yields every behaviour ticked below it, and each of those yields
@@ -95,12 +123,12 @@ class QuietSelector(py_trees.composites.Selector):
         self.current_child = children[-1]
 
     def stop(self, new_status: py_trees.common.Status = _INVALID) -> None:
-        """py_trees' ``Selector.stop`` without formatting its debug message on every call (it
-        only logs, then does ``Composite.stop``)."""
-        py_trees.composites.Composite.stop(self, new_status)
+        """py_trees' ``Selector.stop`` (it only logs, then does ``Composite.stop``):
+        :func:`_stop_composite`."""
+        _stop_composite(self, new_status)
 
 
-class QuietSequence(py_trees.composites.Sequence):
+class QuietSequence(FreshIterator, py_trees.composites.Sequence):
     """The ``Sequence`` counterpart of :class:`QuietSelector`; without ``memory`` its
     :meth:`tick_now` is py_trees' ``Sequence.tick`` step for step: unless RUNNING, stop every
     child that is not INVALID and initialise; tick the children in order while they succeed;
@@ -146,8 +174,8 @@ class QuietSequence(py_trees.composites.Sequence):
         self.stop(_SUCCESS)
 
     def stop(self, new_status: py_trees.common.Status = _INVALID) -> None:
-        """py_trees' ``Sequence.stop`` without its debug message (as :class:`QuietSelector`)."""
-        py_trees.composites.Composite.stop(self, new_status)
+        """py_trees' ``Sequence.stop`` (as :class:`QuietSelector`): :func:`_stop_composite`."""
+        _stop_composite(self, new_status)
 
 
 def build_behaviour_tree(
