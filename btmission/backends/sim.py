@@ -805,11 +805,12 @@ class SimVehicle(OffboardCommands):
         """The vehicle's state as it estimates it: the true state, plus the pose-estimate
         error when the simulator has pose noise on (module docstring).
 
-        Built once per simulation step and autopilot state (its agent, tree leaves, neighbours
-        and the run's snapshot each ask several times a step); its arrays are read-only, as the
-        record is shared."""
+        Built once per simulation step and autopilot state — mode and arming, what a command
+        changes between two steps; everything else in it changes only in a step — (its agent,
+        tree leaves, neighbours and the run's snapshot each ask several times a step); its
+        arrays are read-only, as the record is shared."""
         v = self._v
-        key = (self._sim.steps, v.mode, v.armed, v.landed, v.battery, v.ground, v.z)
+        key = (self._sim.steps, v.mode, v.armed)
         cached = self._telemetry
         if cached is not None and cached[0] == key:
             return cached[1]

@@ -164,7 +164,7 @@ class PathCosts:
         if flat < 0:
             return -1
         cost = self.cost_map.flat_padded()
-        if np.isfinite(cost[flat]):
+        if math.isfinite(cost[flat]):  # (a scalar: math's test, not a numpy ufunc call)
             return flat
         hit = self._snapped.get(flat)
         if hit is not None:
