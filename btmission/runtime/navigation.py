@@ -576,7 +576,9 @@ class Navigator:
         g = np.asarray(goal, dtype=float)
         tol = self.config.tolerance_m
         p = tel.position
-        if math.hypot(p[0] - g[0], p[1] - g[1]) > tol:
+        px, py, _ = p.tolist()  # (floats: numpy's scalar arithmetic costs more, same result)
+        gx, gy = float(g[0]), float(g[1])
+        if math.hypot(px - gx, py - gy) > tol:
             return False
         v = tel.velocity
         if math.sqrt(float(v @ v)) > SETTLED_M_S:
