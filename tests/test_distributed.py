@@ -267,18 +267,29 @@ def test_sigterm_ends_an_agent_alone_or_the_coordinator_and_then_its_agents(
 @pytest.mark.slow
 def test_a_killed_agent_loses_its_task_and_a_restarted_one_registers_again(fleet: Fleet) -> None:
     fleet.start_all()
-    held = wait_for("R1 to hold a task", lambda: _assigned(fleet.log("coordinator"), "R1"), 90)
+    wait_for("R1 to hold a task", lambda: _assigned(fleet.log("coordinator"), "R1"), 90)
     fleet.signal("R1", signal.SIGKILL)
     fleet.wait_exit("R1", 10)
 
-    def released() -> bool:
-        return any(
-            e["ev"] == "task" and e["task"] == held and e.get("state") == "open"
-            and "stopped reporting" in (e.get("reason") or "")
-            for e in fleet.log("coordinator")
-        )  # fmt: skip
+    def released() -> str | None:
+        """The task R1 held when it died, once the coordinator has put it back in the pool (not
+        necessarily its first: a later round may have swapped R1's task for another)."""
+        for e in fleet.log("coordinator"):
+            if (
+                e["ev"] == "task"
+                and e.get("state") == "open"
+                and ("agent R1 stopped reporting" in (e.get("reason") or ""))
+            ):
+                return str(e["task"])
+        return None
 
-    wait_for(f"{held} to return to the pool", released, 60)
+    held = wait_for("R1's task to return to the pool", released, 60)
+    coord = fleet.log("coordinator")
+    assert any(
+        e["ev"] == "task" and e["task"] == held and e.get("agent") == "R1"
+        and e.get("state") == "assigned"
+        for e in coord
+    ), f"{held} went back to the pool for R1, which never held it"  # fmt: skip
     fleet.start_agent("R1", name="R1-again")
 
     def back() -> bool:
