@@ -33,7 +33,6 @@ from numba import njit
 P_G, P_AX, P_AY, P_AZ, P_GAIN_ROLL, P_TAU_ROLL, P_GAIN_PITCH, P_TAU_PITCH = range(8)
 P_MAX_SPEED, P_MAX_CLIMB, P_BODY_RADIUS, P_TILT_MAX, P_HEADING_P, P_YAW_RATE_MAX = range(8, 14)
 P_LAND_SPEED, P_IMPACT_SPEED, P_POSITION_GAIN, P_VELOCITY_GAIN = range(14, 18)
-N_PARAMS = 18
 
 # what the attitude command follows (:func:`step`'s ``command``)
 CMD_NONE, CMD_POSITION, CMD_VELOCITY, CMD_ATTITUDE, CMD_HOLD, CMD_LAND = range(6)
@@ -157,36 +156,37 @@ def thrust_attitude(ax, ay, az, yaw, g, tilt_max):  # pragma: no cover - jit
     return thrust, phi, theta
 
 
-@njit(cache=True)
-def occupied(occ, grid, x, y, z):  # pragma: no cover - jit
-    """Whether (x, y, z) is in a rock voxel (``grid`` = origin x, y, z and resolution)."""
+@njit(cache=True, inline="always")
+def _voxel(grid, x, y, z):  # pragma: no cover - jit
+    """(finite, i, j, k): the voxel index of (x, y, z), not bounds-checked (``grid`` = origin
+    x, y, z and resolution)."""
     fx = (x - grid[0]) / grid[3]
     fy = (y - grid[1]) / grid[3]
     fz = (z - grid[2]) / grid[3]
     if not (math.isfinite(fx) and math.isfinite(fy) and math.isfinite(fz)):
-        return False
-    i, j, k = math.floor(fx), math.floor(fy), math.floor(fz)
+        return False, 0, 0, 0
+    return True, math.floor(fx), math.floor(fy), math.floor(fz)
+
+
+@njit(cache=True)
+def occupied(occ, grid, x, y, z):  # pragma: no cover - jit
+    """Whether (x, y, z) is in a rock voxel."""
+    finite, i, j, k = _voxel(grid, x, y, z)
     nx, ny, nz = occ.shape
-    return 0 <= i < nx and 0 <= j < ny and 0 <= k < nz and occ[i, j, k]
+    return finite and 0 <= i < nx and 0 <= j < ny and 0 <= k < nz and occ[i, j, k]
 
 
 @njit(cache=True)
 def ground_z(occ, grid, x, y, z):  # pragma: no cover - jit
     """``VoxelMap.ground_z``: the top of the highest rock voxel at or below (x, y, z) in its
     column, or the map's bottom where there is none."""
-    r = grid[3]
-    fx = (x - grid[0]) / r
-    fy = (y - grid[1]) / r
-    fz = (z - grid[2]) / r
-    if not (math.isfinite(fx) and math.isfinite(fy) and math.isfinite(fz)):
-        return grid[2]
-    i, j, k = math.floor(fx), math.floor(fy), math.floor(fz)
+    finite, i, j, k = _voxel(grid, x, y, z)
     nx, ny, nz = occ.shape
-    if not (0 <= i < nx and 0 <= j < ny) or k < 0:
+    if not finite or not (0 <= i < nx and 0 <= j < ny) or k < 0:
         return grid[2]
     for level in range(min(k, nz - 1), -1, -1):
         if occ[i, j, level]:
-            return grid[2] + (level + 1) * r
+            return grid[2] + (level + 1) * grid[3]
     return grid[2]
 
 

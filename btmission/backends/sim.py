@@ -441,8 +441,10 @@ class Simulator:
         self.config = config or SimConfig()
         self.world = SimWorld(voxel_map, artifacts)
         self.params = params or MavParams()
+        from btmission.backends._multirotor_kernels import N_OUT
+
         self._packed = self._pack()
-        self._out = np.zeros(16)
+        self._out = np.zeros(N_OUT)
         """The compiled multirotor step's result (:meth:`_step_multirotor`)."""
         self.seed = seed
         self.rng = np.random.default_rng(seed)

@@ -31,7 +31,7 @@ import py_trees
 from py_trees.common import Status
 
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
-from btmission.synthesis.pytrees import FreshIterator
+from btmission.synthesis.pytrees import LeanTick
 from btmission.synthesis.tree import Node
 
 if TYPE_CHECKING:
@@ -311,7 +311,7 @@ _GUARDS: dict[str, Callable[[Any], Any]] = {
 }
 
 
-class GuardedLeaf(FreshIterator, py_trees.behaviour.Behaviour):
+class GuardedLeaf(LeanTick, py_trees.behaviour.Behaviour):
     """A leaf whose ``initialise`` / ``update`` / ``terminate`` — its own and any subclass's
     overrides — never raise: an exception becomes FAILURE for that tick and a ``leaf_error``
     event (type, message, traceback) through the agent's context, and the run goes on."""
@@ -327,11 +327,6 @@ class GuardedLeaf(FreshIterator, py_trees.behaviour.Behaviour):
                 setattr(cls, name, guard(fn))
         if "tick" in cls.__dict__:  # its own tick() runs, not the lean one
             cls.tick_now = None  # type: ignore[assignment]
-
-    def tick(self) -> Iterator[py_trees.behaviour.Behaviour]:
-        """py_trees' ``Behaviour.tick`` (:meth:`tick_now`), then yield itself."""
-        self.tick_now()
-        yield self
 
     def tick_now(self) -> None:
         """py_trees' ``Behaviour.tick`` — initialise unless RUNNING, update, stop unless

@@ -31,7 +31,7 @@ def _stop_composite(
 ) -> None:
     """py_trees' ``Composite.stop`` — on INVALID forget the current child and stop every child
     that is not INVALID; terminate; take the status — without its debug message and without
-    making a fresh tick generator that nothing reads (:class:`FreshIterator`)."""
+    making a fresh tick generator that nothing reads (:class:`LeanTick`)."""
     if new_status is _INVALID:
         composite.current_child = None
         for child in composite.children:
@@ -41,13 +41,22 @@ def _stop_composite(
     composite.status = new_status
 
 
-class FreshIterator:
-    """py_trees keeps a fresh tick generator in ``iterator`` (made at every ``stop``; py_trees
-    itself never reads it): here it is made when read. A base class of the quiet composites and the runtime's leaves."""
+class LeanTick:
+    """The base of the quiet composites and the runtime's leaves: ``tick()`` is :meth:`tick_now`
+    (a plain call that ticks to the end) and then yields the behaviour itself, once; and
+    ``iterator``, the fresh tick generator py_trees keeps (made at every ``stop``; py_trees itself
+    never reads it), is made when read."""
+
+    def tick_now(self) -> None:  # pragma: no cover - every subclass defines it
+        raise NotImplementedError
+
+    def tick(self) -> Iterator[py_trees.behaviour.Behaviour]:
+        self.tick_now()
+        yield self  # type: ignore[misc]
 
     @property
     def iterator(self) -> Iterator[py_trees.behaviour.Behaviour]:
-        return self.tick()  # type: ignore[attr-defined, no-any-return]
+        return self.tick()
 
     @iterator.setter
     def iterator(self, _value: object) -> None:
@@ -66,7 +75,7 @@ def tick_behaviour(behaviour: py_trees.behaviour.Behaviour) -> None:
         pass
 
 
-class QuietSelector(FreshIterator, py_trees.composites.Selector):
+class QuietSelector(LeanTick, py_trees.composites.Selector):
     """A py_trees ``Selector`` whose ``tick()`` yields only itself, once, at the end.
 
     A composite's ``tick()`` yields every behaviour ticked below it, and each of those yields
@@ -83,10 +92,6 @@ class QuietSelector(FreshIterator, py_trees.composites.Selector):
     every child after it; take its status (stopping on SUCCESS), or FAILURE when all failed —
     as plain calls instead of nested generators (a fleet's trees tick thousands of composites a
     second)."""
-
-    def tick(self) -> Iterator[py_trees.behaviour.Behaviour]:
-        self.tick_now()
-        yield self
 
     def tick_now(self) -> None:
         """One tick to the end (class docstring)."""
@@ -128,16 +133,12 @@ class QuietSelector(FreshIterator, py_trees.composites.Selector):
         _stop_composite(self, new_status)
 
 
-class QuietSequence(FreshIterator, py_trees.composites.Sequence):
+class QuietSequence(LeanTick, py_trees.composites.Sequence):
     """The ``Sequence`` counterpart of :class:`QuietSelector`; without ``memory`` its
     :meth:`tick_now` is py_trees' ``Sequence.tick`` step for step: unless RUNNING, stop every
     child that is not INVALID and initialise; tick the children in order while they succeed;
     at the first that does not, stop (INVALID) the children after it and take its status
     (stopping unless RUNNING); SUCCESS when all succeeded."""
-
-    def tick(self) -> Iterator[py_trees.behaviour.Behaviour]:
-        self.tick_now()
-        yield self
 
     def tick_now(self) -> None:
         """One tick to the end (class docstring)."""
