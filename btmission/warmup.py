@@ -21,6 +21,12 @@ import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from btmission.backends.sim import Simulator
+    from btmission.runtime.bus import InMemoryBus
+    from btmission.runtime.navigation import Navigator
 
 
 def _commands(tmp: Path) -> list[tuple[str, list[str]]]:
@@ -108,6 +114,35 @@ def _vehicle_control() -> None:
         bus.share_prediction(f"V{i}", 0.0, np.array([[float(i), 0.0, 1.0]]))
     bus.neighbour_positions("V0", 0.0, 0.1, np.array([0.0, 0.0, 1.0]), 6.0)
     PotentialField().step(np.ones((2, 3)), (1.0, 0.0, 0.0))
+    _fleet_step(sim, nav, bus)
+
+
+def _fleet_step(sim: Simulator, nav: Navigator, bus: InMemoryBus) -> None:
+    """The fleet's control step (:func:`~btmission.runtime._fleet_kernels.fleet_follow`) for
+    two drones of the warm-up's simulator, with the argument types of a run's."""
+    import numpy as np
+
+    from btmission.backends.mapsensors import sphere_points
+    from btmission.runtime._fleet_kernels import fleet_follow
+    from btmission.runtime.navigation import CARROT_WINDOW, POSITION_GAIN, SETTLED_M_S
+
+    cells = sim.world.cells
+    table = sim.bodies()
+    route = np.zeros((2, 9))
+    route[:, 0:3] = [[1.0, 1.0, 1.0], [3.0, 3.0, 1.0]]
+    n = len(bus._row_names)
+    prev = bus._starts[:n]
+    assert nav._apf is not None
+    fleet_follow(
+        np.concatenate([route, route]), np.array([0, 2, 4], dtype=np.int64),
+        np.zeros(2, dtype=np.int64), np.ones((2, 7)), np.ones((2, 4)),
+        np.array([0, 1], dtype=np.int64), np.full((2, 3), 3.0), np.zeros(2, dtype=np.bool_),
+        np.zeros((2, 3)), cells.points, cells.starts, cells.lo, float(cells.cell), cells.dims,
+        3.0, table.centres, table.radii, sphere_points(), prev, prev.copy(),
+        np.arange(n, dtype=np.int64), np.array([0, 1], dtype=np.int64),
+        np.array([0, 1], dtype=np.int64), 6.0, CARROT_WINDOW, 1.0, 0.3, SETTLED_M_S, 1.0,
+        POSITION_GAIN, nav._apf.config.packed, nav._apf.config.packed,
+    )  # fmt: skip
 
 
 def _planner() -> None:

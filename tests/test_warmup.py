@@ -59,6 +59,7 @@ def test_a_run_loads_its_loop_kernels_while_it_builds() -> None:
     from btmission.bench.fleet import fleet_mission_text
     from btmission.control import _apf_kernels as apf
     from btmission.planning import _kernels as plan
+    from btmission.runtime import _fleet_kernels as fleet
     from btmission.runtime import _neighbour_kernels as near
     from btmission.runtime import _route_kernels as route
     from btmission.runtime.runner import MissionRun
@@ -67,7 +68,7 @@ def test_a_run_loads_its_loop_kernels_while_it_builds() -> None:
     warmup.prepare_run()
     assert "scipy.optimize" in sys.modules
     kernels = [
-        f for mod in (apf, route, surf, plan, near, multirotor, bids)
+        f for mod in (apf, route, surf, plan, near, multirotor, bids, fleet)
         for f in vars(mod).values()
         if isinstance(f, CPUDispatcher)
     ]  # fmt: skip
@@ -76,6 +77,7 @@ def test_a_run_loads_its_loop_kernels_while_it_builds() -> None:
     used |= {"near_points"}  # a fleet's neighbour query (past SMALL_FLEET)
     used |= {"step", "first_bad_cost"}  # the simulator's multirotor step; bids' range check
     used |= {"rock_rows", "near_pairs"}  # the simulator's contact test (past SMALL_FLEET)
+    used |= {"fleet_follow"}  # the fleet's control step
     assert used <= set(before) and all(before[k] for k in used)
     run = MissionRun(load_mission_text(fleet_mission_text(10), "fleet.yaml"), controller="track")
     run.run(until=25)

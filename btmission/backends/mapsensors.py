@@ -240,6 +240,12 @@ def _fibonacci_sphere(n: int) -> FloatArray:
 _SPHERE = _fibonacci_sphere(VEHICLE_POINTS)
 
 
+def sphere_points() -> FloatArray:
+    """The unit points a vehicle's body gives in another's short-range LiDAR (scaled to its
+    radius by the scan)."""
+    return _SPHERE
+
+
 def _ray_sphere(origin: FloatArray, dirs: FloatArray, centre: FloatArray, r: float) -> FloatArray:
     """Distance along each unit ray to a sphere (inf where it misses)."""
     oc = origin - centre

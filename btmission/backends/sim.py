@@ -339,6 +339,11 @@ class SimWorld:
             np.asarray(points, dtype=float).reshape(-1, 3), WALL_QUERY_M
         )
 
+    @property
+    def cells(self) -> _SurfaceCells:
+        """The rock-face points sorted into cells (what the compiled scans take)."""
+        return self._cells
+
     def surface_points(self, p: FloatArray, radius: float) -> FloatArray:
         """The rock-face points (world) within ``radius`` of ``p``."""
         return self._cells.ball(np.asarray(p, dtype=float), float(radius))
@@ -794,6 +799,28 @@ class SimVehicle(OffboardCommands):
         self.sensors = MapSensors(sim.world, sim.config, sim.rng, self._pose, self._other_bodies)
         """The vehicle's LiDAR and camera, ray-cast at its true pose."""
         self._telemetry: tuple[tuple[object, ...], Telemetry] | None = None
+
+    @property
+    def sim(self) -> Simulator:
+        """The simulator the vehicle is in."""
+        return self._sim
+
+    @property
+    def vehicle(self) -> _Vehicle:
+        """Its true state in the simulator."""
+        return self._v
+
+    @property
+    def owns_sensors(self) -> bool:
+        """Its sensors are still the simulator's at its true pose (none replaced)."""
+        s = self.sensors
+        return (
+            type(s) is MapSensors
+            and s.world is self._sim.world
+            and s.config is self._sim.config
+            and s.pose == self._pose
+            and s.others == self._other_bodies
+        )
 
     # ---------------------------------------------- commands and setpoints: OffboardCommands
     def _ap_time(self) -> float:

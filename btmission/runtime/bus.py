@@ -441,6 +441,10 @@ class InMemoryAgentLink:
         self._agent = agent
 
     @property
+    def bus(self) -> InMemoryBus:
+        return self._bus
+
+    @property
     def agent(self) -> str:
         return self._agent
 

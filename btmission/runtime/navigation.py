@@ -781,6 +781,41 @@ class Navigator:
         yaw = math.atan2(hy, hx) if math.hypot(hx, hy) > 0.3 else None
         return ref, vel, yaw, repulsion
 
+    def batch_route(self) -> _Follow | None:
+        """The route this control step follows when
+        :class:`~btmission.runtime.fleetstep.FleetFollow` may compute it with the rest of the
+        fleet (a multirotor under the tracking controller, following a route); None otherwise."""
+        cmd = self._cmd
+        if type(cmd) is _Follow and self._nmpc is None and self.kind is VehicleKind.MULTIROTOR:
+            return cmd
+        return None
+
+    def finish_batch(self, now: float, tel: Telemetry, row: FloatArray) -> bool:
+        """Apply this step's row of :func:`~btmission.runtime._fleet_kernels.fleet_follow` for
+        the route of :meth:`batch_route` — what :meth:`_step_multirotor` does with the same
+        numbers (:meth:`_route_step`'s progress, :meth:`_follow_reference`'s heading, the
+        setpoint). False, with nothing changed, when the row leaves the step to
+        :meth:`step` (code 1: maybe arrived, or a ground goal's last stretch) or the route has
+        made no progress for ``stuck_s``."""
+        if row[0]:
+            return False
+        cmd = self._cmd
+        assert isinstance(cmd, _Follow)
+        left = cmd.route.length - float(row[2])
+        best, since = cmd.best_left, cmd.progress_t
+        if left < best - PROGRESS_M:
+            best, since = left, now
+        if now - since > self.config.stuck_s:
+            return False
+        cmd.seg, cmd.best_left, cmd.progress_t = int(row[1]), best, since
+        p = tel.position
+        self.prediction = p[None, :].copy()
+        self._apf_previous = row[9:12]
+        hx, hy = float(row[13]) - float(p[0]), float(row[14]) - float(p[1])
+        yaw = math.atan2(hy, hx) if math.hypot(hx, hy) > 0.3 else None
+        self._command_multirotor(tel, row[3:6], row[6:9], yaw, 0.0, float(row[12]))
+        return True
+
     def _command_multirotor(
         self,
         tel: Telemetry,

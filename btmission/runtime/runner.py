@@ -88,6 +88,7 @@ from btmission.runtime.events import (
     Observer,
     world_reference,
 )
+from btmission.runtime.fleetstep import FleetFollow
 from btmission.runtime.leaves import (
     ErrorReporter,
     RunContext,
@@ -164,6 +165,7 @@ class MissionRun:
         substitutions: Substitutions | SubstitutionRules | None = None,
         speed: float = 1.0,
         part: Part | None = None,
+        fleet_step: bool = True,
     ) -> None:
         """``realtime`` paces the simulator to the wall clock, ``speed`` times faster than real
         time (real vehicles always go at their own clock). ``part``: what this process runs of
@@ -171,7 +173,9 @@ class MissionRun:
         it, over the in-memory bus). ``substitutions``: leaves of the agents' trees to replace, for tests
         (:mod:`btmission.runtime.substitution`; a rule that replaces no leaf raises
         :class:`~btmission.runtime.substitution.SubstitutionError` before anything is
-        published)."""
+        published). ``fleet_step``: compute the route-following drones' control steps together
+        where that gives the same result (:mod:`btmission.runtime.fleetstep`); False: one by
+        one, always."""
         from btmission.planning.risk import RiskParams
         from btmission.world.build import world_from_spec
 
@@ -303,6 +307,12 @@ class MissionRun:
             )
             for a in self.agents.values()
         ]
+        self._fleet = (
+            FleetFollow.build(self.agent_sides, self.bus, NEIGHBOUR_RANGE_M)
+            if fleet_step and part is None
+            else None
+        )
+        """The fleet's control step (None: the agents' own, one by one)."""
         self._trees: dict[str, tuple[tuple[int, Any], Mapping[int, str]]] = {}
         self._nodes: dict[str, tuple[tuple[str, int, str], ...]] = {}
         self._owner = threading.get_ident()
@@ -760,8 +770,11 @@ class MissionRun:
         sides = self.agent_sides
         for side in sides:
             side.tick(now)
-        for side in sides:
-            side.control(now)
+        if self._fleet is not None:
+            self._fleet.control(now)
+        else:
+            for side in sides:
+                side.control(now)
         for side in sides:  # the deferred NMPC solves of this step, collected in a fixed order
             side.finish_control()
         for side in sides:

@@ -1,0 +1,89 @@
+"""The fleet's control step (:mod:`btmission.runtime.fleetstep`) gives the per-drone loop's run to
+the bit, takes most drone steps where it applies, and stays out where it does not."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import pytest
+
+from btmission.bench.fleet import fleet_mission_text
+from btmission.runtime.events import Event
+from btmission.runtime.runner import MissionRun
+from btmission.spec.mission import load_mission_text
+
+WALL = {"wall_s", "build_s", "started_unix", "solve_ms", "solve_s", "elapsed_s", "step_ms"}
+"""Fields that measure the machine, not the run."""
+
+
+class Lines:
+    def __init__(self) -> None:
+        self.lines: list[str] = []
+
+    def on_event(self, event: Event) -> None:
+        data = json.loads(event.to_json())
+        self.lines.append(json.dumps({k: v for k, v in data.items() if k not in WALL}))
+
+
+def _run(text: str, until: float, fleet_step: bool) -> tuple[list[str], MissionRun]:
+    rec = Lines()
+    run = MissionRun(load_mission_text(text, "fleet.yaml"), observers=[rec], fleet_step=fleet_step)
+    run.run(until=until)
+    return rec.lines, run
+
+
+def _same_run(text: str, until: float) -> tuple[list[str], MissionRun]:
+    one_by_one, plain = _run(text, until, False)
+    together, batched = _run(text, until, True)
+    assert plain._fleet is None and batched._fleet is not None
+    assert len(together) == len(one_by_one)
+    for i, (a, b) in enumerate(zip(one_by_one, together)):
+        assert a == b, f"event {i} differs"
+    return together, batched
+
+
+def test_a_fleet_runs_the_same_with_its_steps_computed_together() -> None:
+    """10 drones for 30 s (they take off, fly routes, meet each other, some arrive: the
+    per-drone path decides those): the same events, and most drone steps were batched."""
+    lines, run = _same_run(fleet_mission_text(10), 30.0)
+    assert run._fleet is not None
+    flown = 10 * run.steps
+    assert run._fleet.batched > 0.5 * flown  # most steps of a fleet follow routes
+    kinds = [json.loads(x)["ev"] for x in lines]
+    assert kinds.count("task") > 10 and "route" in kinds  # tasks won, routes flown
+
+
+def _noisy(text: str) -> str:
+    return text.replace(
+        "runtime: {controller: track",
+        "runtime: {controller: track, sim: {pose_noise_m: 0.05, heading_noise_rad: 0.02, "
+        "velocity_noise: 0.1}",
+    )
+
+
+@pytest.mark.slow
+def test_noisy_estimates_and_a_small_fleet_run_the_same() -> None:
+    """Pose noise (the estimate the navigator uses is not where the LiDAR is) on 4 drones (the
+    bus's small-fleet neighbour query), flown until tasks are done at their goals."""
+    text = _noisy(fleet_mission_text(4))
+    assert "pose_noise_m" in text
+    lines, run = _same_run(text, 120.0)
+    assert run._fleet is not None and run._fleet.batched > 0
+    done = [json.loads(x) for x in lines if '"state": "done"' in x]
+    assert done  # arrivals happened (the per-drone path's cases)
+
+
+def test_the_fleet_step_stays_out_where_it_would_change_the_run() -> None:
+    def fleet(text: str, **kw: Any) -> object:
+        return MissionRun(load_mission_text(text, "f.yaml"), **kw)._fleet
+
+    text = fleet_mission_text(3)
+    assert fleet(text) is not None
+    assert fleet(text, fleet_step=False) is None
+    assert fleet(text, controller="nmpc") is None  # the NMPC's own path
+    dusty = text.replace("runtime: {controller: track", "runtime: {controller: track, sim: "
+                         "{dust_points: 5}")  # fmt: skip
+    assert fleet(dusty) is None  # dust draws from the generator in the agents' order
+    one = fleet_mission_text(1)
+    assert fleet(one) is None  # nothing to batch
