@@ -607,3 +607,29 @@ def test_the_contact_tests_candidate_pairs_hold_every_touching_pair(
     assert all(pair in got for pair in touching)
     for i, j in got:
         assert float(np.linalg.norm(centres[i] - centres[j])) < radii[i] + radii[j] + 1e-5
+
+
+def test_a_fast_built_telemetry_record_is_the_dataclass_it_stands_for() -> None:
+    import dataclasses
+
+    from btmission.backends.base import Mode, Telemetry
+
+    fields = dict(time_s=1.5, position=np.array([1.0, 2.0, 3.0]), velocity=np.zeros(3), yaw=0.1,
+                  roll=0.0, pitch=0.0, yaw_rate=0.2, mode=Mode.HOLD, armed=True, landed=False,
+                  battery=0.9, ground_z=0.5)  # fmt: skip
+    fast, slow = Telemetry.record(**fields), Telemetry(**fields)  # type: ignore[arg-type]
+    assert type(fast) is Telemetry and dataclasses.asdict(fast).keys() == fields.keys()
+    assert fast.height_above_ground == slow.height_above_ground == 2.5
+    assert dataclasses.replace(fast, yaw=0.3).yaw == 0.3
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        fast.yaw = 0.3  # type: ignore[misc]
+    del fields["ground_z"]
+    with pytest.raises(TypeError, match="ground_z"):
+        Telemetry.record(**fields)
+
+
+def test_a_simulated_vehicles_telemetry_arrays_are_read_only() -> None:
+    sim = Simulator(VoxelMap.empty((4.0, 4.0, 3.0), 0.5), SimConfig())
+    tel = sim.add_multirotor("A", (1.0, 1.0, 0.5)).telemetry()
+    assert not tel.position.flags.writeable and not tel.velocity.flags.writeable
+    assert tel.position.tolist() == [1.0, 1.0, 0.5] and tel.velocity.tolist() == [0.0, 0.0, 0.0]

@@ -844,26 +844,28 @@ class SimVehicle(OffboardCommands):
         if cached is not None and cached[0] == key:
             return cached[1]
         tel = self._build_telemetry(v)
-        tel.position.flags.writeable = False
-        tel.velocity.flags.writeable = False
         self._telemetry = (key, tel)
         return tel
 
     def _build_telemetry(self, v: _Vehicle) -> Telemetry:
         if v.kind is VehicleKind.MULTIROTOR:
-            roll, pitch = float(v.x[6]), float(v.x[7])
+            x = v.x
+            roll, pitch = float(x[6]), float(x[7])
+            state = x[:6].copy()  # position and velocity: one copy, read-only
         else:
             roll = pitch = 0.0
-        position = v.position.copy()
+            state = np.concatenate([v.position, v.velocity])
         yaw = float(v.yaw)
         if v.noise is not None:
             err = v.estimate_error
-            position[:2] += err[:2]
+            state[:2] += err[:2]
             yaw += float(err[2])
-        return Telemetry(
+        state.flags.writeable = False
+        position, velocity = state[:3], state[3:]  # (views of a read-only array: read-only)
+        return Telemetry.record(
             time_s=self._sim.time_s,
             position=position,
-            velocity=v.velocity.copy(),
+            velocity=velocity,
             yaw=yaw,
             roll=roll,
             pitch=pitch,
