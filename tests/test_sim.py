@@ -613,11 +613,12 @@ def test_a_fast_built_telemetry_record_is_the_dataclass_it_stands_for() -> None:
     import dataclasses
 
     from btmission.backends.base import Mode, Telemetry
+    from btmission.types import record
 
     fields = dict(time_s=1.5, position=np.array([1.0, 2.0, 3.0]), velocity=np.zeros(3), yaw=0.1,
                   roll=0.0, pitch=0.0, yaw_rate=0.2, mode=Mode.HOLD, armed=True, landed=False,
                   battery=0.9, ground_z=0.5)  # fmt: skip
-    fast, slow = Telemetry.record(**fields), Telemetry(**fields)  # type: ignore[arg-type]
+    fast, slow = record(Telemetry, **fields), Telemetry(**fields)  # type: ignore[arg-type]
     assert type(fast) is Telemetry and dataclasses.asdict(fast).keys() == fields.keys()
     assert fast.height_above_ground == slow.height_above_ground == 2.5
     assert dataclasses.replace(fast, yaw=0.3).yaw == 0.3
@@ -625,7 +626,7 @@ def test_a_fast_built_telemetry_record_is_the_dataclass_it_stands_for() -> None:
         fast.yaw = 0.3  # type: ignore[misc]
     del fields["ground_z"]
     with pytest.raises(TypeError, match="ground_z"):
-        Telemetry.record(**fields)
+        record(Telemetry, **fields)
 
 
 def test_a_simulated_vehicles_telemetry_arrays_are_read_only() -> None:

@@ -82,7 +82,7 @@ from btmission.backends.mapsensors import Bodies, MapSensors, SensorPose
 from btmission.backends.provider import Vehicle, VehicleEvent
 from btmission.control.mav_model import MavParams
 from btmission.localization.scan import LidarSensor
-from btmission.types import FloatArray, Vec3
+from btmission.types import FloatArray, Vec3, record
 from btmission.world.voxel import OCCUPIED, VoxelMap
 
 if TYPE_CHECKING:
@@ -862,7 +862,8 @@ class SimVehicle(OffboardCommands):
             yaw += float(err[2])
         state.flags.writeable = False
         position, velocity = state[:3], state[3:]  # (views of a read-only array: read-only)
-        return Telemetry.record(
+        return record(
+            Telemetry,
             time_s=self._sim.time_s,
             position=position,
             velocity=velocity,

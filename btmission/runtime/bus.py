@@ -43,7 +43,7 @@ import numpy as np
 
 from btmission.allocation.auction import Announcement, Bid
 from btmission.allocation.loop import Inbox, Progress
-from btmission.types import FloatArray
+from btmission.types import FloatArray, record
 
 SMALL_FLEET = 8
 """Up to this many sharing agents a neighbour query tests each one (the vectorised test over
@@ -314,6 +314,20 @@ class InMemoryBus:
         self._starts[row] = np.nan
         self._starts[row, : min(3, pts.shape[1])] = pts[0, :3]
         self._set_multi(row, len(pts) > 1)
+
+    def share_positions(self, time_s: float, shares: Sequence[tuple[str, FloatArray]]) -> None:
+        """:meth:`share_prediction` of each ``(agent, positions)``, every ``positions`` (1, 3) —
+        where the agent is — at once (a fleet's drones, every control step): the same state as
+        sharing them one by one, in order."""
+        rows = self._rows
+        if self._trajectories or any(a not in rows for a, _ in shares):
+            for agent, pts in shares:
+                self.share_prediction(agent, time_s, pts)
+            return
+        preds = self._predictions
+        for agent, pts in shares:
+            preds[agent] = record(Prediction, agent=agent, time_s=time_s, positions=pts)
+        self._starts[[rows[a] for a, _ in shares]] = np.concatenate([p for _, p in shares])
 
     def _set_multi(self, row: int, multi: bool) -> None:
         """Mark ``row``'s prediction as a trajectory (or not), keeping :attr:`_trajectories`."""

@@ -25,9 +25,10 @@ fewer than :data:`MIN_BATCH` drones following routes, the loop is the per-drone 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
+from numpy.typing import NDArray
 
 from btmission.backends.base import VehicleKind
 from btmission.backends.mapsensors import sphere_points
@@ -39,6 +40,7 @@ from btmission.runtime.navigation import (
     POSITION_GAIN,
     SETTLED_M_S,
     Navigator,
+    _Follow,
 )
 from btmission.types import FloatArray
 
@@ -65,6 +67,19 @@ class FleetFollow:
             b = side.agent.navigator.backend
             assert isinstance(b, SimVehicle)
             self._members.append((side, side.agent, side.agent.navigator, b))
+        self._agent_list = [m[1] for m in self._members]
+        self._navs = [m[2] for m in self._members]
+        self._backends = [m[3] for m in self._members]
+        self._vehicles = [b.vehicle for b in self._backends]
+        self._ranks = np.arange(len(self._members), dtype=np.int64)
+        """Each agent's place in the loop (its rank for the rows it shares)."""
+        self._own_row: NDArray[np.int64] | None = None
+        self._body = np.zeros(0, dtype=np.int64)
+        self._bodies_for = -1
+        self._cmds_key: tuple[int, ...] = ()
+        self._cmds: list[_Follow] = []
+        self._targets = np.zeros((0, 3))
+        self._ground = np.zeros(0, dtype=np.bool_)
         self.bus = bus
         self.within_m = float(within_m)
         first = self.sides[0].agent
@@ -83,7 +98,6 @@ class FleetFollow:
         assert nav._apf is not None
         self._field = nav._apf.config.packed
         self._agents = AGENT_APF[VehicleKind.MULTIROTOR].packed
-        self._routes: tuple[object, ...] = ()
         self._table = np.zeros((0, 9))
         self._offsets = np.zeros(1, dtype=np.int64)
         self.batched = 0
@@ -125,28 +139,18 @@ class FleetFollow:
             return None
         return cls(sides, bus, within_m)
 
-    def _route_table(self, routes: Sequence[object], tables: Sequence[FloatArray]) -> None:
-        """The batch's route tables, stacked (rebuilt when a drone's route changed)."""
-        key = tuple(routes)
-        if key == self._routes:
-            return
-        self._routes = key
-        self._table = np.ascontiguousarray(np.concatenate(tables))
-        self._offsets = np.concatenate([[0], np.cumsum([len(t) for t in tables])]).astype(np.int64)
-
     def control(self, now: float) -> None:
         """This step's setpoints for every agent, in the loop's order (module docstring)."""
         bus = self.bus
-        n = len(bus._row_names)
-        if bus._trajectories or n != len(self.sides):
-            return self._each(now)
         members = self._members
-        batch = []
-        for k, (_, a, nav, _) in enumerate(members):
-            if a.alive:
-                cmd = nav.batch_route()
-                if cmd is not None:
-                    batch.append((k, cmd))
+        n = len(bus._row_names)
+        if bus._trajectories or n != len(members):
+            return self._each(now)
+        navs = self._navs
+        alive = [a.alive for a in self._agent_list]
+        batch = [
+            k for k, nav in enumerate(navs) if alive[k] and type(nav._cmd) is _Follow
+        ]  # (every navigator here is a tracking multirotor's: batch_route's other tests)
         if len(batch) < MIN_BATCH:
             return self._each(now)
         prev = bus._starts[:n]
@@ -154,60 +158,72 @@ class FleetFollow:
             return self._each(now)
         from btmission.runtime._fleet_kernels import fleet_follow
 
-        rows = bus._rows
+        if self._own_row is None:  # (rows never change once the bus has them all)
+            rows = bus._rows
+            self._own_row = np.array([rows[a.id] for a in self._agent_list], dtype=np.int64)
+        own_row = self._own_row
+        tels = [b.telemetry() for b in self._backends]
+        pos = np.array([t.position for t in tels])
         rank = np.full(n, len(members), dtype=np.int64)
         cur = prev.copy()
-        tels = []
-        for k, (_, a, _, b) in enumerate(members):
-            tel = b.telemetry()
-            tels.append(tel)
-            if a.alive:
-                r = rows[a.id]
-                rank[r] = k
-                cur[r] = tel.position
+        if all(alive):
+            rank[own_row] = self._ranks
+            cur[own_row] = pos
+        else:
+            live = np.array(alive, dtype=bool)
+            rank[own_row[live]] = self._ranks[live]
+            cur[own_row[live]] = pos[live]
         table = self.sim.bodies()
-        index = table.index
-        states, poses, targets, tables, routes = [], [], [], [], []
-        seg, body, ground, own_row, own_rank, prev_f = [], [], [], [], [], []
-        for k, cmd in batch:
-            _, a, nav, b = members[k]
-            tel = tels[k]
-            states.append([*tel.position.tolist(), *tel.velocity.tolist(), tel.yaw])
-            veh = b.vehicle
-            x = veh.x
-            poses.append((x[0], x[1], x[2], veh.yaw))
-            targets.append(cmd.target)
-            routes.append(cmd.route)
-            tables.append(cmd.route._table)
-            seg.append(cmd.seg)
-            body.append(index[a.id])
-            ground.append(cmd.ground_goal)
-            own_row.append(rows[a.id])
-            own_rank.append(k)
-            prev_f.append(nav._apf_previous)
-        self._route_table(routes, tables)
+        if table.key[1] != self._bodies_for:
+            index = table.index
+            self._body = np.array([index[a.id] for a in self._agent_list], dtype=np.int64)
+            self._bodies_for = table.key[1]
+        cmds = cast(list[_Follow], [navs[k]._cmd for k in batch])
+        key = tuple(map(id, cmds))
+        if key != self._cmds_key:  # new routes: their tables, targets and ground flags
+            self._cmds_key = key
+            self._cmds = cmds  # (kept: their ids stay theirs)
+            self._table = np.ascontiguousarray(np.concatenate([c.route._table for c in cmds]))
+            lengths = [len(c.route._table) for c in cmds]
+            self._offsets = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
+            self._targets = np.array([c.target for c in cmds], dtype=float)
+            self._ground = np.array([c.ground_goal for c in cmds], dtype=np.bool_)
+        sel = np.array(batch, dtype=np.int64)
+        states = np.empty((len(batch), 7))
+        states[:, 0:3] = pos[sel]
+        states[:, 3:6] = [tels[k].velocity for k in batch]
+        states[:, 6] = [tels[k].yaw for k in batch]
+        vehs = [self._vehicles[k] for k in batch]
+        poses = np.empty((len(batch), 4))
+        poses[:, 0:3] = [v.x[:3] for v in vehs]
+        poses[:, 3] = [v.yaw for v in vehs]
         out = fleet_follow(
-            self._table, self._offsets, np.array(seg, dtype=np.int64),
-            np.array(states, dtype=float), np.array(poses, dtype=float),
-            np.array(body, dtype=np.int64), np.array(targets, dtype=float),
-            np.array(ground, dtype=np.bool_), np.array(prev_f, dtype=float),
+            self._table, self._offsets, np.array([c.seg for c in cmds], dtype=np.int64),
+            states, poses, self._body[sel], self._targets, self._ground,
+            np.array([navs[k]._apf_previous for k in batch], dtype=float),
             *self._cells, self._radius, table.centres, table.radii, self._sphere,
-            prev, cur, rank, np.array(own_row, dtype=np.int64), np.array(own_rank, dtype=np.int64),
+            prev, cur, rank, own_row[sel], sel,
             self.within_m, CARROT_WINDOW, self._look, self._tol, SETTLED_M_S, self._speed,
             POSITION_GAIN, self._field, self._agents,
         )  # fmt: skip
+        shares: list[tuple[str, FloatArray]] = []
         j = 0
         for k, (side, a, nav, _) in enumerate(members):
-            if j < len(batch) and batch[j][0] == k:
-                if nav.finish_batch(now, tels[k], out[j]):
-                    assert nav.prediction is not None
-                    a.link.share_prediction(now, nav.prediction)
-                    self.batched += 1
-                else:
-                    side.control(now)
+            if j < len(batch) and batch[j] == k:
+                done = nav.finish_batch(now, tels[k], out[j])
                 j += 1
-            else:
-                side.control(now)
+                if done:
+                    assert nav.prediction is not None
+                    shares.append((a.id, nav.prediction))
+                    continue
+            if shares:  # the agents before this one have shared where they are
+                bus.share_positions(now, shares)
+                self.batched += len(shares)
+                shares = []
+            side.control(now)
+        if shares:
+            bus.share_positions(now, shares)
+            self.batched += len(shares)
         return None
 
     def _each(self, now: float) -> None:

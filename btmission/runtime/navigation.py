@@ -813,7 +813,8 @@ class Navigator:
         self._apf_previous = row[9:12]
         hx, hy = float(row[13]) - float(p[0]), float(row[14]) - float(p[1])
         yaw = math.atan2(hy, hx) if math.hypot(hx, hy) > 0.3 else None
-        self._command_multirotor(tel, row[3:6], row[6:9], yaw, 0.0, float(row[12]))
+        # _command_multirotor under the tracking controller (batch_route's): the position loop
+        self.backend.set_position_setpoint(row[3:6], None, yaw)
         return True
 
     def _command_multirotor(
