@@ -550,3 +550,51 @@ def test_a_stopped_behaviour_still_hands_out_a_fresh_tick_generator() -> None:
         "SUCCESS",
     )
     assert [b.name for b in leaf.iterator] == ["L"]  # type: ignore[attr-defined]
+
+
+def test_a_condition_ticks_as_a_guarded_leaf_without_its_no_op_hooks() -> None:
+    """ConditionLeaf's own tick_now gives GuardedLeaf.tick_now's statuses (a failing condition
+    included); a subclass that overrides a hook ticks through GuardedLeaf.tick_now, hooks run."""
+    from typing import Any
+
+    from btmission.runtime.leaves import AgentContext, Blackboard, ConditionLeaf, GuardedLeaf
+    from btmission.synthesis.tree import Kind, Node
+
+    none: Any = None
+    ctx = AgentContext("A", Blackboard("/a"), none, none, none, none, lambda: 0.0, {},
+                       (0.0, 0.0, 0.0), events=lambda kind, **data: None)  # fmt: skip
+    answers = [True, False, True, True]
+
+    def fn(ctx: Any) -> bool:
+        if not answers:
+            raise RuntimeError("no more answers")
+        return answers.pop(0)
+
+    lean, full = ConditionLeaf(Node(Kind.CONDITION, "c"), fn, ctx), None
+    assert type(lean).tick_now is ConditionLeaf.tick_now
+    seen = []
+    for _ in range(5):
+        lean.tick_now()
+        seen.append(lean.status.value)
+    answers[:] = [True, False, True, True]
+    full = ConditionLeaf(Node(Kind.CONDITION, "c"), fn, ctx)
+    ref = []
+    for _ in range(5):
+        GuardedLeaf.tick_now(full)
+        ref.append(full.status.value)
+    assert seen == ref == ["SUCCESS", "FAILURE", "SUCCESS", "SUCCESS", "FAILURE"]
+
+    calls: list[str] = []
+
+    class Hooked(ConditionLeaf):
+        def initialise(self) -> None:
+            calls.append("initialise")
+
+        def terminate(self, new_status: Any) -> None:
+            calls.append(f"terminate {new_status.value}")
+
+    assert Hooked.tick_now is GuardedLeaf.tick_now
+    answers[:] = [False]
+    hooked = Hooked(Node(Kind.CONDITION, "h"), fn, ctx)
+    hooked.tick_now()
+    assert calls == ["initialise", "terminate FAILURE"] and hooked.status.value == "FAILURE"

@@ -371,6 +371,21 @@ class ConditionLeaf(GuardedLeaf):
         self.fn = fn
         self.ctx = ctx
 
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        hooks = ("initialise", "terminate", "stop")
+        if cls.tick_now is not None and any(h in cls.__dict__ for h in hooks):
+            cls.tick_now = GuardedLeaf.tick_now  # type: ignore[method-assign]  # its hooks run
+
+    def tick_now(self) -> None:
+        """:meth:`GuardedLeaf.tick_now` for a condition, whose ``initialise`` and ``terminate``
+        are py_trees' no-ops (guarded): the initialise guard's reset, the update, the new
+        status — the same, without four calls per tick (a fleet ticks ~1,000 conditions a
+        second). A subclass that overrides a hook ticks through :meth:`GuardedLeaf.tick_now`."""
+        if self.status is not Status.RUNNING:
+            self._init_error = False
+        self.status = self.update()
+
     def update(self) -> Status:
         args = resolve(self.ctx, self.node)
         if args is None:
