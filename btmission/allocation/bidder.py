@@ -34,9 +34,9 @@ from __future__ import annotations
 import ast
 import math
 from collections import OrderedDict
-from collections.abc import Collection, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import numpy.typing as npt
@@ -220,6 +220,8 @@ class Bidder:
         self._fields: dict[bool, tuple[tuple[str, str | None], ...]] = {}
         """Per task type, the single path cost its cost is (or None), sorted: the bid plan's
         key, with and without a batch-capable provider (:meth:`costs`)."""
+        self._hot: tuple[Announcement, object, _Plan, Any, Any] | None = None
+        """The last announcement's plan and provider functions (:meth:`_plan_of`)."""
         self.repeated = 0
         """Bids that repeated the previous one's costs (module docstring) instead of computing
         them."""
@@ -297,21 +299,8 @@ class Bidder:
             if agent.task is not None and agent.task in announcement.index:
                 out[announcement.index[agent.task]] = 0.0  # f_cost · k_bt with k_bt = 0
             return out
-        batch = getattr(self.provider, "path_costs", None)
-        fields = self._fields.get(batch is not None)
-        if fields is None:  # (the task types and the provider do not change)
-            fields = self._fields[batch is not None] = tuple(
-                sorted(
-                    (name, _single_path_cost(tt) if batch is not None else None)
-                    for name, tt in self.task_types.items()
-                )
-            )
-        plan = announcement.memo(
-            ("bid-plan", fields, self._places_key),
-            lambda: _Plan(tasks, dict(fields), self.places),
-        )
+        plan, batch, start_key = self._plan_of(announcement)
         key = None
-        start_key = getattr(self.provider, "start_key", None)
         if start_key is not None and not plan.single:
             key = (
                 self.provider,
@@ -333,11 +322,11 @@ class Bidder:
             out[rows] = np.asarray(batch(agent.position, goals), dtype=np.float64)
         # k_bt = 1 on every task here: an agent past its commit point returned above (eq. 8)
         if self.switch_cost and agent.task is not None:
-            others = np.ones(len(tasks), dtype=bool)
             mine = announcement.index.get(agent.task)
+            held = out[mine] if mine is not None else None
+            out += self.switch_cost
             if mine is not None:
-                others[mine] = False
-            out[others] += self.switch_cost
+                out[mine] = held  # (every other task's cost + the switch cost)
         k = participation_k(self.participation, len(tasks))
         if k < len(tasks):
             keep = announcement.index.get(agent.task, -1) if agent.task is not None else -1
@@ -345,6 +334,34 @@ class Bidder:
         if key is not None:
             self._last = (key, announcement, out.copy())
         return out
+
+    def _plan_of(
+        self, announcement: Announcement
+    ) -> tuple[_Plan, Callable[..., Any] | None, Callable[[Point], object] | None]:
+        """The bid plan for ``announcement`` (kept with it: the same for every bidder with these
+        task types and places), and the provider's batch and start-key functions (None where it
+        has none). Looked up once per announcement (every agent bids on every one)."""
+        hot = self._hot
+        if hot is not None and hot[0] is announcement and hot[1] is self.provider:
+            return hot[2], hot[3], hot[4]
+        provider = self.provider
+        batch = getattr(provider, "path_costs", None)
+        fields = self._fields.get(batch is not None)
+        if fields is None:  # (the task types and the provider do not change)
+            fields = self._fields[batch is not None] = tuple(
+                sorted(
+                    (name, _single_path_cost(tt) if batch is not None else None)
+                    for name, tt in self.task_types.items()
+                )
+            )
+        tasks = announcement.tasks
+        plan = announcement.memo(
+            ("bid-plan", fields, self._places_key),
+            lambda: _Plan(tasks, dict(fields), self.places),
+        )
+        start_key = getattr(provider, "start_key", None)
+        self._hot = (announcement, provider, plan, batch, start_key)
+        return plan, batch, start_key
 
     def bid(self, announcement: Announcement, agent: AgentState, now: float) -> Bid:
         """The bid message for ``announcement`` (aligned with it)."""
