@@ -634,3 +634,40 @@ def test_a_simulated_vehicles_telemetry_arrays_are_read_only() -> None:
     tel = sim.add_multirotor("A", (1.0, 1.0, 0.5)).telemetry()
     assert not tel.position.flags.writeable and not tel.velocity.flags.writeable
     assert tel.position.tolist() == [1.0, 1.0, 0.5] and tel.velocity.tolist() == [0.0, 0.0, 0.0]
+
+
+def test_the_fleet_step_is_the_single_drone_step_row_by_row() -> None:
+    """step_all on a fleet — every command, yaw mode, landed or not, near rock — gives each row
+    exactly what step gives that drone alone."""
+    from btmission.backends import _multirotor_kernels as kernels
+    from btmission.backends.sim import Simulator
+
+    world = _shared_mine_world()
+    sim = Simulator(world.map)
+    rng = np.random.default_rng(11)
+    lo, hi = world.map.bounds
+    m = 40
+    xs = np.concatenate(
+        [rng.uniform(lo, hi, (m, 3)), rng.normal(0, 1.5, (m, 3)), rng.normal(0, 0.2, (m, 2))],
+        axis=1,
+    )
+    yaws = rng.uniform(-3.1, 3.1, m)
+    commands = rng.integers(0, 6, m).astype(np.int64)
+    targets = xs[:, :3] + rng.normal(0, 3.0, (m, 3))
+    velocities = rng.normal(0, 1.0, (m, 3))
+    attitudes = np.column_stack([rng.uniform(5, 15, m), rng.normal(0, 0.2, (m, 2))])
+    clamps = rng.integers(0, 2, m).astype(np.bool_)
+    yaw_modes = rng.integers(0, 3, m).astype(np.int64)
+    yaw_sps = rng.uniform(-3, 3, m)
+    landed = rng.integers(0, 2, m).astype(np.bool_)
+    args = (sim._packed, world._occ, world._grid)
+    out = kernels.step_all(xs, yaws, commands, targets, velocities, attitudes, clamps,
+                           yaw_modes, yaw_sps, landed, 0.05, *args)  # fmt: skip
+    assert out.shape == (m, kernels.N_OUT)
+    for i in range(m):
+        one = np.zeros(kernels.N_OUT)
+        kernels.step(xs[i], float(yaws[i]), int(commands[i]), targets[i], velocities[i],
+                     attitudes[i], bool(clamps[i]), int(yaw_modes[i]), float(yaw_sps[i]),
+                     bool(landed[i]), 0.05, *args, one)  # fmt: skip
+        assert one.tobytes() == out[i].tobytes(), i
+    assert {kernels.CMD_NONE, kernels.CMD_POSITION, kernels.CMD_LAND} <= set(commands.tolist())

@@ -310,6 +310,21 @@ def step(
     out[OUT_ODOMETER] = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
 
 
+@njit(cache=True)
+def step_all(
+    xs, yaws, commands, targets, velocities, attitudes, clamps, yaw_modes, yaw_sps, landed, dt,
+    p, occ, grid,
+):  # fmt: skip  # pragma: no cover - jit
+    """:func:`step` for every row (a drone each): its (m, N_OUT) results."""
+    out = np.empty((xs.shape[0], N_OUT))
+    for i in range(xs.shape[0]):
+        step(
+            xs[i], yaws[i], commands[i], targets[i], velocities[i], attitudes[i], clamps[i],
+            yaw_modes[i], yaw_sps[i], landed[i], dt, p, occ, grid, out[i],
+        )  # fmt: skip
+    return out
+
+
 # ---- the contact test (every body, every step)
 @njit(cache=True)
 def rock_rows(occ, grid, centres):  # pragma: no cover - jit

@@ -446,11 +446,7 @@ class Simulator:
         self.config = config or SimConfig()
         self.world = SimWorld(voxel_map, artifacts)
         self.params = params or MavParams()
-        from btmission.backends._multirotor_kernels import N_OUT
-
         self._packed = self._pack()
-        self._out = np.zeros(N_OUT)
-        """The compiled multirotor step's result (:meth:`_step_multirotor`)."""
         self.seed = seed
         self.rng = np.random.default_rng(seed)
         self.time_s = 0.0
@@ -516,12 +512,16 @@ class Simulator:
         """Advance every vehicle by one step; returns the collisions that began in it."""
         dt = self.config.step_s
         t = self.time_s
-        for v in self._vehicles.values():
+        drones = []
+        for v in self._vehicles.values():  # (vehicles do not interact within a step)
             if v.kind is VehicleKind.MULTIROTOR:
                 self._autopilot(v, t)
-                self._step_multirotor(v, dt)
+                if not v.frozen:
+                    drones.append(v)
             else:
                 self._step_ground(v, t, dt)
+        if drones:
+            self._step_multirotors(drones, dt)
         if self.config.noisy:
             for v in self._vehicles.values():
                 self._draw_noise(v, dt)
@@ -578,17 +578,12 @@ class Simulator:
             VELOCITY_GAIN,
         )
 
-    def _step_multirotor(self, v: _Vehicle, dt: float) -> None:
-        """One step of the seed 002 model (RK4 in the yaw frame), the yaw loop, rock and
-        ground contact and landing in one compiled call
-        (:func:`~btmission.backends._multirotor_kernels.step`: Python's per-call cost on a dozen
-        floats was most of the simulator's time at fleet scale); then the mode, battery and
-        odometer."""
+    def _command(self, v: _Vehicle) -> tuple[int, FloatArray, int, float]:
+        """What ``v``'s attitude command follows this step (the compiled step's CMD_*), its
+        target, and the yaw loop's mode and setpoint (YAW_*): from the mode and the setpoint
+        streamed."""
         from btmission.backends import _multirotor_kernels as kernels
 
-        t = self.time_s
-        if v.frozen:
-            return
         mode, armed, kind = v.mode, v.armed, v.sp_kind
         offboard = mode is Mode.OFFBOARD
         command = kernels.CMD_NONE
@@ -611,43 +606,57 @@ class Simulator:
             yaw_mode, yaw_sp = kernels.YAW_RATE, float(v.sp_yaw_rate)
         elif offboard and v.sp_yaw is not None:
             yaw_mode, yaw_sp = kernels.YAW_HEADING, float(v.sp_yaw)
-        out = self._out
-        kernels.step(
-            v.x,
-            float(v.yaw),
-            command,
-            target,
-            v.sp_vel,
-            v.sp_att,
-            armed and mode is not Mode.MANUAL,
-            yaw_mode,
-            yaw_sp,
-            v.landed,
+        return command, target, yaw_mode, yaw_sp
+
+    def _step_multirotors(self, vs: list[_Vehicle], dt: float) -> None:
+        """One step of the seed 002 model (RK4 in the yaw frame), the yaw loop, rock and
+        ground contact and landing for every drone in one compiled call
+        (:func:`~btmission.backends._multirotor_kernels.step_all`, row by row the single
+        drone's :func:`~btmission.backends._multirotor_kernels.step`: Python's per-call cost on
+        a dozen floats was most of the simulator's time at fleet scale); then each drone's
+        mode, battery and odometer."""
+        from btmission.backends import _multirotor_kernels as kernels
+
+        commands = [self._command(v) for v in vs]
+        out = kernels.step_all(
+            np.array([v.x for v in vs]),
+            np.array([v.yaw for v in vs], dtype=float),
+            np.array([c[0] for c in commands], dtype=np.int64),
+            np.array([c[1] for c in commands], dtype=float),
+            np.array([v.sp_vel for v in vs], dtype=float),
+            np.array([v.sp_att for v in vs], dtype=float),
+            np.array([v.armed and v.mode is not Mode.MANUAL for v in vs], dtype=np.bool_),
+            np.array([c[2] for c in commands], dtype=np.int64),
+            np.array([c[3] for c in commands], dtype=float),
+            np.array([v.landed for v in vs], dtype=np.bool_),
             dt,
             self._packed,
             self.world._occ,
             self.world._grid,
-            out,
         )
-        x = out[:8].copy()
-        v.x = x
-        v.yaw, v.yaw_rate, v.thrust, ground, rock, impact, landed, flown = out[8:].tolist()
-        v.ground = ground
-        if rock:
-            v.contact["rock"] = True  # bumped into rock: stopped at the last free position
-        if impact:
-            v.contact["impact"] = True
-        was_landed = v.landed
-        v.landed = landed > 0
-        if v.landed and not was_landed:
-            v.landed_at = t
-        if not v.landed:
-            v.took_off = True
-        if v.mode is Mode.TAKEOFF and abs(float(x[2]) - v.hold[2]) < 0.1:
-            v.mode = Mode.HOLD
-        if v.armed:
-            v.battery = max(0.0, v.battery - dt / self.config.battery_s)
-        v.odometer_m += flown
+        states = out[:, :8].copy()
+        t = self.time_s
+        battery_s = self.config.battery_s
+        for i, (v, rest) in enumerate(zip(vs, out[:, 8:].tolist())):
+            x = states[i]
+            v.x = x
+            v.yaw, v.yaw_rate, v.thrust, ground, rock, impact, landed, flown = rest
+            v.ground = ground
+            if rock:
+                v.contact["rock"] = True  # bumped into rock: stopped at the last free position
+            if impact:
+                v.contact["impact"] = True
+            was_landed = v.landed
+            v.landed = landed > 0
+            if v.landed and not was_landed:
+                v.landed_at = t
+            if not v.landed:
+                v.took_off = True
+            if v.mode is Mode.TAKEOFF and abs(float(x[2]) - v.hold[2]) < 0.1:
+                v.mode = Mode.HOLD
+            if v.armed:
+                v.battery = max(0.0, v.battery - dt / battery_s)
+            v.odometer_m += flown
 
     # ---- ground robot
     def _step_ground(self, v: _Vehicle, t: float, dt: float) -> None:
