@@ -27,6 +27,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Hashable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from operator import is_
 from typing import Any, TypeVar
 
 import numpy as np
@@ -39,7 +40,7 @@ from btmission.allocation.solvers import (
     solve,
 )
 from btmission.allocation.tasks import PoolTask, TaskInfo, TaskPool, TaskState
-from btmission.types import FloatArray
+from btmission.types import FloatArray, record
 
 _T = TypeVar("_T")
 
@@ -227,14 +228,15 @@ class Bid:
     ) -> Bid:
         """Costs in announcement order (the fast path: no id lookups in the auctioneer); the
         bid answers the announcement's serial."""
-        return cls(
-            agent,
-            time_s,
-            announcement.ids,
-            np.asarray(costs, dtype=np.float64),
-            committed_to,
-            announcement.serial,
-        )
+        return record(
+            cls,
+            agent=agent,
+            time_s=time_s,
+            tasks=announcement.ids,
+            costs=np.asarray(costs, dtype=np.float64),
+            committed_to=committed_to,
+            serial=announcement.serial,
+        )  # (every agent, every round: without the frozen dataclass's per-field assignment)
 
     def cost_of(self, task_id: str) -> float:
         """This bid's cost for ``task_id`` (NaN if it does not bid on it)."""
@@ -363,7 +365,7 @@ def announce(state: AuctionState, now: float) -> AuctionState:
     live = state.pool.announced(now)
     ids = tuple(t.id for t in live)
     ann = state.announcement
-    if ids == ann.ids and all(a is b.info for a, b in zip(ann.tasks, live)):
+    if ids == ann.ids and all(map(is_, ann.tasks, [t.info for t in live])):
         return state
     new = Announcement(ann.serial + 1, now, tuple(t.info for t in live), ann.epoch)
     return replace(state, announcement=new)

@@ -85,6 +85,7 @@ from btmission.spec.source import format_path
 from btmission.synthesis.mission_tree import build_mission_tree
 from btmission.synthesis.pytrees import behaviour_depth, build_behaviour_tree
 from btmission.synthesis.tree import Kind, Node, Role
+from btmission.types import record
 
 Emit = Callable[..., None]
 
@@ -328,11 +329,12 @@ class Agent:
         self._send_progress(now)  # the coordinator is reachable: reports queued go first
         tel = self.ctx.telemetry()
         p = tel.position
-        state = AgentState(
-            self.id,
-            (float(p[0]), float(p[1]), float(p[2])),
-            self.task.id if self.task is not None else None,
-            self.committed,
+        state = record(  # (every agent, every round)
+            AgentState,
+            id=self.id,
+            position=(float(p[0]), float(p[1]), float(p[2])),
+            task=self.task.id if self.task is not None else None,
+            committed=self.committed,
         )
         self.link.send_bid(self.bidder.bid(ann, state, now))
 

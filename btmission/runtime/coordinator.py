@@ -407,6 +407,8 @@ class Coordinator:
         now = rep.time_s
         for t in result.state.pool:
             seen = self._history_len.get(t.id, 0)
+            if seen == len(t.history):
+                continue  # nothing new
             if seen == 0 and t.info.arrival_s > now:
                 continue  # not arrived yet: its history starts when it does
             for ev in t.history[seen:]:
