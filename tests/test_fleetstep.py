@@ -9,6 +9,7 @@ from typing import Any
 import pytest
 
 from btmission.bench.fleet import fleet_mission_text
+from btmission.runtime.commands import KillAgent
 from btmission.runtime.events import Event
 from btmission.runtime.runner import MissionRun
 from btmission.spec.mission import load_mission_text
@@ -26,16 +27,22 @@ class Lines:
         self.lines.append(json.dumps({k: v for k, v in data.items() if k not in WALL}))
 
 
-def _run(text: str, until: float, fleet_step: bool) -> tuple[list[str], MissionRun]:
+def _run(
+    text: str, until: float, fleet_step: bool, kill: tuple[float, str] | None = None
+) -> tuple[list[str], MissionRun]:
     rec = Lines()
     run = MissionRun(load_mission_text(text, "fleet.yaml"), observers=[rec], fleet_step=fleet_step)
+    if kill is not None:
+        run.at(kill[0], KillAgent(kill[1]))
     run.run(until=until)
     return rec.lines, run
 
 
-def _same_run(text: str, until: float) -> tuple[list[str], MissionRun]:
-    one_by_one, plain = _run(text, until, False)
-    together, batched = _run(text, until, True)
+def _same_run(
+    text: str, until: float, kill: tuple[float, str] | None = None
+) -> tuple[list[str], MissionRun]:
+    one_by_one, plain = _run(text, until, False, kill)
+    together, batched = _run(text, until, True, kill)
     assert plain._fleet is None and batched._fleet is not None
     assert len(together) == len(one_by_one)
     for i, (a, b) in enumerate(zip(one_by_one, together)):
@@ -52,6 +59,23 @@ def test_a_fleet_runs_the_same_with_its_steps_computed_together() -> None:
     assert run._fleet.batched > 0.5 * flown  # most steps of a fleet follow routes
     kinds = [json.loads(x)["ev"] for x in lines]
     assert kinds.count("task") > 10 and "route" in kinds  # tasks won, routes flown
+
+
+@pytest.mark.slow
+def test_a_fleet_with_an_agent_killed_runs_the_same() -> None:
+    """The killed drone's row on the bus is gone (no neighbour query returns it): the fleet step
+    goes on for the others, and the run is the per-drone loop's."""
+    lines, run = _same_run(fleet_mission_text(10), 25.0, kill=(12.0, "R3"))
+    assert run._fleet is not None and not run.agents["R3"].alive
+    assert any('"ev": "agent_killed"' in x or '"kill_agent"' in x for x in lines)
+    at_kill: list[int] = []
+    again = MissionRun(load_mission_text(fleet_mission_text(10), "fleet.yaml"))
+    again.at(12.0, KillAgent("R3"))
+    again.at(12.5, lambda r: at_kill.append(r._fleet.batched if r._fleet else 0))
+    again.run(until=25.0)
+    assert again._fleet is not None and at_kill
+    steps_after = round((25.0 - 12.5) / again.dt)
+    assert again._fleet.batched - at_kill[0] > 0.5 * 9 * steps_after  # still batched after
 
 
 def _noisy(text: str) -> str:

@@ -18,8 +18,9 @@ It applies only where that equivalence is plain, checked when the run is built
 (:meth:`FleetFollow.build`): one process on the embedded simulator with the in-memory bus,
 every agent a drone under the tracking controller whose LiDAR is the simulator's without dust
 (dust draws from the simulator's generator, in the agents' order). Each step it also needs
-every agent on the bus sharing where it is (no trajectories, no agent gone); otherwise, and with
-fewer than :data:`MIN_BATCH` drones following routes, the loop is the per-drone one.
+every agent to have shared where it is on the bus (none a trajectory; an agent killed since
+leaves a row no query returns, as on the bus); otherwise, and with fewer than
+:data:`MIN_BATCH` drones following routes, the loop is the per-drone one.
 """
 
 from __future__ import annotations
@@ -153,13 +154,11 @@ class FleetFollow:
         ]  # (every navigator here is a tracking multirotor's: batch_route's other tests)
         if len(batch) < MIN_BATCH:
             return self._each(now)
-        prev = bus._starts[:n]
-        if np.isnan(prev).any():  # an agent gone, or one that shares a 2D position
-            return self._each(now)
+        prev = bus._starts[:n]  # (a killed agent's row is NaN: never a neighbour, as on the bus)
         from btmission.runtime._fleet_kernels import fleet_follow
 
         if self._own_row is None:  # (rows never change once the bus has them all)
-            rows = bus._rows
+            rows = {name: r for r, name in enumerate(bus._row_names)}
             self._own_row = np.array([rows[a.id] for a in self._agent_list], dtype=np.int64)
         own_row = self._own_row
         tels = [b.telemetry() for b in self._backends]
