@@ -75,7 +75,7 @@ def test_a_run_loads_its_loop_kernels_while_it_builds() -> None:
     before = {f.__name__: len(f.signatures) for f in kernels}
     used = {"navigator_force", "carrots", "scan_points", "nearest_distances"}
     used |= {"near_points"}  # a fleet's neighbour query (past SMALL_FLEET)
-    used |= {"step", "step_all", "first_bad_cost"}  # the multirotors' step; bids' range check
+    used |= {"step_all", "first_bad_cost"}  # the multirotors' step; bids' range check
     used |= {"rock_rows", "near_pairs"}  # the simulator's contact test (past SMALL_FLEET)
     used |= {"fleet_follow"}  # the fleet's control step
     assert used <= set(before) and all(before[k] for k in used)

@@ -11,7 +11,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from btmission.dispatch import _kernel
 from btmission.dispatch._kernel import evaluate_kernel
+from btmission.kernelcache import key_on_callees
 
 
 @njit(cache=True)
@@ -220,3 +222,7 @@ def generations(pop, new, best, best_score, scores, new_scores, veh, mp, prm, n_
             best_tot[0] = t
             best_score[0] = scores[b]
     return n_gen
+
+
+# every kernel here may inline the evaluation of btmission/dispatch/_kernel.py (score does)
+key_on_callees([seed, score, _new_wait, mutate, generations], _kernel)

@@ -17,14 +17,12 @@ from ``cur`` when its rank in the loop is below the drone's.
 
 numba in nopython mode (typed by numba, not annotated, like the planner's kernels); ``cache=True``
 stores the machine code next to this file, keyed on this file and the files of the kernels it
-calls (:func:`_key_on_callees`).
+calls (:func:`btmission.kernelcache.key_on_callees`).
 """
 
 from __future__ import annotations
 
 import math
-import os
-from types import ModuleType
 
 import numpy as np
 from numba import njit
@@ -33,6 +31,7 @@ from btmission.backends import _surface_kernels
 from btmission.backends._surface_kernels import scan_points
 from btmission.control import _apf_kernels
 from btmission.control._apf_kernels import navigator_force
+from btmission.kernelcache import key_on_callees
 from btmission.runtime import _neighbour_kernels, _route_kernels
 from btmission.runtime._neighbour_kernels import near_points
 from btmission.runtime._route_kernels import carrots
@@ -107,19 +106,4 @@ def fleet_follow(
     return out
 
 
-def _key_on_callees(kernel, *modules: ModuleType) -> None:
-    """numba keys a cached kernel on its own file's stamp (modification time and size) only; a
-    kernel that calls kernels of other files would load machine code built from their old
-    source after they changed. Their stamps join the key: a change to any recompiles it."""
-    try:
-        index = kernel._cache._cache_file
-        stamps = [index._source_stamp]
-    except AttributeError:  # another numba's internals: its own key only
-        return
-    for mod in modules:
-        st = os.stat(str(mod.__file__))
-        stamps.append((st.st_mtime, st.st_size))
-    index._source_stamp = tuple(stamps)
-
-
-_key_on_callees(fleet_follow, _surface_kernels, _apf_kernels, _neighbour_kernels, _route_kernels)
+key_on_callees([fleet_follow], _surface_kernels, _apf_kernels, _neighbour_kernels, _route_kernels)
