@@ -28,8 +28,8 @@ _R = TypeVar("_R")
 def record(cls: type[_R], **fields: Any) -> _R:
     """``cls(**fields)`` for a frozen dataclass without ``__post_init__``, minus the generated
     ``__init__``'s ``object.__setattr__`` per field (a 13-field record: 0.6 µs instead of 1.9 µs).
-    Every field must be given; otherwise ``cls(**fields)`` runs and says what is wrong."""
-    if len(fields) != len(cls.__dataclass_fields__):  # type: ignore[attr-defined]
+    Every field must be given, by name; otherwise ``cls(**fields)`` runs and says what is wrong."""
+    if fields.keys() != cls.__dataclass_fields__.keys():  # type: ignore[attr-defined]
         return cls(**fields)
     out = object.__new__(cls)
     out.__dict__.update(fields)

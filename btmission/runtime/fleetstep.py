@@ -83,15 +83,12 @@ class FleetFollow:
         self._ground = np.zeros(0, dtype=np.bool_)
         self.bus = bus
         self.within_m = float(within_m)
-        first = self.sides[0].agent
-        backend = first.navigator.backend
-        assert isinstance(backend, SimVehicle)
-        self.sim = backend.sim
+        self.sim = self._backends[0].sim
         cells = self.sim.world.cells
         self._cells = (cells.points, cells.starts, cells.lo, float(cells.cell), cells.dims)
         self._radius = float(self.sim.config.lidar_range_m)
         self._sphere = sphere_points()
-        nav = first.navigator
+        nav = self._navs[0]  # (build checked: every navigator has the same settings)
         cfg = nav.config
         self._look = float(cfg.lookahead_m)
         self._tol = float(cfg.tolerance_m)
@@ -151,7 +148,7 @@ class FleetFollow:
         alive = [a.alive for a in self._agent_list]
         batch = [
             k for k, nav in enumerate(navs) if alive[k] and type(nav._cmd) is _Follow
-        ]  # (every navigator here is a tracking multirotor's: batch_route's other tests)
+        ]  # (every navigator here is a tracking multirotor's: build checked)
         if len(batch) < MIN_BATCH:
             return self._each(now)
         prev = bus._starts[:n]  # (a killed agent's row is NaN: never a neighbour, as on the bus)

@@ -373,8 +373,10 @@ class ConditionLeaf(GuardedLeaf):
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
-        hooks = ("initialise", "terminate", "stop")
-        if cls.tick_now is not None and any(h in cls.__dict__ for h in hooks):
+        hooks = ("initialise", "terminate", "stop")  # (resolved: a mixin's override counts)
+        if cls.tick_now is not None and any(
+            getattr(cls, h) is not getattr(ConditionLeaf, h) for h in hooks
+        ):
             cls.tick_now = GuardedLeaf.tick_now  # type: ignore[method-assign]  # its hooks run
 
     def tick_now(self) -> None:

@@ -781,18 +781,11 @@ class Navigator:
         yaw = math.atan2(hy, hx) if math.hypot(hx, hy) > 0.3 else None
         return ref, vel, yaw, repulsion
 
-    def batch_route(self) -> _Follow | None:
-        """The route this control step follows when
-        :class:`~btmission.runtime.fleetstep.FleetFollow` may compute it with the rest of the
-        fleet (a multirotor under the tracking controller, following a route); None otherwise."""
-        cmd = self._cmd
-        if type(cmd) is _Follow and self._nmpc is None and self.kind is VehicleKind.MULTIROTOR:
-            return cmd
-        return None
-
     def finish_batch(self, now: float, tel: Telemetry, row: FloatArray) -> bool:
         """Apply this step's row of :func:`~btmission.runtime._fleet_kernels.fleet_follow` for
-        the route of :meth:`batch_route` — what :meth:`_step_multirotor` does with the same
+        the route this navigator follows (a multirotor's under the tracking controller:
+        :class:`~btmission.runtime.fleetstep.FleetFollow` checks) — what
+        :meth:`_step_multirotor` does with the same
         numbers (:meth:`_route_step`'s progress, :meth:`_follow_reference`'s heading, the
         setpoint). False, with nothing changed, when the row leaves the step to
         :meth:`step` (code 1: maybe arrived, or a ground goal's last stretch) or the route has
@@ -813,7 +806,7 @@ class Navigator:
         self._apf_previous = row[9:12]
         hx, hy = float(row[13]) - float(p[0]), float(row[14]) - float(p[1])
         yaw = math.atan2(hy, hx) if math.hypot(hx, hy) > 0.3 else None
-        # _command_multirotor under the tracking controller (batch_route's): the position loop
+        # _command_multirotor under the tracking controller: the position loop
         self.backend.set_position_setpoint(row[3:6], None, yaw)
         return True
 
