@@ -629,6 +629,31 @@ def test_a_fast_built_telemetry_record_is_the_dataclass_it_stands_for() -> None:
         record(Telemetry, **fields)
 
 
+def test_a_recorder_builds_the_dataclass_and_refuses_what_the_dataclass_refuses() -> None:
+    """recorder(cls) builds records equal to cls(...); a missing or unknown field is the
+    dataclass's TypeError; a class with __post_init__ (whose check a record would skip) is
+    built by the class itself."""
+    import dataclasses
+
+    from btmission.types import CameraIntrinsics, recorder
+
+    @dataclasses.dataclass(frozen=True)
+    class Pair:
+        a: int
+        b: str = "x"
+
+    new = recorder(Pair)
+    assert recorder(Pair) is new and new(a=1, b="y") == Pair(1, "y")
+    assert type(new(a=1, b="y")) is Pair and vars(new(a=1, b="y")) == {"a": 1, "b": "y"}
+    with pytest.raises(TypeError, match="'b'"):
+        new(a=1)  # (every field by name, its default too)
+    with pytest.raises(TypeError, match="'c'"):
+        new(a=1, b="y", c=2)
+    assert recorder(CameraIntrinsics) is CameraIntrinsics
+    with pytest.raises(ValueError, match="focal"):
+        recorder(CameraIntrinsics)(fx=0.0, fy=1.0, cx=0.0, cy=0.0)
+
+
 def test_a_simulated_vehicles_telemetry_arrays_are_read_only() -> None:
     sim = Simulator(VoxelMap.empty((4.0, 4.0, 3.0), 0.5), SimConfig())
     tel = sim.add_multirotor("A", (1.0, 1.0, 0.5)).telemetry()

@@ -40,7 +40,7 @@ from btmission.allocation.solvers import (
     solve,
 )
 from btmission.allocation.tasks import PoolTask, TaskInfo, TaskPool, TaskState
-from btmission.types import FloatArray, record
+from btmission.types import FloatArray, recorder
 
 _T = TypeVar("_T")
 
@@ -228,8 +228,7 @@ class Bid:
     ) -> Bid:
         """Costs in announcement order (the fast path: no id lookups in the auctioneer); the
         bid answers the announcement's serial."""
-        return record(
-            cls,
+        return recorder(cls)(
             agent=agent,
             time_s=time_s,
             tasks=announcement.ids,

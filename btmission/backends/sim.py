@@ -82,7 +82,7 @@ from btmission.backends.mapsensors import Bodies, MapSensors, SensorPose
 from btmission.backends.provider import Vehicle, VehicleEvent
 from btmission.control.mav_model import MavParams
 from btmission.localization.scan import LidarSensor
-from btmission.types import FloatArray, Vec3, record
+from btmission.types import FloatArray, Vec3, recorder
 from btmission.world.voxel import OCCUPIED, VoxelMap
 
 if TYPE_CHECKING:
@@ -112,6 +112,9 @@ CMD_VEL_TIMEOUT_S = 0.5
 NOISE_STREAM = 3
 """Mixed into each vehicle's noise generator seed (with the run's seed and the id's CRC-32), so
 its stream is unrelated to the simulator's own (dust, detections, scans)."""
+
+_new_telemetry = recorder(Telemetry)
+"""Builds a :class:`Telemetry` (every vehicle, every step: :func:`~btmission.types.recorder`)."""
 
 
 @dataclass(frozen=True)
@@ -871,8 +874,7 @@ class SimVehicle(OffboardCommands):
             yaw += float(err[2])
         state.flags.writeable = False
         position, velocity = state[:3], state[3:]  # (views of a read-only array: read-only)
-        return record(
-            Telemetry,
+        return _new_telemetry(
             time_s=self._sim.time_s,
             position=position,
             velocity=velocity,

@@ -85,7 +85,7 @@ from btmission.spec.source import format_path
 from btmission.synthesis.mission_tree import build_mission_tree
 from btmission.synthesis.pytrees import behaviour_depth, build_behaviour_tree
 from btmission.synthesis.tree import Kind, Node, Role
-from btmission.types import record
+from btmission.types import recorder
 
 Emit = Callable[..., None]
 
@@ -329,8 +329,7 @@ class Agent:
         self._send_progress(now)  # the coordinator is reachable: reports queued go first
         tel = self.ctx.telemetry()
         p = tel.position
-        state = record(  # (every agent, every round)
-            AgentState,
+        state = recorder(AgentState)(  # (every agent, every round)
             id=self.id,
             position=(float(p[0]), float(p[1]), float(p[2])),
             task=self.task.id if self.task is not None else None,

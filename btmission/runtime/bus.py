@@ -43,7 +43,7 @@ import numpy as np
 
 from btmission.allocation.auction import Announcement, Bid
 from btmission.allocation.loop import Inbox, Progress
-from btmission.types import FloatArray, record
+from btmission.types import FloatArray, recorder
 
 SMALL_FLEET = 8
 """Up to this many sharing agents a neighbour query tests each one (the vectorised test over
@@ -325,8 +325,9 @@ class InMemoryBus:
                 self.share_prediction(agent, time_s, pts)
             return
         preds = self._predictions
+        new = recorder(Prediction)
         for agent, pts in shares:
-            preds[agent] = record(Prediction, agent=agent, time_s=time_s, positions=pts)
+            preds[agent] = new(agent=agent, time_s=time_s, positions=pts)
         self._starts[[rows[a] for a, _ in shares]] = np.concatenate([p for _, p in shares])
 
     def _set_multi(self, row: int, multi: bool) -> None:
