@@ -331,6 +331,32 @@ def test_telemetry_is_one_read_only_record_per_step_and_autopilot_state() -> Non
     assert later.position[2] == sim.vehicle("D1").x[2]  # the state now, not a stale copy
 
 
+def test_telemetry_after_a_step_is_the_stepped_state_and_follows_a_replaced_state() -> None:
+    """After a compiled step a drone's telemetry takes its position and velocity from the step
+    (read-only views of one copy for the fleet): equal to the state, not aliasing it; a state
+    replaced since (e.g. by a test) is read afresh."""
+    sim = Simulator(room(), SimConfig())
+    drones = [sim.add_multirotor(f"D{i}", (3.0 + i, 5.0, 0.0)) for i in range(3)]
+    for d in drones:
+        assert d.arm().accepted and d.takeoff(2.0).accepted
+    for _ in range(10):
+        sim.step()
+    for i, d in enumerate(drones):
+        v = sim.vehicle(f"D{i}")
+        tel = d.telemetry()
+        assert tel.position.tolist() == v.x[:3].tolist()
+        assert tel.velocity.tolist() == v.x[3:6].tolist()
+        assert (tel.roll, tel.pitch) == (float(v.x[6]), float(v.x[7]))
+        assert not np.shares_memory(tel.position, v.x)
+        with pytest.raises(ValueError, match="read-only"):
+            tel.velocity[0] = 1.0
+    v = sim.vehicle("D1")
+    v.x = v.x.copy()
+    v.x[:3] = (4.0, 6.0, 1.0)
+    assert drones[1].land().accepted  # (a mode change: the record is built again)
+    assert drones[1].telemetry().position.tolist() == [4.0, 6.0, 1.0]
+
+
 def test_pose_noise_is_in_the_telemetry_only() -> None:
     """The vehicle reports its pose with the configured error; it moves, collides and senses
     at its true pose, and turning the noise on changes neither the dust nor the detections

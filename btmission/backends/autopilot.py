@@ -197,7 +197,7 @@ class OffboardCommands:
     ) -> None:
         v = self._ap
         self._stream("position")
-        v.sp_pos = np.asarray(position, dtype=float).copy()
+        v.sp_pos = np.array(position, dtype=float)  # (a copy)
         v.sp_vel = np.zeros(3) if velocity is None else np.asarray(velocity, dtype=float).copy()
         v.sp_yaw = yaw
 

@@ -421,6 +421,10 @@ class _Vehicle(AutopilotFields):
     """[e_v, e_ω]: a ground robot drives (1 + e) times its command (module docstring)."""
     estimate_error: FloatArray = field(default_factory=lambda: np.zeros(3))
     """[δx, δy, δψ]: the telemetry's error about the true pose, drawn every step."""
+    stepped: tuple[FloatArray, FloatArray, FloatArray, float, float] | None = None
+    """A multirotor's last compiled step, for its telemetry: (``x`` as that step left it, its
+    position and velocity as read-only views of one copy for the fleet, roll, pitch). Used
+    while ``x`` is still that array (:meth:`SimVehicle._build_telemetry`)."""
 
 
 @dataclass(frozen=True)
@@ -581,12 +585,11 @@ class Simulator:
             VELOCITY_GAIN,
         )
 
-    def _command(self, v: _Vehicle) -> tuple[int, FloatArray, int, float]:
+    @staticmethod
+    def _command(v: _Vehicle, kernels: Any) -> tuple[int, FloatArray, int, float]:
         """What ``v``'s attitude command follows this step (the compiled step's CMD_*), its
         target, and the yaw loop's mode and setpoint (YAW_*): from the mode and the setpoint
-        streamed."""
-        from btmission.backends import _multirotor_kernels as kernels
-
+        streamed (``kernels``: :mod:`btmission.backends._multirotor_kernels`)."""
         mode, armed, kind = v.mode, v.armed, v.sp_kind
         offboard = mode is Mode.OFFBOARD
         command = kernels.CMD_NONE
@@ -620,7 +623,8 @@ class Simulator:
         mode, battery and odometer."""
         from btmission.backends import _multirotor_kernels as kernels
 
-        commands = [self._command(v) for v in vs]
+        command = self._command
+        commands = [command(v, kernels) for v in vs]
         out = kernels.step_all(
             np.array([v.x for v in vs]),
             np.array([v.yaw for v in vs], dtype=float),
@@ -638,12 +642,16 @@ class Simulator:
             self.world._grid,
         )
         states = out[:, :8].copy()
+        shown = out[:, :6].copy()  # (the telemetry's position and velocity: read-only views)
+        shown.flags.writeable = False
+        positions, velocities = shown[:, :3], shown[:, 3:]
         t = self.time_s
         battery_s = self.config.battery_s
-        for i, (v, rest) in enumerate(zip(vs, out[:, 8:].tolist())):
+        for i, (v, rest) in enumerate(zip(vs, out[:, 6:].tolist())):
             x = states[i]
             v.x = x
-            v.yaw, v.yaw_rate, v.thrust, ground, rock, impact, landed, flown = rest
+            roll, pitch, v.yaw, v.yaw_rate, v.thrust, ground, rock, impact, landed, flown = rest
+            v.stepped = (x, positions[i], velocities[i], roll, pitch)
             v.ground = ground
             if rock:
                 v.contact["rock"] = True  # bumped into rock: stopped at the last free position
@@ -860,20 +868,25 @@ class SimVehicle(OffboardCommands):
         return tel
 
     def _build_telemetry(self, v: _Vehicle) -> Telemetry:
-        if v.kind is VehicleKind.MULTIROTOR:
-            x = v.x
-            roll, pitch = float(x[6]), float(x[7])
-            state = x[:6].copy()  # position and velocity: one copy, read-only
+        stepped = v.stepped
+        if stepped is not None and stepped[0] is v.x and v.noise is None:
+            _, position, velocity, roll, pitch = stepped  # (the usual case: from the step)
+            yaw = float(v.yaw)
         else:
-            roll = pitch = 0.0
-            state = np.concatenate([v.position, v.velocity])
-        yaw = float(v.yaw)
-        if v.noise is not None:
-            err = v.estimate_error
-            state[:2] += err[:2]
-            yaw += float(err[2])
-        state.flags.writeable = False
-        position, velocity = state[:3], state[3:]  # (views of a read-only array: read-only)
+            if v.kind is VehicleKind.MULTIROTOR:
+                x = v.x
+                roll, pitch = float(x[6]), float(x[7])
+                state = x[:6].copy()  # position and velocity: one copy, read-only
+            else:
+                roll = pitch = 0.0
+                state = np.concatenate([v.position, v.velocity])
+            yaw = float(v.yaw)
+            if v.noise is not None:
+                err = v.estimate_error
+                state[:2] += err[:2]
+                yaw += float(err[2])
+            state.flags.writeable = False
+            position, velocity = state[:3], state[3:]  # (views of a read-only array: read-only)
         return _new_telemetry(
             time_s=self._sim.time_s,
             position=position,

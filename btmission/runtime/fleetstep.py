@@ -160,6 +160,9 @@ class FleetFollow:
         own_row = self._own_row
         tels = [b.telemetry() for b in self._backends]
         pos = np.array([t.position for t in tels])
+        pos.flags.writeable = False  # (its rows are the drones' shared positions: (1, 3) views)
+        where = pos.reshape(-1, 1, 3)
+        xy = pos[:, :2].tolist()
         rank = np.full(n, len(members), dtype=np.int64)
         cur = prev.copy()
         if all(alive):
@@ -202,11 +205,13 @@ class FleetFollow:
             self.within_m, CARROT_WINDOW, self._look, self._tol, SETTLED_M_S, self._speed,
             POSITION_GAIN, self._field, self._agents,
         )  # fmt: skip
+        rows = out.tolist()  # (Python floats: the per-row reads cost less, same values)
+        apf = out[:, 9:12]
         shares: list[tuple[str, FloatArray]] = []
         j = 0
         for k, (side, a, nav, _) in enumerate(members):
             if j < len(batch) and batch[j] == k:
-                done = nav.finish_batch(now, tels[k], out[j])
+                done = nav.finish_batch(now, rows[j], apf[j], where[k], xy[k])
                 j += 1
                 if done:
                     assert nav.prediction is not None

@@ -573,13 +573,13 @@ class Navigator:
         "Stopped" (slower than ``SETTLED_M_S``): a vehicle that passes through the tolerance
         sphere at speed has not reached the goal — it could not inspect it, nor land there."""
         tel = tel or self.backend.telemetry()
-        g = np.asarray(goal, dtype=float)
         tol = self.config.tolerance_m
         p = tel.position
         px, py, _ = p.tolist()  # (floats: numpy's scalar arithmetic costs more, same result)
-        gx, gy = float(g[0]), float(g[1])
+        gx, gy = float(goal[0]), float(goal[1])  # type: ignore[index,arg-type]
         if math.hypot(px - gx, py - gy) > tol:
-            return False
+            return False  # (most calls: far from it)
+        g = np.asarray(goal, dtype=float)
         v = tel.velocity
         if math.sqrt(float(v @ v)) > SETTLED_M_S:
             return False
@@ -781,7 +781,14 @@ class Navigator:
         yaw = math.atan2(hy, hx) if math.hypot(hx, hy) > 0.3 else None
         return ref, vel, yaw, repulsion
 
-    def finish_batch(self, now: float, tel: Telemetry, row: FloatArray) -> bool:
+    def finish_batch(
+        self,
+        now: float,
+        row: Sequence[float],
+        apf_previous: FloatArray,
+        where: FloatArray,
+        xy: Sequence[float],
+    ) -> bool:
         """Apply this step's row of :func:`~btmission.runtime._fleet_kernels.fleet_follow` for
         the route this navigator follows (a multirotor's under the tracking controller:
         :class:`~btmission.runtime.fleetstep.FleetFollow` checks) — what
@@ -789,25 +796,28 @@ class Navigator:
         numbers (:meth:`_route_step`'s progress, :meth:`_follow_reference`'s heading, the
         setpoint). False, with nothing changed, when the row leaves the step to
         :meth:`step` (code 1: maybe arrived, or a ground goal's last stretch) or the route has
-        made no progress for ``stuck_s``."""
+        made no progress for ``stuck_s``.
+
+        ``row`` is the kernel's row as floats, ``apf_previous`` its APF memory (a view of the
+        kernel's output), ``where`` the vehicle's position as shared on the bus ((1, 3),
+        read-only) and ``xy`` its horizontal position, all from this step's telemetry."""
         if row[0]:
             return False
         cmd = self._cmd
         assert isinstance(cmd, _Follow)
-        left = cmd.route.length - float(row[2])
+        left = cmd.route.length - row[2]
         best, since = cmd.best_left, cmd.progress_t
         if left < best - PROGRESS_M:
             best, since = left, now
         if now - since > self.config.stuck_s:
             return False
         cmd.seg, cmd.best_left, cmd.progress_t = int(row[1]), best, since
-        p = tel.position
-        self.prediction = p[None, :].copy()
-        self._apf_previous = row[9:12]
-        hx, hy = float(row[13]) - float(p[0]), float(row[14]) - float(p[1])
+        self.prediction = where
+        self._apf_previous = apf_previous
+        hx, hy = row[13] - xy[0], row[14] - xy[1]
         yaw = math.atan2(hy, hx) if math.hypot(hx, hy) > 0.3 else None
         # _command_multirotor under the tracking controller: the position loop
-        self.backend.set_position_setpoint(row[3:6], None, yaw)
+        self.backend.set_position_setpoint((row[3], row[4], row[5]), None, yaw)
         return True
 
     def _command_multirotor(
