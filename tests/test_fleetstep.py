@@ -122,23 +122,30 @@ def test_sharing_positions_at_once_is_sharing_them_one_by_one() -> None:
         for i in range(SMALL_FLEET + 2):
             bus.share_prediction(f"A{i}", t, np.array([[float(i), 1.0, 2.0]]))
 
-    one, all_ = InMemoryBus(), InMemoryBus()
-    fill(one, 0.0)
-    fill(all_, 0.0)
+    one, all_, rows = InMemoryBus(), InMemoryBus(), InMemoryBus()
+    for bus in (one, all_, rows):
+        fill(bus, 0.0)
     moved = [(f"A{i}", np.array([[i + 0.5, 2.0, 3.0]])) for i in (3, 0, 5)]
     for agent, pts in moved:
         one.share_prediction(agent, 0.1, pts)
     all_.share_positions(0.1, moved)
+    stacked = np.concatenate([p for _, p in moved])  # (the fleet step's form: rows and block)
+    rows.share_positions(0.1, moved, (np.array([3, 0, 5], dtype=np.int64), stacked))
     here = np.array([0.0, 1.0, 2.0])
-    for agent in ("A0", "A4"):
-        assert np.array_equal(
-            one.neighbour_positions(agent, 0.1, 0.1, here, 6.0),
-            all_.neighbour_positions(agent, 0.1, 0.1, here, 6.0),
-        )
-    assert list(one._predictions) == list(all_._predictions)
-    for agent, pred in one._predictions.items():
-        other = all_._predictions[agent]
-        assert (pred.time_s, pred.positions.tolist()) == (other.time_s, other.positions.tolist())
+    for bus in (all_, rows):
+        for agent in ("A0", "A4"):
+            assert np.array_equal(
+                one.neighbour_positions(agent, 0.1, 0.1, here, 6.0),
+                bus.neighbour_positions(agent, 0.1, 0.1, here, 6.0),
+            )
+        assert list(one._predictions) == list(bus._predictions)
+        assert np.array_equal(one._starts, bus._starts, equal_nan=True)
+        for agent, pred in one._predictions.items():
+            other = bus._predictions[agent]
+            assert (pred.time_s, pred.positions.tolist()) == (
+                other.time_s,
+                other.positions.tolist(),
+            )
     new = InMemoryBus()  # an agent the bus has not seen yet: shared one by one, in order
     new.share_positions(0.0, [("B", np.array([[1.0, 1.0, 1.0]])), ("C", np.zeros((1, 3)))])
     assert new._row_names == ["B", "C"] and new._starts[:2].tolist() == [[1, 1, 1], [0, 0, 0]]

@@ -40,6 +40,11 @@ G = 9.81
 """Gravity (m/s²): the hover thrust of the mass-less models, and the default attitude setpoint."""
 
 
+_NO_VELOCITY = np.zeros(3)
+_NO_VELOCITY.flags.writeable = False
+"""The feed-forward velocity of a position setpoint given none (shared: read-only)."""
+
+
 @dataclass(kw_only=True)
 class AutopilotFields:
     """The autopilot's part of a simulated vehicle's state (base of the simulator's and the fake
@@ -198,7 +203,7 @@ class OffboardCommands:
         v = self._ap
         self._stream("position")
         v.sp_pos = np.array(position, dtype=float)  # (a copy)
-        v.sp_vel = np.zeros(3) if velocity is None else np.asarray(velocity, dtype=float).copy()
+        v.sp_vel = _NO_VELOCITY if velocity is None else np.array(velocity, dtype=float)
         v.sp_yaw = yaw
 
     def set_velocity_setpoint(self, velocity: Vec3 | FloatArray, yaw_rate: float = 0.0) -> None:

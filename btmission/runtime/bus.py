@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
+from numpy.typing import NDArray
 
 from btmission.allocation.auction import Announcement, Bid
 from btmission.allocation.loop import Inbox, Progress
@@ -315,12 +316,18 @@ class InMemoryBus:
         self._starts[row, : min(3, pts.shape[1])] = pts[0, :3]
         self._set_multi(row, len(pts) > 1)
 
-    def share_positions(self, time_s: float, shares: Sequence[tuple[str, FloatArray]]) -> None:
+    def share_positions(
+        self,
+        time_s: float,
+        shares: Sequence[tuple[str, FloatArray]],
+        at: tuple[NDArray[np.int64], FloatArray] | None = None,
+    ) -> None:
         """:meth:`share_prediction` of each ``(agent, positions)``, every ``positions`` (1, 3) —
         where the agent is — at once (a fleet's drones, every control step): the same state as
-        sharing them one by one, in order."""
+        sharing them one by one, in order. ``at``: the agents' rows of the bus and their
+        positions stacked ((n,), (n, 3)), when the caller has them (the fleet step)."""
         rows = self._rows
-        if self._trajectories or any(a not in rows for a, _ in shares):
+        if self._trajectories or (at is None and any(a not in rows for a, _ in shares)):
             for agent, pts in shares:
                 self.share_prediction(agent, time_s, pts)
             return
@@ -328,7 +335,10 @@ class InMemoryBus:
         new = recorder(Prediction)
         for agent, pts in shares:
             preds[agent] = new(agent=agent, time_s=time_s, positions=pts)
-        self._starts[[rows[a] for a, _ in shares]] = np.concatenate([p for _, p in shares])
+        if at is not None:
+            self._starts[at[0]] = at[1]
+        else:
+            self._starts[[rows[a] for a, _ in shares]] = np.concatenate([p for _, p in shares])
 
     def _set_multi(self, row: int, multi: bool) -> None:
         """Mark ``row``'s prediction as a trajectory (or not), keeping :attr:`_trajectories`."""

@@ -208,24 +208,34 @@ class FleetFollow:
         rows = out.tolist()  # (Python floats: the per-row reads cost less, same values)
         apf = out[:, 9:12]
         shares: list[tuple[str, FloatArray]] = []
+        first = 0  # (the members sharing: first, first + 1, ... — consecutive, as flushed)
         j = 0
         for k, (side, a, nav, _) in enumerate(members):
             if j < len(batch) and batch[j] == k:
                 done = nav.finish_batch(now, rows[j], apf[j], where[k], xy[k])
                 j += 1
                 if done:
-                    assert nav.prediction is not None
-                    shares.append((a.id, nav.prediction))
+                    if not shares:
+                        first = k
+                    shares.append((a.id, where[k]))
                     continue
             if shares:  # the agents before this one have shared where they are
-                bus.share_positions(now, shares)
-                self.batched += len(shares)
+                self._share(now, shares, first, pos)
                 shares = []
             side.control(now)
         if shares:
-            bus.share_positions(now, shares)
-            self.batched += len(shares)
+            self._share(now, shares, first, pos)
         return None
+
+    def _share(
+        self, now: float, shares: list[tuple[str, FloatArray]], first: int, pos: FloatArray
+    ) -> None:
+        """Share the positions of the consecutive members ``first``, ``first + 1``, ... of
+        ``shares`` on the bus, their rows and positions as blocks."""
+        end = first + len(shares)
+        assert self._own_row is not None
+        self.bus.share_positions(now, shares, (self._own_row[first:end], pos[first:end]))
+        self.batched += len(shares)
 
     def _each(self, now: float) -> None:
         for side in self.sides:

@@ -213,10 +213,12 @@ class Polyline:
         table[: n - 1, 7] = self.seg_len
         table[:, 8] = self.arc
         self._table = table
+        self._length = float(self.arc[-1])
 
     @property
     def length(self) -> float:
-        return float(self.arc[-1])
+        """Arc length (m) of the whole route."""
+        return self._length
 
     def project(self, position: FloatArray, start: int = 0) -> tuple[int, float]:
         """(segment, arc length) of the point of the route closest to ``position``, searching
