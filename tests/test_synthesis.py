@@ -598,3 +598,57 @@ def test_a_condition_ticks_as_a_guarded_leaf_without_its_no_op_hooks() -> None:
     hooked = Hooked(Node(Kind.CONDITION, "h"), fn, ctx)
     hooked.tick_now()
     assert calls == ["initialise", "terminate FAILURE"] and hooked.status.value == "FAILURE"
+
+
+def test_a_conditions_arguments_and_errors_tick_as_through_its_guarded_update() -> None:
+    """The inlined update of ConditionLeaf.tick_now: literal arguments, blackboard symbols (an
+    unset one fails), an exception (FAILURE and one leaf_error, as the update guard) — the
+    statuses and events of GuardedLeaf.tick_now; a subclass's own update is what ticks."""
+    from typing import Any
+
+    from btmission.runtime.leaves import AgentContext, Blackboard, ConditionLeaf, GuardedLeaf
+    from btmission.synthesis.tree import Arg, Kind, Node
+
+    none: Any = None
+
+    def run(tick: Any) -> tuple[list[str], list[tuple[str, Any, Any]]]:
+        events: list[tuple[str, Any, Any]] = []
+        ctx = AgentContext("A", Blackboard("/a"), none, none, none, none, lambda: 0.0, {},
+                           (0.0, 0.0, 0.0),
+                           events=lambda kind, **d: events.append((kind, d.get("leaf"),
+                                                                   d.get("phase"))))  # fmt: skip
+
+        def near(ctx: Any, kind: str, goal: Any) -> bool:
+            if goal == "boom":
+                raise ValueError("bad goal")
+            return bool(kind == "inspect" and goal[0] > 1.0)
+
+        node = Node(Kind.CONDITION, "near", (Arg("kind", "inspect", True), Arg("goal", "location")))
+        leaf = ConditionLeaf(node, near, ctx)
+        const = ConditionLeaf(Node(Kind.CONDITION, "k", (Arg("kind", "x", True),)),
+                              lambda ctx, kind: kind == "x", ctx)  # fmt: skip
+        statuses = []
+        for value in (None, (2.0, 0.0), (0.5, 0.0), "boom", (3.0, 1.0)):
+            if value is not None:
+                ctx.blackboard.set("location", value)
+            tick(leaf)
+            tick(const)
+            statuses += [leaf.status.value, const.status.value]
+        return statuses, events
+
+    lean, lean_events = run(lambda leaf: leaf.tick_now())
+    full, full_events = run(lambda leaf: GuardedLeaf.tick_now(leaf))
+    assert lean == full == ["FAILURE", "SUCCESS", "SUCCESS", "SUCCESS", "FAILURE", "SUCCESS",
+                            "FAILURE", "SUCCESS", "SUCCESS", "SUCCESS"]  # fmt: skip
+    assert lean_events == full_events == [("leaf_error", 'near("inspect", location)', "update")]
+
+    class Own(ConditionLeaf):
+        def update(self) -> Any:
+            return "not a status"  # (the guard makes it FAILURE)
+
+    assert Own.tick_now is not ConditionLeaf.tick_now
+    own = Own(Node(Kind.CONDITION, "o"), lambda ctx: True, AgentContext(
+        "A", Blackboard("/a"), none, none, none, none, lambda: 0.0, {}, (0.0, 0.0, 0.0),
+        events=lambda kind, **d: None))  # fmt: skip
+    own.tick_now()
+    assert own.status.value == "FAILURE"

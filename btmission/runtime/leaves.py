@@ -45,6 +45,7 @@ if TYPE_CHECKING:
     from btmission.world.voxel import VoxelMap
 
 UNSET = object()
+_RUNNING, _SUCCESS, _FAILURE = Status.RUNNING, Status.SUCCESS, Status.FAILURE
 
 
 _ABSENT = object()
@@ -370,6 +371,10 @@ class ConditionLeaf(GuardedLeaf):
         self.node = node
         self.fn = fn
         self.ctx = ctx
+        self._constant: dict[str, Any] | None = (
+            {a.param: a.value for a in node.args} if all(a.literal for a in node.args) else None
+        )
+        """The arguments when all are literals (the node is frozen): no blackboard to read."""
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -378,13 +383,35 @@ class ConditionLeaf(GuardedLeaf):
             getattr(cls, h) is not getattr(ConditionLeaf, h) for h in hooks
         ):
             cls.tick_now = GuardedLeaf.tick_now  # type: ignore[method-assign]  # its hooks run
+        elif cls.tick_now is ConditionLeaf.tick_now and cls.update is not ConditionLeaf.update:
+            cls.tick_now = ConditionLeaf._tick_update  # type: ignore[method-assign]
 
     def tick_now(self) -> None:
         """:meth:`GuardedLeaf.tick_now` for a condition, whose ``initialise`` and ``terminate``
-        are py_trees' no-ops (guarded): the initialise guard's reset, the update, the new
-        status — the same, without four calls per tick (a fleet ticks ~1,000 conditions a
-        second). A subclass that overrides a hook ticks through :meth:`GuardedLeaf.tick_now`."""
-        if self.status is not Status.RUNNING:
+        are py_trees' no-ops (guarded): the initialise guard's reset, the update (its guard
+        inlined: an exception is this tick's FAILURE and a ``leaf_error``), the new status —
+        the same, without the calls (a fleet ticks thousands of conditions a second). A
+        subclass that overrides a hook ticks through :meth:`GuardedLeaf.tick_now`; one that
+        overrides ``update`` through :meth:`_tick_update`."""
+        if self.status is not _RUNNING:
+            self._init_error = False
+        elif self._init_error:  # (only a RUNNING status keeps an initialise error: never here)
+            self._init_error = False
+            self.status = _FAILURE
+            return
+        try:
+            args = self._constant
+            if args is None:
+                args = resolve(self.ctx, self.node)
+            status = _FAILURE if args is None or not self.fn(self.ctx, **args) else _SUCCESS
+        except Exception as exc:  # (as the update guard: a library's code must not end the run)
+            self._leaf_failed("update", exc)
+            status = _FAILURE
+        self.status = status
+
+    def _tick_update(self) -> None:
+        """:meth:`tick_now` through ``self.update()`` (a subclass's own, guarded)."""
+        if self.status is not _RUNNING:
             self._init_error = False
         self.status = self.update()
 
