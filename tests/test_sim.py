@@ -548,6 +548,29 @@ def test_the_surface_ball_query_is_the_brute_force_one() -> None:
     assert 0 < np.isinf(want).sum() < 300
 
 
+def test_the_nearest_wall_in_open_air_is_the_brute_force_minimum_to_the_bit() -> None:
+    """Where drones fly — free voxels 0.2-5 m from rock, so the search grows its cube from the
+    nearest face found — the clearance is exactly the brute-force minimum of the same formula
+    (the clearances in a run's log depend on it)."""
+    world = _shared_mine_world()
+    vm = world.map
+    rng = np.random.default_rng(8)
+    lo, hi = vm.bounds
+    pts = rng.uniform(lo, hi, (6000, 3))
+    free = np.array([vm.state_at(p) not in (None, OCCUPIED) for p in pts])
+    queries = pts[free][:400]
+    walls = world.walls
+    want = []
+    for q in queries:
+        dx, dy, dz = walls[:, 0] - q[0], walls[:, 1] - q[1], walls[:, 2] - q[2]
+        d = float(np.sqrt((dx * dx + dy * dy + dz * dz).min()))
+        want.append(d if d < WALL_QUERY_M else math.inf)
+    got = world.wall_distances(queries)
+    assert got.tolist() == want
+    finite = np.isfinite(got)
+    assert finite.sum() > 300 and (got[finite] > 2.0).sum() > 20  # (cubes grown past 2 m)
+
+
 def test_a_fleet_sees_and_touches_each_other_as_before() -> None:
     """LiDAR returns of other vehicles and vehicle-vehicle contacts, computed for all at once,
     are the per-pair vector tests: 25 vehicles at random spots, some touching, some in range."""

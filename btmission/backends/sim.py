@@ -715,13 +715,16 @@ class Simulator:
         key = (self.steps, len(self._vehicles))
         table = self._bodies
         if table is None or table.key != key:
-            vs = list(self._vehicles.values())
-            radii = [self._radius(v) for v in vs]
+            if table is not None and table.key[1] == key[1]:  # the same vehicles (never removed)
+                vs, radii, index = table.vehicles, table.radii, table.index
+            else:
+                vs = list(self._vehicles.values())
+                radii = np.array([self._radius(v) for v in vs], dtype=float)
+                radii.flags.writeable = False
+                index = {v.id: i for i, v in enumerate(vs)}
             centres = np.array([v.position for v in vs]).reshape(-1, 3)
             centres[:, 2] += radii  # (the body's centre: its radius above the reference point)
-            table = self._bodies = _BodyTable(
-                key, vs, centres, np.array(radii, dtype=float), {v.id: i for i, v in enumerate(vs)}
-            )
+            table = self._bodies = _BodyTable(key, vs, centres, radii, index)
         return table
 
     def other_bodies(self, vid: str) -> Bodies:
