@@ -116,6 +116,17 @@ its stream is unrelated to the simulator's own (dust, detections, scans)."""
 _new_telemetry = recorder(Telemetry)
 """Builds a :class:`Telemetry` (every vehicle, every step: :func:`~btmission.types.recorder`)."""
 
+# (members read every step, for every vehicle: on Python 3.11 reading an Enum member through its
+# class costs about five times reading a module global)
+_MULTIROTOR, _GROUND = VehicleKind.MULTIROTOR, VehicleKind.GROUND
+_OFFBOARD, _TAKEOFF, _HOLD, _LAND, _MANUAL = (
+    Mode.OFFBOARD,
+    Mode.TAKEOFF,
+    Mode.HOLD,
+    Mode.LAND,
+    Mode.MANUAL,
+)
+
 
 @dataclass(frozen=True)
 class SimConfig:
@@ -521,7 +532,7 @@ class Simulator:
         t = self.time_s
         drones = []
         for v in self._vehicles.values():  # (vehicles do not interact within a step)
-            if v.kind is VehicleKind.MULTIROTOR:
+            if v.kind is _MULTIROTOR:
                 self._autopilot(v, t)
                 if not v.frozen:
                     drones.append(v)
@@ -591,7 +602,7 @@ class Simulator:
         target, and the yaw loop's mode and setpoint (YAW_*): from the mode and the setpoint
         streamed (``kernels``: :mod:`btmission.backends._multirotor_kernels`)."""
         mode, armed, kind = v.mode, v.armed, v.sp_kind
-        offboard = mode is Mode.OFFBOARD
+        offboard = mode is _OFFBOARD
         command = kernels.CMD_NONE
         target = v.hold
         if not armed:
@@ -602,9 +613,9 @@ class Simulator:
             command, target = kernels.CMD_POSITION, v.sp_pos
         elif offboard and kind == "velocity":
             command = kernels.CMD_VELOCITY
-        elif mode is Mode.TAKEOFF or mode is Mode.HOLD:
+        elif mode is _TAKEOFF or mode is _HOLD:
             command = kernels.CMD_HOLD
-        elif mode is Mode.LAND:
+        elif mode is _LAND:
             command = kernels.CMD_LAND
         # yaw: the commanded rate, or a P loop on the heading setpoint
         yaw_mode, yaw_sp = kernels.YAW_NONE, 0.0
@@ -632,7 +643,7 @@ class Simulator:
             np.array([c[1] for c in commands], dtype=float),
             np.array([v.sp_vel for v in vs], dtype=float),
             np.array([v.sp_att for v in vs], dtype=float),
-            np.array([v.armed and v.mode is not Mode.MANUAL for v in vs], dtype=np.bool_),
+            np.array([v.armed and v.mode is not _MANUAL for v in vs], dtype=np.bool_),
             np.array([c[2] for c in commands], dtype=np.int64),
             np.array([c[3] for c in commands], dtype=float),
             np.array([v.landed for v in vs], dtype=np.bool_),
@@ -663,8 +674,8 @@ class Simulator:
                 v.landed_at = t
             if not v.landed:
                 v.took_off = True
-            if v.mode is Mode.TAKEOFF and abs(float(x[2]) - v.hold[2]) < 0.1:
-                v.mode = Mode.HOLD
+            if v.mode is _TAKEOFF and abs(float(x[2]) - v.hold[2]) < 0.1:
+                v.mode = _HOLD
             if v.armed:
                 v.battery = max(0.0, v.battery - dt / battery_s)
             v.odometer_m += flown
@@ -744,7 +755,7 @@ class Simulator:
         inside = self.world.occupied_rows(centres)
         for i, v in enumerate(vs):
             gap = gaps[i]
-            measured = not v.landed or v.kind is VehicleKind.GROUND
+            measured = not v.landed or v.kind is _GROUND
             if measured and math.isfinite(gap):
                 v.clearance_min = min(v.clearance_min, gap)
             contact = v.contact
@@ -902,7 +913,7 @@ class SimVehicle(OffboardCommands):
             armed=v.armed,
             landed=v.landed,
             battery=v.battery,
-            ground_z=v.ground if v.kind is VehicleKind.MULTIROTOR else v.z,
+            ground_z=v.ground if v.kind is _MULTIROTOR else v.z,
         )
 
     @property

@@ -21,6 +21,11 @@ from btmission.runtime.leaves import AgentContext, StatefulAction
 from btmission.runtime.navigation import NavState
 from btmission.runtime.paths import Route
 
+_SUCCESS, _FAILURE, _RUNNING = Status.SUCCESS, Status.FAILURE, Status.RUNNING
+_ARRIVED, _FAILED = NavState.ARRIVED, NavState.FAILED
+"""(read by the path follower every tick: a global costs a fifth of an Enum member on Python
+3.11)"""
+
 Point = tuple[float, float, float]
 
 COMMAND_TIMEOUT_S = 5.0
@@ -179,20 +184,20 @@ class FollowPath(StatefulAction):
         planned = self.ctx.blackboard.get("path")
         if not isinstance(planned, PlannedPath) or planned.goal != goal:
             self.reason = f"no path to {_fmt(goal)} on the blackboard"
-            return Status.FAILURE
+            return _FAILURE
         nav = self.ctx.navigator
         nav.follow(planned.route.waypoints, nav.flight_target(goal), self.ctx.now())
-        return Status.RUNNING
+        return _RUNNING
 
     def on_running(self) -> Status:
         st = self.ctx.navigator.status
-        if st.command == "follow" and st.state is NavState.ARRIVED:
-            return Status.SUCCESS
-        if st.command != "follow" or st.state is NavState.FAILED:
+        if st.command == "follow" and st.state is _ARRIVED:
+            return _SUCCESS
+        if st.command != "follow" or st.state is _FAILED:
             self._tries += 1
             if self._tries > self.ctx.navigator.config.replans:
                 self.reason = st.reason or "path following stopped"
-                return Status.FAILURE
+                return _FAILURE
             goal = point(self.args["goal"])
             p = self.ctx.telemetry().position
             route = self.ctx.paths.route(
@@ -201,10 +206,10 @@ class FollowPath(StatefulAction):
             )
             if route is None:
                 self.reason = f"no path to {_fmt(goal)} any more"
-                return Status.FAILURE
+                return _FAILURE
             self.ctx.blackboard.set("path", PlannedPath(goal, route))
             return self._go()
-        return Status.RUNNING
+        return _RUNNING
 
     def on_halted(self) -> None:
         self.ctx.navigator.hold()

@@ -93,6 +93,9 @@ PROGRESS_RESEND_S = 1.0
 """A progress report the coordinator has not acknowledged after this long is sent again (the
 coordinator ignores copies it has seen)."""
 
+_SUCCESS, _FAILURE = Status.SUCCESS, Status.FAILURE
+"""(read every tick: a global costs a fifth of an Enum member on Python 3.11)"""
+
 
 class Freshness:
     """Which of the coordinator's messages are new enough to act on (pure bookkeeping).
@@ -401,20 +404,19 @@ class Agent:
             branch = self._branches.get(f"task({task.type})")
             if branch is not None:
                 if not self.committed and any(
-                    leaf.status is Status.SUCCESS
-                    for leaf in self._commit_leaves.get(branch.name, [])
+                    leaf.status is _SUCCESS for leaf in self._commit_leaves.get(branch.name, [])
                 ):
                     self.committed = True
                     self._progress(task.id, "committed", now)
                     self._emit("committed", agent=self.id, task=task.id)
-                if branch.status is Status.SUCCESS:
+                if branch.status is _SUCCESS:
                     self.finished.add(task.id)
                     self._progress(task.id, "done", now)
                     self.task = None
                     self.committed = False
                     self.idle_since = now
                     self._emit("agent_task", agent=self.id, task=None)
-                elif branch.status is Status.FAILURE:
+                elif branch.status is _FAILURE:
                     reason = self._failure or "the task's behaviour tree failed"
                     self.finished.add(task.id)
                     self._progress(task.id, "failed", now, reason)

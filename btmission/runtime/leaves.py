@@ -46,6 +46,7 @@ if TYPE_CHECKING:
 
 UNSET = object()
 _RUNNING, _SUCCESS, _FAILURE = Status.RUNNING, Status.SUCCESS, Status.FAILURE
+"""(read by every leaf's tick: a global costs a fifth of an Enum member on Python 3.11)"""
 
 
 _ABSENT = object()
@@ -336,10 +337,10 @@ class GuardedLeaf(LeanTick, py_trees.behaviour.Behaviour):
         without formatting a debug message on every call (the guard on ``update`` already
         turns anything but a ``Status`` into FAILURE). A subclass that defines its own
         ``tick`` has no ``tick_now``, so its ``tick`` is what runs."""
-        if self.status is not Status.RUNNING:
+        if self.status is not _RUNNING:
             self.initialise()
         new_status = self.update()
-        if new_status is not Status.RUNNING:
+        if new_status is not _RUNNING:
             self.stop(new_status)
         self.status = new_status
 

@@ -872,17 +872,16 @@ class MissionRun:
         """Why the run should end now (None: go on)."""
         if self.part is not None:
             return self._part_finished()
-        live = [a for a in self.agents.values() if a.alive]
+        agents = self.agents.values()
         pool = self.coordinator.state.pool
         if not self.coordinator.settled(self.now()):
-            bidding = [a for a in live if not a.recalled]
-            if (
-                not bidding  # killed or recalled: nobody can take the open tasks any more
-                and any(not t.state.terminal for t in pool)
-                and all(a.at_rest for a in live)  # the recalled ones are home
-            ):
-                return "no agents left"
+            if any(a.alive and not a.recalled for a in agents):  # (every step, mostly)
+                return None  # someone can still take the open tasks
+            live = [a for a in agents if a.alive]  # killed or recalled: nobody can any more
+            if any(not t.state.terminal for t in pool) and all(a.at_rest for a in live):
+                return "no agents left"  # (the recalled ones are home)
             return None
+        live = [a for a in agents if a.alive]
         if not all(a.at_rest for a in live):
             return None
         if all(t.state in (TaskState.DONE, TaskState.CANCELLED) for t in pool):
