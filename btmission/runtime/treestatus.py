@@ -124,12 +124,18 @@ class LeanBehaviourTree(py_trees.trees.BehaviourTree):
         for visitor in self.visitors:
             visitor.initialise()
         ticked = [v for v in self.visitors if not v.full]
-        if ticked:
-            for node in self.root.tick():
+        root = self.root
+        lean = getattr(root, "tick_now", None)
+        if ticked and lean is not None:  # a quiet root's tick yields only itself, at the end
+            lean()
+            for visitor in ticked:
+                root.visit(visitor)
+        elif ticked:
+            for node in root.tick():
                 for visitor in ticked:
                     node.visit(visitor)
         else:
-            self.root.tick_once()
+            root.tick_once()
         full = [v for v in self.visitors if v.full]
         if full:
             for node in self.root.iterate():
