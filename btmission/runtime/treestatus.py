@@ -253,7 +253,13 @@ class TreeStatusLogger:
         return cached[1]
 
     def _post_tick(self, tree: py_trees.trees.BehaviourTree) -> None:
-        self._note(self.visitor.changes)
+        changes = self.visitor.changes
+        if changes:
+            self._note(changes)
+        elif not self._pending and not (
+            self._sent_nodes and self._dirty is not None and self._dirty()
+        ):
+            return  # (most ticks: nothing a flush would publish, whatever the time)
         now = self._clock()
         if now + 1e-9 >= self._next_t:
             self.flush(now)
