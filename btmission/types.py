@@ -14,9 +14,10 @@ interface does not have to import an algorithm to name its types:
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import Any, TypeVar, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,19 +28,25 @@ _R = TypeVar("_R")
 
 
 def recorder(cls: type[_R]) -> Callable[..., _R]:
-    """A builder of ``cls``, a frozen dataclass: ``recorder(cls)(**fields)`` is ``cls(**fields)`` minus the generated ``__init__``'s ``object.__setattr__`` per field (a
+    """A builder of ``cls``, a frozen dataclass: ``recorder(cls)(**fields)`` is
+    ``cls(**fields)`` minus the generated ``__init__``'s ``object.__setattr__`` per field (a
     12-field record: about half the time). Its arguments are keyword-only and named after the
     fields, so a missing or unknown field raises the ``TypeError`` the dataclass would. Made
     once per class (and kept); every field must be given, its default too. A class it cannot
-    build that way (``slots``, a ``__post_init__``) gets ``cls`` itself."""
+    build that way (``slots``, a ``__post_init__``, an ``InitVar`` or a field out of
+    ``__init__``) gets ``cls`` itself."""
     built = _RECORDERS.get(cls)
     if built is not None:
         return built
-    names = tuple(getattr(cls, "__dataclass_fields__", ()))
+    declared = getattr(cls, "__dataclass_fields__", {})
+    fields = dataclasses.fields(cast(Any, cls)) if declared else ()  # (no ClassVar pseudo-fields)
+    names = tuple(f.name for f in fields)
     if (
         not names
         or hasattr(cls, "__post_init__")
         or "__slots__" in cls.__dict__
+        or any(not f.init for f in fields)
+        or any(f._field_type is dataclasses._FIELD_INITVAR for f in declared.values())  # type: ignore[attr-defined]
         or not all(n.isidentifier() and not n.startswith("_") for n in names)
     ):
         built = cls

@@ -699,6 +699,13 @@ def test_a_recorder_builds_the_dataclass_and_refuses_what_the_dataclass_refuses(
     with pytest.raises(TypeError, match="'c'"):
         new(a=1, b="y", c=2)
     assert recorder(CameraIntrinsics) is CameraIntrinsics
+
+    @dataclasses.dataclass(frozen=True)
+    class Derived:
+        a: int
+        b: int = dataclasses.field(init=False, default=0)
+
+    assert recorder(Derived) is Derived  # (a field out of __init__: the class builds it)
     with pytest.raises(ValueError, match="focal"):
         recorder(CameraIntrinsics)(fx=0.0, fy=1.0, cx=0.0, cy=0.0)
 
