@@ -771,13 +771,13 @@ class MissionRun:
         sides = self.agent_sides
         for side in sides:
             side.tick(now)
-        if self._fleet is not None:
+        if self._fleet is not None:  # (tracking controllers only: no deferred solves to collect)
             self._fleet.control(now)
         else:
             for side in sides:
                 side.control(now)
-        for side in sides:  # the deferred NMPC solves of this step, collected in a fixed order
-            side.finish_control()
+            for side in sides:  # the deferred NMPC solves of this step, in a fixed order
+                side.finish_control()
         for side in sides:
             if side.report(now):
                 self._pose(side.id)
