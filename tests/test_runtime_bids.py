@@ -161,6 +161,34 @@ def test_a_new_map_drops_the_fields_and_changes_the_start_keys() -> None:
     assert not np.array_equal(before, after) and pc.start_key(STARTS[0]) != key
 
 
+def test_the_start_voxel_found_in_line_is_the_one_flat_and_open_find() -> None:
+    """PathCosts._start does _flat and _open's common case itself: for starts inside the map,
+    on voxel boundaries, in rock (snapped), less than half a voxel outside (the edge voxel) and
+    further out (none), it finds what they find — also after the map changes."""
+    rng = np.random.default_rng(7)
+    pc = PathCosts(floor_with_wall())
+    res = pc.map.resolution
+    lo = np.array(pc.map.origin, dtype=float)
+    hi = lo + np.array(pc.map.shape) * res
+    for _ in range(2):
+        points = [lo, hi, hi - 1e-9, lo - 0.49 * res, hi + 0.49 * res, lo - 0.51 * res]
+        points += list(rng.uniform(lo - res, hi + res, size=(400, 3)))
+        points += list(lo + rng.integers(0, 17, size=(200, 3)) * res / 2)  # on boundaries
+        for p in points:
+            start = (float(p[0]), float(p[1]), float(p[2]))
+            pc._last_start = None
+            assert pc._start(start) == pc._open(pc._flat(start)), start
+            assert pc._start(start) == pc._open(pc._flat(start))  # (remembered)
+        walled = floor_with_wall()
+        walled.state[2:6, 2:6, :] = OCCUPIED
+        pc.set_map(walled)
+    assert (
+        pc._start((2.0, 2.0, 0.5))
+        == pc._open(pc._flat((2.0, 2.0, 0.5)))
+        != pc._flat((2.0, 2.0, 0.5))
+    )  # in the new rock: snapped out of it
+
+
 def plain_announced(pool: TaskPool, now: float) -> list[PoolTask]:
     """What TaskPool.announced returned before it kept its order: a sort every call."""
     live = [t for t in pool if not t.state.terminal and t.arrived(now)]
