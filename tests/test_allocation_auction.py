@@ -355,6 +355,32 @@ def test_unassigned_tasks_carry_the_reason() -> None:
     assert [e.state.value for e in s.pool["T2"].history] == ["open", "unreachable", "assigned"]
 
 
+def test_a_reason_names_three_agents_and_counts_the_others() -> None:
+    """A task nobody can reach, or every bidder declined, names the first three agents (by id)
+    and counts the rest; a committed one says what it is committed to."""
+    many = {f"A{i}": {"T1": math.inf, "T2": math.nan, "T3": 1.0 + i} for i in range(5)}
+    _, _, r = step(state(info("T1"), info("T2"), info("T3")), 1.0, **many)
+    assert r.unassigned["T1"] == "unreachable: no path from A0, A1, A2 and 2 more"
+    assert r.unassigned["T2"] == "no bids: declined by A0, A1, A2 and 2 more"
+    few = {a: c for a, c in many.items() if a in ("A1", "A3")}
+    _, _, r = step(state(info("T1"), info("T2"), info("T3")), 1.0, **few)
+    assert r.unassigned["T1"] == "unreachable: no path from A1, A3"
+    assert r.unassigned["T2"] == "no bids: declined by A1, A3"
+    s = state(info("T2"), info("P", type="pick", multi_stage=True))
+    a, s, r = step(s, 1.0, A0={"T2": math.nan, "P": 2.0}, A1={"T2": math.nan, "P": 1.0})
+    assert a == {"A0": None, "A1": "P"}
+    _, s, r = auction_round(
+        s,
+        [
+            Bid.of("A0", 2.0, {"T2": math.nan, "P": 2.0}),
+            Bid.of("A1", 2.0, {"T2": math.nan, "P": 0.0}, committed_to="P"),
+        ],
+        2.0,
+    )
+    assert r.committed == ("A1",)
+    assert r.unassigned["T2"] == "no bids: declined by A0, A1 (committed to P)"
+
+
 def test_declined_tasks_and_participation_in_the_reason() -> None:
     s = state(*(info(f"T{i}") for i in range(4)), participation=0.5)
     ann = announce(s, 0.0).announcement

@@ -456,9 +456,13 @@ def _outbid(n: int) -> str:
     return text
 
 
-def _names(agents: Sequence[str], limit: int = 3) -> str:
-    shown = ", ".join(agents[:limit])
-    return shown + (f" and {len(agents) - limit} more" if len(agents) > limit else "")
+_SHOWN = 3
+"""Agents a reason names (the others are counted)."""
+
+
+def _names(shown: Sequence[str], total: int) -> str:
+    """``shown`` (the first :data:`_SHOWN` of ``total`` agents) and how many more there are."""
+    return ", ".join(shown) + (f" and {total - len(shown)} more" if total > len(shown) else "")
 
 
 def auction_round(
@@ -524,7 +528,12 @@ def auction_round(
     pinned = {
         a: tid
         for a, tid in holders.items()
-        if tid in index and (paused or a in excluded or current(tid).state is TaskState.COMMITTED)
+        if tid in index
+        and (
+            paused
+            or a in excluded
+            or (changed.get(tid) or tasks[tid]).state is TaskState.COMMITTED  # current(tid)
+        )
     }
     costs, covered = _matrix(ann, agents, board)
     na, nt = costs.shape
@@ -599,9 +608,10 @@ def auction_round(
     def why(j: int) -> tuple[str, TaskState]:
         """Why announced task ``j`` got no agent, and the state that goes with it, when no
         bidder of it won another task (the publication below handles that, the common case)."""
-        who = [agents[i] for i in np.nonzero(covered[:, j])[0]]
+        covering = np.flatnonzero(covered[:, j])  # the agents whose bids covered it
+        who = [agents[i] for i in covering[:_SHOWN].tolist()]  # (those its reason names)
         if n_inf[j]:
-            return f"unreachable: no path from {_names(who)}", TaskState.UNREACHABLE
+            return f"unreachable: no path from {_names(who, len(covering))}", TaskState.UNREACHABLE
         if who:
             busy = [f"{a} (committed to {pinned[a]})" if a in pinned else a for a in who]
             part = (
@@ -610,7 +620,7 @@ def auction_round(
                 if k < nt
                 else ""
             )
-            return f"no bids: declined by {_names(busy)}{part}", TaskState.OPEN
+            return f"no bids: declined by {_names(busy, len(covering))}{part}", TaskState.OPEN
         return "awaiting bids (newly announced)", TaskState.OPEN
 
     # publish: update the pool, with reasons
