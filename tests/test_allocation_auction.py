@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import random
 from pathlib import Path
 
 import numpy as np
@@ -11,12 +12,15 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from btmission.allocation.auction import (
+    Announcement,
     AuctionConfig,
     AuctionState,
     Bid,
+    _matrix,
     announce,
     auction_round,
     cheapest,
+    costs_in_range,
     participation_k,
 )
 from btmission.allocation.bidder import AgentState, Bidder
@@ -235,6 +239,88 @@ def test_a_bid_is_refused_exactly_when_a_cost_is_out_of_range(costs: list[float]
             assert problem is not None and f"for task 'T{bad[0]}' is out of range" in problem
 
 
+COSTS = st.one_of(
+    st.floats(0, 10),
+    st.sampled_from([math.nan, math.inf, 0.0, -0.0]),
+    st.floats(-10, -1e-300),
+    st.floats(0.5e12, 2e13),
+)
+
+
+@st.composite
+def bid_lists(draw: st.DrawFn) -> list[Bid]:
+    """Bids of one round: mostly in range, some with a bad cost, some whose costs do not fit
+    their tasks, some not float64 (ints), some not contiguous."""
+    bids = []
+    for a in range(draw(st.integers(0, 6))):
+        n = draw(st.integers(0, 5))
+        costs = np.array(draw(st.lists(COSTS, min_size=n, max_size=n)), dtype=np.float64)
+        if draw(st.booleans()):  # most bids are in range
+            costs[~((costs >= 0) & ((costs <= 1e12) | np.isinf(costs)) | np.isnan(costs))] = 1.0
+        kind = draw(st.sampled_from(["own", "own", "strided", "ints", "short", "2d"]))
+        if kind == "strided":
+            costs = np.repeat(costs, 2)[::2]
+        elif kind == "ints":
+            costs = np.nan_to_num(costs, posinf=1.0, neginf=-1.0).astype(np.int64)
+        elif kind == "2d":
+            costs = costs[None, :]
+        tasks = tuple(f"T{i}" for i in range(n + (kind == "short")))
+        bids.append(Bid(f"A{a}", 0.0, tasks, costs))
+    return bids
+
+
+@settings(max_examples=300, deadline=None)
+@given(bid_lists())
+def test_the_rounds_range_check_of_all_bids_at_once_is_each_bids(bids: list[Bid]) -> None:
+    """costs_in_range (one compiled pass over every bid) says a round may skip each bid's range
+    check only when no bid of the round fails it; and it says so whenever every bid's costs are
+    1-D float64 and in range."""
+    each = [b.problem() for b in bids]
+    if costs_in_range(bids):
+        assert each == [b._form_problem() for b in bids]
+    in_range = all(b._cost_problem() is None for b in bids if b.costs.ndim == 1)
+    if in_range and all(b.costs.dtype == np.float64 and b.costs.ndim == 1 for b in bids):
+        assert costs_in_range(bids)
+
+
+def test_a_bad_cost_is_refused_when_the_round_checks_all_bids_at_once() -> None:
+    s = state(info("T1"), info("T2"))
+    _, s, r = auction_round(
+        s,
+        [
+            Bid.of("A", 1.0, {"T1": 1.0, "T2": 2.0}),
+            Bid.of("B", 1.0, {"T1": 1.0, "T2": -2.0}),  # out of range: the one pass sees it
+            Bid.of("C", 1.0, {"T1": 3.0, "T2": 1.0}),
+        ],
+        1.0,
+    )
+    assert r.agents == ("A", "C") and len(r.ignored) == 1
+    assert "cost -2 for task 'T2' is out of range" in r.ignored[0]
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.integers(0, 5), st.integers(0, 6), st.randoms(use_true_random=False))
+def test_the_matrix_of_bids_on_this_announcement_is_the_general_one(
+    na: int, nt: int, rnd: random.Random
+) -> None:
+    """Bids that answer the round's announcement (their tasks are its ids) are stacked in one
+    array; the general path, which maps each bid's tasks onto the announcement, gives the same
+    matrix (a bid with an equal but not identical task tuple takes it)."""
+    ann = Announcement(1, 0.0, tuple(info(f"T{j}") for j in range(nt)))
+    board: dict[str, Bid] = {}
+    for a in range(na):
+        costs = [rnd.choice([math.nan, math.inf, rnd.random() * 10]) for _ in range(nt)]
+        board[f"A{a}"] = Bid.aligned(f"A{a}", 0.0, ann, costs)
+    agents = sorted(board)
+    fast, covered = _matrix(ann, agents, board)
+    copied = {a: Bid(a, 0.0, tuple(list(ann.ids)), b.costs) for a, b in board.items()}
+    slow, covered_slow = _matrix(ann, agents, copied)
+    assert fast.shape == slow.shape == (na, nt) and fast.dtype == slow.dtype == np.float64
+    np.testing.assert_array_equal(fast, slow)
+    np.testing.assert_array_equal(covered, covered_slow)
+    assert covered.all()
+
+
 def test_commit_reports_that_do_not_fit_are_ignored() -> None:
     s = state(info("T1"), info("T2"))
     _, s, _ = step(s, 0.0, A={"T1": 1.0}, B={"T2": 1.0})
@@ -267,6 +353,32 @@ def test_unassigned_tasks_carry_the_reason() -> None:
     a, s, r = step(s, 2.0, A={"T1": 1.0, "T2": math.inf}, B={"T1": 2.0, "T2": 4.0})
     assert a == {"A": "T1", "B": "T2"}
     assert [e.state.value for e in s.pool["T2"].history] == ["open", "unreachable", "assigned"]
+
+
+def test_a_reason_names_three_agents_and_counts_the_others() -> None:
+    """A task nobody can reach, or every bidder declined, names the first three agents (by id)
+    and counts the rest; a committed one says what it is committed to."""
+    many = {f"A{i}": {"T1": math.inf, "T2": math.nan, "T3": 1.0 + i} for i in range(5)}
+    _, _, r = step(state(info("T1"), info("T2"), info("T3")), 1.0, **many)
+    assert r.unassigned["T1"] == "unreachable: no path from A0, A1, A2 and 2 more"
+    assert r.unassigned["T2"] == "no bids: declined by A0, A1, A2 and 2 more"
+    few = {a: c for a, c in many.items() if a in ("A1", "A3")}
+    _, _, r = step(state(info("T1"), info("T2"), info("T3")), 1.0, **few)
+    assert r.unassigned["T1"] == "unreachable: no path from A1, A3"
+    assert r.unassigned["T2"] == "no bids: declined by A1, A3"
+    s = state(info("T2"), info("P", type="pick", multi_stage=True))
+    a, s, r = step(s, 1.0, A0={"T2": math.nan, "P": 2.0}, A1={"T2": math.nan, "P": 1.0})
+    assert a == {"A0": None, "A1": "P"}
+    _, s, r = auction_round(
+        s,
+        [
+            Bid.of("A0", 2.0, {"T2": math.nan, "P": 2.0}),
+            Bid.of("A1", 2.0, {"T2": math.nan, "P": 0.0}, committed_to="P"),
+        ],
+        2.0,
+    )
+    assert r.committed == ("A1",)
+    assert r.unassigned["T2"] == "no bids: declined by A0, A1 (committed to P)"
 
 
 def test_declined_tasks_and_participation_in_the_reason() -> None:

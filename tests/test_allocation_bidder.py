@@ -127,6 +127,47 @@ def test_a_batch_provider_gives_the_same_bids() -> None:
     assert batch.batches == 2  # one call per round for the three inspections
 
 
+class KeepsItsRow(BatchProvider):
+    """A batch provider that hands out the same array every call (its own memory)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.row: np.ndarray | None = None
+
+    def path_costs(self, start: Point, goals: list[Point]) -> np.ndarray:
+        self.row = super().path_costs(start, goals)
+        return self.row
+
+
+def test_a_batch_of_every_task_is_the_bid_row_and_stays_the_providers() -> None:
+    """When one path_costs batch covers every announced task, its answer is the bid row (no
+    row to fill): the same bids as task by task, with the switch cost and participation, and
+    the provider's array is not changed (the bidder works on a copy)."""
+    m = load_mission(PICK)
+    rng = np.random.default_rng(3)
+    tasks = [
+        TaskInfo(f"I{i}", "inspect", {"location": [float(x) for x in rng.uniform(0, 20, 3)]})
+        for i in range(9)
+    ]
+    ann = announcement(*tasks)
+
+    class Single:
+        def path_cost(self, start: Point, goal: Point) -> float:
+            return BatchProvider().path_cost(start, goal)
+
+    for participation in (1.0, 0.4):
+        for state in (AgentState("G1", (1.0, 2.0, 0.0)), AgentState("G1", (3.0, 2.0, 0.0), "I4")):
+            kept = KeepsItsRow()
+            a = Bidder(m.task_types, Single(), participation, switch_cost=2.0).costs(ann, state)
+            b = Bidder(m.task_types, kept, participation, switch_cost=2.0).costs(ann, state)
+            np.testing.assert_array_equal(a, b)
+            assert kept.batches == 1 and kept.row is not None and b is not kept.row
+            np.testing.assert_array_equal(
+                kept.row,
+                [kept.path_cost(state.position, tuple(t.fields["location"])) for t in tasks],
+            )
+
+
 def test_participation_bids_on_the_k_cheapest_plus_the_current_task() -> None:
     m = load_mission(PICK)
     tasks = [TaskInfo(f"I{i}", "inspect", {"location": [float(i), 0, 0]}) for i in range(10)]

@@ -161,27 +161,67 @@ def test_a_new_map_drops_the_fields_and_changes_the_start_keys() -> None:
     assert not np.array_equal(before, after) and pc.start_key(STARTS[0]) != key
 
 
+def test_the_start_voxel_found_in_line_is_the_one_flat_and_open_find() -> None:
+    """PathCosts._start does _flat and _open's common case itself: for starts inside the map,
+    on voxel boundaries, in rock (snapped), less than half a voxel outside (the edge voxel) and
+    further out (none), it finds what they find — also after the map changes."""
+    rng = np.random.default_rng(7)
+    pc = PathCosts(floor_with_wall())
+    res = pc.map.resolution
+    lo = np.array(pc.map.origin, dtype=float)
+    hi = lo + np.array(pc.map.shape) * res
+    for _ in range(2):
+        points = [lo, hi, hi - 1e-9, lo - 0.49 * res, hi + 0.49 * res, lo - 0.51 * res]
+        points += list(rng.uniform(lo - res, hi + res, size=(400, 3)))
+        points += list(lo + rng.integers(0, 17, size=(200, 3)) * res / 2)  # on boundaries
+        for p in points:
+            start = (float(p[0]), float(p[1]), float(p[2]))
+            pc._last_start = None
+            assert pc._start(start) == pc._open(pc._flat(start)), start
+            assert pc._start(start) == pc._open(pc._flat(start))  # (remembered)
+        walled = floor_with_wall()
+        walled.state[2:6, 2:6, :] = OCCUPIED
+        pc.set_map(walled)
+    assert (
+        pc._start((2.0, 2.0, 0.5))
+        == pc._open(pc._flat((2.0, 2.0, 0.5)))
+        != pc._flat((2.0, 2.0, 0.5))
+    )  # in the new rock: snapped out of it
+
+
 def plain_announced(pool: TaskPool, now: float) -> list[PoolTask]:
     """What TaskPool.announced returned before it kept its order: a sort every call."""
     live = [t for t in pool if not t.state.terminal and t.arrived(now)]
     return sorted(live, key=lambda t: (t.info.arrival_s, t.id))
 
 
+def plain_holders(pool: TaskPool) -> dict[str, str]:
+    """What AuctionState.holders returned before the pool kept it: a pass over the pool."""
+    return {
+        t.agent: t.id
+        for t in pool
+        if t.agent is not None and t.state in (TaskState.ASSIGNED, TaskState.COMMITTED)
+    }
+
+
 def test_the_announced_order_kept_by_the_pool_is_a_fresh_sort() -> None:
-    """The pool keeps its (arrival, id) order across the changes a round makes; every change
-    that could move a task in that order (a new task, another arrival) sorts again."""
+    """The pool keeps its (arrival, id) order, its announced infos and its holders across the
+    changes a round makes; every change that could alter one of them (a new task, another
+    arrival, a task finished or re-prioritised, an agent won or lost) computes it again."""
     rng = np.random.default_rng(5)
     pool = TaskPool()
     for i in rng.permutation(40):
         arrival = float(rng.integers(0, 6))  # ties on arrival: the id decides
         pool = pool.add(TaskInfo(f"T{i}", "inspect", {"location": [1, 2, 0]}, 1.0, arrival))
     agents = [f"A{i}" for i in range(5)]
-    for step in range(200):
+    handed_on = 0
+    for step in range(400):
         now = step * 0.05
         ids = [t.id for t in pool if not t.state.terminal]
         tid = ids[int(rng.integers(len(ids)))]
         t, a = pool[tid], agents[int(rng.integers(len(agents)))]
-        op = int(rng.integers(7))
+        before = pool.announced_infos(now)
+        op = int(rng.integers(10))
         if op == 0:
             pool = pool.with_tasks({tid: t.moved(now, TaskState.ASSIGNED, a, "won")})
         elif op == 1 and t.agent is not None:
@@ -197,5 +237,18 @@ def test_the_announced_order_kept_by_the_pool_is_a_fresh_sort() -> None:
             pool = pool.with_tasks({tid: replace(t, info=info)})
         elif op == 6:
             pool = pool.add(TaskInfo(f"N{step}", "inspect", {"location": [1, 2, 0]}, 1.0, now))
-        assert pool.announced(now) == plain_announced(pool, now)
-        assert pool.announced(now + 3) == plain_announced(pool, now + 3)
+        elif op == 7:  # a note (the round's reasons): everything is handed on
+            pool = pool.with_tasks({tid: replace(t, note=f"outbid {step}")})
+        elif op == 8 and t.agent is not None and t.info.multi_stage is False:
+            pool = pool.with_tasks({tid: t.moved(now, TaskState.COMMITTED, t.agent, "commit")})
+        elif op == 9:
+            pool = pool.unreachable(tid, now, "no path")
+        for at in (now, now + 3):
+            assert pool.announced(at) == plain_announced(pool, at)
+            infos = pool.announced_infos(at)
+            assert infos == tuple(t.info for t in plain_announced(pool, at))
+            assert all(x is t.info for x, t in zip(infos, plain_announced(pool, at)))
+        pool.holders().clear()  # (a copy: the round's own to change)
+        assert list(pool.holders().items()) == list(plain_holders(pool).items())
+        handed_on += pool.announced_infos(now) is before and op in (0, 2, 7, 8, 9)
+    assert handed_on > 100  # most changes kept the announced infos

@@ -39,7 +39,7 @@ from btmission.allocation.solvers import (
     AssignmentProblem,
     solve,
 )
-from btmission.allocation.tasks import PoolTask, TaskInfo, TaskPool, TaskState
+from btmission.allocation.tasks import HELD, PoolTask, TaskInfo, TaskPool, TaskState
 from btmission.types import FloatArray, recorder
 
 _T = TypeVar("_T")
@@ -246,17 +246,23 @@ class Bid:
 
     def problem(self) -> str | None:
         """What makes this bid unusable, or None."""
+        return self._form_problem() or self._cost_problem()
+
+    def _form_problem(self) -> str | None:
+        """:meth:`problem` but for the range of the costs."""
         if not self.agent:
             return "bid without an agent id"
         if not math.isfinite(self.time_s):
             return f"bid from {self.agent}: time is not finite"
         if self.costs.shape != (len(self.tasks),):
             return f"bid from {self.agent}: {self.costs.shape} costs for {len(self.tasks)} task(s)"
+        return None
+
+    def _cost_problem(self) -> str | None:
+        """A cost out of range (:meth:`problem`, once the form is right), or None."""
         costs = self.costs
         if costs.dtype == np.float64 and costs.flags.c_contiguous:  # a bid's own array
-            from btmission.allocation._bid_kernels import first_bad_cost
-
-            i = int(first_bad_cost(costs, MAX_COST))
+            i = int(_first_bad_cost()(costs, MAX_COST))
         else:
             bad = (costs < 0) | ((costs > MAX_COST) & np.isfinite(costs))
             i = int(np.nonzero(bad)[0][0]) if np.logical_or.reduce(bad) else -1
@@ -266,6 +272,30 @@ class Bid:
                 f"out of range (expected 0 … {MAX_COST:g}, NaN for no bid, inf for unreachable)"
             )
         return None
+
+
+_F64 = np.dtype(np.float64)
+
+
+def _first_bad_cost() -> Callable[[FloatArray, float], int]:
+    """The compiled range check (:mod:`btmission.allocation._bid_kernels`), imported when first
+    needed (it brings numba in)."""
+    from btmission.allocation._bid_kernels import first_bad_cost
+
+    return first_bad_cost  # type: ignore[no-any-return]
+
+
+def costs_in_range(bids: Sequence[Bid]) -> bool:
+    """Whether no bid has a cost out of range, so that each bid's :meth:`Bid.problem` is its
+    form check alone: one compiled pass over every bid's costs at once instead of one call per
+    bid. False when some bid's costs are not a 1-D float64 array (then check each bid)."""
+    arrays = [b.costs for b in bids]
+    for a in arrays:
+        if a.dtype is not _F64 or a.ndim != 1:
+            return False
+    if not arrays:
+        return True
+    return int(_first_bad_cost()(np.concatenate(arrays), MAX_COST)) < 0
 
 
 @dataclass(frozen=True)
@@ -349,11 +379,7 @@ class AuctionState:
 
     def holders(self) -> dict[str, str]:
         """Agent → the task it holds (assigned or committed)."""
-        return {
-            t.agent: t.id
-            for t in self.pool
-            if t.agent is not None and t.state in (TaskState.ASSIGNED, TaskState.COMMITTED)
-        }
+        return self.pool.holders()
 
 
 # --------------------------------------------------------------------------------------------
@@ -361,12 +387,13 @@ class AuctionState:
 # --------------------------------------------------------------------------------------------
 def announce(state: AuctionState, now: float) -> AuctionState:
     """The state with the announcement for ``now`` (same serial if the task set is unchanged)."""
-    live = state.pool.announced(now)
-    ids = tuple(t.id for t in live)
+    infos = state.pool.announced_infos(now)
     ann = state.announcement
-    if ids == ann.ids and all(map(is_, ann.tasks, [t.info for t in live])):
+    if infos is ann.tasks or (
+        len(infos) == len(ann.tasks) and all(map(is_, ann.tasks, infos))
+    ):  # (the pool hands the same tuple on while the announced tasks are the same ones)
         return state
-    new = Announcement(ann.serial + 1, now, tuple(t.info for t in live), ann.epoch)
+    new = Announcement(ann.serial + 1, now, infos, ann.epoch)
     return replace(state, announcement=new)
 
 
@@ -375,8 +402,10 @@ def announce(state: AuctionState, now: float) -> AuctionState:
 # --------------------------------------------------------------------------------------------
 def _ingest(board: Mapping[str, Bid], bids: Iterable[Bid], ignored: list[str]) -> dict[str, Bid]:
     new = dict(board)
+    bids = bids if isinstance(bids, list) else list(bids)
+    check = Bid._form_problem if costs_in_range(bids) else Bid.problem
     for b in bids:
-        problem = b.problem()
+        problem = check(b)
         if problem:
             ignored.append(problem)
             continue
@@ -389,17 +418,21 @@ def _ingest(board: Mapping[str, Bid], bids: Iterable[Bid], ignored: list[str]) -
 
 
 def _matrix(
-    ann: Announcement, agents: Sequence[str], board: Mapping[str, Bid], ignored: list[str]
+    ann: Announcement, agents: Sequence[str], board: Mapping[str, Bid]
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
     """Bids as an agents × tasks matrix (NaN = none) and which pairs a bid covered at all."""
     na, nt = len(agents), len(ann)
+    ids = ann.ids
+    rows = [board[a] for a in agents]
+    if na and all(b.tasks is ids for b in rows):  # every bid answers this announcement
+        costs = np.array([b.costs for b in rows], dtype=np.float64)
+        return costs, np.ones((na, nt), dtype=bool)
     costs = np.full((na, nt), np.nan)
     covered = np.zeros((na, nt), dtype=bool)
     index = ann.index
     remap: dict[int, tuple[NDArray[np.intp], NDArray[np.intp]]] = {}
-    for i, a in enumerate(agents):
-        b = board[a]
-        if b.tasks is ann.ids or b.tasks == ann.ids:
+    for i, b in enumerate(rows):
+        if b.tasks is ids or b.tasks == ids:
             costs[i] = b.costs
             covered[i] = True
             continue
@@ -414,9 +447,22 @@ def _matrix(
     return costs, covered
 
 
-def _names(agents: Sequence[str], limit: int = 3) -> str:
-    shown = ", ".join(agents[:limit])
-    return shown + (f" and {len(agents) - limit} more" if len(agents) > limit else "")
+_OUTBID: dict[int, str] = {}
+"""The "outbid" reason by number of bidders (the reason of most open tasks, every round)."""
+
+
+def _outbid(n: int) -> str:
+    text = _OUTBID[n] = f"outbid: its {n} bidder(s) won other tasks"
+    return text
+
+
+_SHOWN = 3
+"""Agents a reason names (the others are counted)."""
+
+
+def _names(shown: Sequence[str], total: int) -> str:
+    """``shown`` (the first :data:`_SHOWN` of ``total`` agents) and how many more there are."""
+    return ", ".join(shown) + (f" and {total - len(shown)} more" if total > len(shown) else "")
 
 
 def auction_round(
@@ -453,12 +499,15 @@ def auction_round(
     for a in sorted(set(holders) - set(board)):  # holds a task but never bid
         move(pool[holders.pop(a)], TaskState.OPEN, None, f"agent {a} is not bidding")
     agents = sorted(board)
+    rows = [board[a] for a in agents]
     row_of = {a: i for i, a in enumerate(agents)}
     index = ann.index
+    ids = ann.ids
+    tasks = pool.tasks  # (every task looked up below is announced, so in the pool)
 
     # commit points reported with the bids (k_bt = 0)
-    for a in agents:
-        target = board[a].committed_to
+    for a, b in zip(agents, rows):
+        target = b.committed_to
         if target is None:
             continue
         t = changed.get(target) or pool.get(target)
@@ -471,22 +520,27 @@ def auction_round(
                 ignored.append(f"{a} reports a commit point on '{target}', which has none")
 
     def current(tid: str) -> PoolTask:
-        return changed.get(tid) or pool[tid]
+        return changed.get(tid) or tasks[tid]
 
     # pinned pairs: a committed task stays with its agent whatever the bids; while allocation
     # is paused every holder is pinned, and an excluded agent keeps only what it holds
+    paused, excluded = state.paused, state.excluded
     pinned = {
         a: tid
         for a, tid in holders.items()
         if tid in index
-        and (state.paused or a in state.excluded or current(tid).state is TaskState.COMMITTED)
+        and (
+            paused
+            or a in excluded
+            or (changed.get(tid) or tasks[tid]).state is TaskState.COMMITTED  # current(tid)
+        )
     }
-    costs, covered = _matrix(ann, agents, board, ignored)
+    costs, covered = _matrix(ann, agents, board)
     na, nt = costs.shape
-    if state.paused:  # nothing but the pinned pairs below
+    if paused:  # nothing but the pinned pairs below
         costs[:] = np.nan
-    elif state.excluded:
-        for a in state.excluded:
+    elif excluded:
+        for a in excluded:
             if a in row_of:
                 costs[row_of[a]] = np.nan
                 covered[row_of[a]] = False
@@ -494,10 +548,11 @@ def auction_round(
         i = row_of[a]
         costs[i] = np.nan
         costs[i, index[tid]] = 0.0
-    incumbent = np.full(na, -1, dtype=np.intp)
+    held_col = [-1] * na
     for a, tid in holders.items():
         if tid in index and a not in pinned:
-            incumbent[row_of[a]] = index[tid]
+            held_col[row_of[a]] = index[tid]
+    incumbent = np.array(held_col, dtype=np.intp)
 
     # participation guard: an agent bidding on more than its k cheapest is trimmed to them
     k = participation_k(cfg.participation, nt)
@@ -511,45 +566,52 @@ def auction_round(
 
     # solve without the pinned agents and tasks
     winner: dict[int, str] = {index[t]: a for a, t in pinned.items()}
-    free_rows = np.array([i for i, a in enumerate(agents) if a not in pinned], dtype=np.intp)
-    free_cols = np.array([j for j in range(nt) if j not in winner], dtype=np.intp)
-    sub = costs[np.ix_(free_rows, free_cols)] if pinned else costs
-    col_pos = np.full(nt + 1, -1, dtype=np.intp)
-    col_pos[free_cols] = np.arange(len(free_cols))
-    inc_sub = col_pos[incumbent[free_rows]]  # -1 stays -1 (last slot)
-    bonus = cfg.priority_scale * ann.priorities[free_cols]
+    if pinned:
+        free_rows = np.array([i for i, a in enumerate(agents) if a not in pinned], dtype=np.intp)
+        free_cols = np.array([j for j in range(nt) if j not in winner], dtype=np.intp)
+        sub = costs[np.ix_(free_rows, free_cols)]
+        col_pos = np.full(nt + 1, -1, dtype=np.intp)
+        col_pos[free_cols] = np.arange(len(free_cols))
+        inc_sub = col_pos[incumbent[free_rows]]  # -1 stays -1 (last slot)
+        bonus = cfg.priority_scale * ann.priorities[free_cols]
+    else:  # (the same, without the identity maps)
+        free_rows = np.arange(na, dtype=np.intp)
+        free_cols = np.arange(nt, dtype=np.intp)
+        sub, inc_sub = costs, incumbent
+        bonus = cfg.priority_scale * ann.priorities
     problem = AssignmentProblem.dense(sub, bonus=bonus, incumbent=inc_sub)
     method = "none"
     total = 0.0
     if problem.n_bids:
         match = solve(problem, cfg.method)
         method = match.method
-        for r, c in zip(match.rows, match.cols):
-            winner[int(free_cols[c])] = agents[int(free_rows[r])]
-            total += float(sub[r, c])
+        mr, mc = match.rows, match.cols
+        for j, i, cost in zip(free_cols[mc].tolist(), free_rows[mr].tolist(), sub[mr, mc].tolist()):
+            winner[j] = agents[i]
+            total += cost  # (in the matching's order, as before)
 
     assignments: dict[str, str | None] = dict.fromkeys(agents)
+    won_by: list[str | None] = [None] * nt
     for j, a in winner.items():
-        assignments[a] = ann.ids[j]
+        assignments[a] = ids[j]
+        won_by[j] = a
 
     # why no task got an agent this round, whatever the task (None: it depends on the task)
     overall: str | None = None
     if not agents:
         overall = "no agents are bidding"
-    elif state.paused:
+    elif paused:
         overall = "allocation paused by the operator"
-    elif all(a in state.excluded for a in agents):
+    elif all(a in excluded for a in agents):
         overall = "every agent is out of the auction (excluded by the operator)"
 
     def why(j: int) -> tuple[str, TaskState]:
-        """Why announced task ``j`` got no agent, and the state that goes with it."""
-        if overall is not None:
-            return overall, TaskState.OPEN
-        if n_fin[j]:
-            return f"outbid: its {int(n_fin[j])} bidder(s) won other tasks", TaskState.OPEN
-        who = [agents[i] for i in np.nonzero(covered[:, j])[0]]
+        """Why announced task ``j`` got no agent, and the state that goes with it, when no
+        bidder of it won another task (the publication below handles that, the common case)."""
+        covering = np.flatnonzero(covered[:, j])  # the agents whose bids covered it
+        who = [agents[i] for i in covering[:_SHOWN].tolist()]  # (those its reason names)
         if n_inf[j]:
-            return f"unreachable: no path from {_names(who)}", TaskState.UNREACHABLE
+            return f"unreachable: no path from {_names(who, len(covering))}", TaskState.UNREACHABLE
         if who:
             busy = [f"{a} (committed to {pinned[a]})" if a in pinned else a for a in who]
             part = (
@@ -558,23 +620,36 @@ def auction_round(
                 if k < nt
                 else ""
             )
-            return f"no bids: declined by {_names(busy)}{part}", TaskState.OPEN
+            return f"no bids: declined by {_names(busy, len(covering))}{part}", TaskState.OPEN
         return "awaiting bids (newly announced)", TaskState.OPEN
 
     # publish: update the pool, with reasons
+    cur = list(map(tasks.__getitem__, ids))
+    for tid, t in changed.items():  # (a change below is to the task at hand only)
+        j = index.get(tid)
+        if j is not None:
+            cur[j] = t
+    bidders = n_fin.tolist()
+    note = recorder(PoolTask)
     unassigned: dict[str, str] = {}
-    for j, info in enumerate(ann.tasks):
-        t = current(info.id)
-        who = winner.get(j)
+    for j, t in enumerate(cur):
+        who = won_by[j]
         if who is not None:
-            if t.agent == who and t.state in (TaskState.ASSIGNED, TaskState.COMMITTED):
+            if t.agent == who and t.state in HELD:
                 continue
             c = float(costs[row_of[who], j])
             won = f"reassigned from {t.agent}" if t.agent else "won"
             move(t, TaskState.ASSIGNED, who, f"{won} at cost {c:.4g}")
             continue
-        reason, st = why(j)
-        unassigned[info.id] = reason
+        st = TaskState.OPEN
+        if overall is not None:
+            reason = overall
+        elif bidders[j]:
+            reason = _OUTBID.get(bidders[j]) or _outbid(bidders[j])
+        else:
+            reason, st = why(j)
+        tid = t.id
+        unassigned[tid] = reason
         if t.agent is not None:
             moved_to = assignments.get(t.agent)
             lost = (
@@ -585,8 +660,10 @@ def auction_round(
             move(t, st, None, lost)
         elif t.state is not st:
             move(t, st, None, reason)
-        elif t.note != reason:
-            changed[t.id] = replace(t, note=reason)
+        elif t.note != reason:  # (replace(t, note=reason) without its field checks)
+            changed[tid] = note(
+                info=t.info, state=t.state, agent=t.agent, note=reason, history=t.history
+            )
 
     new_pool = pool.with_tasks(changed)
     new_state = replace(state, pool=new_pool, round=state.round + 1, board=board)

@@ -143,6 +143,19 @@ class _Plan:
         self._places = places
         self._rows = rows
         self._batches: list[tuple[npt.NDArray[np.intp], tuple[Point, ...]]] | None = None
+        self._k: dict[float, int] = {}
+
+    def participation_k(self, participation: float) -> int:
+        """:func:`~btmission.allocation.auction.participation_k` for these tasks (kept)."""
+        k = self._k.get(participation)
+        if k is None:
+            k = self._k[participation] = participation_k(participation, len(self._tasks))
+        return k
+
+    def whole(self) -> bool:
+        """Whether one batch holds every task, in order (its costs are the whole bid row)."""
+        batches = self.batches()
+        return len(batches) == 1 and len(batches[0][0]) == len(self._tasks)
 
     def batches(self) -> list[tuple[npt.NDArray[np.intp], tuple[Point, ...]]]:
         """(rows, goals) per batched type; raises :class:`BidError` for a bad position."""
@@ -313,13 +326,20 @@ class Bidder:
             if last is not None and last[1] is announcement and last[0] == key:
                 self.repeated += 1  # not moved to another voxel: the same costs
                 return last[2].copy()
-        out = np.full(len(tasks), np.nan)
-        for j in plan.single:
-            t = tasks[j]
-            out[j] = self.f_cost(t, agent) * k_bt(agent, t.id)
-        for rows, goals in plan.batches():
+        row: FloatArray | None = None
+        if not plan.single and plan.whole():  # one batch, every task: its costs are the row
             assert batch is not None
-            out[rows] = np.asarray(batch(agent.position, goals), dtype=np.float64)
+            row = np.array(batch(agent.position, plan.batches()[0][1]), dtype=np.float64)
+        if row is not None and row.shape == (len(tasks),):  # (else numpy's rules, as for several)
+            out = row
+        else:
+            out = np.full(len(tasks), np.nan)
+            for j in plan.single:
+                t = tasks[j]
+                out[j] = self.f_cost(t, agent) * k_bt(agent, t.id)
+            for rows, goals in plan.batches():
+                assert batch is not None
+                out[rows] = np.asarray(batch(agent.position, goals), dtype=np.float64)
         # k_bt = 1 on every task here: an agent past its commit point returned above (eq. 8)
         if self.switch_cost and agent.task is not None:
             mine = announcement.index.get(agent.task)
@@ -327,7 +347,7 @@ class Bidder:
             out += self.switch_cost
             if mine is not None:
                 out[mine] = held  # (every other task's cost + the switch cost)
-        k = participation_k(self.participation, len(tasks))
+        k = plan.participation_k(self.participation)
         if k < len(tasks):
             keep = announcement.index.get(agent.task, -1) if agent.task is not None else -1
             out[~cheapest(out, k, keep)] = np.nan

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import enum
 import math
+from bisect import bisect_right
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -56,6 +57,9 @@ class TaskState(str, enum.Enum):
 
 _ANNOUNCED = frozenset(s for s in TaskState if s.announced)
 """The states in which an arrived task is announced (:attr:`TaskState.announced`)."""
+
+HELD = frozenset((TaskState.ASSIGNED, TaskState.COMMITTED))
+"""The states in which a task's agent holds it."""
 
 
 @dataclass(frozen=True)
@@ -188,10 +192,49 @@ class TaskPool:
                 live.append(t)
         return live
 
+    def announced_infos(self, now: float) -> tuple[TaskInfo, ...]:
+        """The infos of :meth:`announced` at ``now``, as one tuple kept with the pool and handed
+        on by :meth:`with_tasks` while no task changes whether it is announced or its info: the
+        auctioneer asks every round, and most rounds change only notes and agents, so the
+        announcement's tasks stay the same tuple (:func:`~btmission.allocation.auction.announce`
+        then compares one object, not every task)."""
+        arrivals = self.__dict__.get("_arrivals")
+        if arrivals is None:
+            tasks = self.tasks
+            arrivals = [tasks[k].info.arrival_s for k in self._order()]
+            object.__setattr__(self, "_arrivals", arrivals)
+        # the arrived tasks are a prefix of the (arrival, id) order (a NaN time: none arrived)
+        n = bisect_right(arrivals, now) if now == now else 0
+        live = self.__dict__.get("_infos_at")
+        if live is None:
+            live = {}
+            object.__setattr__(self, "_infos_at", live)
+        infos: tuple[TaskInfo, ...] | None = live.get(n)
+        if infos is None:
+            tasks = self.tasks
+            infos = live[n] = tuple(
+                t.info for k in self._order()[:n] if (t := tasks[k]).state in _ANNOUNCED
+            )
+        return infos
+
+    def holders(self) -> dict[str, str]:
+        """Agent → the task it holds (assigned or committed), in pool order (an agent named by
+        two tasks: the later one). Kept with the pool (a copy is returned) and handed on by
+        :meth:`with_tasks` while no task changes agent or whether it is held."""
+        held = self.__dict__.get("_holders")
+        if held is None:
+            held = {
+                t.agent: t.id
+                for t in self.tasks.values()
+                if t.agent is not None and t.state in HELD
+            }
+            object.__setattr__(self, "_holders", held)
+        return dict(held)
+
     def held_by(self, agent: str) -> PoolTask | None:
         """The task ``agent`` holds (assigned or committed), if any."""
         for t in self.tasks.values():
-            if t.agent == agent and t.state in (TaskState.ASSIGNED, TaskState.COMMITTED):
+            if t.agent == agent and t.state in HELD:
                 return t
         return None
 
@@ -219,18 +262,32 @@ class TaskPool:
         return pool
 
     def with_tasks(self, changed: Mapping[str, PoolTask]) -> TaskPool:
-        """The pool with ``changed`` tasks replaced (they must already be in it)."""
+        """The pool with ``changed`` tasks replaced (they must already be in it). What the pool
+        keeps about itself is handed on where the changes cannot alter it: the (arrival, id)
+        order, the announced infos (:meth:`announced_infos`) and the holders
+        (:meth:`holders`)."""
         if not changed:
             return self
-        pool = TaskPool({**self.tasks, **changed})
-        order = self.__dict__.get("_sorted")
-        if order is not None and all(
-            (old := self.tasks.get(k)) is not None
-            and t.id == old.id
-            and t.info.arrival_s == old.info.arrival_s
-            for k, t in changed.items()
+        tasks = self.tasks
+        pool = TaskPool({**tasks, **changed})
+        kept = self.__dict__
+        same_live = same_held = True
+        for k, t in changed.items():
+            old = tasks.get(k)
+            if old is None or t.id != old.id or t.info.arrival_s != old.info.arrival_s:
+                return pool  # (a task's place in the order may differ: nothing is handed on)
+            if t.info is not old.info or (t.state in _ANNOUNCED) != (old.state in _ANNOUNCED):
+                same_live = False
+            if t.agent != old.agent or (t.state in HELD) != (old.state in HELD):
+                same_held = False
+        for name, same in (
+            ("_sorted", True),
+            ("_arrivals", True),
+            ("_infos_at", same_live),
+            ("_holders", same_held),
         ):
-            object.__setattr__(pool, "_sorted", order)
+            if same and name in kept:
+                object.__setattr__(pool, name, kept[name])
         return pool
 
     def commit(

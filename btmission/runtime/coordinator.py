@@ -405,8 +405,9 @@ class Coordinator:
         self.rounds.append(result.step_s)
         rep = result.report
         now = rep.time_s
-        for t in result.state.pool:
-            seen = self._history_len.get(t.id, 0)
+        logged = self._history_len
+        for tid, t in result.state.pool.tasks.items():  # (the pool is keyed by task id)
+            seen = logged.get(tid, 0)
             if seen == len(t.history):
                 continue  # nothing new
             if seen == 0 and t.info.arrival_s > now:
@@ -423,7 +424,7 @@ class Coordinator:
                     reason=ev.reason,
                     **late,
                 )
-            self._history_len[t.id] = len(t.history)
+            logged[tid] = len(t.history)
         for msg in result.progress_problems:
             self._emit("warning", message=msg)
         for w in result.withdrawn:

@@ -122,6 +122,8 @@ class PathCosts:
         self._grid = (*(float(o) for o in voxel_map.origin), float(voxel_map.resolution))
         self._shape = tuple(int(n) for n in voxel_map.shape)
         self.cost_map = CostMap(inflate(voxel_map, self.clearance_m), self.risk)
+        self._cost_flat = self.cost_map.flat_padded()
+        """The cost map's padded costs as one flat view (:meth:`_start` reads them)."""
         self.planner = Planner(self.cost_map)
         self._fields: OrderedDict[int, _GoalField | None] = OrderedDict()
         self._field_bytes = field_bytes(voxel_map.shape)
@@ -192,10 +194,21 @@ class PathCosts:
         return (self.version, self._start(start))
 
     def _start(self, start: Sequence[float]) -> int:
-        key = (float(start[0]), float(start[1]), float(start[2]))
-        if self._last_start is not None and self._last_start[0] == key:
-            return self._last_start[1]
-        f = self._open(self._flat(key))
+        """The open voxel a path from ``start`` begins at: :meth:`_open` of :meth:`_flat`, with
+        their common case — a start inside the map, in a voxel the planner may enter — in line
+        (every bidder asks every round, from a position it has not stood at before)."""
+        key = (x, y, z) = (float(start[0]), float(start[1]), float(start[2]))
+        last = self._last_start
+        if last is not None and last[0] == key:
+            return last[1]
+        ox, oy, oz, res = self._grid
+        nx, ny, nz = self._shape
+        u, v, w = (x - ox) / res, (y - oy) / res, (z - oz) / res  # (as _flat computes them)
+        if 0.0 <= u < nx and 0.0 <= v < ny and 0.0 <= w < nz:  # int() is floor() here
+            flat = ((int(u) + 1) * (ny + 2) + (int(v) + 1)) * (nz + 2) + (int(w) + 1)
+            f = flat if math.isfinite(self._cost_flat[flat]) else self._open(flat)
+        else:
+            f = self._open(self._flat(key))
         self._last_start = (key, f)
         return f
 
