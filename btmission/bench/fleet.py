@@ -15,6 +15,12 @@ targets apply to (issue 19: 3 drones ≥ 100×, 30 drones ≥ 25× with the trac
 Times are wall-clock (``time.perf_counter``); the results say when and where they were measured
 and, from the load average, whether other work shared the machine; each run keeps the previous
 page's numbers below its own (:func:`~btmission.bench.synth.earlier_runs`).
+
+A shared host's speed swings by 2-3× from minute to minute, so one run per size can mislead:
+``repeat`` builds and flies each fleet that many times (a fresh ``MissionRun`` each time, the same
+mission), the table reports the median run's speed-up with the min and max over the repeats
+(:func:`summarise`), and every run is timed after the host speed reference
+(:func:`~btmission.bench.synth.host_speed_ms`), which shows when the host itself was slow.
 """
 
 from __future__ import annotations
@@ -28,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from btmission.bench.synth import environment, header_lines, write_page
+from btmission.bench.synth import environment, header_lines, host_speed_ms, write_page
 
 FLEET_SIZES = (3, 10, 30, 100)
 """Fleet sizes of the scaling table."""
@@ -114,6 +120,9 @@ def fleet_mission_text(drones: int, seed: int = 0, controller: str = "track") ->
 
 @dataclass(frozen=True)
 class FleetPoint:
+    """One build and flight of a fleet; ``repeat`` counts from 1, ``host_ms`` is the host speed
+    reference timed just before the build (NaN when not measured)."""
+
     drones: int
     tasks: int
     controller: str
@@ -124,6 +133,8 @@ class FleetPoint:
     wall_s: float
     done: int
     collisions: int
+    repeat: int = 1
+    host_ms: float = math.nan
 
     @property
     def speedup(self) -> float:
@@ -143,12 +154,15 @@ def run_fleet(
     controller: str = "track",
     warmup_s: float = WARMUP_S,
     duration_s: float = DURATION_S,
+    repeat: int = 1,
 ) -> FleetPoint:
-    """Build and fly a fleet of ``drones``: warm-up and window timed apart (module docstring)."""
+    """Build and fly a fleet of ``drones``: warm-up and window timed apart (module docstring),
+    the host speed reference timed just before the build; ``repeat`` numbers the run."""
     from btmission.runtime.runner import MissionRun
     from btmission.spec.mission import load_mission_text
 
     m = load_mission_text(fleet_mission_text(drones, controller=controller), "fleet.yaml")
+    host_ms = host_speed_ms()
     t0 = time.perf_counter()
     run = MissionRun(m, controller=controller)
     build = time.perf_counter() - t0
@@ -168,7 +182,50 @@ def run_fleet(
         res.wall_s - warm.wall_s,  # (a run's wall time adds up over its run() calls)
         len(res.done),
         res.collisions,
+        repeat,
+        host_ms,
     )
+
+
+@dataclass(frozen=True)
+class FleetSummary:
+    """The repeats of one fleet size and controller: ``median`` is the median run (by window
+    speed-up; for an even number of runs the slower of the two middle ones, so the row is one
+    real, self-consistent run and the target check errs on the slow side), ``runs`` all of
+    them in the order flown."""
+
+    median: FleetPoint
+    runs: tuple[FleetPoint, ...]
+
+    @property
+    def speedup(self) -> float:
+        return self.median.speedup
+
+    @property
+    def min_speedup(self) -> float:
+        return min(p.speedup for p in self.runs)
+
+    @property
+    def max_speedup(self) -> float:
+        return max(p.speedup for p in self.runs)
+
+    @property
+    def met(self) -> bool | None:
+        """The target check, on the median run."""
+        return self.median.met
+
+
+def summarise(points: Sequence[FleetPoint]) -> list[FleetSummary]:
+    """Group ``points`` by controller and fleet size (first-flown order) into their median run
+    and the min and max speed-up (:class:`FleetSummary`)."""
+    groups: dict[tuple[str, int], list[FleetPoint]] = {}
+    for p in points:
+        groups.setdefault((p.controller, p.drones), []).append(p)
+    out = []
+    for runs in groups.values():
+        ranked = sorted(runs, key=lambda p: p.speedup)
+        out.append(FleetSummary(ranked[(len(ranked) - 1) // 2], tuple(runs)))
+    return out
 
 
 HEAD = (
@@ -185,6 +242,9 @@ HEAD = (
     "met",
     "tasks done",
     "collisions",
+    "runs",
+    "speed-up min-max",
+    "host ms",
 )
 
 
@@ -192,7 +252,8 @@ def _row(cells: Sequence[object]) -> str:
     return "| " + " | ".join(str(c) for c in cells) + " |"
 
 
-def _cells(p: FleetPoint) -> list[str]:
+def _cells(s: FleetSummary) -> list[str]:
+    p = s.median
     return [
         str(p.drones),
         str(p.tasks),
@@ -207,11 +268,52 @@ def _cells(p: FleetPoint) -> list[str]:
         "—" if p.met is None else ("yes" if p.met else "**no**"),
         f"{p.done}/{p.tasks}",
         str(p.collisions),
+        str(len(s.runs)),
+        f"{s.min_speedup:.1f}-{s.max_speedup:.1f}×",
+        _ms(p.host_ms),
+    ]
+
+
+def _ms(ms: float) -> str:
+    return "—" if math.isnan(ms) else f"{ms:.0f}"
+
+
+CSV_HEAD = (
+    "drones",
+    "tasks",
+    "controller",
+    "build_s",
+    "warmup_wall_s",
+    "sim_s",
+    "wall_s",
+    "speedup",
+    "done",
+    "collisions",
+    "repeat",
+    "host_ms",
+)
+"""``fleet.csv``'s columns: one row per run (``repeat`` numbers the runs of a size from 1)."""
+
+
+def _csv_cells(p: FleetPoint) -> list[object]:
+    return [
+        p.drones,
+        p.tasks,
+        p.controller,
+        f"{p.build_s:.3f}",
+        f"{p.warmup_wall_s:.3f}",
+        f"{p.sim_s:.2f}",
+        f"{p.wall_s:.3f}",
+        f"{p.speedup:.2f}",
+        p.done,
+        p.collisions,
+        p.repeat,
+        "" if math.isnan(p.host_ms) else f"{p.host_ms:.1f}",
     ]
 
 
 def markdown(
-    points: Sequence[FleetPoint],
+    rows: Sequence[FleetSummary],
     env: dict[str, str],
     warmup_s: float,
     duration_s: float,
@@ -225,11 +327,16 @@ def markdown(
         f"Drones in the seed 000 mine, 7 inspections per 3 drones (`fleet_mission_text`), the "
         f"whole system in one process. *Warm-up* = the first {warmup_s:g} simulated s (the "
         f"first auction round runs one D*+ search per task; take-off); *window* = the next "
-        f"{duration_s:g} s, whose simulated time over wall time is the speed-up.",
+        f"{duration_s:g} s, whose simulated time over wall time is the speed-up. Each size is "
+        "built and flown *runs* times; its row is the median run (by speed-up; of an even "
+        "number, the slower middle one), which the target check uses, beside the min-max "
+        "speed-up over the runs (every run in `fleet.csv`). *Host ms*: the median run's host "
+        "speed reference (`host_speed_ms`, a fixed pure-Python workload timed just before the "
+        "build; higher = the host was slower then).",
         "",
         _row(HEAD),
         _row(["---"] * len(HEAD)),
-        *(_row(_cells(p)) for p in points),
+        *(_row(_cells(r)) for r in rows),
         "",
     ]
     if plot:
@@ -238,8 +345,9 @@ def markdown(
     return "\n".join(lines)
 
 
-def plot_scaling(points: Sequence[FleetPoint], path: Path) -> Path | None:
-    """Speed-up against fleet size (log-log), with the targets; None without matplotlib."""
+def plot_scaling(rows: Sequence[FleetSummary], path: Path) -> Path | None:
+    """Median speed-up against fleet size (log-log), bars from the min to the max over the
+    repeats, with the targets; None without matplotlib."""
     try:
         import matplotlib
 
@@ -248,20 +356,27 @@ def plot_scaling(points: Sequence[FleetPoint], path: Path) -> Path | None:
     except ImportError:  # pragma: no cover - matplotlib is a dependency
         return None
     fig, ax = plt.subplots(figsize=(6, 4))
-    for ctrl in sorted({p.controller for p in points}):
-        pts = sorted((p for p in points if p.controller == ctrl), key=lambda p: p.drones)
-        ax.plot([p.drones for p in pts], [p.speedup for p in pts], "o-", label=ctrl)
+    for ctrl in sorted({r.median.controller for r in rows}):
+        pts = sorted(
+            (r for r in rows if r.median.controller == ctrl), key=lambda r: r.median.drones
+        )
+        mid = [r.speedup for r in pts]
+        bars = [
+            [m - r.min_speedup for m, r in zip(mid, pts)],
+            [r.max_speedup - m for m, r in zip(mid, pts)],
+        ]
+        ax.errorbar([r.median.drones for r in pts], mid, yerr=bars, fmt="o-", capsize=3, label=ctrl)
     for n, target in TARGETS.items():
         ax.plot([n], [target], "r_", markersize=18, mew=2)
     ax.axhline(1.0, color="0.6", lw=0.8, ls="--")
     ax.set_xscale("log")
     ax.set_yscale("log")
-    sizes = sorted({p.drones for p in points} | set(TARGETS))
+    sizes = sorted({r.median.drones for r in rows} | set(TARGETS))
     ax.set_xticks(sizes, [str(n) for n in sizes])
     ax.minorticks_off()
     ax.set_xlabel("drones")
     ax.set_ylabel("simulated time / wall time")
-    ax.set_title("Simulator speed against fleet size (red: targets)")
+    ax.set_title("Speed-up against fleet size (median run, bars: min-max; red: targets)")
     ax.legend()
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
@@ -277,59 +392,48 @@ def run_fleet_benchmark(
     duration_s: float = DURATION_S,
     out_dir: Path | str = Path("benchmarks/results"),
     echo: Callable[[str], object] = print,
-) -> list[FleetPoint]:
-    """Measure, echo the table as it fills, write ``fleet.md``, ``fleet.csv``, ``fleet.png``."""
+    repeat: int = 1,
+) -> list[FleetSummary]:
+    """Measure every size ``repeat`` times, echo each run as it ends and then the table (one
+    median row per size); write ``fleet.md``, ``fleet.csv`` (every run) and ``fleet.png``."""
+    if repeat < 1:
+        raise ValueError(f"repeat must be at least 1, got {repeat}")
     env = environment()
-    echo(f"fleet scaling benchmark; {env['machine']}, {env['cpus']} CPU(s), {env['python']}")
-    echo(_row(HEAD))
-    echo(_row(["---"] * len(HEAD)))
+    echo(
+        f"fleet scaling benchmark, {repeat} run(s) per size (the median reported); "
+        f"{env['machine']}, {env['cpus']} CPU(s), {env['python']}"
+    )
     points = []
     for ctrl in controllers:
         for n in sizes:
-            p = run_fleet(n, ctrl, warmup_s, duration_s)
-            points.append(p)
-            echo(_row(_cells(p)))
+            for k in range(1, repeat + 1):
+                p = run_fleet(n, ctrl, warmup_s, duration_s, repeat=k)
+                points.append(p)
+                echo(
+                    f"  {n} drones, {ctrl}, run {k}/{repeat}: host speed reference "
+                    f"{_ms(p.host_ms)} ms; build {p.build_s:.2f} s; window {p.sim_s:.1f} s "
+                    f"simulated in {p.wall_s:.2f} s wall: {p.speedup:.1f}×"
+                )
+    rows = summarise(points)
+    echo(_row(HEAD))
+    echo(_row(["---"] * len(HEAD)))
+    for r in rows:
+        echo(_row(_cells(r)))
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     page = out / "fleet.md"
-    png = plot_scaling(points, out / "fleet.png")
-    write_page(page, markdown(points, env, warmup_s, duration_s, png.name if png else None))
+    png = plot_scaling(rows, out / "fleet.png")
+    write_page(page, markdown(rows, env, warmup_s, duration_s, png.name if png else None))
     with (out / "fleet.csv").open("w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
-        w.writerow(
-            [
-                "drones",
-                "tasks",
-                "controller",
-                "build_s",
-                "warmup_wall_s",
-                "sim_s",
-                "wall_s",
-                "speedup",
-                "done",
-                "collisions",
-            ]
-        )
-        for p in points:
-            w.writerow(
-                [
-                    p.drones,
-                    p.tasks,
-                    p.controller,
-                    f"{p.build_s:.3f}",
-                    f"{p.warmup_wall_s:.3f}",
-                    f"{p.sim_s:.2f}",
-                    f"{p.wall_s:.3f}",
-                    f"{p.speedup:.2f}",
-                    p.done,
-                    p.collisions,
-                ]
-            )
-    for p in points:
+        w.writerow(CSV_HEAD)
+        w.writerows(_csv_cells(p) for p in points)
+    for r in rows:
+        p = r.median
         if p.met is not None:
             echo(
-                f"target {p.drones} drones: {p.speedup:.1f}× ≥ {p.target:g}× — "
-                f"{'met' if p.met else 'NOT met'}"
+                f"target {p.drones} drones: {p.speedup:.1f}× (median of {len(r.runs)}) "
+                f"≥ {p.target:g}× — {'met' if p.met else 'NOT met'}"
             )
     echo(f"wrote {page}, {out / 'fleet.csv'}" + (f" and {png}" if png else ""))
-    return points
+    return rows

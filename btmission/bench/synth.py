@@ -71,6 +71,8 @@ __all__ = [
     "environment",
     "fanin_library",
     "header_lines",
+    "host_speed_ms",
+    "host_workload",
     "load_note",
     "measure",
     "run_synth_benchmark",
@@ -388,6 +390,49 @@ def _cpu_s() -> float:
     benchmark that runs ``btmission run`` in a subprocess counts that run as its own work)."""
     t = os.times()
     return time.process_time() + t.children_user + t.children_system
+
+
+HOST_SPEED_ROUNDS = 300_000
+"""Rounds of :func:`host_workload` that :func:`host_speed_ms` times (~0.3 s on the 2-vCPU
+development machine when it is quick)."""
+
+
+def host_workload(rounds: int = HOST_SPEED_ROUNDS) -> int:
+    """A fixed pure-Python workload: float and integer arithmetic, dict updates, list appends and
+    sorts, ``rounds`` times; returns a checksum (the same for a ``rounds`` on every run).
+
+    Pure and deterministic (no I/O, no randomness, no clock): the same bytecode does the same
+    work every time, so its wall time measures only how fast the host runs Python right now.
+    The mix is the kind of work a mission's Python side does (loops over small dicts and
+    lists, float updates), not a numeric kernel."""
+    table: dict[int, float] = {}
+    batch: list[int] = []
+    acc = 0
+    x = 0.5
+    for i in range(rounds):
+        x = x * 0.999 + 1.0 / (i + 1)
+        k = (i * 40503) % 1021
+        table[k] = table.get(k, 0.0) + x
+        batch.append(k ^ i)
+        if len(batch) == 64:
+            batch.sort()
+            acc = (acc + batch[32] * 31 + len(table)) % 1_000_003
+            batch.clear()
+    return acc + int(sum(table.values()))
+
+
+def host_speed_ms(rounds: int = HOST_SPEED_ROUNDS) -> float:
+    """The host speed reference: wall time of :func:`host_workload` (``rounds``), in ms.
+
+    A shared host's speed drifts: other virtual machines take its cores for minutes at a time,
+    and the load average (which counts only this machine's own processes) does not show it.
+    Timed just before a measurement, this fixed workload tells a slow minute from a slow change:
+    when a benchmark's number drops and the reference's time rose with it, the host was slow;
+    when the reference held steady, the code was. Lower is faster; compare it only between runs
+    on the same machine and Python."""
+    t0 = time.perf_counter()
+    host_workload(rounds)
+    return (time.perf_counter() - t0) * 1000.0
 
 
 def environment() -> dict[str, str]:
