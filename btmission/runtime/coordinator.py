@@ -460,9 +460,8 @@ class Coordinator:
 
     def settled(self, now: float) -> bool:
         """Nothing left to allocate: every arrived task is done, failed or unreachable, nothing
-        is held, nothing is queued and no task is still to arrive."""
-        if not self._pending.empty() or self.state.pool.next_arrival(now) is not None:
-            return False
+        is held, nothing is queued and no task is still to arrive. (The run asks every step:
+        the pool's first open task answers it, before the queue and the arrivals are looked at.)"""
         if self._open is not None:
             return False
         for t in self.state.pool:
@@ -470,4 +469,4 @@ class Coordinator:
                 continue
             if t.state is not TaskState.UNREACHABLE:
                 return False
-        return True
+        return self._pending.empty() and self.state.pool.next_arrival(now) is None
