@@ -426,10 +426,12 @@ def host_speed_ms(rounds: int = HOST_SPEED_ROUNDS) -> float:
 
     A shared host's speed drifts: other virtual machines take its cores for minutes at a time,
     and the load average (which counts only this machine's own processes) does not show it.
-    Timed just before a measurement, this fixed workload tells a slow minute from a slow change:
-    when a benchmark's number drops and the reference's time rose with it, the host was slow;
-    when the reference held steady, the code was. Lower is faster; compare it only between runs
-    on the same machine and Python."""
+    Timed just before a measurement, this fixed workload shows a busy minute: when a
+    benchmark's number drops and the reference's time rose with it, the host was slow. Its
+    small working set does not see everything, though: a machine whose memory is slower (a
+    different virtual machine: the fleet benchmark at half speed) can read the same, so a change
+    of code is judged side by side, in the same minutes. Lower is faster; compare it only
+    between runs on the same machine and Python."""
     t0 = time.perf_counter()
     host_workload(rounds)
     return (time.perf_counter() - t0) * 1000.0
