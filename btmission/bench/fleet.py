@@ -376,7 +376,7 @@ def plot_scaling(rows: Sequence[FleetSummary], path: Path) -> Path | None:
     ax.minorticks_off()
     ax.set_xlabel("drones")
     ax.set_ylabel("simulated time / wall time")
-    ax.set_title("Speed-up against fleet size (median run, bars: min-max; red: targets)")
+    ax.set_title("Speed-up against fleet size\n(median run, bars: min-max; red: targets)")
     ax.legend()
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
