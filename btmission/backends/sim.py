@@ -70,7 +70,13 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
-from btmission.backends.autopilot import AutopilotFields, G, OffboardCommands, autopilot_rules
+from btmission.backends.autopilot import (
+    _OFFBOARD,
+    AutopilotFields,
+    G,
+    OffboardCommands,
+    autopilot_rules,
+)
 from btmission.backends.base import (
     CameraFrame,
     LidarScan,
@@ -117,15 +123,9 @@ _new_telemetry = recorder(Telemetry)
 """Builds a :class:`Telemetry` (every vehicle, every step: :func:`~btmission.types.recorder`)."""
 
 # (members read every step, for every vehicle: on Python 3.11 reading an Enum member through its
-# class costs about five times reading a module global)
+# class costs about five times reading a module global; _OFFBOARD is the autopilot's)
 _MULTIROTOR, _GROUND = VehicleKind.MULTIROTOR, VehicleKind.GROUND
-_OFFBOARD, _TAKEOFF, _HOLD, _LAND, _MANUAL = (
-    Mode.OFFBOARD,
-    Mode.TAKEOFF,
-    Mode.HOLD,
-    Mode.LAND,
-    Mode.MANUAL,
-)
+_TAKEOFF, _HOLD, _LAND, _MANUAL = Mode.TAKEOFF, Mode.HOLD, Mode.LAND, Mode.MANUAL
 
 
 @dataclass(frozen=True)

@@ -24,6 +24,8 @@ _RUNNING = py_trees.common.Status.RUNNING
 _SUCCESS = py_trees.common.Status.SUCCESS
 _FAILURE = py_trees.common.Status.FAILURE
 _INVALID = py_trees.common.Status.INVALID
+"""(the statuses as module globals, here and in the runtime's leaves, which import them: read on
+every tick, and on Python 3.11 an Enum member read through its class costs five times a global)"""
 
 
 def _stop_composite(
