@@ -448,3 +448,66 @@ def test_async_solve_must_be_collected_before_the_next(fatrop_nmpc: MavNmpc) -> 
     first = pending.result()
     assert first.success and pending.result() is first
     assert fatrop_nmpc.solve(np.zeros(8), [1.0, 0.0, 0.0]).success
+
+
+def _plain_solve(ocp: object, x0: np.ndarray, u_prev: np.ndarray, params: list[float]) -> object:
+    """The same solve through ``nlpsol(**args)`` (what :class:`~btmission.control.ocp.
+    _Buffered` replaces): its buffer is marked busy for the call, so ``solve_on`` falls back."""
+    from btmission.control.ocp import StagewiseOcp
+
+    assert isinstance(ocp, StagewiseOcp)
+    buffered = ocp._buffered(ocp._solver)
+    assert buffered is not None
+    buffered.busy = True
+    try:
+        return ocp.solve(x0, u_prev, params)
+    finally:
+        buffered.busy = False
+
+
+@pytest.mark.parametrize("solver", ["fatrop", "ipopt"])
+def test_buffered_solve_equals_the_plain_call(solver: str) -> None:
+    """The solver called through CasADi's function buffer gives the plain call's solution bit
+    for bit — primal, cost, status, iterations — with fatrop and with ipopt, and a solve with a
+    NaN parameter fails the same way (no exception: success False)."""
+    cfg = NmpcConfig(solver=solver, tol=1e-4)  # type: ignore[arg-type]
+    ocp = MavNmpc(cfg).ocp
+    x0 = np.array([0.0, 0.0, 1.0, 0.2, -0.1, 0.0, 0.02, 0.0])
+    u = cfg.hover_input
+    params = [1.0, 0.5, 1.5, 0, 0, 0, 0, 0, *u, 5.0, 5.0, 5.0]
+    buffered = ocp.solve(x0, np.full(3, 0.5), params)
+    assert ocp._buffers and all(b is not None for b in ocp._buffers.values())
+    plain = _plain_solve(ocp, x0, np.full(3, 0.5), params)
+    assert buffered.success and plain.success  # type: ignore[attr-defined]
+    np.testing.assert_array_equal(buffered.primal, plain.primal)  # type: ignore[attr-defined]
+    assert (buffered.cost, buffered.status, buffered.iterations) == (
+        plain.cost,  # type: ignore[attr-defined]
+        plain.status,  # type: ignore[attr-defined]
+        plain.iterations,  # type: ignore[attr-defined]
+    )
+    bad = [math.nan, *params[1:]]
+    failed = ocp.solve(x0, np.full(3, 0.5), bad)
+    failed_plain = _plain_solve(ocp, x0, np.full(3, 0.5), bad)
+    assert not failed.success and not failed_plain.success  # type: ignore[attr-defined]
+    assert failed.status == failed_plain.status  # type: ignore[attr-defined]
+
+
+def test_two_solves_in_flight_on_one_ocp_both_come_back_right() -> None:
+    """The buffer serves one solve at a time: a second solve submitted before the first is
+    collected takes the plain call, and each returns its own problem's solution."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    cfg = NmpcConfig(tol=1e-4)
+    ocp = MavNmpc(cfg).ocp
+    x0 = np.array([0.0, 0.0, 1.0, 0, 0, 0, 0, 0])
+    u = list(cfg.hover_input)
+    goals = ([2.0, 0.0, 1.0], [-1.0, 1.0, 2.0])
+    params = [[*g, 0, 0, 0, 0, 0, *u, 5.0, 5.0, 5.0] for g in goals]
+    alone = [ocp.solve(x0, u, p) for p in params]
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        first = ocp.solve_on(pool, x0, u, params[0])
+        second = ocp.solve_on(pool, x0, u, params[1])
+        got = [second(), first()]
+    for sol, ref in zip(got[::-1], alone):
+        np.testing.assert_array_equal(sol.primal, ref.primal)
+    assert not any(b.busy for b in ocp._buffers.values() if b is not None)
