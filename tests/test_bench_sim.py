@@ -61,3 +61,15 @@ def test_the_scaling_point_alone_keeps_the_earlier_runs(runner: CliRunner, tmp_p
     new, _, earlier = md.partition("## Earlier runs")
     assert "| 3 × 6 |" in new and "Not measured in this run (`--controllers ''`)" in new
     assert "| track | 1.00 | 36.5× |" in earlier
+
+
+def test_the_solver_ceiling_is_simulated_time_over_solver_cpu_per_core() -> None:
+    """The NMPC row's ceiling: 420 simulated s whose solves took 40 CPU s on 2 cores allow at
+    most 21×; the tracking controller's row has no solver and shows a dash."""
+    from btmission.bench.sim import MissionPoint, _mission_cells
+
+    nmpc = MissionPoint("nmpc", 3.0, 420.0, 42.0, 7, 7, 0, "completed", 40.0, 2)
+    assert nmpc.solver_ceiling == pytest.approx(21.0)
+    assert _mission_cells(nmpc)[-2:] == ["40.0", "21.0×"]
+    track = MissionPoint("track", 3.0, 440.0, 5.0, 7, 7, 0, "completed")
+    assert _mission_cells(track)[-2:] == ["–", "–"]

@@ -480,6 +480,8 @@ def test_buffered_solve_equals_the_plain_call(solver: str) -> None:
     plain = _plain_solve(ocp, x0, np.full(3, 0.5), params)
     assert buffered.success and plain.success  # type: ignore[attr-defined]
     np.testing.assert_array_equal(buffered.primal, plain.primal)  # type: ignore[attr-defined]
+    for sol in (buffered, plain):  # each solve's CPU time: the solving thread's, > 0, ≤ wall
+        assert 0 < sol.cpu_time_s <= sol.wall_time_s + 1e-3  # type: ignore[attr-defined]
     assert (buffered.cost, buffered.status, buffered.iterations) == (
         plain.cost,  # type: ignore[attr-defined]
         plain.status,  # type: ignore[attr-defined]

@@ -27,6 +27,8 @@ def test_deferred_nmpc_solves_give_the_serial_run() -> None:
         for _ in range(400):  # 20 s: take-off and the first metres of every drone's route
             run.step()
         assert all(len(nav.solve_times) > 300 for nav in navigators)
+        for nav in navigators:  # the solves' CPU time, whichever thread solved: > 0, ≤ wall
+            assert 0 < nav.solve_cpu_s <= sum(nav.solve_times) + 0.01 * len(nav.solve_times)
         poses[defer] = np.array(
             [
                 [*v.backend.telemetry().position, *v.backend.telemetry().velocity]

@@ -208,6 +208,8 @@ class NmpcResult:
     predicted_inputs: FloatArray
     q_position: FloatArray
     """The position weight used for this solve (eq. 4)."""
+    solve_cpu_s: float = 0.0
+    """CPU time of the solver call (:attr:`~btmission.control.ocp.OcpSolution.cpu_time_s`)."""
 
 
 class MavNmpc:
@@ -365,6 +367,7 @@ class MavNmpc:
             predicted_states=sol.states,
             predicted_inputs=sol.inputs,
             q_position=qp,
+            solve_cpu_s=sol.cpu_time_s,
         )
 
 

@@ -82,21 +82,24 @@ COMPILE_TIMEOUT_S = 600.0
 """A compile that takes longer is abandoned (the SX solver is used, with a warning)."""
 
 
-def _timed_call(
-    nlpsol: Any, args: dict[str, Any]
-) -> tuple[tuple[FloatArray, float, dict[str, Any]] | RuntimeError, float]:
-    """One call of the solver: ((primal, cost, the solver's statistics) or its ``RuntimeError``,
-    wall time s). Everything that touches CasADi happens here, in the thread that solves: each
-    CasADi call releases and retakes the GIL, which costs the caller's thread a wait on every
-    call while another thread holds it (the deferred solves of a fleet)."""
-    t0 = time.perf_counter()
+Solved = tuple[tuple[FloatArray, float, dict[str, Any]] | RuntimeError, float, float]
+"""A solver call's outcome: ((primal, cost, the solver's statistics) or its ``RuntimeError``,
+wall time s, CPU time s of the thread that solved)."""
+
+
+def _timed_call(nlpsol: Any, args: dict[str, Any]) -> Solved:
+    """One call of the solver (:data:`Solved`). Everything that touches CasADi happens here, in
+    the thread that solves: each CasADi call releases and retakes the GIL, which costs the
+    caller's thread a wait on every call while another thread holds it (the deferred solves of
+    a fleet)."""
+    t0, c0 = time.perf_counter(), time.thread_time()
     try:
         res = nlpsol(**args)
     except RuntimeError as exc:
-        return exc, time.perf_counter() - t0
-    wall = time.perf_counter() - t0
+        return exc, time.perf_counter() - t0, time.thread_time() - c0
+    wall, cpu = time.perf_counter() - t0, time.thread_time() - c0
     primal = np.asarray(res["x"], dtype=float).ravel()
-    return (primal, float(res["f"]), nlpsol.stats()), wall
+    return (primal, float(res["f"]), nlpsol.stats()), wall, cpu
 
 
 class _Buffered:
@@ -135,16 +138,16 @@ class _Buffered:
         self.inputs["x0"][:] = w0
         self.inputs["p"][:] = p
 
-    def __call__(self) -> tuple[tuple[FloatArray, float, dict[str, Any]] | RuntimeError, float]:
+    def __call__(self) -> Solved:
         """The solve, as :func:`_timed_call` returns it."""
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         try:
             self.evaluate()
         except RuntimeError as exc:
-            return exc, time.perf_counter() - t0
-        wall = time.perf_counter() - t0
+            return exc, time.perf_counter() - t0, time.thread_time() - c0
+        wall, cpu = time.perf_counter() - t0, time.thread_time() - c0
         out = self.outputs
-        return (out["x"].copy(), float(out["f"][0]), self.buffer.stats()), wall
+        return (out["x"].copy(), float(out["f"][0]), self.buffer.stats()), wall, cpu
 
 
 def cache_dir() -> Path:
@@ -233,6 +236,9 @@ class OcpSolution:
     cost: float
     primal: FloatArray = field(repr=False)
     """The raw decision vector (for warm starts)."""
+    cpu_time_s: float = 0.0
+    """CPU time of the thread that ran the solver call (what the solve costs a core, whatever
+    else shares the machine; ``wall_time_s`` also counts waiting for a core or the GIL)."""
 
 
 class StagewiseOcp:
@@ -442,7 +448,7 @@ class StagewiseOcp:
         buffered = self._buffered(nlpsol)
         if buffered is not None and not buffered.busy:
             buffered.load(w0, p)
-            call: Callable[[], Any] = buffered
+            call: Callable[[], Solved] = buffered
         else:  # (no buffer, or its solve is still in flight: the plain call)
             buffered = None
             args = {"x0": w0, "p": p, "lbx": self._lbw, "ubx": self._ubw}
@@ -483,6 +489,7 @@ class StagewiseOcp:
         self,
         res: tuple[FloatArray, float, dict[str, Any]] | RuntimeError,
         wall: float,
+        cpu: float = 0.0,
     ) -> OcpSolution:
         if isinstance(res, tuple):
             primal, cost, stats = res
@@ -499,7 +506,7 @@ class StagewiseOcp:
         if self.solver_name == "fatrop" and status == "0":
             status = "Solve_Succeeded"  # fatrop reports 0; use ipopt's wording for both
         states, inputs = self._unpack(primal)
-        return OcpSolution(states, inputs, success, status, iterations, wall, cost, primal)
+        return OcpSolution(states, inputs, success, status, iterations, wall, cost, primal, cpu)
 
     def _unpack(self, primal: FloatArray) -> tuple[FloatArray, FloatArray]:
         nz, nu, n = self._nz, self.nu, self.horizon

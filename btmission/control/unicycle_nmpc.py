@@ -228,6 +228,8 @@ class UnicycleResult:
     """Largest predicted intrusion into r_static + margin of an obstacle point (steps 1 … N)."""
     static_penalty: float = 0.0
     """ρ_s of the last solve."""
+    solve_cpu_s: float = 0.0
+    """CPU time of the solver calls (:attr:`~btmission.control.ocp.OcpSolution.cpu_time_s`)."""
 
     @property
     def predicted_positions(self) -> FloatArray:
@@ -369,6 +371,7 @@ class UnicycleNmpc:
         centres = np.tile(xs[:2], (n + 1, 1)) if self._centres is None else self._centres.copy()
         centres[0] = xs[:2]
         total_time = 0.0
+        total_cpu = 0.0
         solves = 0
         sol: OcpSolution | None = None
         violation = 0.0
@@ -380,6 +383,7 @@ class UnicycleNmpc:
             params = np.concatenate([ref, [rho, rho_s], obstacles_xy.ravel(), corridor.ravel()])
             sol = self.ocp.solve(xs, self._u_last, params, guess)
             total_time += sol.wall_time_s
+            total_cpu += sol.cpu_time_s
             solves += 1
             if not sol.success:
                 break
@@ -420,4 +424,5 @@ class UnicycleNmpc:
             static_penalty=rho_s,
             solves=solves,
             solve_time_s=total_time,
+            solve_cpu_s=total_cpu,
         )

@@ -447,6 +447,8 @@ class Navigator:
         self._last_uni_t = -math.inf
         self._uni_u = np.zeros(2)
         self.solve_times: list[float] = []
+        self.solve_cpu_s = 0.0
+        """CPU time of every NMPC solver call so far (s; the threads that solved, whichever)."""
         self.defer_nmpc = False
         """Run the MAV NMPC's solve on the NMPC thread pool and apply its command in
         :meth:`finish_step` (the runner calls it for every agent, in a fixed order, after all
@@ -877,6 +879,7 @@ class Navigator:
 
     def _apply_nmpc(self, res: NmpcResult, rate: float) -> None:
         self.solve_times.append(res.solve_time_s)
+        self.solve_cpu_s += res.solve_cpu_s
         self.backend.set_attitude_setpoint(float(res.u[0]), float(res.u[1]), float(res.u[2]), rate)
 
     # ---------------------------------------------------------------- ground robots
@@ -956,6 +959,7 @@ class Navigator:
                     obstacles=self._static_points(tel, shared),
                 )
                 self.solve_times.append(res.solve_time_s)
+                self.solve_cpu_s += res.solve_cpu_s
                 self._uni_u = res.u
                 self.prediction = res.predicted_positions
                 self._last_uni_t = now
