@@ -44,9 +44,10 @@ from btmission.types import FloatArray, recorder
 
 _T = TypeVar("_T")
 
-SOLVERS: tuple[str, ...] = ("assignment", "ilp-scip", "dense", "sparse")
-"""``AuctionConfig.solver``: a mission's ``assignment`` (dense or sparse chosen automatically) or
-``ilp-scip`` (the paper's ILP), or one of the two assignment solvers forced (benchmarks)."""
+SOLVERS: tuple[str, ...] = ("assignment", "ilp-scip", "dense", "sparse", "pruned")
+"""``AuctionConfig.solver``: a mission's ``assignment`` (the solver chosen automatically) or
+``ilp-scip`` (the paper's ILP), or one of the assignment solvers forced (benchmarks): ``dense``,
+``sparse`` or ``pruned`` (:mod:`btmission.allocation.solvers`)."""
 
 
 @dataclass(frozen=True)
