@@ -5,7 +5,8 @@ Console examples
 Every ``$ btmission ...`` line inside a ```` ```console ```` block of ``docs/*.md`` is run through
 click's ``CliRunner`` from the repository root. It must exit with status 0, or with the status its
 trailing comment documents (``# exit 2``). Commands never touch the repository: ``-o``/``--output``,
-``--out``, ``--log``, ``--png`` and ``--html`` paths are redirected into ``tmp_path``, and ``library new`` (and
+``--out``, ``--log``, ``--png`` and ``--html`` paths are redirected into ``tmp_path`` (a ``bench`` command shown
+without ``--out`` gets one there: its default is ``benchmarks/results``), and ``library new`` (and
 commands on the plugin it scaffolds) run inside ``tmp_path``. svg/png commands are skipped without
 Graphviz.
 
@@ -434,8 +435,14 @@ def _rewrite_outputs(args: list[str], tmp_path: Path) -> tuple[list[str], dict[s
         assert not (arg.startswith("-o") and len(arg) > 2), "write '-o PATH' in the docs"
         out.append(arg)
         i += 1
-    if out[:2] == ["bench", "synth"] and "--out" not in out:
-        target = str(tmp_path / "results")  # never rewrite benchmarks/results
+    if (  # a benchmark run the page shows without --out: never rewrite benchmarks/results
+        out[:1] == ["bench"]
+        and len(out) > 1
+        and not out[1].startswith("-")
+        and "--help" not in out
+        and not {"-o", "--out"} & set(out)
+    ):
+        target = str(tmp_path / "results")
         out += ["--out", target]
         paths[target] = "benchmarks/results"
     # longest first, so that a path is not cut by a shorter one it starts with; then any other
