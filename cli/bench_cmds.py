@@ -544,6 +544,9 @@ def sim_bench(
     """Simulator speed: mine_inspection vs real time per controller (targets: track >= 100x,
     nmpc >= 20x) and the seed 003 scaling point (round rate, bid time, wall time).
 
+    The NMPC row also gives the CPU time of the solver calls and the ceiling it sets on this
+    machine: simulated time / (solver CPU time / CPUs), the speed-up the solves alone allow.
+
     \b
     Example (quick):
       btmission bench sim --controllers track --scale 10x40 --duration 5 --out /tmp/results
