@@ -87,19 +87,33 @@ Solved = tuple[tuple[FloatArray, float, dict[str, Any]] | RuntimeError, float, f
 wall time s, CPU time s of the thread that solved)."""
 
 
+def _timed(
+    evaluate: Callable[[], Any], read: Callable[[Any], tuple[FloatArray, float, dict[str, Any]]]
+) -> Solved:
+    """``evaluate()`` (one solver call), timed, then ``read(its return)`` for (primal, cost,
+    statistics) — or the ``RuntimeError`` CasADi raised (:data:`Solved`)."""
+    t0, c0 = time.perf_counter(), time.thread_time()
+    try:
+        res = evaluate()
+    except RuntimeError as exc:
+        return exc, time.perf_counter() - t0, time.thread_time() - c0
+    wall, cpu = time.perf_counter() - t0, time.thread_time() - c0
+    return read(res), wall, cpu
+
+
 def _timed_call(nlpsol: Any, args: dict[str, Any]) -> Solved:
     """One call of the solver (:data:`Solved`). Everything that touches CasADi happens here, in
     the thread that solves: each CasADi call releases and retakes the GIL, which costs the
     caller's thread a wait on every call while another thread holds it (the deferred solves of
     a fleet)."""
-    t0, c0 = time.perf_counter(), time.thread_time()
-    try:
-        res = nlpsol(**args)
-    except RuntimeError as exc:
-        return exc, time.perf_counter() - t0, time.thread_time() - c0
-    wall, cpu = time.perf_counter() - t0, time.thread_time() - c0
-    primal = np.asarray(res["x"], dtype=float).ravel()
-    return (primal, float(res["f"]), nlpsol.stats()), wall, cpu
+    return _timed(
+        lambda: nlpsol(**args),
+        lambda res: (
+            np.asarray(res["x"], dtype=float).ravel(),
+            float(res["f"]),
+            nlpsol.stats(),
+        ),
+    )
 
 
 class _Buffered:
@@ -140,14 +154,11 @@ class _Buffered:
 
     def __call__(self) -> Solved:
         """The solve, as :func:`_timed_call` returns it."""
-        t0, c0 = time.perf_counter(), time.thread_time()
-        try:
-            self.evaluate()
-        except RuntimeError as exc:
-            return exc, time.perf_counter() - t0, time.thread_time() - c0
-        wall, cpu = time.perf_counter() - t0, time.thread_time() - c0
+        return _timed(self.evaluate, self._read)
+
+    def _read(self, _: object) -> tuple[FloatArray, float, dict[str, Any]]:
         out = self.outputs
-        return (out["x"].copy(), float(out["f"][0]), self.buffer.stats()), wall, cpu
+        return out["x"].copy(), float(out["f"][0]), self.buffer.stats()
 
 
 def cache_dir() -> Path:
@@ -384,8 +395,11 @@ class StagewiseOcp:
             source = str(library) if library is not None else nlp
             extra = {} if library is not None else {"expand": True}
             self._solver_warm = ca.nlpsol(name, solver, source, {**extra, **options(warm_mu_init)})
-        self._lbw_np, self._ubw_np = np.array(lbw, dtype=float), np.array(ubw, dtype=float)
-        self._lbg_np, self._ubg_np = np.array(lbg, dtype=float), np.array(ubg, dtype=float)
+        self._bounds = {
+            name: np.array(values, dtype=float)
+            for name, values in (("lbx", lbw), ("ubx", ubw), ("lbg", lbg), ("ubg", ubg))
+        }
+        """The bounds as the solver buffers take them (:class:`_Buffered`)."""
         self._buffers: dict[int, _Buffered | None] = {}
         """Each solver's :class:`_Buffered` (None: it has none), by ``id`` of the solver."""
         self._lbw = ca.DM(lbw)  # DM once: converting numpy bounds on every call cost ~0.1 ms
@@ -471,15 +485,7 @@ class StagewiseOcp:
         key = id(nlpsol)
         if key not in self._buffers:
             try:
-                made: _Buffered | None = _Buffered(
-                    nlpsol,
-                    {
-                        "lbx": self._lbw_np,
-                        "ubx": self._ubw_np,
-                        "lbg": self._lbg_np,
-                        "ubg": self._ubg_np,
-                    },
-                )
+                made: _Buffered | None = _Buffered(nlpsol, self._bounds)
             except (AttributeError, NotImplementedError, RuntimeError, KeyError):
                 made = None
             self._buffers[key] = made
@@ -489,7 +495,7 @@ class StagewiseOcp:
         self,
         res: tuple[FloatArray, float, dict[str, Any]] | RuntimeError,
         wall: float,
-        cpu: float = 0.0,
+        cpu: float,
     ) -> OcpSolution:
         if isinstance(res, tuple):
             primal, cost, stats = res
