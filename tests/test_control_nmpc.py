@@ -513,3 +513,34 @@ def test_two_solves_in_flight_on_one_ocp_both_come_back_right() -> None:
     for sol, ref in zip(got[::-1], alone):
         np.testing.assert_array_equal(sol.primal, ref.primal)
     assert not any(b.busy for b in ocp._buffers.values() if b is not None)
+
+
+@pytest.mark.parametrize("deferred", [False, True])
+def test_a_solve_that_raises_leaves_the_buffer_free(deferred: bool) -> None:
+    """A solver call that raises something CasADi does not (here ``MemoryError``) reaches the
+    caller, and the buffer is free again: the next solve goes through it, not the plain call."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    cfg = NmpcConfig(tol=1e-4)
+    ocp = MavNmpc(cfg).ocp
+    x0 = np.array([0.0, 0.0, 1.0, 0, 0, 0, 0, 0])
+    u = list(cfg.hover_input)
+    params = [2.0, 0.0, 1.0, 0, 0, 0, 0, 0, *u, 5.0, 5.0, 5.0]
+    reference = ocp.solve(x0, u, params)
+    buffered = ocp._buffered(ocp._solver)
+    assert buffered is not None
+    evaluate = buffered.evaluate
+
+    def out_of_memory() -> None:
+        raise MemoryError("no room")
+
+    buffered.evaluate = out_of_memory
+    with ThreadPoolExecutor(max_workers=1) as pool, pytest.raises(MemoryError, match="no room"):
+        ocp.solve_on(pool if deferred else None, x0, u, params)()
+    assert not buffered.busy
+    buffered.evaluate = evaluate
+    used: list[bool] = []
+    buffered.load = lambda w0, p, load=buffered.load: (used.append(True), load(w0, p))[1]  # type: ignore[method-assign]
+    again = ocp.solve(x0, u, params)
+    assert used == [True] and not buffered.busy
+    np.testing.assert_array_equal(again.primal, reference.primal)

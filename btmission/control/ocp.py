@@ -469,16 +469,19 @@ class StagewiseOcp:
             args.update(lbg=self._lbg, ubg=self._ubg)
             call = partial(_timed_call, nlpsol, args)
 
-        def collect(done: Any) -> OcpSolution:
-            if buffered is not None:
-                buffered.busy = False
+        def collect(result: Callable[[], Solved]) -> OcpSolution:
+            try:
+                done = result()
+            finally:  # (whatever the call raised: the buffer serves the next solve)
+                if buffered is not None:
+                    buffered.busy = False
             return self._solution(*done)
 
         if executor is None:
-            done = call()
-            return lambda: collect(done)
+            solution = collect(call)
+            return lambda: solution
         future = executor.submit(call)
-        return lambda: collect(future.result())
+        return lambda: collect(future.result)
 
     def _buffered(self, nlpsol: Any) -> _Buffered | None:
         """The buffer of ``nlpsol`` (made on first use), or None where CasADi has none."""
