@@ -38,8 +38,12 @@ system-deps:
 demo: install
 	$(VENV)/bin/btmission run missions/mine_inspection.yaml --controller track --log runs
 
+# The fast selection on every CPU (pytest-xdist; TEST_WORKERS=0 runs it in this process instead),
+# then the tests paced by the wall clock (marked serial) alone, so that no other test slows them.
+TEST_WORKERS ?= auto
 test: install
-	$(VENV)/bin/pytest -q --durations=15
+	$(VENV)/bin/pytest -q -n $(TEST_WORKERS) --dist worksteal -m "not slow and not serial" --durations=15
+	$(VENV)/bin/pytest -q -m "serial and not slow" --durations=5
 
 test-all: install
 	$(VENV)/bin/pytest -q -m ""

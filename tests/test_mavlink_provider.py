@@ -22,6 +22,10 @@ from btmission.backends.mavlink_url import MavlinkAddress
 from btmission.backends.mavsim import MavSim
 from tests.mavlink_helpers import SIMS, SPEED, free_port, mavsim, provider, spec
 
+# Timed against mavsim's clock (scaled real time): `make test` runs these alone, after the tests
+# it spreads over the CPUs, so that no other test's load decides an arming or a link timeout.
+pytestmark = pytest.mark.serial
+
 PX4, ARDUPILOT = Autopilot.PX4, Autopilot.ARDUPILOT
 START = (5.0, 5.0, 0.0)
 

@@ -30,6 +30,10 @@ from tests.mavlink_helpers import SPEED, mavsim, mission_on_free_ports
 
 ROOT = Path(__file__).resolve().parents[1]
 
+# Flown in real time (scaled) against mavsim's own process: `make test` runs these alone, after
+# the tests it spreads over the CPUs, so that no other test's load makes the drone late.
+pytestmark = pytest.mark.serial
+
 MISSION = """
 mission: mavlink_small
 version: 1
