@@ -540,7 +540,13 @@ def test_a_solve_that_raises_leaves_the_buffer_free(deferred: bool) -> None:
     assert not buffered.busy
     buffered.evaluate = evaluate
     used: list[bool] = []
-    buffered.load = lambda w0, p, load=buffered.load: (used.append(True), load(w0, p))[1]  # type: ignore[method-assign]
+    load = buffered.load
+
+    def counted_load(w0: np.ndarray, p: np.ndarray) -> None:
+        used.append(True)
+        load(w0, p)
+
+    buffered.load = counted_load  # type: ignore[method-assign]
     again = ocp.solve(x0, u, params)
     assert used == [True] and not buffered.busy
     np.testing.assert_array_equal(again.primal, reference.primal)

@@ -546,7 +546,9 @@ LINKED_PAGES = [*PAGES, ROOT / "README.md"]
 
 PYTHON_BLOCKS = [
     # an example that flies a mission on mavsim is paced by the wall clock: run alone (serial)
-    pytest.param(block, id=f"{page.name}[{i}]", marks=[pytest.mark.serial] * ("mavsim" in block))
+    pytest.param(
+        block, id=f"{page.name}[{i}]", marks=pytest.mark.serial if "mavsim" in block else ()
+    )
     for page in PAGES
     for i, block in enumerate(
         re.findall(r"```python\n(.*?)```", page.read_text(encoding="utf-8"), re.S)
