@@ -55,9 +55,12 @@ test-slow: install
 bench: install
 	$(VENV)/bin/btmission bench synth
 
+# ruff, mypy, and the layers of btmission/ (import-linter's contract in pyproject.toml;
+# CONTRIBUTING.md says which layer new code goes in).
 lint: install
 	$(VENV)/bin/ruff check btmission cli library tests benchmarks
 	$(VENV)/bin/mypy btmission cli library
+	$(VENV)/bin/lint-imports --no-cache
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -140,8 +140,11 @@ def first_difference(golden: list[str], now: list[str]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m tests.golden", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m tests.golden",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("missions", nargs="*", help=f"default: all of {', '.join(MISSIONS)}")
     parser.add_argument("--update", action="store_true", help="record them (else: compare)")
     args = parser.parse_args(argv)

@@ -7,6 +7,8 @@ wall-clock fields, and its report must equal the ones in ``tests/golden/`` line 
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from tests import golden
@@ -36,7 +38,7 @@ def test_golden_files_cover_every_shipped_simulator_mission() -> None:
 def test_normalise_drops_wall_clock_fields_and_machine_paths() -> None:
     base = golden.ROOT / "missions"
     header = golden.normalise(
-        '{"t":0.0,"ev":"header","world_ref":{"base_dir":"%s","map":null}}' % base
+        json.dumps({"t": 0.0, "ev": "header", "world_ref": {"base_dir": str(base), "map": None}})
     )
     assert '"base_dir":"missions"' in header
     end = golden.normalise('{"t":3.5,"ev":"end","reason":"completed","wall_s":0.81,"steps":70}')

@@ -1,0 +1,54 @@
+"""The layering the project keeps (issue #35, CONTRIBUTING.md).
+
+``make lint`` checks the layers of ``btmission/`` with import-linter (the contract is in
+pyproject.toml). The command-line front end lives outside that tree (``cli/``, installed as
+``btmission.cli``), where import-linter does not see it; this test checks the one rule about it:
+nothing in ``btmission/`` imports the CLI, at module level or inside a function.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+ALLOWED: dict[str, str] = {
+    "btmission/__main__.py": "`python -m btmission` is the CLI's entry point",
+    "btmission/warmup.py": "the install's warm-up runs CLI commands; it moves under cli/",
+}
+"""Modules of btmission/ that may import the CLI, and why."""
+
+
+def cli_imports(path: Path) -> list[int]:
+    """Lines of ``path`` that import ``btmission.cli`` (or anything under it)."""
+    lines = []
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
+        names: list[str] = []
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+        if any(n == "btmission.cli" or n.startswith("btmission.cli.") for n in names):
+            lines.append(node.lineno)
+    return lines
+
+
+def test_nothing_below_the_cli_imports_it() -> None:
+    found = {
+        p.relative_to(ROOT).as_posix(): cli_imports(p)
+        for p in sorted((ROOT / "btmission").rglob("*.py"))
+    }
+    offenders = {f: lines for f, lines in found.items() if lines and f not in ALLOWED}
+    assert offenders == {}, "btmission/ must not import btmission.cli (the top layer)"
+    assert {f for f, lines in found.items() if lines} == set(ALLOWED)  # no stale exception
+
+
+def test_the_check_sees_every_form_of_import(tmp_path: Path) -> None:
+    p = tmp_path / "m.py"
+    p.write_text(
+        "import os\nimport btmission.cli.main\n"
+        "def f():\n    from btmission.cli import common\n    from btmission import cli\n"
+        "from btmission.clinic import x\n"
+    )
+    assert cli_imports(p) == [2, 4, 5]
