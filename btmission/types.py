@@ -1,6 +1,6 @@
 """Value types shared across layers: one definition each, no behaviour.
 
-Everything here is plain data that both the vehicle interface (:mod:`btmission.backends.base`)
+Everything here is plain data that both the vehicle interface (:mod:`btmission.vehicles.base`)
 and the algorithms (:mod:`btmission.control`, :mod:`btmission.localization` ...) use, so that the
 interface does not have to import an algorithm to name its types:
 

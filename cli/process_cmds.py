@@ -327,9 +327,9 @@ def agent_cmd(
     Exit status: 0 the mission completed, 1 it ended with tasks open (or the coordinator cannot
     be reached), 2 bad input, 130 / 143 stopped by SIGINT / SIGTERM.
     """
-    from btmission.backends.provider import scheme_of
     from btmission.runtime.distribution import Part
     from btmission.transport.zenoh_link import TransportError, ZenohSettings, agent_links
+    from btmission.vehicles.provider import scheme_of
 
     _zenoh_or_exit()
     _check_log_file(log_file)
@@ -415,8 +415,8 @@ def _run_part(
 ) -> int:
     """Run one part of the mission and print its end; returns the exit status. ``prepare(run)``
     is called once the run is built, before its first step."""
-    from btmission.backends.provider import VehicleUnavailable
     from btmission.runtime.session import RunStopped
+    from btmission.vehicles.provider import VehicleUnavailable
 
     try:
         with session, internal_error_sink(session.record_internal_error):
@@ -521,8 +521,8 @@ def run_processes(
     """``run --processes``: mavsim (for the agents whose vehicles it can serve), the
     coordinator and one process per agent on this machine; their logs merged into one."""
     from btmission.backends.mavlink_url import parse_mavlink_url
-    from btmission.backends.provider import scheme_of
     from btmission.runtime.session import RunSession, log_path_for
+    from btmission.vehicles.provider import scheme_of
 
     _zenoh_or_exit()
     probe = RunSession(mission_file, log_dir=None)

@@ -11,7 +11,6 @@ from typing import Any
 
 import click
 
-from btmission.backends.provider import VehicleUnavailable
 from btmission.cli.common import (
     POSITIVE,
     SEED,
@@ -32,6 +31,7 @@ from btmission.cli.view_cmds import (
     viewer_options,
     viewer_port,
 )
+from btmission.vehicles.provider import VehicleUnavailable
 
 
 def _write_pngs(rep: Any, directory: Path, stem: str) -> list[Path]:
@@ -342,7 +342,7 @@ def _confirm_real_vehicles(mission: Any, yes: bool) -> None:
     """Ask before flying MAVLink vehicles that may be real: on a serial port or another host
     (loopback is SITL or mavsim). Without a terminal to ask, --yes is required."""
     from btmission.backends.mavlink_url import parse_mavlink_url
-    from btmission.backends.provider import scheme_of
+    from btmission.vehicles.provider import scheme_of
 
     remote = []
     for agent in mission.agents:

@@ -9,7 +9,7 @@ own (:meth:`~btmission.plugins.Implementations.extend`), so ``aerial``'s tree st
 
 ``relocalize`` is a :class:`~btmission.runtime.leaves.StatefulAction`: on every tick until it ends
 it asks the agent's sensors for the latest full-range 3D LiDAR scan
-(:meth:`~btmission.backends.base.Sensors.lidar_scan`: in the simulator, every beam of an
+(:meth:`~btmission.vehicles.base.Sensors.lidar_scan`: in the simulator, every beam of an
 OS1-32-like sensor ray-cast through the voxel map from the vehicle's true pose), RUNNING while
 there is none (a real driver needs a full turn first; FAILURE after ``SCAN_TIMEOUT_S``), then
 localises it inside the tick — so a run stays deterministic for a seed — with the
@@ -64,9 +64,9 @@ from btmission.runtime.leaves import AgentContext, StatefulAction
 from btmission_library import aerial
 
 if TYPE_CHECKING:
-    from btmission.backends.base import LidarScan
     from btmission.localization.relocalize import Relocalization, Relocalizer
     from btmission.spec.mission import Mission as MissionFile
+    from btmission.vehicles.base import LidarScan
     from btmission.world.voxel import VoxelMap
 
 SPEC = files(__package__).joinpath("aerial_mine.yaml")

@@ -9,11 +9,11 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from btmission.backends.base import VehicleKind
 from btmission.backends.mavlink import MavlinkOptions, MavlinkProvider
 from btmission.backends.mavlink_modes import Autopilot
 from btmission.backends.mavlink_url import MavlinkAddress
 from btmission.backends.mavsim import MavSim, MavSimConfig, VehicleSpec
+from btmission.vehicles.base import VehicleKind
 from btmission.world.minegen import empty_world
 
 SPEED = 10.0

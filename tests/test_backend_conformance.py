@@ -1,8 +1,8 @@
 """Backend conformance: the PX4-offboard rules every vehicle provider must keep.
 
-Leaves are written against :class:`~btmission.backends.base.Backend`, so a behaviour that works in
+Leaves are written against :class:`~btmission.vehicles.base.Backend`, so a behaviour that works in
 the simulator must work on a real autopilot. These tests go through the provider API only
-(:mod:`btmission.backends.provider`: the registry, ``attach``, ``step``, ``clock``), never through
+(:mod:`btmission.vehicles.provider`: the registry, ``attach``, ``step``, ``clock``), never through
 a provider's internals, so that any provider can be held to them: add its backend URL to
 :data:`PROVIDERS` (the simulator and the fake provider are there; issue #14 adds the MAVLink
 provider against PX4 SITL). Time is driven with :func:`advance`, which steps the provider and
@@ -26,15 +26,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from btmission.backends.base import Backend, Mode, Sensors, VehicleKind
-from btmission.backends.provider import (
+from btmission.spec.mission import load_mission_text
+from btmission.vehicles.base import Backend, Mode, Sensors, VehicleKind
+from btmission.vehicles.provider import (
     Vehicle,
     VehicleEvent,
     VehicleProvider,
     provider_factory,
     scheme_of,
 )
-from btmission.spec.mission import load_mission_text
 from btmission.world.build import world_from_spec
 
 PROVIDERS = [

@@ -969,8 +969,8 @@ def test_the_form_gets_the_fields_in_the_goals_order_and_a_ground_fleets_offset(
     """pick_and_deliver's pickup comes before its drop-off (the goal delivered(pickup,
     dropoff)), whatever order the type keeps its fields in; a ground fleet's task is picked on
     the floor (offset 0), a drone's 1 m off the face."""
-    from btmission.backends.base import VehicleKind
     from btmission.spec.mission import load_mission
+    from btmission.vehicles.base import VehicleKind
 
     mission = load_mission(ROOT / "missions" / "pick_and_deliver.yaml")
 

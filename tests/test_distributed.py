@@ -16,7 +16,6 @@ from typing import Any
 import pytest
 
 from btmission.runtime.bus import Assignment, InMemoryBus
-from btmission.runtime.clock import ScaledWallClock
 from btmission.runtime.distribution import (
     CLOCK_FOLLOW_WALL_S,
     ClockFollower,
@@ -27,6 +26,7 @@ from btmission.runtime.distribution import (
 )
 from btmission.runtime.events import Event
 from btmission.spec.mission import load_mission
+from btmission.vehicles.clock import ScaledWallClock
 from tests.fleet_helpers import ME, CuttableProxy, Fleet, free_port, read_log, wait_for
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -6,7 +6,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from btmission.backends.base import Sensors
 from btmission.backends.mapsensors import Body, MapSensors, SensorPose, body_at
 from btmission.backends.sim import (
     Artifact,
@@ -18,6 +17,7 @@ from btmission.backends.sim import (
 )
 from btmission.control.mav_model import yaw_frame_to_world
 from btmission.spec.mission import load_mission_text
+from btmission.vehicles.base import Sensors
 from btmission.world.voxel import VoxelMap
 from tests.test_sim import flying, room
 

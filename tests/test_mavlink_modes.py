@@ -5,7 +5,6 @@ from __future__ import annotations
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from btmission.backends.base import Mode, VehicleKind
 from btmission.backends.mavlink_modes import (
     Autopilot,
     UnsupportedMode,
@@ -17,6 +16,7 @@ from btmission.backends.mavlink_modes import (
     retry_wanted,
     set_mode_params,
 )
+from btmission.vehicles.base import Mode, VehicleKind
 
 MULTI, GROUND = VehicleKind.MULTIROTOR, VehicleKind.GROUND
 

@@ -15,11 +15,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from btmission.backends.base import Backend, Mode, VehicleKind
 from btmission.backends.mavlink import MavlinkError, MavlinkProvider
 from btmission.backends.mavlink_modes import Autopilot
 from btmission.backends.mavlink_url import MavlinkAddress
 from btmission.backends.mavsim import MavSim
+from btmission.vehicles.base import Backend, Mode, VehicleKind
 from tests.mavlink_helpers import SIMS, SPEED, free_port, mavsim, provider, spec
 
 # Timed against mavsim's clock (scaled real time): `make test` runs these alone, after the tests
@@ -323,8 +323,8 @@ def test_the_sysid_in_the_url_picks_the_vehicle_behind_a_shared_port() -> None:
 # ------------------------------------------------------------------------------ from a mission
 def factory_provider(tmp_path: Path, url: str, extra_world: str = "", mavlink: str = "") -> Any:
     """The ``mavlink`` provider as ``run`` builds it, for a one-drone mission at ``url``."""
-    from btmission.backends.provider import provider_factory
     from btmission.spec.mission import load_mission_text
+    from btmission.vehicles.provider import provider_factory
     from btmission.world.build import world_from_spec
 
     text = (

@@ -19,13 +19,13 @@ from typing import Any
 import pytest
 from click.testing import CliRunner
 
-from btmission.backends.base import Mode
 from btmission.backends.mavlink_modes import Autopilot
 from btmission.backends.mavsim import MavSim
 from btmission.cli.main import cli
 from btmission.runtime.events import Recorder
 from btmission.runtime.runner import MissionRun
 from btmission.spec.mission import load_mission
+from btmission.vehicles.base import Mode
 from tests.mavlink_helpers import SPEED, mavsim, mission_on_free_ports
 
 ROOT = Path(__file__).resolve().parents[1]

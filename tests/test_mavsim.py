@@ -17,10 +17,10 @@ import pytest
 from click.testing import CliRunner
 
 from btmission.backends._pymavlink import mavlink, mavutil
-from btmission.backends.base import Mode, VehicleKind
 from btmission.backends.mavlink_modes import Autopilot, mode_request, set_mode_params
 from btmission.backends.mavsim import MavSim
 from btmission.cli.main import cli
+from btmission.vehicles.base import Mode, VehicleKind
 from tests.mavlink_helpers import SPEED, mavsim, mission_on_free_ports
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -187,7 +187,9 @@ def test_a_landed_arducopter_climbs_on_nav_takeoff_and_targets_cancel_it() -> No
 
 def test_arming_during_the_ekf_delay_is_refused_with_a_statustext() -> None:
     with client(Autopilot.PX4, ekf_delay_s=30.0) as c:
-        c.conn.mav.command_long_send(1, 1, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+        c.conn.mav.command_long_send(
+            1, 1, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0
+        )
         text = c.wait("STATUSTEXT", 1.0)  # the reason comes first, then the ack
         assert text is not None and text.text == "Arming denied: Preflight: estimator not ready"
         ack = c.wait("COMMAND_ACK", 1.0)

@@ -24,7 +24,6 @@ import pytest
 from click.testing import CliRunner
 
 from btmission.backends._pymavlink import mavlink, mavutil
-from btmission.backends.base import Mode, VehicleKind
 from btmission.backends.mavlink_frames import LocalFrame
 from btmission.backends.mavlink_modes import Autopilot, mode_of, mode_request, set_mode_params
 from btmission.backends.mavlink_setpoints import (
@@ -36,6 +35,7 @@ from btmission.backends.mavlink_signing import enable_signing
 from btmission.backends.mavlink_url import MavlinkAddress
 from btmission.backends.mavsim import MavSim, MavSimConfig, VehicleSpec, mission_vehicles
 from btmission.cli.main import cli
+from btmission.vehicles.base import Mode, VehicleKind
 from btmission.world.minegen import empty_world
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -3,7 +3,6 @@ a run gets its vehicles, and the interface module's independence from the algori
 
 from __future__ import annotations
 
-import math
 import subprocess
 import sys
 import textwrap
@@ -15,10 +14,15 @@ from typing import Any, ClassVar
 import pytest
 from click.testing import CliRunner
 
-from btmission.backends import provider as registry
-from btmission.backends.base import VehicleKind
 from btmission.backends.fake import fake_provider
-from btmission.backends.provider import (
+from btmission.backends.sim import SimProvider, sim_provider
+from btmission.cli.main import cli
+from btmission.runtime.runner import MissionRun
+from btmission.spec.mission import Mission, load_mission_text
+from btmission.types import Vec3
+from btmission.vehicles import provider as registry
+from btmission.vehicles.base import VehicleKind
+from btmission.vehicles.provider import (
     ENTRY_POINT_GROUP,
     ProviderError,
     Vehicle,
@@ -27,11 +31,6 @@ from btmission.backends.provider import (
     provider_factory,
     scheme_of,
 )
-from btmission.backends.sim import SimProvider, sim_provider
-from btmission.cli.main import cli
-from btmission.runtime.runner import MissionRun
-from btmission.spec.mission import Mission, load_mission_text
-from btmission.types import Vec3
 from btmission.world.voxel import VoxelMap
 
 MISSION = """\
@@ -228,12 +227,8 @@ def test_a_run_gets_its_vehicles_from_the_agents_provider(
         ("G1", VehicleKind.GROUND, "replay://a"),
         ("G2", VehicleKind.GROUND, "replay://b"),
     ]
-    # the navigator's speed, and where the vehicle's local frame is (its start, north along +y)
-    assert made.attached[0][4] == {
-        "v_max": run.nav_config.speed_m_s,
-        "origin": made.attached[0][2],
-        "north_yaw": pytest.approx(math.pi / 2),
-    }
+    # the navigator's speed; nothing of MAVLink's frames (the MAVLink provider reads them)
+    assert made.attached[0][4] == {"v_max": run.nav_config.speed_m_s}
     result = run.run()
     assert result.reason == "completed" and result.steps == len(made.steps) > 0
     assert set(made.steps) == {run.dt}
@@ -255,14 +250,14 @@ def test_the_backend_interface_imports_no_algorithm() -> None:
     code = textwrap.dedent(
         """
         import sys
-        import btmission.backends.base, btmission.backends.provider
+        import btmission.vehicles.base, btmission.vehicles.provider
         print(" ".join(sorted(m for m in sys.modules if m.startswith("btmission"))))
         """
     )
     out = subprocess.run(
         [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60
     ).stdout.split()
-    assert "btmission.backends.base" in out and "btmission.types" in out
+    assert "btmission.vehicles.base" in out and "btmission.types" in out
     algorithms = ("control", "planning", "localization", "allocation", "synthesis", "runtime")
     leaked = [m for m in out if m.split(".")[1:2] and m.split(".")[1] in algorithms]
     assert leaked == [], leaked

@@ -12,7 +12,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from btmission.backends.autopilot import DISARM_LAND_S, OFFBOARD_LOSS_S
-from btmission.backends.base import Backend, Mode, Sensors
 from btmission.backends.sim import (
     WALL_QUERY_M,
     Artifact,
@@ -22,6 +21,7 @@ from btmission.backends.sim import (
     thrust_attitude,
 )
 from btmission.control.mav_model import MavParams, mav_dynamics, world_to_yaw_frame
+from btmission.vehicles.base import Backend, Mode, Sensors
 from btmission.world.voxel import OCCUPIED, VoxelMap
 
 
@@ -661,8 +661,8 @@ def test_the_contact_tests_candidate_pairs_hold_every_touching_pair(
 def test_a_fast_built_telemetry_record_is_the_dataclass_it_stands_for() -> None:
     import dataclasses
 
-    from btmission.backends.base import Mode, Telemetry
     from btmission.types import record
+    from btmission.vehicles.base import Mode, Telemetry
 
     fields = dict(time_s=1.5, position=np.array([1.0, 2.0, 3.0]), velocity=np.zeros(3), yaw=0.1,
                   roll=0.0, pitch=0.0, yaw_rate=0.2, mode=Mode.HOLD, armed=True, landed=False,

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from btmission.backends.base import LidarScan, Sensors
 from btmission.backends.sim import Simulator
 from btmission.localization.scan import pose_matrix, transform_points
+from btmission.vehicles.base import LidarScan, Sensors
 from tests.test_sim import flying, room
 
 # the room of tests.test_sim: open space x ∈ [0.5, 19.5], y ∈ [0.5, 9.5], z ∈ [0, 5]

@@ -1,2 +1,4 @@
-"""Vehicle backends: the :class:`~btmission.backends.base.Backend` interface (PX4-offboard-like)
-and the embedded simulator (:mod:`btmission.backends.sim`)."""
+"""Vehicle providers: the embedded simulator (:mod:`btmission.backends.sim`), kinematic test
+vehicles (:mod:`btmission.backends.fake`) and PX4/ArduPilot over MAVLink
+(:mod:`btmission.backends.mavlink`). Each implements the vehicle interface of
+:mod:`btmission.vehicles`."""

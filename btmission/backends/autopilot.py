@@ -15,7 +15,7 @@ them all to it):
   one that has landed disarms after ``DISARM_LAND_S``.
 
 :class:`OffboardCommands` is the command and setpoint half of the
-:class:`~btmission.backends.base.Backend` interface on a vehicle's :class:`AutopilotState`;
+:class:`~btmission.vehicles.base.Backend` interface on a vehicle's :class:`AutopilotState`;
 :func:`autopilot_rules` is the per-step half (failsafe and automatic disarming).
 """
 
@@ -28,8 +28,8 @@ from typing import Protocol
 
 import numpy as np
 
-from btmission.backends.base import ACCEPTED, Ack, Mode, VehicleKind
 from btmission.types import FloatArray, Vec3
+from btmission.vehicles.base import ACCEPTED, Ack, Mode, VehicleKind
 
 STREAM_MIN_HZ = 2.0
 STREAM_MIN_S = 1.0

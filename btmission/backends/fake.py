@@ -19,7 +19,7 @@ fly. The ``fake`` provider gives them vehicles that cost next to nothing to step
   collisions** (vehicles pass through rock and each other; :meth:`FakeProvider.step` reports
   nothing). The floor under a vehicle is the map's ground, so it lands where the simulator's would.
 
-Its time is simulated like the simulator's (:class:`~btmission.runtime.clock.SimClock`; a run
+Its time is simulated like the simulator's (:class:`~btmission.vehicles.clock.SimClock`; a run
 goes as fast as the machine allows) and it keeps the odometer as ground truth (the clearance
 is never measured: ``None``). For tests, :meth:`FakeVehicle.teleport` puts a vehicle anywhere
 (e.g. from a :class:`~btmission.runtime.substitution.TestLeaf` effect).
@@ -37,8 +37,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from btmission.backends.autopilot import AutopilotFields, G, OffboardCommands, autopilot_rules
-from btmission.backends.base import Mode, Telemetry, VehicleKind
-from btmission.backends.provider import Vehicle, VehicleEvent
 from btmission.backends.sim import (
     CMD_VEL_TIMEOUT_S,
     HEADING_P,
@@ -47,6 +45,8 @@ from btmission.backends.sim import (
     SimConfig,
 )
 from btmission.types import FloatArray, Vec3
+from btmission.vehicles.base import Mode, Telemetry, VehicleKind
+from btmission.vehicles.provider import Vehicle, VehicleEvent
 
 if TYPE_CHECKING:
     from btmission.spec.mission import Mission
@@ -72,12 +72,12 @@ class _State(AutopilotFields):
 
 class FakeProvider:
     """Kinematic vehicles (module docstring): a
-    :class:`~btmission.backends.provider.VehicleProvider` with simulated time."""
+    :class:`~btmission.vehicles.provider.VehicleProvider` with simulated time."""
 
     realtime = False
 
     def __init__(self, voxel_map: VoxelMap | None = None, config: SimConfig | None = None) -> None:
-        from btmission.runtime.clock import SimClock
+        from btmission.vehicles.clock import SimClock
 
         self.map = voxel_map
         self.config = config or SimConfig()
@@ -122,7 +122,7 @@ class FakeProvider:
 
 
 class FakeVehicle(OffboardCommands):
-    """One fake vehicle: the :class:`~btmission.backends.base.Backend` interface, plus
+    """One fake vehicle: the :class:`~btmission.vehicles.base.Backend` interface, plus
     :meth:`teleport` for tests."""
 
     def __init__(self, provider: FakeProvider, state: _State) -> None:

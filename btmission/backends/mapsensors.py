@@ -1,10 +1,10 @@
 """Map sensors: a vehicle's LiDAR and depth camera ray-cast through the mission map.
 
-:class:`MapSensors` implements the :class:`~btmission.backends.base.Sensors` interface from a
+:class:`MapSensors` implements the :class:`~btmission.vehicles.base.Sensors` interface from a
 :class:`~btmission.backends.sim.SimWorld` (the voxel map and the mission's artifacts), the sensor
 settings of a :class:`~btmission.backends.sim.SimConfig`, a seeded numpy generator, and two
 callables: ``pose()``, where the vehicle is (anything with ``time_s``, ``position`` and ``yaw``,
-world frame: a :class:`SensorPose` or a :class:`~btmission.backends.base.Telemetry`), and
+world frame: a :class:`SensorPose` or a :class:`~btmission.vehicles.base.Telemetry`), and
 ``others()``, the body spheres of the other vehicles (:class:`Body`; :func:`body_at` makes one
 from a reported position). It never looks at a
 vehicle's truth, only at what those callables give:
@@ -39,10 +39,10 @@ from typing import TYPE_CHECKING, NamedTuple, Protocol
 
 import numpy as np
 
-from btmission.backends.base import CameraFrame, LidarScan
 from btmission.control.mav_model import world_to_yaw_frame
 from btmission.localization.scan import OS1_32, LidarSensor, pose_matrix, simulate_scan
 from btmission.types import CameraIntrinsics, Detection, FloatArray, Vec3
+from btmission.vehicles.base import CameraFrame, LidarScan
 
 if TYPE_CHECKING:
     from btmission.backends.sim import Artifact, SimConfig, SimWorld
@@ -58,7 +58,7 @@ CAMERA_MOUNT_M = 0.1
 
 class PoseSource(Protocol):
     """Where a vehicle is: a :class:`SensorPose`, or a
-    :class:`~btmission.backends.base.Telemetry` as an autopilot reports it."""
+    :class:`~btmission.vehicles.base.Telemetry` as an autopilot reports it."""
 
     @property
     def time_s(self) -> float: ...
@@ -114,7 +114,7 @@ def no_bodies() -> list[Body]:
 
 
 class MapSensors:
-    """The :class:`~btmission.backends.base.Sensors` of one vehicle, ray-cast through a
+    """The :class:`~btmission.vehicles.base.Sensors` of one vehicle, ray-cast through a
     :class:`~btmission.backends.sim.SimWorld` at the pose ``pose()`` gives (module docstring)."""
 
     def __init__(

@@ -1,4 +1,4 @@
-"""MAVLink vehicles as a :class:`~btmission.backends.provider.VehicleProvider` (scheme ``mavlink``).
+"""MAVLink vehicles as a :class:`~btmission.vehicles.provider.VehicleProvider` (scheme ``mavlink``).
 
 One process drives every MAVLink vehicle of a mission (MAVSDK needs a server per drone; this does
 not): the agents' ``backend:`` URLs (:mod:`btmission.backends.mavlink_url`) name the links, several
@@ -42,7 +42,7 @@ import socket
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -50,10 +50,10 @@ import numpy as np
 
 from btmission.backends._pymavlink import mavlink, mavutil
 from btmission.backends.autopilot import OFFBOARD_LOSS_S, STREAM_MIN_HZ, STREAM_MIN_S
-from btmission.backends.base import ACCEPTED, Ack, Mode, Sensors, Telemetry, VehicleKind
 from btmission.backends.mavlink_frames import (
     GeodeticOrigin,
     LocalFrame,
+    agent_frame,
     mission_geodetic_origin,
     world_to_geodetic,
 )
@@ -74,9 +74,10 @@ from btmission.backends.mavlink_setpoints import (
 )
 from btmission.backends.mavlink_signing import enable_signing, load_key, signing_counters
 from btmission.backends.mavlink_url import MavlinkAddress, parse_mavlink_url
-from btmission.backends.provider import Vehicle, VehicleEvent, VehicleUnavailable
-from btmission.runtime.clock import ScaledWallClock
 from btmission.types import FloatArray, Vec3
+from btmission.vehicles.base import ACCEPTED, Ack, Mode, Sensors, Telemetry, VehicleKind
+from btmission.vehicles.clock import ScaledWallClock
+from btmission.vehicles.provider import Vehicle, VehicleEvent, VehicleUnavailable
 
 if TYPE_CHECKING:
     from btmission.spec.mission import Mission
@@ -536,7 +537,7 @@ def _send_position_target(st: _State, target: PositionTarget) -> Callable[[Any],
 
 
 class MavlinkVehicle:
-    """One MAVLink vehicle as a :class:`~btmission.backends.base.Backend` (module docstring)."""
+    """One MAVLink vehicle as a :class:`~btmission.vehicles.base.Backend` (module docstring)."""
 
     def __init__(
         self,
@@ -978,11 +979,15 @@ class MavlinkProvider:
         *,
         geodetic: GeodeticOrigin | None = None,
         sensors: Callable[[MavlinkVehicle], Sensors] | None = None,
+        frames: Mapping[str, LocalFrame] | None = None,
     ) -> None:
         """``geodetic``: where the world's origin is on Earth (``world.origin``): a vehicle
         that knows no global origin gets its own (SET_GPS_GLOBAL_ORIGIN). ``sensors``: map
-        sensors for each vehicle (``runtime.mavlink.map_sensors``), else none."""
+        sensors for each vehicle (``runtime.mavlink.map_sensors``), else none. ``frames``: each
+        agent's world ↔ local NED frame (its ``origin:`` in the mission); an agent without one
+        has its start as origin, north along world +y."""
         self.options = options or MavlinkOptions()
+        self._frames = dict(frames or {})
         self._geodetic = geodetic
         self._sensors = sensors
         self.clock = ScaledWallClock(self.options.time_scale)
@@ -1020,8 +1025,9 @@ class MavlinkProvider:
     ) -> Vehicle:
         """Connect ``agent_id``'s vehicle at ``url``: wait for an autopilot's heartbeat (the
         ``?sysid=`` one, else the first not taken), check its type, ask for its telemetry
-        streams and wait for a position estimate. Options: ``origin`` (world position of the
-        vehicle's EKF origin, default ``start``) and ``north_yaw`` (rad)."""
+        streams and wait for a position estimate. Its frame is the one the provider was given
+        for ``agent_id`` (``frames``); options ``origin`` (world position of the vehicle's EKF
+        origin, default ``start``) and ``north_yaw`` (rad) override it."""
         address = parse_mavlink_url(url)
         opts = self.options
         deadline = time.monotonic() + opts.connect_timeout_s
@@ -1040,10 +1046,11 @@ class MavlinkProvider:
                 f"{agent_id}: the vehicle at {address.url()} (sysid {state.sysid}) is a "
                 f"{_type_name(state.mav_type)}, but the agent's library drives a ground robot"
             )
-        origin = options.get("origin", start)
+        given = self._frames.get(agent_id)
+        origin = options.get("origin", given.origin if given is not None else start)
         frame = LocalFrame(
             tuple(float(x) for x in origin),  # type: ignore[arg-type]
-            float(options.get("north_yaw", math.pi / 2)),
+            float(options.get("north_yaw", given.north_yaw if given is not None else math.pi / 2)),
         )
         vehicle = MavlinkVehicle(
             agent_id, kind, link, state, frame, self.clock, opts, self._ground_at, self._io.wake
@@ -1287,6 +1294,7 @@ def mavlink_provider(mission: Mission, voxel_map: VoxelMap, seed: int) -> Mavlin
         progress=_to_stderr,
         geodetic=mission_geodetic_origin(mission),
         sensors=sensors,
+        frames={a.id: agent_frame(mission, a.id) for a in mission.agents},
     )
 
 

@@ -1,7 +1,7 @@
 """Flight modes and command results on MAVLink autopilots, as the backend's :class:`Mode` and
 :class:`Ack` (pure functions over pymavlink's tables; no link).
 
-The backend speaks PX4's vocabulary (:class:`~btmission.backends.base.Mode`: MANUAL, HOLD,
+The backend speaks PX4's vocabulary (:class:`~btmission.vehicles.base.Mode`: MANUAL, HOLD,
 TAKEOFF, OFFBOARD, LAND). On the wire, a mode is a HEARTBEAT's ``base_mode`` and
 ``custom_mode``, whose meaning depends on the autopilot (``HEARTBEAT.autopilot``) and, for
 ArduPilot, on the vehicle type:
@@ -17,7 +17,7 @@ OFFBOARD    OFFBOARD (6)                           GUIDED (4)                  G
 LAND        AUTO.LAND (4, 6)                       LAND (9)                    —
 ==========  =====================================  ==========================  =================
 
-A COMMAND_ACK's ``MAV_RESULT`` becomes an :class:`~btmission.backends.base.Ack`: accepted, or
+A COMMAND_ACK's ``MAV_RESULT`` becomes an :class:`~btmission.vehicles.base.Ack`: accepted, or
 refused with the result's name and the autopilot's last STATUSTEXT (the reason a pre-arm check
 gave); TEMPORARILY_REJECTED and IN_PROGRESS are worth waiting for (:func:`retry_wanted`).
 """
@@ -30,7 +30,7 @@ from enum import Enum
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
-from btmission.backends.base import ACCEPTED, Ack, Mode, VehicleKind
+from btmission.vehicles.base import ACCEPTED, Ack, Mode, VehicleKind
 
 
 class Autopilot(str, Enum):

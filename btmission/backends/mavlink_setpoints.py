@@ -1,6 +1,6 @@
 """The backend's setpoints as MAVLink offboard / GUIDED targets (pure: fields, not a link).
 
-The :class:`~btmission.backends.base.Backend` takes setpoints in the mission world (ENU, z up,
+The :class:`~btmission.vehicles.base.Backend` takes setpoints in the mission world (ENU, z up,
 yaw counter-clockwise from +x); PX4 OFFBOARD and ArduPilot GUIDED take them in the vehicle's
 local NED frame (:class:`~btmission.backends.mavlink_frames.LocalFrame`):
 

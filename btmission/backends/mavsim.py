@@ -51,7 +51,6 @@ import numpy as np
 
 from btmission.backends._pymavlink import mavlink, mavutil
 from btmission.backends.autopilot import STREAM_MIN_HZ, STREAM_MIN_S
-from btmission.backends.base import Ack, Mode, VehicleKind
 from btmission.backends.mavlink_frames import LocalFrame
 from btmission.backends.mavlink_modes import (
     Autopilot,
@@ -70,6 +69,7 @@ from btmission.backends.mavlink_setpoints import (
 from btmission.backends.mavlink_signing import enable_signing, signing_counters
 from btmission.backends.mavlink_url import MavlinkAddress
 from btmission.backends.sim import SimConfig, Simulator, SimVehicle
+from btmission.vehicles.base import Ack, Mode, VehicleKind
 from btmission.world.voxel import VoxelMap
 
 G = 9.81
@@ -916,8 +916,7 @@ def mission_vehicles(mission: Any) -> tuple[VehicleSpec, ...]:
     ``mavlink+tcp`` URL, served at that URL (``--mission``): spawned at the agent's start, a
     ground robot if its library drives one, sysid from the URL's ``?sysid=`` or 1."""
     from btmission.backends.mavlink_url import parse_mavlink_url
-    from btmission.backends.provider import scheme_of
-    from btmission.runtime.runner import vehicle_kind
+    from btmission.vehicles.provider import scheme_of
 
     out: list[VehicleSpec] = []
     for agent in mission.agents:
@@ -927,7 +926,7 @@ def mission_vehicles(mission: Any) -> tuple[VehicleSpec, ...]:
         if address.transport not in ("udp", "tcp"):
             continue
         impl = mission.library_of(agent.id).implementations
-        kind = vehicle_kind(impl) if impl is not None else VehicleKind.MULTIROTOR
+        kind = VehicleKind.of(impl.vehicle if impl is not None else None)
         start = (float(agent.start[0]), float(agent.start[1]), float(agent.start[2]))
         out.append(VehicleSpec(agent.id, kind, start, address, address.sysid or len(out) + 1))
     return tuple(out)

@@ -4,7 +4,7 @@ One :class:`Simulator` holds the world (a :class:`~btmission.world.voxel.VoxelMa
 vehicle, and advances them all by a fixed step (:meth:`Simulator.step`); it owns no clock and
 never sleeps, so it runs as fast as the machine allows, and the same seed gives the same run.
 Each vehicle is driven through a :class:`SimVehicle`, which implements the
-:class:`~btmission.backends.base.Backend` and :class:`~btmission.backends.base.Sensors`
+:class:`~btmission.vehicles.base.Backend` and :class:`~btmission.vehicles.base.Sensors`
 interfaces.
 
 **Vehicle models.** A multirotor is the seed 002 eight-state model
@@ -77,18 +77,18 @@ from btmission.backends.autopilot import (
     OffboardCommands,
     autopilot_rules,
 )
-from btmission.backends.base import (
+from btmission.backends.mapsensors import Bodies, MapSensors, SensorPose
+from btmission.control.mav_model import MavParams
+from btmission.localization.scan import LidarSensor
+from btmission.types import FloatArray, Vec3, recorder
+from btmission.vehicles.base import (
     CameraFrame,
     LidarScan,
     Mode,
     Telemetry,
     VehicleKind,
 )
-from btmission.backends.mapsensors import Bodies, MapSensors, SensorPose
-from btmission.backends.provider import Vehicle, VehicleEvent
-from btmission.control.mav_model import MavParams
-from btmission.localization.scan import LidarSensor
-from btmission.types import FloatArray, Vec3, recorder
+from btmission.vehicles.provider import Vehicle, VehicleEvent
 from btmission.world.voxel import OCCUPIED, VoxelMap
 
 if TYPE_CHECKING:
@@ -959,15 +959,15 @@ class SimVehicle(OffboardCommands):
 
 class SimProvider:
     """The embedded simulator as the run's
-    :class:`~btmission.backends.provider.VehicleProvider` (scheme ``sim``): vehicles are spawned
-    at their start, time is the simulator's (:class:`~btmission.runtime.clock.SimClock`), and
+    :class:`~btmission.vehicles.provider.VehicleProvider` (scheme ``sim``): vehicles are spawned
+    at their start, time is the simulator's (:class:`~btmission.vehicles.clock.SimClock`), and
     :meth:`step` integrates the physics. Wrapping changes nothing: the same seed gives the same
     run as driving the :class:`Simulator` directly."""
 
     realtime = False
 
     def __init__(self, sim: Simulator) -> None:
-        from btmission.runtime.clock import SimClock
+        from btmission.vehicles.clock import SimClock
 
         self.sim = sim
         self.clock = SimClock(sim)

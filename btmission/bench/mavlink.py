@@ -92,8 +92,8 @@ def measure(
     note: Callable[[str], None] = print,
 ) -> MavlinkPoint:  # fmt: skip
     """One fleet size (module docstring)."""
-    from btmission.backends.base import VehicleKind
     from btmission.backends.mavlink import MavlinkOptions, MavlinkProvider
+    from btmission.vehicles.base import VehicleKind
 
     base = _free_udp_base(count)
     sim = subprocess.Popen(

@@ -189,7 +189,7 @@ class Console:
 
     def _ground_fleet(self) -> bool:
         """Whether every agent drives (a task picked on a floor then stays on it)."""
-        from btmission.backends.base import VehicleKind
+        from btmission.vehicles.base import VehicleKind
 
         kinds = {v.kind for v in self.run.vehicles.values()}
         return kinds == {VehicleKind.GROUND}

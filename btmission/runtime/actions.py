@@ -16,11 +16,11 @@ from typing import Any
 
 from py_trees.common import Status
 
-from btmission.backends.base import Mode
 from btmission.runtime.leaves import AgentContext, StatefulAction
 from btmission.runtime.navigation import NavState
 from btmission.runtime.paths import Route
 from btmission.synthesis.pytrees import _FAILURE, _RUNNING, _SUCCESS
+from btmission.vehicles.base import Mode
 
 _ARRIVED, _FAILED = NavState.ARRIVED, NavState.FAILED
 """(read by the path follower every tick: a global costs a fifth of an Enum member on Python

@@ -47,7 +47,6 @@ from btmission.allocation.auction import Announcement
 from btmission.allocation.bidder import AgentState, Bidder, CostProvider
 from btmission.allocation.loop import Progress
 from btmission.allocation.tasks import TaskInfo
-from btmission.backends.base import Backend, Mode, Sensors
 from btmission.diagnostics import Diagnostic, Severity, SpecError
 from btmission.plugins import Implementations
 from btmission.recursion import main_thread_limit, recursion_for_depth, recursion_limit
@@ -86,6 +85,7 @@ from btmission.synthesis.mission_tree import build_mission_tree
 from btmission.synthesis.pytrees import _FAILURE, _SUCCESS, behaviour_depth, build_behaviour_tree
 from btmission.synthesis.tree import Kind, Node, Role
 from btmission.types import recorder
+from btmission.vehicles.base import Backend, Mode, Sensors
 
 Emit = Callable[..., None]
 

@@ -28,7 +28,6 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Protocol
 
-from btmission.backends.provider import Vehicle, VehicleEvent
 from btmission.runtime.bus import (
     AgentLink,
     Assignment,
@@ -38,13 +37,14 @@ from btmission.runtime.bus import (
     OnAnnouncement,
     OnAssignment,
 )
-from btmission.runtime.clock import Clock, ScaledWallClock
 from btmission.runtime.events import Event
+from btmission.vehicles.clock import Clock, ScaledWallClock
+from btmission.vehicles.provider import Vehicle, VehicleEvent
 
 if TYPE_CHECKING:
-    from btmission.backends.base import VehicleKind
     from btmission.spec.mission import Mission
     from btmission.types import Vec3
+    from btmission.vehicles.base import VehicleKind
 
 
 @dataclass
@@ -88,7 +88,7 @@ def with_backends(
     ``runtime.mavlink.time_scale``. A simulator agent given a MAVLink vehicle keeps its sensors:
     ``runtime.mavlink.map_sensors`` is turned on (LiDAR and camera from the mission map at the
     pose the vehicle reports, as the simulator gave them)."""
-    from btmission.backends.provider import scheme_of
+    from btmission.vehicles.provider import scheme_of
 
     agents = [replace(a, backend=backends.get(a.id, a.backend)) for a in mission.agents]
     spec = mission.spec
@@ -107,7 +107,7 @@ def with_backends(
 class NoVehicles:
     """The coordinator process's vehicle provider: none (its agents' vehicles are flown by the
     agent processes), and a settable wall clock
-    (:class:`~btmission.runtime.clock.ScaledWallClock`)."""
+    (:class:`~btmission.vehicles.clock.ScaledWallClock`)."""
 
     realtime = True
     clock: Clock

@@ -31,7 +31,6 @@ from typing import TYPE_CHECKING, cast
 import numpy as np
 from numpy.typing import NDArray
 
-from btmission.backends.base import VehicleKind
 from btmission.backends.mapsensors import sphere_points
 from btmission.backends.sim import SimVehicle
 from btmission.runtime.bus import InMemoryAgentLink, InMemoryBus
@@ -44,6 +43,7 @@ from btmission.runtime.navigation import (
     _Follow,
 )
 from btmission.types import FloatArray
+from btmission.vehicles.base import VehicleKind
 
 if TYPE_CHECKING:
     from btmission.runtime.agent import Agent

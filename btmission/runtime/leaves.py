@@ -36,12 +36,12 @@ from btmission.synthesis.tree import Node
 
 if TYPE_CHECKING:
     from btmission.allocation.tasks import TaskInfo
-    from btmission.backends.base import Backend, Sensors, Telemetry
     from btmission.dispatch.topomap import TopoMap
     from btmission.runtime.agent import Agent
     from btmission.runtime.navigation import Navigator
     from btmission.runtime.paths import PathCosts
     from btmission.spec.mission import Mission
+    from btmission.vehicles.base import Backend, Sensors, Telemetry
     from btmission.world.voxel import VoxelMap
 
 UNSET = object()

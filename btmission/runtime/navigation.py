@@ -3,7 +3,7 @@
 Behaviour-tree actions never fly the vehicle themselves; they give the :class:`Navigator` a
 command (hold, take off, follow a D*+ route, go to a local waypoint, land) and poll its
 :attr:`Navigator.status`. The navigator runs at the control rate (every simulator step) and
-streams setpoints to the :class:`~btmission.backends.base.Backend` — continuously, as PX4
+streams setpoints to the :class:`~btmission.vehicles.base.Backend` — continuously, as PX4
 offboard requires, even while holding (DESIGN.md §8).
 
 Path following (seed 000 §IV-C3, seed 002 §3.2.2-3.2.3, seed 003 §VI):
@@ -36,7 +36,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike
 
-from btmission.backends.base import Backend, Mode, Sensors, Telemetry, VehicleKind
 from btmission.control.apf import (
     ApfConfig,
     PotentialField,
@@ -46,6 +45,7 @@ from btmission.control.apf import (
 )
 from btmission.control.mav_model import world_to_yaw_frame, wrap_angle, yaw_frame_to_world
 from btmission.types import FloatArray
+from btmission.vehicles.base import Backend, Mode, Sensors, Telemetry, VehicleKind
 
 if TYPE_CHECKING:  # the NMPC (CasADi) is imported when a navigator first needs it
     from btmission.control.nmpc import NmpcResult, PendingSolve

@@ -46,20 +46,9 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from btmission.allocation.tasks import TaskInfo, TaskState
-from btmission.backends.base import Backend, VehicleKind
-from btmission.backends.mavlink_frames import agent_frame
-from btmission.backends.provider import (
-    Vehicle,
-    VehicleProvider,
-    VehicleUnavailable,
-    provider_factory,
-    scheme_of,
-)
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
-from btmission.plugins import Implementations
 from btmission.runtime.agent import Agent
 from btmission.runtime.bus import AgentLink, InMemoryBus, MissionEnd, neighbour_positions
-from btmission.runtime.clock import Clock, ManualClock, ScaledWallClock
 from btmission.runtime.commands import (
     AddTask,
     CancelTask,
@@ -104,6 +93,15 @@ from btmission.spec.mission import Mission
 from btmission.spec.runcheck import run_problems
 from btmission.spec.source import format_path
 from btmission.types import FloatArray
+from btmission.vehicles.base import Backend, VehicleKind
+from btmission.vehicles.clock import Clock, ManualClock, ScaledWallClock
+from btmission.vehicles.provider import (
+    Vehicle,
+    VehicleProvider,
+    VehicleUnavailable,
+    provider_factory,
+    scheme_of,
+)
 from btmission.warmup import prepare_run
 from btmission.world.voxel import VoxelMap
 
@@ -144,11 +142,6 @@ class RunResult:
     @property
     def speedup(self) -> float:
         return self.time_s / self.wall_s if self.wall_s > 0 else math.inf
-
-
-def vehicle_kind(impl: Implementations) -> VehicleKind:
-    """What the simulator builds for an agent whose library has these implementations."""
-    return VehicleKind.GROUND if impl.vehicle == "ground" else VehicleKind.MULTIROTOR
 
 
 class MissionRun:
@@ -397,11 +390,9 @@ class MissionRun:
             loaded = self.mission.library_of(spec.id)
             impl = loaded.implementations
             assert impl is not None  # run_problems() checked it
-            kind = vehicle_kind(impl)
+            kind = VehicleKind.of(impl.vehicle)
             ground = kind is VehicleKind.GROUND
             options: dict[str, Any] = {"v_max": self.nav_config.speed_m_s} if ground else {}
-            frame = agent_frame(self.mission, spec.id)  # where a real vehicle's EKF origin is
-            options.update(origin=frame.origin, north_yaw=frame.north_yaw)
             try:
                 vehicle = self.provider.attach(
                     spec.id, kind, spec.start, url=spec.backend, **options
@@ -527,7 +518,7 @@ class MissionRun:
         def vehicle(agent: str) -> str:
             impl = m.library_of(agent).implementations
             assert impl is not None  # run_problems() checked it
-            return vehicle_kind(impl).value
+            return VehicleKind.of(impl.vehicle).value
 
         extra: dict[str, Any] = {} if self.part is None else {"part": self.part.describe()}
         self.emit(

@@ -41,11 +41,11 @@ from pathlib import Path
 from types import FrameType, TracebackType
 from typing import TYPE_CHECKING, Any
 
-from btmission.backends.provider import VehicleUnavailable
 from btmission.diagnostics import Diagnostic, Severity, SpecError, errors
 from btmission.runtime.commands import Command
 from btmission.runtime.events import Event, JsonlEventLog, Observer
 from btmission.runtime.substitution import SubstitutionRules, Substitutions
+from btmission.vehicles.provider import VehicleUnavailable
 
 if TYPE_CHECKING:
     from btmission.runtime.distribution import Part

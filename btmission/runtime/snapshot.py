@@ -20,7 +20,7 @@ from functools import cached_property
 from types import MappingProxyType
 
 from btmission.allocation.tasks import TaskPool
-from btmission.backends.base import Vec3
+from btmission.vehicles.base import Vec3
 
 
 @dataclass(frozen=True)

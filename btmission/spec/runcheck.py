@@ -198,8 +198,8 @@ def backend_problems(mission: Mission, agents: Collection[str] | None = None) ->
     the ``btmission.providers`` entry-point group), and fleets that mix providers: a run has one
     clock, and simulated time cannot be mixed with the wall clock. ``agents``: those one process
     of a distributed run flies (the others' vehicles are another process's). Entry points are
-    looked up, not loaded (:mod:`btmission.backends.provider`)."""
-    from btmission.backends.provider import installed_providers, scheme_of, unknown_scheme_message
+    looked up, not loaded (:mod:`btmission.vehicles.provider`)."""
+    from btmission.vehicles.provider import installed_providers, scheme_of, unknown_scheme_message
 
     installed = list(installed_providers())
     out: list[Diagnostic] = []

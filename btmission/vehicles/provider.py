@@ -12,8 +12,8 @@ The entry point's object is a :data:`ProviderFactory`: called with the mission, 
 run's seed, it returns the :class:`VehicleProvider` for the run. The provider then
 
 * :meth:`~VehicleProvider.attach`\\ es one :class:`Vehicle` per agent: its
-  :class:`~btmission.backends.base.Backend` (commands, setpoints, telemetry), its
-  :class:`~btmission.backends.base.Sensors` if it has any, and — in a simulator only — ground
+  :class:`~btmission.vehicles.base.Backend` (commands, setpoints, telemetry), its
+  :class:`~btmission.vehicles.base.Sensors` if it has any, and — in a simulator only — ground
   truth the report uses (odometer, clearance to the rock);
 * owns the run's :attr:`~VehicleProvider.clock`: simulated time for the simulator, the wall clock
   (with :attr:`~VehicleProvider.realtime` True) for real vehicles;
@@ -39,12 +39,12 @@ from dataclasses import dataclass
 from importlib import metadata
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
-from btmission.backends.base import Backend, Sensors, VehicleKind
 from btmission.types import Vec3
+from btmission.vehicles.base import Backend, Sensors, VehicleKind
 
 if TYPE_CHECKING:
-    from btmission.runtime.clock import Clock
     from btmission.spec.mission import Mission
+    from btmission.vehicles.clock import Clock
     from btmission.world.voxel import VoxelMap
 
 ENTRY_POINT_GROUP = "btmission.providers"
@@ -93,8 +93,8 @@ class VehicleProvider(Protocol):
     docstring)."""
 
     clock: Clock
-    """The run's time: :class:`~btmission.runtime.clock.SimClock` in a simulator,
-    :class:`~btmission.runtime.clock.WallClock` with real vehicles."""
+    """The run's time: :class:`~btmission.vehicles.clock.SimClock` in a simulator,
+    :class:`~btmission.vehicles.clock.WallClock` with real vehicles."""
     realtime: bool
     """True when time passes on its own (real vehicles): the runner paces its steps against
     the wall clock instead of running as fast as it can."""

@@ -41,6 +41,12 @@ class VehicleKind(str, Enum):
     MULTIROTOR = "multirotor"
     GROUND = "ground"
 
+    @classmethod
+    def of(cls, vehicle: str | None) -> VehicleKind:
+        """What a capability library's implementations ask for (their ``vehicle``:
+        ``"ground"`` for a ground robot; anything else flies a multirotor)."""
+        return cls.GROUND if vehicle == "ground" else cls.MULTIROTOR
+
 
 @dataclass(frozen=True)
 class Ack:
