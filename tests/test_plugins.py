@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from collections.abc import Iterator
 from importlib import metadata
 from pathlib import Path
 
@@ -118,11 +119,54 @@ def load_library_file_text(text: str):  # type: ignore[no-untyped-def]
     return load_library_text(text, "t.yaml")
 
 
-def test_builtin_library_files_load_directly() -> None:
+BUILT_IN_LIBRARIES = {"aerial", "aerial_mine", "compra", "ground", "haulage"}
+PLUGIN = "thirdparty_demo"
+PLUGIN_PACKAGE = "btmission_thirdparty_demo"
+
+
+@pytest.fixture
+def third_party_library(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[str]:
+    """A third-party plugin installed as pip leaves one: a package beside its distribution's
+    dist-info, whose entry_points.txt registers the library in btmission's group. The directory
+    goes on sys.path for the test (importlib.metadata finds dist-info directories there)."""
+    site = tmp_path / "site-packages"
+    package = site / PLUGIN_PACKAGE
+    package.mkdir(parents=True)
+    (package / "__init__.py").write_text(
+        'from pathlib import Path\n\nSPEC = Path(__file__).with_name("demo.yaml")\n'
+    )
+    (package / "demo.yaml").write_text(
+        f"library: {PLUGIN}\nversion: 1\nconditions: {{parked: ''}}\n"
+        "actions:\n  park: {post: [parked]}\n"
+    )
+    dist_info = site / "btmission_thirdparty_demo-0.1.dist-info"
+    dist_info.mkdir()
+    (dist_info / "METADATA").write_text(
+        "Metadata-Version: 2.1\nName: btmission-thirdparty-demo\nVersion: 0.1\n"
+    )
+    (dist_info / "entry_points.txt").write_text(
+        f"[{ENTRY_POINT_GROUP}]\n{PLUGIN} = {PLUGIN_PACKAGE}:SPEC\n"
+    )
+    monkeypatch.syspath_prepend(str(site))
+    yield PLUGIN
+    sys.modules.pop(PLUGIN_PACKAGE, None)
+
+
+def test_entry_point_library_files_load_directly(third_party_library: str) -> None:
+    """Every library of the entry-point group, the built-in ones and a third-party plugin's,
+    designates a YAML file that loads on its own; btmission finds the plugin by name."""
+    expected = {*BUILT_IN_LIBRARIES, third_party_library}
+    seen: set[str] = set()
     for ep in metadata.entry_points(group=ENTRY_POINT_GROUP):
-        if ep.name in ("aerial", "ground", "compra"):
+        if ep.name in expected:
             lib, diags = load_library_file(str(ep.load()))
             assert lib.name == ep.name and not diags
+            seen.add(ep.name)
+    assert seen == expected
+    assert installed_libraries()[third_party_library].value == f"{PLUGIN_PACKAGE}:SPEC"
+    loaded = load_library(third_party_library)
+    assert loaded.origin == f"entry point {PLUGIN_PACKAGE}:SPEC"
+    assert set(loaded.library.actions) == {"park"} and not loaded.diagnostics
 
 
 def test_import_btmission_stays_light() -> None:
