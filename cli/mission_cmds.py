@@ -42,7 +42,7 @@ def validate(mission_file: Path, strict: bool, with_implementations: bool) -> No
     Libraries given by path are checked without importing their implementation modules;
     --with-implementations imports them.
     """
-    from btmission.spec.runcheck import run_problems
+    from btmission.runtime.runcheck import run_problems
     from btmission.world.checks import check_mission_world
 
     with checking_imports(with_implementations):

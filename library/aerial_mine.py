@@ -147,7 +147,7 @@ def database_path(setting: Any, mission: MissionFile | None) -> Path | None:
 
 def check_mission(mission: MissionFile) -> list[Diagnostic]:
     """A ``reloc_database`` that is not a file, found before any run (``validate`` and ``run``
-    call it through :func:`btmission.spec.runcheck.run_problems`); its content is read when the
+    call it through :func:`btmission.runtime.runcheck.run_problems`); its content is read when the
     run sets the agents up."""
     database = database_path(mission.spec.runtime.settings.get("reloc_database"), mission)
     if database is None or database.is_file():

@@ -135,7 +135,7 @@ class TestRuntimeSettings:
             assert result.exit_code == 2 and message in result.output, result.output
 
     def test_library_settings_use_their_declared_defaults(self) -> None:
-        from btmission.spec.runcheck import setting_problem
+        from btmission.runtime.runcheck import setting_problem
 
         assert setting_problem("dispatch_generations", 2.5, 200) == (
             "expected a whole number (got 2.5)"

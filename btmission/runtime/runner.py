@@ -87,10 +87,10 @@ from btmission.runtime.leaves import (
 from btmission.runtime.loops import AgentRuntime, CoordinatorRuntime
 from btmission.runtime.navigation import NavConfig, Navigator
 from btmission.runtime.paths import PathCosts
+from btmission.runtime.runcheck import run_problems
 from btmission.runtime.snapshot import AgentSnapshot, RunSnapshot
 from btmission.runtime.substitution import SubstitutionRules, Substitutions
 from btmission.spec.mission import Mission
-from btmission.spec.runcheck import run_problems
 from btmission.spec.source import format_path
 from btmission.types import FloatArray
 from btmission.vehicles.base import Backend, VehicleKind

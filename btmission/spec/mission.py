@@ -53,7 +53,7 @@ Vec3 = Annotated[
 BACKEND_RE = r"^(mavlink\+(udp|udpout|tcp|tcpin|serial)://.+|(?!mavlink)[a-z][a-z0-9+.-]*(://.+)?)$"
 """An agent's ``backend:``: a vehicle provider's scheme alone (``sim``) or ``<scheme>://<address>``;
 a MAVLink URL must follow the MAVLink grammar (:mod:`btmission.backends.mavlink_url`). Which schemes are installed is checked later
-(:func:`btmission.spec.runcheck.backend_problems`), so that trees and exports of a mission for
+(:func:`btmission.runtime.runcheck.backend_problems`), so that trees and exports of a mission for
 vehicles this machine cannot reach still work."""
 
 
@@ -209,7 +209,7 @@ class AgentSpec(_Strict):
                 "expected 'sim' or a vehicle provider's URL <scheme>://<address> such as "
                 "mavlink+udp://127.0.0.1:14540 (scheme: lower-case letters, digits, + . -)"
             )
-        return v  # btmission.spec.runcheck refuses a scheme no installed provider serves
+        return v  # btmission.runtime.runcheck refuses a scheme no installed provider serves
 
 
 class TaskSpec(BaseModel):
@@ -549,7 +549,7 @@ class Mission:
     diagnostics: list[Diagnostic] = field(default_factory=list)
     """Warnings and infos found while loading (errors raise instead)."""
     source: Source | None = None
-    """The parsed file, to locate what later checks (:mod:`btmission.spec.runcheck`) find."""
+    """The parsed file, to locate what later checks (:mod:`btmission.runtime.runcheck`) find."""
 
     def agent(self, agent_id: str) -> Agent:
         for a in self.agents:

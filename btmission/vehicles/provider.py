@@ -28,7 +28,7 @@ called once every vehicle is attached (the mission's time starts: the clock rest
 
 One run has one clock, so every agent of a mission uses the same provider (scheme): simulated
 time cannot be mixed with the wall clock
-(:func:`btmission.spec.runcheck.backend_problems` refuses such a fleet).
+(:func:`btmission.runtime.runcheck.backend_problems` refuses such a fleet).
 Entry points are loaded only when a run is built; ``validate`` just looks the scheme up.
 """
 
