@@ -18,9 +18,14 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
 from types import MappingProxyType
+from typing import TYPE_CHECKING, Any
 
 from btmission.allocation.tasks import TaskPool
 from btmission.vehicles.base import Vec3
+
+if TYPE_CHECKING:
+    from btmission.runtime.agent import Agent
+    from btmission.runtime.runner import MissionRun
 
 
 @dataclass(frozen=True)
@@ -110,3 +115,59 @@ class RunSnapshot:
         for t in self.tasks:
             out[t.state] = out.get(t.state, 0) + 1
         return out
+
+
+class SnapshotTaker:
+    """Takes a run's snapshots, keeping what never changes between two (each agent's tree
+    nodes) or changes only when the agent ticks (its tree's statuses)."""
+
+    def __init__(self) -> None:
+        self._trees: dict[str, tuple[tuple[int, Any], Mapping[int, str]]] = {}
+        self._nodes: dict[str, tuple[tuple[str, int, str], ...]] = {}
+
+    def _tree_nodes(self, agent: Agent) -> tuple[tuple[str, int, str], ...]:
+        """The agent's tree nodes as immutable tuples (built once: the tree never changes)."""
+        nodes = self._nodes.get(agent.id)
+        if nodes is None:
+            nodes = self._nodes[agent.id] = tuple(
+                (str(n[0]), int(n[1]), str(n[2])) for n in agent.tree_nodes
+            )
+        return nodes
+
+    def take(self, run: MissionRun, ended: str | None = None) -> RunSnapshot:
+        """The run as it stands now (``ended``: why it ended, if it has)."""
+        agents = []
+        for aid, a in run.agents.items():
+            tel = a.ctx.telemetry()
+            p = tel.position
+            key = (a.ticks, a.task)  # a tree changes when it ticks, or stops for a new task
+            cached = self._trees.get(aid)
+            if cached is None or cached[0] != key:
+                cached = self._trees[aid] = (key, a.tree_status)
+            tree = cached[1]
+            agents.append(
+                AgentSnapshot(
+                    aid,
+                    (float(p[0]), float(p[1]), float(p[2])),
+                    float(tel.yaw),
+                    tel.mode.value,
+                    bool(tel.armed),
+                    a.alive,
+                    run.link_up(aid),
+                    a.task.id if a.task is not None else None,
+                    a.action,
+                    tree,
+                    self._tree_nodes(a),
+                    a.recalled,
+                )
+            )
+        state = run.coordinator.state
+        return RunSnapshot(
+            run.now(),
+            run.steps,
+            tuple(agents),
+            state.pool,
+            ended,
+            state.paused,
+            state.excluded,
+        )

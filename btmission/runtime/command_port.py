@@ -1,0 +1,225 @@
+"""The run's command port: where every operator command is checked, queued and applied.
+
+Whoever changes a running mission from outside its loop — the CLI, the operator console, a test,
+a scripted :meth:`~btmission.runtime.runner.MissionRun.at` callback — goes through
+:class:`CommandPort` (:mod:`btmission.runtime.commands` lists the commands):
+
+1. :meth:`CommandPort.submit` (any thread) checks the command against the run as it stands — an
+   unknown agent or task, a priority that is no number > 0, a run that has ended — and raises
+   :class:`~btmission.runtime.commands.CommandError` at once; a task to add is checked by the
+   coordinator, which reserves its id (:class:`~btmission.runtime.coordinator.TaskError`);
+2. the command waits in the run's :class:`~btmission.runtime.commands.CommandQueue`;
+3. between two steps the loop calls :meth:`CommandPort.apply_queued`: each command goes to its
+   handler (one method per command type, :data:`CommandPort.handlers`), and is logged as a
+   ``command`` event with its outcome, which the submitter's future then holds.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable, Mapping
+from concurrent.futures import Future
+from typing import TYPE_CHECKING, Any
+
+from btmission.allocation.tasks import TaskInfo
+from btmission.runtime.commands import (
+    AddTask,
+    CancelTask,
+    Command,
+    CommandError,
+    ExcludeAgent,
+    IncludeAgent,
+    KillAgent,
+    Outcome,
+    RecallAgent,
+    Refused,
+    SetAllocation,
+    SetLink,
+    SetPriority,
+    Signal,
+    Stop,
+)
+from btmission.runtime.coordinator import TaskError
+
+if TYPE_CHECKING:
+    from btmission.runtime.runner import MissionRun
+
+
+class CommandPort:
+    """Checks, queues and applies a run's operator commands (module docstring)."""
+
+    def __init__(self, run: MissionRun) -> None:
+        self.run = run
+        self.handlers: dict[type[Command], Callable[[Any, float], None]] = {
+            Refused: self._refused,
+            AddTask: self._add_task,
+            Stop: self._stop,
+            CancelTask: self._cancel_task,
+            SetPriority: self._set_priority,
+            RecallAgent: self._recall_agent,
+            ExcludeAgent: self._exclude_agent,
+            IncludeAgent: self._include_agent,
+            SetAllocation: self._set_allocation,
+            KillAgent: self._kill_agent,
+            SetLink: self._set_link,
+            Signal: self._signal,
+        }
+        """The handler of each command type, called with the command and the mission time."""
+
+    # ---------------------------------------------------------------- submitting
+    def submit(self, command: Command) -> Future[Outcome]:
+        """Check ``command`` and queue it for the next step (thread-safe); the future of its
+        outcome (module docstring)."""
+        run = self.run
+        self.check(command)
+        if isinstance(command, AddTask):
+            run.coordinator.add_task(command.task, run.now(), command.by)
+        return run.commands.put(command)
+
+    def add_task(self, task: Mapping[str, Any] | TaskInfo, by: str) -> TaskInfo:
+        """Check a task and queue it (its id is reserved now); the task as the pool will have
+        it."""
+        run = self.run
+        self.refuse_after_end("add_task")
+        info = run.coordinator.add_task(task, run.now(), by)
+        data = dict(task) if isinstance(task, Mapping) else {
+            "id": info.id, "type": info.type, **info.fields, "priority": info.priority,
+            "at": info.arrival_s,
+        }  # fmt: skip
+        run.commands.put(AddTask(data, by=by))
+        return info
+
+    def refuse_after_end(self, name: str) -> None:
+        ended = self.run.ended
+        if ended is not None:
+            raise CommandError(f"{name}: the run has ended ({ended.reason})")
+
+    def check(self, command: Command, *, tasks: bool = True) -> None:
+        """Refuse a command naming an unknown agent (or, with ``tasks``, an unknown task), and
+        any command once the run has ended."""
+        run = self.run
+        self.refuse_after_end(command.name)
+        agent = getattr(command, "agent", None)
+        if agent is not None and agent not in run.agents:
+            raise CommandError(
+                f"{command.name}: unknown agent '{agent}' (agents: {', '.join(run.agents)})"
+            )
+        if tasks and isinstance(command, (CancelTask, SetPriority)):
+            if not run.coordinator.knows(command.task):
+                raise CommandError(f"{command.name}: unknown task '{command.task}'")
+        if isinstance(command, SetPriority):
+            p = command.priority
+            if not (isinstance(p, (int, float)) and math.isfinite(p) and p > 0):
+                raise CommandError(f"set_priority: priority must be a number > 0, got {p!r}")
+
+    # ---------------------------------------------------------------- applying
+    def apply_queued(self) -> None:
+        """Apply every queued command, in order, each logged as a ``command`` event."""
+        settled: list[tuple[Future[Outcome], Outcome]] = []
+        for command, future in self.run.commands.take():
+            error = ""
+            try:
+                self.apply(command)
+            except (CommandError, TaskError) as exc:
+                error = str(exc)
+            settled.append((future, self.log(command, error)))
+        if settled:  # whoever waits for an outcome then reads a snapshot that shows it
+            self.run.publish()
+            settle(settled)
+
+    def settle_unapplied(self) -> list[tuple[Future[Outcome], Outcome]]:
+        """The run has ended: every command still queued is logged as not applied (a stop as
+        done); their outcomes, for :func:`settle` once the last snapshot is out."""
+        return [  # the run ended before their step came
+            (future, self.log(
+                command, "" if isinstance(command, Stop) else "not applied: the run had ended"
+            ))
+            for command, future in self.run.commands.take()
+        ]  # fmt: skip
+
+    def log(self, command: Command, error: str) -> Outcome:
+        """The ``command`` event: who, what, its arguments, and whether it was refused; the
+        command's outcome."""
+        data: dict[str, Any] = {"command": command.name, "by": command.by}
+        if isinstance(command, Refused):  # refused before it reached the run: as it was asked
+            data["command"] = command.command
+            data.update(command.args)
+            error = command.error
+        else:
+            data.update(command.to_data())
+        if isinstance(command, AddTask):
+            data["task"] = dict(command.task).get("id")
+        data["ok"] = not error
+        if error:
+            data["error"] = error
+        self.run.emit("command", **data)
+        return Outcome(self.run.last_t, not error, error, data)
+
+    def apply(self, command: Command) -> None:
+        """Apply one command now; raises :class:`CommandError` (or ``TaskError``) to refuse
+        it."""
+        for cls in type(command).__mro__:
+            handler = self.handlers.get(cls)
+            if handler is not None:
+                handler(command, self.run.now())
+                return
+        raise CommandError(f"unknown command {command!r}")  # pragma: no cover - all have one
+
+    # ---------------------------------------------------------------- one handler a command
+    def _refused(self, command: Refused, now: float) -> None:
+        raise CommandError(command.error)
+
+    def _add_task(self, command: AddTask, now: float) -> None:
+        # checked and queued with the coordinator when submitted: it enters the pool now
+        # (later commands may name it)
+        self.run.coordinator.intake(now)
+
+    def _stop(self, command: Stop, now: float) -> None:
+        self.run.stop_asked = command.reason
+
+    def _cancel_task(self, command: CancelTask, now: float) -> None:
+        self.run.coordinator.cancel_task(command.task, now, command.reason)
+
+    def _set_priority(self, command: SetPriority, now: float) -> None:
+        self.run.coordinator.set_priority(command.task, float(command.priority), now)
+
+    def _recall_agent(self, command: RecallAgent, now: float) -> None:
+        a = self.run.agents[command.agent]
+        if not a.alive:
+            raise CommandError(f"recall_agent: agent {command.agent} is not running")
+        self.run.coordinator.recall(command.agent, now)
+        a.recall(now)
+
+    def _exclude_agent(self, command: ExcludeAgent, now: float) -> None:
+        self.run.coordinator.exclude(command.agent, True)
+
+    def _include_agent(self, command: IncludeAgent, now: float) -> None:
+        a = self.run.agents[command.agent]
+        if not a.alive:
+            raise CommandError(f"include_agent: agent {command.agent} is not running")
+        self.run.coordinator.exclude(command.agent, False)
+        a.recalled = False
+
+    def _set_allocation(self, command: SetAllocation, now: float) -> None:
+        self.run.coordinator.pause(bool(command.paused))
+
+    def _kill_agent(self, command: KillAgent, now: float) -> None:
+        a = self.run.agents[command.agent]
+        if a.alive:
+            a.kill()
+            self.run.emit("agent_lost", agent=command.agent, reason=command.reason)
+
+    def _set_link(self, command: SetLink, now: float) -> None:
+        self.run.bus.set_link(command.agent, command.up)
+        self.run.emit("link", agent=command.agent, up=command.up)
+
+    def _signal(self, command: Signal, now: float) -> None:
+        self.run.agents[command.agent].ctx.state[command.signal] = command.value
+        self.run.emit("signal", agent=command.agent, name=command.signal, value=command.value)
+
+
+def settle(outcomes: Iterable[tuple[Future[Outcome], Outcome]]) -> None:
+    """Give each waiting submitter its command's outcome."""
+    for future, outcome in outcomes:
+        if not future.done():
+            future.set_result(outcome)
