@@ -13,6 +13,8 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from enum import Enum
 
+from btmission.errors import BtmissionError
+
 
 class Severity(str, Enum):
     """How bad a finding is. ``--strict`` turns warnings into errors."""
@@ -85,7 +87,7 @@ def promote(diags: Iterable[Diagnostic], strict: bool) -> list[Diagnostic]:
     return [d.as_error() if d.severity is Severity.WARNING else d for d in out]
 
 
-class SpecError(Exception):
+class SpecError(BtmissionError):
     """Bad input: the file cannot be used. Carries every problem found (never just the first)."""
 
     def __init__(self, diagnostics: Sequence[Diagnostic]):

@@ -24,6 +24,8 @@ import re
 from pathlib import Path
 from string import Template
 
+from btmission.errors import BtmissionError
+
 __all__ = [
     "EXAMPLE_GOAL",
     "ScaffoldError",
@@ -38,7 +40,7 @@ _NAME = re.compile(r"[a-z][a-z0-9]*(?:_[a-z0-9]+)*")
 """Lower snake case: a lowercase letter, then lowercase letters and digits in ``_``-joined words."""
 
 
-class ScaffoldError(ValueError):
+class ScaffoldError(BtmissionError, ValueError):
     """The plugin cannot be scaffolded: bad name or unusable target directory (one-line message)."""
 
 

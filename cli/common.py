@@ -19,6 +19,7 @@ from typing import Any, Literal, TypeVar
 import click
 
 from btmission.diagnostics import Diagnostic, Severity, SpecError
+from btmission.errors import BtmissionError
 
 EXIT_OK, EXIT_CHECKS_FAILED, EXIT_BAD_INPUT = 0, 1, 2
 EXIT_INTERNAL_ERROR = 70  # EX_SOFTWARE (sysexits.h): a bug in btmission or a plugin
@@ -27,13 +28,13 @@ EXIT_INTERRUPTED = 130  # 128 + SIGINT
 F = TypeVar("F", bound=Callable[..., Any])
 
 
-class BadInput(click.ClickException):
+class BadInput(BtmissionError, click.ClickException):
     """The input cannot be used (exit status 2)."""
 
     exit_code = EXIT_BAD_INPUT
 
 
-class ChecksFailed(click.ClickException):
+class ChecksFailed(BtmissionError, click.ClickException):
     """The input is well-formed but a check failed (exit status 1)."""
 
     exit_code = EXIT_CHECKS_FAILED

@@ -43,6 +43,7 @@ import numpy.typing as npt
 
 from btmission.allocation.auction import Announcement, Bid, cheapest, participation_k
 from btmission.allocation.tasks import TaskInfo
+from btmission.errors import BtmissionError
 from btmission.spec.mission import Mission, TaskType
 from btmission.types import FloatArray
 
@@ -171,7 +172,7 @@ class _Plan:
         return self._batches
 
 
-class BidError(ValueError):
+class BidError(BtmissionError, ValueError):
     """A task's fields do not fit its type's cost expression (e.g. a position is not [x, y, z])."""
 
 

@@ -56,6 +56,7 @@ from typing import Any, Literal, cast
 import numpy as np
 from numpy.typing import NDArray
 
+from btmission.errors import BtmissionError
 from btmission.types import FloatArray
 
 IntArray = NDArray[np.intp]
@@ -89,7 +90,7 @@ SCAN_NS_PER_CELL = 2.5
 SCAN_NS_PER_EDGE = 8.0
 
 
-class SolverError(RuntimeError):
+class SolverError(BtmissionError, RuntimeError):
     """A solver failed or is unavailable (e.g. SCIP missing from the OR-Tools build)."""
 
 

@@ -31,6 +31,7 @@ from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+from btmission.errors import BtmissionError
 from btmission.spec.mission import Mission, Task
 
 
@@ -143,7 +144,7 @@ class PoolTask:
         )
 
 
-class PoolError(ValueError):
+class PoolError(BtmissionError, ValueError):
     """An operation the pool cannot do (unknown task, wrong agent, task already finished…)."""
 
 

@@ -30,6 +30,7 @@ from enum import Enum
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
+from btmission.errors import BtmissionError
 from btmission.vehicles.base import ACCEPTED, Ack, Mode, VehicleKind
 
 
@@ -94,7 +95,7 @@ def custom_mode_of_command(autopilot: Autopilot, param2: float, param3: float) -
     return int(param2)
 
 
-class UnsupportedMode(ValueError):
+class UnsupportedMode(BtmissionError, ValueError):
     """A mode this autopilot and vehicle type do not have (e.g. LAND on a rover)."""
 
 

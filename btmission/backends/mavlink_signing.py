@@ -23,6 +23,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from btmission.errors import BtmissionError
+
 KEY_ENV = "BTMISSION_MAVLINK_KEY"
 KEY_FILE_ENV = "BTMISSION_MAVLINK_KEY_FILE"
 MAX_KEY_FILE_BYTES = 4096
@@ -31,7 +33,7 @@ _NEW_STREAM_SLACK = 6000 * 1000
 """A new stream's first timestamp may be this far behind ours (one minute, 10 µs units)."""
 
 
-class SigningKeyError(ValueError):
+class SigningKeyError(BtmissionError, ValueError):
     """The signing key file or variable is missing, empty or unreadable."""
 
 

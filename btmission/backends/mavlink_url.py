@@ -23,6 +23,8 @@ import re
 from dataclasses import dataclass
 from urllib.parse import parse_qsl
 
+from btmission.errors import BtmissionError
+
 TRANSPORTS = ("udp", "udpout", "tcp", "tcpin", "serial")
 """The transports of ``mavlink+<transport>://``."""
 
@@ -32,7 +34,7 @@ _HOST_RE = re.compile(r"^[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?(\.[A-Za-z0-
 EXAMPLE = "mavlink+udp://127.0.0.1:14540"
 
 
-class MavlinkUrlError(ValueError):
+class MavlinkUrlError(BtmissionError, ValueError):
     """A ``backend:`` MAVLink URL that cannot be used (the message says what to write)."""
 
 

@@ -77,6 +77,7 @@ from btmission.bench.viewer import (
     start_process,
     thread_cpu,
 )
+from btmission.errors import BtmissionError
 
 DEFAULT_MISSION = "missions/mine_inspection.yaml"
 TOKEN = "bench-console-token"
@@ -98,7 +99,7 @@ VARIANTS = {
 FLOODS = ("flood", "refused")
 
 
-class ConsoleBenchError(Exception):
+class ConsoleBenchError(BtmissionError):
     """A console run broke a promise: an accepted add not in the log, a 5xx, a lost record."""
 
 

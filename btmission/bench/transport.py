@@ -59,6 +59,7 @@ from btmission.allocation.auction import (
 from btmission.allocation.tasks import TaskInfo, TaskPool
 from btmission.bench.auction import AREA_M, keep_cheapest
 from btmission.bench.synth import _load1, describe_load, environment
+from btmission.errors import BtmissionError
 from btmission.runtime import wire
 from btmission.runtime.bus import (
     AgentLink,
@@ -78,7 +79,7 @@ STEP_M = 0.1
 TRANSPORTS = ("in-memory", "zenoh")
 
 
-class BenchError(RuntimeError):
+class BenchError(BtmissionError, RuntimeError):
     """The benchmark could not run (a round timed out, the agents' process failed ...)."""
 
 

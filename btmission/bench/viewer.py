@@ -63,6 +63,7 @@ from typing import Any
 
 from btmission.bench.sim import _row
 from btmission.bench.synth import environment, header_lines, write_page
+from btmission.errors import BtmissionError
 
 POSE_HZ = 10.0
 """The live feed's pose sampling rate (``run --view``'s)."""
@@ -83,7 +84,7 @@ DRAIN_S = 60.0
 """After the run, how long the readers get to receive the rest of the stream."""
 
 
-class ViewerBenchError(Exception):
+class ViewerBenchError(BtmissionError):
     """A viewer run broke a promise: a task event dropped or lost, or a different outcome."""
 
 

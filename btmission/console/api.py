@@ -51,6 +51,7 @@ from pydantic import BaseModel, ConfigDict, Field, StrictBool
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from btmission.console.service import Console, ConsoleError, RateLimit
+from btmission.errors import BtmissionError
 
 READ_RATE_HZ = 50.0
 """Requests a second (of any kind) the server answers each client on average; a burst of
@@ -267,7 +268,7 @@ def _bounded(receive: Receive) -> Receive:
     return inner
 
 
-class _TooLarge(Exception):
+class _TooLarge(BtmissionError):
     def __init__(self, limit: int) -> None:
         super().__init__(f"the request body is over {limit} bytes (BTMISSION_MAX_REQUEST_BYTES)")
 

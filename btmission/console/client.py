@@ -16,13 +16,15 @@ from dataclasses import dataclass
 from typing import Any
 from urllib.parse import parse_qs, quote, urlsplit, urlunsplit
 
+from btmission.errors import BtmissionError
+
 TIMEOUT_S = 15.0
 """How long a request may take (a command waits up to 5 s for the run's step)."""
 MAX_ANSWER_BYTES = 16_000_000
 """The largest answer read (a status of 10,000 tasks is about 3 MB)."""
 
 
-class ConsoleClientError(Exception):
+class ConsoleClientError(BtmissionError):
     """The console refused a request (``status``, its ``message``), or cannot be reached
     (``status`` 0)."""
 

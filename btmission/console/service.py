@@ -32,6 +32,7 @@ from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from typing import Any
 
+from btmission.errors import BtmissionError
 from btmission.runtime.commands import (
     PRIORITY_LEVELS,
     AddTask,
@@ -64,7 +65,7 @@ LINK_DRILL_SCHEMES = ("sim", "fake")
 """Vehicle providers whose agents' links may be cut for drills (in the simulator only)."""
 
 
-class ConsoleError(Exception):
+class ConsoleError(BtmissionError):
     """A request the console refuses: ``status`` (HTTP), ``message`` (one sentence naming the
     field), ``field`` (the body's field at fault, if one is)."""
 

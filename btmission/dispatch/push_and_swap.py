@@ -39,6 +39,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from btmission.dispatch.topomap import TopoMap
+from btmission.errors import BtmissionError
 
 
 @dataclass(frozen=True)
@@ -56,7 +57,7 @@ class PasResult:
     """Number of swap operations (each exchanges two agents; see the module docstring)."""
 
 
-class _Fail(Exception):
+class _Fail(BtmissionError):
     pass
 
 

@@ -39,6 +39,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from btmission import limits
 from btmission.diagnostics import SpecError
+from btmission.errors import BtmissionError
 from btmission.spec.common import FiniteFloat, Identifier, number_problem, validate_model
 from btmission.spec.source import Source, parse_yaml, read_yaml
 
@@ -53,7 +54,7 @@ class NodeKind(IntEnum):
     TRANSIT = 2
 
 
-class TopoMapError(ValueError):
+class TopoMapError(BtmissionError, ValueError):
     """The map is not usable (unknown node, loop, disconnected, bad time...).
 
     ``path`` is the item in the map file the problem is about, when there is one.

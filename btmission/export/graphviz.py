@@ -11,6 +11,8 @@ import shutil
 import subprocess
 from typing import Literal
 
+from btmission.errors import BtmissionError
+
 __all__ = [
     "DEFAULT_TIMEOUT",
     "MISSING_MESSAGE",
@@ -29,11 +31,11 @@ MISSING_MESSAGE = (
 )
 
 
-class GraphvizMissing(RuntimeError):
+class GraphvizMissing(BtmissionError, RuntimeError):
     """The ``dot`` executable is not on ``PATH``."""
 
 
-class GraphvizFailed(RuntimeError):
+class GraphvizFailed(BtmissionError, RuntimeError):
     """``dot`` ran but failed (non-zero exit, or timeout); the message carries its stderr."""
 
 

@@ -40,6 +40,7 @@ import numpy as np
 import numpy.typing as npt
 
 from btmission import limits
+from btmission.errors import BtmissionError
 from btmission.localization.descriptor import DescriptorParams, describe
 from btmission.localization.scan import (
     OS1_32,
@@ -68,7 +69,7 @@ DB_VERSION = 1
 F32Array = npt.NDArray[np.float32]
 
 
-class DatabaseError(ValueError):
+class DatabaseError(BtmissionError, ValueError):
     """A place database cannot be built, read or used."""
 
 

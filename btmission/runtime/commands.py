@@ -42,8 +42,10 @@ from concurrent.futures import Future
 from dataclasses import asdict, dataclass, field
 from typing import Any, ClassVar
 
+from btmission.errors import BtmissionError
 
-class CommandError(ValueError):
+
+class CommandError(BtmissionError, ValueError):
     """A command that cannot be applied (the message says why)."""
 
 

@@ -45,6 +45,7 @@ from typing import Any
 from btmission.allocation.auction import Announcement, AuctionConfig, AuctionState
 from btmission.allocation.loop import AuctionLoop, Inbox, Progress, RoundResult
 from btmission.allocation.tasks import PoolError, TaskInfo, TaskState, pool_from_mission
+from btmission.errors import BtmissionError
 from btmission.runtime.bus import (
     AgentStatus,
     Assignment,
@@ -66,7 +67,7 @@ def new_epoch() -> int:
     return secrets.randbelow(2**53 - 1) + 1
 
 
-class TaskError(ValueError):
+class TaskError(BtmissionError, ValueError):
     """A task given to :meth:`Coordinator.add_task` cannot be used (the message says why)."""
 
 

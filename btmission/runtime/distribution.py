@@ -28,6 +28,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Protocol
 
+from btmission.errors import BtmissionError
 from btmission.runtime.bus import (
     AgentLink,
     Assignment,
@@ -207,7 +208,7 @@ AGENT_SIDE_SKIPPED = frozenset({"header", "built", "end"})
 """Events of an agent process's log that the merged log takes from the coordinator's instead."""
 
 
-class MergeError(ValueError):
+class MergeError(BtmissionError, ValueError):
     """Logs that are not one distributed run's (the text says which and why)."""
 
 

@@ -104,6 +104,8 @@ from typing import (
     runtime_checkable,
 )
 
+from btmission.errors import BtmissionError
+
 LOG_FORMAT = "btmission-log"
 LOG_VERSION = 2
 """The version this btmission writes. 2: the header's ``world_ref``, ``tree`` and ``route``
@@ -319,7 +321,7 @@ def optional() -> Any:
     return field(default=None, metadata=_OPTIONAL)
 
 
-class EventError(ValueError):
+class EventError(BtmissionError, ValueError):
     """An event whose fields do not have the types of its kind's class."""
 
 
@@ -908,7 +910,7 @@ def event_problem(ev: Event) -> str | None:
     return event_class(ev.kind).problem(ev.data)
 
 
-class LogError(ValueError):
+class LogError(BtmissionError, ValueError):
     """A file that is not a btmission event log (or an unreadable one)."""
 
 

@@ -24,11 +24,12 @@ import numpy.typing as npt
 
 from btmission.allocation.bidder import CostProvider
 from btmission.dispatch.topomap import TopoMap
+from btmission.errors import BtmissionError
 
 Point = tuple[float, float, float]
 
 
-class RoadMapError(ValueError):
+class RoadMapError(BtmissionError, ValueError):
     """The topological map cannot be driven (a node without a position)."""
 
 

@@ -53,6 +53,7 @@ from typing import TYPE_CHECKING
 import py_trees
 from py_trees.common import Status
 
+from btmission.errors import BtmissionError
 from btmission.runtime.leaves import AgentContext, Condition, ConditionLeaf, StatefulAction
 from btmission.synthesis.tree import Kind, Node
 
@@ -63,7 +64,7 @@ Effect = Callable[..., None]
 """``effect(ctx, **args)``: what a :class:`TestLeaf` does when it finishes."""
 
 
-class SubstitutionError(ValueError):
+class SubstitutionError(BtmissionError, ValueError):
     """A substitution rule that cannot be used: a bad replacement, or one that replaces no leaf."""
 
 

@@ -46,6 +46,7 @@ import numpy as np
 from btmission.allocation.auction import Announcement, Bid
 from btmission.allocation.loop import Progress
 from btmission.allocation.tasks import TaskInfo
+from btmission.errors import BtmissionError
 from btmission.limits import MAX_MESSAGE_BYTES
 from btmission.runtime.bus import (
     AgentStatus,
@@ -75,7 +76,7 @@ Message: TypeAlias = (
 PROGRESS_EVENTS = ("committed", "done", "failed")
 
 
-class WireError(ValueError):
+class WireError(BtmissionError, ValueError):
     """A message that cannot be decoded (or encoded): the text says which kind and field."""
 
 

@@ -18,6 +18,8 @@ import operator
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
+from btmission.errors import BtmissionError
+
 COST_FUNCTIONS = {"path_cost": (1, 2), "distance": (1, 2)}
 """Allowed functions and their (min, max) number of arguments."""
 
@@ -63,7 +65,7 @@ def _depth(tree: ast.AST) -> int:
     return deepest
 
 
-class CostExprError(ValueError):
+class CostExprError(BtmissionError, ValueError):
     """The expression is not in the allowed grammar."""
 
 

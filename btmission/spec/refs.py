@@ -10,12 +10,14 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
+from btmission.errors import BtmissionError
+
 IDENT = r"[A-Za-z_][A-Za-z0-9_]*"
 _IDENT_RE = re.compile(rf"^{IDENT}$")
 _REF_RE = re.compile(rf"^\s*(?P<name>{IDENT})\s*(?:\((?P<args>[^()]*)\))?\s*$")
 
 
-class RefSyntaxError(ValueError):
+class RefSyntaxError(BtmissionError, ValueError):
     """The text is not ``name`` or ``name(arg, ...)``."""
 
 

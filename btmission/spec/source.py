@@ -21,6 +21,7 @@ import yaml
 
 from btmission import limits
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
+from btmission.errors import BtmissionError
 
 PathKey = tuple[str | int, ...]
 
@@ -331,7 +332,7 @@ def read_yaml(path: str | Path) -> Source:
     return parse_yaml(text, str(p))
 
 
-class FileRefused(OSError):
+class FileRefused(BtmissionError, OSError):
     """A file that is not read: larger than its budget (``code`` ``too-large``) or not a regular
     file (``unreadable``)."""
 

@@ -32,6 +32,8 @@ import re
 from dataclasses import dataclass
 from typing import Final
 
+from btmission.errors import BtmissionError
+
 ROOT: Final = "btmission"
 """The first chunk of every key."""
 
@@ -68,7 +70,7 @@ TO_COORDINATOR: Final = (BIDS, PROGRESS, STATUS)
 _NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]{0,127}")
 
 
-class KeyExprError(ValueError):
+class KeyExprError(BtmissionError, ValueError):
     """A mission name, agent id, channel or key that cannot be used (the text says why)."""
 
 

@@ -67,6 +67,7 @@ import numpy as np
 
 from btmission.allocation.auction import Announcement, Bid
 from btmission.allocation.loop import Progress
+from btmission.errors import BtmissionError
 from btmission.limits import MAX_MESSAGE_BYTES
 from btmission.runtime import wire
 from btmission.runtime.bus import (
@@ -97,7 +98,7 @@ EMBED_EVERY: Final = 10
 """The coordinator's link embeds the announcement in at least every 10th assignment."""
 
 
-class TransportError(RuntimeError):
+class TransportError(BtmissionError, RuntimeError):
     """The transport cannot do what was asked (the text says why and what to do)."""
 
 

@@ -39,6 +39,7 @@ from dataclasses import dataclass
 from importlib import metadata
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
+from btmission.errors import BtmissionError
 from btmission.types import Vec3
 from btmission.vehicles.base import Backend, Sensors, VehicleKind
 
@@ -145,12 +146,12 @@ def installed_providers() -> dict[str, metadata.EntryPoint]:
     return out
 
 
-class VehicleUnavailable(RuntimeError):
+class VehicleUnavailable(BtmissionError, RuntimeError):
     """A provider could not give an agent its vehicle (nothing answers at its URL, a vehicle of
     the wrong type ...). ``run`` reports it at the agent's ``backend:`` line (exit 2)."""
 
 
-class ProviderError(LookupError):
+class ProviderError(BtmissionError, LookupError):
     """No provider is installed for a scheme."""
 
 

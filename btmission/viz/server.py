@@ -55,6 +55,7 @@ from fastapi.responses import (
 
 from btmission.console.api import READ_ONLY, Security
 from btmission.console.service import Console
+from btmission.errors import BtmissionError
 from btmission.viz.feed import LiveFeed
 from btmission.viz.scene import Scene, build_scene
 from btmission.world.voxel import VoxelMap
@@ -78,7 +79,7 @@ SCAN_AZIMUTHS = 360
 SCAN_RANGE_M = 60.0
 
 
-class ViewerError(Exception):
+class ViewerError(BtmissionError):
     """The viewer cannot start (the port is in use, the address cannot be bound...)."""
 
 

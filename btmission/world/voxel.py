@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from btmission.errors import BtmissionError
 from btmission.types import FloatArray
 
 FREE: int = 0
@@ -33,7 +34,7 @@ _FAR_INDEX = float(2**62)
 """Voxel index given to points too far away for an int64 index (never inside a grid)."""
 
 
-class MapError(ValueError):
+class MapError(BtmissionError, ValueError):
     """A map or a position on it cannot be used (bad file, point outside the map, ...)."""
 
 
