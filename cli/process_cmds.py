@@ -329,7 +329,6 @@ def agent_cmd(
     """
     from btmission.runtime.distribution import Part
     from btmission.transport.zenoh_link import TransportError, ZenohSettings, agent_links
-    from btmission.vehicles.provider import scheme_of
 
     _zenoh_or_exit()
     _check_log_file(log_file)
@@ -350,7 +349,7 @@ def agent_cmd(
                 f"--id {a}: no such agent in {mission_file} (agents: {', '.join(known)})"
             )
     for a in mission.agents:
-        if a.id in ids and scheme_of(a.backend) != "mavlink":
+        if a.id in ids and a.vehicle.scheme != "mavlink":
             raise BadInput(
                 f"agent {a.id}'s backend is {a.backend}, a simulator that lives in one process: "
                 "give --backend with a MAVLink vehicle (one btmission mavsim serves, run "
@@ -522,7 +521,6 @@ def run_processes(
     coordinator and one process per agent on this machine; their logs merged into one."""
     from btmission.backends.mavlink_url import parse_mavlink_url
     from btmission.runtime.session import RunSession, log_path_for
-    from btmission.vehicles.provider import scheme_of
 
     _zenoh_or_exit()
     probe = RunSession(mission_file, log_dir=None)
@@ -531,7 +529,7 @@ def run_processes(
     backends: dict[str, str] = {}
     served: list[str] = []
     for a in mission.agents:
-        scheme = scheme_of(a.backend)
+        scheme = a.vehicle.scheme
         if scheme == "sim":
             backends[a.id] = f"mavlink+udp://127.0.0.1:{free_port(socket.SOCK_DGRAM)}"
             served.append(a.id)

@@ -342,11 +342,10 @@ def _confirm_real_vehicles(mission: Any, yes: bool) -> None:
     """Ask before flying MAVLink vehicles that may be real: on a serial port or another host
     (loopback is SITL or mavsim). Without a terminal to ask, --yes is required."""
     from btmission.backends.mavlink_url import parse_mavlink_url
-    from btmission.vehicles.provider import scheme_of
 
     remote = []
     for agent in mission.agents:
-        if scheme_of(agent.backend) != "mavlink":
+        if agent.vehicle.scheme != "mavlink":
             continue
         address = parse_mavlink_url(agent.backend)
         if address.transport == "serial" or not address.host.startswith("127."):

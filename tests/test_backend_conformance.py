@@ -27,13 +27,13 @@ import numpy as np
 import pytest
 
 from btmission.spec.mission import load_mission_text
+from btmission.spec.vehicleref import VehicleRef
 from btmission.vehicles.base import Backend, Mode, Sensors, VehicleKind
 from btmission.vehicles.provider import (
     Vehicle,
     VehicleEvent,
     VehicleProvider,
     provider_factory,
-    scheme_of,
 )
 from btmission.world.build import world_from_spec
 
@@ -101,7 +101,7 @@ def provider(url: str, tmp_path: Path) -> Iterator[VehicleProvider]:
     text = textwrap.dedent(MISSION.format(url=url, speed=SPEED)).lstrip()
     mission = load_mission_text(text, str(tmp_path / "m.yaml"))
     world = world_from_spec(mission.spec.world, mission.base_dir)
-    made = provider_factory(scheme_of(url))(mission, world, 0)
+    made = provider_factory(VehicleRef.parse(url).scheme)(mission, world, 0)
     yield made
     made.close()
 
@@ -112,8 +112,8 @@ def attach(provider: VehicleProvider, urls: dict[VehicleKind, str]) -> Callable[
 
     def attach_one(kind: VehicleKind = VehicleKind.MULTIROTOR) -> Vehicle:
         if kind is VehicleKind.MULTIROTOR:
-            return provider.attach("R1", kind, (5.0, 5.0, 0.0), url=urls[kind])
-        return provider.attach("G1", kind, (5.0, 10.0, 0.0), url=urls[kind])
+            return provider.attach("R1", kind, (5.0, 5.0, 0.0), VehicleRef.parse(urls[kind]))
+        return provider.attach("G1", kind, (5.0, 10.0, 0.0), VehicleRef.parse(urls[kind]))
 
     return attach_one
 

@@ -19,6 +19,7 @@ from btmission.backends.mavlink import MavlinkError, MavlinkProvider
 from btmission.backends.mavlink_modes import Autopilot
 from btmission.backends.mavlink_url import MavlinkAddress
 from btmission.backends.mavsim import MavSim
+from btmission.spec.vehicleref import VehicleRef
 from btmission.vehicles.base import Backend, Mode, VehicleKind
 from tests.mavlink_helpers import SIMS, SPEED, free_port, mavsim, provider, spec
 
@@ -62,13 +63,13 @@ def attach(
 ) -> Backend:
     ep = next(e for e in sim.endpoints if e.agent_id == agent)
     start = sim.autopilots[agent].spec.start
-    return p.attach(agent, kind, start, url=ep.url).backend
+    return p.attach(agent, kind, start, VehicleRef.parse(ep.url)).backend
 
 
 # ------------------------------------------------------------------------------ connecting
 def test_a_px4_vehicle_reports_where_it_stands() -> None:
     with mavsim(PX4) as sim, provider() as p:
-        v = p.attach("R1", VehicleKind.MULTIROTOR, START, url=sim.endpoints[0].url)
+        v = p.attach("R1", VehicleKind.MULTIROTOR, START, VehicleRef.parse(sim.endpoints[0].url))
         assert v.odometer_m is None and v.clearance_m is None and v.link_ok is not None
         assert wait_for(
             p, 1.0, lambda: v.backend.telemetry().ground_z == pytest.approx(0.0, abs=0.05)
@@ -85,7 +86,7 @@ def test_a_vehicle_of_the_wrong_type_is_refused() -> None:
         with pytest.raises(
             MavlinkError, match="MAV_TYPE_QUADROTOR, but the agent's library drives a ground robot"
         ):
-            p.attach("G1", VehicleKind.GROUND, START, url=sim.endpoints[0].url)
+            p.attach("G1", VehicleKind.GROUND, START, VehicleRef.parse(sim.endpoints[0].url))
 
 
 def test_no_heartbeat_names_the_url_and_waits_only_as_long_as_asked() -> None:
@@ -96,7 +97,12 @@ def test_no_heartbeat_names_the_url_and_waits_only_as_long_as_asked() -> None:
             MavlinkError,
             match=f"no heartbeat from an autopilot at mavlink\\+udp://127.0.0.1:{port} within 0.5 s",
         ):
-            p.attach("R1", VehicleKind.MULTIROTOR, START, url=f"mavlink+udp://127.0.0.1:{port}")
+            p.attach(
+                "R1",
+                VehicleKind.MULTIROTOR,
+                START,
+                VehicleRef.parse(f"mavlink+udp://127.0.0.1:{port}"),
+            )
         assert time.monotonic() - t0 < 3.0
 
 
@@ -110,7 +116,12 @@ def test_a_udp_port_another_ground_station_holds_is_refused() -> None:
             with pytest.raises(
                 MavlinkError, match="another ground station or btmission run holds the port"
             ):
-                p.attach("R1", VehicleKind.MULTIROTOR, START, url=f"mavlink+udp://127.0.0.1:{port}")
+                p.attach(
+                    "R1",
+                    VehicleKind.MULTIROTOR,
+                    START,
+                    VehicleRef.parse(f"mavlink+udp://127.0.0.1:{port}"),
+                )
     finally:
         holder.close()
 
@@ -224,7 +235,7 @@ def test_a_failing_pre_arm_check_is_reported_by_px4() -> None:
 # ------------------------------------------------------------------------------ link health
 def test_a_dropped_link_is_seen_and_streaming_resumes() -> None:
     with mavsim(PX4) as sim, provider(heartbeat_timeout_s=2.0) as p:
-        v = p.attach("R1", VehicleKind.MULTIROTOR, START, url=sim.endpoints[0].url)
+        v = p.attach("R1", VehicleKind.MULTIROTOR, START, VehicleRef.parse(sim.endpoints[0].url))
         link_ok = v.link_ok
         assert link_ok is not None and link_ok()
         sim.drop_link("R1", 6.0)
@@ -302,13 +313,13 @@ def test_the_sysid_in_the_url_picks_the_vehicle_behind_a_shared_port() -> None:
             "B",
             VehicleKind.MULTIROTOR,
             (12.0, 5.0, 0.0),
-            url=f"mavlink+udp://127.0.0.1:{port}?sysid=9",
+            VehicleRef.parse(f"mavlink+udp://127.0.0.1:{port}?sysid=9"),
         )
         v7 = p.attach(
             "A",
             VehicleKind.MULTIROTOR,
             (5.0, 5.0, 0.0),
-            url=f"mavlink+udp://127.0.0.1:{port}?sysid=7",
+            VehicleRef.parse(f"mavlink+udp://127.0.0.1:{port}?sysid=7"),
         )
         assert v9.backend.state.sysid == 9 and v7.backend.state.sysid == 7  # type: ignore[attr-defined]
         with pytest.raises(MavlinkError, match=r"sysid 7 .* is already another agent's vehicle"):
@@ -316,7 +327,7 @@ def test_the_sysid_in_the_url_picks_the_vehicle_behind_a_shared_port() -> None:
                 "C",
                 VehicleKind.MULTIROTOR,
                 (5.0, 5.0, 0.0),
-                url=f"mavlink+udp://127.0.0.1:{port}?sysid=7",
+                VehicleRef.parse(f"mavlink+udp://127.0.0.1:{port}?sysid=7"),
             )
 
 
@@ -344,7 +355,9 @@ def test_map_sensors_look_from_the_reported_pose(tmp_path: Path) -> None:
     with mavsim(PX4) as sim:
         p = factory_provider(tmp_path, sim.endpoints[0].url, mavlink=", map_sensors: true")
         try:
-            v = p.attach("R1", VehicleKind.MULTIROTOR, START, url=sim.endpoints[0].url)
+            v = p.attach(
+                "R1", VehicleKind.MULTIROTOR, START, VehicleRef.parse(sim.endpoints[0].url)
+            )
             assert isinstance(v.sensors, MapSensors)
             frame = v.sensors.camera()
             np.testing.assert_allclose(
@@ -355,7 +368,9 @@ def test_map_sensors_look_from_the_reported_pose(tmp_path: Path) -> None:
         p = factory_provider(tmp_path, sim.endpoints[0].url)  # default: none
         try:
             assert (
-                p.attach("R1", VehicleKind.MULTIROTOR, START, url=sim.endpoints[0].url).sensors
+                p.attach(
+                    "R1", VehicleKind.MULTIROTOR, START, VehicleRef.parse(sim.endpoints[0].url)
+                ).sensors
                 is None
             )
         finally:
@@ -374,7 +389,9 @@ def test_a_vehicle_without_a_global_origin_gets_the_worlds(
             extra_world=", origin: {lat: -35.36, lon: 149.16, alt: 584}",
         )
         try:
-            v = p.attach("R1", VehicleKind.MULTIROTOR, START, url=sim.endpoints[0].url)
+            v = p.attach(
+                "R1", VehicleKind.MULTIROTOR, START, VehicleRef.parse(sim.endpoints[0].url)
+            )
             lat, lon, alt = world_to_geodetic(START, GeodeticOrigin(-35.36, 149.16, 584.0))
             got = v.backend.state.global_origin  # type: ignore[attr-defined]
             assert got == pytest.approx((lat, lon, alt), abs=1e-6)
@@ -391,7 +408,9 @@ def test_a_tcp_vehicle_that_restarts_is_reconnected_without_spinning() -> None:
     first = spec(ARDUPILOT)
     with provider(heartbeat_timeout_s=2.0) as p:
         with mavsim(ARDUPILOT, first) as sim:
-            v = p.attach("R1", VehicleKind.MULTIROTOR, START, url=sim.endpoints[0].url)
+            v = p.attach(
+                "R1", VehicleKind.MULTIROTOR, START, VehicleRef.parse(sim.endpoints[0].url)
+            )
         link = v.backend.link  # type: ignore[attr-defined]
         deadline = time.monotonic() + 3.0
         while not link.down and time.monotonic() < deadline:

@@ -9,7 +9,7 @@ import textwrap
 from collections.abc import Sequence
 from importlib import metadata
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import pytest
 from click.testing import CliRunner
@@ -19,17 +19,19 @@ from btmission.backends.sim import SimProvider, sim_provider
 from btmission.cli.main import cli
 from btmission.runtime.runner import MissionRun
 from btmission.spec.mission import Mission, load_mission_text
+from btmission.spec.vehicleref import SIM, VehicleRef
 from btmission.types import Vec3
 from btmission.vehicles import provider as registry
 from btmission.vehicles.base import VehicleKind
 from btmission.vehicles.provider import (
     ENTRY_POINT_GROUP,
+    AttachOptions,
     ProviderError,
+    ProviderPlugin,
     Vehicle,
     VehicleEvent,
     installed_providers,
     provider_factory,
-    scheme_of,
 )
 from btmission.world.voxel import VoxelMap
 
@@ -69,16 +71,21 @@ class Recording(SimProvider):
 
     def __init__(self, inner: SimProvider) -> None:
         super().__init__(inner.sim)
-        self.attached: list[tuple[str, VehicleKind, Vec3, str, dict[str, Any]]] = []
+        self.attached: list[tuple[str, VehicleKind, Vec3, str, AttachOptions]] = []
         self.steps: list[float] = []
         self.closed = False
         Recording.made.append(self)
 
     def attach(
-        self, agent_id: str, kind: VehicleKind, start: Vec3, *, url: str = "", **options: Any
+        self,
+        agent_id: str,
+        kind: VehicleKind,
+        start: Vec3,
+        ref: VehicleRef = SIM,
+        options: AttachOptions = AttachOptions(),
     ) -> Vehicle:
-        self.attached.append((agent_id, kind, start, url, options))
-        return super().attach(agent_id, kind, start, url=url, **options)
+        self.attached.append((agent_id, kind, start, ref.url, options))
+        return super().attach(agent_id, kind, start, ref, options)
 
     def step(self, dt: float) -> list[VehicleEvent]:
         self.steps.append(dt)
@@ -158,7 +165,19 @@ def test_an_unknown_scheme_has_no_factory() -> None:
     ],
 )
 def test_the_scheme_is_the_part_before_the_address(url: str, scheme: str) -> None:
-    assert scheme_of(url) == scheme
+    ref = VehicleRef.parse(url)
+    assert ref.scheme == scheme and ref.url == str(ref) == url and ref.well_formed
+
+
+def test_a_reference_keeps_transport_and_address_for_its_provider() -> None:
+    ref = VehicleRef.parse("mavlink+udp://127.0.0.1:14540?sysid=2")
+    assert (ref.scheme, ref.transport, ref.address) == ("mavlink", "udp", "127.0.0.1:14540?sysid=2")
+    assert VehicleRef.parse("sim") == SIM and SIM.address == "" and SIM.transport == ""
+    odd = VehicleRef.parse("mavlink:udp:127.0.0.1:14540")  # pymavlink's form: the provider explains
+    assert odd.scheme == "mavlink" and not odd.well_formed
+    for bad in ("Gazebo sim", "", "9lives", "sim two"):
+        with pytest.raises(ValueError, match="expected 'sim' or a vehicle provider's URL"):
+            VehicleRef.parse(bad)
 
 
 # ------------------------------------------------------------------------------ validate
@@ -228,7 +247,7 @@ def test_a_run_gets_its_vehicles_from_the_agents_provider(
         ("G2", VehicleKind.GROUND, "replay://b"),
     ]
     # the navigator's speed; nothing of MAVLink's frames (the MAVLink provider reads them)
-    assert made.attached[0][4] == {"v_max": run.nav_config.speed_m_s}
+    assert made.attached[0][4] == AttachOptions(v_max=run.nav_config.speed_m_s)
     result = run.run()
     assert result.reason == "completed" and result.steps == len(made.steps) > 0
     assert set(made.steps) == {run.dt}
@@ -261,3 +280,64 @@ def test_the_backend_interface_imports_no_algorithm() -> None:
     algorithms = ("control", "planning", "localization", "allocation", "synthesis", "runtime")
     leaked = [m for m in out if m.split(".")[1:2] and m.split(".")[1] in algorithms]
     assert leaked == [], leaked
+
+
+# ------------------------------------------------------------------------------ plugins and phases
+def _replay_address(ref: VehicleRef) -> str | None:
+    return None if ref.address.startswith("ok") else f"replay wants ok..., got '{ref.address}'"
+
+
+CHECKED = ProviderPlugin(recording_provider, check_address=_replay_address)
+
+
+class NoStart(SimProvider):
+    """A provider written for an older btmission: no start phase."""
+
+    start = None  # type: ignore[assignment]
+
+
+def no_start_provider(mission: Mission, voxel_map: VoxelMap, seed: int) -> NoStart:
+    return NoStart(sim_provider(mission, voxel_map, seed).sim)
+
+
+def _install(monkeypatch: pytest.MonkeyPatch, scheme: str, value: str) -> None:
+    real = registry.installed_providers
+
+    def installed() -> dict[str, metadata.EntryPoint]:
+        return {**real(), scheme: metadata.EntryPoint(scheme, value, ENTRY_POINT_GROUP)}
+
+    monkeypatch.setattr(registry, "installed_providers", installed)
+
+
+def test_only_the_provider_reads_an_address_and_validate_asks_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    _install(monkeypatch, "replay", f"{__name__}:CHECKED")
+    path = tmp_path / "m.yaml"
+    path.write_text(MISSION.format(first="'replay://ok-1'", second="'replay://bad'"))
+    code, out = validate(path)
+    assert code == 2
+    assert f"{path}:7:58: agents[1].backend: replay wants ok..., got 'bad'" in out
+    assert "agents[0]" not in out  # the first one's address is fine by its provider
+    path.write_text(MISSION.format(first="'replay://ok-1'", second="'replay://ok-2'"))
+    assert validate(path)[0] == 0
+
+
+def test_a_provider_without_a_check_takes_scheme_colon_slash_slash_only(
+    tmp_path: Path, replay_installed: None
+) -> None:
+    path = tmp_path / "m.yaml"
+    path.write_text(MISSION.format(first="'replay:a'", second="'replay://b'"))
+    code, out = validate(path)
+    assert code == 2 and f"{path}:6:58: agents[0].backend: expected 'sim' or a vehicle" in out
+
+
+def test_a_provider_lacking_a_phase_is_refused_by_name(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    _install(monkeypatch, "nostart", f"{__name__}:no_start_provider")
+    text = MISSION.format(first="'nostart://a'", second="'nostart://b'")
+    with pytest.raises(
+        ProviderError, match=r"'nostart' vehicle provider \(NoStart\) has no start\(\)"
+    ):
+        MissionRun(load_mission_text(text, str(tmp_path / "m.yaml")))

@@ -270,9 +270,9 @@ def test_shipped_missions_validate(name: str) -> None:
         ),
         (
             "start: [1, 1, 0]}",
-            "start: [1, 1, 0], backend: 'mavlink:/x'}",
-            "f.yaml:6:58: agents[0].backend: MAVLink URL 'mavlink:/x': expected a MAVLink URL such as "
-            "mavlink+udp://127.0.0.1:14540",
+            "start: [1, 1, 0], backend: 'Mavlink sim'}",
+            "f.yaml:6:58: agents[0].backend: expected 'sim' or a vehicle provider's URL "
+            "<scheme>://<address>",
         ),
         (
             "goal: at_goal(home)",

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -44,9 +44,10 @@ from btmission.backends.sim import (
     YAW_RATE_MAX,
     SimConfig,
 )
+from btmission.spec.vehicleref import SIM, VehicleRef
 from btmission.types import FloatArray, Vec3
 from btmission.vehicles.base import Mode, Telemetry, VehicleKind
-from btmission.vehicles.provider import Vehicle, VehicleEvent
+from btmission.vehicles.provider import AttachOptions, ProviderBase, Vehicle, VehicleEvent
 
 if TYPE_CHECKING:
     from btmission.spec.mission import Mission
@@ -70,7 +71,7 @@ class _State(AutopilotFields):
     v_max: float | None = None
 
 
-class FakeProvider:
+class FakeProvider(ProviderBase):
     """Kinematic vehicles (module docstring): a
     :class:`~btmission.vehicles.provider.VehicleProvider` with simulated time."""
 
@@ -90,17 +91,22 @@ class FakeProvider:
         return 0.0 if self.map is None else float(self.map.ground_z(p))
 
     def attach(
-        self, agent_id: str, kind: VehicleKind, start: Vec3, *, url: str = "", **options: Any
+        self,
+        agent_id: str,
+        kind: VehicleKind,
+        start: Vec3,
+        ref: VehicleRef = SIM,
+        options: AttachOptions = AttachOptions(),
     ) -> Vehicle:
-        """A vehicle at ``start`` (on the ground under it). Options: ``yaw`` (rad), and
-        ``v_max`` (m/s) for a ground robot."""
+        """A vehicle at ``start`` (on the ground under it), heading ``options.yaw`` (a ground
+        robot at most at ``options.v_max``)."""
         if agent_id in self.vehicles:
             raise ValueError(f"vehicle '{agent_id}' exists already")
         p = np.asarray(start, dtype=float).copy()
         g = self.ground_z(p + np.array([0.0, 0.0, 0.01]))
         p[2] = max(float(p[2]), g) if kind is VehicleKind.MULTIROTOR else g
-        v_max = options.get("v_max")
-        state = _State(agent_id, kind, p, yaw=float(options.get("yaw", 0.0)), ground=g,
+        v_max = options.v_max
+        state = _State(agent_id, kind, p, yaw=float(options.yaw), ground=g,
                        v_max=None if v_max is None else float(v_max))  # fmt: skip
         state.hold = p.copy()
         state.armed = kind is VehicleKind.GROUND  # a ground robot drives when commanded

@@ -74,10 +74,16 @@ from btmission.backends.mavlink_setpoints import (
 )
 from btmission.backends.mavlink_signing import enable_signing, load_key, signing_counters
 from btmission.backends.mavlink_url import MavlinkAddress, parse_mavlink_url
+from btmission.spec.vehicleref import SIM, VehicleRef
 from btmission.types import FloatArray, Vec3
 from btmission.vehicles.base import ACCEPTED, Ack, Mode, Sensors, Telemetry, VehicleKind
 from btmission.vehicles.clock import ScaledWallClock
-from btmission.vehicles.provider import Vehicle, VehicleEvent, VehicleUnavailable
+from btmission.vehicles.provider import (
+    AttachOptions,
+    Vehicle,
+    VehicleEvent,
+    VehicleUnavailable,
+)
 
 if TYPE_CHECKING:
     from btmission.spec.mission import Mission
@@ -1005,12 +1011,12 @@ class MavlinkProvider:
             self._io.add(link)
         return link
 
-    def prepare(self, urls: Sequence[str]) -> None:
+    def prepare(self, vehicles: Sequence[VehicleRef]) -> None:
         """Open every link before the vehicles are attached one by one, so that vehicles that
         start on a connection (ArduPilot SITL waits for its TCP client) boot and warm up their
         estimators together. A link that cannot be opened now is left to :meth:`attach`."""
         deadline = time.monotonic() + 1.0
-        for url in dict.fromkeys(urls):
+        for url in dict.fromkeys(v.url for v in vehicles):
             try:
                 self._link(parse_mavlink_url(url), deadline)
             except (MavlinkError, ValueError):
@@ -1021,14 +1027,19 @@ class MavlinkProvider:
         self.clock.restart()
 
     def attach(
-        self, agent_id: str, kind: VehicleKind, start: Vec3, *, url: str = "", **options: Any
+        self,
+        agent_id: str,
+        kind: VehicleKind,
+        start: Vec3,
+        ref: VehicleRef = SIM,
+        options: AttachOptions = AttachOptions(),
     ) -> Vehicle:
-        """Connect ``agent_id``'s vehicle at ``url``: wait for an autopilot's heartbeat (the
-        ``?sysid=`` one, else the first not taken), check its type, ask for its telemetry
-        streams and wait for a position estimate. Its frame is the one the provider was given
-        for ``agent_id`` (``frames``); options ``origin`` (world position of the vehicle's EKF
-        origin, default ``start``) and ``north_yaw`` (rad) override it."""
-        address = parse_mavlink_url(url)
+        """Connect ``agent_id``'s vehicle at ``ref``'s URL: wait for an autopilot's
+        heartbeat (the ``?sysid=`` one, else the first not taken), check its type, ask for its
+        telemetry streams and wait for a position estimate. Its frame is the one the provider
+        was given for ``agent_id`` (``frames``), else its origin is ``start``, north along
+        world +y."""
+        address = parse_mavlink_url(ref.url)
         opts = self.options
         deadline = time.monotonic() + opts.connect_timeout_s
         if self._progress is not None:
@@ -1046,11 +1057,8 @@ class MavlinkProvider:
                 f"{agent_id}: the vehicle at {address.url()} (sysid {state.sysid}) is a "
                 f"{_type_name(state.mav_type)}, but the agent's library drives a ground robot"
             )
-        given = self._frames.get(agent_id)
-        origin = options.get("origin", given.origin if given is not None else start)
-        frame = LocalFrame(
-            tuple(float(x) for x in origin),  # type: ignore[arg-type]
-            float(options.get("north_yaw", given.north_yaw if given is not None else math.pi / 2)),
+        frame = self._frames.get(agent_id) or LocalFrame(
+            (float(start[0]), float(start[1]), float(start[2]))
         )
         vehicle = MavlinkVehicle(
             agent_id, kind, link, state, frame, self.clock, opts, self._ground_at, self._io.wake

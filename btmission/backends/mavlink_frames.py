@@ -24,13 +24,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from btmission.spec.mission import NORTH_YAW_DEG  # the file model's default
 from btmission.types import FloatArray, Vec3
 
 if TYPE_CHECKING:
     from btmission.spec.mission import Mission
-
-NORTH_YAW_DEG = 90.0
-"""Default world yaw of a vehicle's local north: world +y is north (a map laid out north-up)."""
 
 WGS84_A = 6378137.0
 """Semi-major axis (m)."""

@@ -21,9 +21,17 @@ from __future__ import annotations
 import ipaddress
 import re
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 from urllib.parse import parse_qsl
 
 from btmission.errors import BtmissionError
+from btmission.spec.vehicleref import VehicleRef
+from btmission.vehicles.provider import ProviderPlugin
+
+if TYPE_CHECKING:
+    from btmission.spec.mission import Mission
+    from btmission.vehicles.provider import VehicleProvider
+    from btmission.world.voxel import VoxelMap
 
 TRANSPORTS = ("udp", "udpout", "tcp", "tcpin", "serial")
 """The transports of ``mavlink+<transport>://``."""
@@ -172,3 +180,24 @@ def _host_port(where: str, transport: str) -> tuple[str, int]:
     if not 1 <= port <= 65535:
         raise MavlinkUrlError(f"port {port} is out of range (1 to 65535)")
     return host, port
+
+
+def address_problem(vehicle: VehicleRef) -> str | None:
+    """What is wrong with an agent's MAVLink reference, in one line naming it (None: nothing).
+    ``validate`` and ``run`` ask before anything is built (the provider's ``check_address``)."""
+    try:
+        parse_mavlink_url(vehicle.url)
+    except MavlinkUrlError as exc:
+        return f"MAVLink URL '{vehicle.url}': {exc}"
+    return None
+
+
+def _create(mission: Mission, voxel_map: VoxelMap, seed: int) -> VehicleProvider:
+    from btmission.backends.mavlink import mavlink_provider  # pymavlink: only to fly
+
+    return mavlink_provider(mission, voxel_map, seed)
+
+
+MAVLINK = ProviderPlugin(_create, check_address=address_problem)
+"""The ``mavlink`` entry point of ``btmission.providers``: this module checks the URLs (light:
+``validate`` loads it), :func:`btmission.backends.mavlink.mavlink_provider` flies them."""

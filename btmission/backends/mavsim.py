@@ -916,11 +916,10 @@ def mission_vehicles(mission: Any) -> tuple[VehicleSpec, ...]:
     ``mavlink+tcp`` URL, served at that URL (``--mission``): spawned at the agent's start, a
     ground robot if its library drives one, sysid from the URL's ``?sysid=`` or 1."""
     from btmission.backends.mavlink_url import parse_mavlink_url
-    from btmission.vehicles.provider import scheme_of
 
     out: list[VehicleSpec] = []
     for agent in mission.agents:
-        if scheme_of(agent.backend) != "mavlink":
+        if agent.vehicle.scheme != "mavlink":
             continue
         address = parse_mavlink_url(agent.backend)
         if address.transport not in ("udp", "tcp"):

@@ -80,6 +80,7 @@ from btmission.backends.autopilot import (
 from btmission.backends.mapsensors import Bodies, MapSensors, SensorPose
 from btmission.control.mav_model import MavParams
 from btmission.localization.scan import LidarSensor
+from btmission.spec.vehicleref import SIM, VehicleRef
 from btmission.types import FloatArray, Vec3, recorder
 from btmission.vehicles.base import (
     CameraFrame,
@@ -88,7 +89,7 @@ from btmission.vehicles.base import (
     Telemetry,
     VehicleKind,
 )
-from btmission.vehicles.provider import Vehicle, VehicleEvent
+from btmission.vehicles.provider import AttachOptions, ProviderBase, Vehicle, VehicleEvent
 from btmission.world.voxel import OCCUPIED, VoxelMap
 
 if TYPE_CHECKING:
@@ -957,7 +958,7 @@ class SimVehicle(OffboardCommands):
         return self._sim.other_bodies(self._v.id)
 
 
-class SimProvider:
+class SimProvider(ProviderBase):
     """The embedded simulator as the run's
     :class:`~btmission.vehicles.provider.VehicleProvider` (scheme ``sim``): vehicles are spawned
     at their start, time is the simulator's (:class:`~btmission.vehicles.clock.SimClock`), and
@@ -973,13 +974,18 @@ class SimProvider:
         self.clock = SimClock(sim)
 
     def attach(
-        self, agent_id: str, kind: VehicleKind, start: Vec3, *, url: str = "", **options: Any
+        self,
+        agent_id: str,
+        kind: VehicleKind,
+        start: Vec3,
+        ref: VehicleRef = SIM,
+        options: AttachOptions = AttachOptions(),
     ) -> Vehicle:
-        """Spawn ``agent_id``'s vehicle at ``start``. Options: ``yaw`` (rad), and ``v_max``
-        (m/s) for a ground robot (:meth:`Simulator.add_ground`)."""
-        yaw = float(options.get("yaw", 0.0))
+        """Spawn ``agent_id``'s vehicle at ``start``, heading ``options.yaw`` (a ground robot
+        at most at ``options.v_max``: :meth:`Simulator.add_ground`)."""
+        yaw = float(options.yaw)
         if kind is VehicleKind.GROUND:
-            backend = self.sim.add_ground(agent_id, start, yaw, v_max=options.get("v_max"))
+            backend = self.sim.add_ground(agent_id, start, yaw, v_max=options.v_max)
         else:
             backend = self.sim.add_multirotor(agent_id, start, yaw)
         truth = self.sim.vehicle(agent_id)

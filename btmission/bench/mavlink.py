@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from btmission.bench.synth import environment, header_lines, write_page
+from btmission.spec.vehicleref import VehicleRef
 
 GOAL_VEHICLES = 30
 GOAL_P99_MS = 10.0
@@ -116,7 +117,8 @@ def measure(
         vehicles = []
         for i, (agent, url) in enumerate(urls):
             start = (5.0 + 3.0 * i, 5.0, 0.0)
-            vehicles.append(provider.attach(agent, VehicleKind.MULTIROTOR, start, url=url).backend)
+            ref = VehicleRef.parse(url)
+            vehicles.append(provider.attach(agent, VehicleKind.MULTIROTOR, start, ref).backend)
         connect_s = time.perf_counter() - t0
         note(f"  {count} vehicle(s) connected in {connect_s:.1f} s; measuring {seconds:g} s")
         targets = [np.asarray(v.telemetry().position, dtype=float) for v in vehicles]

@@ -158,7 +158,7 @@ class Console:
         self._lock = threading.Lock()
         self._id_lock = threading.Lock()
         self.drill_agents = frozenset(
-            a.id for a in self.mission.agents if a.backend.split(":", 1)[0] in LINK_DRILL_SCHEMES
+            a.id for a in self.mission.agents if a.vehicle.scheme in LINK_DRILL_SCHEMES
         )
 
     # ------------------------------------------------------------------ what the page needs

@@ -33,10 +33,13 @@ from btmission.types import FloatArray
 from btmission.vehicles.base import Backend, VehicleKind
 from btmission.vehicles.clock import ScaledWallClock
 from btmission.vehicles.provider import (
+    PHASES,
+    AttachOptions,
+    ProviderError,
     VehicleProvider,
     VehicleUnavailable,
+    missing_phases,
     provider_factory,
-    scheme_of,
 )
 
 if TYPE_CHECKING:
@@ -66,8 +69,16 @@ def make_provider(run: MissionRun) -> VehicleProvider:
     part = run.part
     if part is not None and not here:  # the coordinator's process: no vehicles
         return NoVehicles(run.mission.spec.runtime.mavlink.time_scale, part.started_unix)
-    scheme = scheme_of(here[0].backend) if here else "sim"
-    return provider_factory(scheme)(run.mission, run.map, run.seed)
+    scheme = here[0].vehicle.scheme if here else "sim"
+    provider = provider_factory(scheme)(run.mission, run.map, run.seed)
+    missing = missing_phases(provider)
+    if missing:
+        raise ProviderError(
+            f"the '{scheme}' vehicle provider ({type(provider).__name__}) has no "
+            f"{', '.join(missing)}(): every provider has the phases {', '.join(PHASES)} "
+            "(derive it from btmission.vehicles.provider.ProviderBase for prepare and start)"
+        )
+    return provider
 
 
 def road_costs(run: MissionRun) -> RoadCosts | None:
@@ -130,18 +141,16 @@ def build_services(run: MissionRun) -> dict[str, dict[str, Any]]:
 
 def build_agents(run: MissionRun) -> None:
     blind: list[str] = []
-    prepare = getattr(run.provider, "prepare", None)
-    if prepare is not None:  # a real provider opens every link first (vehicles boot together)
-        prepare([spec.backend for spec in agents_here(run)])
+    run.provider.prepare([spec.vehicle for spec in agents_here(run)])  # (links open together)
     for spec in agents_here(run):
         loaded = run.mission.library_of(spec.id)
         impl = loaded.implementations
         assert impl is not None  # run_problems() checked it
         kind = VehicleKind.of(impl.vehicle)
         ground = kind is VehicleKind.GROUND
-        options: dict[str, Any] = {"v_max": run.nav_config.speed_m_s} if ground else {}
+        options = AttachOptions(v_max=run.nav_config.speed_m_s if ground else None)
         try:
-            vehicle = run.provider.attach(spec.id, kind, spec.start, url=spec.backend, **options)
+            vehicle = run.provider.attach(spec.id, kind, spec.start, spec.vehicle, options)
         except VehicleUnavailable as exc:
             path = ("agents", run.mission.agents.index(spec), "backend")
             where = run.mission.locate(path)

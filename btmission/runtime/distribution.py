@@ -39,8 +39,9 @@ from btmission.runtime.bus import (
     OnAssignment,
 )
 from btmission.runtime.events import Event
+from btmission.spec.vehicleref import SIM, VehicleRef
 from btmission.vehicles.clock import Clock, ScaledWallClock
-from btmission.vehicles.provider import Vehicle, VehicleEvent
+from btmission.vehicles.provider import AttachOptions, ProviderBase, Vehicle, VehicleEvent
 
 if TYPE_CHECKING:
     from btmission.spec.mission import Mission
@@ -89,15 +90,16 @@ def with_backends(
     ``runtime.mavlink.time_scale``. A simulator agent given a MAVLink vehicle keeps its sensors:
     ``runtime.mavlink.map_sensors`` is turned on (LiDAR and camera from the mission map at the
     pose the vehicle reports, as the simulator gave them)."""
-    from btmission.vehicles.provider import scheme_of
-
-    agents = [replace(a, backend=backends.get(a.id, a.backend)) for a in mission.agents]
+    agents = [
+        replace(a, vehicle=VehicleRef.parse(backends[a.id])) if a.id in backends else a
+        for a in mission.agents
+    ]
     spec = mission.spec
     rt = spec.runtime
     update: dict[str, Any] = {}
     if time_scale is not None:
         update["time_scale"] = float(time_scale)
-    if any(scheme_of(a.backend) == "sim" and a.id in backends for a in mission.agents):
+    if any(a.vehicle.scheme == "sim" and a.id in backends for a in mission.agents):
         update["map_sensors"] = True
     if update:
         mav = rt.mavlink.model_copy(update=update)
@@ -105,7 +107,7 @@ def with_backends(
     return replace(mission, agents=agents, spec=spec)
 
 
-class NoVehicles:
+class NoVehicles(ProviderBase):
     """The coordinator process's vehicle provider: none (its agents' vehicles are flown by the
     agent processes), and a settable wall clock
     (:class:`~btmission.vehicles.clock.ScaledWallClock`)."""
@@ -121,7 +123,12 @@ class NoVehicles:
         self.clock = ScaledWallClock(scale, now_s=max(0.0, now - self.started_unix) * scale)
 
     def attach(
-        self, agent_id: str, kind: VehicleKind, start: Vec3, *, url: str = "", **options: Any
+        self,
+        agent_id: str,
+        kind: VehicleKind,
+        start: Vec3,
+        ref: VehicleRef = SIM,
+        options: AttachOptions = AttachOptions(),
     ) -> Vehicle:
         raise RuntimeError(f"the coordinator's process has no vehicles (asked for {agent_id})")
 

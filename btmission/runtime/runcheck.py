@@ -196,10 +196,17 @@ def library_problems(mission: Mission) -> list[Diagnostic]:
 def backend_problems(mission: Mission, agents: Collection[str] | None = None) -> list[Diagnostic]:
     """Agents whose ``backend:`` no installed vehicle provider serves (its URL scheme is not in
     the ``btmission.providers`` entry-point group), and fleets that mix providers: a run has one
-    clock, and simulated time cannot be mixed with the wall clock. ``agents``: those one process
-    of a distributed run flies (the others' vehicles are another process's). Entry points are
-    looked up, not loaded (:mod:`btmission.vehicles.provider`)."""
-    from btmission.vehicles.provider import installed_providers, scheme_of, unknown_scheme_message
+    clock, and simulated time cannot be mixed with the wall clock; and references whose address
+    their provider refuses (its plugin's ``check_address``: the only reader of an address).
+    ``agents``: those one process of a distributed run flies (the others' vehicles are another
+    process's). An entry point is loaded only for a reference with an address
+    (:mod:`btmission.vehicles.provider`)."""
+    from btmission.spec.vehicleref import EXPECTED
+    from btmission.vehicles.provider import (
+        installed_providers,
+        load_provider,
+        unknown_scheme_message,
+    )
 
     installed = list(installed_providers())
     out: list[Diagnostic] = []
@@ -210,16 +217,28 @@ def backend_problems(mission: Mission, agents: Collection[str] | None = None) ->
                               mission.locate(path)))  # fmt: skip
 
     for i, agent in enumerate(mission.agents):
-        scheme = scheme_of(agent.backend)
-        if scheme not in installed:
+        ref = agent.vehicle
+        if ref.scheme not in installed:
             refuse(i, "unknown-backend",
-                   f"backend '{agent.backend}': {unknown_scheme_message(scheme, installed)}")  # fmt: skip
+                   f"backend '{ref}': {unknown_scheme_message(ref.scheme, installed)}")  # fmt: skip
+            continue
+        if not ref.address and ref.well_formed:
+            continue  # a scheme alone (sim): nothing for its provider to read
+        try:
+            check = load_provider(ref.scheme).check_address
+        except Exception as exc:  # a plugin's module: say which, never a traceback
+            refuse(i, "provider-failed", f"backend '{ref}': the '{ref.scheme}' provider could "
+                   f"not be loaded: {type(exc).__name__}: {exc}")  # fmt: skip
+            continue
+        problem = check(ref) if check is not None else None if ref.well_formed else EXPECTED
+        if problem is not None:
+            refuse(i, "bad-backend", problem)
     here = [(i, a) for i, a in enumerate(mission.agents) if agents is None or a.id in agents]
     if out or not here:
         return out
     first = here[0][1]
     for i, agent in here:
-        if scheme_of(agent.backend) != scheme_of(first.backend):
+        if agent.vehicle.scheme != first.vehicle.scheme:
             refuse(i, "mixed-backends",
                    f"backend '{agent.backend}': agent '{first.id}' uses '{first.backend}'; "
                    "every agent of a mission must use the same vehicle provider (a run steps one "

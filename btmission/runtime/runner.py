@@ -239,9 +239,7 @@ class MissionRun:
         except BaseException:  # a vehicle that would not connect, Ctrl-C while connecting
             self.provider.close()
             raise
-        start = getattr(self.provider, "start", None)
-        if start is not None:  # the mission's time starts now, however long connecting took
-            start()
+        self.provider.start()  # the mission's time starts now, however long connecting took
         if part is not None and not part.runs_coordinator:
             follow_coordinator(self, part.sync_timeout_s)
         t0 = self.now()

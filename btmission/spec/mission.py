@@ -10,7 +10,6 @@ expressions, commit conditions, and whether every agent's trees synthesise. Chec
 from __future__ import annotations
 
 import difflib
-import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,7 +26,6 @@ from pydantic import (
     field_validator,
 )
 
-from btmission.backends.mavlink_frames import NORTH_YAW_DEG
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError, errors
 from btmission.limits import grid_shape
 from btmission.plugins import LoadedLibrary, load_library
@@ -44,17 +42,13 @@ from btmission.spec.common import (
 from btmission.spec.costexpr import CostExpr, CostExprError, parse_cost
 from btmission.spec.library import Atom, resolve_ref
 from btmission.spec.source import Source, format_path, parse_yaml, read_yaml
+from btmission.spec.vehicleref import BACKEND_RE, VehicleRef
 
 MISSION_FORMAT_VERSION = 1
 
 Vec3 = Annotated[
     tuple[FiniteFloat, FiniteFloat, FiniteFloat], Field(description="[x, y, z] in metres")
 ]
-BACKEND_RE = r"^(mavlink\+(udp|udpout|tcp|tcpin|serial)://.+|(?!mavlink)[a-z][a-z0-9+.-]*(://.+)?)$"
-"""An agent's ``backend:``: a vehicle provider's scheme alone (``sim``) or ``<scheme>://<address>``;
-a MAVLink URL must follow the MAVLink grammar (:mod:`btmission.backends.mavlink_url`). Which schemes are installed is checked later
-(:func:`btmission.runtime.runcheck.backend_problems`), so that trees and exports of a mission for
-vehicles this machine cannot reach still work."""
 
 
 class _Strict(BaseModel):
@@ -148,6 +142,10 @@ class WorldSpec(_Strict):
         return v
 
 
+NORTH_YAW_DEG = 90.0
+"""Default world yaw of a vehicle's local north: world +y is north (a map laid out north-up)."""
+
+
 class OriginSpec(_Strict):
     """Where a MAVLink vehicle's local NED frame (its EKF origin) is in the world."""
 
@@ -196,20 +194,8 @@ class AgentSpec(_Strict):
     @field_validator("backend")
     @classmethod
     def _backend(cls, v: str) -> str:
-        from btmission.backends.mavlink_url import is_mavlink_url, parse_mavlink_url
-
-        if is_mavlink_url(v):
-            try:
-                parse_mavlink_url(v)
-            except ValueError as exc:
-                raise ValueError(f"MAVLink URL '{v}': {exc}") from None
-            return v
-        if not re.match(BACKEND_RE, v):
-            raise ValueError(
-                "expected 'sim' or a vehicle provider's URL <scheme>://<address> such as "
-                "mavlink+udp://127.0.0.1:14540 (scheme: lower-case letters, digits, + . -)"
-            )
-        return v  # btmission.runtime.runcheck refuses a scheme no installed provider serves
+        VehicleRef.parse(v)  # its general form; the provider checks the rest (vehicleref.py)
+        return v
 
 
 class TaskSpec(BaseModel):
@@ -523,8 +509,14 @@ class Agent:
     id: str
     library: str
     start: tuple[float, float, float]
-    backend: str
+    vehicle: VehicleRef
+    """Its ``backend:``, read once (:mod:`btmission.spec.vehicleref`)."""
     where: Location = Location()
+
+    @property
+    def backend(self) -> str:
+        """The ``backend:`` as written."""
+        return self.vehicle.url
 
 
 @dataclass(frozen=True)
@@ -747,7 +739,9 @@ def compile_mission(spec: MissionSpec, src: Source) -> Mission:
                 "duplicate-id",
             )
         seen.setdefault(a.id, i)
-        agents.append(Agent(a.id, a.library, a.start, a.backend, src.locate(("agents", i))))
+        agents.append(
+            Agent(a.id, a.library, a.start, VehicleRef.parse(a.backend), src.locate(("agents", i)))
+        )
         if a.library in libraries or a.library in lib_failed:
             continue
         try:

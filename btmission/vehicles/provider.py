@@ -1,6 +1,7 @@
 """Where vehicles come from: the :class:`VehicleProvider` interface and its registry.
 
-A run never builds vehicles itself. Each agent's ``backend:`` in the mission is a URL (``sim``,
+A run never builds vehicles itself. Each agent's ``backend:`` in the mission is read once, by
+the file model, into a :class:`~btmission.spec.vehicleref.VehicleRef` (``sim``,
 ``mavlink+udp://127.0.0.1:14540`` ...); its **scheme** (``sim``, ``mavlink``) names a provider,
 registered in the ``btmission.providers`` entry-point group like capability libraries are in
 ``btmission.libraries`` (docs/providers.md)::
@@ -8,28 +9,34 @@ registered in the ``btmission.providers`` entry-point group like capability libr
     [project.entry-points."btmission.providers"]
     sim = "btmission.backends.sim:sim_provider"
 
-The entry point's object is a :data:`ProviderFactory`: called with the mission, its map and the
-run's seed, it returns the :class:`VehicleProvider` for the run. The provider then
+The entry point's object is a :class:`ProviderPlugin` — or just its :data:`ProviderFactory`:
+called with the mission, its map and the run's seed, it returns the :class:`VehicleProvider` for
+the run. Only the provider reads a reference's address: its plugin's ``check_address`` says
+what is wrong with one before anything runs. The provider then
 
+* is :meth:`~VehicleProvider.prepare`\\ d with every agent's reference (a real provider opens
+  all its links at once, so that vehicles boot together);
 * :meth:`~VehicleProvider.attach`\\ es one :class:`Vehicle` per agent: its
   :class:`~btmission.vehicles.base.Backend` (commands, setpoints, telemetry), its
   :class:`~btmission.vehicles.base.Sensors` if it has any, and — in a simulator only — ground
   truth the report uses (odometer, clearance to the rock);
 * owns the run's :attr:`~VehicleProvider.clock`: simulated time for the simulator, the wall clock
   (with :attr:`~VehicleProvider.realtime` True) for real vehicles;
+* is :meth:`~VehicleProvider.start`\\ ed once every vehicle is attached (the mission's time
+  starts: a real provider's clock restarts at zero);
 * is :meth:`~VehicleProvider.step`\\ ped once per runner step: the simulator integrates its
   physics by ``dt`` and reports collisions; a real provider pumps its inbox (or does nothing:
   real time passes on its own);
 * is :meth:`~VehicleProvider.close`\\ d at the end (sockets, threads).
 
-Two optional methods a real provider may have: ``prepare(urls)``, called with every agent's URL
-before the first ``attach`` (open all links at once, so vehicles boot together), and ``start()``,
-called once every vehicle is attached (the mission's time starts: the clock restarts at zero).
+Every provider has all five phases (:data:`PHASES`); :class:`ProviderBase` gives the two a
+simulator needs not write.
 
 One run has one clock, so every agent of a mission uses the same provider (scheme): simulated
 time cannot be mixed with the wall clock
 (:func:`btmission.runtime.runcheck.backend_problems` refuses such a fleet).
-Entry points are loaded only when a run is built; ``validate`` just looks the scheme up.
+Entry points are loaded when a run is built, and by ``validate`` for a reference with an
+address (to check it).
 """
 
 from __future__ import annotations
@@ -37,9 +44,10 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from importlib import metadata
-from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 from btmission.errors import BtmissionError
+from btmission.spec.vehicleref import SIM, VehicleRef
 from btmission.types import Vec3
 from btmission.vehicles.base import Backend, Sensors, VehicleKind
 
@@ -49,13 +57,6 @@ if TYPE_CHECKING:
     from btmission.world.voxel import VoxelMap
 
 ENTRY_POINT_GROUP = "btmission.providers"
-
-
-def scheme_of(backend: str) -> str:
-    """The provider scheme of an agent's ``backend:`` URL: ``mavlink+udp://…`` → ``mavlink`` (a
-    ``+transport`` suffix picks the provider's transport, not another provider),
-    ``sim`` → ``sim``."""
-    return backend.split("://", 1)[0].split("+", 1)[0]
 
 
 @dataclass(frozen=True)
@@ -88,25 +89,60 @@ class Vehicle:
     cannot fail (a simulator in this process). While it is False the agent's tree pauses."""
 
 
+@dataclass(frozen=True)
+class AttachOptions:
+    """What the run says of an agent's vehicle besides its kind and start; a provider uses what
+    applies to it and ignores the rest."""
+
+    yaw: float = 0.0
+    """Heading to spawn at (rad, counter-clockwise from world +x): simulators only."""
+    v_max: float | None = None
+    """A ground robot's top speed (m/s): the navigator's ``speed_m_s``. None: the model's."""
+
+
+PHASES = ("prepare", "attach", "start", "step", "close")
+"""The provider's phases, in the order a run calls them (every provider has them all)."""
+
+
 @runtime_checkable
 class VehicleProvider(Protocol):
     """Creates or connects the vehicles of a run, owns its clock and advances it (module
-    docstring)."""
+    docstring). A run calls :meth:`prepare` once, :meth:`attach` for each agent, :meth:`start`
+    once, :meth:`step` every step and :meth:`close` at the end (:data:`PHASES`);
+    :class:`ProviderBase` has the phases most providers need not write."""
 
-    clock: Clock
-    """The run's time: :class:`~btmission.vehicles.clock.SimClock` in a simulator,
-    :class:`~btmission.vehicles.clock.WallClock` with real vehicles."""
-    realtime: bool
-    """True when time passes on its own (real vehicles): the runner paces its steps against
-    the wall clock instead of running as fast as it can."""
+    @property
+    def clock(self) -> Clock:
+        """The run's time: :class:`~btmission.vehicles.clock.SimClock` in a simulator,
+        :class:`~btmission.vehicles.clock.ScaledWallClock` with real vehicles."""
+        ...
+
+    @property
+    def realtime(self) -> bool:
+        """True when time passes on its own (real vehicles): the runner paces its steps
+        against the wall clock instead of running as fast as it can."""
+        ...
+
+    def prepare(self, vehicles: Sequence[VehicleRef]) -> None:
+        """Before the first :meth:`attach`, with every agent's reference: a real provider opens
+        all its links at once, so that vehicles boot together."""
+        ...
 
     def attach(
-        self, agent_id: str, kind: VehicleKind, start: Vec3, *, url: str = "", **options: Any
+        self,
+        agent_id: str,
+        kind: VehicleKind,
+        start: Vec3,
+        ref: VehicleRef = SIM,
+        options: AttachOptions = AttachOptions(),
     ) -> Vehicle:
-        """The vehicle of ``agent_id``: spawned at ``start`` (a simulator) or connected at
-        ``url`` (the agent's ``backend:``; a real vehicle is where it is). ``options`` are
-        provider-specific (the simulator's ``v_max`` for a ground robot); unknown ones are
-        ignored."""
+        """The vehicle of ``agent_id``: spawned at ``start`` (a simulator) or connected where
+        ``ref`` (the agent's ``backend:``) says (a real vehicle is where it is)."""
+        ...
+
+    def start(self) -> None:
+        """Every vehicle is attached: the mission's time starts (a real provider's clock
+        restarts at zero, however long connecting took)."""
         ...
 
     def step(self, dt: float) -> Sequence[VehicleEvent]:
@@ -119,14 +155,44 @@ class VehicleProvider(Protocol):
         ...
 
 
+class ProviderBase:
+    """The phases a provider without links or a clock of its own to restart need not write:
+    :meth:`prepare` and :meth:`start` do nothing."""
+
+    def prepare(self, vehicles: Sequence[VehicleRef]) -> None:
+        """Nothing to open ahead of the vehicles."""
+
+    def start(self) -> None:
+        """The clock is the provider's own and starts with it."""
+
+
 ProviderFactory = Callable[["Mission", "VoxelMap", int], VehicleProvider]
-"""What a ``btmission.providers`` entry point names: ``factory(mission, voxel_map, seed)``."""
+"""Makes a run's provider: ``factory(mission, voxel_map, seed)``."""
+
+
+@dataclass(frozen=True)
+class ProviderPlugin:
+    """What a ``btmission.providers`` entry point names (a bare :data:`ProviderFactory` is
+    taken as ``ProviderPlugin(factory)``)."""
+
+    create: ProviderFactory
+    """Makes the run's provider."""
+    check_address: Callable[[VehicleRef], str | None] | None = None
+    """What is wrong with an agent's reference (None: nothing), asked by ``validate`` and
+    ``run`` before anything is built; without it a reference must be ``<scheme>`` or
+    ``<scheme>://<address>``."""
+
+
+def missing_phases(provider: object) -> list[str]:
+    """The :data:`PHASES` ``provider`` lacks (a provider from a plugin written for an older
+    btmission may)."""
+    return [name for name in PHASES if not callable(getattr(provider, name, None))]
 
 
 BUILT_IN = {
     "sim": "btmission.backends.sim:sim_provider",
     "fake": "btmission.backends.fake:fake_provider",
-    "mavlink": "btmission.backends.mavlink:mavlink_provider",
+    "mavlink": "btmission.backends.mavlink_url:MAVLINK",
 }
 """Providers of the core package, found even by an install made before the entry-point group
 existed (an editable install is not re-read until it is reinstalled); also declared in
@@ -163,10 +229,15 @@ def unknown_scheme_message(scheme: str, installed: Sequence[str]) -> str:
     )
 
 
-def provider_factory(scheme: str) -> ProviderFactory:
-    """Load the factory of ``scheme``'s provider (imports its module)."""
+def load_provider(scheme: str) -> ProviderPlugin:
+    """Load ``scheme``'s provider plugin (imports the module its entry point names)."""
     eps = installed_providers()
     if scheme not in eps:
         raise ProviderError(unknown_scheme_message(scheme, list(eps)))
-    factory: ProviderFactory = eps[scheme].load()
-    return factory
+    loaded = eps[scheme].load()
+    return loaded if isinstance(loaded, ProviderPlugin) else ProviderPlugin(loaded)
+
+
+def provider_factory(scheme: str) -> ProviderFactory:
+    """The factory of ``scheme``'s provider (imports its module)."""
+    return load_provider(scheme).create
