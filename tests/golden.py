@@ -9,7 +9,8 @@ What is left out, because it is not the mission's behaviour:
 
 - fields measured on the wall clock: ``wall_s`` (end), ``build_s`` (built), ``step_ms`` (round),
   ``time_ms`` (relocalized), and a ``leaf_error``'s ``traceback`` (line numbers move);
-- where the files are: the header's ``world_ref.base_dir`` is made relative to the repository;
+- where the files are: the header's ``world_ref`` paths (``base_dir``, ``map``, ``topomap``) are
+  made relative to the repository;
 - the report's ``log:`` line (the log's name holds the wall-clock date).
 
 The MAVLink missions (``mine_inspection_px4``, ``mine_inspection_ardupilot``) fly against
@@ -70,11 +71,13 @@ def normalise(line: str) -> str:
         event.pop(key, None)
     if event.get("ev") == "header":
         ref = event.get("world_ref")
-        if isinstance(ref, dict) and isinstance(ref.get("base_dir"), str):
-            base = Path(ref["base_dir"])
-            ref["base_dir"] = (
-                base.relative_to(ROOT).as_posix() if base.is_relative_to(ROOT) else str(base)
-            )
+        if isinstance(ref, dict):
+            for key, value in ref.items():  # base_dir, map, topomap: where this clone is
+                if isinstance(value, str) and Path(value).is_absolute():
+                    path = Path(value)
+                    ref[key] = (
+                        path.relative_to(ROOT).as_posix() if path.is_relative_to(ROOT) else value
+                    )
     return json.dumps(event, separators=(",", ":"), sort_keys=True)
 
 

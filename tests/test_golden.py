@@ -33,6 +33,7 @@ def test_golden_files_cover_every_shipped_simulator_mission() -> None:
         assert lines[0].startswith('{"agents"') and '"ev":"header"' in lines[0]
         assert '"ev":"end"' in lines[-1]
         assert f"Mission {mission}" in report
+        assert not any(str(golden.ROOT) in line for line in lines[:2])  # no clone's own paths
 
 
 def test_normalise_drops_wall_clock_fields_and_machine_paths() -> None:
@@ -41,6 +42,10 @@ def test_normalise_drops_wall_clock_fields_and_machine_paths() -> None:
         json.dumps({"t": 0.0, "ev": "header", "world_ref": {"base_dir": str(base), "map": None}})
     )
     assert '"base_dir":"missions"' in header
+    mapped = golden.normalise(
+        json.dumps({"ev": "header", "world_ref": {"map": str(base / "data" / "m.npz")}})
+    )
+    assert '"map":"missions/data/m.npz"' in mapped
     end = golden.normalise('{"t":3.5,"ev":"end","reason":"completed","wall_s":0.81,"steps":70}')
     assert end == '{"ev":"end","reason":"completed","steps":70,"t":3.5}'
     rnd = golden.normalise('{"t":1.0,"ev":"round","round":3,"step_ms":0.4}')
