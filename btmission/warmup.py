@@ -82,7 +82,7 @@ def _vehicle_control() -> None:
     """A simulated drone's control step: its short-range LiDAR (rock faces and another
     vehicle), the APF on it with the other agents' push, carrot chasing on a route and the
     simulator's step (the multirotors' model, clearance to the walls) — the kernels of
-    :mod:`btmission.backends._surface_kernels`, :mod:`btmission.backends._multirotor_kernels`,
+    :mod:`btmission.world._surface_kernels`, :mod:`btmission.backends._multirotor_kernels`,
     :mod:`btmission.control._apf_kernels` and :mod:`btmission.runtime._route_kernels`, through
     the simulator and the navigator."""
     import numpy as np

@@ -149,3 +149,26 @@ def test_sharing_positions_at_once_is_sharing_them_one_by_one() -> None:
     new = InMemoryBus()  # an agent the bus has not seen yet: shared one by one, in order
     new.share_positions(0.0, [("B", np.array([[1.0, 1.0, 1.0]])), ("C", np.zeros((1, 3)))])
     assert new._row_names == ["B", "C"] and new._starts[:2].tolist() == [[1, 1, 1], [0, 0, 0]]
+
+
+def test_the_fleet_step_is_the_providers_offer_and_nobody_elses() -> None:
+    """The runtime names no provider: the batch comes from the provider's ``fleet_sensing``.
+    The simulator offers it (not with dust: it draws from the simulator's generator); the fake
+    provider, whose vehicles have no LiDAR to batch, does not."""
+    text = fleet_mission_text(4)
+    run = MissionRun(load_mission_text(text, "fleet.yaml"))
+    sensing = run.provider.fleet_sensing()
+    assert sensing is not None and run._fleet is not None
+    for agent in run.agents.values():
+        nav = agent.navigator
+        assert sensing.covers(nav.backend, nav.sensors)
+        assert not sensing.covers(nav.backend, None)  # its LiDAR replaced: not the batch's
+    poses = sensing.true_poses([a.navigator.backend for a in run.agents.values()])
+    assert poses.shape == (4, 4)
+    fake = MissionRun(load_mission_text(text.replace("backend: sim", "backend: fake"), "f.yaml"))
+    assert fake.provider.fleet_sensing() is None and fake._fleet is None
+    dusty = text.replace(
+        "runtime: {controller: track}", "runtime: {controller: track, sim: {dust_points: 5}}"
+    )
+    assert "dust_points" in dusty
+    assert MissionRun(load_mission_text(dusty, "d.yaml"))._fleet is None

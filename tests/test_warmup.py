@@ -55,7 +55,6 @@ def test_a_run_loads_its_loop_kernels_while_it_builds() -> None:
 
     from btmission.allocation import _bid_kernels as bids
     from btmission.backends import _multirotor_kernels as multirotor
-    from btmission.backends import _surface_kernels as surf
     from btmission.bench.fleet import fleet_mission_text
     from btmission.control import _apf_kernels as apf
     from btmission.planning import _kernels as plan
@@ -64,6 +63,7 @@ def test_a_run_loads_its_loop_kernels_while_it_builds() -> None:
     from btmission.runtime import _route_kernels as route
     from btmission.runtime.runner import MissionRun
     from btmission.spec.mission import load_mission_text
+    from btmission.world import _surface_kernels as surf
 
     warmup.prepare_run()
     assert "scipy.optimize" in sys.modules

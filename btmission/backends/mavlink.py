@@ -80,6 +80,7 @@ from btmission.vehicles.base import ACCEPTED, Ack, Mode, Sensors, Telemetry, Veh
 from btmission.vehicles.clock import ScaledWallClock
 from btmission.vehicles.provider import (
     AttachOptions,
+    ProviderBase,
     Vehicle,
     VehicleEvent,
     VehicleUnavailable,
@@ -972,7 +973,7 @@ class MavlinkVehicle:
 
 
 # ---------------------------------------------------------------------------- the provider
-class MavlinkProvider:
+class MavlinkProvider(ProviderBase):
     """MAVLink vehicles for a run (module docstring)."""
 
     realtime = True

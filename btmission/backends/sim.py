@@ -65,7 +65,7 @@ import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import partial
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -83,13 +83,21 @@ from btmission.localization.scan import LidarSensor
 from btmission.spec.vehicleref import SIM, VehicleRef
 from btmission.types import FloatArray, Vec3, recorder
 from btmission.vehicles.base import (
+    Backend,
     CameraFrame,
     LidarScan,
     Mode,
+    Sensors,
     Telemetry,
     VehicleKind,
 )
-from btmission.vehicles.provider import AttachOptions, ProviderBase, Vehicle, VehicleEvent
+from btmission.vehicles.provider import (
+    AttachOptions,
+    FleetSensing,
+    ProviderBase,
+    Vehicle,
+    VehicleEvent,
+)
 from btmission.world.voxel import OCCUPIED, VoxelMap
 
 if TYPE_CHECKING:
@@ -192,7 +200,7 @@ SimEvent = VehicleEvent
 
 class _SurfaceCells:
     """The rock-face points sorted into cubic cells, for ball queries
-    (:mod:`btmission.backends._surface_kernels`). Cells of 1 m (at least two voxels), larger
+    (:mod:`btmission.world._surface_kernels`). Cells of 1 m (at least two voxels), larger
     where a huge map would need more than :data:`SURFACE_CELLS_MAX` of them."""
 
     def __init__(self, points: FloatArray, resolution: float) -> None:
@@ -218,7 +226,7 @@ class _SurfaceCells:
         """Distance from each query point to the nearest point (inf beyond ``max_d``)."""
         if len(self.points) == 0:
             return np.full(len(queries), math.inf)
-        from btmission.backends._surface_kernels import nearest_distances
+        from btmission.world._surface_kernels import nearest_distances
 
         out: FloatArray = nearest_distances(
             self.points, self.starts, self.lo, self.cell, self.dims,
@@ -227,7 +235,7 @@ class _SurfaceCells:
         return out
 
     def ball(self, p: FloatArray, radius: float) -> FloatArray:
-        from btmission.backends._surface_kernels import ball_points
+        from btmission.world._surface_kernels import ball_points
 
         out: FloatArray = ball_points(
             self.points, self.starts, self.lo, self.cell, self.dims, p, radius
@@ -237,7 +245,7 @@ class _SurfaceCells:
     def scan(
         self, p: FloatArray, radius: float, yaw: float, bodies: Bodies, sphere: FloatArray
     ) -> FloatArray:
-        from btmission.backends._surface_kernels import scan_points
+        from btmission.world._surface_kernels import scan_points
 
         centres, radii, skip = bodies
         out: FloatArray = scan_points(
@@ -1011,6 +1019,47 @@ class SimProvider(ProviderBase):
 
     def close(self) -> None:
         """Nothing to release: the simulator lives in this process."""
+
+    def fleet_sensing(self) -> FleetSensing | None:
+        """The simulator's offer to the fleet control step (:class:`SimFleetSensing`); None
+        with dust in the LiDAR, which draws from the simulator's generator vehicle by vehicle."""
+        return None if self.sim.config.dust_points else SimFleetSensing(self.sim)
+
+
+class SimFleetSensing:
+    """What the fleet control step needs of the simulator to compute its drones' LiDAR scans
+    itself, exactly as each drone's :class:`~btmission.backends.mapsensors.MapSensors` would
+    (:class:`~btmission.vehicles.provider.FleetSensing`)."""
+
+    def __init__(self, sim: Simulator) -> None:
+        from btmission.backends.mapsensors import sphere_points
+
+        self.sim = sim
+        cells = sim.world.cells
+        self.cells = (cells.points, cells.starts, cells.lo, float(cells.cell), cells.dims)
+        self.lidar_range_m = float(sim.config.lidar_range_m)
+        self.sphere = sphere_points()
+
+    def covers(self, backend: Backend, sensors: Sensors | None) -> bool:
+        """A multirotor of this simulator whose navigator reads its own, unreplaced LiDAR."""
+        if type(backend) is not SimVehicle:
+            return False
+        return (
+            backend.kind is VehicleKind.MULTIROTOR
+            and backend.sim is self.sim
+            and sensors is backend
+            and backend.owns_sensors
+        )
+
+    def bodies(self) -> _BodyTable:
+        return self.sim.bodies()
+
+    def true_poses(self, backends: Sequence[Backend]) -> FloatArray:
+        vehicles = [cast(SimVehicle, b).vehicle for b in backends]
+        poses = np.empty((len(vehicles), 4))
+        poses[:, 0:3] = [v.x[:3] for v in vehicles]
+        poses[:, 3] = [v.yaw for v in vehicles]
+        return poses
 
 
 def sim_config(mission: Mission) -> SimConfig:

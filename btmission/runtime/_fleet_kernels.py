@@ -27,14 +27,14 @@ import math
 import numpy as np
 from numba import njit
 
-from btmission.backends import _surface_kernels
-from btmission.backends._surface_kernels import scan_points
 from btmission.control import _apf_kernels
 from btmission.control._apf_kernels import navigator_force
 from btmission.kernelcache import key_on_callees
 from btmission.runtime import _neighbour_kernels, _route_kernels
 from btmission.runtime._neighbour_kernels import near_points
 from btmission.runtime._route_kernels import carrots
+from btmission.world import _surface_kernels
+from btmission.world._surface_kernels import scan_points
 
 OUT = 15
 """Columns of :func:`fleet_follow`'s result: code (0 go, 1 the per-drone path must decide),

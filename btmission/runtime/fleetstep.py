@@ -15,9 +15,11 @@ drone sees its neighbours as that loop shows them (those before it in the loop a
 the bus, those after it not yet: :mod:`btmission.runtime._fleet_kernels`).
 
 It applies only where that equivalence is plain, checked when the run is built
-(:meth:`FleetFollow.build`): one process on the embedded simulator with the in-memory bus,
-every agent a drone under the tracking controller whose LiDAR is the simulator's without dust
-(dust draws from the simulator's generator, in the agents' order). Each step it also needs
+(:meth:`FleetFollow.build`): one process whose vehicle provider computes its vehicles' LiDAR
+itself and offers it (:class:`~btmission.vehicles.provider.FleetSensing`: the embedded
+simulator without dust, which draws from the simulator's generator in the agents' order), with
+the in-memory bus, every agent a drone under the tracking controller whose LiDAR that provider
+covers. Each step it also needs
 every agent to have shared where it is on the bus (none a trajectory; an agent killed since
 leaves a row no query returns, as on the bus); otherwise, and with fewer than
 :data:`MIN_BATCH` drones following routes, the loop is the per-drone one.
@@ -31,8 +33,6 @@ from typing import TYPE_CHECKING, cast
 import numpy as np
 from numpy.typing import NDArray
 
-from btmission.backends.mapsensors import sphere_points
-from btmission.backends.sim import SimVehicle
 from btmission.runtime.bus import InMemoryAgentLink, InMemoryBus
 from btmission.runtime.navigation import (
     AGENT_APF,
@@ -43,7 +43,8 @@ from btmission.runtime.navigation import (
     _Follow,
 )
 from btmission.types import FloatArray
-from btmission.vehicles.base import VehicleKind
+from btmission.vehicles.base import Backend, VehicleKind
+from btmission.vehicles.provider import FleetSensing
 
 if TYPE_CHECKING:
     from btmission.runtime.agent import Agent
@@ -61,17 +62,17 @@ class FleetFollow:
         sides: Sequence[AgentRuntime],
         bus: InMemoryBus,
         within_m: float,
+        sensing: FleetSensing,
     ) -> None:
         self.sides = list(sides)
-        self._members: list[tuple[AgentRuntime, Agent, Navigator, SimVehicle]] = []
+        self.sensing = sensing
+        self._members: list[tuple[AgentRuntime, Agent, Navigator, Backend]] = []
         for side in self.sides:
-            b = side.agent.navigator.backend
-            assert isinstance(b, SimVehicle)
-            self._members.append((side, side.agent, side.agent.navigator, b))
+            nav = side.agent.navigator
+            self._members.append((side, side.agent, nav, nav.backend))
         self._agent_list = [m[1] for m in self._members]
         self._navs = [m[2] for m in self._members]
         self._backends = [m[3] for m in self._members]
-        self._vehicles = [b.vehicle for b in self._backends]
         self._ranks = np.arange(len(self._members), dtype=np.int64)
         """Each agent's place in the loop (its rank for the rows it shares)."""
         self._own_row: NDArray[np.int64] | None = None
@@ -83,11 +84,9 @@ class FleetFollow:
         self._ground = np.zeros(0, dtype=np.bool_)
         self.bus = bus
         self.within_m = float(within_m)
-        self.sim = self._backends[0].sim
-        cells = self.sim.world.cells
-        self._cells = (cells.points, cells.starts, cells.lo, float(cells.cell), cells.dims)
-        self._radius = float(self.sim.config.lidar_range_m)
-        self._sphere = sphere_points()
+        self._cells = sensing.cells
+        self._radius = float(sensing.lidar_range_m)
+        self._sphere = sensing.sphere
         nav = self._navs[0]  # (build checked: every navigator has the same settings)
         cfg = nav.config
         self._look = float(cfg.lookahead_m)
@@ -103,25 +102,21 @@ class FleetFollow:
 
     @classmethod
     def build(
-        cls, sides: Sequence[AgentRuntime], bus: InMemoryBus, within_m: float
+        cls,
+        sides: Sequence[AgentRuntime],
+        bus: InMemoryBus,
+        within_m: float,
+        sensing: FleetSensing | None,
     ) -> FleetFollow | None:
-        """A :class:`FleetFollow` for these agents, or None where it does not apply (module
-        docstring)."""
-        if len(sides) < MIN_BATCH:
+        """A :class:`FleetFollow` for these agents, with what their vehicles' provider offers
+        (``sensing``), or None where it does not apply (module docstring)."""
+        if sensing is None or len(sides) < MIN_BATCH:
             return None
-        sim = None
         configs = set()
         for side in sides:
             a = side.agent
             nav = a.navigator
-            b = nav.backend
-            if type(b) is not SimVehicle or b.kind is not VehicleKind.MULTIROTOR:
-                return None
-            if sim is None:
-                sim = b.sim
-            if b.sim is not sim or nav.controller != "track":
-                return None
-            if nav.sensors is not b or not b.owns_sensors:  # its LiDAR: the simulator's
+            if nav.controller != "track" or not sensing.covers(nav.backend, nav.sensors):
                 return None
             link = a.link
             if not isinstance(link, InMemoryAgentLink) or link.bus is not bus:
@@ -132,10 +127,9 @@ class FleetFollow:
             configs.add(
                 (c.lookahead_m, c.tolerance_m, c.speed_m_s, nav._apf.config.packed.tobytes())
             )
-        assert sim is not None
-        if sim.config.dust_points or len(configs) != 1:
+        if len(configs) != 1:
             return None
-        return cls(sides, bus, within_m)
+        return cls(sides, bus, within_m, sensing)
 
     def control(self, now: float) -> None:
         """This step's setpoints for every agent, in the loop's order (module docstring)."""
@@ -172,7 +166,7 @@ class FleetFollow:
             live = np.array(alive, dtype=bool)
             rank[own_row[live]] = self._ranks[live]
             cur[own_row[live]] = pos[live]
-        table = self.sim.bodies()
+        table = self.sensing.bodies()
         if table.key[1] != self._bodies_for:
             index = table.index
             self._body = np.array([index[a.id] for a in self._agent_list], dtype=np.int64)
@@ -192,10 +186,7 @@ class FleetFollow:
         states[:, 0:3] = pos[sel]
         states[:, 3:6] = [tels[k].velocity for k in batch]
         states[:, 6] = [tels[k].yaw for k in batch]
-        vehs = [self._vehicles[k] for k in batch]
-        poses = np.empty((len(batch), 4))
-        poses[:, 0:3] = [v.x[:3] for v in vehs]
-        poses[:, 3] = [v.yaw for v in vehs]
+        poses = self.sensing.true_poses([self._backends[k] for k in batch])
         out = fleet_follow(
             self._table, self._offsets, np.array([c.seg for c in cmds], dtype=np.int64),
             states, poses, self._body[sel], self._targets, self._ground,

@@ -253,7 +253,9 @@ class MissionRun:
             for a in self.agents.values()
         ]
         self._fleet = (
-            FleetFollow.build(self.agent_sides, self.bus, NEIGHBOUR_RANGE_M)
+            FleetFollow.build(
+                self.agent_sides, self.bus, NEIGHBOUR_RANGE_M, self.provider.fleet_sensing()
+            )
             if fleet_step and part is None
             else None
         )

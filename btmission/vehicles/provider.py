@@ -46,9 +46,12 @@ from dataclasses import dataclass
 from importlib import metadata
 from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
+import numpy as np
+from numpy.typing import NDArray
+
 from btmission.errors import BtmissionError
 from btmission.spec.vehicleref import SIM, VehicleRef
-from btmission.types import Vec3
+from btmission.types import FloatArray, Vec3
 from btmission.vehicles.base import Backend, Sensors, VehicleKind
 
 if TYPE_CHECKING:
@@ -100,8 +103,9 @@ class AttachOptions:
     """A ground robot's top speed (m/s): the navigator's ``speed_m_s``. None: the model's."""
 
 
-PHASES = ("prepare", "attach", "start", "step", "close")
-"""The provider's phases, in the order a run calls them (every provider has them all)."""
+PHASES = ("prepare", "attach", "start", "step", "close", "fleet_sensing")
+"""The provider's phases, in the order a run calls them, and its one capability query (every
+provider has them all; :class:`ProviderBase` gives the ones most need not write)."""
 
 
 @runtime_checkable
@@ -154,16 +158,72 @@ class VehicleProvider(Protocol):
         """Release sockets, threads and vehicles (idempotent)."""
         ...
 
+    def fleet_sensing(self) -> FleetSensing | None:
+        """The provider's offer to a fleet's batched control step, if it ray-casts its
+        vehicles' LiDAR itself (the simulator: :class:`FleetSensing`); None otherwise."""
+        ...
+
+
+class BodyTable(Protocol):
+    """Every vehicle's body sphere at one step, as :meth:`FleetSensing.bodies` gives it."""
+
+    @property
+    def key(self) -> tuple[int, int]:
+        """Changes when the table does: (step, vehicles)."""
+        ...
+
+    @property
+    def index(self) -> dict[str, int]:
+        """Agent id → its row."""
+        ...
+
+    @property
+    def centres(self) -> FloatArray: ...
+
+    @property
+    def radii(self) -> FloatArray: ...
+
+
+class FleetSensing(Protocol):
+    """What a provider that ray-casts its vehicles' LiDAR itself (the simulator) offers the run's
+    fleet control step (:mod:`btmission.runtime.fleetstep`), which then computes every covered
+    drone's scan, avoidance and route following in one compiled call, to the bit what each
+    vehicle's own sensors and navigator would."""
+
+    cells: tuple[FloatArray, NDArray[np.int64], FloatArray, float, NDArray[np.int64]]
+    """The rock-face points sorted into cells: points, starts, lower corner, cell size, dims
+    (:mod:`btmission.world._surface_kernels`)."""
+    lidar_range_m: float
+    sphere: FloatArray
+    """The unit points another vehicle's body gives in a scan (scaled to its radius)."""
+
+    def covers(self, backend: Backend, sensors: Sensors | None) -> bool:
+        """Whether this vehicle (its backend and the sensors its navigator reads) is one whose
+        LiDAR the batch computes exactly: a multirotor of this provider, its sensors its own."""
+        ...
+
+    def bodies(self) -> BodyTable:
+        """Every vehicle's body sphere now."""
+        ...
+
+    def true_poses(self, backends: Sequence[Backend]) -> FloatArray:
+        """Where these vehicles truly are, ``(n, 4)``: x, y, z, yaw (the scans' origins)."""
+        ...
+
 
 class ProviderBase:
     """The phases a provider without links or a clock of its own to restart need not write:
-    :meth:`prepare` and :meth:`start` do nothing."""
+    :meth:`prepare` and :meth:`start` do nothing, and it offers no :class:`FleetSensing`."""
 
     def prepare(self, vehicles: Sequence[VehicleRef]) -> None:
         """Nothing to open ahead of the vehicles."""
 
     def start(self) -> None:
         """The clock is the provider's own and starts with it."""
+
+    def fleet_sensing(self) -> FleetSensing | None:
+        """No batched LiDAR: each vehicle's sensors are its own."""
+        return None
 
 
 ProviderFactory = Callable[["Mission", "VoxelMap", int], VehicleProvider]

@@ -1,6 +1,8 @@
 # mypy: allow-untyped-defs
-"""Compiled look-ups of the simulator's rock-face points, for the short-range LiDAR of
-:class:`~btmission.backends.mapsensors.MapSensors`.
+"""Compiled look-ups of a map's rock-face points, for short-range LiDAR ray casting: the
+simulator's (:class:`~btmission.backends.mapsensors.MapSensors`) and the fleet control step's
+(:mod:`btmission.runtime.fleetstep`). Pure geometry on a grid of points, so it sits with the
+world model below both.
 
 The face points are sorted into a grid of cubic cells (``starts[c]:starts[c + 1]`` are the rows of
 cell ``c``, cells numbered x-major); a query visits the cells the ball overlaps and keeps the points
