@@ -97,8 +97,9 @@ def auction(
     from dataclasses import replace
 
     from btmission.allocation.auction import AuctionConfig, AuctionState, announce, auction_round
-    from btmission.allocation.bidder import AgentState, Bidder, BidError
-    from btmission.allocation.tasks import TaskState, pool_from_mission
+    from btmission.allocation.bidder import AgentState, BidError
+    from btmission.allocation.tasks import TaskState
+    from btmission.runtime.mission_auction import bidder_for_agent, pool_from_mission
     from btmission.spec.mission import load_mission
 
     m = load_mission(mission_file)
@@ -134,7 +135,7 @@ def auction(
     state = announce(AuctionState(cfg, pool), at_s)
     ann = state.announcement
     try:
-        bids = [Bidder.for_agent(m, a).bid(ann, g, at_s) for a, g in agents.items()]
+        bids = [bidder_for_agent(m, a).bid(ann, g, at_s) for a, g in agents.items()]
     except BidError as exc:
         raise BadInput(f"{mission_file}: {exc}") from None
     assignments, state, report = auction_round(state, bids, at_s)

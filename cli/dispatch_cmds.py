@@ -34,7 +34,7 @@ MAP_HELP = "A built-in map (static_npr, static_spr, mine) or a map YAML file."
 def resolve_map(ref: str) -> Any:
     """A built-in map by name, else a map file (SpecError → exit 2 via handle_spec_errors)."""
     from btmission.dispatch.maps import BUILTIN_MAPS
-    from btmission.dispatch.topomap import load_topomap
+    from btmission.spec.topomap import load_topomap
 
     if ref in BUILTIN_MAPS:
         return BUILTIN_MAPS[ref]()
@@ -122,7 +122,8 @@ def map_cmd(map_ref: str, output: Path | None) -> None:
     Example:
       btmission dispatch map mine -o mine.png
     """
-    from btmission.dispatch.topomap import NodeKind, dump_topomap
+    from btmission.dispatch.topomap import NodeKind
+    from btmission.spec.topomap import dump_topomap
 
     tmap = resolve_map(map_ref)
     click.echo(

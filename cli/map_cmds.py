@@ -6,7 +6,7 @@ import json
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import click
 
@@ -23,6 +23,9 @@ from btmission.cli.common import (
     parse_numbers,
     write_output,
 )
+
+if TYPE_CHECKING:
+    from btmission.planning.risk import CostMap
 
 F = TypeVar("F", bound=Callable[..., Any])
 MAP_HELP = "A map file (.npz, .ply, .pcd) or a mission file (.yaml: its world)."
@@ -283,9 +286,14 @@ def show_cmd(
         + (f" (max {vc.max():.2f})" if vc.size else "")
     )
     if png is not None:
-        from btmission.world.render import top_view_png
+        write_output(_top_view(cm, markers=markers, z=z, title=f"{map_file.name}"), png)
 
-        write_output(top_view_png(cm, markers=markers, z=z, title=f"{map_file.name}"), png)
+
+def _top_view(cm: CostMap, **kw: Any) -> bytes:
+    """The top view of a cost map's voxel map, shaded by its risk layer (eq. 4 without the step)."""
+    from btmission.world.render import top_view_png
+
+    return top_view_png(cm.map, cm.voxel_cost, cost_label="voxel cost c_r + c_u·unknown", **kw)
 
 
 def _params(risk_radius: float | None, unknown_cost: float | None) -> Any:
@@ -392,10 +400,8 @@ def plan_cmd(
         for p in waypoints:
             click.echo(f"  {_f(p)}")
     if png is not None:
-        from btmission.world.render import top_view_png
-
         title = f"{map_file.name}: cost {res.cost:.1f}, length {res.length_m:.1f} m"
-        write_output(top_view_png(cm, path=res.path, markers=markers, title=title), png)
+        write_output(_top_view(cm, path=res.path, markers=markers, title=title), png)
 
 
 def _f(p: Any) -> str:

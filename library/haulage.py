@@ -203,7 +203,7 @@ def truck_starts(mission: MissionFile, tmap: TopoMap) -> tuple[dict[str, int], l
 def check_mission(mission: MissionFile) -> list[Diagnostic]:
     """What :class:`HaulageFleet` would refuse, found before any run (``validate`` and ``run``
     call it through :func:`btmission.runtime.runcheck.run_problems`)."""
-    from btmission.dispatch.maps import topomap_ref
+    from btmission.spec.topomap import topomap_ref
 
     if mission.spec.world.topomap is None:
         return [_no_topomap(mission)]

@@ -23,14 +23,9 @@ from btmission.allocation.auction import (
     costs_in_range,
     participation_k,
 )
-from btmission.allocation.bidder import AgentState, Bidder
-from btmission.allocation.tasks import (
-    PoolError,
-    TaskInfo,
-    TaskPool,
-    TaskState,
-    pool_from_mission,
-)
+from btmission.allocation.bidder import AgentState
+from btmission.allocation.tasks import PoolError, TaskInfo, TaskPool, TaskState
+from btmission.runtime.mission_auction import bidder_for_agent, pool_from_mission
 from btmission.spec.mission import load_mission
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -61,7 +56,7 @@ def test_fig7_inspection_steals_the_agent_before_the_pick_not_after() -> None:
     to it; (c) after the pick (commit point, k_bt = 0) inspection I2 arrives and G1 stays."""
     m = load_mission(PICK)
     s = AuctionState(AuctionConfig.from_spec(m.spec.coordination), pool_from_mission(m))
-    bidder = Bidder.for_agent(m, "G1")
+    bidder = bidder_for_agent(m, "G1")
 
     def rnd(s: AuctionState, agent: AgentState, now: float) -> tuple[str | None, AuctionState]:
         s = announce(s, now)
@@ -135,7 +130,7 @@ def test_new_task_is_assigned_in_the_first_round_after_it_arrives() -> None:
     """Seed 000: T7, added at t = 116 s, is announced and allocated at the first round ≥ 116 s."""
     m = load_mission(MINE)
     s = AuctionState(AuctionConfig.from_spec(m.spec.coordination), pool_from_mission(m))
-    bidders = {a.id: Bidder.for_agent(m, a.id) for a in m.agents}
+    bidders = {a.id: bidder_for_agent(m, a.id) for a in m.agents}
     where = {a.id: a.start for a in m.agents}
     location = {t.id: tuple(t.fields["location"]) for t in m.tasks}
 

@@ -22,6 +22,7 @@ from btmission.allocation.bidder import (
     k_bt,
 )
 from btmission.allocation.tasks import TaskInfo
+from btmission.runtime.mission_auction import bidder_for_agent, task_info
 from btmission.spec.mission import load_mission, load_mission_text
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -52,7 +53,7 @@ class CountingProvider:
 
 def test_costs_follow_eq_9_and_10() -> None:
     m = load_mission(PICK)
-    b = Bidder.for_agent(m, "G1")
+    b = bidder_for_agent(m, "G1")
     ann = announcement(P1, I1)
     at = (1.0, 1.0, 0.0)
     c = b.costs(ann, AgentState("G1", at))
@@ -68,7 +69,7 @@ def test_k_bt_zero_after_the_commit_point() -> None:
     """Once the pick is done the agent bids 0 on its task (eq. 8 with k_bt = 0) and nothing
     else, and says so in the bid."""
     m = load_mission(PICK)
-    b = Bidder.for_agent(m, "G1")
+    b = bidder_for_agent(m, "G1")
     ann = announcement(P1, I1, I2)
     busy = AgentState("G1", (9, 2, 0), task="P1", committed=True)
     assert k_bt(busy, "P1") == 0.0 and k_bt(busy, "I1") == 1.0
@@ -232,14 +233,14 @@ def test_task_types_the_agent_cannot_do_get_no_bid() -> None:
         """
     )
     m = load_mission_text(text, "mixed.yaml")
-    drone, rover = Bidder.for_agent(m, "D1"), Bidder.for_agent(m, "G1")
+    drone, rover = bidder_for_agent(m, "D1"), bidder_for_agent(m, "G1")
     assert set(drone.task_types) == {"inspect"} and set(rover.task_types) == {"inspect", "deliver"}
-    ann = announcement(*(TaskInfo.from_mission(t, m) for t in m.tasks))
+    ann = announcement(*(task_info(t, m) for t in m.tasks))
     agents = [AgentState("D1", (0.0, 0.0, 0.0)), AgentState("G1", (1.0, 0.0, 0.0))]
     d, g = bids_for({"D1": drone, "G1": rover}, agents, ann, 0.0)
     assert math.isnan(d.cost_of("P1")) and d.cost_of("I1") > 0
     assert g.cost_of("P1") == pytest.approx(2.0 + 3.0)
-    assert set(Bidder.for_agent(m, "G1", types=["deliver"]).task_types) == {"deliver"}
+    assert set(bidder_for_agent(m, "G1", types=["deliver"]).task_types) == {"deliver"}
 
 
 def test_distance_function_and_constants() -> None:

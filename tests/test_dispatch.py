@@ -34,16 +34,8 @@ from btmission.dispatch.missions import (
 )
 from btmission.dispatch.push_and_swap import push_and_swap
 from btmission.dispatch.static import plan_static, random_instance
-from btmission.dispatch.topomap import (
-    Node,
-    NodeKind,
-    Segment,
-    TopoMap,
-    TopoMapError,
-    dump_topomap,
-    load_topomap,
-    load_topomap_text,
-)
+from btmission.dispatch.topomap import Node, NodeKind, Segment, TopoMap, TopoMapError
+from btmission.spec.topomap import dump_topomap, load_topomap, load_topomap_text
 
 T, S, Q = NodeKind.TERMINAL, NodeKind.PAUSE, NodeKind.TRANSIT
 

@@ -9,7 +9,7 @@ import pytest
 from click.testing import CliRunner
 
 from btmission.cli.main import cli
-from btmission.dispatch.topomap import load_topomap
+from btmission.spec.topomap import load_topomap
 
 
 def run(runner: CliRunner, *args: str) -> tuple[int, str, str]:

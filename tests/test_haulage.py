@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from btmission.allocation.bidder import AgentState, Bidder, BidError, StraightLine
+from btmission.allocation.bidder import AgentState, BidError, StraightLine
 from btmission.allocation.tasks import TaskInfo
 from btmission.backends.fake import FakeProvider
 from btmission.backends.sim import SimConfig
@@ -31,6 +31,7 @@ from btmission.dispatch.topomap import Node, NodeKind, Segment, TopoMap
 from btmission.plugins import load_library
 from btmission.runtime.coordinator import TaskError
 from btmission.runtime.events import Recorder
+from btmission.runtime.mission_auction import bidder_for_agent
 from btmission.runtime.navigation import track_unicycle
 from btmission.runtime.report import build_report, dispatch_png
 from btmission.runtime.roads import RoadCosts, RoadMapError
@@ -264,7 +265,7 @@ def test_road_costs_follow_the_roads() -> None:
 def test_bidder_resolves_place_names() -> None:
     m = load_mission(MISSION)
     roads = RoadCosts(mine_map(), lambda x, y: 0.0)
-    bidder = Bidder.for_agent(m, "H1", provider=roads, places=roads.places)
+    bidder = bidder_for_agent(m, "H1", provider=roads, places=roads.places)
     task = next(t for t in m.tasks if t.id == "C4")
     info = TaskInfo(task.id, task.type, dict(task.fields))
     state = AgentState("H1", roads.place("O"), None, False)

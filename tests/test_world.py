@@ -410,6 +410,10 @@ def test_check_mission_world_bad_map(tmp_path: Path) -> None:
     m = load_mission(path)
     (d,) = check_mission_world(m)
     assert d.code == "bad-map" and d.where.line == 4 and "not a readable .npz" in d.message
+    # located in the text the mission was read from, even when no file of that name exists
+    unsaved = load_mission_text(MISSION, str(tmp_path / "unsaved.yaml"))
+    (d2,) = check_mission_world(unsaved)
+    assert d2.code == "bad-map" and d2.where.line == 4 and d2.where.file.endswith("unsaved.yaml")
 
 
 def test_example_missions_are_valid_on_their_maps() -> None:

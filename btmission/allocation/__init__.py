@@ -4,7 +4,10 @@ Seed 003 §IV-V and seed 000 §IV-B: every round the auctioneer announces the op
 the agents' bids (cost estimates, eq. 8-10) and solves the assignment (eq. 6-7) that assigns the
 most tasks at the least total cost, with priorities and multi-stage commit points.
 
-    from btmission.allocation import AuctionState, AuctionConfig, auction_round, pool_from_mission
+    from btmission.allocation import AuctionState, AuctionConfig, TaskPool, auction_round
+
+The allocation works on tasks and bids, not on mission files: the pool and the bidders of a
+mission are built by :mod:`btmission.runtime.mission_auction`.
 """
 
 from btmission.allocation.auction import (
@@ -20,14 +23,7 @@ from btmission.allocation.auction import (
 from btmission.allocation.bidder import AgentState, Bidder, CostProvider, StraightLine, k_bt
 from btmission.allocation.loop import AuctionLoop, Inbox, ManualClock, Progress, WallClock
 from btmission.allocation.solvers import AssignmentProblem, Matching, evaluate, solve
-from btmission.allocation.tasks import (
-    PoolTask,
-    TaskEvent,
-    TaskInfo,
-    TaskPool,
-    TaskState,
-    pool_from_mission,
-)
+from btmission.allocation.tasks import PoolTask, TaskEvent, TaskInfo, TaskPool, TaskState
 
 __all__ = [
     "AgentState",
@@ -56,6 +52,5 @@ __all__ = [
     "auction_round",
     "evaluate",
     "k_bt",
-    "pool_from_mission",
     "solve",
 ]

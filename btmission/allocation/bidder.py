@@ -34,7 +34,7 @@ from __future__ import annotations
 import ast
 import math
 from collections import OrderedDict
-from collections.abc import Callable, Collection, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
@@ -44,10 +44,38 @@ import numpy.typing as npt
 from btmission.allocation.auction import Announcement, Bid, cheapest, participation_k
 from btmission.allocation.tasks import TaskInfo
 from btmission.errors import BtmissionError
-from btmission.spec.mission import Mission, TaskType
 from btmission.types import FloatArray
 
 Point = tuple[float, float, float]
+
+
+class CostFunction(Protocol):
+    """A task type's cost expression, as the bidder uses it (a mission's are
+    :class:`btmission.spec.costexpr.CostExpr`)."""
+
+    @property
+    def text(self) -> str:
+        """The expression as written, e.g. ``path_cost(location)``."""
+        ...
+
+    @property
+    def tree(self) -> ast.Expression:
+        """The parsed expression (the bidder recognises a lone ``path_cost(field)``)."""
+        ...
+
+    def evaluate(
+        self, call: Callable[[str, tuple[object, ...]], float], fields: Mapping[str, object]
+    ) -> float:
+        """The cost with ``call(function_name, argument_values)`` supplying the path costs."""
+        ...
+
+
+class BidType(Protocol):
+    """What the bidder reads of a task type: its cost (a mission's task types are
+    :class:`btmission.spec.mission.TaskType`)."""
+
+    @property
+    def cost(self) -> CostFunction: ...
 
 
 @runtime_checkable
@@ -93,7 +121,7 @@ def k_bt(agent: AgentState, task_id: str) -> float:
     return 0.0 if agent.committed and task_id == agent.task else 1.0
 
 
-def _single_path_cost(tt: TaskType) -> str | None:
+def _single_path_cost(tt: BidType) -> str | None:
     """The task field ``X`` when the type's cost is exactly ``path_cost(X)`` (eq. 9's Γ1): such
     bids can be computed for all tasks of the type at once by a provider's ``path_costs``."""
     cached = _SINGLE.get(tt.cost.text, _MISSING)
@@ -203,12 +231,13 @@ class Bidder:
 
     ``task_types`` are the types this agent can do (others get no bid). Path costs between two
     task fields (``path_cost(pickup, dropoff)``) do not depend on the agent and are cached
-    (least recently used, ``cache_size`` entries).
+    (least recently used, ``cache_size`` entries). The bidder of a mission's agent is built by
+    :func:`btmission.runtime.mission_auction.bidder_for_agent`.
     """
 
     def __init__(
         self,
-        task_types: Mapping[str, TaskType],
+        task_types: Mapping[str, BidType],
         provider: CostProvider | None = None,
         participation: float = 1.0,
         *,
@@ -239,31 +268,6 @@ class Bidder:
         self.repeated = 0
         """Bids that repeated the previous one's costs (module docstring) instead of computing
         them."""
-
-    @classmethod
-    def for_agent(
-        cls,
-        mission: Mission,
-        agent_id: str,
-        provider: CostProvider | None = None,
-        *,
-        types: Collection[str] | None = None,
-        places: Mapping[str, Point] | None = None,
-    ) -> Bidder:
-        """The bidder of ``agent_id``: the task types its library can do, the mission's
-        participation."""
-        from btmission.synthesis.mission_tree import can_do
-
-        lib = mission.library_of(agent_id).library
-        doable = {
-            name: tt
-            for name, tt in mission.task_types.items()
-            if can_do(lib, tt.goals) is None and (types is None or name in types)
-        }
-        coord = mission.spec.coordination
-        return cls(
-            doable, provider, coord.participation, switch_cost=coord.switch_cost, places=places
-        )
 
     def _static_cost(self, a: Point, b: Point) -> float:
         key = (a, b)

@@ -32,7 +32,6 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 from btmission.errors import BtmissionError
-from btmission.spec.mission import Mission, Task
 
 
 class TaskState(str, enum.Enum):
@@ -82,19 +81,6 @@ class TaskInfo:
             raise ValueError(f"task '{self.id}': priority must be > 0, got {self.priority}")
         if not (self.arrival_s >= 0 and math.isfinite(self.arrival_s)):
             raise ValueError(f"task '{self.id}': arrival time must be ≥ 0, got {self.arrival_s}")
-
-    @classmethod
-    def from_mission(cls, task: Task, mission: Mission) -> TaskInfo:
-        """A mission task, with its effective priority and whether its type has a commit point."""
-        tt = mission.task_types[task.type]
-        return cls(
-            task.id,
-            task.type,
-            dict(task.fields),
-            task.priority,
-            task.at,
-            tt.commit_after is not None,
-        )
 
 
 @dataclass(frozen=True)
@@ -373,8 +359,3 @@ class TaskPool:
             holder = f"held by {t.agent}" if t.agent else "not assigned"
             raise PoolError(f"agent '{agent}' cannot {verb} task '{task_id}': it is {holder}")
         return t
-
-
-def pool_from_mission(mission: Mission) -> TaskPool:
-    """Every task of the mission file, each open from its ``at`` time."""
-    return TaskPool().add_all(TaskInfo.from_mission(t, mission) for t in mission.tasks)

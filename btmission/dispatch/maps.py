@@ -32,7 +32,6 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import replace
-from pathlib import Path
 
 from btmission.dispatch.topomap import Node, NodeKind, Segment, TopoMap
 
@@ -208,13 +207,3 @@ BUILTIN_MAPS = {
     "mine_table6": mine_table6_map,
 }
 """Maps known by name to the CLI (``--map static_npr``); any other ``--map`` is a YAML file."""
-
-
-def topomap_ref(ref: str, base_dir: Path) -> TopoMap:
-    """A mission's ``world.topomap``: a built-in map by name, else a map file relative to the
-    mission's directory (the mission loader has already checked that it exists and is valid)."""
-    if ref in BUILTIN_MAPS:
-        return BUILTIN_MAPS[ref]()
-    from btmission.dispatch.topomap import load_topomap
-
-    return load_topomap(base_dir / ref)

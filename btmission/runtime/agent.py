@@ -44,7 +44,7 @@ import py_trees
 from py_trees.common import Status
 
 from btmission.allocation.auction import Announcement
-from btmission.allocation.bidder import AgentState, Bidder, CostProvider
+from btmission.allocation.bidder import AgentState, CostProvider
 from btmission.allocation.loop import Progress
 from btmission.allocation.tasks import TaskInfo
 from btmission.diagnostics import Diagnostic, Severity, SpecError
@@ -70,6 +70,7 @@ from btmission.runtime.leaves import (
     describe,
     setup_failed,
 )
+from btmission.runtime.mission_auction import bidder_for_agent
 from btmission.runtime.navigation import Navigator, route_points
 from btmission.runtime.paths import PathCosts
 from btmission.runtime.substitution import Substitutions
@@ -240,7 +241,7 @@ class Agent:
                 f"to about {(main_thread_limit() - sys.getrecursionlimit()) // 4:,} levels with "
                 "this stack (ulimit -s); synth, the exports and the dry run take deeper ones",
                 format_path(path), mission.locate(path))])  # fmt: skip
-        self.bidder = Bidder.for_agent(
+        self.bidder = bidder_for_agent(
             mission,
             agent_id,
             provider=cost_provider if cost_provider is not None else paths,

@@ -86,8 +86,8 @@ def road_costs(run: MissionRun) -> RoadCosts | None:
     ref = run.mission.spec.world.topomap
     if ref is None:
         return None
-    from btmission.dispatch.maps import topomap_ref
     from btmission.runtime.roads import RoadCosts, RoadMapError
+    from btmission.spec.topomap import topomap_ref
 
     top = run.map.origin[2] + run.map.shape[2] * run.map.resolution
     try:

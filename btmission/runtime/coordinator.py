@@ -44,7 +44,7 @@ from typing import Any
 
 from btmission.allocation.auction import Announcement, AuctionConfig, AuctionState
 from btmission.allocation.loop import AuctionLoop, Inbox, Progress, RoundResult
-from btmission.allocation.tasks import PoolError, TaskInfo, TaskState, pool_from_mission
+from btmission.allocation.tasks import PoolError, TaskInfo, TaskState
 from btmission.errors import BtmissionError
 from btmission.runtime.bus import (
     AgentStatus,
@@ -55,6 +55,7 @@ from btmission.runtime.bus import (
     ProgressKey,
     progress_key,
 )
+from btmission.runtime.mission_auction import pool_from_mission
 from btmission.runtime.recovery import Recovered, logged_key
 from btmission.spec.mission import Mission
 

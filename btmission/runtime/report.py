@@ -483,9 +483,9 @@ def timeline_png(rep: MissionReport, path: str | Path) -> Path:
 def dispatch_png(rep: MissionReport, path: str | Path) -> Path:
     """Fig. 3-style chart of what the fleet dispatcher planned (seed 004): one row per truck, its
     dispatched missions joined — stops, drives, prioritised (loaded) drives, pause visits."""
-    from btmission.dispatch.maps import topomap_ref
     from btmission.dispatch.plot import gantt_png
     from btmission.dispatch.service import missions_from_records
+    from btmission.spec.topomap import topomap_ref
 
     ref = (rep.header.get("world") or {}).get("topomap")
     if not ref or not rep.dispatched:

@@ -915,7 +915,8 @@ def _check_topomap(
 ) -> tuple[list[Diagnostic], frozenset[str] | None]:
     """Problems with ``world.topomap``, and its node names when it loads (dispatch is imported
     only when a mission names one)."""
-    from btmission.dispatch.maps import BUILTIN_MAPS, topomap_ref
+    from btmission.dispatch.maps import BUILTIN_MAPS
+    from btmission.spec.topomap import topomap_ref
 
     path = ("world", "topomap")
     if ref not in BUILTIN_MAPS and not (base / ref).exists():

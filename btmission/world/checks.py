@@ -140,18 +140,15 @@ def check_mission_world(mission: Any) -> list[Diagnostic]:
     """Build the mission's world and run :func:`check_mission_map` on it.
 
     A world that cannot be built (unreadable map file, a mine too small...) is one ``bad-map``
-    error located at the mission's ``world.map``.
+    error located at the mission's ``world.map`` (``mission.locate``: the mission keeps the file
+    it was read from, with every item's line).
     """
-    from btmission.spec.source import read_yaml
     from btmission.world.build import world_from_spec
     from btmission.world.voxel import MapError
 
     try:
         vm = world_from_spec(mission.spec.world, mission.base_dir)
     except MapError as exc:
-        try:
-            where = read_yaml(mission.file).locate(("world", "map"))
-        except Exception:  # the file was readable a moment ago; fall back to the file alone
-            where = Location(mission.file)
+        where = mission.locate(("world", "map"))
         return [Diagnostic(Severity.ERROR, "bad-map", str(exc), "world.map", where)]
     return check_mission_map(mission, vm)
