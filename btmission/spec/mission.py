@@ -720,7 +720,7 @@ def check_added_task(mission: Mission, src: Source, places: frozenset[str] | Non
 
 def compile_mission(spec: MissionSpec, src: Source) -> Mission:
     """Check everything that needs more than the schema. Raises :class:`SpecError` with all errors."""
-    from btmission.synthesis.mission_tree import check_agent_trees
+    from btmission.spec.agent_trees import check_agent_trees
 
     diags: list[Diagnostic] = []
     add = _adder(src, diags)

@@ -16,23 +16,58 @@ active". For an agent with library L the tree is::
 
 A multi-stage type's ``commit_after`` condition (seed 003) is recorded on its branch; the runtime
 sets k_bt = 0 once that condition has held (eq. 8-10). The commit condition must occur in the
-type's subtree, otherwise the agent could never commit.
+type's subtree, otherwise the agent could never commit
+(:func:`btmission.spec.agent_trees.check_agent_trees` checks every agent's trees of a mission).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
-from btmission.diagnostics import Diagnostic, Severity
+from btmission.diagnostics import Diagnostic
 from btmission.spec.library import Atom, Library
 from btmission.synthesis.backchain import Synthesis, Synthesizer
 from btmission.synthesis.tree import Arg, Kind, Node, Role, walk
 
-if TYPE_CHECKING:
-    from btmission.spec.mission import Mission
-    from btmission.spec.source import Source
+
+class TaskTypeModel(Protocol):
+    """What a mission's task type gives its branch of the tree."""
+
+    @property
+    def goals(self) -> tuple[Atom, ...]: ...
+
+    @property
+    def commit_after(self) -> Atom | None: ...
+
+
+class DefaultModel(Protocol):
+    """What a mission's default behaviour gives its branch."""
+
+    @property
+    def goals(self) -> tuple[Atom, ...]: ...
+
+    @property
+    def idle_timeout_s(self) -> float: ...
+
+
+class LibraryModel(Protocol):
+    @property
+    def library(self) -> Library: ...
+
+
+class MissionModel(Protocol):
+    """What the tree needs of a mission (:class:`btmission.spec.mission.Mission` is one):
+    synthesis sits below the mission's file model and reads it through this."""
+
+    @property
+    def task_types(self) -> Mapping[str, TaskTypeModel]: ...
+
+    @property
+    def default_behavior(self) -> DefaultModel | None: ...
+
+    def library_of(self, agent_id: str) -> LibraryModel: ...
 
 
 def task_assigned(task_type: str) -> Node:
@@ -98,7 +133,7 @@ class MissionTree:
 
 
 def build_mission_tree(
-    mission: Mission,
+    mission: MissionModel,
     agent_id: str,
     task_types: Sequence[str] | None = None,
     *,
@@ -150,82 +185,3 @@ def build_mission_tree(
         )
     root = Node(Kind.FALLBACK, f"mission({agent_id})", (), (*branches, WAIT), Role.MISSION)
     return MissionTree(agent_id, root, results, skipped)
-
-
-def check_agent_trees(mission: Mission, src: Source) -> list[Diagnostic]:
-    """Synthesise every (library, task type) pair and the default behaviour; report what fails."""
-    out: list[Diagnostic] = []
-    by_lib: dict[str, list[str]] = {}
-    for a in mission.agents:
-        by_lib.setdefault(a.library, []).append(a.id)
-    doable: dict[str, list[str]] = {t: [] for t in mission.task_types}
-    reported: set[tuple[str, str]] = set()
-
-    def add(
-        path: tuple[str | int, ...], message: str, code: str, sev: Severity = Severity.ERROR
-    ) -> None:
-        from btmission.spec.source import format_path
-
-        key = (format_path(path), message)
-        if key not in reported:
-            reported.add(key)
-            out.append(Diagnostic(sev, code, message, format_path(path), src.locate(path)))
-
-    for ref, agent_ids in by_lib.items():
-        loaded = mission.libraries.get(ref)
-        if loaded is None:
-            continue
-        lib = loaded.library
-        mt = build_mission_tree(mission, agent_ids[0])
-        who = f"{', '.join(agent_ids)} (library {lib.name})"
-        for tname, why in mt.skipped.items():
-            add(
-                ("task_types", tname, "goal"),
-                f"agents {who} cannot do this task type: {why}",
-                "cannot-do",
-                Severity.INFO,
-            )
-        for tname, s in mt.branches.items():
-            path: tuple[str | int, ...] = (
-                ("default_behavior", "goal")
-                if tname == "default"
-                else ("task_types", tname, "goal")
-            )
-            for d in s.diagnostics:
-                if d.severity is Severity.INFO:
-                    continue
-                add(path, f"for agents {who}: {d.message} [{d.where}]", d.code, d.severity)
-            if tname == "default":
-                free = list(s.inputs)
-                if free:
-                    add(
-                        path,
-                        f"the default behaviour has no task, but its goal uses {', '.join(free)}, "
-                        f"which library '{lib.name}' does not declare as variables",
-                        "undefined-parameter",
-                    )
-                continue
-            doable[tname].extend(agent_ids)
-            tt = mission.task_types[tname]
-            if tt.commit_after is not None and not contains_condition(s.tree, tt.commit_after):
-                add(
-                    ("task_types", tname, "commit_after"),
-                    f"'{tt.commit_after}' never occurs in the tree agents {who} synthesise for this type, "
-                    "so they could never commit",
-                    "commit-unreachable",
-                )
-        db = mission.default_behavior
-        if db is not None and db.goals and can_do(lib, db.goals) is not None:
-            add(
-                ("default_behavior", "goal"),
-                f"library '{lib.name}' (agents {', '.join(agent_ids)}) has no condition '{can_do(lib, db.goals)}'",
-                "cannot-do",
-            )
-    for tname, agents in doable.items():
-        if not agents:
-            add(
-                ("task_types", tname, "goal"),
-                "no agent's library can achieve this goal",
-                "no-capable-agent",
-            )
-    return out
