@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from btmission.backends.sim import Simulator
-    from btmission.runtime.bus import InMemoryBus
+    from btmission.links.bus import InMemoryBus
     from btmission.runtime.navigation import Navigator
 
 
@@ -107,7 +107,7 @@ def _vehicle_control() -> None:
     nav.step(0.0)
     sim.step()  # its contact test: the clearance to the walls
     sim.world.surface_points(np.array([1.0, 1.0, 0.5]), 1.0)
-    from btmission.runtime.bus import SMALL_FLEET, InMemoryBus
+    from btmission.links.bus import SMALL_FLEET, InMemoryBus
 
     bus = InMemoryBus()  # a fleet's neighbour query (past SMALL_FLEET agents)
     for i in range(SMALL_FLEET + 1):

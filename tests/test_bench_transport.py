@@ -74,7 +74,7 @@ def test_the_benchmark_runs_end_to_end_on_a_tiny_size(tmp_path: Path) -> None:
 
 def _page(date: str, rate: str, version: int = 2) -> str:
     return (
-        f"# Transport\n\n- date: {date}\n- load: quiet\n\n(`btmission.runtime.wire`, "
+        f"# Transport\n\n- date: {date}\n- load: quiet\n\n(`btmission.links.wire`, "
         f"v{version})\n\n| transport | rate Hz |\n| --- | ---: |\n| zenoh | {rate} |\n\n"
         "## Target\n\nRegenerate with `btmission bench transport`.\n"
     )

@@ -10,7 +10,7 @@ import pytest
 
 from btmission.allocation.auction import Announcement, Bid
 from btmission.allocation.loop import Progress
-from btmission.runtime.bus import (
+from btmission.links.bus import (
     AgentLink,
     AgentStatus,
     Assignment,

@@ -15,7 +15,7 @@ from typing import Any
 
 import pytest
 
-from btmission.runtime.bus import Assignment, InMemoryBus
+from btmission.links.bus import Assignment, InMemoryBus
 from btmission.runtime.distribution import (
     CLOCK_FOLLOW_WALL_S,
     ClockFollower,

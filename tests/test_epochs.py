@@ -10,8 +10,8 @@ import pytest
 
 from btmission.allocation.auction import Announcement
 from btmission.allocation.tasks import TaskInfo
+from btmission.links.bus import Assignment, InMemoryBus
 from btmission.runtime.agent import Agent, Freshness
-from btmission.runtime.bus import Assignment, InMemoryBus
 from btmission.runtime.coordinator import Coordinator, new_epoch
 from btmission.runtime.events import Recorder
 from btmission.runtime.runner import MissionRun

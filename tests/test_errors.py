@@ -149,7 +149,7 @@ def test_the_root_is_at_the_bottom() -> None:
         ("btmission.spec.costexpr.CostExprError", ValueError),
         ("btmission.world.voxel.MapError", ValueError),
         ("btmission.planning.dstar.PlanningError", ValueError),
-        ("btmission.runtime.wire.UnknownAnnouncement", ValueError),
+        ("btmission.links.wire.UnknownAnnouncement", ValueError),
         ("btmission.spec.source.FileRefused", OSError),
         ("btmission.vehicles.provider.ProviderError", LookupError),
         ("btmission.vehicles.provider.VehicleUnavailable", RuntimeError),
@@ -169,7 +169,7 @@ def test_subclasses_of_our_exceptions_keep_them() -> None:
     pairs = [
         ("btmission.backends.mavlink.MavlinkError", "btmission.vehicles.provider.VehicleUnavailable"),
         ("btmission.planning.dstar.PlanningError", "btmission.world.voxel.MapError"),
-        ("btmission.runtime.wire.UnknownAnnouncement", "btmission.runtime.wire.WireError"),
+        ("btmission.links.wire.UnknownAnnouncement", "btmission.links.wire.WireError"),
         ("btmission.transport.zenoh_link.ZenohMissing", "btmission.transport.zenoh_link.TransportError"),
     ]  # fmt: skip
     for sub, base in pairs:

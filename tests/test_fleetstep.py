@@ -116,7 +116,7 @@ def test_the_fleet_step_stays_out_where_it_would_change_the_run() -> None:
 def test_sharing_positions_at_once_is_sharing_them_one_by_one() -> None:
     import numpy as np
 
-    from btmission.runtime.bus import SMALL_FLEET, InMemoryBus
+    from btmission.links.bus import SMALL_FLEET, InMemoryBus
 
     def fill(bus: InMemoryBus, t: float) -> None:
         for i in range(SMALL_FLEET + 2):

@@ -12,7 +12,7 @@ import pytest
 from btmission.allocation.auction import AuctionConfig, AuctionState, Bid, auction_round
 from btmission.allocation.loop import Progress, Withdrawal, apply_progress
 from btmission.allocation.tasks import TaskInfo, TaskPool, TaskState
-from btmission.runtime.bus import ProgressAck
+from btmission.links.bus import ProgressAck
 from btmission.runtime.events import Event, Recorder
 from btmission.runtime.runner import MissionRun
 from btmission.spec.mission import Mission, load_mission

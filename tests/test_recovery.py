@@ -12,7 +12,7 @@ import pytest
 
 from btmission.allocation.loop import Progress
 from btmission.allocation.tasks import TaskPool, TaskState
-from btmission.runtime.bus import InMemoryBus, ProgressAck
+from btmission.links.bus import InMemoryBus, ProgressAck
 from btmission.runtime.commands import (
     AddTask,
     CancelTask,

@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from btmission.links.bus import InMemoryBus
 from btmission.planning.dstar import Planner
 from btmission.planning.risk import CostMap, RiskParams
-from btmission.runtime.bus import InMemoryBus
 from btmission.runtime.events import Recorder
 from btmission.runtime.navigation import Polyline, ground_obstacle_points
 from btmission.runtime.paths import PathCosts, inflate
@@ -142,7 +142,7 @@ def test_a_fleet_bus_finds_the_same_neighbours_as_the_pure_function() -> None:
     """Past SMALL_FLEET agents the bus picks neighbours with one vectorised test; the answer is
     advance_predictions' to the bit: the same arrays in the same order (ties too), own left out,
     multi-row predictions shifted."""
-    from btmission.runtime.bus import SMALL_FLEET, advance_predictions, first_points
+    from btmission.links.bus import SMALL_FLEET, advance_predictions, first_points
 
     rng = np.random.default_rng(4)
     bus = InMemoryBus()

@@ -26,8 +26,8 @@ import pytest
 from btmission.allocation.auction import Announcement, Bid
 from btmission.allocation.loop import Progress
 from btmission.allocation.tasks import TaskInfo
-from btmission.runtime import wire
-from btmission.runtime.bus import (
+from btmission.links import wire
+from btmission.links.bus import (
     AgentLink,
     AgentStatus,
     Assignment,

@@ -57,9 +57,9 @@ def test_a_run_loads_its_loop_kernels_while_it_builds() -> None:
     from btmission.backends import _multirotor_kernels as multirotor
     from btmission.bench.fleet import fleet_mission_text
     from btmission.control import _apf_kernels as apf
+    from btmission.links import _neighbour_kernels as near
     from btmission.planning import _kernels as plan
     from btmission.runtime import _fleet_kernels as fleet
-    from btmission.runtime import _neighbour_kernels as near
     from btmission.runtime import _route_kernels as route
     from btmission.runtime.runner import MissionRun
     from btmission.spec.mission import load_mission_text

@@ -15,8 +15,8 @@ from hypothesis import strategies as st
 from btmission.allocation.auction import Announcement, Bid
 from btmission.allocation.loop import Progress
 from btmission.allocation.tasks import TaskInfo
-from btmission.runtime.bus import AgentStatus, Assignment, MissionEnd, Prediction, ProgressAck
-from btmission.runtime.wire import (
+from btmission.links.bus import AgentStatus, Assignment, MissionEnd, Prediction, ProgressAck
+from btmission.links.wire import (
     KINDS,
     WIRE_VERSION,
     UnknownAnnouncement,

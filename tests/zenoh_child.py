@@ -18,7 +18,7 @@ import numpy as np
 
 from btmission.allocation.auction import Announcement, Bid
 from btmission.allocation.loop import Progress
-from btmission.runtime.bus import AgentStatus, Assignment, ProgressAck
+from btmission.links.bus import AgentStatus, Assignment, ProgressAck
 
 AGENT = "R1"
 STATUS = AgentStatus(AGENT, 1.25, (1.0, -2.5, 0.125), "OFFBOARD", True, 0.875, None, "takeoff")

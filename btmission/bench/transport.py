@@ -4,13 +4,13 @@
 (agents × tasks; 10×40 and 50×400 by default), whole coordination rounds over two transports in
 the same run:
 
-* **in-memory** — :class:`~btmission.runtime.bus.InMemoryBus`: messages are Python objects
+* **in-memory** — :class:`~btmission.links.bus.InMemoryBus`: messages are Python objects
   handed over synchronously (no encoding);
 * **zenoh** — :class:`~btmission.transport.zenoh_link.ZenohCoordinatorLink` in this process
   and one :class:`~btmission.transport.zenoh_link.ZenohAgentLink` per agent, each with its own
   Zenoh session (as on separate robots), in a separate process by default (the agents' side of
   a fleet), connected over ``tcp/127.0.0.1``: every message is encoded
-  (:mod:`btmission.runtime.wire`), sent and decoded.
+  (:mod:`btmission.links.wire`), sent and decoded.
 
 One **round** is: announce the open tasks → every agent computes its bid (straight-line costs
 from where it is to each announced task, its ``⌈p·n⌉`` cheapest kept; every agent moves 0.1 m
@@ -60,8 +60,8 @@ from btmission.allocation.tasks import TaskInfo, TaskPool
 from btmission.bench.auction import AREA_M, keep_cheapest
 from btmission.bench.synth import _load1, describe_load, environment
 from btmission.errors import BtmissionError
-from btmission.runtime import wire
-from btmission.runtime.bus import (
+from btmission.links import wire
+from btmission.links.bus import (
     AgentLink,
     AgentStatus,
     Assignment,
@@ -780,7 +780,7 @@ def markdown(b: TransportBench) -> str:
         "agents' `ZenohAgentLink`s are Zenoh clients of it, their side laid out as "
         + layouts
         + ". "
-        f"Every message is JSON-encoded (`btmission.runtime.wire`, v{wire.WIRE_VERSION}), sent "
+        f"Every message is JSON-encoded (`btmission.links.wire`, v{wire.WIRE_VERSION}), sent "
         f"and decoded; Zenoh's shared memory is {'on' if cfg.shared_memory else 'off'} (bytes go "
         "through TCP, as between machines). *same assignments*: the first timed rounds assigned "
         "exactly as in memory.",
@@ -836,7 +836,7 @@ def with_earlier_runs(new: str, previous: str | None) -> str:
     main, _, kept = previous.partition(EARLIER)
     date = re.search(r"^- date: (.*)$", main, re.M)
     load = re.search(r"^- load: (.*)$", main, re.M)
-    version = re.search(r"`btmission\.runtime\.wire`, v(\d+)", main)
+    version = re.search(r"`btmission\.(?:runtime|links)\.wire`, v(\d+)", main)  # (pages before 2026-12)
     lines = main.splitlines()
     start = next(i for i, line in enumerate(lines) if line.startswith("| transport |"))
     table = []

@@ -30,8 +30,9 @@ from numba import njit
 from btmission.control import _apf_kernels
 from btmission.control._apf_kernels import navigator_force
 from btmission.kernelcache import key_on_callees
-from btmission.runtime import _neighbour_kernels, _route_kernels
-from btmission.runtime._neighbour_kernels import near_points
+from btmission.links import _neighbour_kernels
+from btmission.links._neighbour_kernels import near_points
+from btmission.runtime import _route_kernels
 from btmission.runtime._route_kernels import carrots
 from btmission.world import _surface_kernels
 from btmission.world._surface_kernels import scan_points

@@ -48,9 +48,7 @@ from btmission.allocation.bidder import AgentState, CostProvider
 from btmission.allocation.loop import Progress
 from btmission.allocation.tasks import TaskInfo
 from btmission.diagnostics import Diagnostic, Severity, SpecError
-from btmission.plugins import Implementations
-from btmission.recursion import main_thread_limit, recursion_for_depth, recursion_limit
-from btmission.runtime.bus import (
+from btmission.links.bus import (
     AgentLink,
     AgentStatus,
     Assignment,
@@ -58,6 +56,8 @@ from btmission.runtime.bus import (
     ProgressKey,
     progress_key,
 )
+from btmission.plugins import Implementations
+from btmission.recursion import main_thread_limit, recursion_for_depth, recursion_limit
 from btmission.runtime.leaves import (
     BUILTIN_ACTIONS,
     BUILTIN_CONDITIONS,

@@ -22,8 +22,8 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
+from btmission.links.bus import AgentLink, neighbour_positions
 from btmission.runtime.agent import Agent
-from btmission.runtime.bus import AgentLink, neighbour_positions
 from btmission.runtime.distribution import ClockFollower, NoVehicles, remote_bid_window
 from btmission.runtime.events import LOG_FORMAT, LOG_VERSION, world_reference
 from btmission.runtime.leaves import ErrorReporter, RunContext, describe, setup_failed

@@ -19,7 +19,7 @@ Around that it
 * collects bids for ``coordination.bid_window_s`` after each announcement (0: in the same step,
   which the in-process bus gives); bids for an older announcement, or arriving when no round is
   collecting, are ignored and counted in the ``round`` event (``stale_bids``, ``late_bids``);
-* acknowledges every progress report (:class:`~btmission.runtime.bus.ProgressAck`) and ignores
+* acknowledges every progress report (:class:`~btmission.links.bus.ProgressAck`) and ignores
   copies of one it has seen, so an agent can resend until acknowledged. A completion (or commit
   point) reported late by an agent that lost the task while its link was down wins if it is the
   first: the task is credited to that agent, and the agent that held it meanwhile is withdrawn
@@ -46,7 +46,7 @@ from btmission.allocation.auction import Announcement, AuctionConfig, AuctionSta
 from btmission.allocation.loop import AuctionLoop, Inbox, Progress, RoundResult
 from btmission.allocation.tasks import PoolError, TaskInfo, TaskState
 from btmission.errors import BtmissionError
-from btmission.runtime.bus import (
+from btmission.links.bus import (
     AgentStatus,
     Assignment,
     CoordinatorInbox,

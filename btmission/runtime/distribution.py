@@ -5,15 +5,15 @@ agent, linked by the in-memory bus. Spread over processes, each runs a :class:`M
 given a :class:`Part`:
 
 * the **coordinator** process (``btmission coordinator``): the auction and the run-wide
-  services over a :class:`~btmission.runtime.bus.CoordinatorLink` (Zenoh), no vehicle; its
+  services over a :class:`~btmission.links.bus.CoordinatorLink` (Zenoh), no vehicle; its
   clock is the wall clock sped up by the mission's ``runtime.mavlink.time_scale`` (the
   vehicles' speed-up), started when the mission starts (or, restarted, continuing from the
   time its log's header recorded); it ends the mission when every task is settled and every
-  agent it hears says it is at rest, and tells the agents (:class:`~btmission.runtime.bus.
+  agent it hears says it is at rest, and tells the agents (:class:`~btmission.links.bus.
   MissionEnd`);
 * an **agent** process (``btmission agent --id R1``): its agents' trees, navigators and
   vehicles (MAVLink: one ``mavsim`` serves every process's vehicles in one shared world), each
-  over its own :class:`~btmission.runtime.bus.AgentLink`; its mission clock follows the
+  over its own :class:`~btmission.links.bus.AgentLink`; its mission clock follows the
   coordinator's (set from the assignments it hears, :class:`ClockFollower`); it ends
   when the coordinator says the mission is over.
 
@@ -29,7 +29,7 @@ from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Protocol
 
 from btmission.errors import BtmissionError
-from btmission.runtime.bus import (
+from btmission.links.bus import (
     AgentLink,
     Assignment,
     CoordinatorLink,

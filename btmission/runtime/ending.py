@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from btmission.allocation.tasks import TaskState
-from btmission.runtime.bus import MissionEnd
+from btmission.links.bus import MissionEnd
 from btmission.runtime.command_port import settle
 from btmission.runtime.events import Event
 

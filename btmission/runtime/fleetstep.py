@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING, cast
 import numpy as np
 from numpy.typing import NDArray
 
-from btmission.runtime.bus import InMemoryAgentLink, InMemoryBus
+from btmission.links.bus import InMemoryAgentLink, InMemoryBus
 from btmission.runtime.navigation import (
     AGENT_APF,
     CARROT_WINDOW,

@@ -1,7 +1,7 @@
 """The two sides of the run loop: one per agent, one for the coordinator.
 
 A mission's loop is two kinds of periodic work that only talk through messages (the
-coordinator ↔ agent link, :mod:`btmission.runtime.bus`):
+coordinator ↔ agent link, :mod:`btmission.links.bus`):
 
 * :class:`AgentRuntime` — what runs on a robot's computer: tick its mission tree every
   ``1 / runtime.tick_hz`` s, stream this control period's setpoints, and send its status (also

@@ -731,7 +731,7 @@ class Navigator:
         if self._neighbours is not None:
             out = self._neighbours(self.agent, tel.position)
         elif self._predictions is not None:
-            from btmission.runtime.bus import first_points
+            from btmission.links.bus import first_points
 
             out = first_points(self._predictions(self.agent))
         else:

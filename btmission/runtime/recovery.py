@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 from btmission.allocation.auction import AuctionState
 from btmission.allocation.loop import Withdrawal
 from btmission.allocation.tasks import PoolError, TaskInfo, TaskPool, TaskState
-from btmission.runtime.bus import ProgressKey
+from btmission.links.bus import ProgressKey
 from btmission.runtime.events import Event
 from btmission.runtime.mission_auction import pool_from_mission
 from btmission.spec.mission import Mission

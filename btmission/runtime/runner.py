@@ -51,6 +51,7 @@ from typing import Any
 
 from btmission.allocation.tasks import TaskInfo
 from btmission.diagnostics import SpecError
+from btmission.links.bus import InMemoryBus, MissionEnd
 from btmission.runtime.agent import Agent
 from btmission.runtime.assembly import (
     NEIGHBOUR_RANGE_M,
@@ -65,7 +66,6 @@ from btmission.runtime.assembly import (
     road_costs,
     run_settings,
 )
-from btmission.runtime.bus import InMemoryBus, MissionEnd
 from btmission.runtime.command_port import CommandPort
 from btmission.runtime.commands import (
     CancelTask,

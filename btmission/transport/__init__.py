@@ -3,8 +3,8 @@
 * :mod:`btmission.transport.keys` — the key expressions (pure; no Zenoh needed);
 * :mod:`btmission.transport.zenoh_link` — :class:`~btmission.transport.zenoh_link.
   ZenohCoordinatorLink` and :class:`~btmission.transport.zenoh_link.ZenohAgentLink`, the
-  :class:`~btmission.runtime.bus.CoordinatorLink` and :class:`~btmission.runtime.bus.AgentLink`
-  over a Zenoh session, carrying exactly the :mod:`btmission.runtime.wire` encodings;
+  :class:`~btmission.links.bus.CoordinatorLink` and :class:`~btmission.links.bus.AgentLink`
+  over a Zenoh session, carrying exactly the :mod:`btmission.links.wire` encodings;
 * :mod:`btmission.transport.faulty` — a test wrapper that duplicates, delays and reorders
   messages (seeded), around the in-memory bus or Zenoh links alike.
 

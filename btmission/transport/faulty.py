@@ -5,10 +5,10 @@ built for that (bid serials, late and stale bids, progress acknowledged and dedu
 :mod:`btmission.runtime.coordinator`); these wrappers inject exactly those faults so tests can
 show it, around the in-memory bus and the Zenoh links alike:
 
-* :class:`FaultyCoordinatorLink` wraps a :class:`~btmission.runtime.bus.CoordinatorLink`: what
+* :class:`FaultyCoordinatorLink` wraps a :class:`~btmission.links.bus.CoordinatorLink`: what
   the coordinator receives (bids, progress, statuses) and what it sends (announcements,
   assignments, acknowledgements) each pass through a :class:`FaultyStream`;
-* :class:`FaultyAgentLink` wraps an :class:`~btmission.runtime.bus.AgentLink` the same way.
+* :class:`FaultyAgentLink` wraps an :class:`~btmission.links.bus.AgentLink` the same way.
 
 Time is counted in *ticks*, not seconds, so nothing depends on the machine's speed: the
 coordinator's side ticks at every :meth:`FaultyCoordinatorLink.drain`, an agent's at every
@@ -30,7 +30,7 @@ from typing import Generic, TypeVar
 
 from btmission.allocation.auction import Announcement, Bid
 from btmission.allocation.loop import Progress
-from btmission.runtime.bus import (
+from btmission.links.bus import (
     AgentLink,
     AgentStatus,
     Assignment,
@@ -169,7 +169,7 @@ Incoming = Bid | Progress | AgentStatus
 
 
 class FaultyCoordinatorLink:
-    """A :class:`~btmission.runtime.bus.CoordinatorLink` whose traffic goes through
+    """A :class:`~btmission.links.bus.CoordinatorLink` whose traffic goes through
     :class:`Faults` (module docstring). One tick per :meth:`drain`."""
 
     def __init__(self, inner: CoordinatorLink, faults: Faults) -> None:
@@ -229,7 +229,7 @@ class FaultyCoordinatorLink:
 
 
 class FaultyAgentLink(ForwardingAgentLink):
-    """An :class:`~btmission.runtime.bus.AgentLink` whose traffic goes through
+    """An :class:`~btmission.links.bus.AgentLink` whose traffic goes through
     :class:`Faults` (module docstring). One tick per :meth:`tick`."""
 
     def __init__(self, inner: AgentLink, faults: Faults) -> None:

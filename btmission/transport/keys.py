@@ -15,7 +15,7 @@ publishes (or that is addressed to one agent) end with the agent's id::
 plus two liveliness tokens (Zenoh's presence tokens, gone when their session is):
 ``btmission/<mission>/alive/coordinator`` and ``btmission/<mission>/alive/agents/<agent>``.
 
-The payload on each key is the JSON of :mod:`btmission.runtime.wire` (format version
+The payload on each key is the JSON of :mod:`btmission.links.wire` (format version
 ``WIRE_VERSION``) whose ``kind`` is the channel's (:data:`KINDS`); on a per-agent key, the
 message's ``agent`` field is that agent. A receiver drops anything else.
 

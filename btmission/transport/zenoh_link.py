@@ -1,15 +1,15 @@
 """The coordinator ↔ agent links over Eclipse Zenoh (the ``net`` extra).
 
-:class:`ZenohCoordinatorLink` is a :class:`~btmission.runtime.bus.CoordinatorLink` and
-:class:`ZenohAgentLink` an :class:`~btmission.runtime.bus.AgentLink`, each over a Zenoh session.
-They carry exactly the :mod:`btmission.runtime.wire` encodings (versioned JSON) on the keys of
+:class:`ZenohCoordinatorLink` is a :class:`~btmission.links.bus.CoordinatorLink` and
+:class:`ZenohAgentLink` an :class:`~btmission.links.bus.AgentLink`, each over a Zenoh session.
+They carry exactly the :mod:`btmission.links.wire` encodings (versioned JSON) on the keys of
 :mod:`btmission.transport.keys`, so any program that speaks Zenoh can listen in or take part.
 
 Receiving. Zenoh runs subscriber callbacks on its own threads, where calling Zenoh again or
 blocking is not allowed. So a callback only checks and decodes the message and queues it:
 
 * the coordinator's bids, progress reports and statuses wait in a thread-safe inbox that
-  :meth:`ZenohCoordinatorLink.drain` empties (as :class:`~btmission.runtime.bus.InMemoryBus`'s);
+  :meth:`ZenohCoordinatorLink.drain` empties (as :class:`~btmission.links.bus.InMemoryBus`'s);
   :meth:`ZenohCoordinatorLink.wait` waits (bounded) for something to arrive;
 * an agent's announcements, assignments and acknowledgements wait in its :class:`Mailbox`;
   :meth:`ZenohAgentLink.dispatch` hands them to the agent's handlers in the calling thread (the
@@ -69,8 +69,8 @@ from btmission.allocation.auction import Announcement, Bid
 from btmission.allocation.loop import Progress
 from btmission.errors import BtmissionError
 from btmission.limits import MAX_MESSAGE_BYTES
-from btmission.runtime import wire
-from btmission.runtime.bus import (
+from btmission.links import wire
+from btmission.links.bus import (
     AgentStatus,
     Assignment,
     CoordinatorInbox,
@@ -307,7 +307,7 @@ class LinkStats:
     oversized: int = 0
     """Payloads over ``BTMISSION_MAX_MESSAGE_BYTES`` (not parsed)."""
     malformed: int = 0
-    """Payloads that are not a valid message (:class:`~btmission.runtime.wire.WireError`)."""
+    """Payloads that are not a valid message (:class:`~btmission.links.wire.WireError`)."""
     mismatched: int = 0
     """Valid messages of another kind than their key's channel, or naming another agent."""
     cut: int = 0
@@ -368,7 +368,7 @@ class LinkStats:
 class DecodeCache:
     """Decodes payloads, reusing the last announcement seen: the coordinator repeats one
     announcement every round and inside every assignment, and decoding 400 tasks takes ~2 ms
-    (:func:`btmission.runtime.wire.decode`'s ``known``: only an exact encoding of it is reused).
+    (:func:`btmission.links.wire.decode`'s ``known``: only an exact encoding of it is reused).
     Agents sharing a process share one, so a broadcast is decoded about once, not once per
     agent. Messages are immutable: sharing one is what the in-memory bus does too.
 
@@ -537,7 +537,7 @@ class _Session:
 # ------------------------------------------------------------------------------------ coordinator
 class ZenohCoordinatorLink:
     """The coordinator's side over Zenoh (module docstring): a
-    :class:`~btmission.runtime.bus.CoordinatorLink`.
+    :class:`~btmission.links.bus.CoordinatorLink`.
 
     ``session``: an open session the link uses (and does not close); or ``settings`` to open
     one it owns (default: :meth:`ZenohSettings.coordinator`). ``max_pending`` bounds the inbox
@@ -734,7 +734,7 @@ class ZenohCoordinatorLink:
 # ------------------------------------------------------------------------------------ agent
 class ZenohAgentLink:
     """One agent's side over Zenoh (module docstring): an
-    :class:`~btmission.runtime.bus.AgentLink`.
+    :class:`~btmission.links.bus.AgentLink`.
 
     ``session`` / ``settings`` as for :class:`ZenohCoordinatorLink` (default settings:
     :meth:`ZenohSettings.agent`). Several agents of one process may share a session and a
@@ -803,7 +803,7 @@ class ZenohAgentLink:
 
     def set_link(self, up: bool) -> None:
         """Cut (``up=False``) or restore this agent's link, as
-        :meth:`~btmission.runtime.bus.InMemoryBus.set_link` does: while cut, messages both ways
+        :meth:`~btmission.links.bus.InMemoryBus.set_link` does: while cut, messages both ways
         are dropped (counted in ``stats.cut``)."""
         self._cut = not up
 
@@ -862,7 +862,7 @@ class ZenohAgentLink:
         within_m: float = math.inf,
     ) -> list[FloatArray]:
         """The other agents' latest predictions
-        (:func:`~btmission.runtime.bus.advance_predictions`)."""
+        (:func:`~btmission.links.bus.advance_predictions`)."""
         with self._lock:
             shared = dict(self._predictions)
         return advance_predictions(shared, self._agent, time_s, step_s, near, within_m)

@@ -15,7 +15,7 @@ message              direction              content
 ===================  =====================  =============================================
 
 plus, between agents, the predicted trajectories the seed 003 distributed NMPC shares
-(:class:`Prediction`). :mod:`btmission.runtime.wire` turns each into versioned JSON.
+(:class:`Prediction`). :mod:`btmission.links.wire` turns each into versioned JSON.
 
 The coordinator sees the transport only through :class:`CoordinatorLink`, an agent only through
 its :class:`AgentLink` (one per agent), so a network transport can replace this bus without
@@ -383,7 +383,7 @@ class InMemoryBus:
                     pred = _advanced(self._predictions[names[r]], time_s, step_s)
                     out[i] = first_points([pred])[0]
             return out
-        from btmission.runtime._neighbour_kernels import near_points
+        from btmission.links._neighbour_kernels import near_points
 
         points: FloatArray = near_points(
             self._starts, n, float(near[0]), float(near[1]), float(within_m),
@@ -399,7 +399,7 @@ class InMemoryBus:
         n = len(self._row_names)
         if near is None or not math.isfinite(within_m) or n <= SMALL_FLEET:
             return None
-        from btmission.runtime._neighbour_kernels import near_rows
+        from btmission.links._neighbour_kernels import near_rows
 
         rows: list[int] = near_rows(
             self._starts, n, float(near[0]), float(near[1]), float(within_m),

@@ -1,5 +1,5 @@
 # mypy: allow-untyped-defs
-"""Compiled neighbour query of :class:`btmission.runtime.bus.InMemoryBus`: every agent asks every
+"""Compiled neighbour query of :class:`btmission.links.bus.InMemoryBus`: every agent asks every
 control step which others are near, so numpy's per-call overhead on a fleet-sized array was the
 cost.
 

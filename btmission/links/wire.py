@@ -1,9 +1,9 @@
 """The wire form of the coordinator/agent messages: versioned plain dicts, as JSON bytes.
 
-Every message of :mod:`btmission.runtime.bus` — :class:`~btmission.allocation.auction.Announcement`,
-:class:`~btmission.allocation.auction.Bid`, :class:`~btmission.runtime.bus.Assignment`,
-:class:`~btmission.runtime.bus.AgentStatus`, :class:`~btmission.allocation.loop.Progress`,
-:class:`~btmission.runtime.bus.ProgressAck` and :class:`~btmission.runtime.bus.Prediction` —
+Every message of :mod:`btmission.links.bus` — :class:`~btmission.allocation.auction.Announcement`,
+:class:`~btmission.allocation.auction.Bid`, :class:`~btmission.links.bus.Assignment`,
+:class:`~btmission.links.bus.AgentStatus`, :class:`~btmission.allocation.loop.Progress`,
+:class:`~btmission.links.bus.ProgressAck` and :class:`~btmission.links.bus.Prediction` —
 becomes a JSON object with the format version ``v`` and the message ``kind``, then its fields::
 
     {"v": 2, "kind": "bid", "agent": "R1", "time_s": 2.5, "committed_to": null, "serial": 3,
@@ -48,7 +48,7 @@ from btmission.allocation.loop import Progress
 from btmission.allocation.tasks import TaskInfo
 from btmission.errors import BtmissionError
 from btmission.limits import MAX_MESSAGE_BYTES
-from btmission.runtime.bus import (
+from btmission.links.bus import (
     AgentStatus,
     Assignment,
     MissionEnd,
