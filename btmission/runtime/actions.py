@@ -16,15 +16,17 @@ from typing import Any
 
 from py_trees.common import Status
 
+from btmission.fastpaths.ticks import FAILURE as _FAILURE
+from btmission.fastpaths.ticks import RUNNING as _RUNNING
+from btmission.fastpaths.ticks import SUCCESS as _SUCCESS
 from btmission.runtime.leaves import AgentContext, StatefulAction
 from btmission.runtime.navigation import NavState
 from btmission.runtime.paths import Route
-from btmission.synthesis.pytrees import _FAILURE, _RUNNING, _SUCCESS
 from btmission.vehicles.base import Mode
 
 _ARRIVED, _FAILED = NavState.ARRIVED, NavState.FAILED
 """(read by the path follower every tick: a global costs a fifth of an Enum member on Python
-3.11; so do the statuses, :mod:`btmission.synthesis.pytrees`'s)"""
+3.11; so do the statuses, :mod:`btmission.fastpaths.ticks`'s)"""
 
 Point = tuple[float, float, float]
 

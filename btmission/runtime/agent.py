@@ -48,6 +48,8 @@ from btmission.allocation.bidder import AgentState, CostProvider
 from btmission.allocation.loop import Progress
 from btmission.allocation.tasks import TaskInfo
 from btmission.diagnostics import Diagnostic, Severity, SpecError
+from btmission.fastpaths.ticks import FAILURE as _FAILURE
+from btmission.fastpaths.ticks import SUCCESS as _SUCCESS
 from btmission.links.bus import (
     AgentLink,
     AgentStatus,
@@ -83,7 +85,7 @@ from btmission.runtime.treestatus import (
 from btmission.spec.mission import Mission
 from btmission.spec.source import format_path
 from btmission.synthesis.mission_tree import build_mission_tree
-from btmission.synthesis.pytrees import _FAILURE, _SUCCESS, behaviour_depth, build_behaviour_tree
+from btmission.synthesis.pytrees import behaviour_depth, build_behaviour_tree
 from btmission.synthesis.tree import Kind, Node, Role
 from btmission.types import recorder
 from btmission.vehicles.base import Backend, Mode, Sensors

@@ -31,7 +31,10 @@ import py_trees
 from py_trees.common import Status
 
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
-from btmission.synthesis.pytrees import _FAILURE, _RUNNING, _SUCCESS, LeanTick
+from btmission.fastpaths.ticks import FAILURE as _FAILURE
+from btmission.fastpaths.ticks import RUNNING as _RUNNING
+from btmission.fastpaths.ticks import SUCCESS as _SUCCESS
+from btmission.fastpaths.ticks import LeanTick
 from btmission.synthesis.tree import Node
 
 if TYPE_CHECKING:

@@ -3,10 +3,11 @@
 BehaviorTree.CPP's ``StatusChangeLogger`` is the model: a logger attached to a tree sees every
 node whose status changed and reports ``(node, previous, new)``. In py_trees the idiom is a
 :class:`py_trees.trees.BehaviourTree` around the root (here :class:`LeanBehaviourTree`, the same
-tick for less) with a *visitor*: :class:`StatusChanges` keeps each node's last seen status and
-collects the changes of the tick (the nodes ticked, and the active ones a parent stopped without
-ticking them). :class:`TreeStatusLogger` adds it to the tree with a post-tick handler that
-accumulates the changes and publishes them:
+tick for less, one of :mod:`btmission.fastpaths`' shortcuts, imported from there) with a
+*visitor*: :class:`StatusChanges` keeps each node's last seen status and collects the changes of
+the tick (the nodes ticked, and the active ones a parent stopped without ticking them).
+:class:`TreeStatusLogger` adds it to the tree with a post-tick handler that accumulates the
+changes and publishes them:
 
 * at most one ``tree`` event every ``period_s`` of mission time (the ``tree_event_s`` setting),
   carrying the *net* change of each node since the previous event (a node that went RUNNING →
@@ -30,6 +31,9 @@ from typing import Any
 
 import py_trees
 from py_trees.common import Status
+
+from btmission.fastpaths.ticks import LeanBehaviourTree as LeanBehaviourTree
+from btmission.fastpaths.ticks import QuietSelector, QuietSequence
 
 TREE_EVENT_S = 0.5
 """Default of the ``tree_event_s`` setting: at most one ``tree`` event per agent per this many
@@ -81,11 +85,17 @@ def _set_repr(value: set[Any] | frozenset[Any]) -> str:
     return inner if type(value) is set else f"{type(value).__name__}({inner})"
 
 
+_FALLBACKS = (py_trees.composites.Selector, QuietSelector)
+_SEQUENCES = (py_trees.composites.Sequence, QuietSequence)
+
+
 def node_kind(behaviour: py_trees.behaviour.Behaviour) -> str:
-    """fallback, sequence, condition or action (the abstract tree's kinds), else the class."""
-    if isinstance(behaviour, py_trees.composites.Selector):
+    """fallback, sequence, condition or action (the abstract tree's kinds), else the class:
+    py_trees' ``Selector``/``Sequence`` and btmission's own (the quiet composites an agent's tree
+    is built of, :mod:`btmission.fastpaths.ticks`) are fallbacks and sequences."""
+    if isinstance(behaviour, _FALLBACKS):
         return "fallback"
-    if isinstance(behaviour, py_trees.composites.Sequence):
+    if isinstance(behaviour, _SEQUENCES):
         return "sequence"
     node = getattr(behaviour, "node", None)  # a runtime leaf knows its abstract node
     kind = getattr(node, "kind", None)
@@ -102,52 +112,6 @@ def preorder(root: py_trees.behaviour.Behaviour) -> list[py_trees.behaviour.Beha
         out.append(b)
         stack.extend(reversed(b.children))
     return out
-
-
-class LeanBehaviourTree(py_trees.trees.BehaviourTree):
-    """py_trees' ``BehaviourTree`` with the same :meth:`tick` — pre-tick handlers, visitors
-    (``initialise``, ``run`` on each ticked behaviour, then on every behaviour for ``full``
-    ones, ``finalise``), post-tick handlers — minus its overhead: the visitor lists are made once
-    per tick instead of once per ticked behaviour, and the second pass over the whole tree only
-    runs for ``full`` visitors. On a 72-node mission tree ``BehaviourTree.tick`` costs about twice
-    a bare ``root.tick_once()``; this, with a :class:`StatusChanges` visitor, about 1.2×."""
-
-    def tick(
-        self,
-        pre_tick_handler: Callable[[py_trees.trees.BehaviourTree], None] | None = None,
-        post_tick_handler: Callable[[py_trees.trees.BehaviourTree], None] | None = None,
-    ) -> None:
-        if pre_tick_handler is not None:
-            pre_tick_handler(self)
-        for handler in self.pre_tick_handlers:
-            handler(self)
-        for visitor in self.visitors:
-            visitor.initialise()
-        ticked = [v for v in self.visitors if not v.full]
-        root = self.root
-        lean = getattr(root, "tick_now", None)
-        if ticked and lean is not None:  # a quiet root's tick yields only itself, at the end
-            lean()
-            for visitor in ticked:
-                root.visit(visitor)
-        elif ticked:
-            for node in root.tick():
-                for visitor in ticked:
-                    node.visit(visitor)
-        else:
-            root.tick_once()
-        full = [v for v in self.visitors if v.full]
-        if full:
-            for node in self.root.iterate():
-                for visitor in full:
-                    node.visit(visitor)
-        for visitor in self.visitors:
-            visitor.finalise()
-        for handler in self.post_tick_handlers:
-            handler(self)
-        if post_tick_handler is not None:
-            post_tick_handler(self)
-        self.count += 1
 
 
 _STATUS_OF = operator.attrgetter("status")
