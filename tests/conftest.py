@@ -81,3 +81,21 @@ def mine_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
     with RunSession(mission, controller="track", log_path=path) as s:
         s.run(until=120.0)
     return path
+
+
+# -- a failure on a busy machine says so (tests/load.py) -----------------------------------------
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) -> Iterator[None]:
+    from tests.load import load_per_cpu, note
+
+    if call.when == "setup":
+        item.stash[_LOAD_AT_START] = load_per_cpu()
+    outcome = yield
+    report = outcome.get_result()  # type: ignore[attr-defined]
+    if report.failed:
+        text = note(item.stash.get(_LOAD_AT_START, None))
+        if text is not None:
+            report.sections.append(("machine load", text))
+
+
+_LOAD_AT_START = pytest.StashKey[float]()

@@ -15,6 +15,7 @@ from btmission.backends.mavlink_url import MavlinkAddress
 from btmission.backends.mavsim import MavSim, MavSimConfig, VehicleSpec
 from btmission.vehicles.base import VehicleKind
 from btmission.world.minegen import empty_world
+from tests.load import margin
 
 SPEED = 10.0
 
@@ -74,7 +75,7 @@ def provider(speed: float = SPEED, **options: Any) -> Iterator[MavlinkProvider]:
     made = MavlinkProvider(
         MavlinkOptions(
             time_scale=speed,
-            connect_timeout_s=options.pop("connect_timeout_s", 5.0),
+            connect_timeout_s=options.pop("connect_timeout_s", 5.0 * margin()),
             telemetry_hz=options.pop("telemetry_hz", 20.0),
             **options,
         )
