@@ -309,10 +309,13 @@ def test_rate_limit_admits_a_burst_then_the_rate() -> None:
 def _stub_console(
     ids: tuple[str, ...] = (), queued: tuple[str, ...] = (), submit: Any = None, **kw: Any
 ) -> Console:
-    """A console over a stand-in run: its pool's ids, ids queued to enter it, its submit."""
-    state = SimpleNamespace(pool=[SimpleNamespace(id=t) for t in ids])
-    coordinator = SimpleNamespace(state=state, knows=lambda t: t in ids or t in queued)
-    run = SimpleNamespace(coordinator=coordinator, submit=submit, now=lambda: 12.0, snapshot=None)
+    """A console over a stand-in run: its pool's ids (in its snapshot), ids queued to enter
+    it, its submit. The console reads the run only through these (no coordinator)."""
+    snapshot = SimpleNamespace(pool=[SimpleNamespace(id=t) for t in ids], agents=(), paused=None)
+    run = SimpleNamespace(
+        knows_task=lambda t: t in ids or t in queued, submit=submit, now=lambda: 12.0,
+        snapshot=snapshot,
+    )  # fmt: skip
     return Console(SimpleNamespace(mission=SimpleNamespace(agents=[])), run, **kw)
 
 
@@ -978,7 +981,7 @@ def test_the_form_gets_the_fields_in_the_goals_order_and_a_ground_fleets_offset(
         pool = [SimpleNamespace(id=t.id, info=SimpleNamespace(type=t.type)) for t in mission.tasks]
         run = SimpleNamespace(
             places={}, vehicles={"G1": SimpleNamespace(kind=kind)},
-            coordinator=SimpleNamespace(state=SimpleNamespace(pool=pool), knows=lambda t: False),
+            snapshot=SimpleNamespace(pool=pool), knows_task=lambda t: False,
         )  # fmt: skip
         return Console(SimpleNamespace(mission=mission), run).info()
 

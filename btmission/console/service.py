@@ -198,7 +198,7 @@ class Console:
     def next_task_id(self, task_type: str | None = None) -> str:
         """The next free id in the mission's own pattern (T1..T7 → T8), that of the tasks of
         ``task_type`` if it has some (P1 → P2 beside I1, I2), else ``T<n>``."""
-        pool = self.run.coordinator.state.pool
+        pool = self.run.snapshot.pool  # (a task queued since is caught by knows_task below)
         ids = [t.id for t in pool if _type_of(t) == task_type] if task_type else []
         ids = ids or [t.id for t in pool]
         prefixes: Counter[str] = Counter()
@@ -210,7 +210,7 @@ class Console:
                 top[m.group(1)] = max(top.get(m.group(1), 0), int(m.group(2)))
         prefix = prefixes.most_common(1)[0][0] if prefixes else "T"
         n = top.get(prefix, 0) + 1
-        while self.run.coordinator.knows(f"{prefix}{n}"):
+        while self.run.knows_task(f"{prefix}{n}"):
             n += 1
         return f"{prefix}{n}"
 
@@ -300,7 +300,7 @@ class Console:
                 if problem:
                     raise ConsoleError(422, f"{name}: {problem}", name)
             limit = _max_tasks()
-            if len(self.run.coordinator.state.pool) >= limit:
+            if len(self.run.snapshot.pool) >= limit:
                 raise ConsoleError(
                     409, f"the mission has {limit} tasks already (BTMISSION_MAX_TASKS)"
                 )
@@ -416,7 +416,7 @@ class Console:
         return found[1] if found else None
 
     def _task_info(self, task: str) -> Any:
-        t = self.run.coordinator.state.pool.get(task)
+        t = self.run.snapshot.pool.get(task)
         return t.info if t is not None else None
 
     def _submit(

@@ -276,6 +276,10 @@ class MissionRun:
         self._published: RunSnapshot = self.publish()
         emit_built(self, time.perf_counter() - build0)
 
+    def knows_task(self, task_id: str) -> bool:
+        """Whether ``task_id`` is taken: in the pool or queued to enter it (any thread)."""
+        return self.coordinator.knows(task_id)
+
     def link_up(self, agent: str) -> bool:
         """Whether ``agent``'s link to its coordinator is up (as this process sees it)."""
         if self.part is not None and agent in self.part.agent_links:
