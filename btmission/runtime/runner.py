@@ -92,7 +92,10 @@ from btmission.runtime.ending import (
 )
 from btmission.runtime.events import (
     EventStream,
+    GenericEvent,
     Observer,
+    TypedEvent,
+    event_of,
 )
 from btmission.runtime.fleetstep import FleetFollow
 from btmission.runtime.leaves import (
@@ -287,16 +290,30 @@ class MissionRun:
         """Mission time (s), from the clock (the simulator's)."""
         return self.clock.now()
 
-    def emit(self, kind: str, t: float | None = None, **data: Any) -> None:
-        """Publish an event at mission time ``t`` (default: now). Events go out in time order:
-        one stamped earlier than the last published (something reported late) goes out at the
-        last time, with its own time as ``reported_s``."""
-        when = self.now() if t is None else t
+    def emit_event(self, event: TypedEvent) -> None:
+        """Publish a typed event (:mod:`btmission.runtime.events`) at its time ``event.t`` — now,
+        for an event made without one. Events go out in time order: one stamped earlier than
+        the last published (something reported late) goes out at the last time, with its own
+        time as ``reported_s``."""
+        when = self.now() if math.isnan(event.t) else event.t
+        data = event.to_data()
         if when < self.last_t - 1e-9:
             data["reported_s"] = when
             when = self.last_t
         self.last_t = when
-        self.events.emit(when, kind, **data)
+        self.events.emit(when, event.kind, **data)
+
+    def emit(self, kind: str, t: float | None = None, **data: Any) -> None:
+        """Publish an event of a kind given by name (a library's own kind nobody registered a
+        class for), with its fields, at mission time ``t`` (default: now): as
+        :meth:`emit_event`."""
+        self.emit_event(GenericEvent(t=math.nan if t is None else t, name=kind, extra=data))
+
+    def library_event(self, event: TypedEvent | str, /, **fields: Any) -> None:
+        """What a library's run-wide service publishes (its
+        :attr:`RunContext.events <btmission.runtime.leaves.RunContext.events>`): a typed event,
+        or a kind of its own by name with its fields (:func:`~btmission.runtime.events.event_of`)."""
+        self.emit_event(event_of(event, fields))
 
     # ---------------------------------------------------------------- commands
     # (btmission.runtime.command_port checks, queues and applies them: these are its doors)
