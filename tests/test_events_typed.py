@@ -101,31 +101,23 @@ def ran(tmp_path_factory: pytest.TempPathFactory) -> Ran:
 
 
 # ------------------------------------------------------------------------------ every kind
-EMITTERS = {"emit", "_emit", "events", "_events", "_leaf_event"}
+EMITTERS = {"emit", "_emit", "emit_event", "events", "_events", "_leaf_event", "library_event"}
+
+NAMED_KINDS = {("btmission/dispatch/service.py", "dispatch")}
+"""Where a kind is still named: the fleet dispatcher is an algorithm (it knows no run, so no
+event classes); ``haulage`` makes :class:`DispatchEvent`\\ s of what it publishes."""
 
 
-def emitted_kinds() -> set[str]:
-    """Every event kind the code publishes: the literal first argument of ``emit(...)``,
-    ``_emit``, ``events``, ``_events``, ``_leaf_event`` (and ``Event(t, "kind", ...)``) calls in
-    btmission/, cli/ and library/; ``events(self.kind, ...)`` takes the ``kind = "..."`` class
-    attributes of its module (haulage's load/offload)."""
-    kinds: set[str] = set()
+def named_kinds() -> set[tuple[str, str]]:
+    """(file, kind) of every call that publishes an event by naming its kind: a string as the
+    first argument of ``emit(...)``, ``_emit``, ``emit_event``, ``events``, ``_events``,
+    ``_leaf_event``, ``library_event`` or ``Event(t, "kind", ...)`` in btmission/, cli/ and
+    library/."""
+    found: set[tuple[str, str]] = set()
     for top in ("btmission", "cli", "library"):
         for path in (ROOT / top).rglob("*.py"):
             tree = ast.parse(path.read_text(encoding="utf-8"))
-            dynamic = False
-            class_kinds: set[str] = set()
             for node in ast.walk(tree):
-                if isinstance(node, ast.ClassDef):
-                    for stmt in node.body:
-                        if (
-                            isinstance(stmt, ast.Assign)
-                            and [getattr(t, "id", "") for t in stmt.targets] == ["kind"]
-                            and isinstance(stmt.value, ast.Constant)
-                            and isinstance(stmt.value.value, str)
-                            and stmt.value.value
-                        ):
-                            class_kinds.add(stmt.value.value)
                 if not isinstance(node, ast.Call) or not node.args:
                     continue
                 f = node.func
@@ -137,21 +129,15 @@ def emitted_kinds() -> set[str]:
                 else:
                     continue
                 if isinstance(arg, ast.Constant) and isinstance(arg.value, str):
-                    kinds.add(arg.value)
-                elif isinstance(arg, ast.Attribute) and arg.attr == "kind":
-                    dynamic = True
-            if dynamic:
-                kinds |= class_kinds
-    return kinds
+                    found.add((path.relative_to(ROOT).as_posix(), arg.value))
+    return found
 
 
-def test_every_kind_the_code_emits_has_a_typed_class() -> None:
-    import btmission_library.haulage  # noqa: F401  (registers load / offload)
-
-    kinds = emitted_kinds()
-    assert {"header", "task", "round", "pose", "route", "tree", "load", "offload"} <= kinds
-    assert {"link", "signal", "internal_error", "relocalized", "objects", "dispatch"} <= kinds
-    assert sorted(k for k in kinds if k not in EVENT_CLASSES) == []
+def test_producers_make_typed_events_instead_of_naming_kinds() -> None:
+    """One vocabulary: the code publishes the typed classes (``emit_event(PoseEvent(...))``,
+    ``ctx.events(ObjectsEvent(...))``), never a kind by name — which only a library's own kind
+    without a class needs."""
+    assert named_kinds() == NAMED_KINDS
 
 
 def docstring_table() -> dict[str, str]:
