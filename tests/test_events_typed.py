@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import ast
+import gzip
 import itertools
 import json
 import math
@@ -21,6 +22,15 @@ from py_trees.common import Status
 
 import btmission.runtime.events as events_module
 from btmission.cli.main import cli
+from btmission.runtime.commands import (
+    AddTask,
+    CancelTask,
+    KillAgent,
+    Refused,
+    SetLink,
+    SetPriority,
+    Signal,
+)
 from btmission.runtime.events import (
     EVENT_CLASSES,
     LOG_VERSION,
@@ -101,6 +111,85 @@ def ran(tmp_path_factory: pytest.TempPathFactory) -> Ran:
 
 
 # ------------------------------------------------------------------------------ every kind
+class Strict:
+    """An observer that checks every event a run publishes is of its kind's typed class: a
+    registered class (not :class:`GenericEvent`), every field declared (a ``command``'s
+    arguments are its ``extra`` by design), and typed → JSON the same bytes as the event's."""
+
+    def __init__(self, library_kinds: frozenset[str] = frozenset()) -> None:
+        self.library_kinds = library_kinds
+        self.kinds: set[str] = set()
+        self.problems: list[str] = []
+
+    def on_event(self, event: Event) -> None:
+        self.kinds.add(event.kind)
+        line = event.to_json()
+        try:
+            typed = event.typed()
+        except EventError as exc:
+            self.problems.append(f"{exc}: {line[:200]}")
+            return
+        if isinstance(typed, GenericEvent) and event.kind not in self.library_kinds:
+            self.problems.append(f"no typed class: {line[:200]}")
+        elif typed.extra and not isinstance(typed, CommandEvent):
+            self.problems.append(f"undeclared fields {sorted(typed.extra)}: {line[:200]}")
+        elif typed.to_json() != line:
+            self.problems.append(f"not its JSON:\n  {line[:300]}\n  {typed.to_json()[:300]}")
+
+
+@pytest.fixture(scope="module")
+def busy(tmp_path_factory: pytest.TempPathFactory) -> Strict:
+    """A short run with operator commands (added tasks, priority, cancel, a cut link, a signal, a
+    refused command, a kill), every event checked by :class:`Strict`: ~2 s."""
+    tmp = tmp_path_factory.mktemp("busy")
+    mission = load_mission_text(SMALL.lstrip("\n"), str(tmp / "small.yaml"))
+    strict = Strict()
+    run = MissionRun(mission, observers=[strict])
+    run.at(0.5, AddTask({"id": "B", "type": "inspect", "location": [6, 3, 0]}, by="console:ana"))
+    run.at(0.5, AddTask({"id": "C", "type": "inspect", "location": [4, 3, 0], "at": 30.0}))
+    run.at(1.0, SetLink("G2", False))
+    run.at(1.5, SetPriority("B", 2.0))
+    run.at(1.5, Signal("G1", "note", {"level": 2}))
+    run.at(2.0, SetLink("G2", True))
+    run.at(2.0, CancelTask("C"))
+    run.at(2.5, Refused("kill_agent", {"agent": "G9"}, "unknown agent 'G9'", by="console:bo"))
+    run.at(6.0, KillAgent("G2", "battery"))
+    run.end(run.run(until=40))
+    return strict
+
+
+def test_a_run_publishes_only_typed_events_with_declared_fields(busy: Strict, ran: Ran) -> None:
+    """What the producers publish (runtime, coordinator, agents, leaves, commands) is each
+    kind's typed class, field for field: a new field or kind without its class fails here."""
+    assert busy.problems == []
+    assert {"header", "built", "task_added", "task", "round", "agent_task", "stage", "progress",
+            "pose", "route", "tree", "command", "link", "signal", "agent_lost", "end"} <= busy.kinds  # fmt: skip
+    strict = Strict()
+    for e in ran.events:
+        strict.on_event(e)
+    assert strict.problems == [] and {"route", "tree"} <= strict.kinds
+
+
+def test_the_golden_logs_hold_only_typed_events_with_declared_fields() -> None:
+    """Every event of the shipped missions' golden logs (tests/golden: compra, haulage,
+    relocalisation, ...) is of a registered class with all its fields declared (the golden
+    logs are normalised: keys sorted, wall-clock fields left out)."""
+    import btmission_library.haulage  # noqa: F401  (registers load / offload)
+
+    kinds = set()
+    for path in sorted((ROOT / "tests" / "golden").glob("*.events.jsonl.gz")):
+        with gzip.open(path, "rt", encoding="utf-8") as f:
+            for line in f:
+                ev = Event.from_json(line)
+                typed = ev.typed()
+                assert not isinstance(typed, GenericEvent), f"{path.name}: {line[:200]}"
+                if not isinstance(typed, CommandEvent):
+                    assert not typed.extra, f"{path.name}: {line[:200]}"
+                assert typed.to_data() == dict(ev.data), f"{path.name}: {line[:200]}"
+                kinds.add(typed.kind)
+    assert {"dispatch", "load", "objects", "junction", "relocalized", "pose"} <= kinds
+
+
 EMITTERS = {"emit", "_emit", "emit_event", "events", "_events", "_leaf_event", "library_event"}
 
 NAMED_KINDS = {("btmission/dispatch/service.py", "dispatch")}
