@@ -60,6 +60,7 @@ import numpy as np
 from py_trees.common import Status
 
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
+from btmission.runtime.events import RelocalizedEvent
 from btmission.runtime.leaves import AgentContext, StatefulAction
 from btmission_library import aerial
 
@@ -251,28 +252,32 @@ class Relocalize(StatefulAction):
         tel = self.ctx.telemetry()
         p = tel.position
         truth = pose_matrix(float(p[0]), float(p[1]), float(p[2]), tel.yaw)
-        event: dict[str, Any] = {
-            "task": board.get("task"),
-            "localized": bool(result.localized),
-            "confidence": round(float(result.confidence), 4),
-            "fitness": round(float(result.fitness), 4),
-            "reason": result.reason,
-            "points": len(scan.points),
-            "sensor": scan.sensor,
-            "time_ms": round(ms, 1),
-            "truth": _pose_record(truth),
-        }
+        found: dict[str, Any] = {}  # the estimate and its error, when localised
         if result.localized and result.pose is not None:
             estimate = np.asarray(result.pose) @ np.linalg.inv(scan.robot_from_sensor)
             board.set(WORLD_FROM_ROBOT, estimate)
             err_m, err_deg = pose_error(estimate, truth)
-            event.update(
-                estimate=_pose_record(estimate),
-                error_m=round(err_m, 4),
-                error_deg=round(err_deg, 3),
-            )
+            found = {
+                "estimate": _pose_record(estimate),
+                "error_m": round(err_m, 4),
+                "error_deg": round(err_deg, 3),
+            }
         else:
             board.unset(WORLD_FROM_ROBOT)
             self.reason = result.reason
-        self.ctx.events("relocalized", **event)
+        self.ctx.events(
+            RelocalizedEvent(
+                agent=self.ctx.agent_id,
+                task=board.get("task"),
+                localized=bool(result.localized),
+                confidence=round(float(result.confidence), 4),
+                fitness=round(float(result.fitness), 4),
+                reason=result.reason,
+                points=len(scan.points),
+                sensor=scan.sensor,
+                time_ms=round(ms, 1),
+                truth=_pose_record(truth),
+                **found,
+            )
+        )
         return Status.SUCCESS if result.localized else Status.FAILURE

@@ -22,6 +22,7 @@ from py_trees.common import Status
 
 from btmission.plugins import Implementations
 from btmission.runtime import actions as A
+from btmission.runtime.events import JunctionEvent, JunctionSwitchEvent, ObjectsEvent
 from btmission.runtime.leaves import AgentContext, StatefulAction
 
 SPEC = files(__package__).joinpath("compra.yaml")
@@ -109,9 +110,13 @@ def _commit_branch(ctx: AgentContext, res: Any) -> None:
     if len(res.branches) > 1:
         offsets = [round(b.offset, 3) for b in res.branches]
         if prefer is None:
-            ctx.events("junction", offsets=offsets, chosen=res.chosen)
+            ctx.events(JunctionEvent(agent=ctx.agent_id, offsets=offsets, chosen=res.chosen))
         elif abs(res.offset - prefer) > SWITCH_OFFSET:
-            ctx.events("junction_switch", offsets=offsets, chosen=res.chosen, was=round(prefer, 3))
+            ctx.events(
+                JunctionSwitchEvent(
+                    agent=ctx.agent_id, offsets=offsets, chosen=res.chosen, was=round(prefer, 3)
+                )
+            )
         ctx.state["dphr_branch"] = res.offset
     else:
         ctx.state["dphr_branch"] = None
@@ -243,7 +248,9 @@ class ReportObjects(StatefulAction):
             {"label": o.label, "p": [float(v) for v in o.position], "observations": o.observations}
             for o in loc.objects
         ]
-        self.ctx.events("objects", objects=objects, rejected=dict(loc.rejected))
+        self.ctx.events(
+            ObjectsEvent(agent=self.ctx.agent_id, objects=objects, rejected=dict(loc.rejected))
+        )
         self.ctx.blackboard.set("objects_reported", True)
         return Status.SUCCESS
 

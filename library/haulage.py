@@ -28,8 +28,10 @@ from __future__ import annotations
 
 import math
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib.resources import files
+from typing import Any
 
 import numpy as np
 from py_trees.common import Status
@@ -42,7 +44,7 @@ from btmission.dispatch.missions import Mission
 from btmission.dispatch.service import FleetDispatcher
 from btmission.dispatch.topomap import TopoMap
 from btmission.plugins import Implementations
-from btmission.runtime.events import TypedEvent, register_event
+from btmission.runtime.events import DispatchEvent, TypedEvent, register_event
 from btmission.runtime.leaves import AgentContext, RunContext, StatefulAction, resolve
 from btmission.spec.mission import Mission as MissionFile
 
@@ -116,7 +118,7 @@ class HaulageFleet:
             ga=ga,
             seed=run.seed,
         )
-        self.dispatcher = FleetDispatcher(self.tmap, starts, cfg, run.events)
+        self.dispatcher = FleetDispatcher(self.tmap, starts, cfg, _dispatch_events(run))
         self.trucks = {
             name: Truck(name, np.random.default_rng([run.seed, zlib.crc32(name.encode())]))
             for name in starts
@@ -212,6 +214,18 @@ def check_mission(mission: MissionFile) -> list[Diagnostic]:
     except SpecError:
         return []  # loading the mission reports it
     return truck_starts(mission, tmap)[1]
+
+
+def _dispatch_events(run: RunContext) -> Callable[..., None]:
+    """The dispatcher's ``events(kind, **fields)`` (an algorithm, it knows no run: its kind is
+    ``dispatch``) as the run's typed events (:class:`~btmission.runtime.events.DispatchEvent`)."""
+
+    def publish(kind: str, **fields: Any) -> None:
+        if kind != DispatchEvent.KIND:
+            raise ValueError(f"the dispatcher published a '{kind}' event")
+        run.events(DispatchEvent(**fields))
+
+    return publish
 
 
 @IMPLEMENTATIONS.service("fleet")
@@ -387,13 +401,15 @@ class _Process(_Haulage):
     """Stand at the node for a random duration in [``<kind>_min_s``, ``<kind>_max_s``]."""
 
     kind = ""
+    event_class: type[LoadEvent | OffloadEvent]
+    """The event it publishes when it starts."""
 
     def on_start(self) -> Status:
         lo = float(self.ctx.setting(f"{self.kind}_min_s", 0.0))
         hi = float(self.ctx.setting(f"{self.kind}_max_s", lo))
         rng = self.fleet.trucks[self.truck].rng
         self._until = self.ctx.now() + lo + float(rng.random()) * max(0.0, hi - lo)
-        self.ctx.events(self.kind, until=round(self._until, 3))
+        self.ctx.events(self.event_class(agent=self.ctx.agent_id, until=round(self._until, 3)))
         return self.on_running()
 
     def on_running(self) -> Status:
@@ -409,6 +425,7 @@ class _Process(_Haulage):
 @IMPLEMENTATIONS.action("load")
 class Load(_Process):
     kind = "load"
+    event_class = LoadEvent
 
     def finish(self, truck: Truck) -> None:
         truck.cargo = str(self.args["pickup"])
@@ -417,6 +434,7 @@ class Load(_Process):
 @IMPLEMENTATIONS.action("offload")
 class Offload(_Process):
     kind = "offload"
+    event_class = OffloadEvent
 
     def finish(self, truck: Truck) -> None:
         truck.hauled[truck.task or ""] = (str(self.args["pickup"]), str(self.args["dropoff"]))

@@ -128,7 +128,7 @@ def _context(
         clock=lambda: sim.time_s,
         settings={**IMPLEMENTATIONS.settings, **(settings or {})},
         start=start,
-        events=lambda kind, **data: events.append((kind, data)),
+        events=lambda ev: events.append((ev.kind, ev.to_data())),
     )
     for hook in IMPLEMENTATIONS.setup_hooks:
         hook(ctx)

@@ -233,7 +233,7 @@ def test_a_leaf_error_in_a_condition_is_logged_once(tmp_path: Path) -> None:
     none: Any = None  # no backend, navigator or paths: the condition touches none of them
     ctx = AgentContext(
         "A", Blackboard("/a"), none, none, none, none, lambda: 0.0, {}, (0.0, 0.0, 0.0),
-        events=lambda kind, **data: seen.append((kind, data)),
+        events=lambda ev: seen.append((ev.kind, ev.to_data())),
     )  # fmt: skip
     leaf = ConditionLeaf(Node(Kind.CONDITION, "broken"), broken, ctx)
     for _ in range(5):  # ticked every tick: one event, not five
@@ -328,7 +328,7 @@ def test_initialise_and_on_halted_that_raise_are_caught() -> None:
     none: Any = None
     ctx = AgentContext(
         "A", Blackboard("/a"), none, none, none, none, lambda: 0.0, {}, (0.0, 0.0, 0.0),
-        events=lambda kind, **data: seen.append({"kind": kind, **data}),
+        events=lambda ev: seen.append({"kind": ev.kind, **ev.to_data()}),
     )  # fmt: skip
     halting = Halting(Node(Kind.ACTION, "halting"), ctx)
     halting.tick_once()

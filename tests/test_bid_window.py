@@ -3,6 +3,7 @@ acknowledgement and deduplication (issue #13 §4-5)."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +21,7 @@ from btmission.links.bus import (
     ProgressAck,
 )
 from btmission.runtime.coordinator import Coordinator
-from btmission.runtime.events import Recorder
+from btmission.runtime.events import Recorder, TypedEvent
 from btmission.runtime.runner import MissionRun
 from btmission.spec.mission import Mission
 from tests.test_runtime import ROBOTS, mission_text
@@ -68,8 +69,8 @@ class Events:
     def __init__(self) -> None:
         self.events: list[tuple[float | None, str, dict[str, Any]]] = []
 
-    def __call__(self, kind: str, t: float | None = None, **data: Any) -> None:
-        self.events.append((t, kind, data))
+    def __call__(self, event: TypedEvent) -> None:
+        self.events.append((None if math.isnan(event.t) else event.t, event.kind, event.to_data()))
 
     def of(self, kind: str) -> list[dict[str, Any]]:
         return [d for _, k, d in self.events if k == kind]

@@ -153,7 +153,7 @@ def test_the_root_is_at_the_bottom() -> None:
         ("btmission.spec.source.FileRefused", OSError),
         ("btmission.vehicles.provider.ProviderError", LookupError),
         ("btmission.vehicles.provider.VehicleUnavailable", RuntimeError),
-        ("btmission.backends.mavlink.MavlinkError", RuntimeError),
+        ("btmission.backends.mavlink_link.MavlinkError", RuntimeError),
         ("btmission.transport.zenoh_link.ZenohMissing", RuntimeError),
         ("btmission.cli.common.BadInput", click.ClickException),
         ("btmission.cli.common.ChecksFailed", click.ClickException),
@@ -167,7 +167,7 @@ def test_each_keeps_its_standard_base(name: str, standard: type[Exception]) -> N
 def test_subclasses_of_our_exceptions_keep_them() -> None:
     found = exception_classes()
     pairs = [
-        ("btmission.backends.mavlink.MavlinkError", "btmission.vehicles.provider.VehicleUnavailable"),
+        ("btmission.backends.mavlink_link.MavlinkError", "btmission.vehicles.provider.VehicleUnavailable"),
         ("btmission.planning.dstar.PlanningError", "btmission.world.voxel.MapError"),
         ("btmission.links.wire.UnknownAnnouncement", "btmission.links.wire.WireError"),
         ("btmission.transport.zenoh_link.ZenohMissing", "btmission.transport.zenoh_link.TransportError"),

@@ -4,10 +4,14 @@
 from __future__ import annotations
 
 import ast
+import gzip
 import itertools
 import json
+import math
+import re
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -16,22 +20,38 @@ import pytest
 from click.testing import CliRunner
 from py_trees.common import Status
 
+import btmission.runtime.events as events_module
 from btmission.cli.main import cli
+from btmission.runtime.commands import (
+    AddTask,
+    CancelTask,
+    KillAgent,
+    Refused,
+    SetLink,
+    SetPriority,
+    Signal,
+)
 from btmission.runtime.events import (
     EVENT_CLASSES,
     LOG_VERSION,
     READS_VERSIONS,
+    CommandEvent,
+    DispatchEvent,
     Event,
     EventError,
+    EventStream,
     GenericEvent,
     JsonlEventLog,
+    LeafErrorEvent,
     LogError,
     PoseEvent,
     Recorder,
     RoundEvent,
     TaskStateEvent,
     TypedEvent,
+    WarningEvent,
     event_class,
+    event_of,
     read_events,
     register_event,
     world_reference,
@@ -91,31 +111,102 @@ def ran(tmp_path_factory: pytest.TempPathFactory) -> Ran:
 
 
 # ------------------------------------------------------------------------------ every kind
-EMITTERS = {"emit", "_emit", "events", "_events", "_leaf_event"}
+class Strict:
+    """An observer that checks every event a run publishes is of its kind's typed class: a
+    registered class (not :class:`GenericEvent`), every field declared (a ``command``'s
+    arguments are its ``extra`` by design), and typed → JSON the same bytes as the event's."""
+
+    def __init__(self, library_kinds: frozenset[str] = frozenset()) -> None:
+        self.library_kinds = library_kinds
+        self.kinds: set[str] = set()
+        self.problems: list[str] = []
+
+    def on_event(self, event: Event) -> None:
+        self.kinds.add(event.kind)
+        line = event.to_json()
+        try:
+            typed = event.typed()
+        except EventError as exc:
+            self.problems.append(f"{exc}: {line[:200]}")
+            return
+        if isinstance(typed, GenericEvent) and event.kind not in self.library_kinds:
+            self.problems.append(f"no typed class: {line[:200]}")
+        elif typed.extra and not isinstance(typed, CommandEvent):
+            self.problems.append(f"undeclared fields {sorted(typed.extra)}: {line[:200]}")
+        elif typed.to_json() != line:
+            self.problems.append(f"not its JSON:\n  {line[:300]}\n  {typed.to_json()[:300]}")
 
 
-def emitted_kinds() -> set[str]:
-    """Every event kind the code publishes: the literal first argument of ``emit(...)``,
-    ``_emit``, ``events``, ``_events``, ``_leaf_event`` (and ``Event(t, "kind", ...)``) calls in
-    btmission/, cli/ and library/; ``events(self.kind, ...)`` takes the ``kind = "..."`` class
-    attributes of its module (haulage's load/offload)."""
-    kinds: set[str] = set()
+@pytest.fixture(scope="module")
+def busy(tmp_path_factory: pytest.TempPathFactory) -> Strict:
+    """A short run with operator commands (added tasks, priority, cancel, a cut link, a signal, a
+    refused command, a kill), every event checked by :class:`Strict`: ~2 s."""
+    tmp = tmp_path_factory.mktemp("busy")
+    mission = load_mission_text(SMALL.lstrip("\n"), str(tmp / "small.yaml"))
+    strict = Strict()
+    run = MissionRun(mission, observers=[strict])
+    run.at(0.5, AddTask({"id": "B", "type": "inspect", "location": [6, 3, 0]}, by="console:ana"))
+    run.at(0.5, AddTask({"id": "C", "type": "inspect", "location": [4, 3, 0], "at": 30.0}))
+    run.at(1.0, SetLink("G2", False))
+    run.at(1.5, SetPriority("B", 2.0))
+    run.at(1.5, Signal("G1", "note", {"level": 2}))
+    run.at(2.0, SetLink("G2", True))
+    run.at(2.0, CancelTask("C"))
+    run.at(2.5, Refused("kill_agent", {"agent": "G9"}, "unknown agent 'G9'", by="console:bo"))
+    run.at(6.0, KillAgent("G2", "battery"))
+    run.end(run.run(until=40))
+    return strict
+
+
+def test_a_run_publishes_only_typed_events_with_declared_fields(busy: Strict, ran: Ran) -> None:
+    """What the producers publish (runtime, coordinator, agents, leaves, commands) is each
+    kind's typed class, field for field: a new field or kind without its class fails here."""
+    assert busy.problems == []
+    assert {"header", "built", "task_added", "task", "round", "agent_task", "stage", "progress",
+            "pose", "route", "tree", "command", "link", "signal", "agent_lost", "end"} <= busy.kinds  # fmt: skip
+    strict = Strict()
+    for e in ran.events:
+        strict.on_event(e)
+    assert strict.problems == [] and {"route", "tree"} <= strict.kinds
+
+
+def test_the_golden_logs_hold_only_typed_events_with_declared_fields() -> None:
+    """Every event of the shipped missions' golden logs (tests/golden: compra, haulage,
+    relocalisation, ...) is of a registered class with all its fields declared (the golden
+    logs are normalised: keys sorted, wall-clock fields left out)."""
+    import btmission_library.haulage  # noqa: F401  (registers load / offload)
+
+    kinds = set()
+    for path in sorted((ROOT / "tests" / "golden").glob("*.events.jsonl.gz")):
+        with gzip.open(path, "rt", encoding="utf-8") as f:
+            for line in f:
+                ev = Event.from_json(line)
+                typed = ev.typed()
+                assert not isinstance(typed, GenericEvent), f"{path.name}: {line[:200]}"
+                if not isinstance(typed, CommandEvent):
+                    assert not typed.extra, f"{path.name}: {line[:200]}"
+                assert typed.to_data() == dict(ev.data), f"{path.name}: {line[:200]}"
+                kinds.add(typed.kind)
+    assert {"dispatch", "load", "objects", "junction", "relocalized", "pose"} <= kinds
+
+
+EMITTERS = {"emit", "_emit", "emit_event", "events", "_events", "_leaf_event", "library_event"}
+
+NAMED_KINDS = {("btmission/dispatch/service.py", "dispatch")}
+"""Where a kind is still named: the fleet dispatcher is an algorithm (it knows no run, so no
+event classes); ``haulage`` makes :class:`DispatchEvent`\\ s of what it publishes."""
+
+
+def named_kinds() -> set[tuple[str, str]]:
+    """(file, kind) of every call that publishes an event by naming its kind: a string as the
+    first argument of ``emit(...)``, ``_emit``, ``emit_event``, ``events``, ``_events``,
+    ``_leaf_event``, ``library_event`` or ``Event(t, "kind", ...)`` in btmission/, cli/ and
+    library/."""
+    found: set[tuple[str, str]] = set()
     for top in ("btmission", "cli", "library"):
         for path in (ROOT / top).rglob("*.py"):
             tree = ast.parse(path.read_text(encoding="utf-8"))
-            dynamic = False
-            class_kinds: set[str] = set()
             for node in ast.walk(tree):
-                if isinstance(node, ast.ClassDef):
-                    for stmt in node.body:
-                        if (
-                            isinstance(stmt, ast.Assign)
-                            and [getattr(t, "id", "") for t in stmt.targets] == ["kind"]
-                            and isinstance(stmt.value, ast.Constant)
-                            and isinstance(stmt.value.value, str)
-                            and stmt.value.value
-                        ):
-                            class_kinds.add(stmt.value.value)
                 if not isinstance(node, ast.Call) or not node.args:
                     continue
                 f = node.func
@@ -127,21 +218,42 @@ def emitted_kinds() -> set[str]:
                 else:
                     continue
                 if isinstance(arg, ast.Constant) and isinstance(arg.value, str):
-                    kinds.add(arg.value)
-                elif isinstance(arg, ast.Attribute) and arg.attr == "kind":
-                    dynamic = True
-            if dynamic:
-                kinds |= class_kinds
-    return kinds
+                    found.add((path.relative_to(ROOT).as_posix(), arg.value))
+    return found
 
 
-def test_every_kind_the_code_emits_has_a_typed_class() -> None:
-    import btmission_library.haulage  # noqa: F401  (registers load / offload)
+def test_producers_make_typed_events_instead_of_naming_kinds() -> None:
+    """One vocabulary: the code publishes the typed classes (``emit_event(PoseEvent(...))``,
+    ``ctx.events(ObjectsEvent(...))``), never a kind by name — which only a library's own kind
+    without a class needs."""
+    assert named_kinds() == NAMED_KINDS
 
-    kinds = emitted_kinds()
-    assert {"header", "task", "round", "pose", "route", "tree", "load", "offload"} <= kinds
-    assert {"link", "signal", "internal_error", "relocalized", "objects", "dispatch"} <= kinds
-    assert sorted(k for k in kinds if k not in EVENT_CLASSES) == []
+
+def docstring_table() -> dict[str, str]:
+    """The kinds table of :mod:`btmission.runtime.events`' docstring: kind → its row's text."""
+    doc = events_module.__doc__ or ""
+    _, table, _ = re.split(r"^=+  =+$", doc, maxsplit=2, flags=re.MULTILINE)
+    rows: dict[str, str] = {}
+    kind = ""
+    for line in table.splitlines():
+        m = re.match(r"``(\w+)``\s+(.*)", line)
+        if m:
+            kind = m.group(1)
+            rows[kind] = m.group(2)
+        elif kind:
+            rows[kind] += " " + line.strip()
+    return rows
+
+
+def test_the_docstring_table_lists_every_kind_and_field() -> None:
+    """The module docstring's table of kinds is the registered classes (those of the module
+    itself: a library registers its own), and each row names every field of its class."""
+    rows = docstring_table()
+    own = {k: c for k, c in EVENT_CLASSES.items() if c.__module__ == events_module.__name__}
+    assert sorted(rows) == sorted(own)
+    for kind, cls in own.items():
+        missing = [name for name, _, _ in cls._FIELDS if f"``{name}``" not in rows[kind]]
+        assert missing == [], f"the row of '{kind}' does not name {missing}"
 
 
 SAMPLES: dict[str, dict[str, Any]] = {
@@ -149,20 +261,22 @@ SAMPLES: dict[str, dict[str, Any]] = {
                "file": "m.yaml", "seed": 0, "controller": "track",
                "world": {"map": {"file": "x.npz"}, "resolution": 0.5, "topomap": None},
                "world_ref": {"base_dir": "/m", "map": "/m/x.npz", "topomap": None},
-               "step_s": 0.05, "auction_rate_hz": 2.0,
+               "map": {"shape": [2, 2, 2], "resolution": 0.5, "origin": [0.0, 0.0, 0.0]},
+               "step_s": 0.05, "part": "agents G1", "auction_rate_hz": 2.0,
                "agents": [{"id": "G1", "library": "ground", "vehicle": "ground",
                            "start": [1.0, 1.0, 0.0]}],
                "tasks": [{"id": "A", "type": "inspect", "at": 0.0, "fields": {}}],
                "artifacts": [{"label": "survivor", "p": [1.0, 2.0, 0.5], "size_m": 0.6}]},
     "built": {"map": {"shape": [2, 2, 2], "resolution": 0.5, "origin": [0.0, 0.0, 0.0]},
-              "build_s": 0.25},
+              "build_s": 0.25, "started_unix": 1700000000.5},
     "task_added": {"task": "A", "type": "inspect", "fields": {"location": [1, 2, 0]},
                    "priority": 1.0, "by": "api", "problems": ["location: inside rock"],
                    "at": 30.0},
     "task": {"task": "A", "state": "done", "agent": "G1", "reason": "completed",
              "reported_s": 12.5},
     "round": {"round": 3, "announced": 1, "agents": 2, "method": "dense", "bids": 2,
-              "step_ms": 0.3, "assignments": {"G1": "A", "G2": None}, "dropped": ["G3"]},
+              "step_ms": 0.3, "assignments": {"G1": "A", "G2": None}, "dropped": ["G3"],
+              "late_bids": 1, "stale_bids": 2},
     "agent_task": {"agent": "G1", "task": None},
     "stage": {"agent": "G1", "task": "A", "action": "drive_path(location)"},
     "junction": {"agent": "M1", "offsets": [-0.79, 0.15], "chosen": 1},
@@ -184,7 +298,7 @@ SAMPLES: dict[str, dict[str, Any]] = {
                     "time_ms": 40.0, "truth": {"x": 1.0, "y": 2.0, "z": 3.0, "yaw_deg": 10.0},
                     "estimate": {"x": 1.0, "y": 2.1, "z": 3.0, "yaw_deg": 9.0},
                     "error_m": 0.1, "error_deg": 1.0},
-    "dispatch": {"truck": "T1", "event": "adopted", "goal": "L1", "to": "D1", "items": 1,
+    "dispatch": {"truck": "T1", "event": "adopted", "goal": "L1", "reason": "", "to": "D1", "items": 1,
                  "depart": None, "arrive": 30.5, "mission": {"nodes": ["L1", "D1"]}},
     "leaf_error": {"agent": "G1", "task": "A", "leaf": "scan(location)", "phase": "update",
                    "error": "ValueError", "message": "no data", "where": "x.py:3",
@@ -193,7 +307,8 @@ SAMPLES: dict[str, dict[str, Any]] = {
     "internal_error": {"type": "KeyError", "message": "'x'", "traceback": "Traceback ..."},
     "end": {"reason": "completed", "wall_s": 1.5, "steps": 30, "done": ["A"], "open": {},
             "pending": [], "cancelled": ["B"]},
-    "command": {"command": "cancel_task", "by": "console:ana", "ok": False,
+    "command": {"command": "cancel_task", "by": "console:ana", "task": "B",
+                "reason": "not needed", "ok": False,
                 "error": "cannot cancel task 'B': it is already cancelled"},
     "withdrawn": {"agent": "R1", "task": "T3", "by": "R2", "reason": "R2 did it first"},
     "resumed": {"log": "runs/coordinator.jsonl", "last_s": 41.25},
@@ -201,7 +316,8 @@ SAMPLES: dict[str, dict[str, Any]] = {
     "route": {"agent": "G1", "task": "A", "points": [[1.0, 1.0, 0.0], [6.0, 1.0, 0.0]],
               "length_m": 5.0},
     "tree": {"agent": "G1", "changes": [[0, "INVALID", "RUNNING"]],
-             "nodes": [["mission(G1)", -1, "fallback"]]},
+             "nodes": [["mission(G1)", -1, "fallback"]], "blackboard": {"task": "A"},
+             "unset": ["home"]},
     "load": {"agent": "T1", "until": 12.0},
     "offload": {"agent": "T1", "until": 20.0},
 }  # fmt: skip
@@ -215,7 +331,10 @@ def test_every_class_round_trips_json_typed_json(kind: str) -> None:
     line = Event(7.5, kind, SAMPLES[kind]).to_json()
     typed = Event.from_json(line).typed()
     assert type(typed) is EVENT_CLASSES[kind] and typed.kind == kind
-    assert not typed.extra, "every field of the sample is a declared one"
+    args = {"task", "reason"} if kind == "command" else set()  # a command's: its extra
+    assert set(typed.extra) == args, "every other field of the sample is a declared one"
+    declared = {name for name, _, _ in type(typed)._FIELDS}
+    assert declared == set(SAMPLES[kind]) - args - {"reported_s"}, "the sample has them all"
     assert typed.to_json() == line
     # the same with every optional field left out, and the others as they are
     required = {
@@ -275,6 +394,65 @@ def test_typed_fields_and_constructing_events() -> None:
     )
     with pytest.raises(AttributeError):
         r.round = 2  # type: ignore[misc]  # frozen
+
+
+def test_what_a_producer_leaves_out_and_where_the_extra_fields_go() -> None:
+    """Optional fields are left out when None — unless the field they go with is set (written
+    as null then); a command's arguments go between ``by`` and ``ok``, as they always did."""
+    tb = {"error": "KeyError", "message": "'x'", "where": "a.py:1", "traceback": "..."}
+    mine = LeafErrorEvent(t=1.0, agent="G1", task=None, leaf="scan", phase="update", **tb)
+    assert list(mine.to_data())[:3] == ["agent", "task", "leaf"] and mine.task is None
+    service = LeafErrorEvent(t=1.0, leaf="service x.y", phase="step", **tb)
+    assert list(service.to_data())[:2] == ["leaf", "phase"]
+    parked = DispatchEvent(t=1.0, truck="T1", event="adopted", goal="P", to="P", items=0)
+    assert list(parked.to_data()) == ["truck", "event", "goal", "to", "items"]
+    moved = DispatchEvent(truck="T1", event="adopted", goal="P", to="P", items=0, arrive=3.0)
+    assert moved.to_data()["depart"] is None and list(moved.to_data())[-2:] == ["depart", "arrive"]
+    cmd = CommandEvent(t=2.0, command="cancel_task", by="api", ok=False, error="no",
+                       extra={"task": "B", "reason": "r"})  # fmt: skip
+    assert cmd.to_json() == (
+        '{"t":2.0,"ev":"command","command":"cancel_task","by":"api","task":"B","reason":"r",'
+        '"ok":false,"error":"no"}'
+    )
+    assert cmd.args == {"task": "B", "reason": "r"}
+    assert Event.from_json(cmd.to_json()).typed() == cmd
+
+
+def test_emit_event_stamps_the_time_and_keeps_the_log_in_order() -> None:
+    """:meth:`MissionRun.emit_event`: an event made without a time is published now; one that
+    happened before the last published goes out then, with its own time as ``reported_s``."""
+    rec = Recorder()
+    run: Any = SimpleNamespace(now=lambda: 5.0, last_t=0.0, events=EventStream([rec]))
+    MissionRun.emit_event(run, WarningEvent(message="now"))
+    MissionRun.emit_event(run, TaskStateEvent(t=4.0, task="A", state="done", agent="G1",
+                                              reason="completed"))  # fmt: skip
+    MissionRun.emit_event(run, WarningEvent(t=6.0, message="later"))
+    assert [e.to_json() for e in rec.events] == [
+        '{"t":5.0,"ev":"warning","message":"now"}',
+        '{"t":5.0,"ev":"task","task":"A","state":"done","agent":"G1","reason":"completed",'
+        '"reported_s":4.0}',
+        '{"t":6.0,"ev":"warning","message":"later"}',
+    ]
+    assert math.isnan(WarningEvent(message="unpublished").t)
+
+
+def test_a_library_publishes_typed_events_or_its_own_kinds_by_name() -> None:
+    ev = WarningEvent(message="x")
+    assert event_of(ev, {}) is ev
+    with pytest.raises(TypeError, match="a typed event takes no other fields"):
+        event_of(ev, {"agent": "G1"})
+    own = event_of("sample_taken", {"agent": "G1", "grams": 3.5})
+    assert isinstance(own, GenericEvent) and own.kind == "sample_taken"
+    assert own.to_data() == {"agent": "G1", "grams": 3.5}
+
+
+def test_consumers_skip_an_event_of_the_wrong_types_as_a_log_reader_does() -> None:
+    bad = Event(1.0, "pose", {"agent": "G1", "p": "here"})
+    assert bad.typed_or_none() is None
+    with pytest.raises(EventError):
+        bad.typed()
+    good = Event(1.0, "warning", {"message": "m"})
+    assert good.typed() is good.typed()  # made once
 
 
 @pytest.mark.parametrize(

@@ -222,7 +222,7 @@ class _Down:
 def restart(run: MissionRun, events: list[Event]) -> Coordinator:
     """A new coordinator on the run's bus, restored from ``events``, in place of the old one."""
     new = Coordinator(
-        run.mission, run.bus, run.now, run.emit, check_location=run.paths.problem,
+        run.mission, run.bus, run.now, run.emit_event, check_location=run.paths.problem,
         places=run.places,
     )  # fmt: skip
     rec = recover(run.mission, events)
@@ -371,7 +371,7 @@ def test_a_resent_report_is_a_copy_whatever_the_digits_the_log_dropped() -> None
     acks: list[ProgressAck] = []
     bus.connect("G1", lambda ann: None, lambda a: None, acks.append)
     emitted: list[tuple[str, dict[str, Any]]] = []
-    coord = Coordinator(m, bus, lambda: 2.1, lambda kind, **data: emitted.append((kind, data)))
+    coord = Coordinator(m, bus, lambda: 2.1, lambda ev: emitted.append((ev.kind, ev.to_data())))
     coord.restore(rec)
     ann = coord.state.announcement  # its own epoch, serials after the predecessor's
     assert (ann.epoch, ann.serial) == (coord.epoch, 2)

@@ -562,7 +562,7 @@ def test_a_condition_ticks_as_a_guarded_leaf_without_its_no_op_hooks() -> None:
 
     none: Any = None
     ctx = AgentContext("A", Blackboard("/a"), none, none, none, none, lambda: 0.0, {},
-                       (0.0, 0.0, 0.0), events=lambda kind, **data: None)  # fmt: skip
+                       (0.0, 0.0, 0.0), events=lambda ev: None)  # fmt: skip
     answers = [True, False, True, True]
 
     def fn(ctx: Any) -> bool:
@@ -615,8 +615,8 @@ def test_a_conditions_arguments_and_errors_tick_as_through_its_guarded_update() 
         events: list[tuple[str, Any, Any]] = []
         ctx = AgentContext("A", Blackboard("/a"), none, none, none, none, lambda: 0.0, {},
                            (0.0, 0.0, 0.0),
-                           events=lambda kind, **d: events.append((kind, d.get("leaf"),
-                                                                   d.get("phase"))))  # fmt: skip
+                           events=lambda ev: events.append((ev.kind, getattr(ev, "leaf", None),
+                                                            getattr(ev, "phase", None))))  # fmt: skip
 
         def near(ctx: Any, kind: str, goal: Any) -> bool:
             if goal == "boom":
@@ -649,6 +649,6 @@ def test_a_conditions_arguments_and_errors_tick_as_through_its_guarded_update() 
     assert Own.tick_now is not ConditionLeaf.tick_now
     own = Own(Node(Kind.CONDITION, "o"), lambda ctx: True, AgentContext(
         "A", Blackboard("/a"), none, none, none, none, lambda: 0.0, {}, (0.0, 0.0, 0.0),
-        events=lambda kind, **d: None))  # fmt: skip
+        events=lambda ev: None))  # fmt: skip
     own.tick_now()
     assert own.status.value == "FAILURE"

@@ -570,7 +570,7 @@ class Fleet:
         self.faulty = FaultyCoordinatorLink(self.recording, faults) if faults else None
         link: CoordinatorLink = self.faulty if self.faulty is not None else self.recording
         self.coordinator = Coordinator(mission, link, lambda: 0.0,
-                                       lambda kind, **data: self.events.append((kind, data)))  # fmt: skip
+                                       lambda ev: self.events.append((ev.kind, ev.to_data())))  # fmt: skip
         self.bidders = [Bidder(al, costs[al.agent], work) for al in agent_links]
         if self.zcoord is not None:
             assert self.zcoord.wait_for_agents(set(costs), WAIT_S)

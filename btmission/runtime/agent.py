@@ -60,6 +60,20 @@ from btmission.links.bus import (
 )
 from btmission.plugins import Implementations
 from btmission.recursion import main_thread_limit, recursion_for_depth, recursion_limit
+from btmission.runtime.events import (
+    AgentTaskEvent,
+    CommittedEvent,
+    EmitEvent,
+    GenericEvent,
+    LeafErrorEvent,
+    ProgressEvent,
+    RouteEvent,
+    StageEvent,
+    TreeEvent,
+    TypedEvent,
+    VehicleLinkEvent,
+    WarningEvent,
+)
 from btmission.runtime.leaves import (
     BUILTIN_ACTIONS,
     BUILTIN_CONDITIONS,
@@ -89,8 +103,6 @@ from btmission.synthesis.pytrees import behaviour_depth, build_behaviour_tree
 from btmission.synthesis.tree import Kind, Node, Role
 from btmission.types import recorder
 from btmission.vehicles.base import Backend, Mode, Sensors
-
-Emit = Callable[..., None]
 
 PROGRESS_RESEND_S = 1.0
 """A progress report the coordinator has not acknowledged after this long is sent again (the
@@ -166,7 +178,7 @@ class Agent:
         clock: Callable[[], float],
         *,
         settings: Mapping[str, Any],
-        emit: Emit,
+        emit: EmitEvent,
         namespace: str = "",
         services: Mapping[str, Any] | None = None,
         places: Mapping[str, tuple[float, float, float]] | None = None,
@@ -181,7 +193,9 @@ class Agent:
         self.clock = clock
         self.navigator = navigator
         self._emit = emit
-        self.errors = ErrorReporter(self._leaf_event)
+        self.errors = ErrorReporter(
+            self._leaf_event, lambda: (self.id, self.task.id if self.task else None)
+        )
         """Exceptions raised by the library's leaves → ``leaf_error`` events (once each)."""
         self._warned: set[str] = set()
         self.blackboard = Blackboard(f"{namespace}/agents/{agent_id}")
@@ -378,7 +392,7 @@ class Agent:
             self.blackboard.unset("task")
         self._deep(lambda: self.root.stop(Status.INVALID))
         self._tree_log.collect()
-        self._emit("agent_task", agent=self.id, task=info.id if info else None)
+        self._emit(AgentTaskEvent(agent=self.id, task=info.id if info else None))
 
     # ---------------------------------------------------------------- ticking
     def _deep(self, fn: Callable[[], None]) -> None:
@@ -408,14 +422,14 @@ class Agent:
                 ):
                     self.committed = True
                     self._progress(task.id, "committed", now)
-                    self._emit("committed", agent=self.id, task=task.id)
+                    self._emit(CommittedEvent(agent=self.id, task=task.id))
                 if branch.status is _SUCCESS:
                     self.finished.add(task.id)
                     self._progress(task.id, "done", now)
                     self.task = None
                     self.committed = False
                     self.idle_since = now
-                    self._emit("agent_task", agent=self.id, task=None)
+                    self._emit(AgentTaskEvent(agent=self.id, task=None))
                 elif branch.status is _FAILURE:
                     reason = self._failure or "the task's behaviour tree failed"
                     self.finished.add(task.id)
@@ -423,14 +437,14 @@ class Agent:
                     self.task = None
                     self.committed = False
                     self.idle_since = now
-                    self._emit("agent_task", agent=self.id, task=None)
+                    self._emit(AgentTaskEvent(agent=self.id, task=None))
         return self.root.status
 
     def _progress(self, task: str, event: str, now: float, reason: str = "") -> None:
         p = Progress(self.id, task, event, now, reason)  # type: ignore[arg-type]
         self._outbox[progress_key(p)] = _Outgoing(p)
         self._send_progress(now)
-        self._emit("progress", agent=self.id, task=task, event=event, reason=reason)
+        self._emit(ProgressEvent(agent=self.id, task=task, event=event, reason=reason))
 
     def _send_progress(self, now: float) -> None:
         """Send the progress reports not sent yet, and resend those unacknowledged for
@@ -465,20 +479,32 @@ class Agent:
                 continue
             self._warned.add(name)
             self._emit(
-                "warning",
-                agent=self.id,
-                variable=name,
-                leaf=leaf,
-                message=f"'{name}' is not on the blackboard, so {leaf} cannot run: nothing "
-                f"sets this library variable (an on_setup hook or an action of the library must "
-                "set it; see docs/plugins.md, 'Library variables')",
+                WarningEvent(
+                    agent=self.id,
+                    variable=name,
+                    leaf=leaf,
+                    message=f"'{name}' is not on the blackboard, so {leaf} cannot run: nothing "
+                    f"sets this library variable (an on_setup hook or an action of the library "
+                    "must set it; see docs/plugins.md, 'Library variables')",
+                )
             )
 
-    def _leaf_event(self, kind: str, **data: Any) -> None:
-        if kind in ("stage", "leaf_error"):
-            self.action = str(data.get("action", ""))
-            data = {"task": self.task.id if self.task else None, **data}
-        self._emit(kind, agent=self.id, **data)
+    def _leaf_event(self, event: TypedEvent | str, /, **fields: Any) -> None:
+        """What the library's leaves publish (``ctx.events``): a typed event as it is, or a kind
+        of the library's own that has no class, by name with its fields (this agent's id
+        first). A ``stage`` event names the action now running; a ``leaf_error`` ends it."""
+        if not isinstance(event, TypedEvent):
+            if event in ("stage", "leaf_error"):  # (a library's by name: as the typed ones)
+                fields = {"task": self.task.id if self.task else None, **fields}
+                self.action = str(fields.get("action", ""))
+            event = GenericEvent(name=event, extra={"agent": self.id, **fields})
+        elif fields:
+            raise TypeError(f"{event.kind}: a typed event takes no other fields")
+        elif isinstance(event, StageEvent):
+            self.action = event.action
+        elif isinstance(event, LeafErrorEvent):
+            self.action = ""
+        self._emit(event)
 
     def _tree_event(self, changes: list[list[Any]], nodes: list[list[Any]] | None) -> None:
         extra: dict[str, Any] = {"nodes": nodes} if nodes else {}
@@ -492,12 +518,12 @@ class Agent:
             extra["blackboard"] = changed
         if unset:
             extra["unset"] = unset
-        self._emit("tree", agent=self.id, changes=changes, **extra)
+        self._emit(TreeEvent(agent=self.id, changes=changes, **extra))
 
     def _route_event(self, points: Any, length_m: float) -> None:
         task = self.task.id if self.task is not None else None
         self._emit(
-            "route", agent=self.id, task=task, points=route_points(points), length_m=length_m
+            RouteEvent(agent=self.id, task=task, points=route_points(points), length_m=length_m)
         )
 
     @property
@@ -534,13 +560,13 @@ class Agent:
             self.blackboard.set("vehicle_link", up)
             tel = self.ctx.telemetry()
             if up:
-                self._emit("vehicle_link", agent=self.id, up=True, mode=tel.mode.value)
+                self._emit(VehicleLinkEvent(agent=self.id, up=True, mode=tel.mode.value))
                 self.navigator.resume(now)
                 if self._mode_before_loss is Mode.OFFBOARD and tel.mode is Mode.HOLD:
                     self._resume_offboard_until = now + self.RESUME_OFFBOARD_S
             else:
                 self._mode_before_loss = tel.mode
-                self._emit("vehicle_link", agent=self.id, up=False)
+                self._emit(VehicleLinkEvent(agent=self.id, up=False))
         if up and self._resume_offboard_until is not None:
             if now > self._resume_offboard_until or self.ctx.telemetry().mode is not Mode.HOLD:
                 self._resume_offboard_until = None

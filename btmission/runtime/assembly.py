@@ -25,7 +25,15 @@ from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
 from btmission.links.bus import AgentLink, neighbour_positions
 from btmission.runtime.agent import Agent
 from btmission.runtime.distribution import ClockFollower, NoVehicles, remote_bid_window
-from btmission.runtime.events import LOG_FORMAT, LOG_VERSION, world_reference
+from btmission.runtime.events import (
+    LOG_FORMAT,
+    LOG_VERSION,
+    BuiltEvent,
+    ClockEvent,
+    HeaderEvent,
+    WarningEvent,
+    world_reference,
+)
 from btmission.runtime.leaves import ErrorReporter, RunContext, describe, setup_failed
 from btmission.runtime.navigation import Navigator
 from btmission.spec.source import format_path
@@ -112,7 +120,7 @@ def build_services(run: MissionRun) -> dict[str, dict[str, Any]]:
         run.now,
         run.settings,
         run.seed,
-        run.emit,
+        run.library_event,
         run.places,
         run.roads.tmap if run.roads is not None else None,
     )
@@ -197,7 +205,7 @@ def build_agents(run: MissionRun) -> None:
             link,
             run.now,
             settings=run.settings,
-            emit=run.emit,
+            emit=run.emit_event,
             namespace=run.namespace,
             services=run.services[impl.library],
             places=run.places,
@@ -206,11 +214,12 @@ def build_agents(run: MissionRun) -> None:
             vehicle_link=vehicle.link_ok,
         )
     if blind:
-        run.emit(
-            "warning",
-            message=f"{', '.join(blind)}: no exteroceptive sensors (a real vehicle's come "
-            "from its drivers): planning on the prior map only, reactive avoidance (APF on "
-            "the LiDAR) is off",
+        run.emit_event(
+            WarningEvent(
+                message=f"{', '.join(blind)}: no exteroceptive sensors (a real vehicle's come "
+                "from its drivers): planning on the prior map only, reactive avoidance (APF on "
+                "the LiDAR) is off",
+            )
         )
 
 
@@ -226,7 +235,7 @@ def agent_link(run: MissionRun, agent: str) -> AgentLink:
         return run.bus.agent_link(agent)
 
     def followed(before: float, now: float) -> None:
-        run.emit("clock", agent=agent, was_s=before, now_s=now)
+        run.emit_event(ClockEvent(agent=agent, was_s=before, now_s=now))
 
     clock = run.clock
     if not isinstance(clock, ScaledWallClock):  # the agent process's clock is its vehicles'
@@ -249,10 +258,11 @@ def follow_coordinator(run: MissionRun, timeout_s: float) -> None:
     while not all(getattr(lk, "synced", True) for lk in links):
         left = deadline - time.monotonic()
         if left <= 0:
-            run.emit(
-                "warning",
-                message=f"no assignment from the coordinator within {timeout_s:g} s: the "
-                "agents run on their own clock until one comes",
+            run.emit_event(
+                WarningEvent(
+                    message=f"no assignment from the coordinator within {timeout_s:g} s: the "
+                    "agents run on their own clock until one comes",
+                )
             )
             break
         for dispatch in run.dispatchers:
@@ -272,35 +282,37 @@ def emit_header(run: MissionRun) -> None:
         assert impl is not None  # run_problems() checked it
         return VehicleKind.of(impl.vehicle).value
 
-    extra: dict[str, Any] = {} if run.part is None else {"part": run.part.describe()}
-    run.emit(
-        "header",
-        format=LOG_FORMAT,
-        version=LOG_VERSION,
-        mission=m.name,
-        description=m.spec.description,
-        file=m.file,
-        seed=run.seed,
-        controller=run.controller,
-        world=world,
-        world_ref=world_reference(world, m.base_dir),
-        step_s=m.spec.runtime.sim.step_s,
-        **extra,
-        auction_rate_hz=m.spec.coordination.auction_rate_hz,
-        agents=[
-            {
-                "id": a.id,
-                "library": m.library_of(a.id).library.name,
-                "vehicle": vehicle(a.id),
-                "start": list(a.start),
-            }
-            for a in m.agents
-        ],
-        tasks=[{"id": t.id, "type": t.type, "at": t.at, "fields": dict(t.fields)} for t in m.tasks],
-        artifacts=[
-            {"label": a.label, "p": list(a.position), "size_m": a.size_m}
-            for a in m.spec.runtime.sim.artifacts
-        ],
+    run.emit_event(
+        HeaderEvent(
+            format=LOG_FORMAT,
+            version=LOG_VERSION,
+            mission=m.name,
+            description=m.spec.description,
+            file=m.file,
+            seed=run.seed,
+            controller=run.controller,
+            world=world,
+            world_ref=world_reference(world, m.base_dir),
+            step_s=m.spec.runtime.sim.step_s,
+            part=run.part.describe() if run.part is not None else None,
+            auction_rate_hz=m.spec.coordination.auction_rate_hz,
+            agents=[
+                {
+                    "id": a.id,
+                    "library": m.library_of(a.id).library.name,
+                    "vehicle": vehicle(a.id),
+                    "start": list(a.start),
+                }
+                for a in m.agents
+            ],
+            tasks=[
+                {"id": t.id, "type": t.type, "at": t.at, "fields": dict(t.fields)} for t in m.tasks
+            ],
+            artifacts=[
+                {"label": a.label, "p": list(a.position), "size_m": a.size_m}
+                for a in m.spec.runtime.sim.artifacts
+            ],
+        )
     )
 
 
@@ -328,14 +340,14 @@ def emit_built(run: MissionRun, build_s: float) -> None:
     """The ``built`` event: the map, how long building took and, in a distributed run's
     coordinator process, when its mission's clock was zero."""
     vm = run.map
-    started: dict[str, Any] = {}
-    if isinstance(run.provider, NoVehicles):  # when this mission's clock was zero
-        started["started_unix"] = run.provider.started_unix
-    run.emit(
-        "built",
-        map={"shape": list(vm.shape), "resolution": vm.resolution, "origin": list(vm.origin)},
-        build_s=build_s,
-        **started,
+    run.emit_event(
+        BuiltEvent(
+            map={"shape": list(vm.shape), "resolution": vm.resolution, "origin": list(vm.origin)},
+            build_s=build_s,
+            started_unix=(  # when this mission's clock was zero
+                run.provider.started_unix if isinstance(run.provider, NoVehicles) else None
+            ),
+        )
     )
 
 

@@ -40,6 +40,7 @@ from btmission.runtime.commands import (
     Stop,
 )
 from btmission.runtime.coordinator import TaskError
+from btmission.runtime.events import AgentLostEvent, CommandEvent, LinkEvent, SignalEvent
 
 if TYPE_CHECKING:
     from btmission.runtime.runner import MissionRun
@@ -140,20 +141,20 @@ class CommandPort:
     def log(self, command: Command, error: str) -> Outcome:
         """The ``command`` event: who, what, its arguments, and whether it was refused; the
         command's outcome."""
-        data: dict[str, Any] = {"command": command.name, "by": command.by}
+        name = command.name
         if isinstance(command, Refused):  # refused before it reached the run: as it was asked
-            data["command"] = command.command
-            data.update(command.args)
+            name = command.command
+            args = dict(command.args)
             error = command.error
         else:
-            data.update(command.to_data())
+            args = command.to_data()
         if isinstance(command, AddTask):
-            data["task"] = dict(command.task).get("id")
-        data["ok"] = not error
-        if error:
-            data["error"] = error
-        self.run.emit("command", **data)
-        return Outcome(self.run.last_t, not error, error, data)
+            args["task"] = dict(command.task).get("id")
+        event = CommandEvent(
+            command=name, by=command.by, ok=not error, error=error or None, extra=args
+        )
+        self.run.emit_event(event)
+        return Outcome(self.run.last_t, not error, error, event.to_data())
 
     def apply(self, command: Command) -> None:
         """Apply one command now; raises :class:`CommandError` (or ``TaskError``) to refuse
@@ -207,15 +208,17 @@ class CommandPort:
         a = self.run.agents[command.agent]
         if a.alive:
             a.kill()
-            self.run.emit("agent_lost", agent=command.agent, reason=command.reason)
+            self.run.emit_event(AgentLostEvent(agent=command.agent, reason=command.reason))
 
     def _set_link(self, command: SetLink, now: float) -> None:
         self.run.bus.set_link(command.agent, command.up)
-        self.run.emit("link", agent=command.agent, up=command.up)
+        self.run.emit_event(LinkEvent(agent=command.agent, up=command.up))
 
     def _signal(self, command: Signal, now: float) -> None:
         self.run.agents[command.agent].ctx.state[command.signal] = command.value
-        self.run.emit("signal", agent=command.agent, name=command.signal, value=command.value)
+        self.run.emit_event(
+            SignalEvent(agent=command.agent, name=command.signal, value=command.value)
+        )
 
 
 def settle(outcomes: Iterable[tuple[Future[Outcome], Outcome]]) -> None:

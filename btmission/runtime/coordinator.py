@@ -55,11 +55,17 @@ from btmission.links.bus import (
     ProgressKey,
     progress_key,
 )
+from btmission.runtime.events import (
+    EmitEvent,
+    RoundEvent,
+    TaskAddedEvent,
+    TaskStateEvent,
+    WarningEvent,
+    WithdrawnEvent,
+)
 from btmission.runtime.mission_auction import pool_from_mission
 from btmission.runtime.recovery import Recovered, logged_key
 from btmission.spec.mission import Mission
-
-Emit = Callable[..., None]
 
 
 def new_epoch() -> int:
@@ -90,7 +96,7 @@ class Coordinator:
         mission: Mission,
         link: CoordinatorLink,
         clock: Callable[[], float],
-        emit: Emit,
+        emit: EmitEvent,
         *,
         check_location: Callable[[tuple[float, float, float]], str | None] | None = None,
         places: Mapping[str, tuple[float, float, float]] | None = None,
@@ -285,7 +291,7 @@ class Coordinator:
             except queue.Empty:
                 break
             if info.id in self.state.pool:
-                self._emit("warning", message=f"task '{info.id}' added twice; ignored")
+                self._emit(WarningEvent(message=f"task '{info.id}' added twice; ignored"))
                 continue
             self.loop.state = self.state.add_task(info, now)
             self._emit_added(info, now, by)
@@ -343,15 +349,16 @@ class Coordinator:
                     if why:
                         problems.append(f"{name}: {why}")
         self._emit(
-            "task_added",
-            t=t,
-            task=info.id,
-            type=info.type,
-            fields=dict(info.fields),
-            priority=info.priority,
-            by=by,
-            problems=problems,
-            **({"at": info.arrival_s} if info.arrival_s > t + 1e-9 else {}),
+            TaskAddedEvent(
+                t=t,
+                task=info.id,
+                type=info.type,
+                fields=dict(info.fields),
+                priority=info.priority,
+                by=by,
+                problems=problems,
+                at=info.arrival_s if info.arrival_s > t + 1e-9 else None,
+            )
         )
 
     def _collect(self, ann: Announcement, now: float) -> Inbox:
@@ -417,38 +424,37 @@ class Coordinator:
             for ev in t.history[seen:]:
                 if seen == 0 and ev.reason == "added":
                     continue  # the task_added event said it
-                late = {"reported_s": ev.time_s} if ev.time_s < now - 1e-9 else {}
-                self._emit(  # at the round's time (the log is in time order); when the
-                    "task",  # change was reported earlier (an agent's progress), that time too
-                    task=t.id,
-                    state=ev.state.value,
-                    agent=ev.agent,
-                    reason=ev.reason,
-                    **late,
+                self._emit(  # at the round's time (the log is in time order); when the change
+                    TaskStateEvent(  # was reported earlier (an agent's progress), that time too
+                        task=t.id,
+                        state=ev.state.value,
+                        agent=ev.agent,
+                        reason=ev.reason,
+                        reported_s=ev.time_s if ev.time_s < now - 1e-9 else None,
+                    )
                 )
             logged[tid] = len(t.history)
         for msg in result.progress_problems:
-            self._emit("warning", message=msg)
+            self._emit(WarningEvent(message=msg))
         for w in result.withdrawn:
-            self._emit("withdrawn", agent=w.agent, task=w.task, by=w.by, reason=w.reason)
-        data: dict[str, Any] = {
-            "round": rep.round,
-            "announced": rep.announced,
-            "agents": len(rep.agents),
-            "method": rep.method,
-            "bids": rep.bids,
-            "step_ms": result.step_s * 1000,
-        }
-        if dict(rep.assignments) != self._last_assignments:
+            self._emit(WithdrawnEvent(agent=w.agent, task=w.task, by=w.by, reason=w.reason))
+        changed = dict(rep.assignments) != self._last_assignments
+        if changed:
             self._last_assignments = dict(rep.assignments)
-            data["assignments"] = self._last_assignments
-        if rep.dropped:
-            data["dropped"] = list(rep.dropped)
-        if rep.late_bids:
-            data["late_bids"] = rep.late_bids
-        if rep.stale_bids:
-            data["stale_bids"] = rep.stale_bids
-        self._emit("round", **data)
+        self._emit(
+            RoundEvent(
+                round=rep.round,
+                announced=rep.announced,
+                agents=len(rep.agents),
+                method=rep.method,
+                bids=rep.bids,
+                step_ms=result.step_s * 1000,
+                assignments=dict(self._last_assignments) if changed else None,  # when they changed,
+                dropped=list(rep.dropped) if rep.dropped else None,  # and the others when any
+                late_bids=rep.late_bids or None,
+                stale_bids=rep.stale_bids or None,
+            )
+        )
         self.link.assign(
             Assignment(now, rep.round, result.assignments, result.announcement, self._clock())
         )

@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from btmission.allocation.tasks import TaskState
 from btmission.links.bus import MissionEnd
 from btmission.runtime.command_port import settle
-from btmission.runtime.events import Event
+from btmission.runtime.events import EndEvent, Event
 
 if TYPE_CHECKING:
     from btmission.runtime.distribution import Part
@@ -136,18 +136,15 @@ def result_of(run: MissionRun, reason: str) -> RunResult:
 def end_before_build(mission: Mission, reason: str, wall_s: float) -> Event:
     """The ``end`` event of a run stopped while it was being built (after its header):
     nothing ran, every task is still to arrive."""
-    return Event(
-        0.0,
-        "end",
-        {
-            "reason": reason,
-            "wall_s": wall_s,
-            "steps": 0,
-            "done": [],
-            "open": {},
-            "pending": [t.id for t in mission.tasks],
-        },
-    )
+    return EndEvent(
+        t=0.0,
+        reason=reason,
+        wall_s=wall_s,
+        steps=0,
+        done=[],
+        open={},
+        pending=[t.id for t in mission.tasks],
+    ).to_event()
 
 
 def publish_end(run: MissionRun, result: RunResult) -> None:
@@ -159,17 +156,17 @@ def publish_end(run: MissionRun, result: RunResult) -> None:
     settle(settled)
     for a in run.agents.values():
         a.flush_tree_events()
-    data: dict[str, Any] = {
-        "reason": result.reason,
-        "wall_s": result.wall_s,
-        "steps": result.steps,
-        "done": result.done,
-        "open": result.open,
-        "pending": result.pending,
-    }
-    if result.cancelled:
-        data["cancelled"] = result.cancelled
-    run.emit("end", **data)
+    run.emit_event(
+        EndEvent(
+            reason=result.reason,
+            wall_s=result.wall_s,
+            steps=result.steps,
+            done=result.done,
+            open=result.open,
+            pending=result.pending,
+            cancelled=result.cancelled or None,  # only when there are any
+        )
+    )
     send_end = getattr(run.coordinator.link, "end", None)
     if run.part is not None and run.runs_coordinator and send_end is not None:
         send_end(MissionEnd(run.now(), result.reason, tuple(result.done), result.open))

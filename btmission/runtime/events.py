@@ -7,71 +7,97 @@ are called on the run's thread: a slow one (a live viewer) goes behind a
 :class:`~btmission.runtime.observers.QueuedObserver`, which never holds the run up.
 
 The kinds a run emits (fields in brackets; positions are ``[x, y, z]`` lists in metres). Each
-has a typed class below (:class:`TypedEvent` subclasses, frozen dataclasses; ``Event.typed()``):
+has a typed class below (:class:`TypedEvent` subclasses, frozen dataclasses), which producers
+make and publish (``run.emit_event(PoseEvent(...))``, a leaf's ``ctx.events(StageEvent(...))``)
+and consumers read (``Event.typed()``: the report, the viewer's feed, a restarted coordinator):
 
-=================  =======================================================================
-``header``         first event of a log, written before anything is built: ``format``,
-                   ``version``, ``mission``, ``description``, ``file``, ``seed``,
-                   ``controller``, ``world`` (the mission's world spec), ``world_ref`` (where
-                   the map is: :func:`world_reference`; version 2), ``step_s``,
-                   ``auction_rate_hz``, ``agents`` (``[{id, library, vehicle, start}]``),
-                   ``tasks`` (``[{id, type, at, fields}]``), ``artifacts``
-``built``          the run is built: ``map`` (shape, resolution, origin), ``build_s``
-``task_added``     a task entered the pool: ``task``, ``type``, ``fields``, ``priority``,
-                   ``by`` (mission/api), ``problems``
-``task``           a task changed state or agent (the auction pool's history): ``task``,
-                   ``state`` (open/assigned/committed/done/failed/unreachable), ``agent``,
-                   ``reason``
-``round``          one auction round: ``round``, ``announced``, ``agents``, ``method``,
-                   ``bids``, ``step_ms``; ``assignments`` (agent → task) when they changed,
-                   ``dropped`` (agents that stopped bidding) when there are any
-``agent_task``     an agent started or stopped executing a task: ``agent``, ``task`` (or null)
-``stage``          an agent's tree started an action: ``agent``, ``task``, ``action``
-``committed``      an agent passed its task's commit point (k_bt = 0): ``agent``, ``task``
-``progress``       an agent reported ``event`` done / failed / committed for ``task``
-                   (``reason``)
-``route``          an agent adopted a new planned path (D*+): ``agent``, ``task``, ``points``
-                   (at most a few hundred), ``length_m``; version 2
-``tree``           an agent's behaviour-tree nodes whose status changed: ``agent``,
-                   ``changes`` (``[[uid, old, new], ...]``) and, in its first one, ``nodes``;
-                   its blackboard keys that changed (``blackboard``) or were removed
-                   (``unset``); at most one per agent per ``tree_event_s`` setting; version 2
-``pose``           ground truth from the simulator: ``agent``, ``p``, ``v``, ``yaw``, ``mode``,
-                   ``armed``, ``flying``, ``odometer_m``, ``clearance_m`` (the smallest
-                   distance to rock since the previous pose event, null when not measured)
-``collision``      the simulator detected a collision: ``agent``, ``other`` (rock/agent id),
-                   ``p``
-``agent_lost``     an agent stopped (killed, link lost): ``agent``, ``reason``
-``link``           an agent's link to the coordinator was cut or restored: ``agent``, ``up``
-``signal``         a supervisor signal was set on an agent: ``agent``, ``name``, ``value``
-``objects``        an agent reported localised objects: ``agent``, ``objects``
-                   (``[{label, p, observations}]``), ``rejected``
-``relocalized``    an agent localised itself in the map from one LiDAR scan (library
-                   ``aerial_mine``): ``agent``, ``task``, ``localized``, ``confidence``,
-                   ``fitness``, ``reason``, ``points``, ``sensor``, ``time_ms``, ``truth`` (the
-                   telemetry pose ``{x, y, z, yaw_deg}``: the true pose in the simulator) and,
-                   when localised, ``estimate`` and its ``error_m``, ``error_deg``
-``dispatch``       the fleet dispatcher (seed 004) handled a truck: ``truck``, ``event``,
-                   ``goal`` and, when adopted, ``to``, ``items``, ``depart``, ``arrive``,
-                   ``mission``
-``leaf_error``     a library's leaf (or service) raised; it failed and the run went on:
-                   ``agent``, ``task``, ``leaf``, ``phase``, ``error``, ``message``, ``where``,
-                   ``traceback``
-``warning``        the coordinator refused something, or an action's argument is on nobody's
-                   blackboard (``agent``, ``variable``, ``leaf``): ``message``
-``internal_error`` a bug outside any leaf ended the run: ``type``, ``message``, ``traceback``
-``end``            last event: ``reason`` (completed/time limit/interrupted/terminated/...),
-                   ``wall_s``, ``steps``, ``done``, ``open`` (arrived tasks only), ``pending``
-                   (still to arrive)
-=================  =======================================================================
+===================  =====================================================================
+``header``           first event of a log, written before anything is built: ``format``,
+                     ``version``, ``mission``, ``description``, ``file``, ``seed``,
+                     ``controller``, ``world`` (the mission's world spec), ``world_ref``
+                     (where the map is: :func:`world_reference`; version 2), ``step_s``,
+                     ``part`` (a distributed run's process), ``auction_rate_hz``, ``agents``
+                     (``[{id, library, vehicle, start}]``), ``tasks``
+                     (``[{id, type, at, fields}]``), ``artifacts``; early version 1 logs:
+                     ``map``
+``built``            the run is built: ``map`` (shape, resolution, origin), ``build_s``,
+                     ``started_unix`` (a distributed run's coordinator: its clock's zero)
+``resumed``          first event a restarted coordinator adds to its predecessor's log:
+                     ``log``, ``last_s``
+``task_added``       a task entered the pool: ``task``, ``type``, ``fields``, ``priority``,
+                     ``by`` (mission/api), ``problems``, ``at`` (when it arrives, if later)
+``task``             a task changed state or agent (the auction pool's history): ``task``,
+                     ``state`` (open/assigned/committed/done/failed/unreachable), ``agent``,
+                     ``reason``
+``round``            one auction round: ``round``, ``announced``, ``agents``, ``method``,
+                     ``bids``, ``step_ms``; ``assignments`` (agent → task) when they
+                     changed, ``dropped`` (agents that stopped bidding), ``late_bids`` and
+                     ``stale_bids`` when there are any
+``withdrawn``        an agent's assignment went to another's late report: ``agent``,
+                     ``task``, ``by``, ``reason``
+``agent_task``       an agent started or stopped executing a task: ``agent``, ``task`` (or
+                     null)
+``stage``            an agent's tree started an action: ``agent``, ``task``, ``action``
+``committed``        an agent passed its task's commit point (k_bt = 0): ``agent``, ``task``
+``progress``         ``agent`` reported ``event`` done / failed / committed for ``task``
+                     (``reason``)
+``route``            an agent adopted a new planned path (D*+): ``agent``, ``task``,
+                     ``points`` (at most a few hundred), ``length_m``; version 2
+``tree``             an agent's behaviour-tree nodes whose status changed: ``agent``,
+                     ``changes`` (``[[uid, old, new], ...]``) and, in its first one,
+                     ``nodes``; its blackboard keys that changed (``blackboard``) or were
+                     removed (``unset``); at most one per agent per ``tree_event_s``
+                     setting; version 2
+``pose``             ground truth from the simulator: ``agent``, ``p``, ``v``, ``yaw``,
+                     ``mode``, ``armed``, ``flying``, ``odometer_m``, ``clearance_m`` (the
+                     smallest distance to rock since the previous pose event, null when not
+                     measured)
+``collision``        the simulator detected a collision: ``agent``, ``other`` (rock/agent
+                     id), ``p``
+``agent_lost``       an agent stopped (killed, link lost): ``agent``, ``reason``
+``link``             an agent's link to the coordinator was cut or restored: ``agent``,
+                     ``up``
+``vehicle_link``     an agent lost or heard again its vehicle's autopilot: ``agent``, ``up``,
+                     ``mode`` (when it came back)
+``clock``            an agent process set its clock to its coordinator's: ``agent``,
+                     ``was_s``, ``now_s``
+``signal``           a supervisor signal was set on an agent: ``agent``, ``name``, ``value``
+``command``          an operator's command: ``command``, ``by``, its arguments (``task``,
+                     ``agent``, ``reason``, ...), ``ok``, ``error`` (when refused)
+``objects``          an agent reported localised objects: ``agent``, ``objects``
+                     (``[{label, p, observations}]``), ``rejected``
+``junction``         DPHR saw a junction and chose a branch (library ``compra``): ``agent``,
+                     ``offsets``, ``chosen``
+``junction_switch``  DPHR left the branch it followed for another: ``agent``, ``offsets``,
+                     ``chosen``, ``was``
+``relocalized``      an agent localised itself in the map from one LiDAR scan (library
+                     ``aerial_mine``): ``agent``, ``task``, ``localized``, ``confidence``,
+                     ``fitness``, ``reason``, ``points``, ``sensor``, ``time_ms``, ``truth``
+                     (the telemetry pose ``{x, y, z, yaw_deg}``: the true pose in the
+                     simulator) and, when localised, ``estimate`` and its ``error_m``,
+                     ``error_deg``
+``dispatch``         the fleet dispatcher (seed 004) handled a truck: ``truck``, ``event``,
+                     ``goal``, ``reason`` (deferred) and, when adopted, ``to``, ``items``,
+                     ``depart``, ``arrive``, ``mission``
+``leaf_error``       a library's leaf (or service) raised; it failed and the run went on:
+                     ``agent``, ``task``, ``leaf``, ``phase``, ``error``, ``message``,
+                     ``where``, ``traceback``
+``warning``          the coordinator refused something, or an action's argument is on
+                     nobody's blackboard (``agent``, ``variable``, ``leaf``): ``message``
+``internal_error``   a bug outside any leaf ended the run: ``type``, ``message``,
+                     ``traceback``
+``end``              last event: ``reason`` (completed/time limit/interrupted/terminated/...),
+                     ``wall_s``, ``steps``, ``done``, ``open`` (arrived tasks only),
+                     ``pending`` (still to arrive), ``cancelled`` (when any)
+===================  =====================================================================
 
 A run publishes events in time order; one that happened earlier than it is published (an
 agent's report, taken by the next auction round) carries its own time as ``reported_s``.
 
-Libraries may publish kinds of their own (``ctx.events(kind, **fields)``; ``haulage``'s ``load``
-and ``offload``): they are logged and reported like any other. A library that wants them typed
-registers a class with :func:`register_event`; a kind nobody registered reads as a
-:class:`GenericEvent` (its fields in ``extra``).
+Libraries may publish kinds of their own: typed, with a class they register with
+:func:`register_event` (``haulage``'s ``load`` and ``offload``: ``ctx.events(LoadEvent(...))``),
+or by name (``ctx.events(kind, **fields)``), which a kind nobody registered reads as a
+:class:`GenericEvent` (its fields in ``extra``). They are logged and reported like any other.
 
 :class:`JsonlEventLog` writes events as JSON Lines, one event per line, flushed as written, so a
 crash loses nothing already logged; :func:`read_events` reads such a log back (a truncated last
@@ -121,6 +147,9 @@ class Event:
     t: float
     kind: str
     data: Mapping[str, Any] = field(default_factory=dict)
+    _typed: TypedEvent | None = field(default=None, init=False, repr=False, compare=False)
+    _json: bool = field(default=False, init=False, repr=False, compare=False)
+    """Its data was read from JSON (:meth:`from_json`): plain already."""
 
     def get(self, key: str, default: Any = None) -> Any:
         return self.data.get(key, default)
@@ -135,9 +164,26 @@ class Event:
 
     def typed(self) -> TypedEvent:
         """This event as its kind's typed class (:func:`event_class`; :class:`GenericEvent` for
-        a kind nobody registered), with the values its JSON form has. Raises
+        a kind nobody registered), with the values its JSON form has (an event read from a
+        log: the values read) — what a consumer reads (the report, the viewer's feed, a
+        restarted coordinator), live or from a log alike. Made once (events are not changed
+        after they are published; :func:`read_events` makes it as it checks the line). Raises
         :class:`EventError` if a field has the wrong type."""
-        return typed_event(self.t, self.kind, _plain(self.data))
+        typed = self._typed
+        if typed is None:
+            data = self.data if self._json else _plain(self.data)
+            typed = typed_event(self.t, self.kind, data)
+            object.__setattr__(self, "_typed", typed)
+        return typed
+
+    def typed_or_none(self) -> TypedEvent | None:
+        """:meth:`typed`, or None for an event whose fields do not have its kind's types (a
+        library's bad event, published live: :func:`read_events` skips such a line of a log, so
+        a consumer skips it live too)."""
+        try:
+            return self.typed()
+        except EventError:
+            return None
 
     @classmethod
     def from_json(cls, line: str) -> Event:
@@ -146,7 +192,9 @@ class Event:
             raise ValueError("not a btmission event (expected an object with 't' and 'ev')")
         t = float(obj.pop("t"))
         kind = str(obj.pop("ev"))
-        return cls(t, kind, obj)
+        ev = cls(t, kind, obj)
+        object.__setattr__(ev, "_json", True)
+        return ev
 
 
 def _plain(value: Any) -> Any:
@@ -312,13 +360,12 @@ def _checker(tp: Any) -> Check:
     raise TypeError(f"no JSON check for an event field of type {tp!r}")
 
 
-_OPTIONAL = {"optional": True}
-
-
-def optional() -> Any:
+def optional(*, written_with: str | None = None) -> Any:
     """An event field that is left out of the JSON when it is None (it is absent from most
-    events of its kind), e.g. ``round.assignments``."""
-    return field(default=None, metadata=_OPTIONAL)
+    events of its kind), e.g. ``round.assignments`` — unless the field ``written_with`` is set:
+    then it is written, null included (``leaf_error.task`` is null for an agent's leaf that
+    raised while the agent had no task, and absent for a run-wide service's error)."""
+    return field(default=None, metadata={"optional": True, "written_with": written_with})
 
 
 class EventError(BtmissionError, ValueError):
@@ -335,17 +382,28 @@ class TypedEvent:
     strings), exactly what the log holds.
 
     Its JSON form is the :class:`Event`'s: ``{"t", "ev", <fields in class order>, <extra>,
-    "reported_s"}``. An event read from a log keeps which fields it lacked (they stay out), so
-    JSON → typed → JSON gives the same bytes; a field declared with :func:`optional` is also left
-    out when it is None.
+    "reported_s"}`` (a class may put ``extra`` right after one of its fields:
+    :attr:`EXTRA_AFTER`). An event read from a log keeps which fields it lacked (they stay out),
+    so JSON → typed → JSON gives the same bytes; a field declared with :func:`optional` is also
+    left out when it is None.
+
+    Producers make the event and publish it (:meth:`MissionRun.emit_event
+    <btmission.runtime.runner.MissionRun.emit_event>`, an agent's or a library's
+    ``ctx.events(event)``) without a time: the run stamps it when it publishes it.
     """
 
     KIND: ClassVar[str] = ""
     _FIELDS: ClassVar[tuple[tuple[str, Check, bool], ...]] = ()
     """(name, check, optional) of the kind's own fields, in order (set by register_event)."""
+    _WRITTEN_WITH: ClassVar[Mapping[str, str]] = {}
+    """Optional field → the field whose being set writes it even when None (:func:`optional`)."""
+    EXTRA_AFTER: ClassVar[str | None] = None
+    """The field after which :attr:`extra` goes in the JSON (None: after them all)."""
 
-    t: float
-    """Mission time (s) at which the event was published."""
+    t: float = math.nan
+    """Mission time (s) at which the event was published; NaN in an event made to be
+    published (the run stamps it with the time then), or the time it happened, if that was
+    earlier (it is published then with ``reported_s``)."""
     reported_s: float | None = None
     """When it happened, if earlier than published (an agent's report, taken by the next
     round)."""
@@ -388,15 +446,21 @@ class TypedEvent:
     def to_data(self) -> dict[str, Any]:
         """The fields, in their JSON order."""
         out: dict[str, Any] = {}
+        after = self.EXTRA_AFTER
         for name, _, is_optional in self._FIELDS:
             value = getattr(self, name)
             if self._absent is not None:
                 if name in self._absent:
                     continue
             elif is_optional and value is None:
-                continue
+                with_ = self._WRITTEN_WITH.get(name)
+                if with_ is None or getattr(self, with_) is None:
+                    continue
             out[name] = value
-        out.update(self.extra)
+            if name == after:
+                out.update(self.extra)
+        if after is None or after not in out:
+            out.update(self.extra)
         if self.reported_s is not None:
             out["reported_s"] = self.reported_s
         return out
@@ -450,11 +514,15 @@ def register_event(cls: E) -> E:
             f"{cls.__module__}.{cls.__qualname__} cannot register it again"
         )
     hints = get_type_hints(cls, include_extras=True)
+    own = [f for f in fields(cls) if f.name not in _BASE_FIELDS]
     cls._FIELDS = tuple(
-        (f.name, _checker(hints[f.name]), bool(f.metadata.get("optional")))
-        for f in fields(cls)
-        if f.name not in _BASE_FIELDS
+        (f.name, _checker(hints[f.name]), bool(f.metadata.get("optional"))) for f in own
     )
+    cls._WRITTEN_WITH = {
+        f.name: f.metadata["written_with"] for f in own if f.metadata.get("written_with")
+    }
+    if cls.EXTRA_AFTER is not None and cls.EXTRA_AFTER not in {f.name for f in own}:
+        raise ValueError(f"{cls.__qualname__}: EXTRA_AFTER names no field of it")
     EVENT_CLASSES[kind] = cls
     return cls
 
@@ -481,6 +549,25 @@ def typed_event(t: float, kind: str, data: Mapping[str, Any]) -> TypedEvent:
     )
 
 
+EmitEvent = Callable[[TypedEvent], None]
+"""Where a producer publishes its events: the run's
+:meth:`~btmission.runtime.runner.MissionRun.emit_event`, an agent's (which notes the action a
+``stage`` event starts, then passes it on), a test's ``list.append``."""
+
+
+def event_of(event: TypedEvent | str, fields: Mapping[str, Any]) -> TypedEvent:
+    """What a library's ``ctx.events(...)`` was given, as a typed event: the event itself, or —
+    a kind of the library's own that has no class, given by name with its fields — a
+    :class:`GenericEvent` of them (they are written as given)."""
+    if isinstance(event, TypedEvent):
+        if fields:
+            raise TypeError(
+                f"{event.kind}: a typed event takes no other fields ({', '.join(fields)})"
+            )
+        return event
+    return GenericEvent(name=event, extra=dict(fields))
+
+
 @register_event
 @dataclass(frozen=True, kw_only=True)
 class HeaderEvent(TypedEvent):
@@ -505,6 +592,9 @@ class HeaderEvent(TypedEvent):
     map: dict[str, Any] | None = optional()
     """Early version 1 logs: the voxel map's shape, resolution, origin (now in ``built``)."""
     step_s: float | None = optional()
+    part: str | None = optional()
+    """A distributed run's process: ``coordinator`` or ``agents <id>, ...``
+    (:meth:`~btmission.runtime.distribution.Part.describe`); absent in a one-process run."""
     auction_rate_hz: float | None = optional()
     agents: list[AgentEntry]
     """``[{id, library, vehicle, start}]``."""
@@ -521,6 +611,8 @@ class BuiltEvent(TypedEvent):
     map: dict[str, Any]
     """``{shape, resolution, origin}`` of the voxel map."""
     build_s: float
+    started_unix: float | None = optional()
+    """A distributed run's coordinator process: when its mission clock was zero (Unix time)."""
 
 
 @register_event
@@ -565,6 +657,11 @@ class RoundEvent(TypedEvent):
     assignments: dict[str, str | None] | None = optional()
     """Agent → task, when they changed."""
     dropped: list[str] | None = optional()
+    """Agents that stopped bidding, when there are any."""
+    late_bids: int | None = optional()
+    """Bids that came after their round closed, when there are any."""
+    stale_bids: int | None = optional()
+    """Bids for an announcement older than the round's, when there are any."""
 
 
 @register_event
@@ -609,12 +706,13 @@ class PoseEvent(TypedEvent):
     KIND = "pose"
     agent: str
     p: Point
-    v: Point | None = optional()
-    yaw: float | None = optional()
-    mode: str | None = optional()
-    armed: bool | None = optional()
-    flying: bool | None = optional()
-    odometer_m: float | None = optional()
+    v: Point | None
+    yaw: float | None
+    mode: str | None
+    armed: bool | None
+    flying: bool | None
+    odometer_m: float | None
+    """The distance travelled (null: not measured: a real vehicle)."""
     clearance_m: float | None
     """The smallest distance to rock since the previous pose (null: not measured)."""
 
@@ -662,7 +760,7 @@ class VehicleLinkEvent(TypedEvent):
     KIND = "vehicle_link"
     agent: str
     up: bool
-    mode: str = optional()
+    mode: str | None = optional()
     """The vehicle's mode when its link came back (the failsafe it took meanwhile)."""
 
 
@@ -729,7 +827,9 @@ class RelocalizedEvent(TypedEvent):
 class LeafErrorEvent(TypedEvent):
     KIND = "leaf_error"
     agent: str | None = optional()
-    task: str | None = optional()
+    """The agent whose leaf raised (absent: a run-wide service)."""
+    task: str | None = optional(written_with="agent")
+    """The agent's task then (null: none)."""
     leaf: str
     """The leaf (e.g. ``scan(location)``) or ``service <library>.<name>``."""
     phase: str
@@ -785,7 +885,8 @@ class DispatchEvent(TypedEvent):
     reason: str | None = optional()
     to: str | None = optional()
     items: int | None = optional()
-    depart: float | None = optional()
+    depart: float | None = optional(written_with="arrive")
+    """When the truck leaves (null: a mission of no items)."""
     arrive: float | None = optional()
     mission: dict[str, Any] | None = optional()
 
@@ -833,10 +934,16 @@ class CommandEvent(TypedEvent):
     fields of their own (``task``, ``agent``, ``priority``, ``up``, ``reason`` ...)."""
 
     KIND = "command"
+    EXTRA_AFTER = "by"
     command: str
     by: str
     ok: bool
     error: str | None = optional()
+
+    @property
+    def args(self) -> Mapping[str, Any]:
+        """The command's arguments (written between ``by`` and ``ok``)."""
+        return self.extra
 
 
 @register_event
@@ -952,7 +1059,7 @@ def read_events(path: str | Path) -> LogContents:
             ev = Event.from_json(line)
             if ev.kind == "header" and not events:
                 _check_format(p, ev)  # before the fields: a newer version may have other ones
-            problem = event_problem(ev)
+            problem = _read_problem(ev)
             if problem:
                 if ev.kind == "header":
                     raise LogError(f"{p}:{number}: header: {problem}")
@@ -968,6 +1075,18 @@ def read_events(path: str | Path) -> LogContents:
     if not events or events[0].kind != "header":
         raise _not_a_log(p)
     return LogContents(events, truncated, skipped)
+
+
+def _read_problem(ev: Event) -> str | None:
+    """:func:`event_problem`, making the event's typed form on the way (its consumers read it
+    next: checked once)."""
+    if not math.isfinite(ev.t):
+        return f"time {ev.t} is not a finite number"
+    try:
+        ev.typed()
+    except EventError:
+        return event_problem(ev)
+    return None
 
 
 def _not_a_log(p: Path) -> LogError:

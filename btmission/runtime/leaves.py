@@ -35,6 +35,7 @@ from btmission.fastpaths.ticks import FAILURE as _FAILURE
 from btmission.fastpaths.ticks import RUNNING as _RUNNING
 from btmission.fastpaths.ticks import SUCCESS as _SUCCESS
 from btmission.fastpaths.ticks import LeanTick
+from btmission.runtime.events import EmitEvent, LeafErrorEvent, StageEvent
 from btmission.synthesis.tree import Node
 
 if TYPE_CHECKING:
@@ -104,8 +105,11 @@ class RunContext:
     clock: Callable[[], float]
     settings: Mapping[str, Any]
     seed: int
-    events: Callable[..., None] = field(default=lambda kind, **data: None)
-    """``events(kind, **data)`` publishes an event for observers (log, report, viewer)."""
+    events: Callable[..., None] = field(default=lambda event, **fields: None)
+    """``events(event)`` publishes a typed event (:mod:`btmission.runtime.events`: a
+    :class:`~btmission.runtime.events.TypedEvent` of a built-in kind, or of one the library
+    registered) for observers (log, report, viewer); ``events(kind, **fields)`` one of a kind of
+    the library's own that has no class."""
     places: Mapping[str, tuple[float, float, float]] = field(default_factory=dict)
     """Named places (the nodes of the mission's topological map, on the ground)."""
     topomap: TopoMap | None = None
@@ -183,8 +187,12 @@ class AgentContext:
     start: tuple[float, float, float]
     agent: AgentView | None = None
     """What a leaf may know of its agent (:class:`AgentView`), None outside a run."""
-    events: Callable[..., None] = field(default=lambda kind, **data: None)
-    """``events(kind, **data)`` publishes an event for observers (log, report, viewer)."""
+    events: Callable[..., None] = field(default=lambda event, **fields: None)
+    """``events(event)`` publishes a typed event (:mod:`btmission.runtime.events`: a
+    :class:`~btmission.runtime.events.TypedEvent` of a built-in kind, or of one the library
+    registered, its ``agent`` this one) for observers (log, report, viewer);
+    ``events(kind, **fields)`` one of a kind of the library's own that has no class (the agent
+    adds its id)."""
     state: dict[str, Any] = field(default_factory=dict)
     """Per-agent scratch space for implementations (e.g. a localiser kept across actions)."""
     services: Mapping[str, Any] = field(default_factory=dict)
@@ -246,19 +254,28 @@ def setup_failed(code: str, message: str, item: str, file: str | None) -> SpecEr
 class ErrorReporter:
     """Turns exceptions raised by library code (leaves, services) into ``leaf_error`` events,
     each distinct error (leaf, phase, type, message) once, so a condition that raises on every
-    tick does not flood the log."""
+    tick does not flood the log. ``agent`` gives the agent whose leaves these are and its task
+    now (None: a run's services, no agent)."""
 
-    def __init__(self, emit: Callable[..., None]) -> None:
+    def __init__(
+        self, emit: EmitEvent, agent: Callable[[], tuple[str, str | None]] | None = None
+    ) -> None:
         self._emit = emit
+        self._agent = agent
         self._seen: set[tuple[str, str, str, str]] = set()
 
-    def report(self, leaf: str, phase: str, exc: BaseException, **extra: Any) -> str:
+    def report(self, leaf: str, phase: str, exc: BaseException) -> str:
         """Emit the event (first time) and return the short reason ``Type: message``."""
         reason = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
         key = (leaf, phase, type(exc).__name__, str(exc))
         if key not in self._seen:
             self._seen.add(key)
-            self._emit("leaf_error", leaf=leaf, phase=phase, **extra, **exception_event(exc))
+            agent, task = self._agent() if self._agent is not None else (None, None)
+            self._emit(
+                LeafErrorEvent(
+                    agent=agent, task=task, leaf=leaf, phase=phase, **exception_event(exc)
+                )
+            )
         return reason
 
 
@@ -458,7 +475,15 @@ class StatefulAction(GuardedLeaf):
                 return Status.FAILURE
             self.args = args
             self._started = True
-            self.ctx.events("stage", action=self.name)
+            agent = self.ctx.agent
+            task = agent.task if agent is not None else None
+            self.ctx.events(
+                StageEvent(
+                    agent=self.ctx.agent_id,
+                    task=task.id if task is not None else None,
+                    action=self.name,
+                )
+            )
             status = self.on_start()
         else:
             status = self.on_running()

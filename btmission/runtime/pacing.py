@@ -11,9 +11,8 @@ the control loop cannot keep up.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
-from typing import Any
 
+from btmission.runtime.events import EmitEvent, WarningEvent
 from btmission.vehicles.clock import Clock
 
 LATE_STEPS_WARNING = 400
@@ -32,7 +31,7 @@ class Pacer:
         vehicles_realtime: bool,
         realtime: bool,
         speed: float,
-        emit: Callable[..., Any],
+        emit: EmitEvent,
     ) -> None:
         """``vehicles_realtime``: the provider's time passes on its own (real vehicles);
         ``realtime``: pace a simulator to the wall clock, ``speed`` times faster."""
@@ -65,11 +64,12 @@ class Pacer:
                 if not self.late_warned and made >= LATE_STEPS_WARNING and late > 0.05 * made:
                     self.late_warned = True
                     self.emit(
-                        "warning",
-                        message=f"the run falls behind its vehicles' clock ({late} of "
-                        f"{made} steps late by more than {self.dt:g} s): the control loop "
-                        "cannot keep up; lower runtime.mavlink.time_scale or use the track "
-                        "controller",
+                        WarningEvent(
+                            message=f"the run falls behind its vehicles' clock ({late} of "
+                            f"{made} steps late by more than {self.dt:g} s): the control loop "
+                            "cannot keep up; lower runtime.mavlink.time_scale or use the track "
+                            "controller",
+                        )
                     )
             else:
                 self.clock.sleep_until(due)

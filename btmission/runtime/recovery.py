@@ -30,14 +30,24 @@ progress reports not acknowledged yet, which they resend.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 from btmission.allocation.auction import AuctionState
 from btmission.allocation.loop import Withdrawal
 from btmission.allocation.tasks import PoolError, TaskInfo, TaskPool, TaskState
 from btmission.links.bus import ProgressKey
-from btmission.runtime.events import Event
+from btmission.runtime.events import (
+    CommandEvent,
+    Event,
+    EventError,
+    RoundEvent,
+    TaskAddedEvent,
+    TaskStateEvent,
+    TypedEvent,
+    WithdrawnEvent,
+)
 from btmission.runtime.mission_auction import pool_from_mission
 from btmission.spec.mission import Mission
 
@@ -151,49 +161,55 @@ class _Replay:
             problems=tuple(self.problems),
         )
 
-    def problem(self, ev: Event, message: str) -> None:
+    def problem(self, ev: Event | TypedEvent, message: str) -> None:
         self.problems.append(f"t={ev.t:g}s {ev.kind}: {message}")
 
     # ---------------------------------------------------------------- events
-    def take(self, ev: Event) -> None:
-        self.time_s = ev.t
-        handler = _HANDLERS.get(ev.kind)
-        if handler is None:
-            return
+    def take(self, event: Event) -> None:
+        self.time_s = event.t
         try:
-            handler(self, ev)
-        except (PoolError, TypeError, ValueError) as exc:  # PoolError: the pool refused it
-            self.problem(ev, str(exc))
+            match event.typed():
+                case TaskAddedEvent() as ev:
+                    self.task_added(ev)
+                case TaskStateEvent() as ev:
+                    self.task(ev)
+                case RoundEvent() as ev:
+                    self.round_(ev)
+                case WithdrawnEvent() as ev:
+                    self.withdrawn_(ev)
+                case CommandEvent() as ev:
+                    self.command(ev)
+        except (PoolError, EventError, TypeError, ValueError) as exc:  # PoolError: the pool
+            self.problem(event, str(exc))  # refused it; EventError: fields of the wrong types
 
-    def task_added(self, ev: Event) -> None:
-        tid = str(ev.get("task"))
+    def task_added(self, ev: TaskAddedEvent) -> None:
+        tid = str(ev.task)
         if tid not in self.pool:  # an operator's task (the mission's are in the pool already)
             self.pool = self.pool.add(self._info(tid, ev), ev.t)
         self.added.add(tid)
         self.logged[tid] = max(self.logged.get(tid, 0), 1)
 
-    def _info(self, tid: str, ev: Event) -> TaskInfo:
-        ttype = str(ev.get("type"))
+    def _info(self, tid: str, ev: TaskAddedEvent) -> TaskInfo:
+        ttype = str(ev.type)
         tt = self.mission.task_types.get(ttype)
         if tt is None:
             raise ValueError(f"task '{tid}' has type '{ttype}', which the mission does not have")
-        prio = ev.get("priority")
         # the log has no arrival time for an added task: it arrived when it entered the pool
         # (unless a later log says ``at``)
         return TaskInfo(
             tid,
             ttype,
-            dict(ev.get("fields") or {}),
-            float(prio) if prio is not None else tt.priority,
-            float(ev.get("at", ev.t)),
+            dict(ev.fields or {}),
+            float(ev.priority) if ev.priority is not None else tt.priority,
+            float(ev.at) if ev.at is not None else ev.t,
             tt.commit_after is not None,
         )
 
-    def task(self, ev: Event) -> None:
-        tid = str(ev.get("task"))
-        state = TaskState(ev.get("state"))
-        agent = ev.get("agent")
-        reason = str(ev.get("reason", ""))
+    def task(self, ev: TaskStateEvent) -> None:
+        tid = str(ev.task)
+        state = TaskState(ev.state)
+        agent = ev.agent
+        reason = "" if ev.reason is None else str(ev.reason)
         t = self.pool[tid]
         n = self.logged.get(tid, 1)
         if n < len(t.history):  # an operator's change, applied when its command was logged
@@ -204,7 +220,7 @@ class _Replay:
                     f"change it was given by a command is {entry}"
                 )
         else:
-            now = float(ev.get("reported_s", ev.t))
+            now = float(ev.reported_s) if ev.reported_s is not None else ev.t
             self.pool = _transition(self.pool, tid, state, agent, now, reason)
             self._seen(tid, state, agent, now, reason)
         self.logged[tid] = n + 1
@@ -219,16 +235,16 @@ class _Replay:
         if event is not None and agent is not None:
             self.seen.setdefault(agent, set()).add(logged_key((tid, event, now)))
 
-    def round_(self, ev: Event) -> None:
-        self.round = int(ev.get("round"))
+    def round_(self, ev: RoundEvent) -> None:
+        self.round = int(ev.round)
         self.round_s = ev.t
-        if ev.get("assignments") is not None:
-            self.assignments = {a: t for a, t in ev.get("assignments").items() if t is not None}
-        for a in ev.get("dropped") or ():
+        if ev.assignments is not None:
+            self.assignments = {a: t for a, t in ev.assignments.items() if t is not None}
+        for a in ev.dropped or ():
             self.dropped[a] = ev.t
         self._check_holders(ev)
 
-    def _check_holders(self, ev: Event) -> None:
+    def _check_holders(self, ev: RoundEvent) -> None:
         """After a round: no agent holds two tasks, and the holders are the assignments."""
         held: dict[str, list[str]] = {}
         for t in self.pool:
@@ -243,25 +259,25 @@ class _Replay:
                 ev, f"the holders {holders} are not the round's assignments {self.assignments}"
             )
 
-    def withdrawn_(self, ev: Event) -> None:
-        by = str(ev.get("by"))
-        done = str(ev.get("reason", "")).startswith(f"{by} completed")
+    def withdrawn_(self, ev: WithdrawnEvent) -> None:
+        by = str(ev.by)
+        done = (ev.reason or "").startswith(f"{by} completed")
         self.withdrawn.append(
-            Withdrawal(
-                str(ev.get("agent")), str(ev.get("task")), by, "done" if done else "committed"
-            )
+            Withdrawal(str(ev.agent), str(ev.task), by, "done" if done else "committed")
         )
 
-    def command(self, ev: Event) -> None:
+    def command(self, ev: CommandEvent) -> None:
         """An operator's command the run applied (``ok``): its effect on the coordinator."""
-        if not ev.get("ok"):
+        if not ev.ok:
             return
-        name = ev.get("command")
-        agent = ev.get("agent")
+        name = ev.command
+        args = ev.args
+        agent: Any = args.get("agent")
         if name == "cancel_task":
-            self.pool = self.pool.cancel(str(ev.get("task")), ev.t, str(ev.get("reason", "")))
+            self.pool = self.pool.cancel(str(args.get("task")), ev.t, str(args.get("reason", "")))
         elif name == "set_priority":
-            self.pool = self.pool.reprioritised(str(ev.get("task")), float(ev.get("priority")))
+            priority: Any = args.get("priority")
+            self.pool = self.pool.reprioritised(str(args.get("task")), float(priority))
         elif name == "recall_agent":  # as Coordinator.recall: its task back to the pool
             held = _holders(self.pool).get(agent)
             if held is not None:
@@ -274,16 +290,7 @@ class _Replay:
             self.excluded.discard(agent)
             self.recalled.discard(agent)
         elif name == "set_allocation":
-            self.paused = bool(ev.get("paused"))
-
-
-_HANDLERS: dict[str, Callable[[_Replay, Event], None]] = {
-    "task_added": _Replay.task_added,
-    "task": _Replay.task,
-    "round": _Replay.round_,
-    "withdrawn": _Replay.withdrawn_,
-    "command": _Replay.command,
-}
+            self.paused = bool(args.get("paused"))
 
 
 def _holders(pool: TaskPool) -> dict[str, str]:

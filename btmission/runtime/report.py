@@ -25,7 +25,25 @@ from typing import Any
 
 import numpy as np
 
-from btmission.runtime.events import Event, LogContents, LogError, read_events
+from btmission.runtime.events import (
+    AgentTaskEvent,
+    CollisionEvent,
+    CommandEvent,
+    DispatchEvent,
+    EndEvent,
+    Event,
+    HeaderEvent,
+    LeafErrorEvent,
+    LogContents,
+    LogError,
+    ObjectsEvent,
+    PoseEvent,
+    TaskAddedEvent,
+    TaskStateEvent,
+    TypedEvent,
+    WarningEvent,
+    read_events,
+)
 
 
 @dataclass(frozen=True)
@@ -104,7 +122,7 @@ class ReportBuilder:
         self.added: dict[str, tuple[float, str]] = {}
         self.added_by: dict[str, str] = {}
         self.fields: dict[str, dict[str, Any]] = {}
-        self.task_events: dict[str, list[Event]] = {}
+        self.task_events: dict[str, list[TaskStateEvent]] = {}
         self.poses: dict[str, list[tuple[float, list[float]]]] = {}
         self.odometer: dict[str, float] = {}
         self.min_clearance: float | None = None
@@ -112,83 +130,82 @@ class ReportBuilder:
         self.agent_collisions: set[tuple[str, str, float]] = set()
         self.agent_task: dict[str, list[tuple[float, str | None]]] = {}
         self.objects: list[dict[str, Any]] = []
-        self.end: Event | None = None
+        self.end: EndEvent | None = None
         self.last_t = 0.0
         self.warnings: list[str] = []
         self.dispatched: dict[str, list[dict[str, Any]]] = {}
         self.incidents: dict[str, None] = {}  # ordered set
         self.commands: list[CommandRow] = []
 
-    def on_event(self, ev: Event) -> None:
-        self.last_t = max(self.last_t, ev.t)
-        kind = ev.kind
-        if kind == "header":
-            self.header = dict(ev.data)
-        elif kind == "task_added":
-            self.added[ev.get("task")] = (_when(ev), str(ev.get("type", "")))
-            self.added_by[ev.get("task")] = str(ev.get("by") or "mission")
-            self.fields[ev.get("task")] = dict(ev.get("fields") or {})
-            for problem in ev.get("problems") or []:
-                self.warnings.append(f"task {ev.get('task')}: {problem}")
-        elif kind == "task":
-            self.task_events.setdefault(ev.get("task"), []).append(ev)
-        elif kind == "pose":
-            agent = ev.get("agent")
-            self.poses.setdefault(agent, []).append((ev.t, ev.get("p")))
-            if ev.get("odometer_m") is not None:
-                self.odometer[agent] = float(ev.get("odometer_m"))
-            c = ev.get("clearance_m")
-            if c is not None:
-                self.min_clearance = c if self.min_clearance is None else min(self.min_clearance, c)
-        elif kind == "collision":
-            other = str(ev.get("other"))
-            if other == "rock":
-                self.rock_collisions += 1
-            else:
-                a, b = sorted((str(ev.get("agent")), other))
-                self.agent_collisions.add((a, b, round(ev.t, 3)))
-        elif kind == "agent_task":
-            self.agent_task.setdefault(ev.get("agent"), []).append((ev.t, ev.get("task")))
-        elif kind == "objects":
-            self.objects.extend(ev.get("objects") or [])
-        elif kind == "dispatch":
-            if ev.get("event") == "adopted" and ev.get("mission"):
-                self.dispatched.setdefault(str(ev.get("truck")), []).append(ev.get("mission"))
-        elif kind == "leaf_error":
-            what = f"{ev.get('leaf')} raised {ev.get('error')}: {ev.get('message')}"
-            self.incidents[f"agent {ev.get('agent')}: {what} (traceback in the log)"] = None
-        elif kind == "warning":
-            self.incidents[str(ev.get("message"))] = None
-        elif kind == "command":
-            skip = {"command", "by", "ok", "error", "reported_s"}
-            args = ", ".join(f"{k}={_plain_text(v)}" for k, v in ev.data.items() if k not in skip)
-            ok = bool(ev.get("ok", True))
-            result = "ok" if ok else f"refused: {ev.get('error', '')}".rstrip(": ")
-            self.commands.append(
-                CommandRow(ev.t, str(ev.get("by", "")), str(ev.get("command")), args, result)
-            )
-        elif kind == "end":
-            self.end = ev
+    def on_event(self, event: Event) -> None:
+        self.last_t = max(self.last_t, event.t)
+        ev = event.typed_or_none()  # (a log's reader skips a line of the wrong types)
+        match ev:
+            case HeaderEvent():
+                self.header = ev.to_data()
+            case TaskAddedEvent(task=task):
+                self.added[task] = (_when(ev), "" if ev.type is None else ev.type)
+                self.added_by[task] = ev.by or "mission"
+                self.fields[task] = dict(ev.fields or {})
+                for problem in ev.problems or []:
+                    self.warnings.append(f"task {task}: {problem}")
+            case TaskStateEvent():
+                self.task_events.setdefault(ev.task, []).append(ev)
+            case PoseEvent(agent=agent):
+                self.poses.setdefault(agent, []).append((ev.t, ev.p))
+                if ev.odometer_m is not None:
+                    self.odometer[agent] = float(ev.odometer_m)
+                c = ev.clearance_m
+                if c is not None:
+                    self.min_clearance = (
+                        c if self.min_clearance is None else min(self.min_clearance, c)
+                    )
+            case CollisionEvent():
+                other = str(ev.other)
+                if other == "rock":
+                    self.rock_collisions += 1
+                else:
+                    a, b = sorted((str(ev.agent), other))
+                    self.agent_collisions.add((a, b, round(ev.t, 3)))
+            case AgentTaskEvent():
+                self.agent_task.setdefault(ev.agent, []).append((ev.t, ev.task))
+            case ObjectsEvent():
+                self.objects.extend(ev.objects or [])
+            case DispatchEvent():
+                if ev.event == "adopted" and ev.mission:
+                    self.dispatched.setdefault(str(ev.truck), []).append(ev.mission)
+            case LeafErrorEvent():
+                what = f"{ev.leaf} raised {ev.error}: {ev.message}"
+                self.incidents[f"agent {ev.agent}: {what} (traceback in the log)"] = None
+            case WarningEvent():
+                self.incidents[str(ev.message)] = None
+            case CommandEvent():
+                args = ", ".join(f"{k}={_plain_text(v)}" for k, v in ev.args.items())
+                ok = ev.ok is None or bool(ev.ok)
+                result = "ok" if ok else f"refused: {ev.error or ''}".rstrip(": ")
+                self.commands.append(CommandRow(ev.t, ev.by or "", str(ev.command), args, result))
+            case EndEvent():
+                self.end = ev
 
     # ------------------------------------------------------------------ computing
     def _row(self, task: str) -> TaskRow:
         added, ttype = self.added.get(task, (None, ""))
         evs = self.task_events.get(task, [])
-        state = evs[-1].get("state") if evs else "open"
-        reason = evs[-1].get("reason", "") if evs else "not allocated yet"
+        state = evs[-1].state if evs else "open"
+        reason = (evs[-1].reason or "") if evs else "not allocated yet"
         if state == "done":
             done = evs[-1]
-            agent = done.get("agent")
+            agent = done.agent
             start = None
             for ev in evs[:-1]:  # the allocation of the agent that finished it
-                if ev.get("agent") == agent and ev.get("state") == "assigned":
+                if ev.agent == agent and ev.state == "assigned":
                     start = _when(ev)
-                elif ev.get("agent") != agent:
+                elif ev.agent != agent:
                     start = None
             execution = None if start is None else _when(done) - start
             by = self.added_by.get(task, "mission")
             return TaskRow(task, ttype, added, _when(done), execution, agent, "done", "", by)
-        agent = evs[-1].get("agent") if evs else None
+        agent = evs[-1].agent if evs else None
         by = self.added_by.get(task, "mission")
         return TaskRow(task, ttype, added, None, None, agent, str(state), str(reason), by)
 
@@ -204,7 +221,7 @@ class ReportBuilder:
             for a in agents
         }
         distance = {a: self.odometer.get(a, _path_length(trajectories[a])) for a in agents}
-        end_reason = str(self.end.get("reason")) if self.end is not None else "log ends"
+        end_reason = str(self.end.reason) if self.end is not None else "log ends"
         duration = self.end.t if self.end is not None else self.last_t
         summary = Summary(
             duration_s=duration,
@@ -233,9 +250,9 @@ class ReportBuilder:
 
     def _intervals(self, end: float) -> dict[str, list[tuple[str, float, float, str]]]:
         done_by = {
-            t: (evs[-1].get("agent"), evs[-1].get("state"))
+            t: (evs[-1].agent, evs[-1].state)
             for t, evs in self.task_events.items()
-            if evs and evs[-1].get("state") in ("done", "failed")
+            if evs and evs[-1].state in ("done", "failed")
         }
         out: dict[str, list[tuple[str, float, float, str]]] = {}
         for agent, changes in self.agent_task.items():
@@ -250,11 +267,10 @@ class ReportBuilder:
         return out
 
 
-def _when(ev: Event) -> float:
+def _when(ev: TypedEvent) -> float:
     """When it happened: ``reported_s`` for an event published late (see
-    :meth:`~btmission.runtime.runner.MissionRun.emit`), else its time."""
-    t = ev.get("reported_s")
-    return float(t) if isinstance(t, (int, float)) else ev.t
+    :meth:`~btmission.runtime.runner.MissionRun.emit_event`), else its time."""
+    return float(ev.reported_s) if ev.reported_s is not None else ev.t
 
 
 def _path_length(points: np.ndarray) -> float:

@@ -91,8 +91,14 @@ from btmission.runtime.ending import (
     why_finished,
 )
 from btmission.runtime.events import (
+    CollisionEvent,
     EventStream,
+    GenericEvent,
     Observer,
+    PoseEvent,
+    ResumedEvent,
+    TypedEvent,
+    event_of,
 )
 from btmission.runtime.fleetstep import FleetFollow
 from btmission.runtime.leaves import (
@@ -173,8 +179,8 @@ class MissionRun:
         # the header first: building the map and the planners can take long, and a run killed
         # meanwhile must still leave a log that `btmission report` reads (docs/running.md)
         if part is not None and part.resumed_from is not None:  # a restarted coordinator
-            self.emit(  # (its clock is not built yet: at the log's last time)
-                "resumed", t=part.resumed_at_s, log=part.resumed_from, last_s=part.resumed_at_s
+            self.emit_event(  # (its clock is not built yet: at the log's last time)
+                ResumedEvent(t=part.resumed_at_s, log=part.resumed_from, last_s=part.resumed_at_s)
             )
         else:
             emit_header(self)
@@ -206,7 +212,7 @@ class MissionRun:
             mission,
             part.coordinator_link if part is not None and part.coordinator_link else self.bus,
             self.now,
-            self.emit,
+            self.emit_event,
             check_location=self.paths.problem,
             places=self.places,
         )
@@ -225,7 +231,7 @@ class MissionRun:
         self.collisions = 0
         self.wall_used = 0.0
         self.ended: RunResult | None = None
-        self.errors = ErrorReporter(self.emit)
+        self.errors = ErrorReporter(self.emit_event)
         """Exceptions raised by services' ``step`` → ``leaf_error`` events (once each)."""
         self.services: dict[str, dict[str, Any]] = build_services(self)
         self.coordinator_side = CoordinatorRuntime(self.coordinator, self.services, self.errors)
@@ -267,7 +273,7 @@ class MissionRun:
             vehicles_realtime=self.provider.realtime,
             realtime=self.realtime,
             speed=self.speed,
-            emit=self.emit,
+            emit=self.emit_event,
         )
         """Waits between the steps as the clock asks (:mod:`btmission.runtime.pacing`)."""
         self._owner = threading.get_ident()
@@ -291,16 +297,30 @@ class MissionRun:
         """Mission time (s), from the clock (the simulator's)."""
         return self.clock.now()
 
-    def emit(self, kind: str, t: float | None = None, **data: Any) -> None:
-        """Publish an event at mission time ``t`` (default: now). Events go out in time order:
-        one stamped earlier than the last published (something reported late) goes out at the
-        last time, with its own time as ``reported_s``."""
-        when = self.now() if t is None else t
+    def emit_event(self, event: TypedEvent) -> None:
+        """Publish a typed event (:mod:`btmission.runtime.events`) at its time ``event.t`` — now,
+        for an event made without one. Events go out in time order: one stamped earlier than
+        the last published (something reported late) goes out at the last time, with its own
+        time as ``reported_s``."""
+        when = self.now() if math.isnan(event.t) else event.t
+        data = event.to_data()
         if when < self.last_t - 1e-9:
             data["reported_s"] = when
             when = self.last_t
         self.last_t = when
-        self.events.emit(when, kind, **data)
+        self.events.emit(when, event.kind, **data)
+
+    def emit(self, kind: str, t: float | None = None, **data: Any) -> None:
+        """Publish an event of a kind given by name (a library's own kind nobody registered a
+        class for), with its fields, at mission time ``t`` (default: now): as
+        :meth:`emit_event`."""
+        self.emit_event(GenericEvent(t=math.nan if t is None else t, name=kind, extra=data))
+
+    def library_event(self, event: TypedEvent | str, /, **fields: Any) -> None:
+        """What a library's run-wide service publishes (its
+        :attr:`RunContext.events <btmission.runtime.leaves.RunContext.events>`): a typed event,
+        or a kind of its own by name with its fields (:func:`~btmission.runtime.events.event_of`)."""
+        self.emit_event(event_of(event, fields))
 
     # ---------------------------------------------------------------- commands
     # (btmission.runtime.command_port checks, queues and applies them: these are its doors)
@@ -403,7 +423,7 @@ class MissionRun:
         self.steps += 1
         for ev in self.provider.step(self.dt):
             self.collisions += 1
-            self.emit("collision", agent=ev.vehicle, other=ev.other, p=list(ev.position))
+            self.emit_event(CollisionEvent(agent=ev.vehicle, other=ev.other, p=list(ev.position)))
         if time.perf_counter() - self._published_wall >= SNAPSHOT_PERIOD_S:
             self.publish()
 
@@ -412,17 +432,18 @@ class MissionRun:
         simulator's odometer and clearance; null on real vehicles)."""
         vehicle = self.vehicles[aid]
         tel = vehicle.backend.telemetry()
-        self.emit(
-            "pose",
-            agent=aid,
-            p=tel.position,
-            v=tel.velocity,
-            yaw=tel.yaw,
-            mode=tel.mode.value,
-            armed=tel.armed,
-            flying=not tel.landed,
-            odometer_m=vehicle.odometer_m() if vehicle.odometer_m else None,
-            clearance_m=vehicle.clearance_m() if vehicle.clearance_m else None,
+        self.emit_event(
+            PoseEvent(
+                agent=aid,
+                p=[float(c) for c in tel.position],
+                v=[float(c) for c in tel.velocity],
+                yaw=tel.yaw,
+                mode=tel.mode.value,
+                armed=tel.armed,
+                flying=not tel.landed,
+                odometer_m=vehicle.odometer_m() if vehicle.odometer_m else None,
+                clearance_m=vehicle.clearance_m() if vehicle.clearance_m else None,
+            )
         )
 
     @property

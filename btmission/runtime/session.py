@@ -43,7 +43,7 @@ from typing import TYPE_CHECKING, Any
 
 from btmission.diagnostics import Diagnostic, Severity, SpecError, errors
 from btmission.runtime.commands import Command
-from btmission.runtime.events import Event, JsonlEventLog, Observer
+from btmission.runtime.events import Event, InternalErrorEvent, JsonlEventLog, Observer
 from btmission.runtime.substitution import SubstitutionRules, Substitutions
 from btmission.vehicles.provider import VehicleUnavailable
 
@@ -294,8 +294,14 @@ class RunSession:
         if self.log is None or self.log.count == 0:
             return None
         run = self.run_loop
-        info = {"type": type(exc).__name__, "message": str(exc), "traceback": trace}
-        self._write(Event(run.now() if run is not None else 0.0, "internal_error", info))
+        self._write(
+            InternalErrorEvent(
+                t=run.now() if run is not None else 0.0,
+                type=type(exc).__name__,
+                message=str(exc),
+                traceback=trace,
+            ).to_event()
+        )
         if run is not None:
             self.end(run.result("internal error"))
         elif self.mission is not None and not self.ended:

@@ -27,20 +27,49 @@ import threading
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
-from btmission.runtime.events import Event, _plain
+from btmission.runtime.events import (
+    AgentLostEvent,
+    AgentTaskEvent,
+    BuiltEvent,
+    CollisionEvent,
+    CommandEvent,
+    CommittedEvent,
+    EndEvent,
+    Event,
+    HeaderEvent,
+    LeafErrorEvent,
+    LinkEvent,
+    ObjectsEvent,
+    PoseEvent,
+    ProgressEvent,
+    RelocalizedEvent,
+    RoundEvent,
+    RouteEvent,
+    SignalEvent,
+    StageEvent,
+    TaskAddedEvent,
+    TaskStateEvent,
+    TreeEvent,
+    TypedEvent,
+    VehicleLinkEvent,
+    WarningEvent,
+    WithdrawnEvent,
+    event_class,
+)
 
 Record = dict[str, Any]
 """An event in its JSON form: ``{"t": ..., "ev": kind, **fields}``."""
 
-VIEW_KINDS = frozenset(
-    {
-        "header", "built", "task_added", "task", "agent_task", "stage", "committed", "progress",
-        "route", "tree", "pose", "collision", "agent_lost", "link", "vehicle_link", "signal",
-        "command", "withdrawn", "objects", "relocalized", "warning", "leaf_error", "end",
-        "round",
-    }
+VIEW_CLASSES: tuple[type[TypedEvent], ...] = (
+    HeaderEvent, BuiltEvent, TaskAddedEvent, TaskStateEvent, AgentTaskEvent, StageEvent,
+    CommittedEvent, ProgressEvent, RouteEvent, TreeEvent, PoseEvent, CollisionEvent,
+    AgentLostEvent, LinkEvent, VehicleLinkEvent, SignalEvent, CommandEvent, WithdrawnEvent,
+    ObjectsEvent, RelocalizedEvent, WarningEvent, LeafErrorEvent, EndEvent, RoundEvent,
 )  # fmt: skip
-"""Kinds the page draws (``round`` only when its assignments changed)."""
+"""The events the page draws (a ``round`` only when its assignments changed)."""
+
+VIEW_KINDS = frozenset(cls.KIND for cls in VIEW_CLASSES)
+"""Their kinds."""
 
 POSE_FIELDS = ("agent", "p", "yaw", "mode", "flying")
 """What a pose record keeps (the velocity, odometer and clearance are the report's)."""
@@ -55,27 +84,32 @@ each agent is still sent): a page that connects then sees the past more coarsely
 
 
 def draws(event: Event) -> bool:
-    """The page draws this event: its kind is one of :data:`VIEW_KINDS` (an auction round only
-    when its assignments changed)."""
-    if event.kind not in VIEW_KINDS:
+    """The page draws this event: one of :data:`VIEW_CLASSES` (an auction round only when its
+    assignments changed), with fields of its kind's types."""
+    if not issubclass(event_class(event.kind), VIEW_CLASSES):  # (cheap: nothing typed yet)
         return False
-    return event.kind != "round" or bool(event.get("assignments"))
+    typed = event.typed_or_none()
+    return typed is not None and (not isinstance(typed, RoundEvent) or bool(typed.assignments))
 
 
 def view_record(event: Event) -> Record | None:
     """``event`` as the viewer's record, or None if the page does not draw it (:func:`draws`)."""
     if not draws(event):
         return None
-    kind = event.kind
-    data: Mapping[str, Any] = event.data
-    if kind == "pose":
-        data = {k: data[k] for k in POSE_FIELDS if k in data}
-    elif kind == "leaf_error":
-        data = {k: v for k, v in data.items() if k != "traceback"}
-    elif kind == "round":
-        data = {"round": data.get("round"), "assignments": data.get("assignments")}
-    rec: Record = {"t": round(event.t, 4), "ev": kind}
-    rec.update(_plain(data))
+    typed = event.typed()
+    data: Mapping[str, Any]
+    match typed:
+        case PoseEvent():
+            full = typed.to_data()
+            data = {k: full[k] for k in POSE_FIELDS if k in full}
+        case LeafErrorEvent():
+            data = {k: v for k, v in typed.to_data().items() if k != "traceback"}
+        case RoundEvent():
+            data = {"round": typed.round, "assignments": typed.assignments}
+        case _:
+            data = typed.to_data()
+    rec: Record = {"t": round(event.t, 4), "ev": typed.kind}
+    rec.update(data)
     return rec
 
 
@@ -172,14 +206,14 @@ class LiveFeed:
     def on_event(self, event: Event) -> None:
         """An event of the run (Observer). Its ``pose`` events are left out: the poses come
         from the snapshots, more often."""
-        if event.kind == "pose":
+        if event.kind == PoseEvent.KIND:
             return
         rec = view_record(event)
         if rec is None:
             return
         with self._lock:
             self._records.append(rec)
-            if event.kind == "end":
+            if event.kind == EndEvent.KIND:
                 self.ended = True
             self._lock.notify_all()
 

@@ -23,7 +23,7 @@ from typing import Any
 
 from btmission.console.api import READ_ONLY, is_loopback, new_token
 from btmission.console.service import Console
-from btmission.runtime.events import Event, Observer
+from btmission.runtime.events import Event, Observer, PoseEvent
 from btmission.runtime.observers import QueuedObserver
 from btmission.viz.feed import LiveFeed, draws
 from btmission.viz.server import DEFAULT_PORT, ViewerServer, ViewerSource, mission_info
@@ -41,7 +41,7 @@ class ViewerKinds:
         self.inner = inner
 
     def on_event(self, event: Event) -> None:
-        if event.kind != "pose" and draws(event):
+        if event.kind != PoseEvent.KIND and draws(event):  # (poses: not typed for nothing)
             self.inner.on_event(event)
 
 
