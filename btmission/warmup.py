@@ -124,7 +124,8 @@ def _fleet_step(sim: Simulator, nav: Navigator, bus: InMemoryBus) -> None:
 
     from btmission.backends.mapsensors import sphere_points
     from btmission.runtime._fleet_kernels import fleet_follow
-    from btmission.runtime.navigation import CARROT_WINDOW, POSITION_GAIN, SETTLED_M_S
+    from btmission.runtime.navcontrol import CARROT_WINDOW
+    from btmission.runtime.navigation import POSITION_GAIN, SETTLED_M_S
 
     cells = sim.world.cells
     table = sim.bodies()

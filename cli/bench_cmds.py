@@ -624,7 +624,7 @@ def transport_bench(
       btmission bench transport --quick --sizes 10x40 --layouts 1:each --out /tmp/results
     """
     from btmission.bench.transport import BenchError, Layout, TransportBenchConfig
-    from btmission.transport.zenoh_link import NEEDS_NET, zenoh_available
+    from btmission.transport.zenoh_session import NEEDS_NET, zenoh_available
 
     points = _size_list(sizes, "--sizes")
     if not points:

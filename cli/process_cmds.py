@@ -32,14 +32,14 @@ DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
 
 def _zenoh_or_exit() -> None:
-    from btmission.transport.zenoh_link import NEEDS_NET, zenoh_available
+    from btmission.transport.zenoh_session import NEEDS_NET, zenoh_available
 
     if not zenoh_available():
         raise BadInput(NEEDS_NET)
 
 
 def _endpoints(values: Sequence[str], option: str) -> tuple[str, ...]:
-    from btmission.transport.zenoh_link import check_endpoint, is_loopback
+    from btmission.transport.zenoh_session import check_endpoint, is_loopback
 
     out = []
     for v in values:
@@ -213,7 +213,8 @@ def coordinator_cmd(
     130 / 143 stopped by SIGINT / SIGTERM.
     """
     from btmission.runtime.distribution import Part
-    from btmission.transport.zenoh_link import TransportError, ZenohCoordinatorLink, ZenohSettings
+    from btmission.transport.zenoh_link import ZenohCoordinatorLink
+    from btmission.transport.zenoh_session import TransportError, ZenohSettings
 
     _zenoh_or_exit()
     _check_log_file(log_file)
@@ -328,7 +329,8 @@ def agent_cmd(
     be reached), 2 bad input, 130 / 143 stopped by SIGINT / SIGTERM.
     """
     from btmission.runtime.distribution import Part
-    from btmission.transport.zenoh_link import TransportError, ZenohSettings, agent_links
+    from btmission.transport.zenoh_link import agent_links
+    from btmission.transport.zenoh_session import TransportError, ZenohSettings
 
     _zenoh_or_exit()
     _check_log_file(log_file)

@@ -119,9 +119,9 @@ def test_without_zenoh_the_command_says_how_to_install_it(
     monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
     monkeypatch.setitem(sys.modules, "zenoh", None)
-    import btmission.transport.zenoh_link as zl
+    import btmission.transport.zenoh_session as zs
 
-    monkeypatch.setattr(zl, "zenoh_available", lambda: False)
+    monkeypatch.setattr(zs, "zenoh_available", lambda: False)
     result = CliRunner().invoke(cli, ["bench", "transport", "--out", str(tmp_path / "r")])
     assert result.exit_code == 2, result.output
     assert "pip install 'btmission[net]'" in result.output and "Traceback" not in result.output

@@ -222,7 +222,7 @@ def test_approach_bound_ignores_rock_off_the_line_of_motion() -> None:
 
 def test_adaptive_speed_scale_is_eq4_normalised() -> None:
     from btmission.control.nmpc import NmpcConfig, adaptive_position_weight
-    from btmission.runtime.navigation import adaptive_speed_scale
+    from btmission.runtime.navcontrol import adaptive_speed_scale
 
     cfg = NmpcConfig()
     assert adaptive_speed_scale(0.0) == pytest.approx(1.0)

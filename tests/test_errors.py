@@ -154,7 +154,7 @@ def test_the_root_is_at_the_bottom() -> None:
         ("btmission.vehicles.provider.ProviderError", LookupError),
         ("btmission.vehicles.provider.VehicleUnavailable", RuntimeError),
         ("btmission.backends.mavlink_link.MavlinkError", RuntimeError),
-        ("btmission.transport.zenoh_link.ZenohMissing", RuntimeError),
+        ("btmission.transport.zenoh_session.ZenohMissing", RuntimeError),
         ("btmission.cli.common.BadInput", click.ClickException),
         ("btmission.cli.common.ChecksFailed", click.ClickException),
     ],
@@ -170,7 +170,7 @@ def test_subclasses_of_our_exceptions_keep_them() -> None:
         ("btmission.backends.mavlink_link.MavlinkError", "btmission.vehicles.provider.VehicleUnavailable"),
         ("btmission.planning.dstar.PlanningError", "btmission.world.voxel.MapError"),
         ("btmission.links.wire.UnknownAnnouncement", "btmission.links.wire.WireError"),
-        ("btmission.transport.zenoh_link.ZenohMissing", "btmission.transport.zenoh_link.TransportError"),
+        ("btmission.transport.zenoh_session.ZenohMissing", "btmission.transport.zenoh_session.TransportError"),
     ]  # fmt: skip
     for sub, base in pairs:
         assert issubclass(found[sub], found[base]), sub

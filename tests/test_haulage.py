@@ -32,7 +32,7 @@ from btmission.plugins import load_library
 from btmission.runtime.coordinator import TaskError
 from btmission.runtime.events import Recorder
 from btmission.runtime.mission_auction import bidder_for_agent
-from btmission.runtime.navigation import track_unicycle
+from btmission.runtime.navcontrol import track_unicycle
 from btmission.runtime.report import build_report, dispatch_png
 from btmission.runtime.roads import RoadCosts, RoadMapError
 from btmission.runtime.runner import MissionRun

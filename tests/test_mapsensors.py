@@ -7,14 +7,9 @@ import numpy as np
 import pytest
 
 from btmission.backends.mapsensors import Body, MapSensors, SensorPose, body_at
-from btmission.backends.sim import (
-    Artifact,
-    SimConfig,
-    Simulator,
-    SimWorld,
-    mission_artifacts,
-    sim_config,
-)
+from btmission.backends.sim import SimConfig, Simulator
+from btmission.backends.sim_provider import mission_artifacts, sim_config
+from btmission.backends.simworld import Artifact, SimWorld
 from btmission.control.mav_model import yaw_frame_to_world
 from btmission.spec.mission import load_mission_text
 from btmission.vehicles.base import Sensors

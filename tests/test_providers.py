@@ -15,7 +15,7 @@ import pytest
 from click.testing import CliRunner
 
 from btmission.backends.fake import fake_provider
-from btmission.backends.sim import SimProvider, sim_provider
+from btmission.backends.sim_provider import SimProvider, sim_provider
 from btmission.cli.main import cli
 from btmission.runtime.runner import MissionRun
 from btmission.spec.mission import Mission, load_mission_text
@@ -118,7 +118,7 @@ def replay_installed(monkeypatch: pytest.MonkeyPatch) -> None:
 # ------------------------------------------------------------------------------ the registry
 def test_the_sim_provider_is_an_installed_entry_point() -> None:
     [ep] = {ep.value for ep in metadata.entry_points(group=ENTRY_POINT_GROUP) if ep.name == "sim"}
-    assert ep == "btmission.backends.sim:sim_provider"
+    assert ep == "btmission.backends.sim_provider:sim_provider"
     assert installed_providers()["sim"].value == ep
     assert provider_factory("sim") is sim_provider
 
@@ -141,7 +141,9 @@ def test_sim_is_found_by_an_install_without_the_entry_point(
 
 def test_a_scheme_installed_twice_counts_once(monkeypatch: pytest.MonkeyPatch) -> None:
     """The worktree and the main checkout can both expose the same dist-info."""
-    ep = metadata.EntryPoint("sim", "btmission.backends.sim:sim_provider", ENTRY_POINT_GROUP)
+    ep = metadata.EntryPoint(
+        "sim", "btmission.backends.sim_provider:sim_provider", ENTRY_POINT_GROUP
+    )
 
     def twice(group: str) -> Sequence[metadata.EntryPoint]:
         return [ep, ep] if group == ENTRY_POINT_GROUP else []

@@ -14,7 +14,7 @@ from btmission.links.bus import InMemoryBus
 from btmission.planning.dstar import Planner
 from btmission.planning.risk import CostMap, RiskParams
 from btmission.runtime.events import Recorder
-from btmission.runtime.navigation import Polyline, ground_obstacle_points
+from btmission.runtime.navcontrol import Polyline, ground_obstacle_points
 from btmission.runtime.paths import PathCosts, inflate
 from btmission.runtime.runner import MissionRun
 from btmission.spec.mission import load_mission_text

@@ -12,14 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from btmission.backends.autopilot import DISARM_LAND_S, OFFBOARD_LOSS_S
-from btmission.backends.sim import (
-    WALL_QUERY_M,
-    Artifact,
-    SimConfig,
-    Simulator,
-    SimWorld,
-    thrust_attitude,
-)
+from btmission.backends.sim import SimConfig, Simulator, thrust_attitude
+from btmission.backends.simworld import WALL_QUERY_M, Artifact, SimWorld
 from btmission.control.mav_model import MavParams, mav_dynamics, world_to_yaw_frame
 from btmission.vehicles.base import Backend, Mode, Sensors
 from btmission.world.voxel import OCCUPIED, VoxelMap

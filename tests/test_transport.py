@@ -48,16 +48,13 @@ from btmission.transport.faulty import (
     fate,
     shuffle,
 )
-from btmission.transport.zenoh_link import (
+from btmission.transport.zenoh_link import ZenohAgentLink, ZenohCoordinatorLink, close_all
+from btmission.transport.zenoh_plumbing import DecodeCache, Mailbox
+from btmission.transport.zenoh_session import (
     NEEDS_NET,
-    DecodeCache,
-    Mailbox,
     TransportError,
-    ZenohAgentLink,
-    ZenohCoordinatorLink,
     ZenohMissing,
     ZenohSettings,
-    close_all,
     import_zenoh,
     is_loopback,
     locators,
@@ -178,7 +175,8 @@ def test_loopback_endpoints() -> None:
 def test_btmission_never_imports_zenoh() -> None:
     code = (
         "import sys, btmission, btmission.transport, btmission.transport.keys, "
-        "btmission.transport.faulty, btmission.transport.zenoh_link, btmission.cli.main; "
+        "btmission.transport.faulty, btmission.transport.zenoh_link, "
+        "btmission.transport.zenoh_session, btmission.transport.zenoh_plumbing, btmission.cli.main; "
         "assert 'zenoh' not in sys.modules, 'zenoh imported'"
     )
     proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,

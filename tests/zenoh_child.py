@@ -41,7 +41,8 @@ def echo_status(a: Assignment) -> AgentStatus:
 
 
 def main(mission: str, endpoint: str) -> int:
-    from btmission.transport.zenoh_link import ZenohAgentLink, ZenohSettings
+    from btmission.transport.zenoh_link import ZenohAgentLink
+    from btmission.transport.zenoh_session import ZenohSettings
 
     acked: list[ProgressAck] = []
     link = ZenohAgentLink(mission, AGENT, settings=ZenohSettings.agent([endpoint]))

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import pytest
 
-from btmission.transport.zenoh_link import (
-    Mailbox,
-    ZenohCoordinatorLink,
+from btmission.transport.zenoh_link import ZenohCoordinatorLink
+from btmission.transport.zenoh_plumbing import Mailbox
+from btmission.transport.zenoh_session import (
     ZenohSettings,
     locators,
     loopback,

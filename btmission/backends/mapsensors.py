@@ -1,7 +1,7 @@
 """Map sensors: a vehicle's LiDAR and depth camera ray-cast through the mission map.
 
 :class:`MapSensors` implements the :class:`~btmission.vehicles.base.Sensors` interface from a
-:class:`~btmission.backends.sim.SimWorld` (the voxel map and the mission's artifacts), the sensor
+:class:`~btmission.backends.simworld.SimWorld` (the voxel map and the mission's artifacts), the sensor
 settings of a :class:`~btmission.backends.sim.SimConfig`, a seeded numpy generator, and two
 callables: ``pose()``, where the vehicle is (anything with ``time_s``, ``position`` and ``yaw``,
 world frame: a :class:`SensorPose` or a :class:`~btmission.vehicles.base.Telemetry`), and
@@ -45,7 +45,8 @@ from btmission.types import CameraIntrinsics, Detection, FloatArray, Vec3
 from btmission.vehicles.base import CameraFrame, LidarScan
 
 if TYPE_CHECKING:
-    from btmission.backends.sim import Artifact, SimConfig, SimWorld
+    from btmission.backends.sim import SimConfig
+    from btmission.backends.simworld import Artifact, SimWorld
 
 VEHICLE_POINTS = 200
 """Points another vehicle returns in a LiDAR scan (a 0.5 m drone 1-2 m away in a VLP-16 scan
@@ -115,7 +116,7 @@ def no_bodies() -> list[Body]:
 
 class MapSensors:
     """The :class:`~btmission.vehicles.base.Sensors` of one vehicle, ray-cast through a
-    :class:`~btmission.backends.sim.SimWorld` at the pose ``pose()`` gives (module docstring)."""
+    :class:`~btmission.backends.simworld.SimWorld` at the pose ``pose()`` gives (module docstring)."""
 
     def __init__(
         self,

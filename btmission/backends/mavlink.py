@@ -383,7 +383,8 @@ def mavlink_provider(mission: Mission, voxel_map: VoxelMap, seed: int) -> Mavlin
     camera ray-cast in the mission map at the pose it reports
     (:class:`~btmission.backends.mapsensors.MapSensors`, as SITL users get from Gazebo)."""
     from btmission.backends.mapsensors import MapSensors
-    from btmission.backends.sim import SimWorld, mission_artifacts, sim_config
+    from btmission.backends.sim_provider import mission_artifacts, sim_config
+    from btmission.backends.simworld import SimWorld
 
     spec = mission.spec.runtime.mavlink
     options = MavlinkOptions(

@@ -7,6 +7,12 @@ Each vehicle is driven through a :class:`SimVehicle`, which implements the
 :class:`~btmission.vehicles.base.Backend` and :class:`~btmission.vehicles.base.Sensors`
 interfaces.
 
+This module holds the simulator, its settings (:class:`SimConfig`) and its vehicles. The static
+world it queries (rock faces, ground heights, ray casting, the mission's artifacts) is
+:class:`~btmission.backends.simworld.SimWorld`; the simulator as the run's vehicle provider (the
+``sim`` entry point, :func:`~btmission.backends.sim_provider.sim_provider`) is
+:mod:`btmission.backends.sim_provider`.
+
 **Vehicle models.** A multirotor is the seed 002 eight-state model
 (:mod:`btmission.control.mav_model`: x = [p, v, φ, θ], u = [T, φ_ref, θ_ref], attitude as a
 first-order lag) integrated with RK4, plus a yaw that follows the commanded yaw rate. A ground
@@ -64,11 +70,9 @@ import math
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from functools import partial
-from typing import TYPE_CHECKING, Any, cast
+from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 
 from btmission.backends.autopilot import (
     _OFFBOARD,
@@ -78,30 +82,19 @@ from btmission.backends.autopilot import (
     autopilot_rules,
 )
 from btmission.backends.mapsensors import Bodies, MapSensors, SensorPose
+from btmission.backends.simworld import Artifact, SimWorld
 from btmission.control.mav_model import MavParams
 from btmission.localization.scan import LidarSensor
-from btmission.spec.vehicleref import SIM, VehicleRef
-from btmission.types import FloatArray, Vec3, recorder
+from btmission.types import FloatArray, recorder
 from btmission.vehicles.base import (
-    Backend,
     CameraFrame,
     LidarScan,
     Mode,
-    Sensors,
     Telemetry,
     VehicleKind,
 )
-from btmission.vehicles.provider import (
-    AttachOptions,
-    FleetSensing,
-    ProviderBase,
-    Vehicle,
-    VehicleEvent,
-)
-from btmission.world.voxel import OCCUPIED, VoxelMap
-
-if TYPE_CHECKING:
-    from btmission.spec.mission import Mission
+from btmission.vehicles.provider import VehicleEvent
+from btmission.world.voxel import VoxelMap
 
 LAND_SPEED = 0.7
 TILT_MAX = 0.35
@@ -109,14 +102,8 @@ IMPACT_SPEED = 2.0
 YAW_RATE_MAX = 0.8
 """Heading-loop rate limit (rad/s), about PX4's MPC_YAWRAUTO_MAX."""
 CONTACT_GAP_S = 0.5
-WALL_QUERY_M = 5.0
-"""Clearances beyond this are reported as inf (nothing near enough to matter)."""
 SMALL_FLEET = 6
 """Up to this many vehicles the contact test loops over the pairs (numpy's set-up costs more)."""
-GROUND_TABLE_MAX_VOXELS = 64_000_000
-"""Maps up to this size keep a per-voxel ground table (2 bytes a voxel) for fast ground_z."""
-SURFACE_CELLS_MAX = 4_000_000
-"""Most cells of the grid the rock-face points are sorted into (its start table: 8 bytes each)."""
 POSITION_GAIN = 1.0
 """The autopilot's position loop: velocity command (m/s) per metre of position error."""
 VELOCITY_GAIN = 1.2
@@ -187,216 +174,8 @@ class SimConfig:
         return self.velocity_noise > 0 or self.pose_noise_m > 0 or self.heading_noise_rad > 0
 
 
-@dataclass(frozen=True)
-class Artifact:
-    label: str
-    position: tuple[float, float, float]
-    size_m: float = 0.5
-
-
 SimEvent = VehicleEvent
 """Something the simulator detected: a collision (with ``rock`` or another vehicle's id)."""
-
-
-class _SurfaceCells:
-    """The rock-face points sorted into cubic cells, for ball queries
-    (:mod:`btmission.world._surface_kernels`). Cells of 1 m (at least two voxels), larger
-    where a huge map would need more than :data:`SURFACE_CELLS_MAX` of them."""
-
-    def __init__(self, points: FloatArray, resolution: float) -> None:
-        pts = np.ascontiguousarray(points, dtype=float).reshape(-1, 3)
-        lo = pts.min(axis=0) if len(pts) else np.zeros(3)
-        span = (pts.max(axis=0) - lo) if len(pts) else np.zeros(3)
-        cell = max(1.0, 2.0 * resolution)
-        while float(np.prod(np.floor(span / cell) + 1)) > SURFACE_CELLS_MAX:
-            cell *= 2.0
-        dims = (np.floor(span / cell) + 1).astype(np.int64)
-        ijk = np.minimum(np.floor((pts - lo) / cell).astype(np.int64), dims - 1)
-        flat = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
-        order = np.argsort(flat, kind="stable")
-        self.points = np.ascontiguousarray(pts[order])
-        self.starts = np.searchsorted(flat[order], np.arange(int(np.prod(dims)) + 1)).astype(
-            np.int64
-        )
-        self.lo = lo
-        self.cell = cell
-        self.dims = dims
-
-    def nearest(self, queries: FloatArray, max_d: float) -> FloatArray:
-        """Distance from each query point to the nearest point (inf beyond ``max_d``)."""
-        if len(self.points) == 0:
-            return np.full(len(queries), math.inf)
-        from btmission.world._surface_kernels import nearest_distances
-
-        out: FloatArray = nearest_distances(
-            self.points, self.starts, self.lo, self.cell, self.dims,
-            np.ascontiguousarray(queries, dtype=float), float(max_d),
-        )  # fmt: skip
-        return out
-
-    def ball(self, p: FloatArray, radius: float) -> FloatArray:
-        from btmission.world._surface_kernels import ball_points
-
-        out: FloatArray = ball_points(
-            self.points, self.starts, self.lo, self.cell, self.dims, p, radius
-        )
-        return out
-
-    def scan(
-        self, p: FloatArray, radius: float, yaw: float, bodies: Bodies, sphere: FloatArray
-    ) -> FloatArray:
-        from btmission.world._surface_kernels import scan_points
-
-        centres, radii, skip = bodies
-        out: FloatArray = scan_points(
-            self.points, self.starts, self.lo, self.cell, self.dims, p, radius, float(yaw),
-            np.ascontiguousarray(centres, dtype=float).reshape(-1, 3),
-            np.ascontiguousarray(radii, dtype=float), int(skip), sphere,
-        )  # fmt: skip
-        return out
-
-
-class SimWorld:
-    """The static world: voxel map, rock surfaces (face points sorted into cells), ground
-    heights, ray casting."""
-
-    def __init__(self, voxel_map: VoxelMap, artifacts: Sequence[Artifact] = ()) -> None:
-        self.map = voxel_map
-        self.artifacts = tuple(artifacts)
-        st = voxel_map.state
-        occ = st == OCCUPIED
-        res = voxel_map.resolution
-        pts: list[FloatArray] = []
-        normals: list[int] = []
-        for axis in range(3):
-            for d in (-1, 1):
-                # faces of rock voxels whose neighbour along (axis, d) is inside the map and open
-                src = [slice(None)] * 3
-                dst = [slice(None)] * 3
-                src[axis] = slice(0, -1) if d == 1 else slice(1, None)
-                dst[axis] = slice(1, None) if d == 1 else slice(0, -1)
-                face = occ[tuple(src)] & ~occ[tuple(dst)]
-                idx = np.argwhere(face)
-                if d == -1:
-                    idx[:, axis] += 1
-                centres = voxel_map.index_to_world(idx)
-                centres[:, axis] += d * res / 2
-                pts.append(centres)
-                normals.append(len(idx) * (1 if (axis == 2 and d == 1) else 0))
-        self.surface = np.vstack(pts) if pts else np.zeros((0, 3))
-        up = np.zeros(len(self.surface), dtype=bool)
-        start = 0
-        for block, is_floor in zip(pts, normals):
-            if is_floor:
-                up[start : start + len(block)] = True
-            start += len(block)
-        self.walls = self.surface[~up]
-        self._cells = _SurfaceCells(self.surface, float(res))
-        self._wall_cells = _SurfaceCells(self.walls, float(res))
-        self._occ = occ
-        self._origin = tuple(float(o) for o in voxel_map.origin)
-        self._res = float(res)
-        self._grid = np.array([*self._origin, self._res], dtype=float)
-        """Origin and resolution, for the compiled multirotor step."""
-        self._shape = tuple(int(n) for n in occ.shape)
-        # the highest rock voxel at or below each voxel of its column (-1: none): ground_z in
-        # O(1) per query instead of a column scan (the world is static)
-        nz = occ.shape[2]
-        self._below: npt.NDArray[np.int16] | None = None
-        if nz < 2**15 and occ.size <= GROUND_TABLE_MAX_VOXELS:
-            levels = np.where(occ, np.arange(nz, dtype=np.int16), np.int16(-1))
-            self._below = np.maximum.accumulate(levels, axis=2)
-
-    # ------------------------------------------------------------------ queries
-    def _voxel(self, p: Sequence[float] | FloatArray) -> tuple[int, int, int] | None:
-        """The voxel index of ``p``, not bounds-checked (None for a non-finite point), with the
-        arithmetic of :meth:`VoxelMap.world_to_index` done on scalars (the hot path of every
-        simulator step)."""
-        o, r = self._origin, self._res
-        fx, fy, fz = (p[0] - o[0]) / r, (p[1] - o[1]) / r, (p[2] - o[2]) / r
-        if not (math.isfinite(fx) and math.isfinite(fy) and math.isfinite(fz)):
-            return None
-        return math.floor(fx), math.floor(fy), math.floor(fz)
-
-    def occupied(self, p: Sequence[float] | FloatArray) -> bool:
-        idx = self._voxel(p)
-        if idx is None:
-            return False
-        i, j, k = idx
-        nx, ny, nz = self._shape
-        return 0 <= i < nx and 0 <= j < ny and 0 <= k < nz and bool(self._occ[i, j, k])
-
-    def occupied_rows(self, points: FloatArray) -> list[bool]:
-        """:meth:`occupied` of each of ``points`` (n, 3), with its arithmetic, in one compiled
-        pass (:func:`~btmission.backends._multirotor_kernels.rock_rows`)."""
-        from btmission.backends._multirotor_kernels import rock_rows
-
-        pts = np.ascontiguousarray(points, dtype=float).reshape(-1, 3)
-        return rock_rows(self._occ, self._grid, pts).tolist()  # type: ignore[no-any-return]
-
-    def ground_z(self, p: Sequence[float] | FloatArray) -> float:
-        """:meth:`VoxelMap.ground_z <btmission.world.voxel.VoxelMap.ground_z>`, from the
-        precomputed column table."""
-        below = self._below
-        if below is None:
-            return self.map.ground_z(p)
-        idx = self._voxel(p)
-        if idx is None:
-            return self.map.ground_z(p)  # (its own handling of the odd cases)
-        i, j, k = idx
-        o, r = self._origin, self._res
-        nx, ny, nz = self._shape
-        if not (0 <= i < nx and 0 <= j < ny) or k < 0:
-            return o[2]
-        top = int(below[i, j, min(k, nz - 1)])
-        return o[2] if top < 0 else o[2] + (top + 1) * r
-
-    def wall_distance(self, p: FloatArray) -> float:
-        """Distance from ``p`` to the nearest wall or roof face (inf if there is none within
-        :data:`WALL_QUERY_M`)."""
-        return float(self.wall_distances(np.asarray(p, dtype=float).reshape(1, 3))[0])
-
-    def wall_distances(self, points: FloatArray) -> FloatArray:
-        """:meth:`wall_distance` of each of ``points`` (n, 3), in one call."""
-        return self._wall_cells.nearest(
-            np.asarray(points, dtype=float).reshape(-1, 3), WALL_QUERY_M
-        )
-
-    @property
-    def cells(self) -> _SurfaceCells:
-        """The rock-face points sorted into cells (what the compiled scans take)."""
-        return self._cells
-
-    def surface_points(self, p: FloatArray, radius: float) -> FloatArray:
-        """The rock-face points (world) within ``radius`` of ``p``."""
-        return self._cells.ball(np.asarray(p, dtype=float), float(radius))
-
-    def scan_points(
-        self, p: FloatArray, radius: float, yaw: float, bodies: Bodies, sphere: FloatArray
-    ) -> FloatArray:
-        """What the short-range LiDAR at ``p`` sees within ``radius``, relative to ``p`` in the
-        yaw frame of ``yaw``: the rock-face points, then ``sphere`` (unit points) scaled onto
-        each of ``bodies`` whose reference point (the bottom of its sphere) is in range."""
-        return self._cells.scan(np.asarray(p, dtype=float), float(radius), yaw, bodies, sphere)
-
-    def raycast(self, origin: FloatArray, dirs: FloatArray, max_range: float) -> FloatArray:
-        """Distance along each unit direction to the first rock voxel (inf beyond ``max_range``).
-
-        Marches every ray in steps of a quarter voxel (a compiled loop that stops at the first
-        hit): a ray can skip at most the corner of a voxel, which the sub-voxel step keeps below
-        the depth camera's noise."""
-        from btmission.backends._raycast import march
-
-        vm = self.map
-        return march(  # type: ignore[no-any-return]
-            self._occ,
-            np.asarray(origin, dtype=np.float64),
-            np.ascontiguousarray(dirs, dtype=np.float64),
-            np.asarray(vm.origin, dtype=np.float64),
-            vm.resolution,
-            vm.resolution / 4,
-            float(max_range),
-        )
 
 
 @dataclass
@@ -964,128 +743,3 @@ class SimVehicle(OffboardCommands):
 
     def _other_bodies(self) -> Bodies:
         return self._sim.other_bodies(self._v.id)
-
-
-class SimProvider(ProviderBase):
-    """The embedded simulator as the run's
-    :class:`~btmission.vehicles.provider.VehicleProvider` (scheme ``sim``): vehicles are spawned
-    at their start, time is the simulator's (:class:`~btmission.vehicles.clock.SimClock`), and
-    :meth:`step` integrates the physics. Wrapping changes nothing: the same seed gives the same
-    run as driving the :class:`Simulator` directly."""
-
-    realtime = False
-
-    def __init__(self, sim: Simulator) -> None:
-        from btmission.vehicles.clock import SimClock
-
-        self.sim = sim
-        self.clock = SimClock(sim)
-
-    def attach(
-        self,
-        agent_id: str,
-        kind: VehicleKind,
-        start: Vec3,
-        ref: VehicleRef = SIM,
-        options: AttachOptions = AttachOptions(),
-    ) -> Vehicle:
-        """Spawn ``agent_id``'s vehicle at ``start``, heading ``options.yaw`` (a ground robot
-        at most at ``options.v_max``: :meth:`Simulator.add_ground`)."""
-        yaw = float(options.yaw)
-        if kind is VehicleKind.GROUND:
-            backend = self.sim.add_ground(agent_id, start, yaw, v_max=options.v_max)
-        else:
-            backend = self.sim.add_multirotor(agent_id, start, yaw)
-        truth = self.sim.vehicle(agent_id)
-        return Vehicle(
-            agent_id,
-            kind,
-            backend,
-            backend,
-            odometer_m=lambda: truth.odometer_m,
-            clearance_m=partial(self.sim.take_clearance, agent_id),
-        )
-
-    def step(self, dt: float) -> list[VehicleEvent]:
-        """Advance by ``dt``: a whole number of the simulator's fixed steps."""
-        step_s = self.sim.config.step_s
-        n = round(dt / step_s)
-        if n < 1 or abs(n * step_s - dt) > 1e-9:
-            raise ValueError(f"dt must be a multiple of the simulator's step {step_s} s, got {dt}")
-        out: list[VehicleEvent] = []
-        for _ in range(n):
-            out.extend(self.sim.step())
-        return out
-
-    def close(self) -> None:
-        """Nothing to release: the simulator lives in this process."""
-
-    def fleet_sensing(self) -> FleetSensing | None:
-        """The simulator's offer to the fleet control step (:class:`SimFleetSensing`); None
-        with dust in the LiDAR, which draws from the simulator's generator vehicle by vehicle."""
-        return None if self.sim.config.dust_points else SimFleetSensing(self.sim)
-
-
-class SimFleetSensing:
-    """What the fleet control step needs of the simulator to compute its drones' LiDAR scans
-    itself, exactly as each drone's :class:`~btmission.backends.mapsensors.MapSensors` would
-    (:class:`~btmission.vehicles.provider.FleetSensing`)."""
-
-    def __init__(self, sim: Simulator) -> None:
-        from btmission.backends.mapsensors import sphere_points
-
-        self.sim = sim
-        cells = sim.world.cells
-        self.cells = (cells.points, cells.starts, cells.lo, float(cells.cell), cells.dims)
-        self.lidar_range_m = float(sim.config.lidar_range_m)
-        self.sphere = sphere_points()
-
-    def covers(self, backend: Backend, sensors: Sensors | None) -> bool:
-        """A multirotor of this simulator whose navigator reads its own, unreplaced LiDAR."""
-        if type(backend) is not SimVehicle:
-            return False
-        return (
-            backend.kind is VehicleKind.MULTIROTOR
-            and backend.sim is self.sim
-            and sensors is backend
-            and backend.owns_sensors
-        )
-
-    def bodies(self) -> _BodyTable:
-        return self.sim.bodies()
-
-    def true_poses(self, backends: Sequence[Backend]) -> FloatArray:
-        vehicles = [cast(SimVehicle, b).vehicle for b in backends]
-        poses = np.empty((len(vehicles), 4))
-        poses[:, 0:3] = [v.x[:3] for v in vehicles]
-        poses[:, 3] = [v.yaw for v in vehicles]
-        return poses
-
-
-def sim_config(mission: Mission) -> SimConfig:
-    """The simulator (and map-sensor) settings of a mission's ``runtime.sim`` section."""
-    spec = mission.spec.runtime.sim
-    return SimConfig(
-        step_s=spec.step_s,
-        lidar_range_m=spec.lidar_range_m,
-        dust_points=spec.dust_points,
-        detection_noise_px=spec.detection_noise_px,
-        max_speed_m_s=spec.max_speed_m_s,
-        velocity_noise=spec.velocity_noise,
-        velocity_noise_tau_s=spec.velocity_noise_tau_s,
-        pose_noise_m=spec.pose_noise_m,
-        heading_noise_rad=spec.heading_noise_rad,
-    )
-
-
-def mission_artifacts(mission: Mission) -> list[Artifact]:
-    """The objects a mission places in the world for the cameras (``runtime.sim.artifacts``)."""
-    return [Artifact(a.label, a.position, a.size_m) for a in mission.spec.runtime.sim.artifacts]
-
-
-def sim_provider(mission: Mission, voxel_map: VoxelMap, seed: int) -> SimProvider:
-    """The ``sim`` entry point of ``btmission.providers``: a simulator of the mission's world
-    with its ``runtime.sim`` settings and artifacts, seeded with the run's seed."""
-    config = sim_config(mission)
-    artifacts = mission_artifacts(mission)
-    return SimProvider(Simulator(voxel_map, config, seed=seed, artifacts=artifacts))

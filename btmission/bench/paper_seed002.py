@@ -28,7 +28,7 @@ import yaml
 
 from btmission.bench.paper import SectionResult, pct, table
 from btmission.control.apf import ApfConfig
-from btmission.runtime.navigation import (
+from btmission.runtime.navcontrol import (
     APPROACH_CORRIDOR_M,
     APPROACH_DECEL_M_S2,
     APPROACH_MARGIN_M,

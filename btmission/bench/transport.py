@@ -521,12 +521,8 @@ def measure_zenoh(
     layout: Layout = DEFAULT_LAYOUTS[0],
     reference: RoundTimes | None = None,
 ) -> Point:
-    from btmission.transport.zenoh_link import (
-        ZenohCoordinatorLink,
-        ZenohSettings,
-        locators,
-        loopback,
-    )
+    from btmission.transport.zenoh_link import ZenohCoordinatorLink
+    from btmission.transport.zenoh_session import ZenohSettings, locators, loopback
 
     settings = ZenohSettings.coordinator(
         [loopback(0)], admin_space=True, shared_memory=cfg.shared_memory
@@ -573,12 +569,8 @@ def measure_zenoh(
 def agents_main(argv: Sequence[str], stop: threading.Event | None = None) -> int:
     """The agents' side of a size (``python -m btmission.bench.transport agents ...``): one
     Zenoh agent link per agent, served by one loop, until stdin ends (or ``stop`` is set)."""
-    from btmission.transport.zenoh_link import (
-        ZenohAgentLink,
-        ZenohSettings,
-        agent_links,
-        close_all,
-    )
+    from btmission.transport.zenoh_link import ZenohAgentLink, agent_links, close_all
+    from btmission.transport.zenoh_session import ZenohSettings
 
     p = argparse.ArgumentParser(prog="btmission.bench.transport agents")
     p.add_argument("--agents", type=int, required=True)
@@ -866,8 +858,8 @@ def run_transport_benchmark(
 ) -> TransportBench:
     """Measure every size over the in-memory bus and every layout over Zenoh, echoing rows as
     they come; write ``transport.md`` and ``transport.csv``. Needs eclipse-zenoh
-    (:class:`~btmission.transport.zenoh_link.ZenohMissing` otherwise)."""
-    from btmission.transport.zenoh_link import import_zenoh
+    (:class:`~btmission.transport.zenoh_session.ZenohMissing` otherwise)."""
+    from btmission.transport.zenoh_session import import_zenoh
 
     import_zenoh()  # ZenohMissing (how to install it) before anything runs
     env = environment()

@@ -34,14 +34,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from btmission.links.bus import InMemoryAgentLink, InMemoryBus
-from btmission.runtime.navigation import (
-    AGENT_APF,
-    CARROT_WINDOW,
-    POSITION_GAIN,
-    SETTLED_M_S,
-    Navigator,
-    _Follow,
-)
+from btmission.runtime.navcommands import _Follow
+from btmission.runtime.navcontrol import AGENT_APF, CARROT_WINDOW
+from btmission.runtime.navigation import POSITION_GAIN, SETTLED_M_S, Navigator
 from btmission.types import FloatArray
 from btmission.vehicles.base import Backend, VehicleKind
 from btmission.vehicles.provider import FleetSensing

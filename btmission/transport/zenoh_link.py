@@ -11,15 +11,15 @@ blocking is not allowed. So a callback only checks and decodes the message and q
 * the coordinator's bids, progress reports and statuses wait in a thread-safe inbox that
   :meth:`ZenohCoordinatorLink.drain` empties (as :class:`~btmission.links.bus.InMemoryBus`'s);
   :meth:`ZenohCoordinatorLink.wait` waits (bounded) for something to arrive;
-* an agent's announcements, assignments and acknowledgements wait in its :class:`Mailbox`;
-  :meth:`ZenohAgentLink.dispatch` hands them to the agent's handlers in the calling thread (the
+* an agent's announcements, assignments and acknowledgements wait in its
+  :class:`~btmission.transport.zenoh_plumbing.Mailbox`; :meth:`ZenohAgentLink.dispatch` hands them to the agent's handlers in the calling thread (the
   agent's own loop), which may then send (a bid answering an announcement). Agents that share a
   process may share a mailbox, so one loop serves them all. Predictions are kept per agent
   (the latest) for :meth:`ZenohAgentLink.predictions`.
 
 A payload that is over ``BTMISSION_MAX_MESSAGE_BYTES``, is not a valid message, is of another
 kind than its key's channel, or names another agent than its key is dropped and counted
-(:class:`LinkStats`); a callback never raises.
+(:class:`~btmission.transport.zenoh_plumbing.LinkStats`); a callback never raises.
 
 Assignments. The coordinator's link embeds the announcement in an assignment only when it is
 another announcement than the one the previous assignment carried, and every
@@ -41,34 +41,31 @@ tests and drills): messages both ways are dropped and counted, and :attr:`ZenohA
 False. ``up`` is also False while the coordinator's liveliness token is not seen (its session
 is gone, or the network between them is).
 
-Sessions. :class:`ZenohSettings` builds the Zenoh configuration: explicit ``listen`` and
-``connect`` endpoints (the coordinator listens on ``tcp/127.0.0.1:7447`` by default, agents
-connect to it as clients), multicast and gossip scouting off unless asked for, optionally a
-Zenoh JSON5 file for TLS, authentication and access control. Every wait is bounded: opening a
-session (``connect_timeout_s``), :meth:`ZenohCoordinatorLink.wait`,
-:meth:`ZenohAgentLink.dispatch`. See docs/distributed.md.
+Sessions. :class:`~btmission.transport.zenoh_session.ZenohSettings` builds the Zenoh
+configuration: explicit ``listen`` and ``connect`` endpoints (the coordinator listens on
+``tcp/127.0.0.1:7447`` by default, agents connect to it as clients), multicast and gossip
+scouting off unless asked for, optionally a Zenoh JSON5 file for TLS, authentication and access
+control. Every wait is bounded: opening a session (``connect_timeout_s``),
+:meth:`ZenohCoordinatorLink.wait`, :meth:`ZenohAgentLink.dispatch`. See docs/distributed.md.
+
+This module holds the two links and :func:`agent_links` / :func:`close_all`. The sessions, their
+settings, the transport's errors and the endpoint helpers are
+:mod:`btmission.transport.zenoh_session`; what both links share underneath (the checks of what
+arrives, the counters, the decode cache, the mailbox, the publishers) is
+:mod:`btmission.transport.zenoh_plumbing`.
 """
 
 from __future__ import annotations
 
-import importlib.util
-import json
 import math
-import re
 import threading
-from collections import deque
 from collections.abc import Callable, Collection, Iterable
-from dataclasses import dataclass, field, replace
-from pathlib import Path
-from types import ModuleType
-from typing import TYPE_CHECKING, Any, Final, cast
+from typing import TYPE_CHECKING, Any, Final
 
 import numpy as np
 
 from btmission.allocation.auction import Announcement, Bid
 from btmission.allocation.loop import Progress
-from btmission.errors import BtmissionError
-from btmission.limits import MAX_MESSAGE_BYTES
 from btmission.links import wire
 from btmission.links.bus import (
     AgentStatus,
@@ -83,455 +80,30 @@ from btmission.links.bus import (
     advance_predictions,
 )
 from btmission.transport import keys
+from btmission.transport.zenoh_plumbing import (
+    _BLOCK,
+    _DROP,
+    SHARED_DECODER,
+    DecodeCache,
+    LinkStats,
+    Mailbox,
+    _check,
+    _payload,
+    _Session,
+)
+from btmission.transport.zenoh_session import (
+    TransportError,
+    ZenohSettings,
+    _bounded,
+    open_session,
+)
 from btmission.types import FloatArray
 
 if TYPE_CHECKING:
     import zenoh
 
-NEEDS_NET: Final = (
-    "the Zenoh transport needs the net extra: pip install 'btmission[net]' (make installs it)"
-)
-DEFAULT_PORT: Final = 7447
-DEFAULT_ENDPOINT: Final = f"tcp/127.0.0.1:{DEFAULT_PORT}"
-MODES: Final = ("peer", "client")
 EMBED_EVERY: Final = 10
 """The coordinator's link embeds the announcement in at least every 10th assignment."""
-
-
-class TransportError(BtmissionError, RuntimeError):
-    """The transport cannot do what was asked (the text says why and what to do)."""
-
-
-class ZenohMissing(TransportError):
-    """eclipse-zenoh is not installed (:data:`NEEDS_NET`)."""
-
-
-def zenoh_available() -> bool:
-    """Whether eclipse-zenoh can be imported (without importing it)."""
-    return importlib.util.find_spec("zenoh") is not None
-
-
-def import_zenoh() -> ModuleType:
-    """The ``zenoh`` module, or :class:`ZenohMissing` saying how to install it."""
-    try:
-        import zenoh
-    except ImportError:
-        raise ZenohMissing(NEEDS_NET) from None
-    return zenoh
-
-
-def _bounded(timeout_s: float, what: str = "timeout_s") -> float:
-    t = float(timeout_s)
-    if not (math.isfinite(t) and t >= 0):
-        raise ValueError(f"{what} must be a finite number of seconds ≥ 0, got {timeout_s!r}")
-    return t
-
-
-# ------------------------------------------------------------------------------------ config
-_ENDPOINT = re.compile(r"[a-z][a-z0-9-]*/\S+")
-
-
-def check_endpoint(endpoint: str) -> str:
-    """``endpoint`` if it looks like a Zenoh endpoint ``<protocol>/<address>`` (e.g.
-    ``tcp/127.0.0.1:7447``, ``tls/base.local:7447``), else :class:`ValueError`."""
-    if not isinstance(endpoint, str) or not _ENDPOINT.fullmatch(endpoint):
-        raise ValueError(
-            f"{endpoint!r} is not a Zenoh endpoint (expected <protocol>/<address>, e.g. "
-            f"{DEFAULT_ENDPOINT})"
-        )
-    return endpoint
-
-
-def loopback(port: int = DEFAULT_PORT, protocol: str = "tcp") -> str:
-    """``tcp/127.0.0.1:<port>`` (port 0: one the system picks)."""
-    if not (isinstance(port, int) and 0 <= port <= 65535):
-        raise ValueError(f"port must be 0-65535, got {port!r}")
-    return f"{protocol}/127.0.0.1:{port}"
-
-
-def is_loopback(endpoint: str) -> bool:
-    """Whether ``endpoint``'s address is a loopback one (127.x.x.x, localhost, [::1])."""
-    address = endpoint.split("/", 1)[-1].split("#", 1)[0].split("?", 1)[0]
-    host = address.rsplit(":", 1)[0] if not address.startswith("[") else address[1:].split("]")[0]
-    return host == "localhost" or host == "::1" or host.startswith("127.")
-
-
-@dataclass(frozen=True)
-class ZenohSettings:
-    """How to open a Zenoh session (module docstring). The defaults are a coordinator's:
-    :meth:`coordinator` and :meth:`agent` give each side's."""
-
-    mode: str = "peer"
-    """``peer`` (the coordinator; agents in a mesh) or ``client`` (an agent of a star)."""
-    listen: tuple[str, ...] = (DEFAULT_ENDPOINT,)
-    """Endpoints to accept sessions on (ignored in client mode)."""
-    connect: tuple[str, ...] = ()
-    """Endpoints to connect to."""
-    multicast_scouting: bool = False
-    """Find other sessions by UDP multicast (Zenoh's default; off here unless asked for)."""
-    gossip_scouting: bool = False
-    """Learn other peers' locators from connected ones (a mesh of peers needs it)."""
-    config_file: str | None = None
-    """A Zenoh JSON5 configuration to start from (TLS, authentication, access control ...); the
-    settings above override its mode, endpoints and scouting."""
-    options: tuple[tuple[str, str], ...] = ()
-    """Raw ``(key, JSON5 value)`` configuration entries, applied last (as zenoh's ``--cfg``)."""
-    connect_timeout_s: float = 5.0
-    """A client waits this long for one of its ``connect`` endpoints, then opening fails."""
-    shared_memory: bool = True
-    """Let sessions on one host pass large payloads through shared memory (Zenoh's default)."""
-    admin_space: bool = False
-    """Serve Zenoh's read-only admin space (``@/<zid>/**``): :func:`locators` needs it."""
-
-    def __post_init__(self) -> None:
-        if self.mode not in MODES:
-            raise ValueError(f"mode must be one of {', '.join(MODES)}, got {self.mode!r}")
-        for ep in (*self.listen, *self.connect):
-            check_endpoint(ep)
-        if self.mode == "client" and not self.connect:
-            raise ValueError("a client needs at least one connect endpoint")
-        _bounded(self.connect_timeout_s, "connect_timeout_s")
-        if self.config_file is not None and not Path(self.config_file).is_file():
-            raise ValueError(f"Zenoh config file {self.config_file} does not exist")
-
-    @classmethod
-    def coordinator(cls, listen: Iterable[str] = (DEFAULT_ENDPOINT,), **kw: Any) -> ZenohSettings:
-        """A coordinator: a peer listening on ``listen``."""
-        return cls(mode="peer", listen=tuple(listen), **kw)
-
-    @classmethod
-    def agent(cls, connect: Iterable[str] = (DEFAULT_ENDPOINT,), **kw: Any) -> ZenohSettings:
-        """An agent: a client of the coordinator at ``connect`` (it routes for its clients, so
-        predictions reach the other agents through it)."""
-        return cls(mode="client", listen=(), connect=tuple(connect), **kw)
-
-    def with_(self, **changes: Any) -> ZenohSettings:
-        return replace(self, **changes)
-
-    def entries(self) -> list[tuple[str, str]]:
-        """The configuration entries these settings write, as ``(key, JSON5 value)``."""
-        out = [
-            ("mode", json.dumps(self.mode)),
-            ("listen/endpoints", json.dumps(list(self.listen) if self.mode == "peer" else [])),
-            ("connect/endpoints", json.dumps(list(self.connect))),
-            ("scouting/multicast/enabled", json.dumps(self.multicast_scouting)),
-            ("scouting/gossip/enabled", json.dumps(self.gossip_scouting)),
-        ]
-        if self.mode == "client":
-            out.append(("connect/timeout_ms", json.dumps(round(self.connect_timeout_s * 1000))))
-        if not self.shared_memory:
-            out.append(("transport/shared_memory/enabled", "false"))
-        if self.admin_space:
-            out.append(("adminspace/enabled", "true"))
-            out.append(("adminspace/permissions", '{"read": true, "write": false}'))
-        return out + list(self.options)
-
-    def config(self) -> zenoh.Config:
-        """The :class:`zenoh.Config` (:class:`TransportError` for a bad entry or file)."""
-        z = import_zenoh()
-        try:
-            cfg = z.Config.from_file(self.config_file) if self.config_file else z.Config()
-        except Exception as exc:
-            raise TransportError(f"Zenoh config file {self.config_file}: {exc}") from None
-        for k, v in self.entries():
-            try:
-                cfg.insert_json5(k, v)
-            except Exception as exc:
-                raise TransportError(f"Zenoh configuration {k} = {v}: {exc}") from None
-        return cast("zenoh.Config", cfg)
-
-
-def open_session(settings: ZenohSettings) -> zenoh.Session:
-    """A Zenoh session for ``settings``; :class:`TransportError` (with the endpoints) when it
-    cannot be opened, e.g. a port already taken or no coordinator to connect to."""
-    z = import_zenoh()
-    cfg = settings.config()
-    try:
-        return cast("zenoh.Session", z.open(cfg))
-    except Exception as exc:
-        where = ", ".join(
-            [f"listen {ep}" for ep in settings.listen if settings.mode == "peer"]
-            + [f"connect {ep}" for ep in settings.connect]
-        )
-        raise TransportError(
-            f"cannot open a Zenoh session ({settings.mode}; {where or 'no endpoints'}): "
-            f"{_first_line(exc)}"
-        ) from None
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip().splitlines()
-    first = text[0] if text else type(exc).__name__
-    return re.sub(r"\s+at /\S+\.rs:\d+\.?$", "", first)  # Zenoh appends its source location
-
-
-def locators(session: zenoh.Session, timeout_s: float = 2.0) -> list[str]:
-    """The endpoints ``session`` accepts connections on, from its admin space (open it with
-    ``admin_space=True``). :class:`TransportError` when the admin space does not answer."""
-    zid = str(session.zid())
-    for reply in session.get(f"@/{zid}/*", timeout=_bounded(timeout_s)):
-        ok = reply.ok
-        if ok is None or str(ok.key_expr).rsplit("/", 1)[-1] not in ("peer", "client", "router"):
-            continue
-        try:
-            info = json.loads(ok.payload.to_bytes())
-        except ValueError:
-            continue
-        return [str(x) for x in info.get("locators", [])]
-    raise TransportError(
-        "the session's admin space did not answer: open it with ZenohSettings(admin_space=True)"
-    )
-
-
-# ------------------------------------------------------------------------------------ plumbing
-_KIND_OF: Final[dict[type, str]] = {
-    Announcement: "announcement",
-    Bid: "bid",
-    Assignment: "assignment",
-    AgentStatus: "status",
-    Progress: "progress",
-    ProgressAck: "ack",
-    Prediction: "prediction",
-    MissionEnd: "end",
-}
-
-
-@dataclass
-class LinkStats:
-    """What a link sent and received, and what it dropped and why (thread-safe counters)."""
-
-    sent: int = 0
-    sent_bytes: int = 0
-    received: int = 0
-    received_bytes: int = 0
-    oversized: int = 0
-    """Payloads over ``BTMISSION_MAX_MESSAGE_BYTES`` (not parsed)."""
-    malformed: int = 0
-    """Payloads that are not a valid message (:class:`~btmission.links.wire.WireError`)."""
-    mismatched: int = 0
-    """Valid messages of another kind than their key's channel, or naming another agent."""
-    cut: int = 0
-    """Messages dropped both ways while the link was cut (:meth:`ZenohAgentLink.set_link`)."""
-    unresolved: int = 0
-    """Assignments naming an announcement this end has not seen (the next one is awaited)."""
-    overflow: int = 0
-    """Messages dropped because the receiving queue was full (nobody drains it)."""
-    errors: int = 0
-    """Anything else that went wrong in a callback (counted; the callback never raises)."""
-    last_problem: str = ""
-    """The text of the last drop (which key, which check)."""
-    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
-
-    @property
-    def dropped(self) -> int:
-        return (
-            self.oversized
-            + self.malformed
-            + self.mismatched
-            + self.unresolved
-            + self.cut
-            + self.overflow
-            + self.errors
-        )
-
-    def count(self, name: str, problem: str = "") -> None:
-        with self._lock:
-            setattr(self, name, getattr(self, name) + 1)
-            if problem:
-                self.last_problem = problem
-
-    def add(self, name: str, n: int) -> None:
-        with self._lock:
-            setattr(self, name, getattr(self, name) + n)
-
-    def snapshot(self) -> dict[str, int | str]:
-        with self._lock:
-            return {
-                k: getattr(self, k)
-                for k in (
-                    "sent",
-                    "sent_bytes",
-                    "received",
-                    "received_bytes",
-                    "oversized",
-                    "malformed",
-                    "mismatched",
-                    "unresolved",
-                    "cut",
-                    "overflow",
-                    "errors",
-                    "last_problem",
-                )
-            }
-
-
-class DecodeCache:
-    """Decodes payloads, reusing the last announcement seen: the coordinator repeats one
-    announcement every round and inside every assignment, and decoding 400 tasks takes ~2 ms
-    (:func:`btmission.links.wire.decode`'s ``known``: only an exact encoding of it is reused).
-    Agents sharing a process share one, so a broadcast is decoded about once, not once per
-    agent. Messages are immutable: sharing one is what the in-memory bus does too.
-
-    It also keeps the last ``keep`` announcements seen, which an assignment that does not embed
-    its own may name (an assignment can arrive after the next announcement: Zenoh orders each
-    key, not the keys between them)."""
-
-    def __init__(self, keep: int = 8) -> None:
-        self.keep = keep
-        self.recent: tuple[Announcement, ...] = ()
-        """The last announcements seen, the latest first."""
-        self.reused = 0
-
-    @property
-    def known(self) -> Announcement | None:
-        """The last announcement seen."""
-        recent = self.recent
-        return recent[0] if recent else None
-
-    def decode(self, data: bytes) -> wire.Message:
-        recent = self.recent
-        msg = wire.decode(data, recent)
-        ann = msg if isinstance(msg, Announcement) else getattr(msg, "announcement", None)
-        if isinstance(ann, Announcement):
-            if any(a is ann for a in recent):  # reused, or named by an assignment
-                self.reused += 1
-            else:  # one tuple replaces another: safe for Zenoh's threads without a lock
-                self.recent = (ann, *recent)[: self.keep]
-        return msg
-
-
-SHARED_DECODER = DecodeCache()
-"""The process-wide :class:`DecodeCache` agent links use unless given their own."""
-
-
-def _check(
-    data: bytes, key: str, stats: LinkStats, decode: Callable[[bytes], wire.Message]
-) -> tuple[keys.Parsed, wire.Message] | None:
-    """The parsed key and message of a sample, or None (counted in ``stats``) if it must be
-    dropped. Never raises."""
-    try:
-        size = len(data)
-        if size > MAX_MESSAGE_BYTES.limit:
-            stats.count("oversized", f"{key}: {MAX_MESSAGE_BYTES.exceeded('the payload', size)}")
-            return None
-        parsed = keys.parse(key)
-        try:
-            msg = decode(data)
-        except wire.UnknownAnnouncement as exc:
-            stats.count("unresolved", f"{key}: {exc}")
-            return None
-        except wire.WireError as exc:
-            stats.count("malformed", f"{key}: {exc}")
-            return None
-        kind = _KIND_OF.get(type(msg))
-        if kind != parsed.kind:
-            stats.count("mismatched", f"{key}: a {kind} message on the {parsed.channel} channel")
-            return None
-        agent = getattr(msg, "agent", None)
-        if parsed.agent is not None and agent != parsed.agent:
-            stats.count("mismatched", f"{key}: a {kind} of agent {agent!r}")
-            return None
-        stats.count("received")
-        stats.add("received_bytes", size)
-        return parsed, msg
-    except keys.KeyExprError as exc:
-        stats.count("malformed", str(exc))
-    except Exception as exc:  # a callback must not raise into Zenoh
-        stats.count("errors", f"{key}: {type(exc).__name__}: {exc}")
-    return None
-
-
-def _payload(sample: Any) -> bytes:
-    return bytes(sample.payload.to_bytes())
-
-
-class Mailbox:
-    """Messages waiting for their handler, filled by Zenoh's threads and emptied by
-    :meth:`dispatch` in the caller's (thread-safe, bounded: past ``limit`` the oldest is
-    dropped and counted in ``overflow``)."""
-
-    def __init__(self, limit: int = 10_000) -> None:
-        self.limit = limit
-        self._items: deque[tuple[Callable[[Any], None], Any]] = deque()
-        self._cond = threading.Condition()
-        self.overflow = 0
-
-    def put(self, handler: Callable[[Any], None], msg: Any) -> None:
-        with self._cond:
-            if len(self._items) >= self.limit:
-                self._items.popleft()
-                self.overflow += 1
-            self._items.append((handler, msg))
-            self._cond.notify_all()
-
-    def __len__(self) -> int:
-        with self._cond:
-            return len(self._items)
-
-    def wake(self) -> None:
-        """Wake a thread waiting in :meth:`wait` or :meth:`dispatch` (something else changed)."""
-        with self._cond:
-            self._cond.notify_all()
-
-    def wait(self, timeout_s: float) -> bool:
-        """Wait up to ``timeout_s`` for a message; whether one is waiting."""
-        with self._cond:
-            return self._cond.wait_for(lambda: bool(self._items), _bounded(timeout_s))
-
-    def dispatch(self, timeout_s: float = 0.0) -> int:
-        """Hand every waiting message to its handler, here; if none is waiting, wait up to
-        ``timeout_s`` for the first. Returns how many were handled. A handler's exception
-        propagates (it is the caller's code); the messages after it stay queued."""
-        timeout_s = _bounded(timeout_s)
-        with self._cond:
-            if not self._items and timeout_s > 0:
-                self._cond.wait_for(lambda: bool(self._items), timeout_s)
-            n = len(self._items)
-        done = 0
-        for _ in range(n):
-            with self._cond:
-                if not self._items:
-                    break
-                handler, msg = self._items.popleft()
-            handler(msg)
-            done += 1
-        return done
-
-
-_BLOCK, _DROP = "block", "drop"
-"""Congestion control of a publisher: wait for room in a full queue (an agent's bids, progress
-and statuses), or drop the message (the coordinator's publications and the predictions: each is
-repeated or replaced; module docstring)."""
-
-
-class _Session:
-    """A session and whether the link owns (and so closes) it."""
-
-    def __init__(self, session: zenoh.Session | None, settings: ZenohSettings | None) -> None:
-        if (session is None) == (settings is None):
-            raise ValueError("give either an open session or the settings to open one")
-        self.owned = session is None
-        self.session: zenoh.Session = session if session is not None else open_session(settings)  # type: ignore[arg-type]
-        self.z = import_zenoh()
-
-    def publisher(self, key: str, congestion: str) -> Any:
-        cc = (
-            self.z.CongestionControl.BLOCK
-            if congestion == _BLOCK
-            else self.z.CongestionControl.DROP
-        )
-        # not ``express``: Zenoh may then batch a burst (50 statuses from one session) instead
-        # of queueing one batch per message, which overflowed the queue in the benchmark
-        return self.session.declare_publisher(key, congestion_control=cc)
-
-    def close(self, declared: Iterable[Any]) -> None:
-        for obj in declared:
-            try:
-                obj.undeclare()
-            except Exception:  # already gone with a closed session
-                pass
-        if self.owned and not self.session.is_closed():
-            self.session.close()
 
 
 # ------------------------------------------------------------------------------------ coordinator
@@ -996,23 +568,8 @@ def close_all(links: Iterable[ZenohAgentLink | ZenohCoordinatorLink]) -> None:
 
 
 __all__ = [
-    "DEFAULT_ENDPOINT",
-    "NEEDS_NET",
-    "DecodeCache",
-    "LinkStats",
-    "Mailbox",
-    "TransportError",
     "ZenohAgentLink",
     "ZenohCoordinatorLink",
-    "ZenohMissing",
-    "ZenohSettings",
     "agent_links",
-    "check_endpoint",
     "close_all",
-    "import_zenoh",
-    "is_loopback",
-    "locators",
-    "loopback",
-    "open_session",
-    "zenoh_available",
 ]

@@ -7,7 +7,7 @@ registered in the ``btmission.providers`` entry-point group like capability libr
 ``btmission.libraries`` (docs/providers.md)::
 
     [project.entry-points."btmission.providers"]
-    sim = "btmission.backends.sim:sim_provider"
+    sim = "btmission.backends.sim_provider:sim_provider"
 
 The entry point's object is a :class:`ProviderPlugin` — or just its :data:`ProviderFactory`:
 called with the mission, its map and the run's seed, it returns the :class:`VehicleProvider` for
@@ -250,7 +250,7 @@ def missing_phases(provider: object) -> list[str]:
 
 
 BUILT_IN = {
-    "sim": "btmission.backends.sim:sim_provider",
+    "sim": "btmission.backends.sim_provider:sim_provider",
     "fake": "btmission.backends.fake:fake_provider",
     "mavlink": "btmission.backends.mavlink_url:MAVLINK",
 }
