@@ -60,7 +60,7 @@ import numpy as np
 from py_trees.common import Status
 
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
-from btmission.runtime.events import RelocalizedEvent
+from btmission.runtime.eventkinds import RelocalizedEvent
 from btmission.runtime.leaves import AgentContext, StatefulAction
 from btmission_library import aerial
 

@@ -22,7 +22,11 @@ from py_trees.common import Status
 
 from btmission.plugins import Implementations
 from btmission.runtime import actions as A
-from btmission.runtime.events import JunctionEvent, JunctionSwitchEvent, ObjectsEvent
+from btmission.runtime.eventkinds import (
+    JunctionEvent,
+    JunctionSwitchEvent,
+    ObjectsEvent,
+)
 from btmission.runtime.leaves import AgentContext, StatefulAction
 
 SPEC = files(__package__).joinpath("compra.yaml")

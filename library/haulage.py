@@ -44,7 +44,11 @@ from btmission.dispatch.missions import Mission
 from btmission.dispatch.service import FleetDispatcher
 from btmission.dispatch.topomap import TopoMap
 from btmission.plugins import Implementations
-from btmission.runtime.events import DispatchEvent, TypedEvent, register_event
+from btmission.runtime.eventkinds import DispatchEvent
+from btmission.runtime.events import (
+    TypedEvent,
+    register_event,
+)
 from btmission.runtime.leaves import AgentContext, RunContext, StatefulAction, resolve
 from btmission.spec.mission import Mission as MissionFile
 

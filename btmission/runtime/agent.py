@@ -60,19 +60,21 @@ from btmission.links.bus import (
 )
 from btmission.plugins import Implementations
 from btmission.recursion import main_thread_limit, recursion_for_depth, recursion_limit
-from btmission.runtime.events import (
+from btmission.runtime.eventkinds import (
     AgentTaskEvent,
     CommittedEvent,
-    EmitEvent,
-    GenericEvent,
     LeafErrorEvent,
     ProgressEvent,
     RouteEvent,
     StageEvent,
     TreeEvent,
-    TypedEvent,
     VehicleLinkEvent,
     WarningEvent,
+)
+from btmission.runtime.events import (
+    EmitEvent,
+    GenericEvent,
+    TypedEvent,
 )
 from btmission.runtime.leaves import (
     BUILTIN_ACTIONS,

@@ -25,13 +25,15 @@ from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
 from btmission.links.bus import AgentLink, neighbour_positions
 from btmission.runtime.agent import Agent
 from btmission.runtime.distribution import ClockFollower, NoVehicles, remote_bid_window
-from btmission.runtime.events import (
-    LOG_FORMAT,
-    LOG_VERSION,
+from btmission.runtime.eventkinds import (
     BuiltEvent,
     ClockEvent,
     HeaderEvent,
     WarningEvent,
+)
+from btmission.runtime.events import (
+    LOG_FORMAT,
+    LOG_VERSION,
     world_reference,
 )
 from btmission.runtime.leaves import ErrorReporter, RunContext, describe, setup_failed

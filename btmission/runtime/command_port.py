@@ -17,6 +17,7 @@ a scripted :meth:`~btmission.runtime.runner.MissionRun.at` callback — goes thr
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import Future
 from typing import TYPE_CHECKING, Any
@@ -40,7 +41,12 @@ from btmission.runtime.commands import (
     Stop,
 )
 from btmission.runtime.coordinator import TaskError
-from btmission.runtime.events import AgentLostEvent, CommandEvent, LinkEvent, SignalEvent
+from btmission.runtime.eventkinds import (
+    AgentLostEvent,
+    CommandEvent,
+    LinkEvent,
+    SignalEvent,
+)
 
 if TYPE_CHECKING:
     from btmission.runtime.runner import MissionRun
@@ -66,6 +72,8 @@ class CommandPort:
             Signal: self._signal,
         }
         """The handler of each command type, called with the command and the mission time."""
+        self._schedule: list[tuple[float, int, Callable[[MissionRun], None]]] = []
+        self._schedule_lock = threading.Lock()
 
     # ---------------------------------------------------------------- submitting
     def submit(self, command: Command) -> Future[Outcome]:
@@ -112,6 +120,37 @@ class CommandPort:
             p = command.priority
             if not (isinstance(p, (int, float)) and math.isfinite(p) and p > 0):
                 raise CommandError(f"set_priority: priority must be a number > 0, got {p!r}")
+
+    # ---------------------------------------------------------------- scheduling
+    def at(self, t: float, fn: Callable[[MissionRun], None] | Command) -> None:
+        """At mission time ``t`` (before that step's auction round), call ``fn(run)`` — or
+        submit the command ``fn``, checked now (its task may be added before then) and logged
+        as refused if it no longer applies then (a task id taken meanwhile). Any thread."""
+        call: Callable[[MissionRun], None]
+        if isinstance(fn, Command):
+            command = fn
+            self.check(command, tasks=False)
+
+            def call(run: MissionRun) -> None:
+                try:
+                    run.submit(command)
+                except (CommandError, TaskError) as exc:
+                    run.port.log(command, str(exc))
+
+        else:
+            call = fn
+        with self._schedule_lock:
+            self._schedule.append((t, len(self._schedule), call))
+            self._schedule.sort(key=lambda x: (x[0], x[1]))
+
+    def run_due(self, now: float) -> None:
+        """Call what was scheduled for ``now`` or earlier, in time order (the loop's thread)."""
+        while True:
+            with self._schedule_lock:
+                if not self._schedule or self._schedule[0][0] > now + 1e-9:
+                    break
+                _, _, fn = self._schedule.pop(0)
+            fn(self.run)
 
     # ---------------------------------------------------------------- applying
     def apply_queued(self) -> None:

@@ -55,14 +55,14 @@ from btmission.links.bus import (
     ProgressKey,
     progress_key,
 )
-from btmission.runtime.events import (
-    EmitEvent,
+from btmission.runtime.eventkinds import (
     RoundEvent,
     TaskAddedEvent,
     TaskStateEvent,
     WarningEvent,
     WithdrawnEvent,
 )
+from btmission.runtime.events import EmitEvent
 from btmission.runtime.mission_auction import pool_from_mission
 from btmission.runtime.recovery import Recovered, logged_key
 from btmission.spec.mission import Mission

@@ -16,7 +16,8 @@ from typing import TYPE_CHECKING
 from btmission.allocation.tasks import TaskState
 from btmission.links.bus import MissionEnd
 from btmission.runtime.command_port import settle
-from btmission.runtime.events import EndEvent, Event
+from btmission.runtime.eventkinds import EndEvent
+from btmission.runtime.events import Event
 
 if TYPE_CHECKING:
     from btmission.runtime.distribution import Part

@@ -35,7 +35,11 @@ from btmission.fastpaths.ticks import FAILURE as _FAILURE
 from btmission.fastpaths.ticks import RUNNING as _RUNNING
 from btmission.fastpaths.ticks import SUCCESS as _SUCCESS
 from btmission.fastpaths.ticks import LeanTick
-from btmission.runtime.events import EmitEvent, LeafErrorEvent, StageEvent
+from btmission.runtime.eventkinds import (
+    LeafErrorEvent,
+    StageEvent,
+)
+from btmission.runtime.events import EmitEvent
 from btmission.synthesis.tree import Node
 
 if TYPE_CHECKING:

@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import time
 
-from btmission.runtime.events import EmitEvent, WarningEvent
+from btmission.runtime.eventkinds import WarningEvent
+from btmission.runtime.events import EmitEvent
 from btmission.vehicles.clock import Clock
 
 LATE_STEPS_WARNING = 400

@@ -38,15 +38,17 @@ from btmission.allocation.auction import AuctionState
 from btmission.allocation.loop import Withdrawal
 from btmission.allocation.tasks import PoolError, TaskInfo, TaskPool, TaskState
 from btmission.links.bus import ProgressKey
-from btmission.runtime.events import (
+from btmission.runtime.eventkinds import (
     CommandEvent,
-    Event,
-    EventError,
     RoundEvent,
     TaskAddedEvent,
     TaskStateEvent,
-    TypedEvent,
     WithdrawnEvent,
+)
+from btmission.runtime.events import (
+    Event,
+    EventError,
+    TypedEvent,
 )
 from btmission.runtime.mission_auction import pool_from_mission
 from btmission.spec.mission import Mission

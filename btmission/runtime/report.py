@@ -25,23 +25,25 @@ from typing import Any
 
 import numpy as np
 
-from btmission.runtime.events import (
+from btmission.runtime.eventkinds import (
     AgentTaskEvent,
     CollisionEvent,
     CommandEvent,
     DispatchEvent,
     EndEvent,
-    Event,
     HeaderEvent,
     LeafErrorEvent,
-    LogContents,
-    LogError,
     ObjectsEvent,
     PoseEvent,
     TaskAddedEvent,
     TaskStateEvent,
-    TypedEvent,
     WarningEvent,
+)
+from btmission.runtime.events import (
+    Event,
+    LogContents,
+    LogError,
+    TypedEvent,
     read_events,
 )
 

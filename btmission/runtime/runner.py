@@ -70,7 +70,6 @@ from btmission.runtime.command_port import CommandPort
 from btmission.runtime.commands import (
     CancelTask,
     Command,
-    CommandError,
     CommandQueue,
     KillAgent,
     Outcome,
@@ -80,7 +79,7 @@ from btmission.runtime.commands import (
     Signal,
     Stop,
 )
-from btmission.runtime.coordinator import Coordinator, TaskError
+from btmission.runtime.coordinator import Coordinator
 from btmission.runtime.distribution import Part
 from btmission.runtime.ending import (
     RunResult,
@@ -90,13 +89,15 @@ from btmission.runtime.ending import (
     result_of,
     why_finished,
 )
-from btmission.runtime.events import (
+from btmission.runtime.eventkinds import (
     CollisionEvent,
+    PoseEvent,
+    ResumedEvent,
+)
+from btmission.runtime.events import (
     EventStream,
     GenericEvent,
     Observer,
-    PoseEvent,
-    ResumedEvent,
     TypedEvent,
     event_of,
 )
@@ -218,12 +219,10 @@ class MissionRun:
         )
         self.namespace = f"/run-{uuid.uuid4().hex[:8]}"
         self.agents: dict[str, Agent] = {}
-        self._schedule: list[tuple[float, int, Callable[[MissionRun], None]]] = []
         self.commands = CommandQueue()
         """Commands waiting for the next step (:meth:`submit`)."""
         self.port = CommandPort(self)
         """Checks, queues and applies operator commands (:mod:`btmission.runtime.command_port`)."""
-        self._schedule_lock = threading.Lock()
         self.stop_asked: str | None = None
         """Why the loop must end after the current step (a plain attribute: :meth:`stop` runs
         in signal handlers, where taking a lock could deadlock)."""
@@ -374,34 +373,15 @@ class MissionRun:
 
     def at(self, t: float, fn: Callable[[MissionRun], None] | Command) -> None:
         """At mission time ``t`` (before that step's auction round), call ``fn(run)`` — or
-        submit the command ``fn``."""
-        call: Callable[[MissionRun], None]
-        if isinstance(fn, Command):
-            command = fn
-            self.port.check(command, tasks=False)  # its task may be added before then
-
-            def call(run: MissionRun) -> None:
-                try:
-                    run.submit(command)
-                except (CommandError, TaskError) as exc:  # e.g. a task id taken meanwhile
-                    run.port.log(command, str(exc))
-
-        else:
-            call = fn
-        with self._schedule_lock:  # any thread may schedule
-            self._schedule.append((t, len(self._schedule), call))
-            self._schedule.sort(key=lambda x: (x[0], x[1]))
+        submit the command ``fn`` (:meth:`CommandPort.at <btmission.runtime.command_port.
+        CommandPort.at>`; any thread)."""
+        self.port.at(t, fn)
 
     # ---------------------------------------------------------------- running
     def step(self) -> None:
         """One fixed step (module docstring)."""
         now = self.now()
-        while True:
-            with self._schedule_lock:
-                if not self._schedule or self._schedule[0][0] > now + 1e-9:
-                    break
-                _, _, fn = self._schedule.pop(0)
-            fn(self)
+        self.port.run_due(now)
         self.port.apply_queued()
         if self.runs_coordinator:
             self.coordinator_side.step(now)
@@ -419,32 +399,13 @@ class MissionRun:
                 side.finish_control()
         for side in sides:
             if side.report(now):
-                self._pose(side.id)
+                self.emit_event(PoseEvent.of(side.id, self.vehicles[side.id]))
         self.steps += 1
         for ev in self.provider.step(self.dt):
             self.collisions += 1
             self.emit_event(CollisionEvent(agent=ev.vehicle, other=ev.other, p=list(ev.position)))
         if time.perf_counter() - self._published_wall >= SNAPSHOT_PERIOD_S:
             self.publish()
-
-    def _pose(self, aid: str) -> None:
-        """A ``pose`` event: the vehicle's telemetry, and the provider's ground truth (the
-        simulator's odometer and clearance; null on real vehicles)."""
-        vehicle = self.vehicles[aid]
-        tel = vehicle.backend.telemetry()
-        self.emit_event(
-            PoseEvent(
-                agent=aid,
-                p=[float(c) for c in tel.position],
-                v=[float(c) for c in tel.velocity],
-                yaw=tel.yaw,
-                mode=tel.mode.value,
-                armed=tel.armed,
-                flying=not tel.landed,
-                odometer_m=vehicle.odometer_m() if vehicle.odometer_m else None,
-                clearance_m=vehicle.clearance_m() if vehicle.clearance_m else None,
-            )
-        )
 
     @property
     def snapshot(self) -> RunSnapshot:

@@ -43,7 +43,12 @@ from typing import TYPE_CHECKING, Any
 
 from btmission.diagnostics import Diagnostic, Severity, SpecError, errors
 from btmission.runtime.commands import Command
-from btmission.runtime.events import Event, InternalErrorEvent, JsonlEventLog, Observer
+from btmission.runtime.eventkinds import InternalErrorEvent
+from btmission.runtime.events import (
+    Event,
+    JsonlEventLog,
+    Observer,
+)
 from btmission.runtime.substitution import SubstitutionRules, Substitutions
 from btmission.vehicles.provider import VehicleUnavailable
 

@@ -27,7 +27,7 @@ import threading
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
-from btmission.runtime.events import (
+from btmission.runtime.eventkinds import (
     AgentLostEvent,
     AgentTaskEvent,
     BuiltEvent,
@@ -35,7 +35,6 @@ from btmission.runtime.events import (
     CommandEvent,
     CommittedEvent,
     EndEvent,
-    Event,
     HeaderEvent,
     LeafErrorEvent,
     LinkEvent,
@@ -50,10 +49,13 @@ from btmission.runtime.events import (
     TaskAddedEvent,
     TaskStateEvent,
     TreeEvent,
-    TypedEvent,
     VehicleLinkEvent,
     WarningEvent,
     WithdrawnEvent,
+)
+from btmission.runtime.events import (
+    Event,
+    TypedEvent,
     event_class,
 )
 

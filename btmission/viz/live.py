@@ -23,7 +23,11 @@ from typing import Any
 
 from btmission.console.api import READ_ONLY, is_loopback, new_token
 from btmission.console.service import Console
-from btmission.runtime.events import Event, Observer, PoseEvent
+from btmission.runtime.eventkinds import PoseEvent
+from btmission.runtime.events import (
+    Event,
+    Observer,
+)
 from btmission.runtime.observers import QueuedObserver
 from btmission.viz.feed import LiveFeed, draws
 from btmission.viz.server import DEFAULT_PORT, ViewerServer, ViewerSource, mission_info
