@@ -122,7 +122,7 @@ def mavsim(
     """
     from btmission.backends.mavlink_modes import Autopilot
     from btmission.backends.mavlink_signing import SigningKeyError, load_key
-    from btmission.backends.mavsim import (
+    from btmission.mavsim import (
         MavSim,
         MavSimConfig,
         shared_endpoints,
@@ -144,7 +144,7 @@ def mavsim(
     except SigningKeyError as exc:
         raise BadInput(str(exc)) from None
     if mission_path is not None:
-        from btmission.backends.mavsim import mission_vehicles
+        from btmission.mavsim import mission_vehicles
         from btmission.spec.mission import load_mission
         from btmission.world.build import world_from_spec
 

@@ -12,7 +12,7 @@ from typing import Any
 from btmission.backends.mavlink import MavlinkOptions, MavlinkProvider
 from btmission.backends.mavlink_modes import Autopilot
 from btmission.backends.mavlink_url import MavlinkAddress
-from btmission.backends.mavsim import MavSim, MavSimConfig, VehicleSpec
+from btmission.mavsim import MavSim, MavSimConfig, VehicleSpec
 from btmission.vehicles.base import VehicleKind
 from btmission.world.minegen import empty_world
 from tests.load import margin

@@ -18,7 +18,7 @@ import pytest
 from btmission.backends.mavlink import MavlinkError, MavlinkProvider
 from btmission.backends.mavlink_modes import Autopilot
 from btmission.backends.mavlink_url import MavlinkAddress
-from btmission.backends.mavsim import MavSim
+from btmission.mavsim import MavSim
 from btmission.spec.vehicleref import VehicleRef
 from btmission.vehicles.base import Backend, Mode, VehicleKind
 from tests.mavlink_helpers import SIMS, SPEED, free_port, mavsim, provider, spec
@@ -302,7 +302,7 @@ def test_two_vehicles_on_two_links_fly_independently() -> None:
 def test_the_sysid_in_the_url_picks_the_vehicle_behind_a_shared_port() -> None:
     port = free_port()
     shared = MavlinkAddress("udp", "127.0.0.1", port)
-    from btmission.backends.mavsim import VehicleSpec
+    from btmission.mavsim import VehicleSpec
 
     specs = (
         VehicleSpec("A", VehicleKind.MULTIROTOR, (5.0, 5.0, 0.0), shared, 7),

@@ -20,8 +20,8 @@ import pytest
 from click.testing import CliRunner
 
 from btmission.backends.mavlink_modes import Autopilot
-from btmission.backends.mavsim import MavSim
 from btmission.cli.main import cli
+from btmission.mavsim import MavSim
 from btmission.runtime.events import Recorder
 from btmission.runtime.runner import MissionRun
 from btmission.spec.mission import load_mission

@@ -18,8 +18,8 @@ from click.testing import CliRunner
 
 from btmission.backends._pymavlink import mavlink, mavutil
 from btmission.backends.mavlink_modes import Autopilot, mode_request, set_mode_params
-from btmission.backends.mavsim import MavSim
 from btmission.cli.main import cli
+from btmission.mavsim import MavSim
 from btmission.vehicles.base import Mode, VehicleKind
 from tests.mavlink_helpers import SPEED, mavsim, mission_on_free_ports
 

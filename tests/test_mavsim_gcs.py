@@ -33,8 +33,8 @@ from btmission.backends.mavlink_setpoints import (
 )
 from btmission.backends.mavlink_signing import enable_signing
 from btmission.backends.mavlink_url import MavlinkAddress
-from btmission.backends.mavsim import MavSim, MavSimConfig, VehicleSpec, mission_vehicles
 from btmission.cli.main import cli
+from btmission.mavsim import MavSim, MavSimConfig, VehicleSpec, mission_vehicles
 from btmission.vehicles.base import Mode, VehicleKind
 from btmission.world.minegen import empty_world
 
