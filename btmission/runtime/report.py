@@ -529,7 +529,7 @@ def _mission_dir(header: Mapping[str, Any]) -> Path:
 def world_from_header(header: Mapping[str, Any]) -> Any:
     """The mission's voxel map rebuilt from the log's header (None if it cannot be)."""
     try:
-        from btmission.spec.mission import WorldSpec
+        from btmission.spec.sections import WorldSpec
         from btmission.world.build import world_from_spec
 
         world = WorldSpec.model_validate(header["world"])
