@@ -348,3 +348,32 @@ def test_exponent_numbers_read_as_numbers_as_in_yaml_1_2() -> None:
     data = parse_yaml("a: [1e5, 2.5e-3, -1E+2, .5e1, 12, 1.5, '1e5', 1e, e5]").data
     assert data == {"a": [1e5, 2.5e-3, -100.0, 5.0, 12, 1.5, "1e5", "1e", "e5"]}
     assert type(data["a"][4]) is int
+
+
+def test_subsystem_configs_come_from_their_sections_by_name() -> None:
+    """config_from carries every field a section and its config share (no hand-copied lists);
+    the section fields no config takes are the ones read elsewhere, and no others."""
+    import dataclasses
+
+    from btmission.backends.mavlink_link import MavlinkOptions
+    from btmission.backends.sim import SimConfig
+    from btmission.spec.common import config_from
+    from btmission.spec.sections import MavlinkSpec, SimSpec
+
+    read_elsewhere = {
+        (SimSpec, SimConfig): {"artifacts"},  # placed in the world (sim_provider.mission_artifacts)
+        (MavlinkSpec, MavlinkOptions): {"map_sensors"},  # the provider factory's choice
+    }
+    for (section, config), elsewhere in read_elsewhere.items():
+        assert set(section.model_fields) - {f.name for f in dataclasses.fields(config)} == elsewhere
+    sim = SimSpec(step_s=0.1, lidar_range_m=3.0, dust_points=4, pose_noise_m=0.2)
+    made = config_from(SimConfig, sim)
+    assert (made.step_s, made.lidar_range_m, made.dust_points, made.pose_noise_m) == (
+        0.1,
+        3.0,
+        4,
+        0.2,
+    )
+    assert made.body_radius_m == SimConfig().body_radius_m  # not in the file: its default
+    options = config_from(MavlinkOptions, MavlinkSpec(setpoint_hz=30.0), signing_key=b"k" * 32)
+    assert options.setpoint_hz == 30.0 and options.signing_key == b"k" * 32

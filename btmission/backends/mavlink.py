@@ -52,6 +52,7 @@ from btmission.backends.mavlink_frames import (
 )
 from btmission.backends.mavlink_signing import load_key, signing_counters
 from btmission.backends.mavlink_url import MavlinkAddress, parse_mavlink_url
+from btmission.spec.common import config_from
 from btmission.spec.vehicleref import SIM, VehicleRef
 from btmission.types import FloatArray, Vec3
 from btmission.vehicles.base import Ack, Mode, Sensors, VehicleKind
@@ -387,17 +388,7 @@ def mavlink_provider(mission: Mission, voxel_map: VoxelMap, seed: int) -> Mavlin
     from btmission.backends.simworld import SimWorld
 
     spec = mission.spec.runtime.mavlink
-    options = MavlinkOptions(
-        connect_timeout_s=spec.connect_timeout_s,
-        ack_timeout_s=spec.ack_timeout_s,
-        setpoint_hz=spec.setpoint_hz,
-        telemetry_hz=spec.telemetry_hz,
-        heartbeat_timeout_s=spec.heartbeat_timeout_s,
-        hover_thrust=spec.hover_thrust,
-        time_scale=spec.time_scale,
-        signing_key=load_key(),
-        on_stop=spec.on_stop,
-    )
+    options = config_from(MavlinkOptions, spec, signing_key=load_key())
     world = SimWorld(voxel_map, mission_artifacts(mission))
     sensors: Callable[[MavlinkVehicle], Sensors] | None = None
     if spec.map_sensors:

@@ -17,6 +17,7 @@ import numpy as np
 
 from btmission.backends.sim import SimConfig, Simulator, SimVehicle, _BodyTable
 from btmission.backends.simworld import Artifact
+from btmission.spec.common import config_from
 from btmission.spec.vehicleref import SIM, VehicleRef
 from btmission.types import FloatArray, Vec3
 from btmission.vehicles.base import Backend, Sensors, VehicleKind
@@ -131,18 +132,7 @@ class SimFleetSensing:
 
 def sim_config(mission: Mission) -> SimConfig:
     """The simulator (and map-sensor) settings of a mission's ``runtime.sim`` section."""
-    spec = mission.spec.runtime.sim
-    return SimConfig(
-        step_s=spec.step_s,
-        lidar_range_m=spec.lidar_range_m,
-        dust_points=spec.dust_points,
-        detection_noise_px=spec.detection_noise_px,
-        max_speed_m_s=spec.max_speed_m_s,
-        velocity_noise=spec.velocity_noise,
-        velocity_noise_tau_s=spec.velocity_noise_tau_s,
-        pose_noise_m=spec.pose_noise_m,
-        heading_noise_rad=spec.heading_noise_rad,
-    )
+    return config_from(SimConfig, mission.spec.runtime.sim)
 
 
 def mission_artifacts(mission: Mission) -> list[Artifact]:
