@@ -86,7 +86,7 @@ def make_provider(run: MissionRun) -> VehicleProvider:
         raise ProviderError(
             f"the '{scheme}' vehicle provider ({type(provider).__name__}) has no "
             f"{', '.join(missing)}(): every provider has the phases {', '.join(PHASES)} "
-            "(derive it from btmission.vehicles.provider.ProviderBase for prepare and start)"
+            "(btmission.vehicles.provider.ProviderBase gives prepare, start and fleet_sensing)"
         )
     return provider
 
@@ -151,8 +151,9 @@ def build_services(run: MissionRun) -> dict[str, dict[str, Any]]:
 
 def build_agents(run: MissionRun) -> None:
     blind: list[str] = []
-    run.provider.prepare([spec.vehicle for spec in agents_here(run)])  # (links open together)
-    for spec in agents_here(run):
+    here = agents_here(run)
+    run.provider.prepare([spec.vehicle for spec in here])  # (links open together)
+    for spec in here:
         loaded = run.mission.library_of(spec.id)
         impl = loaded.implementations
         assert impl is not None  # run_problems() checked it

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import difflib
 import math
-from collections.abc import Collection, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 from btmission.diagnostics import Diagnostic, Location, Severity
@@ -201,14 +201,16 @@ def backend_problems(mission: Mission, agents: Collection[str] | None = None) ->
     ``agents``: those one process of a distributed run flies (the others' vehicles are another
     process's). An entry point is loaded only for a reference with an address
     (:mod:`btmission.vehicles.provider`)."""
-    from btmission.spec.vehicleref import EXPECTED
+    from btmission.spec.vehicleref import EXPECTED, VehicleRef
     from btmission.vehicles.provider import (
         installed_providers,
         load_provider,
         unknown_scheme_message,
     )
 
-    installed = list(installed_providers())
+    installed = installed_providers()
+    checks: dict[str, Callable[[VehicleRef], str | None] | Exception | None] = {}
+    """Each scheme's address check, its plugin loaded once (or why it could not be)."""
     out: list[Diagnostic] = []
 
     def refuse(i: int, code: str, message: str) -> None:
@@ -220,15 +222,19 @@ def backend_problems(mission: Mission, agents: Collection[str] | None = None) ->
         ref = agent.vehicle
         if ref.scheme not in installed:
             refuse(i, "unknown-backend",
-                   f"backend '{ref}': {unknown_scheme_message(ref.scheme, installed)}")  # fmt: skip
+                   f"backend '{ref}': {unknown_scheme_message(ref.scheme, list(installed))}")  # fmt: skip
             continue
         if not ref.address and ref.well_formed:
             continue  # a scheme alone (sim): nothing for its provider to read
-        try:
-            check = load_provider(ref.scheme).check_address
-        except Exception as exc:  # a plugin's module: say which, never a traceback
+        if ref.scheme not in checks:
+            try:
+                checks[ref.scheme] = load_provider(ref.scheme, installed).check_address
+            except Exception as exc:  # a plugin's module: say which, never a traceback
+                checks[ref.scheme] = exc
+        check = checks[ref.scheme]
+        if isinstance(check, Exception):
             refuse(i, "provider-failed", f"backend '{ref}': the '{ref.scheme}' provider could "
-                   f"not be loaded: {type(exc).__name__}: {exc}")  # fmt: skip
+                   f"not be loaded: {type(check).__name__}: {check}")  # fmt: skip
             continue
         problem = check(ref) if check is not None else None if ref.well_formed else EXPECTED
         if problem is not None:

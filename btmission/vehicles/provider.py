@@ -41,7 +41,7 @@ address (to check it).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from importlib import metadata
 from typing import TYPE_CHECKING, Protocol, runtime_checkable
@@ -289,9 +289,12 @@ def unknown_scheme_message(scheme: str, installed: Sequence[str]) -> str:
     )
 
 
-def load_provider(scheme: str) -> ProviderPlugin:
-    """Load ``scheme``'s provider plugin (imports the module its entry point names)."""
-    eps = installed_providers()
+def load_provider(
+    scheme: str, installed: Mapping[str, metadata.EntryPoint] | None = None
+) -> ProviderPlugin:
+    """Load ``scheme``'s provider plugin (imports the module its entry point names) from the
+    ``installed`` providers (default: :func:`installed_providers`, looked up now)."""
+    eps = installed_providers() if installed is None else installed
     if scheme not in eps:
         raise ProviderError(unknown_scheme_message(scheme, list(eps)))
     loaded = eps[scheme].load()
