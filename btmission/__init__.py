@@ -30,8 +30,8 @@ _LAZY: dict[str, str] = {
     "load_library_file": "btmission.spec.library",
     "load_library_text": "btmission.spec.library",
     "Mission": "btmission.spec.mission",
-    "load_mission": "btmission.spec.mission",
-    "load_mission_text": "btmission.spec.mission",
+    "load_mission": "btmission.missions",
+    "load_mission_text": "btmission.missions",
     "Synthesis": "btmission.synthesis.backchain",
     "Synthesizer": "btmission.synthesis.backchain",
     "synthesize": "btmission.synthesis.backchain",
@@ -48,9 +48,10 @@ __getattr__, __dir__ = lazy_attributes(__name__, globals(), _LAZY)
 
 if TYPE_CHECKING:
     from btmission.diagnostics import Diagnostic, Severity, SpecError
+    from btmission.missions import load_mission, load_mission_text
     from btmission.plugins import Implementations, LoadedLibrary, installed_libraries, load_library
     from btmission.spec.library import Atom, Library, load_library_file, load_library_text
-    from btmission.spec.mission import Mission, load_mission, load_mission_text
+    from btmission.spec.mission import Mission
     from btmission.synthesis.backchain import Synthesis, Synthesizer, synthesize
     from btmission.synthesis.checks import check_library
     from btmission.synthesis.dryrun import dry_run

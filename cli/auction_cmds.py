@@ -99,8 +99,8 @@ def auction(
     from btmission.allocation.auction import AuctionConfig, AuctionState, announce, auction_round
     from btmission.allocation.bidder import AgentState, BidError
     from btmission.allocation.tasks import TaskState
+    from btmission.missions import load_mission
     from btmission.runtime.mission_auction import bidder_for_agent, pool_from_mission
-    from btmission.spec.mission import load_mission
 
     m = load_mission(mission_file)
     cfg = AuctionConfig.from_spec(m.spec.coordination)

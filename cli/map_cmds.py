@@ -116,7 +116,7 @@ def load_map_arg(path: Path, resolution: float | None, fill: str = "free") -> tu
 
     try:
         if path.suffix.lower() in (".yaml", ".yml"):
-            from btmission.spec.mission import load_mission
+            from btmission.missions import load_mission
             from btmission.world.build import world_from_spec
 
             m = load_mission(path)
@@ -176,9 +176,7 @@ def map_group() -> None:
 @output_file_option(
     "-o", "--output", required=True, help="Map file: .npz (recommended), .ply or .pcd."
 )
-@output_file_option(
-    "--survey", help="Also write the LiDAR survey point cloud (.ply or .pcd)."
-)
+@output_file_option("--survey", help="Also write the LiDAR survey point cloud (.ply or .pcd).")
 @click.option("--ascii", "ascii_", is_flag=True, help="ASCII .ply/.pcd instead of binary.")
 def generate_cmd(
     seed: int,

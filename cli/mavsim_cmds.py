@@ -145,7 +145,7 @@ def mavsim(
         raise BadInput(str(exc)) from None
     if mission_path is not None:
         from btmission.mavsim import mission_vehicles
-        from btmission.spec.mission import load_mission
+        from btmission.missions import load_mission
         from btmission.world.build import world_from_spec
 
         mission = _with_backends(load_mission(mission_path), backends)

@@ -18,7 +18,7 @@ from btmission.cli.common import (
 )
 from btmission.cli.synth_cmds import emit_tree, format_option, output_option
 from btmission.diagnostics import Severity, SpecError, errors, promote
-from btmission.spec.mission import load_mission
+from btmission.missions import load_mission
 from btmission.synthesis.mission_tree import build_mission_tree
 
 

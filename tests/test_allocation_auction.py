@@ -25,8 +25,8 @@ from btmission.allocation.auction import (
 )
 from btmission.allocation.bidder import AgentState
 from btmission.allocation.tasks import PoolError, TaskInfo, TaskPool, TaskState
+from btmission.missions import load_mission
 from btmission.runtime.mission_auction import bidder_for_agent, pool_from_mission
-from btmission.spec.mission import load_mission
 
 ROOT = Path(__file__).resolve().parents[1]
 PICK = ROOT / "missions" / "pick_and_deliver.yaml"

@@ -22,8 +22,8 @@ from btmission.allocation.bidder import (
     k_bt,
 )
 from btmission.allocation.tasks import TaskInfo
+from btmission.missions import load_mission, load_mission_text
 from btmission.runtime.mission_auction import bidder_for_agent, task_info
-from btmission.spec.mission import load_mission, load_mission_text
 
 ROOT = Path(__file__).resolve().parents[1]
 PICK = ROOT / "missions" / "pick_and_deliver.yaml"

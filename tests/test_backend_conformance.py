@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from btmission.spec.mission import load_mission_text
+from btmission.missions import load_mission_text
 from btmission.spec.vehicleref import VehicleRef
 from btmission.vehicles.base import Backend, Mode, Sensors, VehicleKind
 from btmission.vehicles.provider import (

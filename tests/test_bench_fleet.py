@@ -19,7 +19,7 @@ from btmission.bench.fleet import (
     summarise,
 )
 from btmission.bench.synth import environment, host_speed_ms, host_workload
-from btmission.spec.mission import load_mission_text
+from btmission.missions import load_mission_text
 from btmission.world.checks import check_mission_world
 from tests.test_cli import run
 

@@ -9,7 +9,7 @@ from click.testing import CliRunner
 
 from btmission.bench.sim import scale_mission_text
 from btmission.cli.main import cli
-from btmission.spec.mission import load_mission_text
+from btmission.missions import load_mission_text
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -42,10 +42,10 @@ from btmission.console.service import (
     RateLimit,
 )
 from btmission.diagnostics import SpecError
+from btmission.missions import load_mission_text
 from btmission.runtime.commands import Command, CommandError, Outcome, priority_value
 from btmission.runtime.events import Event, read_events
 from btmission.runtime.session import RunSession
-from btmission.spec.mission import load_mission_text
 from btmission.viz.live import LiveViewer
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -972,7 +972,7 @@ def test_the_form_gets_the_fields_in_the_goals_order_and_a_ground_fleets_offset(
     """pick_and_deliver's pickup comes before its drop-off (the goal delivered(pickup,
     dropoff)), whatever order the type keeps its fields in; a ground fleet's task is picked on
     the floor (offset 0), a drone's 1 m off the face."""
-    from btmission.spec.mission import load_mission
+    from btmission.missions import load_mission
     from btmission.vehicles.base import VehicleKind
 
     mission = load_mission(ROOT / "missions" / "pick_and_deliver.yaml")

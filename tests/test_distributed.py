@@ -16,6 +16,7 @@ from typing import Any
 import pytest
 
 from btmission.links.bus import Assignment, InMemoryBus
+from btmission.missions import load_mission
 from btmission.runtime.distribution import (
     CLOCK_FOLLOW_WALL_S,
     ClockFollower,
@@ -25,7 +26,6 @@ from btmission.runtime.distribution import (
     with_backends,
 )
 from btmission.runtime.events import Event
-from btmission.spec.mission import load_mission
 from btmission.vehicles.clock import ScaledWallClock
 from tests.fleet_helpers import ME, CuttableProxy, Fleet, free_port, read_log, wait_for
 

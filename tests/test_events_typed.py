@@ -22,6 +22,7 @@ from py_trees.common import Status
 
 import btmission.runtime.events as events_module
 from btmission.cli.main import cli
+from btmission.missions import load_mission_text
 from btmission.runtime.commands import (
     AddTask,
     CancelTask,
@@ -63,7 +64,6 @@ from btmission.runtime.observers import QueuedObserver
 from btmission.runtime.report import build_report, format_report, report_from_log, report_json
 from btmission.runtime.runner import MissionRun
 from btmission.runtime.treestatus import LeanBehaviourTree, StatusChanges, TreeStatusLogger
-from btmission.spec.mission import load_mission_text
 
 ROOT = Path(__file__).resolve().parents[1]
 V1_LOG = ROOT / "docs" / "examples" / "pick_and_deliver.jsonl"

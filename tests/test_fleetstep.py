@@ -9,10 +9,10 @@ from typing import Any
 import pytest
 
 from btmission.bench.fleet import fleet_mission_text
+from btmission.missions import load_mission_text
 from btmission.runtime.commands import KillAgent
 from btmission.runtime.events import Event
 from btmission.runtime.runner import MissionRun
-from btmission.spec.mission import load_mission_text
 
 WALL = {"wall_s", "build_s", "started_unix", "solve_ms", "solve_s", "elapsed_s", "step_ms"}
 """Fields that measure the machine, not the run."""

@@ -28,6 +28,7 @@ from btmission.dispatch.missions import Mission
 from btmission.dispatch.service import FleetDispatcher, missions_from_records
 from btmission.dispatch.static import StaticInstance, plan_static
 from btmission.dispatch.topomap import Node, NodeKind, Segment, TopoMap
+from btmission.missions import load_mission, load_mission_text
 from btmission.plugins import load_library
 from btmission.runtime.coordinator import TaskError
 from btmission.runtime.events import Recorder
@@ -36,7 +37,6 @@ from btmission.runtime.navcontrol import track_unicycle
 from btmission.runtime.report import build_report, dispatch_png
 from btmission.runtime.roads import RoadCosts, RoadMapError
 from btmission.runtime.runner import MissionRun
-from btmission.spec.mission import load_mission, load_mission_text
 from tests.test_dispatch import assert_causal
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -468,6 +468,8 @@ def test_haulage_runtime_inputs_are_checked(tmp_path: Path) -> None:
 def test_haulage_without_a_topomap_is_exit_2(runner: CliRunner, tmp_path: Path) -> None:
     text = MISSION.read_text().replace("  topomap: mine", "  # no topomap")
     text = text.split("tasks:")[0] + "tasks: []\ntask_types:" + text.split("task_types:")[1]
-    r = runner.invoke(cli, ["run", str(_variant(tmp_path, text)), "--quiet", "--log", str(tmp_path)])
+    r = runner.invoke(
+        cli, ["run", str(_variant(tmp_path, text)), "--quiet", "--log", str(tmp_path)]
+    )
     assert r.exit_code == 2 and "library 'haulage' needs a topological map" in r.output
     assert "Traceback" not in r.output

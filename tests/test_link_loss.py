@@ -13,9 +13,10 @@ from btmission.allocation.auction import AuctionConfig, AuctionState, Bid, aucti
 from btmission.allocation.loop import Progress, Withdrawal, apply_progress
 from btmission.allocation.tasks import TaskInfo, TaskPool, TaskState
 from btmission.links.bus import ProgressAck
+from btmission.missions import load_mission
 from btmission.runtime.events import Event, Recorder
 from btmission.runtime.runner import MissionRun
-from btmission.spec.mission import Mission, load_mission
+from btmission.spec.mission import Mission
 from tests.test_runtime import ROBOTS, mission_text
 
 ROOT = Path(__file__).resolve().parents[1]

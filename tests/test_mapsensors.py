@@ -11,7 +11,7 @@ from btmission.backends.sim import SimConfig, Simulator
 from btmission.backends.sim_provider import mission_artifacts, sim_config
 from btmission.backends.simworld import Artifact, SimWorld
 from btmission.control.mav_model import yaw_frame_to_world
-from btmission.spec.mission import load_mission_text
+from btmission.missions import load_mission_text
 from btmission.vehicles.base import Sensors
 from btmission.world.voxel import VoxelMap
 from tests.test_sim import flying, room

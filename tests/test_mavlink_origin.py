@@ -20,7 +20,7 @@ from btmission.backends.mavlink_frames import (
 )
 from btmission.cli.main import cli
 from btmission.diagnostics import SpecError
-from btmission.spec.mission import load_mission, load_mission_text
+from btmission.missions import load_mission, load_mission_text
 from btmission.spec.schema import json_schema
 
 ROOT = Path(__file__).resolve().parents[1]

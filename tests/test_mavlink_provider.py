@@ -334,7 +334,7 @@ def test_the_sysid_in_the_url_picks_the_vehicle_behind_a_shared_port() -> None:
 # ------------------------------------------------------------------------------ from a mission
 def factory_provider(tmp_path: Path, url: str, extra_world: str = "", mavlink: str = "") -> Any:
     """The ``mavlink`` provider as ``run`` builds it, for a one-drone mission at ``url``."""
-    from btmission.spec.mission import load_mission_text
+    from btmission.missions import load_mission_text
     from btmission.vehicles.provider import provider_factory
     from btmission.world.build import world_from_spec
 

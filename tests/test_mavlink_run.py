@@ -22,9 +22,9 @@ from click.testing import CliRunner
 from btmission.backends.mavlink_modes import Autopilot
 from btmission.cli.main import cli
 from btmission.mavsim import MavSim
+from btmission.missions import load_mission
 from btmission.runtime.events import Recorder
 from btmission.runtime.runner import MissionRun
-from btmission.spec.mission import load_mission
 from btmission.vehicles.base import Mode
 from tests.mavlink_helpers import SPEED, mavsim, mission_on_free_ports
 

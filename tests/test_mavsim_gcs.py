@@ -563,7 +563,7 @@ def test_stop_is_idempotent_and_frees_the_port() -> None:
 
 # ------------------------------------------------------------------ config from a mission
 def test_a_mission_serves_each_mavlink_agent_at_its_url() -> None:
-    from btmission.spec.mission import load_mission
+    from btmission.missions import load_mission
 
     mission = load_mission(ROOT / "missions/mine_inspection_ardupilot.yaml")
     specs = mission_vehicles(mission)

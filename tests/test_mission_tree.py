@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from btmission.spec.mission import load_mission
+from btmission.missions import load_mission
 from btmission.synthesis.backchain import synthesize
 from btmission.synthesis.mission_tree import build_mission_tree
 from btmission.synthesis.tree import Kind, Role

@@ -17,8 +17,9 @@ from click.testing import CliRunner
 from btmission.backends.fake import fake_provider
 from btmission.backends.sim_provider import SimProvider, sim_provider
 from btmission.cli.main import cli
+from btmission.missions import load_mission_text
 from btmission.runtime.runner import MissionRun
-from btmission.spec.mission import Mission, load_mission_text
+from btmission.spec.mission import Mission
 from btmission.spec.vehicleref import SIM, VehicleRef
 from btmission.types import Vec3
 from btmission.vehicles import provider as registry

@@ -13,6 +13,7 @@ import pytest
 from btmission.allocation.loop import Progress
 from btmission.allocation.tasks import TaskPool, TaskState
 from btmission.links.bus import InMemoryBus, ProgressAck
+from btmission.missions import load_mission
 from btmission.runtime.commands import (
     AddTask,
     CancelTask,
@@ -27,7 +28,6 @@ from btmission.runtime.events import Event, read_events
 from btmission.runtime.recovery import Recovered, logged_key, recover
 from btmission.runtime.runner import MissionRun
 from btmission.runtime.session import RunSession
-from btmission.spec.mission import load_mission
 
 ROOT = Path(__file__).resolve().parents[1]
 PICK = ROOT / "missions" / "pick_and_deliver.yaml"

@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 
 from btmission.diagnostics import SpecError
+from btmission.missions import load_mission, load_mission_text
 from btmission.runtime.coordinator import TaskError
 from btmission.runtime.events import Event, JsonlEventLog, Recorder, read_events
 from btmission.runtime.report import build_report
 from btmission.runtime.runner import MissionRun
-from btmission.spec.mission import Mission, load_mission, load_mission_text
+from btmission.spec.mission import Mission
 from btmission.world.voxel import OCCUPIED, VoxelMap
 
 ROOT = Path(__file__).resolve().parents[1]

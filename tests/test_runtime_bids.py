@@ -13,9 +13,9 @@ from btmission.allocation.auction import Bid
 from btmission.allocation.bidder import AgentState, Bidder, Point
 from btmission.allocation.tasks import PoolTask, TaskInfo, TaskPool, TaskState
 from btmission.bench.sim import scale_mission_text
+from btmission.missions import load_mission_text
 from btmission.runtime.paths import PathCosts
 from btmission.runtime.runner import MissionRun
-from btmission.spec.mission import load_mission_text
 from btmission.world.voxel import OCCUPIED, VoxelMap
 
 

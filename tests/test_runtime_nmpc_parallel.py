@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from btmission.missions import load_mission
 from btmission.runtime.runner import MissionRun
-from btmission.spec.mission import load_mission
 
 MINE = Path(__file__).resolve().parents[1] / "missions" / "mine_inspection.yaml"
 

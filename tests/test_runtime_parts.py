@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 
 from btmission.links.bus import InMemoryBus
+from btmission.missions import load_mission_text
 from btmission.planning.dstar import Planner
 from btmission.planning.risk import CostMap, RiskParams
 from btmission.runtime.events import Recorder
 from btmission.runtime.navcontrol import Polyline, ground_obstacle_points
 from btmission.runtime.paths import PathCosts, inflate
 from btmission.runtime.runner import MissionRun
-from btmission.spec.mission import load_mission_text
 from btmission.world.minegen import warehouse_world
 from btmission.world.voxel import OCCUPIED, MapError, VoxelMap
 

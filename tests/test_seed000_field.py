@@ -12,7 +12,7 @@ import pytest
 
 from btmission.bench import paper_seed000
 from btmission.bench.paper_seed000 import PAPER_DISTANCE_M, PAPER_DURATION_S, PAPER_TASKS
-from btmission.spec.mission import load_mission
+from btmission.missions import load_mission
 from btmission.world.checks import check_mission_world
 from btmission.world.io import load_map
 

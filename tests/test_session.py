@@ -11,6 +11,7 @@ from typing import Any
 import pytest
 
 from btmission.diagnostics import SpecError
+from btmission.missions import load_mission_text
 from btmission.runtime.commands import (
     COMMANDS,
     AddTask,
@@ -28,7 +29,6 @@ from btmission.runtime.events import Event, Recorder, read_events
 from btmission.runtime.loops import AgentRuntime
 from btmission.runtime.runner import MissionRun
 from btmission.runtime.session import RunSession
-from btmission.spec.mission import load_mission_text
 from tests.test_runtime import ROBOTS as ROBOTS_OF_TEST_RUNTIME
 
 ROBOTS = ROBOTS_OF_TEST_RUNTIME.replace(  # two ground robots, one task more, arriving at 30 s

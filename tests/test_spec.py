@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 
 from btmission.diagnostics import Severity, SpecError
+from btmission.missions import load_mission, load_mission_text
 from btmission.spec.costexpr import CostExprError, parse_cost
 from btmission.spec.library import load_library_file, load_library_text
-from btmission.spec.mission import load_mission, load_mission_text
 from btmission.spec.refs import RefSyntaxError, parse_ref
 from btmission.spec.schema import json_schema
 

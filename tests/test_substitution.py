@@ -14,6 +14,7 @@ import pytest
 from py_trees.common import Status
 
 from btmission.backends.fake import FakeVehicle
+from btmission.missions import load_mission_text
 from btmission.runtime import actions as A
 from btmission.runtime.events import Recorder, read_events
 from btmission.runtime.leaves import AgentContext, ConditionLeaf, StatefulAction
@@ -26,7 +27,7 @@ from btmission.runtime.substitution import (
     TestAction,
     TestLeaf,
 )
-from btmission.spec.mission import Mission, load_mission_text
+from btmission.spec.mission import Mission
 from btmission.synthesis.tree import Arg, Kind, Node
 
 MISSION = """

@@ -8,8 +8,8 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
+from btmission.missions import load_mission
 from btmission.planning.risk import CostMap, RiskParams
-from btmission.spec.mission import load_mission
 from btmission.viz.mesh import SurfaceMesh, coarse_rock, risk_points, surface_mesh
 from btmission.world.build import world_from_spec
 from btmission.world.voxel import FREE, OCCUPIED, UNKNOWN, MapError, VoxelMap

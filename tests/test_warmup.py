@@ -58,11 +58,11 @@ def test_a_run_loads_its_loop_kernels_while_it_builds() -> None:
     from btmission.bench.fleet import fleet_mission_text
     from btmission.control import _apf_kernels as apf
     from btmission.links import _neighbour_kernels as near
+    from btmission.missions import load_mission_text
     from btmission.planning import _kernels as plan
     from btmission.runtime import _fleet_kernels as fleet
     from btmission.runtime import _route_kernels as route
     from btmission.runtime.runner import MissionRun
-    from btmission.spec.mission import load_mission_text
     from btmission.world import _surface_kernels as surf
 
     warmup.prepare_run()

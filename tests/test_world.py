@@ -13,7 +13,7 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from scipy import ndimage
 
-from btmission.spec.mission import load_mission, load_mission_text
+from btmission.missions import load_mission, load_mission_text
 from btmission.world.checks import check_mission_map, check_mission_world
 from btmission.world.io import load_map, read_cloud, save_map, voxelize, write_cloud
 from btmission.world.minegen import generate_mine, survey_point_cloud

@@ -351,7 +351,7 @@ def load_bench_mission(path: str | Path | None, agents: int = 30, tasks: int = 6
         from btmission.bench.viewer import bench_mission
 
         return bench_mission(agents, tasks)
-    from btmission.spec.mission import load_mission
+    from btmission.missions import load_mission
 
     return load_mission(path)
 

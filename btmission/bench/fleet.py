@@ -158,8 +158,8 @@ def run_fleet(
 ) -> FleetPoint:
     """Build and fly a fleet of ``drones``: warm-up and window timed apart (module docstring),
     the host speed reference timed just before the build; ``repeat`` numbers the run."""
+    from btmission.missions import load_mission_text
     from btmission.runtime.runner import MissionRun
-    from btmission.spec.mission import load_mission_text
 
     m = load_mission_text(fleet_mission_text(drones, controller=controller), "fleet.yaml")
     host_ms = host_speed_ms()

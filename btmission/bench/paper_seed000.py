@@ -67,7 +67,7 @@ def run(quick: bool, echo: Callable[[str], None]) -> SectionResult:
 
 def section(report: dict[str, Any], lines: list[dict[str, Any]]) -> SectionResult:
     """The section from one flight's report and event log."""
-    from btmission.spec.mission import load_mission
+    from btmission.missions import load_mission
 
     summary = report["summary"]
     period = 1.0 / load_mission(MISSION).spec.coordination.auction_rate_hz

@@ -109,9 +109,9 @@ def warehouse_run(
     """Run ``missions/warehouse.yaml`` for ``seed`` (until ``until`` s of mission time, or its
     end) and measure it (:class:`WarehouseRun`); the robots' distance is checked at every
     simulator step on their true positions (the pose-estimate noise left out)."""
+    from btmission.missions import load_mission
     from btmission.runtime.events import Recorder
     from btmission.runtime.runner import MissionRun
-    from btmission.spec.mission import load_mission
 
     mission = load_mission(mission_path)
     rec = Recorder()

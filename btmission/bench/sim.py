@@ -110,8 +110,8 @@ class ScalePoint:
 
 def run_mission(path: Path, controller: str) -> MissionPoint:
     """Run ``path`` to its end with ``controller``; build and run timed apart."""
+    from btmission.missions import load_mission
     from btmission.runtime.runner import MissionRun
-    from btmission.spec.mission import load_mission
 
     m = load_mission(path)
     t0 = time.perf_counter()
@@ -173,8 +173,8 @@ def run_scale(
     seed: int = 0,
 ) -> ScalePoint:
     """Run the scaling mission for ``duration_s`` simulated seconds."""
+    from btmission.missions import load_mission_text
     from btmission.runtime.runner import MissionRun
-    from btmission.spec.mission import load_mission_text
 
     m = load_mission_text(scale_mission_text(agents, tasks, participation, seed), "scale.yaml")
     t0 = time.perf_counter()

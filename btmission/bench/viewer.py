@@ -425,7 +425,7 @@ def cpu_by_role(
 def bench_mission(agents: int, tasks: int, participation: float = 0.3, seed: int = 0) -> Any:
     """The scaling floor of ``btmission bench sim`` with ``agents`` robots and ``tasks`` tasks."""
     from btmission.bench.sim import scale_mission_text
-    from btmission.spec.mission import load_mission_text
+    from btmission.missions import load_mission_text
 
     return load_mission_text(
         scale_mission_text(agents, tasks, participation, seed), "viewer-bench.yaml"

@@ -11,7 +11,7 @@ web console run missions the same way::
         result = s.run(until=60.0)                # the loop; the log gets its `end` event
         print(s.report().summary.tasks_done)      # computed from the log alone
 
-1. **load and checks** — the mission file (:func:`~btmission.spec.mission.load_mission`) and its
+1. **load and checks** — the mission file (:func:`~btmission.missions.load_mission`) and its
    map (:func:`~btmission.world.checks.check_mission_world`): problems raise
    :class:`~btmission.diagnostics.SpecError` before anything is written;
 2. **log** — an append-only JSON Lines event log in ``log_dir`` (or ``log_path``), named after
@@ -200,7 +200,8 @@ class RunSession:
         """Load the mission and check its map (SpecError on a problem; nothing written)."""
         if self.mission is not None:
             return self.mission
-        from btmission.spec.mission import Mission, load_mission
+        from btmission.missions import load_mission
+        from btmission.spec.mission import Mission
         from btmission.world.checks import check_mission_world
 
         mission = self._source if isinstance(self._source, Mission) else load_mission(self._source)

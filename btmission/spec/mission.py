@@ -25,7 +25,7 @@ from pydantic import (
 )
 
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError, errors
-from btmission.plugins import LoadedLibrary, load_library
+from btmission.plugins import LoadedLibrary
 from btmission.spec.budgets import check_mission_scale
 from btmission.spec.common import (
     FiniteFloat,
@@ -44,13 +44,17 @@ from btmission.spec.sections import (
     WorldSpec,
     _Strict,
 )
-from btmission.spec.source import Source, format_path, parse_yaml, read_yaml
+from btmission.spec.source import Source, format_path
 from btmission.spec.vehicleref import BACKEND_RE, VehicleRef
 
 MISSION_FORMAT_VERSION = 1
 
-
-
+LibraryResolver = Callable[[str, Path, Location], LoadedLibrary]
+"""Finds an agent's library: ``resolve(ref, base_dir, where)`` — the reference as the mission
+writes it, the mission file's directory, and where the reference is written (for the message).
+Raises :class:`SpecError` when it cannot be found. The file model does not load libraries
+itself (it would import their implementation code): :func:`btmission.missions.load_mission`
+passes :func:`btmission.plugins.load_library`."""
 
 
 NORTH_YAW_DEG = 90.0
@@ -467,8 +471,9 @@ def check_added_task(mission: Mission, src: Source, places: frozenset[str] | Non
     return Task(t.id, t.type, t.at, checked[0], checked[1], src.locate(()))
 
 
-def compile_mission(spec: MissionSpec, src: Source) -> Mission:
-    """Check everything that needs more than the schema. Raises :class:`SpecError` with all errors."""
+def compile_mission(spec: MissionSpec, src: Source, resolve: LibraryResolver) -> Mission:
+    """Check everything that needs more than the schema, with each agent's library found by
+    ``resolve``. Raises :class:`SpecError` with all errors."""
     from btmission.spec.agent_trees import check_agent_trees
 
     diags: list[Diagnostic] = []
@@ -494,7 +499,7 @@ def compile_mission(spec: MissionSpec, src: Source) -> Mission:
         if a.library in libraries or a.library in lib_failed:
             continue
         try:
-            loaded = load_library(a.library, base, where=src.locate(("agents", i, "library")))
+            loaded = resolve(a.library, base, src.locate(("agents", i, "library")))
         except SpecError as exc:
             lib_failed.add(a.library)
             for d in exc.diagnostics:
@@ -680,16 +685,9 @@ def _check_topomap(
     return [], frozenset(tmap.index)
 
 
-def load_mission_source(src: Source) -> Mission:
-    check_mission_scale(src)  # budgets first: a 20,000-task file is refused before it is built
-    spec = validate_model(MissionSpec, src, "mission")
-    return compile_mission(spec, src)
-
-
-def load_mission(path: str | Path) -> Mission:
-    """Read and validate a mission file. Raises :class:`SpecError` listing every problem."""
-    return load_mission_source(read_yaml(path))
-
-
-def load_mission_text(text: str, file: str = "<input>") -> Mission:
-    return load_mission_source(parse_yaml(text, file))
+def mission_spec(src: Source) -> MissionSpec:
+    """The file's schema model, after its size budgets (a 20,000-task file is refused before
+    it is built). Raises :class:`SpecError`."""
+    check_mission_scale(src)
+    spec: MissionSpec = validate_model(MissionSpec, src, "mission")
+    return spec
