@@ -15,21 +15,24 @@ from btmission.plugins import LoadedLibrary, load_library
 from btmission.spec.mission import Mission, compile_mission, mission_spec
 from btmission.spec.source import Source, parse_yaml, read_yaml
 
+LoadedMission = Mission[LoadedLibrary]
+"""A mission loaded to run: each agent's library with its implementations."""
+
 
 def _resolve(ref: str, base: Path, where: Location) -> LoadedLibrary:
     return load_library(ref, base, where=where)
 
 
-def load_mission_source(src: Source) -> Mission:
+def load_mission_source(src: Source) -> LoadedMission:
     """A parsed mission file, checked, with its libraries. Raises :class:`SpecError`."""
     return compile_mission(mission_spec(src), src, _resolve)
 
 
-def load_mission(path: str | Path) -> Mission:
+def load_mission(path: str | Path) -> LoadedMission:
     """Read and validate a mission file. Raises :class:`SpecError` listing every problem."""
     return load_mission_source(read_yaml(path))
 
 
-def load_mission_text(text: str, file: str = "<input>") -> Mission:
+def load_mission_text(text: str, file: str = "<input>") -> LoadedMission:
     """Validate a mission given as YAML text (``file`` names it in messages)."""
     return load_mission_source(parse_yaml(text, file))

@@ -53,15 +53,15 @@ from btmission.vehicles.provider import (
 )
 
 if TYPE_CHECKING:
+    from btmission.missions import LoadedMission
     from btmission.runtime.roads import RoadCosts
     from btmission.runtime.runner import MissionRun
-    from btmission.spec.mission import Mission
 
 NEIGHBOUR_RANGE_M = 6.0
 """Agents farther than this are left out of each other's avoidance (APF, NMPC constraints)."""
 
 
-def run_settings(mission: Mission) -> dict[str, Any]:
+def run_settings(mission: LoadedMission) -> dict[str, Any]:
     """The run's settings: every library's defaults, then the mission's ``runtime.settings``."""
     settings: dict[str, Any] = {}
     for loaded in mission.libraries.values():

@@ -26,7 +26,7 @@ from btmission.spec.common import number_problem, shown
 from btmission.spec.source import format_path
 
 if TYPE_CHECKING:
-    from btmission.spec.mission import Mission
+    from btmission.missions import LoadedMission
 
 SETTING_RANGES: dict[str, tuple[float, bool]] = {
     # setting: (lower bound, bound excluded)
@@ -49,7 +49,7 @@ UNIT_SUFFIXES = ("_s", "_m", "_m_s", "_hz", "_px")
 """A setting named with one of these is a physical quantity: it must be ≥ 0 unless listed above."""
 
 
-def known_settings(mission: Mission) -> dict[str, Any]:
+def known_settings(mission: LoadedMission) -> dict[str, Any]:
     """Every setting a run of ``mission`` reads → its default."""
     from btmission.runtime.navigation import SETTINGS_DOC, NavConfig
     from btmission.runtime.treestatus import TREE_EVENT_S
@@ -115,7 +115,7 @@ def settings_problems(
     return out
 
 
-def implementation_problems(mission: Mission, *, abstract_ok: bool = False) -> list[Diagnostic]:
+def implementation_problems(mission: LoadedMission, *, abstract_ok: bool = False) -> list[Diagnostic]:
     """Libraries that cannot run: no implementation module, missing or unusable leaves.
 
     ``abstract_ok``: a library without ``module:`` (abstract: it synthesises and exports, by
@@ -167,7 +167,7 @@ def implementation_problems(mission: Mission, *, abstract_ok: bool = False) -> l
     return out
 
 
-def library_problems(mission: Mission) -> list[Diagnostic]:
+def library_problems(mission: LoadedMission) -> list[Diagnostic]:
     """What the libraries' own checks find: an implementation module may define
     ``check_mission(mission) -> list[Diagnostic]`` for what its run-wide services or setup hooks
     would refuse (the haulage fleet's topological map and truck starts, a place database that
@@ -193,7 +193,7 @@ def library_problems(mission: Mission) -> list[Diagnostic]:
     return out
 
 
-def backend_problems(mission: Mission, agents: Collection[str] | None = None) -> list[Diagnostic]:
+def backend_problems(mission: LoadedMission, agents: Collection[str] | None = None) -> list[Diagnostic]:
     """Agents whose ``backend:`` no installed vehicle provider serves (its URL scheme is not in
     the ``btmission.providers`` entry-point group), and fleets that mix providers: a run has one
     clock, and simulated time cannot be mixed with the wall clock; and references whose address
@@ -254,7 +254,7 @@ def backend_problems(mission: Mission, agents: Collection[str] | None = None) ->
 
 
 def run_problems(
-    mission: Mission, *, abstract_ok: bool = False, agents: Collection[str] | None = None
+    mission: LoadedMission, *, abstract_ok: bool = False, agents: Collection[str] | None = None
 ) -> list[Diagnostic]:
     """Everything that stops a loaded mission from running (module docstring); ``abstract_ok``
     as in :func:`implementation_problems` (``validate`` passes True); ``agents`` as in

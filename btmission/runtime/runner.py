@@ -52,6 +52,7 @@ from typing import Any
 from btmission.allocation.tasks import TaskInfo
 from btmission.diagnostics import SpecError
 from btmission.links.bus import InMemoryBus, MissionEnd
+from btmission.missions import LoadedMission
 from btmission.runtime.agent import Agent
 from btmission.runtime.assembly import (
     NEIGHBOUR_RANGE_M,
@@ -112,7 +113,6 @@ from btmission.runtime.paths import PathCosts
 from btmission.runtime.runcheck import run_problems
 from btmission.runtime.snapshot import RunSnapshot, SnapshotTaker
 from btmission.runtime.substitution import SubstitutionRules, Substitutions
-from btmission.spec.mission import Mission
 from btmission.vehicles.clock import Clock, ManualClock
 from btmission.vehicles.provider import (
     Vehicle,
@@ -132,7 +132,7 @@ class MissionRun:
 
     def __init__(
         self,
-        mission: Mission,
+        mission: LoadedMission,
         *,
         seed: int = 0,
         controller: str | None = None,

@@ -13,7 +13,7 @@ import difflib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Generic, Literal, Protocol, TypeVar
 
 from pydantic import (
     BaseModel,
@@ -25,7 +25,6 @@ from pydantic import (
 )
 
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError, errors
-from btmission.plugins import LoadedLibrary
 from btmission.spec.budgets import check_mission_scale
 from btmission.spec.common import (
     FiniteFloat,
@@ -36,7 +35,7 @@ from btmission.spec.common import (
     validate_model,
 )
 from btmission.spec.costexpr import CostExpr, CostExprError, parse_cost
-from btmission.spec.library import Atom, resolve_ref
+from btmission.spec.library import Atom, Library, resolve_ref
 from btmission.spec.sections import (
     FileMap,
     RuntimeSpec,
@@ -49,7 +48,23 @@ from btmission.spec.vehicleref import BACKEND_RE, VehicleRef
 
 MISSION_FORMAT_VERSION = 1
 
-LibraryResolver = Callable[[str, Path, Location], LoadedLibrary]
+
+
+class ResolvedLibrary(Protocol):
+    """What the file model needs of an agent's library: its checked model and its findings.
+    (Loading gives :class:`btmission.plugins.LoadedLibrary`, which also carries the
+    implementations; the file model never looks at them.)"""
+
+    @property
+    def library(self) -> Library: ...
+
+    @property
+    def diagnostics(self) -> list[Diagnostic]: ...
+
+
+L = TypeVar("L", bound=ResolvedLibrary)
+
+LibraryResolver = Callable[[str, Path, Location], L]
 """Finds an agent's library: ``resolve(ref, base_dir, where)`` — the reference as the mission
 writes it, the mission file's directory, and where the reference is written (for the message).
 Raises :class:`SpecError` when it cannot be found. The file model does not load libraries
@@ -279,8 +294,9 @@ class DefaultBehavior:
 
 
 @dataclass
-class Mission:
-    """A validated mission with its resolved libraries."""
+class Mission(Generic[L]):
+    """A validated mission with its resolved libraries (of the type its resolver gives:
+    :data:`btmission.missions.LoadedMission` for a mission loaded to run)."""
 
     name: str
     spec: MissionSpec
@@ -289,7 +305,7 @@ class Mission:
     tasks: list[Task]
     task_types: dict[str, TaskType]
     default_behavior: DefaultBehavior | None
-    libraries: dict[str, LoadedLibrary]
+    libraries: dict[str, L]
     """Library reference as written in the file → loaded library."""
     diagnostics: list[Diagnostic] = field(default_factory=list)
     """Warnings and infos found while loading (errors raise instead)."""
@@ -307,7 +323,7 @@ class Mission:
         mission was not loaded from one)."""
         return self.source.locate(path, key=key) if self.source else Location(self.file)
 
-    def library_of(self, agent_id: str) -> LoadedLibrary:
+    def library_of(self, agent_id: str) -> L:
         return self.libraries[self.agent(agent_id).library]
 
     @property
@@ -471,7 +487,7 @@ def check_added_task(mission: Mission, src: Source, places: frozenset[str] | Non
     return Task(t.id, t.type, t.at, checked[0], checked[1], src.locate(()))
 
 
-def compile_mission(spec: MissionSpec, src: Source, resolve: LibraryResolver) -> Mission:
+def compile_mission(spec: MissionSpec, src: Source, resolve: LibraryResolver[L]) -> Mission[L]:
     """Check everything that needs more than the schema, with each agent's library found by
     ``resolve``. Raises :class:`SpecError` with all errors."""
     from btmission.spec.agent_trees import check_agent_trees
@@ -482,7 +498,7 @@ def compile_mission(spec: MissionSpec, src: Source, resolve: LibraryResolver) ->
     # agents: unique ids, libraries resolvable and sound
     agents: list[Agent] = []
     seen: dict[str, int] = {}
-    libraries: dict[str, LoadedLibrary] = {}
+    libraries: dict[str, L] = {}
     lib_failed: set[str] = set()
     for i, a in enumerate(spec.agents):
         if a.id in seen:
