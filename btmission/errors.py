@@ -4,7 +4,7 @@ Every exception class btmission defines derives from :class:`BtmissionError`, di
 another of btmission's exceptions (one deliberate exception: ``RunStopped``, see below), so
 ``except BtmissionError`` catches any error btmission raises on purpose (bad input, a failed
 check, a refused command, a vehicle that cannot be reached ...) and lets everything else, a bug
-included, through. tests/test_errors.py holds every class to it. This module is the bottom of the
+included, through. tests/unit/base/test_errors.py holds every class to it. This module is the bottom of the
 layers: it imports nothing from btmission, so every module can import it.
 """
 

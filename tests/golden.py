@@ -1,7 +1,7 @@
 """The golden runs: every shipped mission's event log and report, recorded before a refactoring.
 
 A change that must not alter what any mission does (issue #35, the middle-floor renovation) is
-checked against these: ``tests/test_golden.py`` runs each mission again, as a user would
+checked against these: ``tests/system/test_golden.py`` runs each mission again, as a user would
 (``btmission run MISSION``, in a fresh process), and compares the event log line by line and the
 report text with the ones committed under ``tests/golden/``.
 
@@ -15,7 +15,7 @@ What is left out, because it is not the mission's behaviour:
 
 The MAVLink missions (``mine_inspection_px4``, ``mine_inspection_ardupilot``) fly against
 ``btmission mavsim`` in real time: their logs depend on the wall clock and the machine's load, so
-they are not golden; ``tests/test_mavlink_run.py`` checks them (every task done once).
+they are not golden; ``tests/system/test_mavlink_run.py`` checks them (every task done once).
 
 Record them again (only when a change is *meant* to alter behaviour, and say so in the commit)::
 

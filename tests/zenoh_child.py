@@ -1,4 +1,4 @@
-"""An agent in a process of its own, for tests/test_transport.py's two-process round trip.
+"""An agent in a process of its own, for tests/unit/transport/test_transport.py's two-process round trip.
 
 ``python -m tests.zenoh_child MISSION ENDPOINT`` connects agent R1 to the coordinator at ENDPOINT
 and answers: an announcement with :func:`bid_for`, :func:`STATUS`, :func:`PROGRESS` and a

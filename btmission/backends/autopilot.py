@@ -3,7 +3,7 @@
 :mod:`btmission.backends.sim` integrates physics and :mod:`btmission.backends.fake` moves
 vehicles kinematically, but both answer commands and take setpoints the way PX4's offboard
 interface does (DESIGN.md §8), so a behaviour that works on one works on the other and, later,
-on a real autopilot (the backend conformance suite, ``tests/test_backend_conformance.py``, holds
+on a real autopilot (the backend conformance suite, ``tests/unit/vehicles/test_backend_conformance.py``, holds
 them all to it):
 
 * arming is refused in the air and with the battery below 10 %; disarming in the air is refused;

@@ -188,7 +188,7 @@ Why the numbers differ:
   tracking controller. With `--controller nmpc` the speed limit does not apply (the NMPC sends
   attitude setpoints) and the drones fly at about 1 m/s: that variant is not calibrated.
 
-`tests/test_seed000_field.py` runs the scenario and asserts that duration, distance and every
+`tests/system/test_seed000_field.py` runs the scenario and asserts that duration, distance and every
 finishing time are within ±20 % of the paper's, that every task is done once, by the agent of
 Table III, and that T7 is allocated within one auction period of 116 s.
 """

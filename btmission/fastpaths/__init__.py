@@ -9,8 +9,8 @@ builder, which light modules use, does not load py_trees; the tick shortcuts do)
 * :mod:`btmission.fastpaths.ticks` — the behaviour trees' tick (py_trees 2.x);
 * :mod:`btmission.fastpaths.records` — the frozen dataclasses a run builds by the thousand.
 
-The tests that pin each contract are in ``tests/test_fastpaths.py`` (and, for the composites,
-``tests/test_synthesis.py``'s random trees and ``tests/test_badinput_cli.py``'s dry runs). Times
+The tests that pin each contract are in ``tests/unit/fastpaths/test_fastpaths.py`` (and, for the composites,
+``tests/unit/synthesis/test_synthesis.py``'s random trees and ``tests/system/test_badinput_cli.py``'s dry runs). Times
 below: the mine mission's agent tree (50 nodes, a task running) ticked 10,000 times after 300
 run steps, Python 3.11 on this repository's shared 2-core machine (±10 % between runs).
 

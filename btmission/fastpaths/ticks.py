@@ -126,7 +126,7 @@ class QuietSelector(_Reactive):
     RUNNING; tick the children in order until one is RUNNING or SUCCESS; if that is not the
     child that ran before, stop (INVALID) every child after it; take its status (stopping on
     SUCCESS), or FAILURE when all failed — as plain calls, without the debug messages
-    (``tests/test_fastpaths.py`` and ``tests/test_synthesis.py`` tick it against py_trees' own
+    (``tests/unit/fastpaths/test_fastpaths.py`` and ``tests/unit/synthesis/test_synthesis.py`` tick it against py_trees' own
     ``Selector``)."""
 
     def tick_now(self) -> None:

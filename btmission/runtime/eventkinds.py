@@ -2,7 +2,7 @@
 
 :mod:`btmission.runtime.events` has what they build on (:class:`~btmission.runtime.events.
 TypedEvent`, the stream, the log) and its docstring the table of kinds and fields; a kind's
-class here declares exactly the fields its producers write (``tests/test_events_typed.py`` holds
+class here declares exactly the fields its producers write (``tests/unit/runtime/test_events_typed.py`` holds
 the two in step). :mod:`btmission.runtime.events` imports this module, so every kind is
 registered as soon as events are.
 """

@@ -80,7 +80,7 @@ NMPC_LEAD_S = 0.7
 """The NMPC's position target sits at most max(1 m, ``NMPC_LEAD_S``·speed) ahead, with the
 velocity reference F·speed: with the weights of :class:`~btmission.control.nmpc.NmpcConfig` the
 closed loop then cruises at the commanded speed (0.7 s: measured, see
-``tests/test_control_nmpc.py::test_cruise_lead_holds_the_commanded_speed``). A fixed 1 m target
+``tests/unit/control/test_control_nmpc.py::test_cruise_lead_holds_the_commanded_speed``). A fixed 1 m target
 (seed 002's carrot) holds it to ~1.8 m/s whatever the speed asked (the paper raises Q_p for its
 2.3 m/s run instead). Up to 1.43 m/s the 1 m floor rules and nothing changes."""
 ROUTE_EVENT_POINTS = 200

@@ -186,7 +186,7 @@ def config_from(cls: type[_C], section: BaseModel, **extra: Any) -> _C:
     """A subsystem's typed config (a dataclass) from its validated file section: every field of
     ``cls`` that the section has, by name, and ``extra`` (what the file does not hold, such as a
     signing key); the rest keep their defaults. One rule instead of a hand-copied field list:
-    a field added to both is carried over, and ``tests/test_spec.py`` lists the section fields
+    a field added to both is carried over, and ``tests/unit/spec/test_spec.py`` lists the section fields
     no config takes."""
     names = {f.name for f in dataclasses.fields(cls)} & set(type(section).model_fields)  # type: ignore[arg-type]
     return cls(**{name: getattr(section, name) for name in sorted(names)}, **extra)

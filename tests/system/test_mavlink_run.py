@@ -1,0 +1,245 @@
+"""Missions flown on MAVLink vehicles: ``btmission run`` against mavsim, end to end.
+
+A small mission (one drone, one inspection) runs in the fast selection for both autopilots, with
+its faults: a link that drops mid-task, a pre-arm check that fails, a run stopped while the drone
+flies. The seed 000 mission on three PX4 and on three ArduPilot vehicles runs in the slow one
+(``missions/mine_inspection_px4.yaml``, ``..._ardupilot.yaml``, mavsim in its own process)."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from click.testing import CliRunner
+
+from btmission.backends.mavlink_modes import Autopilot
+from btmission.cli.main import cli
+from btmission.mavsim import MavSim
+from btmission.missions import load_mission
+from btmission.runtime.events import Recorder
+from btmission.runtime.runner import MissionRun
+from btmission.vehicles.base import Mode
+from tests.mavlink_helpers import SPEED, mavsim, mission_on_free_ports
+
+ROOT = Path(__file__).resolve().parents[2]
+
+# Flown in real time (scaled) against mavsim's own process: `make test` runs these alone, after
+# the tests it spreads over the CPUs, so that no other test's load makes the drone late.
+pytestmark = pytest.mark.serial
+
+MISSION = """
+mission: mavlink_small
+version: 1
+world:
+  map: {{generate: empty, size: [30, 30, 8]}}
+  resolution: 0.5
+agents:
+  - {{id: R1, library: aerial, start: [5, 5, 0], backend: '{url}'}}
+tasks:
+  - {{id: T1, type: inspect, location: [13, 7, 2]}}
+task_types:
+  inspect: {{goal: at_goal(location), cost: path_cost(location)}}
+default_behavior: {{goal: landed_at_home, idle_timeout_s: 2}}
+runtime:
+  controller: track
+  max_duration_s: 120
+  mavlink: {{time_scale: {speed}, connect_timeout_s: 5, telemetry_hz: 20}}
+"""
+
+
+def small_mission(tmp_path: Path, sim: MavSim) -> Path:
+    path = tmp_path / "small.yaml"
+    text = MISSION.format(url=sim.endpoints[0].url, speed=SPEED)
+    path.write_text(textwrap.dedent(text).lstrip())
+    return path
+
+
+def events(log_dir: Path) -> list[dict[str, Any]]:
+    (log,) = log_dir.glob("*.jsonl")
+    return [json.loads(line) for line in log.read_text().splitlines()]
+
+
+def run_cli(*args: str) -> Any:
+    return CliRunner().invoke(cli, ["run", *args, "--no-png", "--quiet"], catch_exceptions=False)
+
+
+@pytest.mark.parametrize(
+    "autopilot",
+    [Autopilot.PX4, pytest.param(Autopilot.ARDUPILOT, marks=pytest.mark.slow)],
+    ids=lambda a: a.value,
+)
+def test_a_small_mission_flies_and_lands(tmp_path: Path, autopilot: Autopilot) -> None:
+    with mavsim(autopilot) as sim:
+        result = run_cli(str(small_mission(tmp_path, sim)), "--log", str(tmp_path / "logs"))
+        assert result.exit_code == 0, result.output
+        assert "Tasks done              1 of 1" in result.output
+        evs = events(tmp_path / "logs")
+        done = [e for e in evs if e["ev"] == "progress" and e["event"] == "done"]
+        assert [(e["agent"], e["task"]) for e in done] == [("R1", "T1")]
+        state = sim.vehicle_state("R1")
+        assert state["landed"] and not state["armed"]  # the default behaviour landed at home
+        assert abs(state["position"][0] - 5.0) < 1.0 and abs(state["position"][1] - 5.0) < 1.0
+
+
+def test_a_vehicle_link_drop_mid_task_pauses_the_agent_and_it_resumes(tmp_path: Path) -> None:
+    with mavsim(Autopilot.PX4) as sim:
+        mission = load_mission(small_mission(tmp_path, sim))
+        rec = Recorder()
+        run = MissionRun(mission, observers=[rec])
+        try:
+            flying = [False]
+
+            def drop_when_flying(r: MissionRun) -> None:
+                tel = r.vehicles["R1"].backend.telemetry()
+                if tel.height_above_ground > 1.5 and not flying[0]:
+                    flying[0] = True
+                    sim.drop_link("R1", 8.0)  # > COM_OF_LOSS_T: the vehicle falls back to HOLD
+                elif not flying[0]:
+                    r.at(r.now() + 0.5, drop_when_flying)
+
+            run.at(1.0, drop_when_flying)
+            result = run.run()
+        finally:
+            run.close()
+        assert flying[0]
+        links = [(e.get("up"), e.get("mode")) for e in rec.of("vehicle_link")]
+        assert links[0] == (False, None) and links[1][0] is True
+        assert links[1][1] == Mode.HOLD.value  # PX4's offboard-loss failsafe held it meanwhile
+        done = [e for e in rec.of("progress") if e.get("event") == "done"]
+        assert [(e.get("agent"), e.get("task")) for e in done] == [("R1", "T1")]
+        assert not [e for e in rec.of("progress") if e.get("event") == "failed"]
+        assert result.done == ["T1"]
+
+
+def test_a_refused_arming_gives_the_autopilots_reason(tmp_path: Path) -> None:
+    with mavsim(Autopilot.ARDUPILOT, refuse_arm="Compass not calibrated") as sim:
+        path = small_mission(tmp_path, sim)
+        result = run_cli(str(path), "--log", str(tmp_path / "logs"), "--until", "20")
+        assert result.exit_code == 1, result.output
+        failed = [e for e in events(tmp_path / "logs") if e["ev"] == "progress"]
+        assert failed and failed[0]["event"] == "failed"
+        assert "MAV_RESULT_FAILED (PreArm: Compass not calibrated)" in failed[0]["reason"]
+        assert not sim.vehicle_state("R1")["armed"]
+
+
+def test_a_run_stopped_in_flight_holds_then_lands_its_vehicles(tmp_path: Path) -> None:
+    with mavsim(Autopilot.PX4) as sim:
+        path = small_mission(tmp_path, sim)
+        result = CliRunner().invoke(
+            cli,
+            [
+                "run",
+                str(path),
+                "--no-png",
+                "--quiet",
+                "--log",
+                str(tmp_path / "l"),
+                "--until",
+                "7",
+            ],
+        )
+        assert result.exit_code == 1, result.output
+        assert "R1: the run stopped: HOLD accepted, then LAND accepted" in result.stderr
+        state = sim.vehicle_state("R1")
+        assert state["mode"] is Mode.LAND and state["armed"]  # landing on its own
+        deadline = time.monotonic() + 15.0 / SPEED
+        while not sim.vehicle_state("R1")["landed"] and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert sim.vehicle_state("R1")["landed"]
+
+
+def test_vehicles_that_may_be_real_need_yes(tmp_path: Path) -> None:
+    path = tmp_path / "remote.yaml"
+    path.write_text(
+        textwrap.dedent(MISSION.format(url="mavlink+udp://0.0.0.0:14550", speed=1)).lstrip()
+    )
+    result = run_cli(str(path), "--log", str(tmp_path / "logs"))
+    assert result.exit_code == 2
+    assert (
+        "this mission flies 1 MAVLink vehicle(s) that may be real: R1 "
+        "(mavlink+udp://0.0.0.0:14550); add --yes to fly them without asking"
+    ) in result.output
+    assert not (tmp_path / "logs").exists() or not list((tmp_path / "logs").glob("*.jsonl"))
+
+
+# ------------------------------------------------------------------------------ seed 000, slow
+@pytest.mark.slow
+@pytest.mark.parametrize("autopilot", ["px4", "ardupilot"])
+def test_mine_inspection_on_three_mavlink_vehicles(tmp_path: Path, autopilot: str) -> None:
+    shipped = ROOT / "missions" / f"mine_inspection_{autopilot}.yaml"
+    assert "mavlink: {time_scale: 4}" in shipped.read_text()
+    # at half the shipped speed (margin on a busy CI machine), on free ports
+    mission = mission_on_free_ports(shipped, tmp_path, time_scale=2)
+    exe = [sys.executable, "-m", "btmission"]
+    sim = subprocess.Popen(
+        [*exe, "mavsim", "--mission", str(mission)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT,
+    )  # fmt: skip
+    try:
+        assert sim.stdout is not None
+        lines = [sim.stdout.readline() for _ in range(4)]
+        assert lines[-1].startswith("ready (3 vehicle(s)"), lines
+        run = subprocess.run(
+            [*exe, "run", str(mission), "--no-png", "--quiet", "--log", str(tmp_path / "logs")],
+            capture_output=True, text=True, timeout=600, cwd=ROOT, check=False,
+        )  # fmt: skip
+        assert run.returncode == 0, run.stdout + run.stderr
+        assert "Tasks done              7 of 7" in run.stdout
+        evs = events(tmp_path / "logs")
+        done = [e for e in evs if e["ev"] == "progress" and e["event"] == "done"]
+        assert sorted(e["task"] for e in done) == [f"T{i}" for i in range(1, 8)]  # each once
+        assert not [e for e in evs if e["ev"] == "progress" and e["event"] == "failed"]
+    finally:
+        sim.send_signal(signal.SIGTERM)
+        out, _ = sim.communicate(timeout=20)
+        assert sim.returncode == 0, out
+        assert "stopped after" in out
+
+
+@pytest.mark.slow
+def test_sigterm_mid_flight_holds_then_lands_before_exiting(tmp_path: Path) -> None:
+    with mavsim(Autopilot.PX4) as sim:
+        path = small_mission(tmp_path, sim)
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "btmission", "run", str(path), "--quiet", "--no-png",
+             "--log", str(tmp_path / "logs")],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+        )  # fmt: skip
+        try:
+            deadline = time.monotonic() + 60.0
+            while time.monotonic() < deadline:  # until the drone is up
+                state = sim.vehicle_state("R1")
+                if not state["landed"] and state["position"][2] > 1.0:
+                    break
+                time.sleep(0.05)
+            proc.send_signal(signal.SIGTERM)
+            _, err = proc.communicate(timeout=60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+        assert proc.returncode == 143, err
+        assert "R1: the run stopped: HOLD accepted, then LAND accepted" in err
+        state = sim.vehicle_state("R1")  # landing, or landed and disarmed already: PX4 then
+        assert state["mode"] is Mode.LAND or (  # shows MANUAL (the process may take that long
+            state["landed"] and not state["armed"] and state["mode"] is Mode.MANUAL  # to exit)
+        ), state
+
+
+def test_a_missing_signing_key_file_is_refused_before_anything_runs(tmp_path: Path) -> None:
+    path = tmp_path / "remote.yaml"
+    path.write_text(
+        textwrap.dedent(MISSION.format(url="mavlink+udp://127.0.0.1:1", speed=1)).lstrip()
+    )
+    missing = tmp_path / "none.key"
+    result = run_cli(str(path), "--log", str(tmp_path / "logs"), "--mavlink-key-file", str(missing))
+    assert result.exit_code == 2
+    assert f"{missing}: no such file (the MAVLink signing key)" in result.output
+    assert not (tmp_path / "logs").exists()
