@@ -7,7 +7,7 @@ import json
 import os
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
@@ -32,6 +32,9 @@ from btmission.cli.view_cmds import (
     viewer_port,
 )
 from btmission.vehicles.provider import VehicleUnavailable
+
+if TYPE_CHECKING:
+    from btmission.runtime.events import Event
 
 
 def _write_pngs(rep: Any, directory: Path, stem: str) -> list[Path]:
@@ -321,15 +324,20 @@ class _StderrNotes:
     def __init__(self) -> None:
         self._seen: set[str] = set()
 
-    def on_event(self, ev: Any) -> None:
-        if ev.kind == "leaf_error":
+    def on_event(self, ev: Event) -> None:
+        from btmission.runtime.eventkinds import LeafErrorEvent, WarningEvent
+
+        if ev.kind not in (LeafErrorEvent.KIND, WarningEvent.KIND):
+            return  # (the cheap test first: this observer sees every event of the run)
+        typed = ev.typed_or_none()
+        if isinstance(typed, LeafErrorEvent):
             line = (
-                f"warning: agent {ev.get('agent')}: {ev.get('leaf')} raised {ev.get('error')}: "
-                f"{ev.get('message')} (it failed; traceback in the log)"
+                f"warning: agent {typed.agent}: {typed.leaf} raised {typed.error}: "
+                f"{typed.message} (it failed; traceback in the log)"
             )
-            key = f"{ev.get('leaf')}|{ev.get('error')}|{ev.get('message')}"
-        elif ev.kind == "warning":
-            line = f"warning: {ev.get('message')}"
+            key = f"{typed.leaf}|{typed.error}|{typed.message}"
+        elif isinstance(typed, WarningEvent):
+            line = f"warning: {typed.message}"
             key = line
         else:
             return
