@@ -46,7 +46,6 @@ BTCPP_BUILTIN_NODES = frozenset(
     }
 )  # fmt: skip
 """IDs a leaf may not have: BT.CPP's own node types and the XML format's special elements."""
-"""Attribute names BehaviorTree.CPP keeps for itself (as are names starting with '_')."""
 
 RESERVED_NAMES = frozenset({"task_assigned", "idle_timeout", "wait"})
 """Leaves the runtime provides in every mission tree (seed 000 Fig. 7); libraries cannot reuse them."""
