@@ -39,9 +39,11 @@ from contextvars import ContextVar
 from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any, Literal, TypeVar
 
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
+from btmission.settings import Setting, SettingValue, declared_settings, merge_declared
 from btmission.spec.library import Library, load_library_source
 from btmission.spec.source import parse_yaml, read_yaml
 
@@ -71,8 +73,12 @@ class Implementations:
     """A registry of action and condition implementations of one library, keyed by name.
 
     ``vehicle`` is the kind of vehicle the library drives (``multirotor`` or ``ground``: the
-    simulator builds that model for its agents); ``settings`` are the names and default values
-    of the tunables its implementations read (a mission sets them under ``runtime.settings``).
+    simulator builds that model for its agents); ``settings`` declares the tunables its
+    implementations read (a mission sets them under ``runtime.settings``): a frozen dataclass
+    whose typed fields have defaults and docs, which leaves read as one object
+    (``ctx.settings_of(cls)``), or a plain mapping of names to defaults (the types are the
+    defaults'): see :mod:`btmission.settings`. It may name a navigator setting too
+    (``speed_m_s``): its default is then the library's for the runs that use it.
     Functions registered with :meth:`on_setup` run once per agent before its first tick (to put
     initial variables such as ``home`` on its blackboard). Factories registered with
     :meth:`service` build one object per *run*, shared by every agent of the library (a fleet
@@ -84,7 +90,7 @@ class Implementations:
         library: str,
         *,
         vehicle: str = "multirotor",
-        settings: Mapping[str, float | str | bool] | None = None,
+        settings: type | Mapping[str, SettingValue] | None = None,
     ) -> None:
         if vehicle not in ("multirotor", "ground"):
             raise ValueError(
@@ -92,11 +98,18 @@ class Implementations:
             )
         self.library = library
         self.vehicle = vehicle
-        self.settings: dict[str, float | str | bool] = dict(settings or {})
+        self.declared: dict[str, Setting] = declared_settings(settings, library)
+        """Every setting the library declares (type, default, doc), by name."""
         self.actions: dict[str, Any] = {}
         self.conditions: dict[str, Any] = {}
         self.setup_hooks: list[Callable[[Any], None]] = []
         self.services: dict[str, Callable[[Any], Any]] = {}
+
+    @property
+    def settings(self) -> Mapping[str, SettingValue]:
+        """The declared settings' defaults, by name (what a run starts from; read-only: the
+        declaration is the place to change them)."""
+        return MappingProxyType({name: s.default for name, s in self.declared.items()})
 
     def on_setup(self, fn: Callable[[Any], None]) -> Callable[[Any], None]:
         """Decorator: ``fn(ctx)`` runs once per agent before its first tick."""
@@ -104,18 +117,18 @@ class Implementations:
         return fn
 
     def extend(
-        self, library: str, *, settings: Mapping[str, float | str | bool] | None = None
+        self, library: str, *, settings: type | Mapping[str, SettingValue] | None = None
     ) -> Implementations:
         """A registry for a variant library ``library`` that starts with everything of this one
-        — vehicle, settings (plus ``settings``), setup hooks, actions and conditions — and to
-        which the variant adds its own (``aerial_mine`` = ``aerial`` + ``relocalize``); run-wide
-        services are inherited too::
+        — vehicle, settings (plus ``settings``: a name declared again takes the variant's
+        default; with another type it is a TypeError), setup hooks, actions and conditions — and
+        to which the variant adds its own (``aerial_mine`` = ``aerial`` + ``relocalize``);
+        run-wide services are inherited too::
 
-            IMPLEMENTATIONS = aerial.IMPLEMENTATIONS.extend("aerial_mine")
+            IMPLEMENTATIONS = aerial.IMPLEMENTATIONS.extend("aerial_mine", settings=MineSettings)
         """
-        out = Implementations(
-            library, vehicle=self.vehicle, settings={**self.settings, **(settings or {})}
-        )
+        out = Implementations(library, vehicle=self.vehicle)
+        out.declared = merge_declared(self.declared, declared_settings(settings, library), library)
         out.actions.update(self.actions)
         out.conditions.update(self.conditions)
         out.setup_hooks.extend(self.setup_hooks)

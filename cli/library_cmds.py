@@ -17,6 +17,7 @@ from btmission.cli.common import (
 )
 from btmission.diagnostics import errors
 from btmission.plugins import library_catalog, load_library
+from btmission.spec.common import shown
 from btmission.synthesis.checks import check_library
 
 
@@ -79,7 +80,7 @@ def list_cmd(as_json: bool) -> None:
 @with_implementations_option
 @handle_spec_errors
 def show_cmd(ref: str, with_implementations: bool) -> None:
-    """Show a library's conditions, actions (pre → post) and variables.
+    """Show a library's variables, settings, conditions and actions (pre → post).
 
     A library given by path is shown without importing its implementation module (checking
     never runs plugin code); --with-implementations imports it and marks what is implemented.
@@ -104,6 +105,13 @@ def show_cmd(ref: str, with_implementations: bool) -> None:
         click.echo("variables:")
         for k, doc in lib.variables.items():
             click.echo(f"  {k:<18} {doc}")
+    if impl and impl.declared:  # what a mission may set under runtime.settings, as declared
+        click.echo("settings:")
+        width = max(18, *(len(name) for name in impl.declared))
+        for name, setting in impl.declared.items():
+            typed = f"{setting.kind.__name__} = {shown(setting.default)}"
+            summary = " ".join(setting.doc.split("\n\n")[0].split())  # its first paragraph
+            click.echo(f"  {name:<{width}} {typed:<14} {summary}".rstrip())
     click.echo("conditions:")
     for c in lib.conditions.values():
         sig = f"{c.name}({', '.join(c.params)})" if c.params else c.name

@@ -43,8 +43,9 @@ vehicle's telemetry: in the simulator that is already the true pose in W, so the
 correct; a real vehicle whose odometry starts in its own frame would need ``world_from_robot``
 applied to its telemetry, which the runtime does not do yet.
 
-Settings (``runtime.settings`` of a mission): ``reloc_database`` (path, default ``""``: build one
-from the map), ``reloc_spacing_m`` (1.0: the spacing the benchmark measured) and the navigator's.
+Settings (``runtime.settings`` of a mission, :class:`MineSettings`): ``reloc_database`` (path,
+default ``""``: build one from the map), ``reloc_spacing_m`` (1.0: the spacing the benchmark
+measured) and the navigator's.
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ from __future__ import annotations
 import hashlib
 import time
 from collections import OrderedDict
+from dataclasses import dataclass
 from importlib.resources import files
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -62,6 +64,7 @@ from py_trees.common import Status
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
 from btmission.runtime.eventkinds import RelocalizedEvent
 from btmission.runtime.leaves import AgentContext, StatefulAction
+from btmission.settings import SettingError, settings_from
 from btmission_library import aerial
 
 if TYPE_CHECKING:
@@ -73,9 +76,22 @@ if TYPE_CHECKING:
 SPEC = files(__package__).joinpath("aerial_mine.yaml")
 """The library file; the ``btmission.libraries`` entry point ``aerial_mine`` points here."""
 
-IMPLEMENTATIONS = aerial.IMPLEMENTATIONS.extend(
-    "aerial_mine", settings={"reloc_database": "", "reloc_spacing_m": 1.0}
-)
+
+@dataclass(frozen=True)
+class MineSettings:
+    """The ``aerial_mine`` library's own settings (``runtime.settings`` of a mission), besides
+    the navigator's."""
+
+    reloc_database: str = ""
+    """The relocalizer's place database, relative to the mission file; empty: built from the map.
+
+    ``btmission reloc build`` writes one."""
+    reloc_spacing_m: float = 1.0
+    """Spacing of the places of a database built from the map (m; 1.0: what the benchmark
+    measured)."""
+
+
+IMPLEMENTATIONS = aerial.IMPLEMENTATIONS.extend("aerial_mine", settings=MineSettings)
 
 IS_LOCALIZED = "is_localized"
 WORLD_FROM_ROBOT = "world_from_robot"
@@ -150,7 +166,11 @@ def check_mission(mission: MissionFile) -> list[Diagnostic]:
     """A ``reloc_database`` that is not a file, found before any run (``validate`` and ``run``
     call it through :func:`btmission.runtime.runcheck.run_problems`); its content is read when the
     run sets the agents up."""
-    database = database_path(mission.spec.runtime.settings.get("reloc_database"), mission)
+    try:
+        settings = settings_from(MineSettings, mission.spec.runtime.settings)
+    except SettingError:  # a value of the wrong type: run_problems' settings check says so
+        return []
+    database = database_path(settings.reloc_database, mission)
     if database is None or database.is_file():
         return []
     where = mission.locate(("runtime", "settings", "reloc_database"))
@@ -181,14 +201,19 @@ def _setup_relocalizer(ctx: AgentContext) -> None:
             ]
         )
 
-    raw = ctx.setting("reloc_spacing_m", 1.0)
+    spacing_wrong = "expected a positive number of metres, got {!r}"
     try:
-        spacing = float(raw)
-    except (TypeError, ValueError):
-        spacing = float("nan")
+        settings = ctx.settings_of(MineSettings)
+    except SettingError as exc:
+        wrong = exc.setting
+        if wrong is None:  # (every SettingError the settings raise names its setting)
+            raise
+        raise bad(wrong.name, spacing_wrong.format(exc.value) if wrong.name == "reloc_spacing_m"
+                  else f"expected {wrong.expected}, got {exc.value!r}") from None  # fmt: skip
+    spacing = settings.reloc_spacing_m
     if not spacing > 0:
-        raise bad("reloc_spacing_m", f"expected a positive number of metres, got {raw!r}")
-    database = database_path(ctx.setting("reloc_database", ""), mission)
+        raise bad("reloc_spacing_m", spacing_wrong.format(spacing))
+    database = database_path(settings.reloc_database, mission)
     try:
         ctx.state[RELOCALIZER] = shared_relocalizer(ctx.paths.map, database, spacing_m=spacing)
     except DatabaseError as exc:

@@ -9,12 +9,14 @@ report of the object list OL. The STOP behaviour (``stop_handled``) is ticked fi
 tick: while a ``stop`` signal is active (``MissionRun.signal(agent, "stop")``, the supervisor's
 software STOP) the vehicle lands and stays down.
 
-Settings (``runtime.settings`` of a mission): ``explore_time_s`` (T_mission^reference),
-``altitude_m`` (p_z^m), ``speed_m_s`` and the navigator's others.
+Settings (``runtime.settings`` of a mission, :class:`CompraSettings`): ``explore_time_s``
+(T_mission^reference), ``altitude_m`` (p_z^m), ``speed_m_s``, ``preflight_s`` and the
+navigator's others.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from importlib.resources import files
 from typing import Any
 
@@ -32,11 +34,24 @@ from btmission.runtime.leaves import AgentContext, StatefulAction
 SPEC = files(__package__).joinpath("compra.yaml")
 """The library file; the ``btmission.libraries`` entry point ``compra`` points here."""
 
-IMPLEMENTATIONS = Implementations(
-    "compra",
-    vehicle="multirotor",
-    settings={"explore_time_s": 60.0, "altitude_m": 1.5, "speed_m_s": 1.0, "preflight_s": 1.0},
-)
+
+@dataclass(frozen=True)
+class CompraSettings:
+    """The ``compra`` library's settings (``runtime.settings`` of a mission)."""
+
+    explore_time_s: float = 60.0
+    """T_mission^reference: how long the drone explores before it returns (s)."""
+    altitude_m: float = 1.5
+    """p_z^m, the mission altitude (m; the navigator's setting, with this default)."""
+    speed_m_s: float = 1.0
+    """Cruise speed (m/s; the navigator's setting, with this default).
+
+    DPHR's yaw-rate limit follows it."""
+    preflight_s: float = 1.0
+    """How long the pre-flight checks take (s)."""
+
+
+IMPLEMENTATIONS = Implementations("compra", vehicle="multirotor", settings=CompraSettings)
 
 
 # ------------------------------------------------------------------------------- state
@@ -46,9 +61,9 @@ def _explorer(ctx: AgentContext) -> Any:
 
     ex = ctx.state.get("explorer")
     if ex is None:
+        settings = ctx.settings_of(CompraSettings)
         cfg = CompraConfig(
-            mission_altitude_m=float(ctx.setting("altitude_m", 1.5)),
-            mission_time_s=float(ctx.setting("explore_time_s", 60.0)),
+            mission_altitude_m=settings.altitude_m, mission_time_s=settings.explore_time_s
         )
         ex = ctx.state["explorer"] = CompraExplorer(cfg)
     return ex
@@ -90,7 +105,7 @@ def _step_explorer(ctx: AgentContext, dphr: bool) -> Any:
             loc.add(det, frame.depth_m, frame.intrinsics, frame.rotation, frame.translation)
         loc.update(now)
         if dphr:
-            limit = yaw_rate_limit_for_speed(float(ctx.setting("speed_m_s", 1.0)))
+            limit = yaw_rate_limit_for_speed(ctx.settings_of(CompraSettings).speed_m_s)
             prefer = ctx.state.get("dphr_branch")
             res = deepest_point_heading(
                 frame.depth_m,
@@ -199,8 +214,8 @@ class CalibrateGate(StatefulAction):
 class PreflightChecks(A.Timed):
     """Bring the stack up and check it (``preflight_s``)."""
 
-    setting = "preflight_s"
-    default_s = 1.0
+    def duration_s(self) -> float:
+        return self.ctx.settings_of(CompraSettings).preflight_s
 
     def finish(self) -> None:
         self.ctx.blackboard.set("preflight_ok", True)

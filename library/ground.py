@@ -6,12 +6,14 @@ picked up is recorded on the blackboard (``holding``: the task's id and pick-up 
 the commit condition of ``pick_and_deliver`` tasks (k_bt = 0 once it holds, eq. 8-10); deliveries
 are recorded per task too (``delivered``).
 
-Settings (``runtime.settings`` of a mission): ``pick_time_s``, ``place_time_s`` and the
-navigator's (``speed_m_s``, ``tolerance_m``…), with defaults for a TurtleBot.
+Settings (``runtime.settings`` of a mission, :class:`GroundSettings`): ``pick_time_s``,
+``place_time_s`` and the navigator's (``speed_m_s``, ``tolerance_m``…), with defaults for a
+TurtleBot.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from importlib.resources import files
 from typing import Any
 
@@ -24,19 +26,28 @@ from btmission.runtime.leaves import AgentContext, StatefulAction
 SPEC = files(__package__).joinpath("ground.yaml")
 """The library file; the ``btmission.libraries`` entry point ``ground`` points here."""
 
-IMPLEMENTATIONS = Implementations(
-    "ground",
-    vehicle="ground",
-    settings={
-        "pick_time_s": 2.0,
-        "place_time_s": 2.0,
-        # a TurtleBot: 0.4 m/s top speed, ~0.1 m radius, goals reached within 0.2 m
-        "speed_m_s": 0.4,
-        "tolerance_m": 0.2,
-        "clearance_m": 0.25,
-        "lookahead_m": 1.0,
-    },
-)
+
+@dataclass(frozen=True)
+class GroundSettings:
+    """The ``ground`` library's settings (``runtime.settings`` of a mission): its own, and the
+    navigator's with a TurtleBot's defaults (0.4 m/s top speed, ~0.1 m radius, goals reached
+    within 0.2 m)."""
+
+    pick_time_s: float = 2.0
+    """How long picking an object up takes (s)."""
+    place_time_s: float = 2.0
+    """How long putting it down takes (s)."""
+    speed_m_s: float = 0.4
+    """Top speed (m/s; the navigator's setting)."""
+    tolerance_m: float = 0.2
+    """A goal is reached within this distance (m; the navigator's setting)."""
+    clearance_m: float = 0.25
+    """Paths keep this far from obstacles (m; the navigator's setting)."""
+    lookahead_m: float = 1.0
+    """Carrot distance ahead on the route (m; the navigator's setting)."""
+
+
+IMPLEMENTATIONS = Implementations("ground", vehicle="ground", settings=GroundSettings)
 
 
 @IMPLEMENTATIONS.on_setup
@@ -80,7 +91,8 @@ class Localize(StatefulAction):
 class Pick(A.Timed):
     """Pick the object up (``pick_time_s``)."""
 
-    setting = "pick_time_s"
+    def duration_s(self) -> float:
+        return self.ctx.settings_of(GroundSettings).pick_time_s
 
     def finish(self) -> None:
         self.ctx.blackboard.set("holding", _load(self.ctx, self.args["pickup"]))
@@ -90,7 +102,8 @@ class Pick(A.Timed):
 class Place(A.Timed):
     """Put the object down at the drop-off (``place_time_s``)."""
 
-    setting = "place_time_s"
+    def duration_s(self) -> float:
+        return self.ctx.settings_of(GroundSettings).place_time_s
 
     def finish(self) -> None:
         bb = self.ctx.blackboard

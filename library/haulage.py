@@ -17,11 +17,11 @@ The leaves are therefore thin: ``request_dispatch`` queues a request and waits f
 destination for the onward mission, ``load`` / ``offload`` take a random time at the node
 (2-5 min and 30-60 s in the paper, settings below), ``park`` asks for the nearest free pause node.
 
-Settings (``runtime.settings``): ``load_min_s``, ``load_max_s``, ``offload_min_s``,
-``offload_max_s``; ``dispatch_opt_time_s`` (mission time charged per optimisation, §5),
-``dispatch_generations`` (GA generations per optimisation: runs are reproducible) and
-``dispatch_budget_s`` (wall-clock cap per optimisation); ``speed_m_s`` is the trucks' top speed
-(above the schedule's 30 km/h so that a truck behind its schedule catches up).
+Settings (``runtime.settings``, :class:`HaulageSettings`): ``load_min_s``, ``load_max_s``,
+``offload_min_s``, ``offload_max_s``; ``dispatch_opt_time_s`` (mission time charged per
+optimisation, §5), ``dispatch_generations`` (GA generations per optimisation: runs are
+reproducible) and ``dispatch_budget_s`` (wall-clock cap per optimisation); ``speed_m_s`` is the
+trucks' top speed (above the schedule's 30 km/h so that a truck behind its schedule catches up).
 """
 
 from __future__ import annotations
@@ -55,21 +55,32 @@ from btmission.spec.mission import Mission as MissionFile
 SPEC = files(__package__).joinpath("haulage.yaml")
 """The library file; the ``btmission.libraries`` entry point ``haulage`` points here."""
 
-IMPLEMENTATIONS = Implementations(
-    "haulage",
-    vehicle="ground",
-    settings={
-        "load_min_s": 120.0,
-        "load_max_s": 300.0,
-        "offload_min_s": 30.0,
-        "offload_max_s": 60.0,
-        "dispatch_opt_time_s": 3.0,
-        "dispatch_generations": 200,
-        "dispatch_budget_s": 2.0,
-        # a haul truck: 43 km/h top speed (the schedule asks for at most 30 km/h)
-        "speed_m_s": 12.0,
-    },
-)
+
+@dataclass(frozen=True)
+class HaulageSettings:
+    """The ``haulage`` library's settings (``runtime.settings`` of a mission)."""
+
+    load_min_s: float = 120.0
+    """Shortest loading at a loading site (s; the paper's 2-5 min)."""
+    load_max_s: float = 300.0
+    """Longest loading at a loading site (s)."""
+    offload_min_s: float = 30.0
+    """Shortest offloading at an offloading site (s; the paper's 30-60 s)."""
+    offload_max_s: float = 60.0
+    """Longest offloading at an offloading site (s)."""
+    dispatch_opt_time_s: float = 3.0
+    """Mission time charged per optimisation of the fleet's plan (s, seed 004 §5)."""
+    dispatch_generations: int = 200
+    """GA generations per optimisation (a fixed count: runs are reproducible)."""
+    dispatch_budget_s: float = 2.0
+    """Wall-clock cap per optimisation (s)."""
+    speed_m_s: float = 12.0
+    """Top speed (m/s; the navigator's setting): 43 km/h, above the schedule's 30 km/h.
+
+    A truck behind its schedule catches up."""
+
+
+IMPLEMENTATIONS = Implementations("haulage", vehicle="ground", settings=HaulageSettings)
 
 START_SNAP_M = 30.0
 """A truck must start this close to a node of the map (it is placed on that node)."""
@@ -112,13 +123,13 @@ class HaulageFleet:
         starts, problems = truck_starts(mission, self.tmap)
         if problems:
             raise SpecError(problems)
+        settings = run.settings_of(HaulageSettings)
         ga = GAParams(
-            budget_s=float(run.setting("dispatch_budget_s", 2.0)),
-            max_generations=int(run.setting("dispatch_generations", 200)),
+            budget_s=settings.dispatch_budget_s, max_generations=settings.dispatch_generations
         )
         cfg = DynamicConfig(
             vehicles=len(starts),
-            opt_time_s=float(run.setting("dispatch_opt_time_s", 3.0)),
+            opt_time_s=settings.dispatch_opt_time_s,
             ga=ga,
             seed=run.seed,
         )
@@ -402,15 +413,16 @@ class OffloadEvent(TypedEvent):
 
 
 class _Process(_Haulage):
-    """Stand at the node for a random duration in [``<kind>_min_s``, ``<kind>_max_s``]."""
+    """Stand at the node for a random duration in :meth:`window_s`'s [shortest, longest]."""
 
-    kind = ""
     event_class: type[LoadEvent | OffloadEvent]
     """The event it publishes when it starts."""
 
+    def window_s(self, settings: HaulageSettings) -> tuple[float, float]:  # pragma: no cover
+        raise NotImplementedError
+
     def on_start(self) -> Status:
-        lo = float(self.ctx.setting(f"{self.kind}_min_s", 0.0))
-        hi = float(self.ctx.setting(f"{self.kind}_max_s", lo))
+        lo, hi = self.window_s(self.ctx.settings_of(HaulageSettings))
         rng = self.fleet.trucks[self.truck].rng
         self._until = self.ctx.now() + lo + float(rng.random()) * max(0.0, hi - lo)
         self.ctx.events(self.event_class(agent=self.ctx.agent_id, until=round(self._until, 3)))
@@ -428,8 +440,10 @@ class _Process(_Haulage):
 
 @IMPLEMENTATIONS.action("load")
 class Load(_Process):
-    kind = "load"
     event_class = LoadEvent
+
+    def window_s(self, settings: HaulageSettings) -> tuple[float, float]:
+        return settings.load_min_s, settings.load_max_s
 
     def finish(self, truck: Truck) -> None:
         truck.cargo = str(self.args["pickup"])
@@ -437,8 +451,10 @@ class Load(_Process):
 
 @IMPLEMENTATIONS.action("offload")
 class Offload(_Process):
-    kind = "offload"
     event_class = OffloadEvent
+
+    def window_s(self, settings: HaulageSettings) -> tuple[float, float]:
+        return settings.offload_min_s, settings.offload_max_s
 
     def finish(self, truck: Truck) -> None:
         truck.hauled[truck.task or ""] = (str(self.args["pickup"]), str(self.args["dropoff"]))

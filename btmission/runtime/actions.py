@@ -237,18 +237,26 @@ class Land(StatefulAction):
 
 
 class Timed(StatefulAction):
-    """Stand still for ``duration_s`` (read from a setting), then apply :meth:`finish`."""
+    """Stand still for :meth:`duration_s` (a setting), then apply :meth:`finish`."""
 
     setting = ""
     default_s = 2.0
 
+    def duration_s(self) -> float:
+        """How long to stand still. A subclass reads its library's typed settings
+        (``self.ctx.settings_of(MySettings).pick_time_s``); this default reads the setting
+        named by ``setting``, or ``default_s`` (the untyped path of subclasses written before
+        typed settings, :meth:`~btmission.runtime.leaves.AgentContext.setting`)."""
+        return float(self.ctx.setting(self.setting, self.default_s))
+
     def on_start(self) -> Status:
         self._t0 = self.ctx.now()
+        self._duration_s = self.duration_s()
         self.ctx.navigator.hold()
         return self.on_running()
 
     def on_running(self) -> Status:
-        if self.ctx.now() - self._t0 >= float(self.ctx.setting(self.setting, self.default_s)):
+        if self.ctx.now() - self._t0 >= self._duration_s:
             self.finish()
             return Status.SUCCESS
         return Status.RUNNING

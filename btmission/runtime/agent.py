@@ -93,11 +93,12 @@ from btmission.runtime.navigation import Navigator, route_points
 from btmission.runtime.paths import PathCosts
 from btmission.runtime.substitution import Substitutions
 from btmission.runtime.treestatus import (
-    TREE_EVENT_S,
     LeanBehaviourTree,
+    TreeEventSettings,
     TreeStatusLogger,
     blackboard_value,
 )
+from btmission.settings import settings_of
 from btmission.spec.mission import Mission
 from btmission.spec.source import format_path
 from btmission.synthesis.mission_tree import build_mission_tree
@@ -239,7 +240,7 @@ class Agent:
             self.tree,
             self._tree_event,
             clock,
-            float(settings.get("tree_event_s", TREE_EVENT_S)),
+            settings_of(settings, TreeEventSettings).tree_event_s,
             dirty=lambda: self.blackboard.version != self._blackboard_version,
         )
         navigator.on_route = self._route_event

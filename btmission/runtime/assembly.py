@@ -38,6 +38,7 @@ from btmission.runtime.events import (
 )
 from btmission.runtime.leaves import ErrorReporter, RunContext, describe, setup_failed
 from btmission.runtime.navigation import Navigator
+from btmission.settings import RunSettings
 from btmission.spec.source import format_path
 from btmission.types import FloatArray
 from btmission.vehicles.base import Backend, VehicleKind
@@ -61,14 +62,16 @@ NEIGHBOUR_RANGE_M = 6.0
 """Agents farther than this are left out of each other's avoidance (APF, NMPC constraints)."""
 
 
-def run_settings(mission: LoadedMission) -> dict[str, Any]:
-    """The run's settings: every library's defaults, then the mission's ``runtime.settings``."""
-    settings: dict[str, Any] = {}
+def run_settings(mission: LoadedMission) -> RunSettings:
+    """The run's settings: every library's defaults, then the mission's ``runtime.settings``
+    (:func:`~btmission.runtime.runcheck.run_problems` checked their types); each settings
+    dataclass is built from them once (:meth:`RunSettings.of`)."""
+    values: dict[str, Any] = {}
     for loaded in mission.libraries.values():
         if loaded.implementations is not None:
-            settings.update(loaded.implementations.settings)
-    settings.update(mission.spec.runtime.settings)
-    return settings
+            values.update(loaded.implementations.settings)
+    values.update(mission.spec.runtime.settings)
+    return RunSettings(values)
 
 
 def make_provider(run: MissionRun) -> VehicleProvider:

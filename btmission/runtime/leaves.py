@@ -25,7 +25,7 @@ import functools
 import traceback
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import py_trees
 from py_trees.common import Status
@@ -40,6 +40,7 @@ from btmission.runtime.eventkinds import (
     StageEvent,
 )
 from btmission.runtime.events import EmitEvent
+from btmission.settings import settings_of
 from btmission.synthesis.tree import Node
 
 if TYPE_CHECKING:
@@ -53,6 +54,8 @@ if TYPE_CHECKING:
     from btmission.world.voxel import VoxelMap
 
 UNSET = object()
+
+S = TypeVar("S")
 
 
 _ABSENT = object()
@@ -122,7 +125,12 @@ class RunContext:
     def now(self) -> float:
         return self.clock()
 
+    def settings_of(self, cls: type[S]) -> S:
+        """The run's instance of the settings dataclass ``cls`` (as in :class:`AgentContext`)."""
+        return settings_of(self.settings, cls)
+
     def setting(self, name: str, default: Any) -> Any:
+        """The untyped path (as in :class:`AgentContext`): prefer :meth:`settings_of`."""
         return self.settings.get(name, default)
 
 
@@ -208,7 +216,18 @@ class AgentContext:
     def telemetry(self) -> Telemetry:
         return self.backend.telemetry()
 
+    def settings_of(self, cls: type[S]) -> S:
+        """The run's instance of the settings dataclass ``cls`` (a library's declaration,
+        :mod:`btmission.settings`, or the navigator's :class:`NavConfig`): its fields from the
+        mission's ``runtime.settings``, else the libraries' defaults, else the field defaults,
+        of the declared types. Built once per run and shared by every agent."""
+        return settings_of(self.settings, cls)
+
     def setting(self, name: str, default: Any) -> Any:
+        """The value of setting ``name``, or ``default`` when the run has none: the untyped
+        path, kept for code written before typed settings. Its ``default`` can disagree with
+        the declared one and its value is not converted to the declared type; prefer
+        :meth:`settings_of`."""
         return self.settings.get(name, default)
 
 

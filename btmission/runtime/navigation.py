@@ -36,8 +36,9 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import Enum
+from types import MappingProxyType
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -58,6 +59,7 @@ from btmission.runtime.navcontrol import (
     multirotor_apf_config,
     track_unicycle,
 )
+from btmission.settings import declared_settings
 from btmission.types import FloatArray
 from btmission.vehicles.base import Backend, Mode, Sensors, Telemetry, VehicleKind
 
@@ -101,47 +103,56 @@ class NavStatus:
     command: str = "hold"
 
 
+def _doc(text: str) -> dict[str, str]:
+    """A setting's doc for users (:class:`~btmission.settings.Setting`, :data:`SETTINGS_DOC`);
+    the attribute docstring under the field says why, for readers of the code."""
+    return {"doc": text}
+
+
 @dataclass(frozen=True)
 class NavConfig:
-    """Motion settings (a mission's ``runtime.settings`` override them by name)."""
+    """Motion settings (a mission's ``runtime.settings`` override them by name; so do a
+    library's declared defaults: ``ground`` drives at 0.4 m/s). A run builds it once from its
+    settings (:meth:`btmission.settings.RunSettings.of`)."""
 
-    speed_m_s: float = 1.5
+    speed_m_s: float = field(default=1.5, metadata=_doc("cruise speed along a route (m/s)"))
     """Cruise speed along a route."""
-    lookahead_m: float = 2.0
+    lookahead_m: float = field(default=2.0, metadata=_doc("carrot distance ahead on the route (m)"))
     """Carrot distance ahead of the closest point of the route."""
-    tolerance_m: float = 0.5
+    tolerance_m: float = field(
+        default=0.5, metadata=_doc("distance within which a goal counts as reached (m)")
+    )
     """A goal is reached within this distance (horizontally and vertically)."""
-    altitude_m: float = 2.0
+    altitude_m: float = field(
+        default=2.0,
+        metadata=_doc("flight height above the ground for take-off and ground-level goals (m)"),
+    )
     """Flight height above the ground for take-off and for goals on the ground (e.g. home)."""
-    stuck_s: float = 20.0
+    stuck_s: float = field(
+        default=20.0, metadata=_doc("a route with no progress for this long is replanned (s)")
+    )
     """A route with no progress for this long is replanned from where the vehicle is."""
-    replans: float = 5
+    replans: int = field(
+        default=5, metadata=_doc("replans of a route with no progress before the task fails")
+    )
     """Replans after which a route with no progress fails (the task fails with the reason)."""
-    apf_gain: float = 0.075
+    apf_gain: float = field(
+        default=0.075,
+        metadata=_doc("APF gain L per m² of rock surface seen by the LiDAR (seed 002 eq. 3)"),
+    )
     """APF gain L per point (seed 002 eq. 3), for the simulated LiDAR's one point per rock
     voxel face (0.5 m maps); the paper's VLP-16 scans are far denser (ApfConfig: 0.001)."""
-    clearance_m: float = 0.5
+    clearance_m: float = field(
+        default=0.5,
+        metadata=_doc("paths keep this far from rock: the map is inflated by it for planning (m)"),
+    )
     """Paths keep voxel centres at least this far from rock (the vehicle's radius and a margin)."""
 
-    @classmethod
-    def from_settings(cls, settings: Mapping[str, object]) -> NavConfig:
-        kw: dict[str, float] = {}
-        for name in cls.__dataclass_fields__:
-            if name in settings:
-                kw[name] = float(settings[name])  # type: ignore[arg-type]
-        return cls(**kw)
 
-
-SETTINGS_DOC: dict[str, str] = {
-    "speed_m_s": "cruise speed along a route (m/s)",
-    "lookahead_m": "carrot distance ahead on the route (m)",
-    "tolerance_m": "distance within which a goal counts as reached (m)",
-    "altitude_m": "flight height above the ground for take-off and ground-level goals (m)",
-    "stuck_s": "a route with no progress for this long is replanned (s)",
-    "replans": "replans of a route with no progress before the task fails",
-    "apf_gain": "APF gain L per m² of rock surface seen by the LiDAR (seed 002 eq. 3)",
-    "clearance_m": "paths keep this far from rock: the map is inflated by it for planning (m)",
-}
+SETTINGS_DOC: Mapping[str, str] = MappingProxyType(
+    {name: s.doc for name, s in declared_settings(NavConfig).items()}
+)
+"""The navigator's settings and what each does, for users: the fields' docs (read-only)."""
 
 
 _NO_POSITIONS = np.zeros((0, 3))

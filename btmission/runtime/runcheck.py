@@ -3,15 +3,19 @@
 ``btmission validate`` and :class:`~btmission.runtime.runner.MissionRun` both call
 :func:`run_problems`, so that a mission ``validate`` accepts is one ``run`` can start: every
 agent's ``backend:`` names an installed vehicle provider, the same for the whole fleet
-(:func:`backend_problems`), every library has its implementations, and every ``runtime.settings`` entry is a setting someone reads,
-of the type its default has, in its range; and what each library's own ``check_mission``
-finds (:func:`library_problems`). Problems are located (file:line:col) and unknown setting names
+(:func:`backend_problems`), every library has its implementations, and every
+``runtime.settings`` entry is a setting someone declares, of its declared type, in its range;
+and what each library's own ``check_mission`` finds (:func:`library_problems`). Problems are located (file:line:col) and unknown setting names
 get a did-you-mean.
 
-Settings come from two places: the navigator's (:class:`~btmission.runtime.navigation.NavConfig`,
-every run has them) and each library's implementations (``Implementations(settings={...})``: the
-default's type is the setting's type). Their ranges are in :data:`SETTING_RANGES`; a setting not
-listed there whose name ends in a unit (``_s``, ``_m``, ``_m_s``, ``_hz``, ``_px``) must be ≥ 0.
+Settings are declared (:mod:`btmission.settings`: a name, a type, a default, a doc) in two
+places: the run's own (the navigator's :class:`~btmission.runtime.navigation.NavConfig` and the
+tree events' :class:`~btmission.runtime.treestatus.TreeEventSettings`: every run has them) and
+each library's implementations (``Implementations(settings=...)``: a frozen dataclass, or a
+mapping whose defaults give the types). A value must be of the declared type
+(:meth:`~btmission.settings.Setting.problem`); the ranges are in :data:`SETTING_RANGES`, and a
+setting not listed there whose name ends in a unit (``_s``, ``_m``, ``_m_s``, ``_hz``, ``_px``)
+must be ≥ 0.
 """
 
 from __future__ import annotations
@@ -22,7 +26,8 @@ from collections.abc import Callable, Collection, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 from btmission.diagnostics import Diagnostic, Location, Severity
-from btmission.spec.common import number_problem, shown
+from btmission.settings import Setting, declared_settings
+from btmission.spec.common import shown
 from btmission.spec.source import format_path
 
 if TYPE_CHECKING:
@@ -49,52 +54,62 @@ UNIT_SUFFIXES = ("_s", "_m", "_m_s", "_hz", "_px")
 """A setting named with one of these is a physical quantity: it must be ≥ 0 unless listed above."""
 
 
-def known_settings(mission: LoadedMission) -> dict[str, Any]:
-    """Every setting a run of ``mission`` reads → its default."""
-    from btmission.runtime.navigation import SETTINGS_DOC, NavConfig
-    from btmission.runtime.treestatus import TREE_EVENT_S
+def declared_run_settings(mission: LoadedMission) -> dict[str, Setting]:
+    """Every setting a run of ``mission`` reads, as declared (type, default, doc): the
+    navigator's and the runtime's (every run has them), then each library's
+    (``Implementations(settings=...)``). A name declared by both keeps the first declaration's
+    type: a library may give a navigator setting its own default (``ground``: ``speed_m_s`` 0.4),
+    not another type."""
+    from btmission.runtime.navigation import NavConfig
+    from btmission.runtime.treestatus import TreeEventSettings
 
-    nav = NavConfig()
-    defaults: dict[str, Any] = {name: getattr(nav, name) for name in SETTINGS_DOC}
-    defaults["tree_event_s"] = TREE_EVENT_S  # the agent's tree status events (runtime/agent.py)
+    declared: dict[str, Setting] = {}
+    for cls in (NavConfig, TreeEventSettings):
+        declared.update(declared_settings(cls))
     for loaded in mission.libraries.values():
         impl = loaded.implementations
         if impl is None:
             continue
-        for name, value in impl.settings.items():
-            defaults.setdefault(name, value)
-    return defaults
+        for name, setting in impl.declared.items():
+            declared.setdefault(name, setting)
+    return declared
 
 
-def setting_problem(name: str, value: Any, default: Any) -> str | None:
-    """Why ``value`` cannot be used for the setting ``name`` whose default is ``default``."""
-    if isinstance(default, bool):
-        return None if isinstance(value, bool) else f"expected true or false (got {shown(value)})"
-    if isinstance(default, str):
-        return None if isinstance(value, str) else f"expected a string (got {shown(value)})"
-    problem = number_problem(value)
-    if problem:
+def known_settings(mission: LoadedMission) -> dict[str, Any]:
+    """Every setting a run of ``mission`` reads → its default (:func:`declared_run_settings`)."""
+    return {name: s.default for name, s in declared_run_settings(mission).items()}
+
+
+def setting_problem(name: str, value: Any, declared: Setting | Any) -> str | None:
+    """Why ``value`` cannot be used for the setting ``name``: not of its declared type (a
+    :class:`~btmission.settings.Setting`; a bare default stands for a setting of its type), or
+    out of its range (:data:`SETTING_RANGES`, the unit suffixes)."""
+    if not isinstance(declared, Setting):
+        declared = declared_settings({name: declared})[name]
+    setting: Setting = declared
+    problem = setting.problem(value)
+    if problem or setting.kind not in (int, float):
         return problem
-    if isinstance(default, int) and not float(value).is_integer():
-        return f"expected a whole number (got {shown(value)})"
     low, excluded = SETTING_RANGES.get(name, (0.0, False) if name.endswith(UNIT_SUFFIXES) else
                                        (-math.inf, False))  # fmt: skip
     if value < low or (excluded and value == low):
-        return f"expected a number {'>' if excluded else '≥'} {low:g} (got {shown(value)})"
+        bound = f"{'>' if excluded else '≥'} {low:g}"
+        return f"expected {setting.expected} {bound} (got {shown(value)})"
     return None
 
 
 def settings_problems(
     settings: Mapping[str, Any],
-    defaults: Mapping[str, Any],
+    defaults: Mapping[str, Setting | Any],
     locate: Any,
     complete: bool = True,
 ) -> list[Diagnostic]:
     """Unknown names (with a did-you-mean), wrong types and values out of range in ``settings``.
 
-    ``locate(path, key=...)`` gives the location of ``("runtime", "settings", name)``; ``complete``
-    False means some library's settings are not known (its module was not imported), so unknown
-    names are not judged."""
+    ``defaults``: the known settings, as declared (:func:`declared_run_settings`) or by their
+    defaults. ``locate(path, key=...)`` gives the location of ``("runtime", "settings", name)``;
+    ``complete`` False means some library's settings are not known (its module was not
+    imported), so unknown names are not judged."""
     out: list[Diagnostic] = []
     for name, value in settings.items():
         path: Sequence[str | int] = ("runtime", "settings", name)
@@ -266,10 +281,10 @@ def run_problems(
         out.extend(library_problems(mission))
     settings = mission.spec.runtime.settings
     if settings:
-        defaults = known_settings(mission)
+        declared = declared_run_settings(mission)
         complete = all(
             lb.implementations is not None or not lb.library.module
             for lb in mission.libraries.values()
         )
-        out.extend(settings_problems(settings, defaults, mission.locate, complete))
+        out.extend(settings_problems(settings, declared, mission.locate, complete))
     return out

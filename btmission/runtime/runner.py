@@ -113,6 +113,7 @@ from btmission.runtime.paths import PathCosts
 from btmission.runtime.runcheck import run_problems
 from btmission.runtime.snapshot import RunSnapshot, SnapshotTaker
 from btmission.runtime.substitution import SubstitutionRules, Substitutions
+from btmission.settings import RunSettings
 from btmission.vehicles.clock import Clock, ManualClock
 from btmission.vehicles.provider import (
     Vehicle,
@@ -190,8 +191,8 @@ class MissionRun:
             if voxel_map is not None
             else world_from_spec(mission.spec.world, mission.base_dir)
         )
-        self.settings: dict[str, Any] = run_settings(mission)
-        self.nav_config = NavConfig.from_settings(self.settings)
+        self.settings: RunSettings = run_settings(mission)
+        self.nav_config = self.settings.of(NavConfig)
         # one provider for every agent (run_problems refused mixed fleets: one run, one clock)
         self.provider: VehicleProvider = make_provider(self)
         self.clock = self.provider.clock

@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 import operator
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any
 
@@ -38,6 +39,16 @@ from btmission.fastpaths.ticks import QuietSelector, QuietSequence
 TREE_EVENT_S = 0.5
 """Default of the ``tree_event_s`` setting: at most one ``tree`` event per agent per this many
 seconds of mission time (0: one per tick with changes)."""
+
+
+@dataclass(frozen=True)
+class TreeEventSettings:
+    """The runtime's own setting (every run has it, as it has the navigator's)."""
+
+    tree_event_s: float = TREE_EVENT_S
+    """At most one ``tree`` event per agent per this many seconds of mission time (s; 0: one
+    per tick with changes)."""
+
 
 Change = tuple[int, str, str]
 """(uid, old status, new status)."""

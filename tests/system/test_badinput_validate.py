@@ -112,7 +112,7 @@ class TestRuntimeSettings:
             ("setting_speed_bool", "runtime.settings.speed_m_s: expected a number (got true)"),
             ("setting_speed_zero", "runtime.settings.speed_m_s: expected a number > 0 (got 0)"),
             ("setting_speed_nan", "runtime.settings.speed_m_s: expected a finite number (got nan)"),
-            ("setting_replans_fraction", "replans: expected a whole number (got 2.5)"),
+            ("setting_replans_fraction", "replans: expected an integer (got 2.5)"),
             ("setting_library_time_negative", "pick_time_s: expected a number ≥ 0 (got -2)"),
         ],
     )
@@ -138,9 +138,9 @@ class TestRuntimeSettings:
         from btmission.runtime.runcheck import setting_problem
 
         assert setting_problem("dispatch_generations", 2.5, 200) == (
-            "expected a whole number (got 2.5)"
+            "expected an integer (got 2.5)"
         )
-        assert setting_problem("dispatch_generations", 0, 200) == "expected a number ≥ 1 (got 0)"
+        assert setting_problem("dispatch_generations", 0, 200) == "expected an integer ≥ 1 (got 0)"
         assert setting_problem("reloc_database", 3, "") == "expected a string (got 3)"
         assert setting_problem("reloc_database", "db.npz", "") is None
         assert setting_problem("custom_flag", "yes", True) == "expected true or false (got 'yes')"

@@ -559,7 +559,11 @@ PYTHON_BLOCKS = [
 @pytest.mark.parametrize("block", PYTHON_BLOCKS)
 def test_python_examples_run(block: str, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(ROOT)
-    exec(compile(block, "<docs example>", "exec"), {"__name__": "__docs_example__"})
+    # dont_inherit: the block runs as the file a reader copies it into would, without this
+    # module's `from __future__ import annotations` (under which a dataclass defined in exec'd
+    # code cannot be built: dataclasses look its string annotations up in sys.modules)
+    code = compile(block, "<docs example>", "exec", dont_inherit=True)
+    exec(code, {"__name__": "__docs_example__"})
 
 
 @pytest.mark.parametrize(
