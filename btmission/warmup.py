@@ -21,12 +21,6 @@ import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
-
-if TYPE_CHECKING:
-    from btmission.backends.sim import Simulator
-    from btmission.links.bus import InMemoryBus
-    from btmission.runtime.navigation import Navigator
 
 
 def _commands(tmp: Path) -> list[tuple[str, list[str]]]:
@@ -78,110 +72,47 @@ def _pruned_assignment() -> None:
         solve_pruned(AssignmentProblem.dense(costs, bonus=bonus, incumbent=[0, -1, 2]))
 
 
+WARM_RUN = """
+mission: warm_up
+version: 1
+world:
+  map: {generate: empty, size: [12, 12, 4]}
+  resolution: 0.5
+agents:
+  - {id: A, library: aerial, start: [2, 2, 0]}
+  - {id: B, library: aerial, start: [4, 2, 0]}
+tasks:
+  - {id: T1, type: inspect, location: [9, 9, 2]}
+task_types:
+  inspect: {goal: at_goal(location), cost: path_cost(location)}
+runtime: {controller: track}
+"""
+"""Two drones in a small empty world: building their run loads what a run's loop calls."""
+
+
 def _vehicle_control() -> None:
-    """A simulated drone's control step: its short-range LiDAR (rock faces and another
-    vehicle), the APF on it with the other agents' push, carrot chasing on a route and the
-    simulator's step (the multirotors' model, clearance to the walls) — the kernels of
-    :mod:`btmission.world._surface_kernels`, :mod:`btmission.backends._multirotor_kernels`,
-    :mod:`btmission.control._apf_kernels` and :mod:`btmission.runtime._route_kernels`, through
-    the simulator and the navigator."""
+    """A run's loop kernels, loaded as a run loads them while it builds
+    (:mod:`btmission.runtime.prewarm`: the planner, the navigator and the bus; the simulator's
+    model and LiDAR, warmed by its provider; the fleet's batched control step), for a
+    two-drone mission (:data:`WARM_RUN`); a MAVLink vehicle's map sensors
+    (:class:`~btmission.backends.mavlink.MapSensorsAtReports`); then the APF of
+    :class:`~btmission.control.apf.PotentialField` (the control examples and benchmark) and the
+    rock-face ball query of :mod:`btmission.world._surface_kernels`."""
     import numpy as np
 
-    from btmission.backends.sim import SimConfig, Simulator
+    from btmission.backends.mavlink import MapSensorsAtReports
+    from btmission.backends.sim import SimConfig
+    from btmission.backends.simworld import SimWorld
     from btmission.control.apf import PotentialField
-    from btmission.runtime.navigation import Navigator
-    from btmission.world.voxel import OCCUPIED, VoxelMap
+    from btmission.missions import load_mission_text
+    from btmission.runtime.runner import MissionRun
 
-    vmap = VoxelMap.empty((4.0, 4.0, 3.0), 0.5)
-    vmap.state[:, :, 0] = OCCUPIED  # a floor
-    vmap.state[:, 7, :] = OCCUPIED  # and a wall
-    sim = Simulator(vmap, SimConfig(lidar_range_m=3.0))
-    a = sim.add_multirotor("A", (1.0, 1.0, 0.5))
-    sim.add_multirotor("B", (2.0, 1.5, 0.5))
-    from btmission.backends.sim import SMALL_FLEET
-
-    for i in range(SMALL_FLEET):  # a fleet's contact test (past SMALL_FLEET vehicles)
-        sim.add_multirotor(f"F{i}", (0.5 + 0.5 * i, 2.5, 0.5))
-    nav = Navigator("A", a, a, "track", predictions=lambda _agent: [np.array([[2.0, 1.5, 0.5]])])
-    nav.follow(np.array([[1.0, 1.0, 1.0], [3.0, 3.0, 1.0]]), np.array([3.0, 3.0, 1.0]), 0.0)
-    nav.step(0.0)
-    sim.step()  # its contact test: the clearance to the walls
-    sim.world.surface_points(np.array([1.0, 1.0, 0.5]), 1.0)
-    from btmission.links.bus import SMALL_FLEET, InMemoryBus
-
-    bus = InMemoryBus()  # a fleet's neighbour query (past SMALL_FLEET agents)
-    for i in range(SMALL_FLEET + 1):
-        bus.share_prediction(f"V{i}", 0.0, np.array([[float(i), 0.0, 1.0]]))
-    bus.neighbour_positions("V0", 0.0, 0.1, np.array([0.0, 0.0, 1.0]), 6.0)
+    run = MissionRun(load_mission_text(WARM_RUN, "warm_up.yaml"))
+    run.close()
+    world = SimWorld(run.map)
+    MapSensorsAtReports(world, SimConfig(), np.random.default_rng(0)).warm_up()
     PotentialField().step(np.ones((2, 3)), (1.0, 0.0, 0.0))
-    _fleet_step(sim, nav, bus)
-
-
-def _fleet_step(sim: Simulator, nav: Navigator, bus: InMemoryBus) -> None:
-    """The fleet's control step (:func:`~btmission.runtime._fleet_kernels.fleet_follow`) for
-    two drones of the warm-up's simulator, with the argument types of a run's."""
-    import numpy as np
-
-    from btmission.backends.mapsensors import sphere_points
-    from btmission.runtime._fleet_kernels import fleet_follow
-    from btmission.runtime.navcontrol import CARROT_WINDOW
-    from btmission.runtime.navigation import POSITION_GAIN, SETTLED_M_S
-
-    cells = sim.world.cells
-    table = sim.bodies()
-    route = np.zeros((2, 9))
-    route[:, 0:3] = [[1.0, 1.0, 1.0], [3.0, 3.0, 1.0]]
-    n = len(bus._row_names)
-    prev = bus._starts[:n]
-    assert nav._apf is not None
-    fleet_follow(
-        np.concatenate([route, route]), np.array([0, 2, 4], dtype=np.int64),
-        np.zeros(2, dtype=np.int64), np.ones((2, 7)), np.ones((2, 4)),
-        np.array([0, 1], dtype=np.int64), np.full((2, 3), 3.0), np.zeros(2, dtype=np.bool_),
-        np.zeros((2, 3)), cells.points, cells.starts, cells.lo, float(cells.cell), cells.dims,
-        3.0, table.centres, table.radii, sphere_points(), prev, prev.copy(),
-        np.arange(n, dtype=np.int64), np.array([0, 1], dtype=np.int64),
-        np.array([0, 1], dtype=np.int64), 6.0, CARROT_WINDOW, 1.0, 0.3, SETTLED_M_S, 1.0,
-        POSITION_GAIN, nav._apf.config.packed, nav._apf.config.packed,
-    )  # fmt: skip
-
-
-def _planner() -> None:
-    """A run's path costs and route on a tiny map (:class:`btmission.runtime.paths.PathCosts`:
-    backward one-to-all D*+ searches with a risk layer, the gather of bids and their range
-    check, a path), and an A* query."""
-    import numpy as np
-
-    from btmission.allocation.auction import Bid
-    from btmission.planning.risk import RiskParams
-    from btmission.runtime.paths import PathCosts
-    from btmission.world.voxel import VoxelMap
-
-    paths = PathCosts(VoxelMap.empty((3.0, 2.0, 1.0), 0.5), RiskParams(), clearance_m=0.25)
-    start, goal = (0.25, 0.25, 0.25), (2.75, 1.75, 0.75)
-    costs = paths.path_costs(start, (goal, (2.75, 0.25, 0.25)))
-    Bid("A", 0.0, ("T1", "T2"), np.asarray(costs, dtype=np.float64)).problem()  # its check
-    paths.route(start, goal)
-    paths.planner.plan(start, goal)
-
-
-_prepared = False
-
-
-def prepare_run() -> None:
-    """Load what a mission run's loop would otherwise load on its first steps — the planner's
-    and the vehicle control's numba kernels (from the cache; compiled if missing) and the
-    assignment solver's scipy module — so that the loop does not stall for a second at its
-    first auction round (a real-time run would miss its deadlines). Once per process;
-    :class:`~btmission.runtime.runner.MissionRun` calls it while it builds."""
-    global _prepared
-    if _prepared:
-        return
-    import scipy.optimize  # noqa: F401  (the assignment's linear_sum_assignment)
-
-    _planner()
-    _vehicle_control()
-    _prepared = True
+    world.surface_points(np.array([1.0, 1.0, 0.5]), 1.0)
 
 
 def _calls() -> list[tuple[str, Callable[[], None]]]:

@@ -65,6 +65,8 @@ from btmission.vehicles.provider import (
 )
 
 if TYPE_CHECKING:
+    from btmission.backends.sim import SimConfig
+    from btmission.backends.simworld import SimWorld
     from btmission.spec.mission import Mission
     from btmission.world.voxel import VoxelMap
 
@@ -95,7 +97,7 @@ class MavlinkProvider(ProviderBase):
         progress: Callable[[str], None] | None = None,
         *,
         geodetic: GeodeticOrigin | None = None,
-        sensors: Callable[[MavlinkVehicle], Sensors] | None = None,
+        sensors: MapSensorsAtReports | None = None,
         frames: Mapping[str, LocalFrame] | None = None,
     ) -> None:
         """``geodetic``: where the world's origin is on Earth (``world.origin``): a vehicle
@@ -121,6 +123,12 @@ class MavlinkProvider(ProviderBase):
             link = _Link(address, _open(address, self.options, deadline))
             self._io.add(link)
         return link
+
+    def warm_up(self) -> None:
+        """The map sensors' kernels, if the vehicles have them
+        (:meth:`MapSensorsAtReports.warm_up`); the links' code is plain Python."""
+        if self._sensors is not None:
+            self._sensors.warm_up()
 
     def prepare(self, vehicles: Sequence[VehicleRef]) -> None:
         """Open every link before the vehicles are attached one by one, so that vehicles that
@@ -377,27 +385,49 @@ def _type_name(mav_type: int) -> str:
     return entry.name if entry is not None else f"MAV_TYPE {mav_type}"
 
 
+class MapSensorsAtReports:
+    """Each vehicle's map sensors (``runtime.mavlink.map_sensors``):
+    :class:`~btmission.backends.mapsensors.MapSensors` ray-cast in ``world`` at the pose the
+    vehicle reports, seeing no other vehicle, their draws (dust, noise) from one generator."""
+
+    def __init__(self, world: SimWorld, config: SimConfig, rng: np.random.Generator) -> None:
+        self.world = world
+        self.config = config
+        self.rng = rng
+
+    def __call__(self, vehicle: MavlinkVehicle) -> Sensors:
+        from btmission.backends.mapsensors import MapSensors
+
+        return MapSensors(self.world, self.config, self.rng, vehicle.telemetry)
+
+    def warm_up(self) -> None:
+        """Load the LiDAR's scan kernel for the arrays a MAVLink vehicle gives it — its
+        reported position (a :class:`~btmission.backends.mavlink_frames.LocalFrame`'s world
+        point, as :meth:`MavlinkVehicle.telemetry` has it) and no other bodies, writable
+        arrays where the simulator's are read-only: another signature than a simulated run's —
+        with a generator of its own (the run's draws stay the run's)."""
+        from btmission.backends.mapsensors import MapSensors, SensorPose
+        from btmission.backends.mavlink_frames import local_frame
+
+        pose = SensorPose(0.0, local_frame((0.0, 0.0, 0.0)).to_world((0.0, 0.0, -1.0)), 0.0)
+        MapSensors(self.world, self.config, np.random.default_rng(0), lambda: pose).lidar()
+
+
 def mavlink_provider(mission: Mission, voxel_map: VoxelMap, seed: int) -> MavlinkProvider:
     """The ``mavlink`` entry point of ``btmission.providers``: the mission's
     ``runtime.mavlink`` settings, its ``world.origin``; ground heights from the mission map when
     a vehicle has no downward range finder; with ``map_sensors``, each vehicle's LiDAR and
     camera ray-cast in the mission map at the pose it reports
     (:class:`~btmission.backends.mapsensors.MapSensors`, as SITL users get from Gazebo)."""
-    from btmission.backends.mapsensors import MapSensors
     from btmission.backends.sim_provider import mission_artifacts, sim_config
     from btmission.backends.simworld import SimWorld
 
     spec = mission.spec.runtime.mavlink
     options = config_from(MavlinkOptions, spec, signing_key=load_key())
     world = SimWorld(voxel_map, mission_artifacts(mission))
-    sensors: Callable[[MavlinkVehicle], Sensors] | None = None
+    sensors = None
     if spec.map_sensors:
-        config = sim_config(mission)
-        rng = np.random.default_rng(seed)
-
-        def sensors(vehicle: MavlinkVehicle) -> Sensors:
-            return MapSensors(world, config, rng, vehicle.telemetry)
-
+        sensors = MapSensorsAtReports(world, sim_config(mission), np.random.default_rng(seed))
     return MavlinkProvider(
         options,
         ground_at=world.ground_z,

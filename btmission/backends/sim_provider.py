@@ -4,7 +4,8 @@
 mission's world with its ``runtime.sim`` settings (:func:`sim_config`) and artifacts
 (:func:`mission_artifacts`), seeded with the run's seed, and wraps it in a :class:`SimProvider`:
 vehicles spawned at their start, the simulator's time, its physics stepped by the run. Its
-:class:`SimFleetSensing` lets the fleet control step compute the drones' LiDAR scans itself.
+:class:`SimFleetSensing` lets the fleet control step compute the drones' LiDAR scans itself, and
+:func:`warm_simulator` loads the simulator's kernels while the run is built.
 """
 
 from __future__ import annotations
@@ -48,6 +49,11 @@ class SimProvider(ProviderBase):
 
         self.sim = sim
         self.clock = SimClock(sim)
+
+    def warm_up(self) -> None:
+        """The simulator's kernels, through a throwaway simulator with the run's settings
+        (:func:`warm_simulator`): the run's own is untouched."""
+        warm_simulator(self.sim.config)
 
     def attach(
         self,
@@ -128,6 +134,38 @@ class SimFleetSensing:
         poses[:, 0:3] = [v.x[:3] for v in vehicles]
         poses[:, 3] = [v.yaw for v in vehicles]
         return poses
+
+
+_warmed = False
+
+
+def warm_simulator(config: SimConfig) -> None:
+    """Load the kernels a simulated run's loop calls (from numba's cache; compiled if
+    missing), once per process: a throwaway :class:`Simulator` with ``config`` — a floor and a
+    wall, more drones than :data:`~btmission.backends.sim.SMALL_FLEET` — scans one drone's
+    LiDAR (the rock faces and another drone's body:
+    :mod:`btmission.world._surface_kernels`) and steps once (the multirotors' model, the
+    clearance to the walls, the contact tests of a fleet:
+    :mod:`btmission.backends._multirotor_kernels`). Its vehicles are real simulated ones, so
+    the kernels get the arrays — and the signatures — of a run's."""
+    global _warmed
+    if _warmed:
+        return
+    from btmission.backends.sim import SMALL_FLEET
+    from btmission.world.voxel import OCCUPIED, VoxelMap
+
+    vmap = VoxelMap.empty((4.0, 4.0, 3.0), 0.5)
+    vmap.state[:, :, 0] = OCCUPIED  # a floor
+    vmap.state[:, 7, :] = OCCUPIED  # and a wall
+    sim = Simulator(vmap, config)
+    drone = sim.add_multirotor("A", (1.0, 1.0, 0.5))
+    sim.add_multirotor("B", (2.0, 1.5, 0.5))
+    for i in range(SMALL_FLEET):  # a fleet's contact test (past SMALL_FLEET vehicles)
+        sim.add_multirotor(f"F{i}", (0.5 + 0.5 * i, 2.5, 0.5))
+    drone.set_position_setpoint((1.0, 1.0, 1.0))
+    drone.lidar()
+    sim.step()
+    _warmed = True
 
 
 def sim_config(mission: Mission) -> SimConfig:

@@ -89,7 +89,8 @@ def make_provider(run: MissionRun) -> VehicleProvider:
         raise ProviderError(
             f"the '{scheme}' vehicle provider ({type(provider).__name__}) has no "
             f"{', '.join(missing)}(): every provider has the phases {', '.join(PHASES)} "
-            "(btmission.vehicles.provider.ProviderBase gives prepare, start and fleet_sensing)"
+            "(btmission.vehicles.provider.ProviderBase gives warm_up, prepare, start and "
+            "fleet_sensing)"
         )
     return provider
 

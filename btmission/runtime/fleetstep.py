@@ -39,7 +39,7 @@ from btmission.runtime.navcontrol import AGENT_APF, CARROT_WINDOW
 from btmission.runtime.navigation import POSITION_GAIN, SETTLED_M_S, Navigator
 from btmission.types import FloatArray
 from btmission.vehicles.base import Backend, VehicleKind
-from btmission.vehicles.provider import FleetSensing
+from btmission.vehicles.provider import BodyTable, FleetSensing
 
 if TYPE_CHECKING:
     from btmission.runtime.agent import Agent
@@ -94,6 +94,7 @@ class FleetFollow:
         self._offsets = np.zeros(1, dtype=np.int64)
         self.batched = 0
         """Drone control steps computed in the batch (the rest took the per-drone path)."""
+        self._warm_up()
 
     @classmethod
     def build(
@@ -141,8 +142,6 @@ class FleetFollow:
         if len(batch) < MIN_BATCH:
             return self._each(now)
         prev = bus._starts[:n]  # (a killed agent's row is NaN: never a neighbour, as on the bus)
-        from btmission.runtime._fleet_kernels import fleet_follow
-
         if self._own_row is None:  # (rows never change once the bus has them all)
             rows = {name: r for r, name in enumerate(bus._row_names)}
             self._own_row = np.array([rows[a.id] for a in self._agent_list], dtype=np.int64)
@@ -182,14 +181,10 @@ class FleetFollow:
         states[:, 3:6] = [tels[k].velocity for k in batch]
         states[:, 6] = [tels[k].yaw for k in batch]
         poses = self.sensing.true_poses([self._backends[k] for k in batch])
-        out = fleet_follow(
-            self._table, self._offsets, np.array([c.seg for c in cmds], dtype=np.int64),
-            states, poses, self._body[sel], self._targets, self._ground,
+        out = self._follow(
+            np.array([c.seg for c in cmds], dtype=np.int64), states, poses, self._body[sel],
             np.array([navs[k]._apf_previous for k in batch], dtype=float),
-            *self._cells, self._radius, table.centres, table.radii, self._sphere,
-            prev, cur, rank, own_row[sel], sel,
-            self.within_m, CARROT_WINDOW, self._look, self._tol, SETTLED_M_S, self._speed,
-            POSITION_GAIN, self._field, self._agents,
+            table, prev, cur, rank, own_row[sel], sel,
         )  # fmt: skip
         rows = out.tolist()  # (Python floats: the per-row reads cost less, same values)
         apf = out[:, 9:12]
@@ -212,6 +207,46 @@ class FleetFollow:
         if shares:
             self._share(now, shares, first, pos)
         return None
+
+    def _follow(
+        self,
+        seg0: NDArray[np.int64],
+        states: FloatArray,
+        poses: FloatArray,
+        body: NDArray[np.int64],
+        apf_prev: FloatArray,
+        table: BodyTable,
+        prev: FloatArray,
+        cur: FloatArray,
+        rank: NDArray[np.int64],
+        own_row: NDArray[np.int64],
+        own_rank: NDArray[np.int64],
+    ) -> FloatArray:
+        """The batch's rows of :func:`~btmission.runtime._fleet_kernels.fleet_follow`, with
+        the routes of :attr:`_cmds` and this fleet's settings."""
+        from btmission.runtime._fleet_kernels import fleet_follow
+
+        out: FloatArray = fleet_follow(
+            self._table, self._offsets, seg0, states, poses, body, self._targets, self._ground,
+            apf_prev, *self._cells, self._radius, table.centres, table.radii, self._sphere,
+            prev, cur, rank, own_row, own_rank,
+            self.within_m, CARROT_WINDOW, self._look, self._tol, SETTLED_M_S, self._speed,
+            POSITION_GAIN, self._field, self._agents,
+        )  # fmt: skip
+        return out
+
+    def _warm_up(self) -> None:
+        """Load the compiled step (from numba's cache; compiled if missing) now, while the run
+        is built, not at the loop's first batch: :meth:`_follow` for no drone, with arrays made
+        as :meth:`control` makes them and the provider's own (``sensing``) — the signature of
+        the run's calls."""
+        none = np.zeros(0, dtype=np.int64)
+        n = len(self.bus._row_names)
+        prev = self.bus._starts[:n]
+        self._follow(
+            none, np.empty((0, 7)), np.empty((0, 4)), none, np.zeros((0, 3)),
+            self.sensing.bodies(), prev, prev.copy(), np.zeros(n, dtype=np.int64), none, none,
+        )  # fmt: skip
 
     def _share(
         self, now: float, shares: list[tuple[str, FloatArray]], first: int, pos: FloatArray

@@ -110,6 +110,7 @@ from btmission.runtime.loops import AgentRuntime, CoordinatorRuntime
 from btmission.runtime.navigation import NavConfig
 from btmission.runtime.pacing import Pacer
 from btmission.runtime.paths import PathCosts
+from btmission.runtime.prewarm import prewarm_run
 from btmission.runtime.runcheck import run_problems
 from btmission.runtime.snapshot import RunSnapshot, SnapshotTaker
 from btmission.runtime.substitution import SubstitutionRules, Substitutions
@@ -119,7 +120,6 @@ from btmission.vehicles.provider import (
     Vehicle,
     VehicleProvider,
 )
-from btmission.warmup import prepare_run
 from btmission.world.voxel import VoxelMap
 
 SNAPSHOT_PERIOD_S = 0.04
@@ -206,7 +206,7 @@ class MissionRun:
             max_bytes=rt.path_fields_mb << 20,
             reserve=len(mission.tasks) + len(mission.agents),  # their goals, and home
         )
-        prepare_run()  # the loop's kernels and solver loaded now, not at its first round
+        prewarm_run(self.provider)  # the loop's kernels loaded now, not at its first round
         self.roads = road_costs(self)
         self.places = self.roads.places if self.roads is not None else {}
         self.bus = InMemoryBus()

@@ -14,6 +14,9 @@ called with the mission, its map and the run's seed, it returns the :class:`Vehi
 the run. Only the provider reads a reference's address: its plugin's ``check_address`` says
 what is wrong with one before anything runs. The provider then
 
+* is :meth:`~VehicleProvider.warm_up`\\ ed: it loads the compiled kernels its vehicles run in
+  the loop (the simulator's model and LiDAR), so that the loop does not stall at its first
+  steps;
 * is :meth:`~VehicleProvider.prepare`\\ d with every agent's reference (a real provider opens
   all its links at once, so that vehicles boot together);
 * :meth:`~VehicleProvider.attach`\\ es one :class:`Vehicle` per agent: its
@@ -29,8 +32,8 @@ what is wrong with one before anything runs. The provider then
   real time passes on its own);
 * is :meth:`~VehicleProvider.close`\\ d at the end (sockets, threads).
 
-Every provider has all five phases (:data:`PHASES`); :class:`ProviderBase` gives the two a
-simulator needs not write.
+Every provider has all six phases and the capability query (:data:`PHASES`);
+:class:`ProviderBase` gives the ones a simulator need not write.
 
 One run has one clock, so every agent of a mission uses the same provider (scheme): simulated
 time cannot be mixed with the wall clock
@@ -103,7 +106,7 @@ class AttachOptions:
     """A ground robot's top speed (m/s): the navigator's ``speed_m_s``. None: the model's."""
 
 
-PHASES = ("prepare", "attach", "start", "step", "close", "fleet_sensing")
+PHASES = ("warm_up", "prepare", "attach", "start", "step", "close", "fleet_sensing")
 """The provider's phases, in the order a run calls them, and its one capability query (every
 provider has them all; :class:`ProviderBase` gives the ones most need not write)."""
 
@@ -111,9 +114,9 @@ provider has them all; :class:`ProviderBase` gives the ones most need not write)
 @runtime_checkable
 class VehicleProvider(Protocol):
     """Creates or connects the vehicles of a run, owns its clock and advances it (module
-    docstring). A run calls :meth:`prepare` once, :meth:`attach` for each agent, :meth:`start`
-    once, :meth:`step` every step and :meth:`close` at the end (:data:`PHASES`);
-    :class:`ProviderBase` has the phases most providers need not write."""
+    docstring). A run calls :meth:`warm_up` and :meth:`prepare` once, :meth:`attach` for each
+    agent, :meth:`start` once, :meth:`step` every step and :meth:`close` at the end
+    (:data:`PHASES`); :class:`ProviderBase` has the phases most providers need not write."""
 
     @property
     def clock(self) -> Clock:
@@ -125,6 +128,15 @@ class VehicleProvider(Protocol):
     def realtime(self) -> bool:
         """True when time passes on its own (real vehicles): the runner paces its steps
         against the wall clock instead of running as fast as it can."""
+        ...
+
+    def warm_up(self) -> None:
+        """While the run is built, before :meth:`prepare`: load the compiled (numba) kernels
+        this provider runs in the loop — its vehicles' model, their sensors — from the cache
+        (compiled if missing), so that the loop's first steps do not stall (a real-time run
+        would miss its deadlines). Run them once on throwaway inputs with the argument types of
+        a run's (another dtype, layout or read-only flag is another signature: compiled again
+        at the first step), touching none of the run's vehicles, time or random draws."""
         ...
 
     def prepare(self, vehicles: Sequence[VehicleRef]) -> None:
@@ -212,8 +224,12 @@ class FleetSensing(Protocol):
 
 
 class ProviderBase:
-    """The phases a provider without links or a clock of its own to restart need not write:
-    :meth:`prepare` and :meth:`start` do nothing, and it offers no :class:`FleetSensing`."""
+    """The phases a provider without kernels, links or a clock of its own to restart need not
+    write: :meth:`warm_up`, :meth:`prepare` and :meth:`start` do nothing, and it offers no
+    :class:`FleetSensing`."""
+
+    def warm_up(self) -> None:
+        """No compiled kernels of its own to load."""
 
     def prepare(self, vehicles: Sequence[VehicleRef]) -> None:
         """Nothing to open ahead of the vehicles."""

@@ -1,12 +1,22 @@
-"""The install-time warm-up compiles every numba kernel through the commands a run uses."""
+"""The install-time warm-up compiles every numba kernel through the commands a run uses, and a
+run loads its loop's kernels while it builds (btmission.runtime.prewarm, the providers'
+warm_up): its loop then loads none, checked in a fresh interpreter (tests/warm_loop.py)."""
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from btmission import warmup
+from btmission.backends.mavlink_modes import Autopilot
+from tests.load import margin
+
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def test_the_warm_up_steps_name_real_files_and_commands(tmp_path: Path) -> None:
@@ -44,47 +54,64 @@ def test_the_warm_up_calls_the_kernels_no_command_runs() -> None:
         call()
 
 
-def test_a_run_loads_its_loop_kernels_while_it_builds() -> None:
-    """What prepare_run (called by MissionRun's build) loads covers the loop: a drone mission in
-    the mine (D*+ fields and routes, bids, LiDAR on rock and bodies, APF with the others' push,
-    carrot chasing, the clearance to the walls, the multirotors' step) then compiles or loads no kernel of the planner
-    or the vehicle control, and the assignment's scipy module is already there."""
-    import sys
+def loop_kernels(mission: Path, until: float, mode: str = "fleet") -> dict[str, Any]:
+    """What :mod:`tests.warm_loop` measures of a run of ``mission`` to ``until`` in a fresh
+    interpreter: in this one, earlier tests may have loaded the kernels a run's build should."""
+    done = subprocess.run(
+        [sys.executable, "-m", "tests.warm_loop", str(mission), str(until), mode],
+        capture_output=True, text=True, cwd=ROOT, timeout=300 * margin(), check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout + done.stderr
+    out: dict[str, Any] = json.loads(done.stdout.splitlines()[-1])
+    return out
 
-    from numba.core.registry import CPUDispatcher
 
-    from btmission.allocation import _bid_kernels as bids
-    from btmission.backends import _multirotor_kernels as multirotor
+@pytest.mark.parametrize("mode", ["fleet", "each"])
+def test_a_run_loads_its_loop_kernels_while_it_builds(tmp_path: Path, mode: str) -> None:
+    """What MissionRun's build loads (the runtime's prewarm_run, the simulator provider's
+    warm_up, the fleet step's) covers the loop: a ten-drone mission in the mine (D*+ fields and
+    routes, bids, LiDAR on rock and bodies, APF with the others' push, carrot chasing, the
+    clearance to the walls, the multirotors' step, the fleet's batched step or each drone's
+    own) then loads no kernel, and the assignment's scipy module is already there."""
     from btmission.bench.fleet import fleet_mission_text
-    from btmission.control import _apf_kernels as apf
-    from btmission.links import _neighbour_kernels as near
-    from btmission.missions import load_mission_text
-    from btmission.planning import _kernels as plan
-    from btmission.runtime import _fleet_kernels as fleet
-    from btmission.runtime import _route_kernels as route
-    from btmission.runtime.runner import MissionRun
-    from btmission.world import _surface_kernels as surf
 
-    warmup.prepare_run()
-    assert "scipy.optimize" in sys.modules
-    kernels = [
-        f for mod in (apf, route, surf, plan, near, multirotor, bids, fleet)
-        for f in vars(mod).values()
-        if isinstance(f, CPUDispatcher)
-    ]  # fmt: skip
-    before = {f.__name__: len(f.signatures) for f in kernels}
-    used = {"navigator_force", "carrots", "scan_points", "nearest_distances"}
-    used |= {"near_points"}  # a fleet's neighbour query (past SMALL_FLEET)
-    used |= {"step_all", "first_bad_cost"}  # the multirotors' step; bids' range check
-    used |= {"rock_rows", "near_pairs"}  # the simulator's contact test (past SMALL_FLEET)
-    used |= {"fleet_follow"}  # the fleet's control step
-    assert used <= set(before) and all(before[k] for k in used)
-    run = MissionRun(load_mission_text(fleet_mission_text(10), "fleet.yaml"), controller="track")
-    run.run(until=25)
-    heights = [v.backend.telemetry().height_above_ground for v in run.vehicles.values()]
-    assert min(heights) > 1.0, heights  # all ten flying their routes by then
-    assert run.paths.searches > 0
-    assert {f.__name__: len(f.signatures) for f in kernels} == before
+    mission = tmp_path / "fleet.yaml"
+    mission.write_text(fleet_mission_text(10))
+    out = loop_kernels(mission, 25.0, mode)
+    assert out["scipy_at_build"]
+    used = {"_apf_kernels.navigator_force", "_route_kernels.carrots"}
+    used |= {"_surface_kernels.scan_points", "_surface_kernels.nearest_distances"}
+    used |= {"_neighbour_kernels.near_points"}  # a fleet's neighbour query (past SMALL_FLEET)
+    used |= {"_multirotor_kernels.step_all", "_bid_kernels.first_bad_cost"}  # bids' check
+    used |= {"_multirotor_kernels.rock_rows", "_multirotor_kernels.near_pairs"}  # contacts
+    used |= {"_kernels.search"} | ({"_fleet_kernels.fleet_follow"} if mode == "fleet" else set())
+    assert {k for k, n in out["built"].items() if n} >= used
+    assert min(out["heights"]) > 1.0, out["heights"]  # all ten flying their routes by then
+    assert out["searches"] > 0 and (out["batched"] > 0) == (mode == "fleet")
+    assert out["loop_loaded"] == {}
+
+
+@pytest.mark.serial
+def test_a_mavlink_run_loads_its_loop_kernels_while_it_builds(tmp_path: Path) -> None:
+    """A MAVLink drone with map sensors (no fleet step: the provider ray-casts no fleet; its
+    LiDAR's arrays are not the simulator's): its provider's warm_up and the runtime's cover
+    what its loop calls — the navigator on that LiDAR, the planner, the bids."""
+    from tests.mavlink_helpers import SPEED, mavsim
+    from tests.system.test_mavlink_run import MISSION  # one drone, one inspection
+
+    with mavsim(Autopilot.PX4) as sim:
+        text = MISSION.format(url=sim.endpoints[0].url, speed=SPEED)
+        text = text.replace("telemetry_hz: 20}", "telemetry_hz: 20, map_sensors: true}")
+        assert "map_sensors: true" in text
+        mission = tmp_path / "small.yaml"
+        mission.write_text(text.lstrip())
+        out = loop_kernels(mission, 25.0, "each")
+    assert min(out["highest"]) > 1.0, out["highest"]  # it took off and flew to its task
+    assert out["searches"] > 0 and out["batched"] == 0
+    used = {"_apf_kernels.navigator_force", "_route_kernels.carrots"}
+    used |= {"_surface_kernels.scan_points", "_bid_kernels.first_bad_cost", "_kernels.search"}
+    assert {k for k, n in out["built"].items() if n} >= used
+    assert out["loop_loaded"] == {}
 
 
 def test_the_pruning_warm_up_compiles_the_signatures_a_large_solve_uses() -> None:

@@ -75,7 +75,19 @@ class Recording(SimProvider):
         self.attached: list[tuple[str, VehicleKind, Vec3, str, AttachOptions]] = []
         self.steps: list[float] = []
         self.closed = False
+        self.phases: list[str] = []
+        """The phases called before the first step, in order (attach: once per agent)."""
         Recording.made.append(self)
+
+    def warm_up(self) -> None:
+        self.phases.append("warm_up")
+        super().warm_up()
+
+    def prepare(self, vehicles: Sequence[VehicleRef]) -> None:
+        self.phases.append("prepare")
+
+    def start(self) -> None:
+        self.phases.append("start")
 
     def attach(
         self,
@@ -86,6 +98,7 @@ class Recording(SimProvider):
         options: AttachOptions = AttachOptions(),
     ) -> Vehicle:
         self.attached.append((agent_id, kind, start, ref.url, options))
+        self.phases.append("attach")
         return super().attach(agent_id, kind, start, ref, options)
 
     def step(self, dt: float) -> list[VehicleEvent]:
@@ -251,6 +264,8 @@ def test_a_run_gets_its_vehicles_from_the_agents_provider(
     ]
     # the navigator's speed; nothing of MAVLink's frames (the MAVLink provider reads them)
     assert made.attached[0][4] == AttachOptions(v_max=run.nav_config.speed_m_s)
+    # the kernels loaded while the run is built, before any link opens or vehicle comes
+    assert made.phases == ["warm_up", "prepare", "attach", "attach", "start"]
     result = run.run()
     assert result.reason == "completed" and result.steps == len(made.steps) > 0
     assert set(made.steps) == {run.dt}
