@@ -7,12 +7,11 @@ for the step that applies it, so the answer carries the result: ``T8 added at 11
 it was refused. A refusal is a :class:`ConsoleError` with the HTTP status it maps to and, for a
 bad field, the field's name.
 
-A task added here is checked exactly as a task of a mission file is
-(:func:`btmission.spec.mission.check_added_task`: the same model and messages), and its
-positions against the map as ``btmission validate`` checks them
-(:func:`btmission.world.checks.point_problem`: outside the map, inside rock), before it reaches
-the run; a task no agent can reach is left ``unreachable`` by the auction, with the reason, as
-any task is.
+A task added here is checked by the run, as a task added by any other way is
+(:mod:`btmission.runtime.taskcheck`): as a task of the mission file, with the same model and
+messages, and its positions against the map as ``btmission validate`` checks them (outside the
+map, inside rock); the console only maps a refusal to its HTTP status. A task no agent can reach
+is left ``unreachable`` by the auction, with the reason, as any task is.
 
 A flood of requests cannot stall the run: at most :data:`MAX_PENDING` commands wait for their
 step at once, and a token bucket (:class:`RateLimit`) admits :data:`COMMAND_RATE_HZ` commands a
@@ -22,11 +21,10 @@ second on average; beyond either the request is refused with 429.
 from __future__ import annotations
 
 import json
-import re
 import threading
 import time
-from collections import Counter
 from collections.abc import Iterator, Mapping
+from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass
@@ -35,20 +33,20 @@ from typing import Any
 from btmission.errors import BtmissionError
 from btmission.runtime.commands import (
     PRIORITY_LEVELS,
-    AddTask,
     CancelTask,
     Command,
     CommandError,
     ExcludeAgent,
     IncludeAgent,
+    Outcome,
     RecallAgent,
     Refused,
     SetAllocation,
     SetLink,
     SetPriority,
     Stop,
-    priority_value,
 )
+from btmission.runtime.taskcheck import TOO_MANY, TaskError
 
 WAIT_S = 5.0
 """How long (wall time) a request waits for the step that applies its command; past it the
@@ -127,10 +125,6 @@ class Result:
         return out
 
 
-_ID = re.compile(r"^(.*?)(\d+)$")
-_MISSING = re.compile(r"lacks field '([^']+)'")
-
-
 class Console:
     """A running mission's operator console (module docstring). ``session`` is the
     :class:`~btmission.runtime.session.RunSession` (its mission), ``run`` its
@@ -156,7 +150,6 @@ class Console:
         self._pending = 0
         self._status_cache: tuple[Any, bytes] | None = None
         self._lock = threading.Lock()
-        self._id_lock = threading.Lock()
         self.drill_agents = frozenset(
             a.id for a in self.mission.agents if a.vehicle.scheme in LINK_DRILL_SCHEMES
         )
@@ -179,7 +172,7 @@ class Console:
             "enabled": self.read_only is None,
             "reason": self.read_only,
             "task_types": types,
-            "places": sorted(self.run.places),
+            "places": sorted(self.run.port.tasks.places),
             "priorities": dict(PRIORITY_LEVELS),
             "next_task_id": self.next_task_id(),
             "next_task_ids": {name: self.next_task_id(name) for name in types},
@@ -197,22 +190,9 @@ class Console:
 
     def next_task_id(self, task_type: str | None = None) -> str:
         """The next free id in the mission's own pattern (T1..T7 → T8), that of the tasks of
-        ``task_type`` if it has some (P1 → P2 beside I1, I2), else ``T<n>``."""
-        pool = self.run.snapshot.pool  # (a task queued since is caught by knows_task below)
-        ids = [t.id for t in pool if _type_of(t) == task_type] if task_type else []
-        ids = ids or [t.id for t in pool]
-        prefixes: Counter[str] = Counter()
-        top: dict[str, int] = {}
-        for tid in ids:
-            m = _ID.match(tid)
-            if m:
-                prefixes[m.group(1)] += 1
-                top[m.group(1)] = max(top.get(m.group(1), 0), int(m.group(2)))
-        prefix = prefixes.most_common(1)[0][0] if prefixes else "T"
-        n = top.get(prefix, 0) + 1
-        while self.run.knows_task(f"{prefix}{n}"):
-            n += 1
-        return f"{prefix}{n}"
+        ``task_type`` if it has some (P1 → P2 beside I1, I2), else ``T<n>``: the id the run
+        gives a task added without one (:meth:`~btmission.runtime.taskcheck.TaskCheck.next_id`)."""
+        return str(self.run.port.tasks.next_id(task_type))
 
     def status_json(self) -> bytes:
         """:meth:`status` as JSON, encoded once per snapshot however many read it (a flood of
@@ -266,58 +246,17 @@ class Console:
             return self._add_task(body, by)
 
     def _add_task(self, body: Any, by: str) -> Result:
-        from btmission.diagnostics import SpecError
-        from btmission.spec.mission import check_added_task
-        from btmission.spec.source import parse_yaml
-
-        if not isinstance(body, dict):
-            raise ConsoleError(
-                422, 'a task is a JSON object such as {"type": "inspect", "location": [x, y, z]}'
-            )
-        data = dict(body)
-        with self._id_lock:  # two adds without an id: two different ids
-            if data.get("id") in (None, ""):
-                data["id"] = self.next_task_id(data.get("type"))
-            tt = self.mission.task_types.get(data.get("type"))
-            if tt is not None and data.get("priority") is not None:
-                try:
-                    data["priority"] = priority_value(data["priority"], tt.priority)
-                except CommandError as exc:
-                    raise ConsoleError(422, str(exc), "priority") from None
-            # the mission file's model and checks, on the task as JSON (JSON is YAML)
-            src = parse_yaml(json.dumps(data), "<request>")
-            try:
-                task = check_added_task(self.mission, src, frozenset(self.run.places) or None)
-            except SpecError as exc:
-                first = exc.diagnostics[0]
-                missing = _MISSING.search(first.message) if first.code == "missing-field" else None
-                field = first.item or (missing.group(1) if missing else None)
-                named = field and first.message.startswith((field, f"task field '{field}'"))
-                raise ConsoleError(422, f"{field}: {first.message}" if field and not named
-                                   else first.message, field) from None  # fmt: skip
-            for name, value in task.fields.items():
-                problem = self._where_problem(value)
-                if problem:
-                    raise ConsoleError(422, f"{name}: {problem}", name)
-            limit = _max_tasks()
-            if len(self.run.snapshot.pool) >= limit:
-                raise ConsoleError(
-                    409, f"the mission has {limit} tasks already (BTMISSION_MAX_TASKS)"
-                )
-            payload: dict[str, Any] = {
-                "id": task.id, "type": task.type, **task.fields, "priority": task.priority,
-            }  # fmt: skip
+        with self._slot():
+            try:  # the run's one check of a task (module docstring); its id reserved
+                info, future = self.run.port.add_task(body, by)
+            except TaskError as exc:
+                raise _task_refused(exc) from None
+            except CommandError as exc:  # the run has ended
+                raise ConsoleError(409, _plain_error(str(exc), "add_task")) from None
             later = ""
-            if "at" in data:
-                payload["at"] = task.at
-                if task.at > self.run.now():
-                    later = f", announced from {task.at:g} s"
-            try:
-                return self._submit(AddTask(payload, by=by), f"{task.id} added", later, task.id)
-            except ConsoleError as exc:
-                if "duplicate" in exc.message:
-                    raise ConsoleError(422, f"id: {exc.message}", "id") from None
-                raise
+            if info.arrival_s > self.run.now() + 1e-9:
+                later = f", announced from {info.arrival_s:g} s"
+            return self._wait(future, "add_task", f"{info.id} added", later, info.id)
 
     def cancel_task(self, task: str, by: str, reason: str = "") -> Result:
         with self._audit("cancel_task", by, {"task": task}):
@@ -326,12 +265,10 @@ class Console:
 
     def set_priority(self, task: str, value: Any, by: str) -> Result:
         with self._audit("set_priority", by, {"task": task, "priority": value}):
-            info = self._task_info(task)
-            tt = self.mission.task_types.get(info.type) if info is not None else None
-            try:
-                prio = priority_value(value, tt.priority if tt is not None else 1.0)
-            except CommandError as exc:
-                raise ConsoleError(422, str(exc), "priority") from None
+            try:  # the bounds of a task's priority, wherever it is given (module docstring)
+                prio = self.run.port.tasks.priority(task, value)
+            except TaskError as exc:
+                raise _task_refused(exc) from None
             cmd = SetPriority(task, prio, by=by)
             return self._submit(cmd, f"{task} priority {prio:g}", task=task)
 
@@ -406,26 +343,10 @@ class Console:
             return None
         return next((a for a in snap.agents if a.id == agent), None)
 
-    def _where_problem(self, value: Any) -> str | None:
-        from btmission.world.checks import point_problem
-
-        vmap = self.run.map
-        if vmap is None or not (isinstance(value, (list, tuple)) and len(value) == 3):
-            return None
-        found = point_problem(vmap, (float(value[0]), float(value[1]), float(value[2])))
-        return found[1] if found else None
-
-    def _task_info(self, task: str) -> Any:
-        t = self.run.snapshot.pool.get(task)
-        return t.info if t is not None else None
-
-    def _submit(
-        self, command: Command, done: str, note: str = "", task: str | None = None
-    ) -> Result:
-        """Submit ``command`` (at most :data:`MAX_PENDING` wait at once) and wait for the step
-        that applies it; ``done`` says what happened, ``note`` is added after its time."""
-        from btmission.runtime.coordinator import TaskError
-
+    @contextmanager
+    def _slot(self) -> Iterator[None]:
+        """A place among the :data:`MAX_PENDING` commands waiting for their step (429 when
+        there is none), held until the answer."""
         with self._lock:
             if self._pending >= self.max_pending:
                 raise ConsoleError(
@@ -433,25 +354,40 @@ class Console:
                 )
             self._pending += 1
         try:
-            try:
-                future = self.run.submit(command)
-            except (CommandError, TaskError) as exc:
-                text = _plain_error(str(exc), command.name)
-                raise ConsoleError(404 if text.startswith("unknown") else 409, text) from None
-            try:
-                outcome = future.result(timeout=self.wait_s)
-            except FutureTimeout:
-                now = self.run.now()
-                return Result(
-                    command.name, True, now, f"{done}: queued for the next step", 202, task
-                )
+            yield
         finally:
             with self._lock:
                 self._pending -= 1
+
+    def _submit(
+        self, command: Command, done: str, note: str = "", task: str | None = None
+    ) -> Result:
+        """Submit ``command`` (at most :data:`MAX_PENDING` wait at once) and wait for the step
+        that applies it; ``done`` says what happened, ``note`` is added after its time."""
+        with self._slot():
+            try:
+                future = self.run.submit(command)
+            except TaskError as exc:
+                raise _task_refused(exc) from None
+            except CommandError as exc:
+                text = _plain_error(str(exc), command.name)
+                raise ConsoleError(404 if text.startswith("unknown") else 409, text) from None
+            return self._wait(future, command.name, done, note, task)
+
+    def _wait(
+        self, future: Future[Outcome], name: str, done: str, note: str, task: str | None
+    ) -> Result:
+        """Wait, at most :attr:`wait_s`, for the step that applies the command ``name``: its
+        answer (202 when it did not come)."""
+        try:
+            outcome = future.result(timeout=self.wait_s)
+        except FutureTimeout:
+            now = self.run.now()
+            return Result(name, True, now, f"{done}: queued for the next step", 202, task)
         if not outcome.ok:
-            raise ConsoleError(409, _plain_error(outcome.error, command.name), logged=True)
+            raise ConsoleError(409, _plain_error(outcome.error, name), logged=True)
         text = f"{done} at {outcome.t:.1f} s{note}"
-        return Result(command.name, True, outcome.t, text, 200, task)
+        return Result(name, True, outcome.t, text, 200, task)
 
 
 def _task_row(t: Any, now: float) -> dict[str, Any]:
@@ -476,8 +412,10 @@ def _task_row(t: Any, now: float) -> dict[str, Any]:
     }
 
 
-def _type_of(task: Any) -> str | None:
-    return getattr(getattr(task, "info", None), "type", None)
+def _task_refused(exc: TaskError) -> ConsoleError:
+    """The answer to a task (or a priority) the run's check refused: 422 naming the field; 409
+    when the pool is full (the run's state, not the task, is at fault)."""
+    return ConsoleError(409 if exc.code == TOO_MANY else 422, exc.message, exc.field)
 
 
 def _plain_error(text: str, name: str) -> str:
@@ -509,9 +447,3 @@ def _goal_args(tt: Any) -> set[str]:
 
 def _plain(fields: Mapping[str, Any]) -> dict[str, Any]:
     return {k: list(v) if isinstance(v, tuple) else v for k, v in fields.items()}
-
-
-def _max_tasks() -> int:
-    from btmission.limits import MAX_TASKS
-
-    return int(MAX_TASKS.value)

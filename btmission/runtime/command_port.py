@@ -5,10 +5,13 @@ a scripted :meth:`~btmission.runtime.runner.MissionRun.at` callback — goes thr
 :class:`CommandPort` (:mod:`btmission.runtime.commands` lists the commands):
 
 1. :meth:`CommandPort.submit` (any thread) checks the command against the run as it stands — an
-   unknown agent or task, a priority that is no number > 0, a run that has ended — and raises
-   :class:`~btmission.runtime.commands.CommandError` at once; a task to add is checked by the
-   coordinator, which reserves its id (:class:`~btmission.runtime.coordinator.TaskError`);
-2. the command waits in the run's :class:`~btmission.runtime.commands.CommandQueue`;
+   unknown agent or task, a run that has ended — and raises
+   :class:`~btmission.runtime.commands.CommandError` at once; a task to add, and a task's new
+   priority, are checked by :attr:`CommandPort.tasks` (:mod:`btmission.runtime.taskcheck`: the
+   one check of a task, whoever adds it, with the mission file's rules and messages), which
+   reserves the task's id (:class:`~btmission.runtime.taskcheck.TaskError`);
+2. the command waits in the run's :class:`~btmission.runtime.commands.CommandQueue` (an added
+   task as checked: the coordinator puts it in the pool as it is);
 3. between two steps the loop calls :meth:`CommandPort.apply_queued`: each command goes to its
    handler (one method per command type, :data:`CommandPort.handlers`), and is logged as a
    ``command`` event with its outcome, which the submitter's future then holds.
@@ -16,10 +19,10 @@ a scripted :meth:`~btmission.runtime.runner.MissionRun.at` callback — goes thr
 
 from __future__ import annotations
 
-import math
 import threading
 from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import Future
+from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 from btmission.allocation.tasks import TaskInfo
@@ -40,13 +43,13 @@ from btmission.runtime.commands import (
     Signal,
     Stop,
 )
-from btmission.runtime.coordinator import TaskError
 from btmission.runtime.eventkinds import (
     AgentLostEvent,
     CommandEvent,
     LinkEvent,
     SignalEvent,
 )
+from btmission.runtime.taskcheck import TaskCheck, TaskError
 
 if TYPE_CHECKING:
     from btmission.runtime.runner import MissionRun
@@ -74,29 +77,43 @@ class CommandPort:
         """The handler of each command type, called with the command and the mission time."""
         self._schedule: list[tuple[float, int, Callable[[MissionRun], None]]] = []
         self._schedule_lock = threading.Lock()
+        self.tasks = TaskCheck(
+            run.mission,
+            lambda: run.coordinator.state.pool,
+            places=run.places,
+            world=run.map,
+        )
+        """The one check of a task to add (and of a task's new priority), and the ids it
+        reserved (:mod:`btmission.runtime.taskcheck`)."""
 
     # ---------------------------------------------------------------- submitting
     def submit(self, command: Command) -> Future[Outcome]:
         """Check ``command`` and queue it for the next step (thread-safe); the future of its
         outcome (module docstring)."""
-        run = self.run
         self.check(command)
         if isinstance(command, AddTask):
-            run.coordinator.add_task(command.task, run.now(), command.by)
-        return run.commands.put(command)
+            return self._add(command)[1]
+        if isinstance(command, SetPriority):
+            command = replace(command, priority=self.tasks.priority(command.task, command.priority))
+        return self.run.commands.put(command)
 
-    def add_task(self, task: Mapping[str, Any] | TaskInfo, by: str) -> TaskInfo:
-        """Check a task and queue it (its id is reserved now); the task as the pool will have
-        it."""
-        run = self.run
-        self.refuse_after_end("add_task")
-        info = run.coordinator.add_task(task, run.now(), by)
-        data = dict(task) if isinstance(task, Mapping) else {
-            "id": info.id, "type": info.type, **info.fields, "priority": info.priority,
-            "at": info.arrival_s,
-        }  # fmt: skip
-        run.commands.put(AddTask(data, by=by))
-        return info
+    def add_task(
+        self, task: Mapping[str, Any] | TaskInfo, by: str
+    ) -> tuple[TaskInfo, Future[Outcome]]:
+        """Check a task (:class:`~btmission.runtime.taskcheck.TaskCheck`: its id, if it has
+        none, is the next free one) and queue it, its id reserved; the task as the pool will
+        have it, and the future of the command's outcome."""
+        command = AddTask(task, by=by)
+        self.check(command)
+        return self._add(command)
+
+    def _add(self, command: AddTask) -> tuple[TaskInfo, Future[Outcome]]:
+        info = self.tasks.reserve(command.task, self.run.now())
+        return info, self.run.commands.put(replace(command, task=info))
+
+    def knows(self, task_id: str) -> bool:
+        """Whether ``task_id`` is taken: in the pool or queued to enter it (any thread)."""
+        return self.tasks.knows(task_id)
 
     def refuse_after_end(self, name: str) -> None:
         ended = self.run.ended
@@ -114,12 +131,8 @@ class CommandPort:
                 f"{command.name}: unknown agent '{agent}' (agents: {', '.join(run.agents)})"
             )
         if tasks and isinstance(command, (CancelTask, SetPriority)):
-            if not run.coordinator.knows(command.task):
+            if not self.tasks.knows(command.task):
                 raise CommandError(f"{command.name}: unknown task '{command.task}'")
-        if isinstance(command, SetPriority):
-            p = command.priority
-            if not (isinstance(p, (int, float)) and math.isfinite(p) and p > 0):
-                raise CommandError(f"set_priority: priority must be a number > 0, got {p!r}")
 
     # ---------------------------------------------------------------- scheduling
     def at(self, t: float, fn: Callable[[MissionRun], None] | Command) -> None:
@@ -170,11 +183,15 @@ class CommandPort:
     def settle_unapplied(self) -> list[tuple[Future[Outcome], Outcome]]:
         """The run has ended: every command still queued is logged as not applied (a stop as
         done); their outcomes, for :func:`settle` once the last snapshot is out."""
+        left = self.run.commands.take()
+        for command, _ in left:
+            if isinstance(command, AddTask) and isinstance(command.task, TaskInfo):
+                self.tasks.release(command.task.id)
         return [  # the run ended before their step came
             (future, self.log(
                 command, "" if isinstance(command, Stop) else "not applied: the run had ended"
             ))
-            for command, future in self.run.commands.take()
+            for command, future in left
         ]  # fmt: skip
 
     def log(self, command: Command, error: str) -> Outcome:
@@ -188,7 +205,7 @@ class CommandPort:
         else:
             args = command.to_data()
         if isinstance(command, AddTask):
-            args["task"] = dict(command.task).get("id")
+            args["task"] = command.task_id
         event = CommandEvent(
             command=name, by=command.by, ok=not error, error=error or None, extra=args
         )
@@ -210,9 +227,13 @@ class CommandPort:
         raise CommandError(command.error)
 
     def _add_task(self, command: AddTask, now: float) -> None:
-        # checked and queued with the coordinator when submitted: it enters the pool now
-        # (later commands may name it)
-        self.run.coordinator.intake(now)
+        # checked when submitted (submit): it enters the pool now (later commands may name it)
+        info = command.task
+        assert isinstance(info, TaskInfo), "an AddTask is queued as checked"
+        try:
+            self.run.coordinator.add_task(info, now, command.by)
+        finally:
+            self.tasks.release(info.id)
 
     def _stop(self, command: Stop, now: float) -> None:
         self.run.stop_asked = command.reason

@@ -9,8 +9,8 @@ steps, in the order they were submitted. Each applied command is logged as a ``c
 and the log show operator actions next to what they caused.
 
 =====================  =====================================================================
-:class:`AddTask`       a new task enters the pool (checked when submitted: unknown type,
-                       missing fields, duplicate id are refused at once)
+:class:`AddTask`       a new task enters the pool (checked when submitted, as a task of the
+                       mission file is: :mod:`btmission.runtime.taskcheck`)
 :class:`CancelTask`    a task leaves the pool (state ``cancelled``); its agent stops it
 :class:`SetPriority`   a task's priority changes (it is announced again)
 :class:`RecallAgent`   an agent gives up its task, stops bidding and runs its default
@@ -42,6 +42,7 @@ from concurrent.futures import Future
 from dataclasses import asdict, dataclass, field
 from typing import Any, ClassVar
 
+from btmission.allocation.tasks import TaskInfo
 from btmission.errors import BtmissionError
 
 
@@ -67,9 +68,17 @@ class Command:
 @dataclass(frozen=True)
 class AddTask(Command):
     name: ClassVar[str] = "add_task"
-    task: Mapping[str, Any]
+    task: Mapping[str, Any] | TaskInfo
     """``{"id": "T8", "type": "inspect", "location": [x, y, z]}``, optionally ``priority``,
-    ``at``."""
+    ``at`` (without ``id``: the next free one). Once submitted, the queued command carries the
+    task as checked (:mod:`btmission.runtime.taskcheck`): a TaskInfo."""
+
+    @property
+    def task_id(self) -> Any:
+        """The task's id as given (None when the operator left it to the run)."""
+        if isinstance(self.task, TaskInfo):
+            return self.task.id
+        return self.task.get("id") if isinstance(self.task, Mapping) else None
 
 
 @dataclass(frozen=True)

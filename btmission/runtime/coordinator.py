@@ -7,9 +7,9 @@ progress reports, allocates, and sends everyone their assignment (seed 000 §IV-
 Around that it
 
 * adds the mission's tasks at their ``at:`` time (the pool holds them from the start; they are
-  announced from their arrival), and tasks given to :meth:`Coordinator.add_task` while the mission
-  runs — the hook the operator interface and the network transport use; it may be called from any
-  thread and takes effect at the next step;
+  announced from their arrival), and tasks added while the mission runs (:meth:`Coordinator.
+  add_task`, called by the run's command port with a task it checked,
+  :mod:`btmission.runtime.taskcheck`);
 * drops agents that stop bidding for ``coordination.agent_timeout_s`` and returns their task to
   the pool (the auction's stale-bid rule: a bid is also the agent's heartbeat);
 * leaves tasks no agent can reach open (state ``unreachable``) with the reason, and says at once
@@ -34,18 +34,14 @@ epoch, or another epoch: a restarted coordinator), so one delivered late changes
 from __future__ import annotations
 
 import math
-import queue
 import secrets
-import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import replace
-from typing import Any
 
 from btmission.allocation.auction import Announcement, AuctionConfig, AuctionState
 from btmission.allocation.loop import AuctionLoop, Inbox, Progress, RoundResult
 from btmission.allocation.tasks import PoolError, TaskInfo, TaskState
-from btmission.errors import BtmissionError
 from btmission.links.bus import (
     AgentStatus,
     Assignment,
@@ -65,6 +61,7 @@ from btmission.runtime.eventkinds import (
 from btmission.runtime.events import EmitEvent
 from btmission.runtime.mission_auction import pool_from_mission
 from btmission.runtime.recovery import Recovered, logged_key
+from btmission.runtime.taskcheck import TaskError
 from btmission.spec.mission import Mission
 
 
@@ -72,10 +69,6 @@ def new_epoch() -> int:
     """A random coordinator epoch, 1 … 2**53 - 1 (exact as a JSON number in any language;
     0 means "unknown")."""
     return secrets.randbelow(2**53 - 1) + 1
-
-
-class TaskError(BtmissionError, ValueError):
-    """A task given to :meth:`Coordinator.add_task` cannot be used (the message says why)."""
 
 
 class _Now:
@@ -124,10 +117,7 @@ class Coordinator:
         self.loop = AuctionLoop(state, _Now(clock), self._collect, self._publish)
         self.period_s = self.loop.period_s
         self.next_round = 0.0
-        self._pending: queue.SimpleQueue[tuple[TaskInfo, str]] = queue.SimpleQueue()
-        self._adding = threading.Lock()
         self._added: set[str] = set()
-        self._queued: set[str] = set()
         self._history_len: dict[str, int] = {}
         self.statuses: dict[str, AgentStatus] = {}
         self.rounds: list[float] = []
@@ -150,66 +140,16 @@ class Coordinator:
     def state(self) -> AuctionState:
         return self.loop.state
 
-    def task_info(self, task: Mapping[str, Any] | TaskInfo, now: float) -> TaskInfo:
-        """Check a task given as ``{id, type, <fields>, [priority], [at]}`` (or a TaskInfo)."""
-        if isinstance(task, TaskInfo):
-            info = task
-        else:
-            data = dict(task)
-            tid = str(data.pop("id", "") or "")
-            ttype = str(data.pop("type", "") or "")
-            at = float(data.pop("at", now) or 0.0)
-            prio = data.pop("priority", None)
-            tt = self.mission.task_types.get(ttype)
-            if tt is None:
-                raise TaskError(
-                    f"task '{tid}': unknown type '{ttype}' (task types: "
-                    f"{', '.join(self.mission.task_types)})"
-                )
-            missing = [f for f in tt.fields if f not in data]
-            extra = [f for f in data if f not in tt.fields]
-            if missing or extra:
-                raise TaskError(
-                    f"task '{tid}' of type '{ttype}' needs fields {', '.join(tt.fields) or 'none'}"
-                    + (f"; missing {', '.join(missing)}" if missing else "")
-                    + (f"; unknown {', '.join(extra)}" if extra else "")
-                )
-            for name in tt.cost.symbols:  # cost arguments: positions or named places
-                v = data.get(name)
-                if isinstance(v, str) and v not in self._places:
-                    known = ", ".join(sorted(self._places)) or "none: the mission has no topomap"
-                    raise TaskError(
-                        f"task '{tid}': field '{name}' is '{v}', which is not a place "
-                        f"(expected [x, y, z] or one of: {known})"
-                    )
-            try:
-                info = TaskInfo(
-                    tid,
-                    ttype,
-                    data,
-                    float(prio) if prio is not None else tt.priority,
-                    max(at, now),
-                    tt.commit_after is not None,
-                )
-            except ValueError as exc:
-                raise TaskError(str(exc)) from None
-        if info.id in self.state.pool or info.id in self._queued:
-            raise TaskError(f"duplicate task id '{info.id}'")
-        return info
-
-    def add_task(self, task: Mapping[str, Any] | TaskInfo, now: float, by: str = "api") -> TaskInfo:
-        """Queue a task for the pool (thread-safe); it is announced from the next round at or
-        after its arrival. Raises :class:`TaskError` for an unknown type, missing fields, a
-        duplicate id or a bad priority."""
-        with self._adding:  # two threads adding the same id: one of them is refused
-            info = self.task_info(task, now)
-            self._queued.add(info.id)
-            self._pending.put((info, by))
-        return info
-
-    def knows(self, task_id: str) -> bool:
-        """Whether ``task_id`` is in the pool or queued to enter it."""
-        return task_id in self.state.pool or task_id in self._queued
+    def add_task(self, info: TaskInfo, now: float, by: str = "api") -> None:
+        """A task enters the pool now (a ``task_added`` event); it is announced from the next
+        round at or after its arrival. The loop's thread, applying an
+        :class:`~btmission.runtime.commands.AddTask`: the run's
+        :class:`~btmission.runtime.taskcheck.TaskCheck` checked the task and reserved its id
+        when it was submitted, so the pool takes it as it is."""
+        if info.id in self.state.pool:  # (a caller that went around the run's check)
+            raise TaskError(f"id: duplicate task id '{info.id}'", "id", "duplicate-id")
+        self.loop.state = self.state.add_task(info, now)
+        self._emit_added(info, now, by)
 
     def cancel_task(self, task_id: str, now: float, reason: str) -> None:
         """Take a task out of the pool (state ``cancelled``); its agent is told at the next
@@ -283,22 +223,8 @@ class Coordinator:
         self._seen = {agent: set(keys) for agent, keys in recovered.seen.items()}
 
     # ---------------------------------------------------------------- stepping
-    def intake(self, now: float) -> None:
-        """Queued tasks enter the pool now (each a ``task_added`` event)."""
-        while True:
-            try:
-                info, by = self._pending.get_nowait()
-            except queue.Empty:
-                break
-            if info.id in self.state.pool:
-                self._emit(WarningEvent(message=f"task '{info.id}' added twice; ignored"))
-                continue
-            self.loop.state = self.state.add_task(info, now)
-            self._emit_added(info, now, by)
-
     def step(self, now: float) -> RoundResult | None:
-        """Take queued tasks, report arrivals, and run a round if one is due."""
-        self.intake(now)
+        """Report arrivals, and run a round if one is due."""
         pool = self.state.pool
         if len(self._added) < len(pool):  # some task has not arrived yet
             for t in pool:
@@ -468,8 +394,9 @@ class Coordinator:
 
     def settled(self, now: float) -> bool:
         """Nothing left to allocate: every arrived task is done, failed or unreachable, nothing
-        is held, nothing is queued and no task is still to arrive. (The run asks every step:
-        the pool's first open task answers it, before the queue and the arrivals are looked at.)"""
+        is held and no task is still to arrive. (The run asks every step: the pool's first
+        open task answers it, before the arrivals are looked at. A task queued to enter the
+        pool is the command port's: :func:`~btmission.runtime.ending.why_finished` asks it.)"""
         if self._open is not None:
             return False
         for t in self.state.pool:
@@ -477,4 +404,4 @@ class Coordinator:
                 continue
             if t.state is not TaskState.UNREACHABLE:
                 return False
-        return self._pending.empty() and self.state.pool.next_arrival(now) is None
+        return self.state.pool.next_arrival(now) is None

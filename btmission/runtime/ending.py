@@ -54,7 +54,7 @@ def why_finished(run: MissionRun) -> str | None:
         return _part_finished(run)
     agents = run.agents.values()
     pool = run.coordinator.state.pool
-    if not run.coordinator.settled(run.now()):
+    if not _settled(run, run.now()):
         if any(a.alive and not a.recalled for a in agents):  # (every step, mostly)
             return None  # someone can still take the open tasks
         live = [a for a in agents if a.alive]  # killed or recalled: nobody can any more
@@ -80,7 +80,7 @@ def _part_finished(run: MissionRun) -> str | None:
     timeout = run.coordinator.state.config.agent_timeout_s
     heard = {a: st for a, st in run.coordinator.statuses.items() if now - st.time_s <= timeout}
     pool = run.coordinator.state.pool
-    if not run.coordinator.settled(now):
+    if not _settled(run, now):
         return None
     if not heard and any(not t.state.terminal for t in pool):
         return None  # nobody to do them yet (agents may come back)
@@ -89,6 +89,12 @@ def _part_finished(run: MissionRun) -> str | None:
     if all(t.state in (TaskState.DONE, TaskState.CANCELLED) for t in pool):
         return "completed"
     return "finished with open tasks"
+
+
+def _settled(run: MissionRun, now: float) -> bool:
+    """Nothing left to allocate: the coordinator's pool is settled and no task added is still
+    queued to enter it."""
+    return run.coordinator.settled(now) and not run.port.tasks.waiting
 
 
 def heard_end(part: Part | None) -> MissionEnd | None:

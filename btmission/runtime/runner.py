@@ -284,7 +284,7 @@ class MissionRun:
 
     def knows_task(self, task_id: str) -> bool:
         """Whether ``task_id`` is taken: in the pool or queued to enter it (any thread)."""
-        return self.coordinator.knows(task_id)
+        return self.port.knows(task_id)
 
     def link_up(self, agent: str) -> bool:
         """Whether ``agent``'s link to its coordinator is up (as this process sees it)."""
@@ -329,16 +329,18 @@ class MissionRun:
         the future of its :class:`~btmission.runtime.commands.Outcome`, set when that step
         applied or refused it. Raises :class:`~btmission.runtime.commands.CommandError` at once
         for a command that names an unknown agent or task, and
-        :class:`~btmission.runtime.coordinator.TaskError` for a task that cannot be added (it is
-        checked, and its id reserved, right here)."""
+        :class:`~btmission.runtime.taskcheck.TaskError` for a task that cannot be added or a
+        priority out of bounds (a task is checked, and its id reserved, right here)."""
         return self.port.submit(command)
 
     def add_task(self, task: Mapping[str, Any] | TaskInfo, *, by: str = "api") -> TaskInfo:
         """Add a task while the mission runs (thread-safe): ``{"id": "T8", "type": "inspect",
-        "location": [x, y, z]}``, optionally with ``priority`` and ``at``. Raises
-        :class:`~btmission.runtime.coordinator.TaskError` when it cannot be used; it enters the
-        pool at the next step."""
-        return self.port.add_task(task, by)
+        "location": [x, y, z]}``, optionally with ``priority`` (a number or a name: ``high``)
+        and ``at``; without ``id``, the next free one. It is checked as a task of the mission
+        file is (:mod:`btmission.runtime.taskcheck`): :class:`~btmission.runtime.taskcheck.
+        TaskError` says why it cannot be used. It enters the pool at the next step; the task as
+        the pool will have it."""
+        return self.port.add_task(task, by)[0]
 
     def cancel_task(self, task: str, reason: str = "cancelled by the operator") -> None:
         """Take a task out of the pool (state ``cancelled``); its agent stops executing it."""

@@ -49,7 +49,6 @@ from btmission.spec.vehicleref import BACKEND_RE, VehicleRef
 MISSION_FORMAT_VERSION = 1
 
 
-
 class ResolvedLibrary(Protocol):
     """What the file model needs of an agent's library: its checked model and its findings.
     (Loading gives :class:`btmission.plugins.LoadedLibrary`, which also carries the
@@ -426,18 +425,28 @@ def _check_task(
         add((*tpath, "at"), f"task '{t.id}' is added at {t.at:g} s, when a run has already "
             f"stopped (runtime.max_duration_s is {limit:g} s)", "never-added", Severity.WARNING)  # fmt: skip
     prio = t.priority if t.priority is not None else tt2.priority
-    weight = prio * spec.coordination.priority_scale
     ppath: tuple[str | int, ...] = (*tpath, "priority")
     if t.priority is None:  # the type's priority, else the default 1: blame the scale
         ppath = ("task_types", t.type, "priority")
         if ppath not in src.key_positions:
             ppath = ("coordination", "priority_scale")
-    if weight > MAX_PRIORITY_WEIGHT and ppath not in heavy:
+    heavy_problem = _priority_problem(t.id, prio, spec)
+    if heavy_problem and ppath not in heavy:
         heavy.add(ppath)
-        add(ppath, f"task '{t.id}': priority {prio:g} × coordination.priority_scale "
-            f"{spec.coordination.priority_scale:g} is {weight:g}; the auction takes at most "
-            f"{MAX_PRIORITY_WEIGHT:g}", "schema")  # fmt: skip
+        add(ppath, heavy_problem, "schema")
     return prio, task_fields
+
+
+def _priority_problem(task_id: str, prio: float, spec: MissionSpec) -> str | None:
+    """Why a task's priority (its own or its type's) is too large for the auction, or None:
+    the one upper bound of a priority, wherever it comes from (the file, an added task, a
+    changed priority: :func:`check_priority`)."""
+    weight = prio * spec.coordination.priority_scale
+    if weight <= MAX_PRIORITY_WEIGHT:
+        return None
+    return (f"task '{task_id}': priority {prio:g} × coordination.priority_scale "
+            f"{spec.coordination.priority_scale:g} is {weight:g}; the auction takes at most "
+            f"{MAX_PRIORITY_WEIGHT:g}")  # fmt: skip
 
 
 def _place_problem(
@@ -457,7 +466,8 @@ def _place_problem(
 
 
 def check_added_task(mission: Mission, src: Source, places: frozenset[str] | None = None) -> Task:
-    """A task added while ``mission`` runs (by the operator console), given as the mapping
+    """A task added while ``mission`` runs (the run's one check of it,
+    :class:`btmission.runtime.taskcheck.TaskCheck`, whoever adds it), given as the mapping
     ``src.data`` (``{id, type, [at], [priority], <the type's fields>}``), checked as a task of
     the mission file is: the same model, the same checks, the same messages; each problem's
     item names the field. ``places``: the topological map's nodes, if the mission has one.
@@ -485,6 +495,22 @@ def check_added_task(mission: Mission, src: Source, places: frozenset[str] | Non
         raise SpecError(diags)
     assert checked is not None
     return Task(t.id, t.type, t.at, checked[0], checked[1], src.locate(()))
+
+
+def check_priority(mission: Mission, task_id: str, value: Any) -> float:
+    """A new priority for the task ``task_id`` while ``mission`` runs (the
+    operator's change of priority), checked as a task's ``priority:`` in the mission file is:
+    the same model, bound and messages, the item ``priority``. Raises :class:`SpecError`."""
+    # (the task's own id and type were checked when it was added: only the priority is read)
+    src = Source("<priority>", {"id": "T", "type": "t", "priority": value})
+    if value is None:
+        raise SpecError([src.diag(("priority",), "expected a number > 0 (got null)", "schema")])
+    t: TaskSpec = validate_model(TaskSpec, src, "task")
+    assert t.priority is not None
+    problem = _priority_problem(task_id, t.priority, mission.spec)
+    if problem:
+        raise SpecError([src.diag(("priority",), problem, "schema")])
+    return t.priority
 
 
 def compile_mission(spec: MissionSpec, src: Source, resolve: LibraryResolver[L]) -> Mission[L]:

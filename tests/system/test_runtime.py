@@ -11,10 +11,10 @@ import pytest
 
 from btmission.diagnostics import SpecError
 from btmission.missions import load_mission, load_mission_text
-from btmission.runtime.coordinator import TaskError
 from btmission.runtime.events import Event, JsonlEventLog, Recorder, read_events
 from btmission.runtime.report import build_report
 from btmission.runtime.runner import MissionRun
+from btmission.runtime.taskcheck import TaskError
 from btmission.spec.mission import Mission
 from btmission.world.voxel import OCCUPIED, VoxelMap
 
@@ -119,13 +119,15 @@ def test_an_agent_whose_link_drops_keeps_executing(tmp_path: Path) -> None:
 
 
 def test_an_unreachable_task_stays_open_with_its_reason(tmp_path: Path) -> None:
-    """A pocket walled off by rock, a task added inside rock: the others finish, these two stay
-    open and the report says why."""
+    """A pocket walled off by rock, a task arriving inside rock (a mission file the run takes
+    without the session's map checks): the others finish, these two stay open and the report
+    says why. A task added inside rock while the run goes is refused, as validate says it."""
     m = mission_text(
         ROBOTS.replace(
             "  - {id: A, type: inspect, location: [12, 2, 0]}",
             "  - {id: A, type: inspect, location: [6, 2, 0]}\n"
-            "  - {id: B, type: inspect, location: [12, 6.5, 0]}",
+            "  - {id: B, type: inspect, location: [12, 6.5, 0]}\n"
+            "  - {id: R, type: inspect, location: [11.2, 6.0, 0], at: 1}",
         ),
         tmp_path,
     )
@@ -134,7 +136,10 @@ def test_an_unreachable_task_stays_open_with_its_reason(tmp_path: Path) -> None:
     vm.state[46:50, 22:30, :] = 0  # ...hollow inside
     rec = Recorder()
     run = MissionRun(m, observers=[rec], voxel_map=vm)
-    run.at(1.0, lambda r: r.add_task({"id": "R", "type": "inspect", "location": [11.2, 6.0, 0]}))
+    with pytest.raises(TaskError) as rock:
+        run.add_task({"id": "S", "type": "inspect", "location": [11.2, 6.0, 0]})
+    assert rock.value.field == "location" and rock.value.code == "in-rock"
+    assert str(rock.value).startswith("location: [11.2, 6, 0] is inside rock (an occupied voxel)")
     result = run.run(until=300)
     assert result.reason == "finished with open tasks"
     assert result.done == ["A"]
@@ -148,19 +153,23 @@ def test_an_unreachable_task_stays_open_with_its_reason(tmp_path: Path) -> None:
 
 
 def test_tasks_added_through_the_api_are_checked(tmp_path: Path) -> None:
+    """The mission file's messages, each led by the field it names (as validate's item)."""
     run = MissionRun(mission_text(ROBOTS, tmp_path))
-    with pytest.raises(TaskError, match="unknown type 'nope'"):
+    with pytest.raises(TaskError, match=r"^type: unknown task type 'nope'; declared: inspect$"):
         run.add_task({"id": "X", "type": "nope"})
-    with pytest.raises(TaskError, match="missing location"):
+    with pytest.raises(TaskError, match=r"^location: task 'X' of type 'inspect' lacks field"):
         run.add_task({"id": "X", "type": "inspect"})
-    with pytest.raises(TaskError, match="unknown where"):
+    with pytest.raises(TaskError, match=r"^where: unknown key 'where' for a task of type"):
         run.add_task({"id": "X", "type": "inspect", "location": [1, 1, 0], "where": 1})
-    with pytest.raises(TaskError, match="duplicate task id 'A'"):
+    with pytest.raises(TaskError, match=r"^id: duplicate task id 'A'$"):
         run.add_task({"id": "A", "type": "inspect", "location": [1, 1, 0]})
     info = run.add_task({"id": "X", "type": "inspect", "location": [5, 5, 0], "priority": 2})
     assert info.priority == 2 and info.arrival_s == 0.0
-    with pytest.raises(TaskError, match="duplicate task id 'X'"):
+    with pytest.raises(TaskError, match=r"^id: duplicate task id 'X'$"):
         run.add_task({"id": "X", "type": "inspect", "location": [1, 1, 0]})
+    # no id: the next free one; a priority by name: a multiple of the type's
+    auto = run.add_task({"type": "inspect", "location": (5.0, 6.0, 0.0), "priority": "high"})
+    assert (auto.id, auto.priority, auto.fields) == ("T1", 2.0, {"location": [5.0, 6.0, 0.0]})
 
 
 def test_a_library_without_implementations_cannot_run(tmp_path: Path) -> None:

@@ -43,9 +43,10 @@ from btmission.console.service import (
 )
 from btmission.diagnostics import SpecError
 from btmission.missions import load_mission_text
-from btmission.runtime.commands import Command, CommandError, Outcome, priority_value
+from btmission.runtime.commands import AddTask, Command, CommandError, Outcome, priority_value
 from btmission.runtime.events import Event, read_events
 from btmission.runtime.session import RunSession
+from btmission.runtime.taskcheck import TaskError, next_task_id
 from btmission.viz.live import LiveViewer
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -306,25 +307,27 @@ def test_rate_limit_admits_a_burst_then_the_rate() -> None:
     assert limit.take() > 0
 
 
-def _stub_console(
-    ids: tuple[str, ...] = (), queued: tuple[str, ...] = (), submit: Any = None, **kw: Any
-) -> Console:
-    """A console over a stand-in run: its pool's ids (in its snapshot), ids queued to enter
-    it, its submit. The console reads the run only through these (no coordinator)."""
-    snapshot = SimpleNamespace(pool=[SimpleNamespace(id=t) for t in ids], agents=(), paused=None)
-    run = SimpleNamespace(
-        knows_task=lambda t: t in ids or t in queued, submit=submit, now=lambda: 12.0,
-        snapshot=snapshot,
-    )  # fmt: skip
+def _stub_console(submit: Any = None, **kw: Any) -> Console:
+    """A console over a stand-in run: its snapshot and its submit. The console reads the run
+    only through these (no coordinator)."""
+    snapshot = SimpleNamespace(pool=[], agents=(), paused=None)
+    run = SimpleNamespace(submit=submit, now=lambda: 12.0, snapshot=snapshot)
     return Console(SimpleNamespace(mission=SimpleNamespace(agents=[])), run, **kw)
 
 
 def test_the_next_task_id_follows_the_missions_pattern() -> None:
-    seven = tuple(f"T{i}" for i in range(1, 8))
-    assert _stub_console(seven).next_task_id() == "T8"
-    assert _stub_console(seven, queued=("T8",)).next_task_id() == "T9"  # reserved by an add
-    assert _stub_console(("I1", "I2", "P9", "I10")).next_task_id() == "I11"
-    assert _stub_console().next_task_id() == "T1"
+    seven = [(f"T{i}", "inspect") for i in range(1, 8)]
+
+    def taken(*ids: str) -> Any:
+        return lambda t: t in ids
+
+    assert next_task_id(seven, None, taken()) == "T8"
+    assert next_task_id(seven, None, taken("T8")) == "T9"  # reserved by an add
+    mixed = [("I1", "inspect"), ("I2", "inspect"), ("P9", "pick"), ("I10", "inspect")]
+    assert next_task_id(mixed, None, taken()) == "I11"
+    assert next_task_id(mixed, "pick", taken()) == "P10"  # the pattern of its type
+    assert next_task_id(mixed, "survey", taken()) == "I11"  # a type with none: the mission's
+    assert next_task_id([], None, taken()) == "T1"
 
 
 def test_commands_beyond_the_rate_or_the_bound_are_refused() -> None:
@@ -524,15 +527,29 @@ def test_a_flood_of_requests_neither_slows_the_run_nor_loses_a_command(tmp_path:
     assert len(adds) == accepted and all(e.get("ok") for e in adds)
 
 
-def test_a_task_is_refused_with_the_mission_files_own_message(live: Live) -> None:
-    """Parity: the console's message for an unknown task type, or a bad field value, is the
-    text `btmission validate` gives for the same task written in the mission file."""
+BAD_TASKS: tuple[tuple[dict[str, Any], str], ...] = (
+    ({"id": "T9", "type": "inspekt", "location": FREE}, "type"),
+    ({"id": "T9", "type": "inspect", "location": ["x", 5.75, 1.5]}, "location"),
+    ({"id": "T9", "type": "inspect", "location": FREE, "colour": "red"}, "colour"),
+    ({"id": "T9", "type": "inspect"}, "location"),
+    ({"id": "T9", "type": "inspect", "location": FREE, "priority": 0}, "priority"),
+    ({"id": "T9", "type": "inspect", "location": FREE, "priority": 1e300}, "priority"),
+    ({"id": "T9", "type": "inspect", "location": FREE, "at": -1}, "at"),
+    ({"id": "T-9", "type": "inspect", "location": FREE}, "id"),
+)
+"""Tasks the mission file refuses too, each with the field at fault."""
+
+
+def test_a_bad_task_gets_the_mission_files_message_whichever_way_it_comes(
+    live: Live, cli_run: Any
+) -> None:
+    """Parity (one check, :mod:`btmission.runtime.taskcheck`): a bad task is refused with the
+    text `btmission validate` gives for it in the mission file, led by the field, whether it
+    comes through the HTTP API, the Python API (``add_task``, ``submit``, ``at``) or the CLI;
+    none of them reaches the pool."""
     text = MINE.read_text()
-    for task, field_name in (
-        ({"id": "T9", "type": "inspekt", "location": FREE}, "type"),
-        ({"id": "T9", "type": "inspect", "location": ["x", 5.75, 1.5]}, "location"),
-        ({"id": "T9", "type": "inspect", "location": FREE, "colour": "red"}, "colour"),
-    ):
+    messages: list[str] = []
+    for task, field_name in BAD_TASKS:
         bad = text.replace("\ntask_types:", "\n  - " + json.dumps(task) + "\ntask_types:", 1)
         with pytest.raises(SpecError) as found:
             load_mission_text(bad, "bad.yaml")
@@ -541,6 +558,39 @@ def test_a_task_is_refused_with_the_mission_files_own_message(live: Live) -> Non
         assert answer.status == 422 and answer.loc == ["body", field_name], answer.body
         assert answer.message.endswith(diag.message), (answer.message, diag.message)
         assert diag.message in answer.body["detail"][0]["msg"]
+        for way in (live.run.add_task, lambda t: live.run.submit(AddTask(t))):
+            with pytest.raises(TaskError) as refused:
+                way(task)
+            assert (refused.value.message, refused.value.field) == (answer.message, field_name)
+        messages.append(answer.message)
+    # scripted for a later step: refused then, and logged
+    when = live.run.now() + 0.5
+    for task, _ in BAD_TASKS:
+        live.run.at(when, AddTask(task, by="script"))
+    scripted = wait_for(
+        lambda: len(found := [e for e in live.events("command") if e.get("by") == "script"])
+        == len(BAD_TASKS) and found,
+        "the scripted adds refused",
+    )  # fmt: skip
+    assert [(e.get("ok"), e.get("error")) for e in scripted] == [(False, m) for m in messages]
+    # the CLI, through the API: exit 2 with the same message
+    url = f"{live.url}?token={TOKEN}"
+    here = ",".join(str(v) for v in FREE)
+    for args, body in (
+        (("--type", "inspekt", "--at", here), {"type": "inspekt", "location": FREE}),
+        (("--type", "inspect", "-f", "colour=red", "--at", here),
+         {"type": "inspect", "colour": "red", "location": FREE}),
+        (("--type", "inspect", "--at", "20,30,1.5"),
+         {"type": "inspect", "location": [20.0, 30.0, 1.5]}),
+        (("--type", "inspect", "--at", here, "--priority", "huge"),
+         {"type": "inspect", "location": FREE, "priority": "huge"}),
+    ):  # fmt: skip
+        with pytest.raises(TaskError) as refused:
+            live.run.add_task(body)
+        r = cli_run("task", "add", url, *args)
+        assert r.exit_code == 2 and refused.value.message in r.output, (r.output, refused.value)
+    assert not [e for e in live.events("task_added") if e.get("task") in ("T9", "T-9")]
+    assert not [t for t in live.status()["tasks"] if t["id"] in ("T9", "T-9", "T8")]
 
 
 # ---------------------------------------------------------------------------- the guard
@@ -973,16 +1023,17 @@ def test_the_form_gets_the_fields_in_the_goals_order_and_a_ground_fleets_offset(
     dropoff)), whatever order the type keeps its fields in; a ground fleet's task is picked on
     the floor (offset 0), a drone's 1 m off the face."""
     from btmission.missions import load_mission
+    from btmission.runtime.mission_auction import pool_from_mission
+    from btmission.runtime.taskcheck import TaskCheck
     from btmission.vehicles.base import VehicleKind
 
     mission = load_mission(ROOT / "missions" / "pick_and_deliver.yaml")
 
     def info(kind: VehicleKind) -> dict[str, Any]:
-        pool = [SimpleNamespace(id=t.id, info=SimpleNamespace(type=t.type)) for t in mission.tasks]
+        tasks = TaskCheck(mission, lambda: pool_from_mission(mission))
         run = SimpleNamespace(
-            places={}, vehicles={"G1": SimpleNamespace(kind=kind)},
-            snapshot=SimpleNamespace(pool=pool), knows_task=lambda t: False,
-        )  # fmt: skip
+            vehicles={"G1": SimpleNamespace(kind=kind)}, port=SimpleNamespace(tasks=tasks)
+        )
         return Console(SimpleNamespace(mission=mission), run).info()
 
     ground = info(VehicleKind.GROUND)

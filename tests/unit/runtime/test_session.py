@@ -24,11 +24,11 @@ from btmission.runtime.commands import (
     Stop,
     command_from_data,
 )
-from btmission.runtime.coordinator import TaskError
 from btmission.runtime.events import Event, Recorder, read_events
 from btmission.runtime.loops import AgentRuntime
 from btmission.runtime.runner import MissionRun
 from btmission.runtime.session import RunSession
+from btmission.runtime.taskcheck import TaskError
 from tests.system.test_runtime import ROBOTS as ROBOTS_OF_TEST_RUNTIME
 
 ROBOTS = ROBOTS_OF_TEST_RUNTIME.replace(  # two ground robots, one task more, arriving at 30 s
@@ -117,9 +117,9 @@ def test_bad_commands_are_refused_when_submitted(tmp_path: Path) -> None:
         run.submit(KillAgent("R9"))
     with pytest.raises(CommandError, match="cancel_task: unknown task 'Z'"):
         run.submit(CancelTask("Z"))
-    with pytest.raises(CommandError, match="priority must be a number > 0, got -1"):
+    with pytest.raises(TaskError, match=r"^priority: Input should be greater than 0 \(got -1\)$"):
         run.submit(SetPriority("A", -1))
-    with pytest.raises(TaskError, match="duplicate task id 'A'"):
+    with pytest.raises(TaskError, match=r"^id: duplicate task id 'A'$"):
         run.submit(AddTask({"id": "A", "type": "inspect", "location": [2, 2, 0]}))
     with pytest.raises(CommandError, match="unknown agent"):
         run.at(3.0, RecallAgent("nobody"))
@@ -464,7 +464,7 @@ def test_two_threads_adding_one_id_one_is_refused(tmp_path: Path) -> None:
             th.start()
         for th in threads:
             th.join(timeout=10)
-        assert sorted(outcomes) == [f"duplicate task id 'X{k}'", "ok"]
+        assert sorted(outcomes) == [f"id: duplicate task id 'X{k}'", "ok"]
 
 
 def test_the_report_shows_operator_commands(tmp_path: Path) -> None:
