@@ -143,6 +143,8 @@ class CommandPort:
         if isinstance(fn, Command):
             command = fn
             self.check(command, tasks=False)
+            if isinstance(command, SetPriority):  # a bad value is refused now, not at t
+                self.tasks.priority(command.task, command.priority)
 
             def call(run: MissionRun) -> None:
                 try:

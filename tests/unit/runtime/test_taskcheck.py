@@ -147,8 +147,11 @@ def test_a_new_priority_has_the_bounds_of_an_added_tasks(tmp_path: Path) -> None
             run.add_task({"id": "P", "type": "inspect", "location": [3, 3, 0], "priority": value})
         with pytest.raises(TaskError) as changed:
             run.submit(SetPriority("A", value))
+        with pytest.raises(TaskError) as scheduled:
+            run.at(3.0, SetPriority("A", value))  # refused when scheduled, not at 3 s
         assert changed.value.field == added.value.field == "priority"
         assert str(changed.value) == str(added.value).replace("task 'P'", "task 'A'")
+        assert str(scheduled.value) == str(changed.value)
     assert run.commands.empty()
     run.submit(SetPriority("A", "high"))  # a name: twice the type's (1)
     run.run(until=0.5)
