@@ -50,7 +50,7 @@ default_behavior: {{goal: landed_at_home, idle_timeout_s: 2}}
 runtime:
   controller: track
   max_duration_s: 120
-  mavlink: {{time_scale: {speed}, connect_timeout_s: 5, telemetry_hz: 20{mavlink}}}
+  mavlink: {{time_scale: {speed}, connect_timeout_s: 5, telemetry_hz: 20}}
 """
 
 
@@ -58,7 +58,9 @@ def small_mission(tmp_path: Path, sim: MavSim, mavlink: str = "") -> Path:
     """The one-drone mission on ``sim``'s vehicle (``mavlink``: more ``runtime.mavlink``
     settings, ``", key: value"``)."""
     path = tmp_path / "small.yaml"
-    text = MISSION.format(url=sim.endpoints[0].url, speed=SPEED, mavlink=mavlink)
+    text = MISSION.format(url=sim.endpoints[0].url, speed=SPEED)
+    text = text.replace("telemetry_hz: 20}", f"telemetry_hz: 20{mavlink}}}")
+    assert mavlink in text
     path.write_text(textwrap.dedent(text).lstrip())
     return path
 
@@ -175,9 +177,7 @@ def test_a_run_stopped_in_flight_holds_then_lands_its_vehicles(tmp_path: Path) -
 def test_vehicles_that_may_be_real_need_yes(tmp_path: Path) -> None:
     path = tmp_path / "remote.yaml"
     path.write_text(
-        textwrap.dedent(
-            MISSION.format(url="mavlink+udp://0.0.0.0:14550", speed=1, mavlink="")
-        ).lstrip()
+        textwrap.dedent(MISSION.format(url="mavlink+udp://0.0.0.0:14550", speed=1)).lstrip()
     )
     result = run_cli(str(path), "--log", str(tmp_path / "logs"))
     assert result.exit_code == 2
@@ -255,9 +255,7 @@ def test_sigterm_mid_flight_holds_then_lands_before_exiting(tmp_path: Path) -> N
 def test_a_missing_signing_key_file_is_refused_before_anything_runs(tmp_path: Path) -> None:
     path = tmp_path / "remote.yaml"
     path.write_text(
-        textwrap.dedent(
-            MISSION.format(url="mavlink+udp://127.0.0.1:1", speed=1, mavlink="")
-        ).lstrip()
+        textwrap.dedent(MISSION.format(url="mavlink+udp://127.0.0.1:1", speed=1)).lstrip()
     )
     missing = tmp_path / "none.key"
     result = run_cli(str(path), "--log", str(tmp_path / "logs"), "--mavlink-key-file", str(missing))
