@@ -29,7 +29,11 @@ agent's start (or ``origin`` option), north along world +y
 
 Time: real vehicles live on the wall clock; simulated ones may run faster (mavsim ``--speed``,
 ArduPilot SITL ``--speedup``, PX4_SIM_SPEED_FACTOR) and the run's clock then runs as much faster
-(``time_scale``). Telemetry times are the run clock's when the message arrived.
+(``time_scale``). Telemetry times are the run clock's when the message arrived (0 for a message
+that came while the vehicles connected: the clock restarts when the mission starts). Link loss is
+judged in wall time (``heartbeat_timeout_s``, whatever ``time_scale``): a busy machine's pause
+lasts as long on the wall clock at any speed-up, and must not read as a lost link because the
+vehicles run four times faster.
 """
 
 from __future__ import annotations
@@ -142,8 +146,15 @@ class MavlinkProvider(ProviderBase):
                 continue
 
     def start(self) -> None:
-        """The mission starts now: the run clock restarts at zero (connecting took its time)."""
+        """The mission starts now: the run clock restarts at zero (connecting took its time),
+        and what the vehicles told before counts as told at the start (t = 0), not at a time
+        of the connecting clock that the mission's never shows."""
         self.clock.restart()
+        for vehicle in self.vehicles.values():
+            st = vehicle.state
+            st.heartbeat_at = min(st.heartbeat_at, 0.0)
+            st.position_at = min(st.position_at, 0.0)
+            st.range_at = min(st.range_at, 0.0)
 
     def attach(
         self,

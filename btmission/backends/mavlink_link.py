@@ -100,7 +100,8 @@ class MavlinkOptions:
     """Vehicle time after which a setpoint the mission stopped renewing is no longer streamed
     (the mission's own rate must stay above ~3 Hz; the control loop runs at 20 Hz)."""
     heartbeat_timeout_s: float = 3.0
-    """Run-clock time without a vehicle heartbeat after which its link counts as lost."""
+    """Wall time (whatever ``time_scale``) without a vehicle heartbeat after which its link
+    counts as lost."""
     hover_thrust: float = 0.5
     """Normalised hover throttle (PX4 MPC_THR_HOVER / ArduPilot MOT_THST_HOVER) for attitude
     setpoints."""

@@ -243,8 +243,9 @@ def agent_link(run: MissionRun, agent: str) -> AgentLink:
 
     def followed(before: float, now: float) -> None:
         run.emit_event(ClockEvent(agent=agent, was_s=before, now_s=now))
+        run.clock_set()
 
-    clock = run.clock
+    clock = run.provider.clock  # (the run's once the provider starts)
     if not isinstance(clock, ScaledWallClock):  # the agent process's clock is its vehicles'
         raise SpecError([Diagnostic(
             Severity.ERROR, "agent-process",

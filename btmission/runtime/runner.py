@@ -26,7 +26,11 @@ and advances it in fixed steps of simulated time (``runtime.sim.step_s``). One s
 Time comes from the vehicle provider's clock: the simulator's (or the fake provider's) fixed
 steps, never the wall clock, so a simulated run is deterministic for a seed and goes as fast as
 the machine allows; ``realtime=True`` — always, with real vehicles, whose provider's clock is the
-wall clock — steps once per ``runtime.sim.step_s`` of wall time.
+wall clock — steps once per ``runtime.sim.step_s`` of wall time. The mission's time is 0 when
+the provider starts (:meth:`VehicleProvider.start <btmission.vehicles.provider.VehicleProvider.
+start>`, once every vehicle is attached): what is published while the run is built and its
+vehicles connect (the header, a vehicle without sensors) is stamped 0, never with the time
+connecting took (a restarted coordinator: its log's last time).
 
 The run ends when every task is done (or failed, or unreachable by any agent), nothing is left
 to arrive and every agent has finished its default behaviour (or waits, if it has none); or at
@@ -176,12 +180,14 @@ class MissionRun:
         self.speed = speed
         self.events = EventStream(observers)
         self.last_t = 0.0
-        self.clock: Clock = ManualClock(0.0)  # until the vehicle provider is built
+        self.clock: Clock = ManualClock(  # until the vehicle provider starts (module docstring)
+            part.resumed_at_s if part is not None and part.resumed_from is not None else 0.0
+        )
         build0 = time.perf_counter()
         # the header first: building the map and the planners can take long, and a run killed
         # meanwhile must still leave a log that `btmission report` reads (docs/running.md)
         if part is not None and part.resumed_from is not None:  # a restarted coordinator
-            self.emit_event(  # (its clock is not built yet: at the log's last time)
+            self.emit_event(  # (at the log's last time)
                 ResumedEvent(t=part.resumed_at_s, log=part.resumed_from, last_s=part.resumed_at_s)
             )
         else:
@@ -195,8 +201,16 @@ class MissionRun:
         self.nav_config = self.settings.of(NavConfig)
         # one provider for every agent (run_problems refused mixed fleets: one run, one clock)
         self.provider: VehicleProvider = make_provider(self)
-        self.clock = self.provider.clock
         self.realtime = realtime or self.provider.realtime  # real vehicles: the wall clock
+        self._pacer = Pacer(
+            self.provider.clock,  # (the run's from the start on)
+            rt.sim.step_s,
+            vehicles_realtime=self.provider.realtime,
+            realtime=self.realtime,
+            speed=self.speed,
+            emit=self.emit_event,
+        )
+        """Waits between the steps as the clock asks (:mod:`btmission.runtime.pacing`)."""
         self.vehicles: dict[str, Vehicle] = {}
         self.steps = 0
         self.paths = PathCosts(
@@ -246,6 +260,7 @@ class MissionRun:
             self.provider.close()
             raise
         self.provider.start()  # the mission's time starts now, however long connecting took
+        self.clock = self.provider.clock  # (what happened before it: at the start, t = 0)
         if part is not None and not part.runs_coordinator:
             follow_coordinator(self, part.sync_timeout_s)
         t0 = self.now()
@@ -267,15 +282,6 @@ class MissionRun:
         )
         """The fleet's control step (None: the agents' own, one by one)."""
         self._snapshots = SnapshotTaker()
-        self._pacer = Pacer(
-            self.clock,
-            self.dt,
-            vehicles_realtime=self.provider.realtime,
-            realtime=self.realtime,
-            speed=self.speed,
-            emit=self.emit_event,
-        )
-        """Waits between the steps as the clock asks (:mod:`btmission.runtime.pacing`)."""
         self._owner = threading.get_ident()
         """The thread that steps the run (:attr:`snapshot`)."""
         self._published_wall = 0.0
@@ -291,6 +297,11 @@ class MissionRun:
         if self.part is not None and agent in self.part.agent_links:
             return self.part.agent_links[agent].up
         return self.bus.link_up(agent)
+
+    def clock_set(self) -> None:
+        """This process's clock was set (an agent process follows its coordinator's): the
+        steps' schedule counts from now, and the jump is no step falling behind."""
+        self._pacer.start(self.steps)
 
     # ---------------------------------------------------------------- API
     def now(self) -> float:

@@ -224,7 +224,11 @@ class MavlinkSpec(_Strict):
         description="Position and attitude messages asked of each vehicle per second.",
     )
     heartbeat_timeout_s: FiniteFloat = Field(
-        3.0, gt=0, le=60, description="Without a heartbeat for this long a vehicle's link is lost."
+        3.0,
+        gt=0,
+        le=60,
+        description="Wall time without a heartbeat after which a vehicle's link is lost "
+        "(whatever time_scale).",
     )
     ack_timeout_s: FiniteFloat = Field(
         1.0, gt=0, le=30, description="Wall time to wait for a COMMAND_ACK before sending again."

@@ -26,7 +26,8 @@ what is wrong with one before anything runs. The provider then
 * owns the run's :attr:`~VehicleProvider.clock`: simulated time for the simulator, the wall clock
   (with :attr:`~VehicleProvider.realtime` True) for real vehicles;
 * is :meth:`~VehicleProvider.start`\\ ed once every vehicle is attached (the mission's time
-  starts: a real provider's clock restarts at zero);
+  starts: a real provider's clock restarts at zero; the run reads the clock only from then on,
+  and stamps what happens before, while vehicles connect, at 0);
 * is :meth:`~VehicleProvider.step`\\ ped once per runner step: the simulator integrates its
   physics by ``dt`` and reports collisions; a real provider pumps its inbox (or does nothing:
   real time passes on its own);
@@ -158,7 +159,8 @@ class VehicleProvider(Protocol):
 
     def start(self) -> None:
         """Every vehicle is attached: the mission's time starts (a real provider's clock
-        restarts at zero, however long connecting took)."""
+        restarts at zero, however long connecting took; the run reads :attr:`clock` only
+        after this)."""
         ...
 
     def step(self, dt: float) -> Sequence[VehicleEvent]:

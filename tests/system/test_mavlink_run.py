@@ -54,9 +54,13 @@ runtime:
 """
 
 
-def small_mission(tmp_path: Path, sim: MavSim) -> Path:
+def small_mission(tmp_path: Path, sim: MavSim, mavlink: str = "") -> Path:
+    """The one-drone mission on ``sim``'s vehicle (``mavlink``: more ``runtime.mavlink``
+    settings, ``", key: value"``)."""
     path = tmp_path / "small.yaml"
     text = MISSION.format(url=sim.endpoints[0].url, speed=SPEED)
+    text = text.replace("telemetry_hz: 20}", f"telemetry_hz: 20{mavlink}}}")
+    assert mavlink in text
     path.write_text(textwrap.dedent(text).lstrip())
     return path
 
@@ -86,11 +90,26 @@ def test_a_small_mission_flies_and_lands(tmp_path: Path, autopilot: Autopilot) -
         state = sim.vehicle_state("R1")
         assert state["landed"] and not state["armed"]  # the default behaviour landed at home
         assert abs(state["position"][0] - 5.0) < 1.0 and abs(state["position"][1] - 5.0) < 1.0
+        # the mission's time starts when the vehicle is connected: what came before (the
+        # header, the drone without sensors) is at 0, nothing later is stamped with the time
+        # connecting took, and the report's duration is the run's
+        (blind,) = [e for e in evs if e["ev"] == "warning" and "exteroceptive" in e["message"]]
+        assert blind["t"] == 0.0 and "reported_s" not in blind
+        times = [e["t"] for e in evs]
+        assert times == sorted(times) and times[0] == 0.0
+        end = evs[-1]
+        assert end["ev"] == "end" and end["t"] > 10.0  # the flight took that long, at least
+        assert f"Mission duration        {end['t']:.1f} s" in result.output
+        assert end["t"] < SPEED * end["wall_s"] + 1.0  # vehicle time since the start, no more
+        lags = [e["t"] - e["reported_s"] for e in evs if "reported_s" in e]
+        assert all(lag < 2.0 for lag in lags), lags  # reports the next round took, no more
 
 
 def test_a_vehicle_link_drop_mid_task_pauses_the_agent_and_it_resumes(tmp_path: Path) -> None:
     with mavsim(Autopilot.PX4) as sim:
-        mission = load_mission(small_mission(tmp_path, sim))
+        # heartbeats are missed for 0.8 s of wall time (8 s of the vehicle's: PX4 would land
+        # after 10 s), so the link is lost after 0.3 s of wall time here (3 s of the vehicle's)
+        mission = load_mission(small_mission(tmp_path, sim, ", heartbeat_timeout_s: 0.3"))
         rec = Recorder()
         run = MissionRun(mission, observers=[rec])
         try:
