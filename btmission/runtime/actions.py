@@ -40,12 +40,12 @@ vehicle decides how often it really asks its autopilot) until its effect shows."
 class CommandRetrySettings:
     """The runtime's retries of a refused vehicle command (every run has these settings)."""
 
-    command_retries: int = 3
+    refusal_retries: int = 3
     """How many more tries an action makes when its vehicle refuses a command transiently
     (arming refused by a pre-arm check, OFFBOARD denied, no answer) for a whole try
     (``COMMAND_TIMEOUT_S``, 5 s), each after a back-off; then the agent gives its task back (0:
     no retry)."""
-    command_backoff_s: float = 2.0
+    refusal_backoff_s: float = 2.0
     """The back-off before the first retry (s of mission time); it doubles after each one."""
 
 
@@ -109,9 +109,9 @@ class Command(StatefulAction):
 
     * **transient** (arming refused by a pre-arm check, a mode denied for now, no answer; an
       accepted command whose effect never showed counts as one): the action keeps RUNNING,
-      sends nothing for a back-off (``command_backoff_s``, doubling; mission time, no sleep)
+      sends nothing for a back-off (``refusal_backoff_s``, doubling; mission time, no sleep)
       and tries again, each retry a ``retry`` event with the refusal; after
-      ``command_retries`` retries it fails and says it gave up;
+      ``refusal_retries`` retries it fails and says it gave up;
     * **final** (a mode the vehicle does not have, a battery too low): it fails at once.
 
     Either way the failure is a *refusal* (:attr:`refused`): the agent hands its task back to
@@ -155,13 +155,13 @@ class Command(StatefulAction):
         else:
             reason = ack.reason or "not accepted"
         cfg = self.ctx.settings_of(CommandRetrySettings)
-        if self._retry >= cfg.command_retries:
+        if self._retry >= cfg.refusal_retries:
             tries = self._retry + 1
             return self._refused(
                 f"{reason} (gave up after {tries} tr{'y' if tries == 1 else 'ies'})"
             )
         self._retry += 1
-        wait = cfg.command_backoff_s * 2 ** (self._retry - 1)
+        wait = cfg.refusal_backoff_s * 2 ** (self._retry - 1)
         self._wait_until = now + wait
         agent = self.ctx.agent
         task = agent.task if agent is not None else None
@@ -171,7 +171,7 @@ class Command(StatefulAction):
                 task=task.id if task is not None else None,
                 action=self.name,
                 retry=self._retry,
-                retries=cfg.command_retries,
+                retries=cfg.refusal_retries,
                 reason=reason,
                 wait_s=wait,
             )

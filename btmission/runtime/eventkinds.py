@@ -175,7 +175,7 @@ class RetryEvent(TypedEvent):
     retry: int
     """This retry's number, 1 … ``retries``."""
     retries: int
-    """How many the action makes before it gives up (the ``command_retries`` setting)."""
+    """How many the action makes before it gives up (the ``refusal_retries`` setting)."""
     reason: str
     """The vehicle's refusal."""
     wait_s: float

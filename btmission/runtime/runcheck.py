@@ -42,7 +42,7 @@ SETTING_RANGES: dict[str, tuple[float, bool]] = {
     "altitude_m": (0.0, False),
     "stuck_s": (0.0, True),
     "replans": (0.0, False),
-    "command_retries": (0.0, False),
+    "refusal_retries": (0.0, False),
     "apf_gain": (0.0, False),
     "clearance_m": (0.0, False),
     "dispatch_budget_s": (0.0, True),

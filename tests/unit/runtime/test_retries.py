@@ -101,7 +101,7 @@ def test_a_vehicle_that_always_refuses_loses_its_task_to_another(tmp_path: Path)
     fake(run, "R1").refuse_arming(None, "PreArm: Compass not calibrated")
     result = run.run()
     assert result.reason == "completed" and result.done == ["T1"]
-    assert len(of(rec, "retry", agent="R1")) == 3  # command_retries, then it gave up
+    assert len(of(rec, "retry", agent="R1")) == 3  # refusal_retries, then it gave up
     (gave_up,) = of(rec, "progress", event="gave_up")
     assert gave_up.get("agent") == "R1"
     assert gave_up.get("reason") == ("arm: PreArm: Compass not calibrated (gave up after 4 tries)")
