@@ -276,3 +276,16 @@ def test_a_restarted_coordinator_keeps_the_attempt_counts(tmp_path: Path) -> Non
     again = recover(m, events)
     assert again.problems == ()
     assert again.pool["T1"].attempts == new.state.pool["T1"].attempts
+
+
+def test_a_task_added_while_the_mission_runs_has_its_types_max_attempts(tmp_path: Path) -> None:
+    """The command port's check (TaskCheck) gives an added task its type's max_attempts, and
+    a coordinator restored from the log gives it the same."""
+    log = tmp_path / "run.jsonl"
+    m = mission(tmp_path, attempts=2)
+    with JsonlEventLog(log) as sink:
+        run = MissionRun(m, observers=[sink])
+        info = run.add_task({"id": "X", "type": "inspect", "location": [12, 7, 2]})
+        run.run(until=1.0)
+    assert info.max_attempts == 2 and run.coordinator.state.pool["X"].info.max_attempts == 2
+    assert recover(m, read_events(log).events).pool["X"].info.max_attempts == 2
