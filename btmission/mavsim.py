@@ -30,7 +30,8 @@ firmware's SITL:
   only when armed and in OFFBOARD / GUIDED;
 * only ``MAV_FRAME_LOCAL_NED`` position targets are simulated (others are ignored and counted);
 * faults for tests: an EKF that is not ready for a while (arming refused with the pre-arm
-  message, TEMPORARILY_REJECTED on PX4), a pre-arm check that always fails, a link that drops,
+  message, TEMPORARILY_REJECTED on PX4), a pre-arm check that always fails or fails the first N
+  arming commands, a link that drops,
   MAVLink 2 signing (unsigned or badly signed messages dropped and counted).
 
 Time runs ``speed`` times faster than the wall clock (``--speed``; PX4_SIM_SPEED_FACTOR and
@@ -102,7 +103,11 @@ class MavSimConfig:
     ekf_delay_s: float = 0.0
     """The estimator is not ready for this long after start (simulated seconds)."""
     refuse_arm: str = ""
-    """A pre-arm check that always fails with this text."""
+    """A pre-arm check that always fails with this text (see :attr:`refuse_arm_times`)."""
+    refuse_arm_times: int = 0
+    """When > 0, the pre-arm check fails only on each vehicle's first this many arming commands,
+    then passes (a refusal the run retries and gets over); its text is :attr:`refuse_arm`, or
+    ``Preflight Fail: sensors not ready`` (PX4) / ``PreArm: sensors not ready`` (ArduPilot)."""
     signing_key: bytes | None = None
     hover_thrust: float = 0.5
     home_amsl_m: float = 0.0
@@ -116,6 +121,8 @@ class MavSimConfig:
     def __post_init__(self) -> None:
         if not (math.isfinite(self.speed) and 0 < self.speed <= 50):
             raise ValueError(f"speed must be in (0, 50], got {self.speed}")
+        if self.refuse_arm_times < 0:
+            raise ValueError(f"refuse_arm_times must be ≥ 0, got {self.refuse_arm_times}")
         if not self.vehicles:
             raise ValueError("no vehicles to simulate")
 
@@ -178,6 +185,8 @@ class _SimulatedAutopilot:
         """SET_POSITION_TARGET_LOCAL_NED in another frame than MAV_FRAME_LOCAL_NED (ignored)."""
         self.rover_armed = False
         """A ground robot's arming (the embedded simulator's robots drive whenever told)."""
+        self.arm_refusals_left = self.cfg.refuse_arm_times
+        """Arming commands still to refuse (:attr:`MavSimConfig.refuse_arm_times`)."""
         self.gps_origin: tuple[int, int, int] | None = None
         """GPS_GLOBAL_ORIGIN (degE7, degE7, mm) once SET_GPS_GLOBAL_ORIGIN gave one (the vehicles
         have no GPS: until then they know no global origin and do not answer a request)."""
@@ -366,9 +375,14 @@ class _SimulatedAutopilot:
         if self.armed():
             return mavlink.MAV_RESULT_ACCEPTED  # already armed
         px4 = self.autopilot is Autopilot.PX4
-        if self.cfg.refuse_arm and not force:
+        refuse = self.cfg.refuse_arm and not self.cfg.refuse_arm_times  # always
+        if self.arm_refusals_left > 0:  # the first ones only
+            self.arm_refusals_left -= 1
+            refuse = True
+        if refuse and not force:
             return self._refuse(
-                ("Preflight Fail: " if px4 else "PreArm: ") + self.cfg.refuse_arm,
+                ("Preflight Fail: " if px4 else "PreArm: ")
+                + (self.cfg.refuse_arm or "sensors not ready"),
                 mavlink.MAV_RESULT_DENIED if px4 else mavlink.MAV_RESULT_FAILED,
             )
         if not self.ekf_ready() and not force:

@@ -63,6 +63,11 @@ from btmission.cli.common import BadInput, FiniteFloat, handle_spec_errors
 )  # fmt: skip
 @click.option("--refuse-arm", default="", help="A pre-arm check that always fails with this text.")
 @click.option(
+    "--refuse-arm-times", type=click.IntRange(0), default=0, show_default=True,
+    help="Refuse only each vehicle's first N arming commands (the --refuse-arm text, else "
+    "'sensors not ready'), then arm: a refusal the run retries and gets over.",
+)  # fmt: skip
+@click.option(
     "--signing-key-file",
     type=click.Path(dir_okay=False, path_type=Path),
     help="MAVLink 2 signing key (64 hex digits or a passphrase); also BTMISSION_MAVLINK_KEY_FILE "
@@ -100,6 +105,7 @@ def mavsim(
     speed: float | None,
     ekf_delay: float,
     refuse_arm: str,
+    refuse_arm_times: int,
     signing_key_file: Path | None,
     hover_thrust: float,
     seed: int,
@@ -178,7 +184,8 @@ def mavsim(
     speed = 1.0 if speed is None else speed
     config = MavSimConfig(
         specs, voxel_map, autopilot=ap, speed=speed, ekf_delay_s=ekf_delay,
-        refuse_arm=refuse_arm, signing_key=key, hover_thrust=hover_thrust, seed=seed,
+        refuse_arm=refuse_arm, refuse_arm_times=refuse_arm_times, signing_key=key,
+        hover_thrust=hover_thrust, seed=seed,
     )  # fmt: skip
     try:
         sim = MavSim(config)

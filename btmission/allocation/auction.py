@@ -14,8 +14,9 @@ A round has the paper's three stages (seed 003 Fig. 3):
    profit bonuses, and an exact solver (:mod:`btmission.allocation.solvers`) finds the matching
    that assigns the most tasks, then maximizes ``Σ (priority_scale · priority_j − c_kj)``
    (eq. 4-7), keeping current holders on exact ties. Tasks whose agent has passed the commit
-   point (k_bt = 0) stay with that agent whatever the other bids. Every task left without an
-   agent gets the reason.
+   point (k_bt = 0) stay with that agent whatever the other bids. An agent that gave a task up
+   does not get it again for ``cooldown_s`` (its bid on it is left out), so the others are
+   offered it first. Every task left without an agent gets the reason.
 
 :func:`auction_round` is pure: ``(state, bids, now) → (assignments, new_state, report)``, with no
 clock, I/O or randomness, so a round can be replayed and tested exactly. The fixed-rate loop
@@ -63,6 +64,11 @@ class AuctionConfig:
     """A bid older than this is stale: its agent is dropped and its task returns to the pool."""
     rate_hz: float = 10.0
     """Rounds per second of the fixed-rate loop (the paper ran at 9 Hz)."""
+    cooldown_s: float = 30.0
+    """An agent that gave a task up takes no part in its allocation for this long."""
+    exclude_after: int = 3
+    """Different tasks an agent may give up in a row (none done between) before it is taken
+    out of the auction (0: never)."""
 
     def __post_init__(self) -> None:
         if not 0 < self.participation <= 1:
@@ -77,6 +83,10 @@ class AuctionConfig:
             raise ValueError(f"agent_timeout_s must be > 0, got {self.agent_timeout_s}")
         if not self.rate_hz > 0:
             raise ValueError(f"rate_hz must be > 0, got {self.rate_hz}")
+        if not (self.cooldown_s >= 0 and math.isfinite(self.cooldown_s)):
+            raise ValueError(f"cooldown_s must be ≥ 0, got {self.cooldown_s}")
+        if not self.exclude_after >= 0:
+            raise ValueError(f"exclude_after must be ≥ 0, got {self.exclude_after}")
 
     @property
     def method(self) -> str:
@@ -92,6 +102,8 @@ class AuctionConfig:
             solver=spec.solver,
             agent_timeout_s=spec.agent_timeout_s,
             rate_hz=spec.auction_rate_hz,
+            cooldown_s=spec.cooldown_s,
+            exclude_after=spec.exclude_after,
         )
 
 
@@ -361,7 +373,16 @@ class AuctionState:
     assigned (the rounds still run, so bids keep agents alive and progress is taken)."""
     excluded: frozenset[str] = frozenset()
     """Agents the operator took out of the auction: each keeps the task it holds (until it is
-    done or released) and wins nothing else."""
+    done or released) and wins nothing else. An agent that gave up ``config.exclude_after``
+    different tasks in a row is taken out the same way
+    (:func:`~btmission.allocation.loop.apply_progress`)."""
+    cooldown: Mapping[tuple[str, str], float] = field(default_factory=dict)
+    """(agent, task) → until when the agent, which gave the task up, takes no part in its
+    allocation (``config.cooldown_s`` after the give-up; expired entries are dropped by the
+    next round)."""
+    streaks: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
+    """Agent → the different tasks it gave up since it last finished one (or was taken out
+    of the auction for it)."""
 
     # -- progress reported by the agents (between rounds) ----------------------------------
     def add_task(self, info: TaskInfo, now: float | None = None) -> AuctionState:
@@ -377,6 +398,26 @@ class AuctionState:
 
     def fail(self, task_id: str, agent: str, now: float, reason: str = "") -> AuctionState:
         return replace(self, pool=self.pool.fail(task_id, agent, now, reason))
+
+    def give_up(self, task_id: str, agent: str, now: float, reason: str = "") -> AuctionState:
+        """``agent`` hands ``task_id`` back (:meth:`TaskPool.give_up`): unless that was the
+        task's last attempt, the agent is cooled down for it (``config.cooldown_s``); the task
+        joins the agent's streak of give-ups."""
+        pool = self.pool.give_up(task_id, agent, now, reason)
+        cooldown = self.cooldown
+        if pool[task_id].state is TaskState.OPEN and self.config.cooldown_s > 0:
+            cooldown = {**cooldown, (agent, task_id): now + self.config.cooldown_s}
+        streak = self.streaks.get(agent, ())
+        if task_id not in streak:
+            streak = (*streak, task_id)
+        streaks = {**self.streaks, agent: streak}
+        return replace(self, pool=pool, cooldown=cooldown, streaks=streaks)
+
+    def finished(self, agent: str) -> AuctionState:
+        """``agent`` finished a task: its streak of give-ups ends."""
+        if agent not in self.streaks:
+            return self
+        return replace(self, streaks={a: s for a, s in self.streaks.items() if a != agent})
 
     def holders(self) -> dict[str, str]:
         """Agent → the task it holds (assigned or committed)."""
@@ -545,6 +586,16 @@ def auction_round(
             if a in row_of:
                 costs[row_of[a]] = np.nan
                 covered[row_of[a]] = False
+    cooldown = state.cooldown
+    cooling: dict[int, list[tuple[str, float]]] = {}
+    """Announced task → the agents cooling down for it (they gave it up), until when."""
+    if cooldown:  # (rare: only after a give-up) drop the expired, leave the others' bids out
+        cooldown = {k: until for k, until in cooldown.items() if until > now}
+        for (a, tid), until in sorted(cooldown.items()):
+            i, j = row_of.get(a), index.get(tid)
+            if i is not None and j is not None:
+                costs[i, j] = np.nan
+                cooling.setdefault(j, []).append((a, until))
     for a, tid in pinned.items():  # a committed agent takes part in nothing else
         i = row_of[a]
         costs[i] = np.nan
@@ -613,6 +664,10 @@ def auction_round(
         who = [agents[i] for i in covering[:_SHOWN].tolist()]  # (those its reason names)
         if n_inf[j]:
             return f"unreachable: no path from {_names(who, len(covering))}", TaskState.UNREACHABLE
+        if j in cooling:
+            gave = cooling[j]
+            names = _names([f"{a} (until t={u:.1f}s)" for a, u in gave[:_SHOWN]], len(gave))
+            return f"cooling down: given up by {names}", TaskState.OPEN
         if who:
             busy = [f"{a} (committed to {pinned[a]})" if a in pinned else a for a in who]
             part = (
@@ -668,6 +723,8 @@ def auction_round(
 
     new_pool = pool.with_tasks(changed)
     new_state = replace(state, pool=new_pool, round=state.round + 1, board=board)
+    if cooldown is not state.cooldown:
+        new_state = replace(new_state, cooldown=cooldown)
     report = RoundReport(
         round=new_state.round,
         time_s=now,

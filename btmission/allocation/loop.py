@@ -72,13 +72,30 @@ class ManualClock:
 
 @dataclass(frozen=True)
 class Progress:
-    """An agent's report on its task: passed the commit point, done, or failed."""
+    """An agent's report on its task: passed the commit point, done, failed (the task cannot
+    be done), or gave up (its vehicle kept refusing: the task goes back to the pool)."""
 
     agent: str
     task: str
-    event: Literal["committed", "done", "failed"]
+    event: Literal["committed", "done", "failed", "gave_up"]
     time_s: float
     reason: str = ""
+
+
+@dataclass(frozen=True)
+class Exclusion:
+    """An agent taken out of the auction because it gave up ``tasks`` (different ones, in a
+    row, none done between: ``AuctionConfig.exclude_after`` of them)."""
+
+    agent: str
+    tasks: tuple[str, ...]
+
+    @property
+    def reason(self) -> str:
+        return (
+            f"gave up {len(self.tasks)} different tasks in a row ({', '.join(self.tasks)}) "
+            "without finishing one: out of the auction until the operator includes it again"
+        )
 
 
 @dataclass(frozen=True)
@@ -123,10 +140,32 @@ def _take_over(
     return replace(state, pool=state.pool.take_over(p.task, p.agent, p.time_s, st, reason))
 
 
+def _gave_up(state: AuctionState, p: Progress, excluded: list[Exclusion]) -> AuctionState:
+    """``p.agent`` gave ``p.task`` up: the task's attempt (:meth:`AuctionState.give_up`), and,
+    when that makes ``config.exclude_after`` different tasks in a row, the agent out of the
+    auction (appended to ``excluded``) — unless no other agent bids, where it stays to try the
+    tasks until they fail for good. A give-up of a task the agent no longer holds (taken from
+    it while its link was down) changes nothing."""
+    t = state.pool.get(p.task)
+    if t is None or t.agent != p.agent or t.state.terminal:
+        return state
+    state = state.give_up(p.task, p.agent, p.time_s, p.reason)
+    streak = state.streaks.get(p.agent, ())
+    most = state.config.exclude_after
+    if not most or len(streak) < most or p.agent in state.excluded:
+        return state
+    if not any(a != p.agent and a not in state.excluded for a in state.board):
+        return state
+    excluded.append(Exclusion(p.agent, streak))
+    streaks = {a: s for a, s in state.streaks.items() if a != p.agent}
+    return replace(state, excluded=state.excluded | {p.agent}, streaks=streaks)
+
+
 def apply_progress(
     state: AuctionState,
     reports: Iterable[Progress],
     withdrawn: list[Withdrawal] | None = None,
+    excluded: list[Exclusion] | None = None,
 ) -> tuple[AuctionState, list[str]]:
     """Apply progress reports in order; reports the pool refuses are returned as messages.
 
@@ -134,23 +173,28 @@ def apply_progress(
     point of) a task that was released or reassigned while its link was down — is accepted when
     it comes first: the task becomes done (committed) with that agent and the other holder is
     appended to ``withdrawn``. A later completion of a task already done is refused (it is
-    never counted twice)."""
+    never counted twice). A give-up hands the task back (:func:`_gave_up`; an agent taken out
+    of the auction for its give-ups is appended to ``excluded``); a completion ends the agent's
+    streak of give-ups."""
     problems: list[str] = []
     taken: list[Withdrawal] = [] if withdrawn is None else withdrawn
+    out: list[Exclusion] = [] if excluded is None else excluded
     for p in reports:
         try:
             if p.event == "committed":
                 state = state.commit(p.task, p.agent, p.time_s)
             elif p.event == "done":
-                state = state.complete(p.task, p.agent, p.time_s)
+                state = state.complete(p.task, p.agent, p.time_s).finished(p.agent)
             elif p.event == "failed":
                 state = state.fail(p.task, p.agent, p.time_s, p.reason)
+            elif p.event == "gave_up":
+                state = _gave_up(state, p, out)
             else:
                 problems.append(f"unknown progress event '{p.event}' from {p.agent}")
         except PoolError as exc:
             took = _take_over(state, p, taken)
             if took is not None:
-                state = took
+                state = took.finished(p.agent) if p.event == "done" else took
                 continue
             t = state.pool.get(p.task)
             if p.event == "done" and t is not None and t.state is TaskState.DONE:
@@ -187,6 +231,8 @@ class RoundResult:
     progress_problems: tuple[str, ...] = ()
     withdrawn: tuple[Withdrawal, ...] = ()
     """Holders that lost their task this round to another agent's late report."""
+    excluded: tuple[Exclusion, ...] = ()
+    """Agents taken out of the auction this round for their give-ups (before allocating)."""
 
 
 Collect = Callable[[Announcement, float], Inbox | Sequence[Bid]]
@@ -248,7 +294,8 @@ class AuctionLoop:
         t0 = time.perf_counter() if t_start is None else t_start
         fresh = [b for b in inbox.bids if b.serial is None or b.serial >= serial]
         withdrawn: list[Withdrawal] = []
-        state, problems = apply_progress(self.state, inbox.progress, withdrawn)
+        excluded: list[Exclusion] = []
+        state, problems = apply_progress(self.state, inbox.progress, withdrawn, excluded)
         assignments, state, report = auction_round(state, fresh, now)
         stale = len(inbox.bids) - len(fresh)
         if stale or inbox.late_bids:
@@ -265,6 +312,7 @@ class AuctionLoop:
             step_s,
             tuple(problems),
             tuple(withdrawn),
+            tuple(excluded),
         )
         if self.publish is not None:
             self.publish(result)

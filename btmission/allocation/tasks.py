@@ -12,10 +12,17 @@ history::
     open ──► assigned ──► committed ──► done
      ▲  ▲       │            │
      │  └───────┘ outbid     └──► failed     (reported by the agent)
-     │  agent lost / stopped reporting
+     │  agent lost / stopped reporting / gave up (attempt n of max_attempts)
      └── unreachable (no agent can reach it; announced again every round)
 
     any state but done and failed ──► cancelled   (by the operator)
+
+An agent that **gives up** a task (its vehicle kept refusing a command: arming, OFFBOARD)
+hands it back: the task is open again, and the give-up is an :class:`Attempt` (who, when,
+why) recorded on that history entry. The attempt that reaches the type's ``max_attempts``
+fails the task for good, with every attempt's reason. A **failure** the agent reports (the
+task itself cannot be done: its goal unreachable, a leaf's failure that is no refusal) fails it
+at once, as its last attempt.
 
 The pool is immutable: every operation returns a new :class:`TaskPool` (sharing the unchanged
 tasks), so the auctioneer's step function stays pure and any earlier state can be kept for
@@ -73,14 +80,33 @@ class TaskInfo:
     arrival_s: float = 0.0
     multi_stage: bool = False
     """True when the type declares a commit point (``commit_after``)."""
+    max_attempts: int = 3
+    """Agents' attempts (give-ups) after which the task fails for good (its type's
+    ``max_attempts``)."""
 
     def __post_init__(self) -> None:
         if not self.id:
             raise ValueError("a task needs an id")
+        if not self.max_attempts >= 1:
+            raise ValueError(f"task '{self.id}': max_attempts must be ≥ 1, got {self.max_attempts}")
         if not (self.priority > 0 and math.isfinite(self.priority)):
             raise ValueError(f"task '{self.id}': priority must be > 0, got {self.priority}")
         if not (self.arrival_s >= 0 and math.isfinite(self.arrival_s)):
             raise ValueError(f"task '{self.id}': arrival time must be ≥ 0, got {self.arrival_s}")
+
+
+@dataclass(frozen=True)
+class Attempt:
+    """An agent's attempt at a task that ended without success: it gave the task up (its
+    vehicle kept refusing), or reported it failed."""
+
+    agent: str
+    time_s: float
+    """When the agent reported it."""
+    reason: str
+    """The agent's reason."""
+    gave_up: bool = True
+    """True: handed back (the task may go to another agent); False: a failure (final)."""
 
 
 @dataclass(frozen=True)
@@ -91,6 +117,8 @@ class TaskEvent:
     state: TaskState
     agent: str | None = None
     reason: str = ""
+    attempt: Attempt | None = None
+    """The attempt this change ended (a give-up or a failure), if it ended one."""
 
     def __str__(self) -> str:
         who = f" {self.agent}" if self.agent else ""
@@ -117,8 +145,18 @@ class PoolTask:
     def arrived(self, now: float) -> bool:
         return self.info.arrival_s <= now
 
+    @property
+    def attempts(self) -> tuple[Attempt, ...]:
+        """The attempts that ended without success, oldest first (from the history)."""
+        return tuple(e.attempt for e in self.history if e.attempt is not None)
+
     def moved(
-        self, now: float, state: TaskState, agent: str | None = None, reason: str = ""
+        self,
+        now: float,
+        state: TaskState,
+        agent: str | None = None,
+        reason: str = "",
+        attempt: Attempt | None = None,
     ) -> PoolTask:
         """The task in a new state/agent, with the change appended to its history."""
         return replace(
@@ -126,7 +164,7 @@ class PoolTask:
             state=state,
             agent=agent,
             note=reason,
-            history=(*self.history, TaskEvent(now, state, agent, reason)),
+            history=(*self.history, TaskEvent(now, state, agent, reason, attempt)),
         )
 
 
@@ -294,10 +332,29 @@ class TaskPool:
         return self.with_tasks({task_id: t.moved(now, TaskState.DONE, agent, reason)})
 
     def fail(self, task_id: str, agent: str, now: float, reason: str = "") -> TaskPool:
-        """The agent reports the task failed (it is not retried)."""
+        """The agent reports the task failed (it is not retried): its last attempt."""
         t = self._held(task_id, agent, "fail")
         why = reason or "reported failed"
-        return self.with_tasks({task_id: t.moved(now, TaskState.FAILED, agent, why)})
+        attempt = Attempt(agent, now, why, gave_up=False)
+        return self.with_tasks({task_id: t.moved(now, TaskState.FAILED, agent, why, attempt)})
+
+    def give_up(self, task_id: str, agent: str, now: float, reason: str = "") -> TaskPool:
+        """The agent hands the task back (its vehicle kept refusing): one more attempt; the
+        task is open again, or failed for good with every attempt's reason once it has had
+        its ``max_attempts``."""
+        t = self._held(task_id, agent, "give up")
+        attempt = Attempt(agent, now, reason or "gave up")
+        tried = (*t.attempts, attempt)
+        n, most = len(tried), t.info.max_attempts
+        if n >= most:
+            why = f"failed after {n} attempt(s): " + "; ".join(
+                f"{a.agent}: {a.reason}" for a in tried
+            )
+            moved = t.moved(now, TaskState.FAILED, agent, why, attempt)
+        else:
+            why = f"{agent} gave up (attempt {n} of {most}): {attempt.reason}"
+            moved = t.moved(now, TaskState.OPEN, None, why, attempt)
+        return self.with_tasks({task_id: moved})
 
     def take_over(
         self, task_id: str, agent: str, now: float, state: TaskState, reason: str

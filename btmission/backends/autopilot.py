@@ -7,6 +7,9 @@ on a real autopilot (the backend conformance suite, ``tests/unit/vehicles/test_b
 them all to it):
 
 * arming is refused in the air and with the battery below 10 %; disarming in the air is refused;
+  every refusal is typed (:class:`~btmission.vehicles.base.Ack`): a state that can change (in
+  the air, not armed, not streaming yet) is transient, what will not (a battery too low, a
+  ground robot asked to fly, an altitude out of range) is final;
 * OFFBOARD is refused until setpoints have been streaming at more than ``STREAM_MIN_HZ`` for
   ``STREAM_MIN_S``; TAKEOFF and LAND need the vehicle armed; a ground robot takes any mode and
   cannot take off or land;
@@ -123,9 +126,9 @@ class OffboardCommands:
         if v.armed:
             return ACCEPTED
         if not v.landed:
-            return Ack(False, "cannot arm in the air")
+            return Ack.refused("cannot arm in the air", transient=True)
         if v.battery < 0.1:
-            return Ack(False, f"battery too low ({v.battery:.0%})")
+            return Ack.refused(f"battery too low ({v.battery:.0%})", transient=False)
         v.armed = True
         v.armed_at = self._ap_time()
         v.took_off = False
@@ -137,7 +140,7 @@ class OffboardCommands:
         if v.kind is VehicleKind.GROUND:
             return ACCEPTED
         if not v.landed:
-            return Ack(False, "cannot disarm in the air")
+            return Ack.refused("cannot disarm in the air", transient=True)
         v.armed = False
         v.mode = Mode.MANUAL
         return ACCEPTED
@@ -151,10 +154,10 @@ class OffboardCommands:
         if mode is Mode.OFFBOARD:
             streaming = t - v.sp_time <= 1.0 / STREAM_MIN_HZ and t - v.stream_since >= STREAM_MIN_S
             if not streaming:
-                return Ack(
-                    False,
+                return Ack.refused(
                     f"offboard refused: stream setpoints at > {STREAM_MIN_HZ:g} Hz for "
                     f"{STREAM_MIN_S:g} s first",
+                    transient=True,
                 )
         if mode is Mode.TAKEOFF:
             return self.takeoff(2.0)
@@ -168,11 +171,11 @@ class OffboardCommands:
     def takeoff(self, altitude_m: float) -> Ack:
         v = self._ap
         if v.kind is VehicleKind.GROUND:
-            return Ack(False, "a ground robot cannot take off")
+            return Ack.refused("a ground robot cannot take off", transient=False)
         if not v.armed:
-            return Ack(False, "takeoff refused: not armed")
+            return Ack.refused("takeoff refused: not armed", transient=True)
         if not altitude_m > 0:
-            return Ack(False, f"takeoff altitude must be > 0, got {altitude_m:g}")
+            return Ack.refused(f"takeoff altitude must be > 0, got {altitude_m:g}", transient=False)
         v.hold = self._ap_here()
         v.hold[2] = v.ground + altitude_m
         v.mode = Mode.TAKEOFF
@@ -181,9 +184,9 @@ class OffboardCommands:
     def land(self) -> Ack:
         v = self._ap
         if v.kind is VehicleKind.GROUND:
-            return Ack(False, "a ground robot cannot land")
+            return Ack.refused("a ground robot cannot land", transient=False)
         if not v.armed:
-            return Ack(False, "land refused: not armed")
+            return Ack.refused("land refused: not armed", transient=True)
         v.hold = self._ap_here()
         v.mode = Mode.LAND
         return ACCEPTED

@@ -22,7 +22,9 @@ fly. The ``fake`` provider gives them vehicles that cost next to nothing to step
 Its time is simulated like the simulator's (:class:`~btmission.vehicles.clock.SimClock`; a run
 goes as fast as the machine allows) and it keeps the odometer as ground truth (the clearance
 is never measured: ``None``). For tests, :meth:`FakeVehicle.teleport` puts a vehicle anywhere
-(e.g. from a :class:`~btmission.runtime.substitution.TestLeaf` effect).
+(e.g. from a :class:`~btmission.runtime.substitution.TestLeaf` effect), and
+:meth:`FakeVehicle.refuse_arming` makes it refuse to arm a number of times, or always, with a
+reason and a transient or final refusal (a vehicle whose pre-arm checks fail).
 
 Use it in a mission with ``backend: fake`` on every agent, or with
 :func:`fake_provider` / :class:`FakeProvider` directly (docs/providers.md).
@@ -46,7 +48,7 @@ from btmission.backends.sim import (
 )
 from btmission.spec.vehicleref import SIM, VehicleRef
 from btmission.types import FloatArray, Vec3
-from btmission.vehicles.base import Mode, Telemetry, VehicleKind
+from btmission.vehicles.base import Ack, Mode, Telemetry, VehicleKind
 from btmission.vehicles.provider import AttachOptions, ProviderBase, Vehicle, VehicleEvent
 
 if TYPE_CHECKING:
@@ -55,6 +57,9 @@ if TYPE_CHECKING:
 
 VELOCITY_GAIN = 1.2
 """1/s: the velocity approaches the commanded one as in the simulator's velocity loop."""
+
+SAME_REQUEST_S = 1.0
+"""Arming calls less than this apart are one request (:meth:`FakeVehicle.refuse_arming`)."""
 
 
 @dataclass
@@ -69,6 +74,14 @@ class _State(AutopilotFields):
     yaw_rate: float = 0.0
     odometer_m: float = 0.0
     v_max: float | None = None
+    refuse_arm: int | None = 0
+    """Arming requests still to refuse (None: every one; :meth:`FakeVehicle.refuse_arming`)."""
+    arm_refusal: Ack | None = None
+    """The refusal (None: arming is never refused)."""
+    arm_asked_s: float = -math.inf
+    """When arming was last asked for."""
+    refusing: bool = False
+    """The arming request being asked for now is refused."""
 
 
 class FakeProvider(ProviderBase):
@@ -139,6 +152,41 @@ class FakeVehicle(OffboardCommands):
         self.kind = state.kind
 
     # ---------------------------------------------- commands and setpoints: OffboardCommands
+    def arm(self) -> Ack:
+        """:meth:`OffboardCommands.arm`, unless :meth:`refuse_arming` says to refuse this
+        request."""
+        s = self._s
+        if s.arm_refusal is not None and not s.armed and s.kind is VehicleKind.MULTIROTOR:
+            now = self._provider.time_s
+            if now - s.arm_asked_s > SAME_REQUEST_S:  # a new request
+                s.refusing = s.refuse_arm is None or s.refuse_arm > 0
+                if s.refuse_arm:
+                    s.refuse_arm -= 1
+            s.arm_asked_s = now
+            if s.refusing:
+                return s.arm_refusal
+        return super().arm()
+
+    def refuse_arming(
+        self,
+        requests: int | None = None,
+        reason: str = "PreArm: estimator not ready",
+        *,
+        transient: bool = True,
+    ) -> None:
+        """Refuse the next ``requests`` arming requests (None: every one from now on; 0: stop
+        refusing) with ``reason``, a transient or a final refusal (a test's vehicle whose
+        pre-arm checks fail). A leaf asks again every tick while it waits: calls that follow
+        the previous one within :data:`SAME_REQUEST_S` are the same request (as the MAVLink
+        provider answers them from its back-off without asking the autopilot again)."""
+        if requests is not None and requests < 0:
+            raise ValueError(f"requests must be ≥ 0 or None, got {requests}")
+        s = self._s
+        s.refuse_arm = requests
+        s.arm_refusal = Ack.refused(reason, transient=transient)
+        s.refusing = False
+        s.arm_asked_s = -math.inf
+
     def _ap_time(self) -> float:
         return self._provider.time_s
 

@@ -17,11 +17,13 @@ vehicles may share one link (told apart by ``?sysid=``), and **one I/O thread** 
 Commands (arm, mode, take-off, land) are COMMAND_LONGs that wait for their COMMAND_ACK
 (``ack_timeout_s``), are sent again (with ``confirmation`` counting up) when no answer comes, are
 waited for while the autopilot says IN_PROGRESS and retried after a pause while it says
-TEMPORARILY_REJECTED; a refusal comes back as ``Ack(False, reason)`` naming the MAV_RESULT and the
-autopilot's STATUSTEXT (:func:`~btmission.backends.mavlink_modes.ack_of`). A command whose effect
-already shows (armed, in the mode) is accepted without sending anything, and an arming refused by
-the pre-arm checks is not sent again until a back-off has passed (0.5 s, doubling to 4 s): the
-refusal's reason is answered meanwhile.
+TEMPORARILY_REJECTED; a refusal comes back as an ``Ack`` naming the MAV_RESULT and the
+autopilot's STATUSTEXT (:func:`~btmission.backends.mavlink_modes.ack_of`), typed transient (a
+refusal the vehicle may take back: TEMPORARILY_REJECTED, DENIED, FAILED, no answer) or final
+(UNSUPPORTED, a mode the vehicle does not have), so the run retries only what may succeed. A
+command whose effect already shows (armed, in the mode) is accepted without sending anything, and
+an arming refused by the pre-arm checks is not sent again until a back-off has passed (0.5 s,
+doubling to 4 s): the refusal's reason is answered meanwhile.
 
 Frames: the mission world is ENU, z up; each vehicle's local NED frame has its origin at the
 agent's start (or ``origin`` option), north along world +y

@@ -19,7 +19,8 @@ LAND        AUTO.LAND (4, 6)                       LAND (9)                    â
 
 A COMMAND_ACK's ``MAV_RESULT`` becomes an :class:`~btmission.vehicles.base.Ack`: accepted, or
 refused with the result's name and the autopilot's last STATUSTEXT (the reason a pre-arm check
-gave); TEMPORARILY_REJECTED and IN_PROGRESS are worth waiting for (:func:`retry_wanted`).
+gave), transient or final (:data:`TRANSIENT_RESULTS`); TEMPORARILY_REJECTED and IN_PROGRESS are
+worth waiting for (:func:`retry_wanted`).
 """
 
 from __future__ import annotations
@@ -163,16 +164,33 @@ def command_name(command: int) -> str:
     return entry.name if entry is not None else f"MAV_CMD {command}"
 
 
+TRANSIENT_RESULTS = frozenset(
+    (
+        mavlink.MAV_RESULT_TEMPORARILY_REJECTED,
+        mavlink.MAV_RESULT_DENIED,
+        mavlink.MAV_RESULT_FAILED,
+        mavlink.MAV_RESULT_IN_PROGRESS,
+    )
+)
+"""The refusals that may be taken back (:attr:`Ack.transient <btmission.vehicles.base.Ack>`):
+TEMPORARILY_REJECTED (busy, not ready), DENIED (not in this state: PX4's pre-arm checks and
+"Switching to Offboard is currently not available"), FAILED (ArduPilot's pre-arm checks, "Mode
+change failed: requires position"), an IN_PROGRESS that never ended. Every other result
+(UNSUPPORTED, CANCELLED, COMMAND_INT_ONLY ...) is final: the autopilot will not run that command
+whatever its state. (docs/mavlink.md, "Refusals and retries")"""
+
+
 def ack_of(command: int, result: int, statustext: str = "") -> Ack:
     """A COMMAND_ACK as an :class:`Ack`: accepted, or refused naming the command, the result
     and the autopilot's reason (its last STATUSTEXT), e.g. ``MAV_CMD_COMPONENT_ARM_DISARM:
-    MAV_RESULT_DENIED (PreArm: EKF3 waiting for GPS config data)``."""
+    MAV_RESULT_DENIED (PreArm: EKF3 waiting for GPS config data)``, transient or final by the
+    result (:data:`TRANSIENT_RESULTS`)."""
     if result == mavlink.MAV_RESULT_ACCEPTED:
         return ACCEPTED
     reason = f"{command_name(command)}: {result_name(result)}"
     if statustext:
         reason += f" ({statustext})"
-    return Ack(False, reason)
+    return Ack.refused(reason, transient=result in TRANSIENT_RESULTS)
 
 
 def retry_wanted(result: int) -> bool:

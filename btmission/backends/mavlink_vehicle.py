@@ -160,12 +160,12 @@ class MavlinkVehicle:
                     if result == mavlink.MAV_RESULT_ACCEPTED:
                         return ACCEPTED
                     return ack_of(command, result, self._reason_since(since))
-            return Ack(
-                False,
+            return Ack.refused(  # nobody answered: asking again later may work
                 f"{mavlink.enums['MAV_CMD'][command].name}: no COMMAND_ACK from sysid "
                 f"{st.sysid} within {opts.ack_timeout_s:g} s "
                 f"({opts.command_retries + 1} tries)"
                 + ("" if self.link_ok() else "; the vehicle's link is lost"),
+                transient=True,
             )
         finally:
             st.pending.pop(command, None)
@@ -206,7 +206,7 @@ class MavlinkVehicle:
         if not self._armed():
             return ACCEPTED
         if not self._landed():
-            return Ack(False, "cannot disarm in the air")
+            return Ack.refused("cannot disarm in the air", transient=True)
         ack = self.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0.0)
         if ack.accepted:
             self._set_override(armed=False)
@@ -256,21 +256,21 @@ class MavlinkVehicle:
         if mode is Mode.TAKEOFF:
             return self.takeoff(self.options.takeoff_alt_m)
         if mode is Mode.LAND and self.kind is VehicleKind.GROUND:
-            return Ack(False, "a ground robot cannot land")
+            return Ack.refused("a ground robot cannot land", transient=False)
         try:
             request = mode_request(self.autopilot, self.kind, mode)
         except UnsupportedMode as exc:
-            return Ack(False, str(exc))
+            return Ack.refused(str(exc), transient=False)
         if self._custom_mode() == request.custom_mode and (
             mode is not Mode.OFFBOARD or self._takeoff_target is None
         ):
             return ACCEPTED  # already in that mode
         if mode is Mode.OFFBOARD and self.autopilot is Autopilot.ARDUPILOT and not self.streaming():
             # GUIDED would take it; the backend keeps PX4's rule so trees behave the same
-            return Ack(
-                False,
+            return Ack.refused(
                 f"offboard refused: stream setpoints at > {STREAM_MIN_HZ:g} Hz for "
                 f"{STREAM_MIN_S:g} s first (the backend's rule on every autopilot)",
+                transient=True,
             )
         ack = self.command(mavlink.MAV_CMD_DO_SET_MODE, *set_mode_params(self.autopilot, request))
         if ack.accepted:
@@ -281,11 +281,11 @@ class MavlinkVehicle:
 
     def takeoff(self, altitude_m: float) -> Ack:
         if self.kind is VehicleKind.GROUND:
-            return Ack(False, "a ground robot cannot take off")
+            return Ack.refused("a ground robot cannot take off", transient=False)
         if not self._armed():
-            return Ack(False, "takeoff refused: not armed")
+            return Ack.refused("takeoff refused: not armed", transient=True)
         if not altitude_m > 0:
-            return Ack(False, f"takeoff altitude must be > 0, got {altitude_m:g}")
+            return Ack.refused(f"takeoff altitude must be > 0, got {altitude_m:g}", transient=False)
         if self.autopilot is Autopilot.ARDUPILOT:
             guided = mode_request(self.autopilot, self.kind, Mode.OFFBOARD)
             if self._custom_mode() != guided.custom_mode:

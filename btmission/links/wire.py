@@ -73,7 +73,9 @@ Message: TypeAlias = (
     | MissionEnd
 )
 
-PROGRESS_EVENTS = ("committed", "done", "failed")
+PROGRESS_EVENTS = ("committed", "done", "failed", "gave_up")
+_MAX_ATTEMPTS = TaskInfo.max_attempts
+"""A task's ``max_attempts`` when its announcement leaves it out (the default)."""
 
 
 class WireError(BtmissionError, ValueError):
@@ -124,7 +126,7 @@ def _plain(v: Any, where: str) -> Any:
 
 
 def _task(t: TaskInfo) -> dict[str, Any]:
-    return {
+    out = {
         "id": t.id,
         "type": t.type,
         "fields": _plain(dict(t.fields), f"task '{t.id}' fields"),
@@ -132,6 +134,9 @@ def _task(t: TaskInfo) -> dict[str, Any]:
         "arrival_s": t.arrival_s,
         "multi_stage": t.multi_stage,
     }
+    if t.max_attempts != _MAX_ATTEMPTS:  # (only when not the default: announcements stay small)
+        out["max_attempts"] = t.max_attempts
+    return out
 
 
 def _announcement(a: Announcement) -> dict[str, Any]:
@@ -436,6 +441,7 @@ def _task_from(kind: str, data: Any, i: int) -> TaskInfo:
             f.number("priority"),
             f.number("arrival_s"),
             f.flag("multi_stage"),
+            f.integer("max_attempts") if "max_attempts" in data else _MAX_ATTEMPTS,
         )
     except WireError as exc:
         raise WireError(str(exc).replace(" message:", f" message, task {i}:", 1)) from None

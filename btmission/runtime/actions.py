@@ -19,10 +19,11 @@ from py_trees.common import Status
 from btmission.fastpaths.ticks import FAILURE as _FAILURE
 from btmission.fastpaths.ticks import RUNNING as _RUNNING
 from btmission.fastpaths.ticks import SUCCESS as _SUCCESS
+from btmission.runtime.eventkinds import RetryEvent
 from btmission.runtime.leaves import AgentContext, StatefulAction
 from btmission.runtime.navigation import NavState
 from btmission.runtime.paths import Route
-from btmission.vehicles.base import Mode
+from btmission.vehicles.base import Ack, Mode
 
 _ARRIVED, _FAILED = NavState.ARRIVED, NavState.FAILED
 """(read by the path follower every tick: a global costs a fifth of an Enum member on Python
@@ -31,7 +32,21 @@ _ARRIVED, _FAILED = NavState.ARRIVED, NavState.FAILED
 Point = tuple[float, float, float]
 
 COMMAND_TIMEOUT_S = 5.0
-"""How long an action retries a refused autopilot command before it fails."""
+"""How long one try of an autopilot command lasts: the command is sent again every tick (the
+vehicle decides how often it really asks its autopilot) until its effect shows."""
+
+
+@dataclass(frozen=True)
+class CommandRetrySettings:
+    """The runtime's retries of a refused vehicle command (every run has these settings)."""
+
+    refusal_retries: int = 3
+    """How many more tries an action makes when its vehicle refuses a command transiently
+    (arming refused by a pre-arm check, OFFBOARD denied, no answer) for a whole try
+    (``COMMAND_TIMEOUT_S``, 5 s), each after a back-off; then the agent gives its task back (0:
+    no retry)."""
+    refusal_backoff_s: float = 2.0
+    """The back-off before the first retry (s of mission time); it doubles after each one."""
 
 
 def point(value: Any) -> Point:
@@ -85,8 +100,23 @@ def at_goal(ctx: AgentContext, goal: Any) -> bool:
 
 # ------------------------------------------------------------------------------- actions
 class Command(StatefulAction):
-    """Send an autopilot command until it is accepted and its effect shows in the telemetry
-    (retried every tick for ``COMMAND_TIMEOUT_S``, then FAILURE with the autopilot's reason)."""
+    """Send an autopilot command until it is accepted and its effect shows in the telemetry.
+
+    One *try* sends it every tick for ``COMMAND_TIMEOUT_S`` (PX4 refuses OFFBOARD until the
+    setpoints have streamed for a second: the usual try ends accepted). How a try that ends
+    refused goes on depends on the refusal, as the vehicle typed it
+    (:class:`~btmission.vehicles.base.Ack`):
+
+    * **transient** (arming refused by a pre-arm check, a mode denied for now, no answer; an
+      accepted command whose effect never showed counts as one): the action keeps RUNNING,
+      sends nothing for a back-off (``refusal_backoff_s``, doubling; mission time, no sleep)
+      and tries again, each retry a ``retry`` event with the refusal; after
+      ``refusal_retries`` retries it fails and says it gave up;
+    * **final** (a mode the vehicle does not have, a battery too low): it fails at once.
+
+    Either way the failure is a *refusal* (:attr:`refused`): the agent hands its task back to
+    the pool for another agent instead of failing it (docs/running.md, "When a task fails").
+    """
 
     def send(self) -> Any:  # pragma: no cover - overridden
         raise NotImplementedError
@@ -96,18 +126,62 @@ class Command(StatefulAction):
 
     def on_start(self) -> Status:
         self._t0 = self.ctx.now()
+        self._retry = 0
+        self._wait_until: float | None = None
         return self.on_running()
 
     def on_running(self) -> Status:
         if self.done():
             return Status.SUCCESS
-        ack = self.send()
+        now = self.ctx.now()
+        if self._wait_until is not None:  # backing off before the next try
+            if now < self._wait_until:
+                return Status.RUNNING
+            self._wait_until = None
+            self._t0 = now
+        ack: Ack = self.send()
         if self.done():
             return Status.SUCCESS
-        if self.ctx.now() - self._t0 > COMMAND_TIMEOUT_S:
-            self.reason = ack.reason or "not accepted"
-            return Status.FAILURE
+        if not ack.accepted and not ack.transient:  # final: asking again will not help
+            return self._refused(ack.reason or "refused")
+        if now - self._t0 > COMMAND_TIMEOUT_S:
+            return self._try_failed(ack, now)
         return Status.RUNNING
+
+    def _try_failed(self, ack: Ack, now: float) -> Status:
+        """A try ended without the command's effect: back off and retry, or give up."""
+        if ack.accepted:
+            reason = f"accepted, but not seen within {COMMAND_TIMEOUT_S:g} s"
+        else:
+            reason = ack.reason or "not accepted"
+        cfg = self.ctx.settings_of(CommandRetrySettings)
+        if self._retry >= cfg.refusal_retries:
+            tries = self._retry + 1
+            return self._refused(
+                f"{reason} (gave up after {tries} tr{'y' if tries == 1 else 'ies'})"
+            )
+        self._retry += 1
+        wait = cfg.refusal_backoff_s * 2 ** (self._retry - 1)
+        self._wait_until = now + wait
+        agent = self.ctx.agent
+        task = agent.task if agent is not None else None
+        self.ctx.events(
+            RetryEvent(
+                agent=self.ctx.agent_id,
+                task=task.id if task is not None else None,
+                action=self.name,
+                retry=self._retry,
+                retries=cfg.refusal_retries,
+                reason=reason,
+                wait_s=wait,
+            )
+        )
+        return Status.RUNNING
+
+    def _refused(self, reason: str) -> Status:
+        self.reason = reason
+        self.refused = True
+        return Status.FAILURE
 
 
 class Arm(Command):

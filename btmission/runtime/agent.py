@@ -21,10 +21,16 @@ The tree is ticked through a py_trees ``BehaviourTree``
 current status of every node); every new path the navigator adopts is a ``route`` event.
 
 When the task branch's goal holds (the branch returns SUCCESS) the agent reports the task done;
-when the branch fails it reports it failed, with the reason of the action that failed. Without a
-task, the idle timer runs and the default branch (e.g. return home and land) takes over after
-``idle_timeout_s``. Progress reports are kept until the coordinator acknowledges them, so one
-made while the agent's link is down is delivered when the link returns.
+when the branch fails it reports it failed, with the reason of the action that failed — unless
+that action failed because the vehicle refused it (:attr:`StatefulAction.refused
+<btmission.runtime.leaves.StatefulAction.refused>`: arming refused after its retries, a mode the
+vehicle will not take): then the task is not the problem, so the agent *gives it up* (progress
+``gave_up``) and the coordinator offers it to the others. Until the coordinator has
+acknowledged that, the agent does not follow an assignment of the task it gave up (one sent
+before the coordinator knew). Without a task, the idle timer runs and the default branch (e.g.
+return home and land) takes over after ``idle_timeout_s``. Progress reports are kept until the
+coordinator acknowledges them, so one made while the agent's link is down is delivered when the
+link returns.
 
 Over a network an older message can arrive after a newer one. The agent follows an assignment
 only if it is newer than the last one it followed, and bids on an announcement only if it is
@@ -273,6 +279,10 @@ class Agent:
         self.finished: set[str] = set()
         self.action = ""
         self._failure = ""
+        self._refused = False
+        """The failure noted this tick is the vehicle's refusal (:meth:`note_failure`)."""
+        self._given_back: set[str] = set()
+        """Tasks given up whose report the coordinator has not acknowledged yet."""
         self.alive = True
         self.recalled = False
         self.ticks = 0
@@ -370,6 +380,8 @@ class Agent:
         current = self.task.id if self.task is not None else None
         if task_id == current or (task_id is not None and task_id in self.finished):
             return
+        if task_id in self._given_back:  # sent before the coordinator took the give-up
+            return
         info = None
         if task_id is not None:
             for t in msg.announcement.tasks:
@@ -411,6 +423,7 @@ class Agent:
         if not self.alive:
             return Status.INVALID
         self._failure = ""
+        self._refused = False
         self._send_progress(now)
         if not self._vehicle_heard(now):
             return Status.RUNNING  # paused: nothing the tree does can reach the vehicle
@@ -435,8 +448,12 @@ class Agent:
                     self._emit(AgentTaskEvent(agent=self.id, task=None))
                 elif branch.status is _FAILURE:
                     reason = self._failure or "the task's behaviour tree failed"
-                    self.finished.add(task.id)
-                    self._progress(task.id, "failed", now, reason)
+                    if self._refused:  # the vehicle, not the task: another agent may do it
+                        self._given_back.add(task.id)
+                        self._progress(task.id, "gave_up", now, reason)
+                    else:
+                        self.finished.add(task.id)
+                        self._progress(task.id, "failed", now, reason)
                     self.task = None
                     self.committed = False
                     self.idle_since = now
@@ -460,9 +477,11 @@ class Agent:
                 out.sent_s = now
 
     def on_ack(self, ack: ProgressAck) -> None:
-        """The coordinator took these reports: forget them."""
+        """The coordinator took these reports: forget them (a task given up may be followed
+        again when the coordinator assigns it anew)."""
         for key in ack.keys:
-            self._outbox.pop(key, None)
+            if self._outbox.pop(key, None) is not None and key[1] == "gave_up":
+                self._given_back.discard(key[0])
 
     @property
     def unacknowledged(self) -> list[Progress]:
@@ -470,9 +489,11 @@ class Agent:
         is down, or in flight)."""
         return [out.report for out in self._outbox.values()]
 
-    def note_failure(self, action: str, reason: str) -> None:
-        """Called by a failing action: the reason reported if the task fails."""
+    def note_failure(self, action: str, reason: str, *, refused: bool = False) -> None:
+        """Called by a failing action: the reason reported if the task fails; ``refused``: the
+        vehicle refused the action (the task is given up, not failed)."""
         self._failure = f"{action}: {reason}" if reason else action
+        self._refused = refused
 
     def unset_variables(self, leaf: str, names: list[str]) -> None:
         """An action could not start because ``names`` are not on the blackboard: a library

@@ -19,6 +19,12 @@ Around that it
 * collects bids for ``coordination.bid_window_s`` after each announcement (0: in the same step,
   which the in-process bus gives); bids for an older announcement, or arriving when no round is
   collecting, are ignored and counted in the ``round`` event (``stale_bids``, ``late_bids``);
+* takes an agent's give-up (its vehicle kept refusing: progress ``gave_up``) as one attempt at
+  the task: the task goes back to the pool (an ``attempt`` event, then the ``task`` event) and
+  the agent takes no part in its allocation for ``coordination.cooldown_s``; the task fails for
+  good at its type's ``max_attempts`` with every attempt's reason. An agent that gives up
+  ``coordination.exclude_after`` different tasks in a row is taken out of the auction, as the
+  operator's exclude does (``agent_excluded``; the operator's include brings it back);
 * acknowledges every progress report (:class:`~btmission.links.bus.ProgressAck`) and ignores
   copies of one it has seen, so an agent can resend until acknowledged. A completion (or commit
   point) reported late by an agent that lost the task while its link was down wins if it is the
@@ -41,7 +47,7 @@ from dataclasses import replace
 
 from btmission.allocation.auction import Announcement, AuctionConfig, AuctionState
 from btmission.allocation.loop import AuctionLoop, Inbox, Progress, RoundResult
-from btmission.allocation.tasks import PoolError, TaskInfo, TaskState
+from btmission.allocation.tasks import PoolError, PoolTask, TaskEvent, TaskInfo, TaskState
 from btmission.links.bus import (
     AgentStatus,
     Assignment,
@@ -52,6 +58,8 @@ from btmission.links.bus import (
     progress_key,
 )
 from btmission.runtime.eventkinds import (
+    AgentExcludedEvent,
+    AttemptEvent,
     RoundEvent,
     TaskAddedEvent,
     TaskStateEvent,
@@ -119,6 +127,8 @@ class Coordinator:
         self.next_round = 0.0
         self._added: set[str] = set()
         self._history_len: dict[str, int] = {}
+        self._attempts_len: dict[str, int] = {}
+        """Task → how many of its attempts have their ``attempt`` event logged."""
         self.statuses: dict[str, AgentStatus] = {}
         self.rounds: list[float] = []
         """Wall time (s) of each round (announce, bids, allocation, publication)."""
@@ -216,9 +226,18 @@ class Coordinator:
             paused=recovered.paused,
             excluded=recovered.excluded,
         )
+        cool = self.state.config.cooldown_s
+        cooldown: dict[tuple[str, str], float] = {}
+        for t in recovered.pool:  # an agent that gave a task up is still cooling down for it
+            if t.state is TaskState.OPEN and cool > 0:
+                for a in t.attempts:
+                    if a.gave_up:
+                        cooldown[(a.agent, t.id)] = a.time_s + cool  # (the latest)
+        self.loop.state = replace(self.state, cooldown=cooldown, streaks=dict(recovered.streaks))
         self.recalled = set(recovered.recalled)
         self._added = set(recovered.added)
         self._history_len = dict(recovered.logged)
+        self._attempts_len = dict(recovered.attempts_logged)
         self._last_assignments = dict(recovered.assignments)
         self._seen = {agent: set(keys) for agent, keys in recovered.seen.items()}
 
@@ -350,6 +369,8 @@ class Coordinator:
             for ev in t.history[seen:]:
                 if seen == 0 and ev.reason == "added":
                     continue  # the task_added event said it
+                if ev.attempt is not None:
+                    self._attempt(t, ev, now)
                 self._emit(  # at the round's time (the log is in time order); when the change
                     TaskStateEvent(  # was reported earlier (an agent's progress), that time too
                         task=t.id,
@@ -364,6 +385,8 @@ class Coordinator:
             self._emit(WarningEvent(message=msg))
         for w in result.withdrawn:
             self._emit(WithdrawnEvent(agent=w.agent, task=w.task, by=w.by, reason=w.reason))
+        for x in result.excluded:
+            self._emit(AgentExcludedEvent(agent=x.agent, tasks=list(x.tasks), reason=x.reason))
         changed = dict(rep.assignments) != self._last_assignments
         if changed:
             self._last_assignments = dict(rep.assignments)
@@ -387,6 +410,30 @@ class Coordinator:
         acks, self._acks = self._acks, {}
         for agent, keys in acks.items():
             self.link.acknowledge(ProgressAck(agent, tuple(keys)))
+
+    def _attempt(self, t: PoolTask, entry: TaskEvent, now: float) -> None:
+        """The ``attempt`` event of the history entry that ended one (logged before its
+        ``task`` event; once, a restart included: :attr:`_attempts_len`)."""
+        attempt = entry.attempt
+        assert attempt is not None
+        n = 1 + next(i for i, a in enumerate(t.attempts) if a is attempt)
+        if n <= self._attempts_len.get(t.id, 0):
+            return  # logged by the coordinator this one continues from
+        self._attempts_len[t.id] = n
+        until = self.state.cooldown.get((attempt.agent, t.id))
+        self._emit(
+            AttemptEvent(
+                task=t.id,
+                agent=attempt.agent,
+                attempt=n,
+                max_attempts=t.info.max_attempts,
+                reason=attempt.reason,
+                gave_up=attempt.gave_up,
+                state=entry.state.value,
+                cooldown_until=until if attempt.gave_up and entry.state is TaskState.OPEN else None,
+                reported_s=attempt.time_s if attempt.time_s < now - 1e-9 else None,
+            )
+        )
 
     # ---------------------------------------------------------------- queries
     def open_tasks(self) -> list[str]:

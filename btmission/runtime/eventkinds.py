@@ -156,7 +156,67 @@ class ProgressEvent(TypedEvent):
     agent: str
     task: str
     event: str
-    """done, failed or committed."""
+    """done, failed, committed or gave_up (the agent hands the task back: its vehicle kept
+    refusing a command)."""
+    reason: str
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class RetryEvent(TypedEvent):
+    """An action asks its vehicle again, after a back-off, for a command the vehicle refused
+    transiently (arming refused, OFFBOARD denied, no answer): the leaf keeps running."""
+
+    KIND = "retry"
+    agent: str
+    task: str | None
+    """The agent's task (null: its default behaviour)."""
+    action: str
+    retry: int
+    """This retry's number, 1 … ``retries``."""
+    retries: int
+    """How many the action makes before it gives up (the ``refusal_retries`` setting)."""
+    reason: str
+    """The vehicle's refusal."""
+    wait_s: float
+    """The back-off before it asks again (mission time)."""
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class AttemptEvent(TypedEvent):
+    """An agent's attempt at a task ended without success, as the coordinator took it: the
+    agent gave the task up (back to the pool, or failed for good at ``max_attempts``) or
+    reported it failed. Logged before the ``task`` event of the change it made."""
+
+    KIND = "attempt"
+    task: str
+    agent: str
+    attempt: int
+    """Its number (1 for the task's first)."""
+    max_attempts: int
+    reason: str
+    """The agent's reason."""
+    gave_up: bool
+    """True: handed back (its vehicle kept refusing); false: the task failed."""
+    state: str
+    """The task's state after it: open (offered to the others) or failed."""
+    cooldown_until: float | None = optional()
+    """Until when the agent takes no part in the task's allocation (a give-up that left the
+    task open, with ``coordination.cooldown_s`` > 0)."""
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
+class AgentExcludedEvent(TypedEvent):
+    """The coordinator took an agent out of the auction, as the operator's exclude does: it
+    gave up ``coordination.exclude_after`` different tasks in a row (IncludeAgent brings it
+    back)."""
+
+    KIND = "agent_excluded"
+    agent: str
+    tasks: list[str]
+    """The tasks it gave up, in order."""
     reason: str
 
 

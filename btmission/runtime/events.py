@@ -39,8 +39,16 @@ and consumers read (``Event.typed()``: the report, the viewer's feed, a restarte
                      null)
 ``stage``            an agent's tree started an action: ``agent``, ``task``, ``action``
 ``committed``        an agent passed its task's commit point (k_bt = 0): ``agent``, ``task``
-``progress``         ``agent`` reported ``event`` done / failed / committed for ``task``
-                     (``reason``)
+``progress``         ``agent`` reported ``event`` done / failed / committed / gave_up for
+                     ``task`` (``reason``)
+``retry``            an action asks its vehicle again for a command it refused transiently:
+                     ``agent``, ``task``, ``action``, ``retry``, ``retries``, ``reason``,
+                     ``wait_s``
+``attempt``          an agent's attempt at a task ended without success (taken by the
+                     coordinator): ``task``, ``agent``, ``attempt``, ``max_attempts``,
+                     ``reason``, ``gave_up``, ``state`` (open/failed), ``cooldown_until``
+``agent_excluded``   the coordinator took an agent out of the auction for its give-ups:
+                     ``agent``, ``tasks``, ``reason``
 ``route``            an agent adopted a new planned path (D*+): ``agent``, ``task``,
                      ``points`` (at most a few hundred), ``length_m``; version 2
 ``tree``             an agent's behaviour-tree nodes whose status changed: ``agent``,

@@ -175,9 +175,11 @@ class AgentView:
         """Where the leaves' exceptions are reported (``leaf_error`` events)."""
         return self._agent.errors
 
-    def note_failure(self, action: str, reason: str) -> None:
-        """The reason reported if the task fails (a failing action calls it)."""
-        self._agent.note_failure(action, reason)
+    def note_failure(self, action: str, reason: str, *, refused: bool = False) -> None:
+        """The reason reported if the task fails (a failing action calls it); ``refused``: the
+        action failed because its vehicle refused (the agent hands the task back instead of
+        failing it)."""
+        self._agent.note_failure(action, reason, refused=refused)
 
     def unset_variables(self, leaf: str, names: list[str]) -> None:
         """Warn once that ``names`` are on nobody's blackboard (``warning`` events)."""
@@ -466,8 +468,11 @@ class StatefulAction(GuardedLeaf):
     at once), :meth:`on_running` (later ticks: poll) and :meth:`on_halted` (a higher-priority
     branch took over: cancel). ``self.args`` are the bound arguments, ``self.ctx`` the agent's
     :class:`AgentContext`. Set ``self.reason`` when returning FAILURE: it is reported with the
-    task. An exception raised by any of them fails the action (its reason is the exception's
-    type and message) and is logged as a ``leaf_error`` event: the run goes on.
+    task. Set ``self.refused`` too when the failure is the vehicle's refusal (a command it
+    would not take, :class:`~btmission.runtime.actions.Command`), not the task's: the agent
+    then gives the task back to the pool for another agent instead of failing it. An exception
+    raised by any of them fails the action (its reason is the exception's type and message)
+    and is logged as a ``leaf_error`` event: the run goes on.
     """
 
     def __init__(self, node: Node, ctx: AgentContext) -> None:
@@ -476,12 +481,14 @@ class StatefulAction(GuardedLeaf):
         self.ctx = ctx
         self.args: dict[str, Any] = {}
         self.reason = ""
+        self.refused = False
         self._started = False
 
     # py_trees plumbing ------------------------------------------------------------------
     def initialise(self) -> None:
         self._started = False
         self.reason = ""
+        self.refused = False
 
     def update(self) -> Status:
         if not self._started:
@@ -511,7 +518,7 @@ class StatefulAction(GuardedLeaf):
         else:
             status = self.on_running()
         if status is Status.FAILURE and self.ctx.agent is not None:
-            self.ctx.agent.note_failure(self.name, self.reason)
+            self.ctx.agent.note_failure(self.name, self.reason, refused=self.refused)
         return status
 
     def terminate(self, new_status: Status) -> None:

@@ -21,7 +21,8 @@ from btmission.spec.mission import Mission, Task
 
 
 def task_info(task: Task, mission: Mission) -> TaskInfo:
-    """A mission task, with its effective priority and whether its type has a commit point."""
+    """A mission task, with its effective priority, whether its type has a commit point and its
+    type's ``max_attempts``."""
     tt = mission.task_types[task.type]
     return TaskInfo(
         task.id,
@@ -30,6 +31,7 @@ def task_info(task: Task, mission: Mission) -> TaskInfo:
         task.priority,
         task.at,
         tt.commit_after is not None,
+        tt.max_attempts,
     )
 
 

@@ -3,9 +3,11 @@
 The coordinator writes every change of its state to the append-only event log
 (:mod:`btmission.runtime.events`): a task entering the pool (``task_added``), every entry of a
 task's history (``task``), every round (``round``: its number, the assignments when they
-changed, the agents it dropped), a holder withdrawn by a late report (``withdrawn``) and every
-operator command it applied (``command`` with ``ok``: cancel, priority, recall, exclude,
-include, allocation pause). :func:`recover` replays those events — no I/O: the caller reads the
+changed, the agents it dropped), a holder withdrawn by a late report (``withdrawn``), every
+attempt at a task that ended without success (``attempt``: a give-up, with the cool-down it
+started, or a failure), an agent it took out of the auction for its give-ups
+(``agent_excluded``) and every operator command it applied (``command`` with ``ok``: cancel,
+priority, recall, exclude, include, allocation pause). :func:`recover` replays those events — no I/O: the caller reads the
 log (``read_events(path).events``) — and returns a :class:`Recovered` that
 :meth:`Coordinator.restore <btmission.runtime.coordinator.Coordinator.restore>` continues from.
 
@@ -39,6 +41,8 @@ from btmission.allocation.loop import Withdrawal
 from btmission.allocation.tasks import PoolError, TaskInfo, TaskPool, TaskState
 from btmission.links.bus import ProgressKey
 from btmission.runtime.eventkinds import (
+    AgentExcludedEvent,
+    AttemptEvent,
     CommandEvent,
     RoundEvent,
     TaskAddedEvent,
@@ -106,6 +110,12 @@ class Recovered:
     """Task → how many entries of its history the log holds (the first, ``added``, is its
     ``task_added`` event); an operator's change not logged yet (a cancel or a recall applied
     just before the cut) is in the history but not counted, so the next round logs it."""
+    streaks: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
+    """Agent → the different tasks it gave up since it last finished one or was taken out of
+    the auction (:attr:`~btmission.allocation.auction.AuctionState.streaks`)."""
+    attempts_logged: Mapping[str, int] = field(default_factory=dict)
+    """Task → how many ``attempt`` events the log holds for it (an attempt applied just
+    before the cut whose ``task`` event is missing is not logged again)."""
     time_s: float = 0.0
     """Mission time of the last event."""
     problems: tuple[str, ...] = ()
@@ -142,6 +152,8 @@ class _Replay:
         self.seen: dict[str, set[ProgressKey]] = {}
         self.added: set[str] = set()
         self.logged: dict[str, int] = {}
+        self.streaks: dict[str, tuple[str, ...]] = {}
+        self.attempts_logged: dict[str, int] = {}
         self.time_s = 0.0
         self.problems: list[str] = []
 
@@ -159,6 +171,8 @@ class _Replay:
             seen={a: frozenset(keys) for a, keys in self.seen.items()},
             added=frozenset(self.added),
             logged=dict(self.logged),
+            streaks=dict(self.streaks),
+            attempts_logged=dict(self.attempts_logged),
             time_s=self.time_s,
             problems=tuple(self.problems),
         )
@@ -179,6 +193,11 @@ class _Replay:
                     self.round_(ev)
                 case WithdrawnEvent() as ev:
                     self.withdrawn_(ev)
+                case AttemptEvent() as ev:
+                    self.attempt(ev)
+                case AgentExcludedEvent() as ev:
+                    self.excluded.add(ev.agent)
+                    self.streaks.pop(ev.agent, None)
                 case CommandEvent() as ev:
                     self.command(ev)
         except (PoolError, EventError, TypeError, ValueError) as exc:  # PoolError: the pool
@@ -205,6 +224,7 @@ class _Replay:
             float(ev.priority) if ev.priority is not None else tt.priority,
             float(ev.at) if ev.at is not None else ev.t,
             tt.commit_after is not None,
+            tt.max_attempts,
         )
 
     def task(self, ev: TaskStateEvent) -> None:
@@ -228,6 +248,26 @@ class _Replay:
         self.logged[tid] = n + 1
         if agent is not None:
             self.dropped.pop(agent, None)
+            if state is TaskState.DONE:  # a task done ends its agent's streak of give-ups
+                self.streaks.pop(agent, None)
+
+    def attempt(self, ev: AttemptEvent) -> None:
+        """An attempt that ended without success, through the pool's transition (give up or
+        fail): its history entry is made here, and the ``task`` event after it matched."""
+        tid, agent, reason = str(ev.task), str(ev.agent), str(ev.reason)
+        when = float(ev.reported_s) if ev.reported_s is not None else ev.t
+        if ev.gave_up:
+            self.pool = self.pool.give_up(tid, agent, when, reason)
+            streak = self.streaks.get(agent, ())
+            self.streaks[agent] = streak if tid in streak else (*streak, tid)
+        else:
+            self.pool = self.pool.fail(tid, agent, when, reason)
+        got = self.pool[tid].state.value
+        if got != ev.state:
+            self.problem(ev, f"task '{tid}' is {got} after attempt {ev.attempt}, not {ev.state}")
+        event = "gave_up" if ev.gave_up else "failed"
+        self.seen.setdefault(agent, set()).add(logged_key((tid, event, when)))
+        self.attempts_logged[tid] = self.attempts_logged.get(tid, 0) + 1
 
     def _seen(self, tid: str, state: TaskState, agent: str | None, now: float, reason: str) -> None:
         """Record the progress report a logged change came from (if it came from one)."""

@@ -7,7 +7,9 @@ short by a crash still gives the report of what happened until then.
 
 * **Table III** (seed 000): per task, when it was added, when it finished, its execution time
   (from its allocation to the agent that completed it until completion) and that agent; tasks not
-  done show their state and reason.
+  done show their state and reason. Below it, when any attempt failed, every **attempt** that
+  ended without success (an agent gave the task up, or reported it failed): when, by whom, its
+  retries, its reason and what became of the task.
 * **Table II** (seed 000): mission duration, total distance flown or driven, agents, tasks done,
   smallest clearance to rock, collisions.
 * a **timeline** (Gantt chart: which agent executed which task when) and a **top view** (the map,
@@ -26,7 +28,9 @@ from typing import Any
 import numpy as np
 
 from btmission.runtime.eventkinds import (
+    AgentExcludedEvent,
     AgentTaskEvent,
+    AttemptEvent,
     CollisionEvent,
     CommandEvent,
     DispatchEvent,
@@ -35,6 +39,7 @@ from btmission.runtime.eventkinds import (
     LeafErrorEvent,
     ObjectsEvent,
     PoseEvent,
+    RetryEvent,
     TaskAddedEvent,
     TaskStateEvent,
     WarningEvent,
@@ -46,6 +51,21 @@ from btmission.runtime.events import (
     TypedEvent,
     read_events,
 )
+
+
+@dataclass(frozen=True)
+class AttemptRow:
+    """An attempt at a task that ended without success (an ``attempt`` event)."""
+
+    attempt: int
+    max_attempts: int
+    time_s: float
+    agent: str
+    retries: int
+    """The ``retry`` events of that agent on that task before it (its vehicle's refusals)."""
+    reason: str
+    outcome: str
+    """``offered to the others`` (a give-up, the task open again) or ``failed``."""
 
 
 @dataclass(frozen=True)
@@ -62,6 +82,8 @@ class TaskRow:
     reason: str = ""
     added_by: str = "mission"
     """Who added it: ``mission`` (its file), or the operator (``cli@127.0.0.1``, ``page@…``)."""
+    attempts: tuple[AttemptRow, ...] = ()
+    """Its attempts that ended without success, in order."""
 
 
 @dataclass(frozen=True)
@@ -101,6 +123,8 @@ class MissionReport:
     """What went wrong while it ran: ``leaf_error`` and ``warning`` events, each once."""
     commands: list[CommandRow] = field(default_factory=list)
     """What operators did while it ran (``command`` events), in order."""
+    excluded: list[str] = field(default_factory=list)
+    """Agents the coordinator took out of the auction for their give-ups, with why."""
 
 
 @dataclass(frozen=True)
@@ -138,6 +162,10 @@ class ReportBuilder:
         self.dispatched: dict[str, list[dict[str, Any]]] = {}
         self.incidents: dict[str, None] = {}  # ordered set
         self.commands: list[CommandRow] = []
+        self.attempts: dict[str, list[AttemptRow]] = {}
+        self.retries: dict[tuple[str | None, str], int] = {}
+        """(task, agent) → its retries since its last attempt ended."""
+        self.excluded: list[str] = []
 
     def on_event(self, event: Event) -> None:
         self.last_t = max(self.last_t, event.t)
@@ -181,6 +209,16 @@ class ReportBuilder:
                 self.incidents[f"agent {ev.agent}: {what} (traceback in the log)"] = None
             case WarningEvent():
                 self.incidents[str(ev.message)] = None
+            case RetryEvent():
+                key = (ev.task, ev.agent)
+                self.retries[key] = self.retries.get(key, 0) + 1
+            case AttemptEvent():
+                outcome = "offered to the others" if ev.state == "open" else str(ev.state)
+                row = AttemptRow(int(ev.attempt), int(ev.max_attempts), _when(ev), ev.agent,
+                                 self.retries.pop((ev.task, ev.agent), 0), ev.reason, outcome)  # fmt: skip
+                self.attempts.setdefault(ev.task, []).append(row)
+            case AgentExcludedEvent():
+                self.excluded.append(f"{ev.agent} at t={ev.t:.1f}s: {ev.reason}")
             case CommandEvent():
                 args = ", ".join(f"{k}={_plain_text(v)}" for k, v in ev.args.items())
                 ok = ev.ok is None or bool(ev.ok)
@@ -206,10 +244,12 @@ class ReportBuilder:
                     start = None
             execution = None if start is None else _when(done) - start
             by = self.added_by.get(task, "mission")
-            return TaskRow(task, ttype, added, _when(done), execution, agent, "done", "", by)
+            tried = tuple(self.attempts.get(task, ()))
+            return TaskRow(task, ttype, added, _when(done), execution, agent, "done", "", by, tried)
         agent = evs[-1].agent if evs else None
         by = self.added_by.get(task, "mission")
-        return TaskRow(task, ttype, added, None, None, agent, str(state), str(reason), by)
+        tried = tuple(self.attempts.get(task, ()))
+        return TaskRow(task, ttype, added, None, None, agent, str(state), str(reason), by, tried)
 
     def report(self) -> MissionReport:
         tasks = list(self.added)
@@ -248,6 +288,7 @@ class ReportBuilder:
             dispatched={k: list(v) for k, v in self.dispatched.items()},
             incidents=list(self.incidents),
             commands=list(self.commands),
+            excluded=list(self.excluded),
         )
 
     def _intervals(self, end: float) -> dict[str, list[tuple[str, float, float, str]]]:
@@ -360,6 +401,26 @@ def format_report(rep: MissionReport) -> str:
         head = (*head[:2], "Added by", *head[2:])
         body = [(*b[:2], r.added_by, *b[2:]) for b, r in zip(body, rep.rows)]
     lines += table_lines(head, body)
+    tried = [(r.task, a) for r in rep.rows for a in r.attempts]
+    if tried:  # (a run where every attempt succeeded shows nothing here)
+        lines += ["", f"Attempts that did not succeed ({len(tried)})"]
+        lines += table_lines(
+            ("Task", "Attempt", "Time [s]", "Agent", "Retries", "Then", "Reason"),
+            [
+                (
+                    task,
+                    f"{a.attempt} of {a.max_attempts}",
+                    _f(a.time_s, 1),
+                    a.agent,
+                    str(a.retries),
+                    a.outcome,
+                    a.reason,
+                )
+                for task, a in tried
+            ],
+        )
+    for line in rep.excluded:
+        lines.append(f"Taken out of the auction: {line}")
     lines += ["", "Mission (seed 000 Table II)"]
     clearance = "—" if s.min_clearance_m is None else f"{s.min_clearance_m:.2f} m"
     per_agent = ", ".join(f"{a} {d:.1f}" for a, d in rep.distance_by_agent.items())
@@ -401,6 +462,14 @@ def format_warnings(rep: MissionReport, *, incidents: bool = True) -> list[str]:
     ``incidents``, what went wrong during the run (leaf errors, runtime warnings), one line
     each: the CLI prints them on stderr, apart from the tables."""
     return [f"warning: {w}" for w in rep.warnings + (rep.incidents if incidents else [])]
+
+
+def _row_json(row: TaskRow) -> dict[str, Any]:
+    """A task's row as plain data; its ``attempts`` only when it has some."""
+    out = {k: v for k, v in row.__dict__.items() if k != "attempts"}
+    if row.attempts:
+        out["attempts"] = [a.__dict__ for a in row.attempts]
+    return out
 
 
 def _plain_text(value: Any) -> str:
@@ -445,9 +514,10 @@ def report_json(rep: MissionReport) -> dict[str, Any]:
             "collisions": s.collisions,
             "end": s.end,
         },
-        "tasks": [r.__dict__ for r in rep.rows],
+        "tasks": [_row_json(r) for r in rep.rows],
         "objects": rep.objects,
         "commands": [c.__dict__ for c in rep.commands],
+        **({"excluded": list(rep.excluded)} if rep.excluded else {}),
         "truncated": rep.truncated,
     }
 

@@ -9,8 +9,9 @@ and what each library's own ``check_mission`` finds (:func:`library_problems`). 
 get a did-you-mean.
 
 Settings are declared (:mod:`btmission.settings`: a name, a type, a default, a doc) in two
-places: the run's own (the navigator's :class:`~btmission.runtime.navigation.NavConfig` and the
-tree events' :class:`~btmission.runtime.treestatus.TreeEventSettings`: every run has them) and
+places: the run's own (the navigator's :class:`~btmission.runtime.navigation.NavConfig`, the
+tree events' :class:`~btmission.runtime.treestatus.TreeEventSettings` and the refused commands'
+:class:`~btmission.runtime.actions.CommandRetrySettings`: every run has them) and
 each library's implementations (``Implementations(settings=...)``: a frozen dataclass, or a
 mapping whose defaults give the types). A value must be of the declared type
 (:meth:`~btmission.settings.Setting.problem`); the ranges are in :data:`SETTING_RANGES`, and a
@@ -41,6 +42,7 @@ SETTING_RANGES: dict[str, tuple[float, bool]] = {
     "altitude_m": (0.0, False),
     "stuck_s": (0.0, True),
     "replans": (0.0, False),
+    "refusal_retries": (0.0, False),
     "apf_gain": (0.0, False),
     "clearance_m": (0.0, False),
     "dispatch_budget_s": (0.0, True),
@@ -60,11 +62,12 @@ def declared_run_settings(mission: LoadedMission) -> dict[str, Setting]:
     (``Implementations(settings=...)``). A name declared by both keeps the first declaration's
     type: a library may give a navigator setting its own default (``ground``: ``speed_m_s`` 0.4),
     not another type."""
+    from btmission.runtime.actions import CommandRetrySettings
     from btmission.runtime.navigation import NavConfig
     from btmission.runtime.treestatus import TreeEventSettings
 
     declared: dict[str, Setting] = {}
-    for cls in (NavConfig, TreeEventSettings):
+    for cls in (NavConfig, TreeEventSettings, CommandRetrySettings):
         declared.update(declared_settings(cls))
     for loaded in mission.libraries.values():
         impl = loaded.implementations

@@ -202,6 +202,7 @@ class TaskCheck:
             checked.priority,
             max(checked.at, now),
             tt.commit_after is not None,
+            tt.max_attempts,
         )
 
     def priority(self, task_id: str, value: Any) -> float:

@@ -139,6 +139,9 @@ class TaskSpec(BaseModel):
     )
 
 
+MAX_ATTEMPTS = 1000
+"""Largest ``max_attempts`` of a task type (a task is not tried forever)."""
+
 MAX_PRIORITY_WEIGHT = 1e12
 """Largest priority × priority_scale: the auction's bound on bids and bonuses
 (btmission.allocation.solvers.MAX_COST); beyond it the profits overflow or swamp the costs."""
@@ -184,6 +187,14 @@ class TaskTypeSpec(_Strict):
     priority: FiniteFloat = Field(
         1.0, gt=0, description="Priority; scaled by coordination.priority_scale."
     )
+    max_attempts: int = Field(
+        3,
+        ge=1,
+        le=MAX_ATTEMPTS,
+        description="Agents' attempts at a task of this type before it fails for good: an "
+        "agent whose vehicle keeps refusing (arming, OFFBOARD) gives the task up and it is "
+        "offered to the others, until this many attempts have failed.",
+    )
 
 
 class CoordinationSpec(_Strict):
@@ -211,6 +222,19 @@ class CoordinationSpec(_Strict):
         ge=0,
         description="Added to an agent's bids on tasks other than the one it executes "
         "(hysteresis against swapping on near-equal bids; 0 = the paper's auction).",
+    )
+    cooldown_s: FiniteFloat = Field(
+        30.0,
+        ge=0,
+        description="An agent that gave a task up (its vehicle kept refusing) gets no part in "
+        "that task's allocation for this long (s): the other agents are offered it first.",
+    )
+    exclude_after: int = Field(
+        3,
+        ge=0,
+        description="Different tasks an agent may give up in a row, none done between, before "
+        "it is taken out of the auction, as the operator's exclude does (0: never); the last "
+        "agent bidding is never taken out.",
     )
 
     @field_validator("bid_window_s")
@@ -259,6 +283,8 @@ class TaskType:
     priority: float
     fields: tuple[str, ...]
     """Every task field the type reads (goal, cost and commit symbols)."""
+    max_attempts: int = 3
+    """Agents' attempts before a task of this type fails for good."""
 
 
 @dataclass(frozen=True)
@@ -611,7 +637,9 @@ def compile_mission(spec: MissionSpec, src: Source, resolve: LibraryResolver[L])
                     "undefined-parameter",
                 )
         fields = tuple(sorted(goal_syms | set(cost.symbols)))
-        task_types[tname] = TaskType(tname, tuple(goals), cost, commit, tt.priority, fields)
+        task_types[tname] = TaskType(
+            tname, tuple(goals), cost, commit, tt.priority, fields, tt.max_attempts
+        )
 
     # default behaviour
     default: DefaultBehavior | None = None

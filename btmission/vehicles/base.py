@@ -7,7 +7,9 @@ mirror PX4's offboard interface so that behaviour written against the simulator 
 
 * commands — :meth:`Backend.arm`, :meth:`Backend.disarm`, :meth:`Backend.set_mode`,
   :meth:`Backend.takeoff`, :meth:`Backend.land` — are answered with an :class:`Ack`, like
-  MAVLink's COMMAND_ACK: accepted, or refused with the reason;
+  MAVLink's COMMAND_ACK: accepted, or refused with the reason, and whether the refusal is
+  *transient* (the vehicle may accept later: not ready, busy, no answer; the run retries it)
+  or *final* (it will not as things are: unsupported, out of range);
 * setpoints — position, velocity, or attitude + thrust (what the seed 002 NMPC outputs) — are
   streamed, and OFFBOARD is only accepted once they have been streaming for a while; a vehicle
   in OFFBOARD whose setpoints stop falls back to a failsafe mode;
@@ -50,13 +52,31 @@ class VehicleKind(str, Enum):
 
 @dataclass(frozen=True)
 class Ack:
-    """The answer to a command (MAVLink COMMAND_ACK): accepted or refused, and why."""
+    """The answer to a command (MAVLink COMMAND_ACK): accepted or refused, why, and whether the
+    refusal is transient.
+
+    The provider, which knows its vehicle, types the refusal, so the run never reads its reason
+    text: a **transient** refusal is one the same vehicle may take back if asked again later
+    (arming refused by a pre-arm check or an estimator not ready yet, a mode change denied for
+    now, TEMPORARILY_REJECTED, a command nobody answered, "cannot arm in the air"): a leaf
+    retries it with a back-off (:class:`btmission.runtime.actions.Command`), then hands the
+    task back. A **final** one (``transient`` false: a command or mode the vehicle does not
+    have, a value out of range, a battery too low to fly) is not retried: the leaf fails at
+    once and the task goes to another agent. ``transient`` is meaningless on an accepted Ack.
+    """
 
     accepted: bool
     reason: str = ""
+    transient: bool = False
+    """The refusal may be taken back later (class docstring); False: final."""
 
     def __bool__(self) -> bool:
         return self.accepted
+
+    @classmethod
+    def refused(cls, reason: str, *, transient: bool) -> Ack:
+        """A refusal, typed: ``transient`` (asking again later may work) or final."""
+        return cls(False, reason, transient)
 
 
 ACCEPTED = Ack(True)

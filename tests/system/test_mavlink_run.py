@@ -1,8 +1,10 @@
 """Missions flown on MAVLink vehicles: ``btmission run`` against mavsim, end to end.
 
 A small mission (one drone, one inspection) runs in the fast selection for both autopilots, with
-its faults: a link that drops mid-task, a pre-arm check that fails, a run stopped while the drone
-flies. The seed 000 mission on three PX4 and on three ArduPilot vehicles runs in the slow one
+its faults: a link that drops mid-task, a pre-arm check that fails (retried), a run stopped while
+the drone flies; in the slow one, a drone that refuses to arm a few times still flies its task,
+and one that always refuses hands it to another (issue #36 item 4). The seed 000 mission on
+three PX4 and on three ArduPilot vehicles runs in the slow one too
 (``missions/mine_inspection_px4.yaml``, ``..._ardupilot.yaml``, mavsim in its own process)."""
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from btmission.missions import load_mission
 from btmission.runtime.events import Recorder
 from btmission.runtime.runner import MissionRun
 from btmission.vehicles.base import Mode
-from tests.mavlink_helpers import SPEED, mavsim, mission_on_free_ports
+from tests.mavlink_helpers import SPEED, mavsim, mission_on_free_ports, spec
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -137,15 +139,80 @@ def test_a_vehicle_link_drop_mid_task_pauses_the_agent_and_it_resumes(tmp_path: 
         assert result.done == ["T1"]
 
 
-def test_a_refused_arming_gives_the_autopilots_reason(tmp_path: Path) -> None:
+def test_a_refused_arming_is_retried_with_the_autopilots_reason(tmp_path: Path) -> None:
     with mavsim(Autopilot.ARDUPILOT, refuse_arm="Compass not calibrated") as sim:
         path = small_mission(tmp_path, sim)
         result = run_cli(str(path), "--log", str(tmp_path / "logs"), "--until", "20")
         assert result.exit_code == 1, result.output
-        failed = [e for e in events(tmp_path / "logs") if e["ev"] == "progress"]
-        assert failed and failed[0]["event"] == "failed"
-        assert "MAV_RESULT_FAILED (PreArm: Compass not calibrated)" in failed[0]["reason"]
+        evs = events(tmp_path / "logs")
+        retries = [e for e in evs if e["ev"] == "retry"]
+        assert [e["retry"] for e in retries] == [1, 2]  # at ~5 s and ~12 s; the third at ~21 s
+        assert {e["action"] for e in retries} == {"arm"}
+        assert all(
+            "MAV_RESULT_FAILED (PreArm: Compass not calibrated)" in e["reason"] for e in retries
+        )
+        assert not [e for e in evs if e["ev"] == "progress"]  # still trying: nothing lost
         assert not sim.vehicle_state("R1")["armed"]
+
+
+TWO = """
+mission: mavlink_two
+version: 1
+world:
+  map: {{generate: empty, size: [30, 30, 8]}}
+  resolution: 0.5
+agents:
+  - {{id: R1, library: aerial, start: [5, 5, 0], backend: '{url1}'}}
+  - {{id: R2, library: aerial, start: [5, 25, 0], backend: '{url2}'}}
+tasks:
+  - {{id: T1, type: inspect, location: [9, 7, 2]}}
+task_types:
+  inspect: {{goal: at_goal(location), cost: path_cost(location)}}
+default_behavior: {{goal: landed_at_home, idle_timeout_s: 2}}
+runtime:
+  controller: track
+  max_duration_s: 200
+  mavlink: {{time_scale: {speed}, connect_timeout_s: 5, telemetry_hz: 20}}
+"""
+
+
+@pytest.mark.slow
+def test_a_vehicle_that_refuses_to_arm_a_few_times_still_flies_its_task(tmp_path: Path) -> None:
+    """PX4 refuses the first 5 arming commands (the provider's back-off sends 4 in a try of 5
+    s): the arm leaf retries and the drone flies its task, over MAVLink."""
+    with mavsim(Autopilot.PX4, refuse_arm_times=5) as sim:
+        result = run_cli(str(small_mission(tmp_path, sim)), "--log", str(tmp_path / "logs"))
+        assert result.exit_code == 0, result.output
+        assert "Tasks done              1 of 1" in result.output
+        evs = events(tmp_path / "logs")
+        retries = [e for e in evs if e["ev"] == "retry"]
+        assert retries and all("Preflight Fail: sensors not ready" in e["reason"] for e in retries)
+        progress = [(e["agent"], e["event"]) for e in evs if e["ev"] == "progress"]
+        assert progress == [("R1", "done")]
+
+
+@pytest.mark.slow
+def test_a_vehicle_that_always_refuses_loses_its_task_to_another(tmp_path: Path) -> None:
+    """R1's compass is never calibrated: after its retries R1 gives T1 up, R2 (further away)
+    flies it, once; R1 is cooled down and never armed."""
+    with (
+        mavsim(Autopilot.PX4, spec(Autopilot.PX4, "R1"), refuse_arm="Compass not calibrated") as s1,
+        mavsim(Autopilot.PX4, spec(Autopilot.PX4, "R2", (5.0, 25.0, 0.0))) as s2,
+    ):
+        path = tmp_path / "two.yaml"
+        text = TWO.format(url1=s1.endpoints[0].url, url2=s2.endpoints[0].url, speed=SPEED)
+        path.write_text(textwrap.dedent(text).lstrip())
+        result = run_cli(str(path), "--log", str(tmp_path / "logs"))
+        assert result.exit_code == 0, result.output
+        assert "Tasks done              1 of 1" in result.output
+        evs = events(tmp_path / "logs")
+        progress = [(e["agent"], e["event"]) for e in evs if e["ev"] == "progress"]
+        assert progress == [("R1", "gave_up"), ("R2", "done")]
+        (attempt,) = [e for e in evs if e["ev"] == "attempt"]
+        assert (attempt["agent"], attempt["state"]) == ("R1", "open")
+        assert "Preflight Fail: Compass not calibrated" in attempt["reason"]
+        assert "Attempts that did not succeed (1)" in result.output
+        assert not s1.vehicle_state("R1")["armed"]
 
 
 def test_a_run_stopped_in_flight_holds_then_lands_its_vehicles(tmp_path: Path) -> None:

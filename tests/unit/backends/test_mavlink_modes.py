@@ -91,6 +91,22 @@ def test_command_acks_become_acks_with_the_reason() -> None:
 
 
 @pytest.mark.parametrize(
+    ("result", "transient"),
+    [
+        (mavlink.MAV_RESULT_TEMPORARILY_REJECTED, True),  # PX4: not ready, busy
+        (mavlink.MAV_RESULT_DENIED, True),  # PX4's pre-arm checks, OFFBOARD not available
+        (mavlink.MAV_RESULT_FAILED, True),  # ArduPilot's pre-arm checks, GUIDED needs a fix
+        (mavlink.MAV_RESULT_IN_PROGRESS, True),  # never finished
+        (mavlink.MAV_RESULT_UNSUPPORTED, False),  # whatever its state
+        (99, False),  # a result this btmission does not know
+    ],
+)
+def test_a_refusal_is_typed_transient_or_final_by_its_result(result: int, transient: bool) -> None:
+    ack = ack_of(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, result, "PreArm: Compass not calibrated")
+    assert not ack.accepted and ack.transient is transient
+
+
+@pytest.mark.parametrize(
     ("autopilot", "kind", "mode", "params"),
     [
         (Autopilot.PX4, VehicleKind.MULTIROTOR, Mode.OFFBOARD, (1.0, 6.0, 0.0)),

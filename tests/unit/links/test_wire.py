@@ -98,7 +98,11 @@ def test_status_progress_ack_and_prediction_round_trip() -> None:
     idle = AgentStatus("R2", 3.0, (0.0, 0.0, 0.0), "HOLD", False, math.nan, None, "")
     back = roundtrip(idle)
     assert back.task is None and math.isnan(back.battery)
-    for p in (Progress("R1", "T1", "done", 84.3), Progress("R1", "P1", "failed", 9.0, "blocked")):
+    for p in (
+        Progress("R1", "T1", "done", 84.3),
+        Progress("R1", "P1", "failed", 9.0, "blocked"),
+        Progress("R1", "T2", "gave_up", 34.4, "arm: PreArm: Compass not calibrated"),
+    ):
         assert roundtrip(p) == p
     ack = ProgressAck("R1", (("T1", "done", 84.3), ("P1", "committed", 20.1)))
     assert roundtrip(ack) == ack
@@ -107,6 +111,15 @@ def test_status_progress_ack_and_prediction_round_trip() -> None:
         out = roundtrip(pred)
         assert out.agent == "R3" and out.time_s == 4.2
         np.testing.assert_array_equal(out.positions, pred.positions)
+
+
+def test_a_tasks_max_attempts_goes_only_when_it_is_not_the_default() -> None:
+    five = Announcement(4, 2.0, (TaskInfo("T1", "inspect", {}, max_attempts=5), *ANN.tasks))
+    back = roundtrip(five)
+    assert back == five and back.tasks[0].max_attempts == 5
+    tasks = to_dict(five)["tasks"]
+    assert tasks[0]["max_attempts"] == 5 and "max_attempts" not in tasks[1]
+    assert roundtrip(ANN).tasks[0].max_attempts == 3
 
 
 def test_every_kind_has_a_round_trip_test() -> None:

@@ -298,6 +298,38 @@ def test_bad_missions_name_file_line_and_item(old: str, new: str, expected: str)
     assert any(expected in line for line in out), "\n".join(out)
 
 
+def test_max_attempts_and_the_retry_settings_of_coordination() -> None:
+    """A task type's ``max_attempts`` (default 3) reaches each task's pool entry; the
+    coordination's ``cooldown_s`` (30) and ``exclude_after`` (3) the auction's config."""
+    from btmission.allocation.auction import AuctionConfig
+    from btmission.runtime.mission_auction import pool_from_mission
+
+    m = load_mission_text(MISSION, "m.yaml")
+    assert m.task_types["inspect"].max_attempts == 3
+    text = MISSION.replace("priority: 2", "priority: 2\n    max_attempts: 5")
+    text += "coordination: {cooldown_s: 12.5, exclude_after: 0}\n"
+    m = load_mission_text(text, "m.yaml")
+    pool = pool_from_mission(m)
+    assert (pool["T1"].info.max_attempts, pool["P1"].info.max_attempts) == (3, 5)
+    cfg = AuctionConfig.from_spec(m.spec.coordination)
+    assert (cfg.cooldown_s, cfg.exclude_after) == (12.5, 0)
+    for bad, expected in [
+        (
+            "max_attempts: 0",
+            "18:19: task_types.pick_and_deliver.max_attempts: Input should be "
+            "greater than or equal to 1 (got 0)",
+        ),
+        ("max_attempts: 1.5", "18:19: task_types.pick_and_deliver.max_attempts:"),
+    ]:
+        out = problems(load_mission_text, MISSION.replace("priority: 2", f"priority: 2\n    {bad}"))
+        assert any(expected in line for line in out), "\n".join(out)
+    out = problems(load_mission_text, MISSION + "coordination: {cooldown_s: -1}\n")
+    assert any("coordination.cooldown_s" in line for line in out), "\n".join(out)
+    schema = json_schema("mission")["$defs"]
+    assert schema["TaskTypeSpec"]["properties"]["max_attempts"]["default"] == 3
+    assert set(schema["CoordinationSpec"]["properties"]) >= {"cooldown_s", "exclude_after"}
+
+
 def test_many_mission_problems_are_reported_together() -> None:
     text = (
         MISSION.replace("id: G1", "id: R1")

@@ -503,6 +503,16 @@ def test_refuse_arm(make: Any, result: int, text: str) -> None:
         assert not sim.vehicle_state("V1")["armed"]
 
 
+def test_refuse_arm_times_refuses_only_the_first_arming_commands() -> None:
+    with px4(refuse_arm_times=2) as (sim, [g]):
+        assert [g.arm(), g.arm()] == [mavlink.MAV_RESULT_DENIED] * 2
+        assert g.texts == ["Preflight Fail: sensors not ready"] * 2
+        assert not sim.vehicle_state("V1")["armed"]
+        assert g.arm() == ACCEPTED  # the third passes the check
+    with pytest.raises(ValueError, match="refuse_arm_times must be ≥ 0"):
+        MavSimConfig(sim.config.vehicles, sim.config.voxel_map, refuse_arm_times=-1)
+
+
 def test_a_dropped_link_neither_sends_nor_hears() -> None:
     with px4(speed=2.0) as (sim, [g]):
         sim.drop_link("V1", 1.0)  # 0.5 s of wall time

@@ -220,6 +220,7 @@ def test_offboard_is_refused_before_setpoints_stream(
     backend = attach().backend
     ack = backend.set_mode(Mode.OFFBOARD)
     assert not ack and ack.reason
+    assert ack.transient  # once the setpoints stream, it is accepted: worth asking again
     advance(provider, 0.5, streaming(backend))  # streaming, but not for a second yet
     assert not backend.set_mode(Mode.OFFBOARD)
     assert backend.telemetry().mode is not Mode.OFFBOARD
@@ -275,7 +276,7 @@ def test_takeoff_is_refused_unless_armed(
 ) -> None:
     backend = attach().backend
     ack = backend.takeoff(2.0)
-    assert not ack and "armed" in ack.reason
+    assert not ack and "armed" in ack.reason and ack.transient
     assert backend.telemetry().mode is not Mode.TAKEOFF
     assert backend.arm()
     assert backend.takeoff(2.0)
