@@ -36,6 +36,18 @@ firmware's SITL:
 
 Time runs ``speed`` times faster than the wall clock (``--speed``; PX4_SIM_SPEED_FACTOR and
 ArduPilot's ``--speedup`` do the same); every timeout and message rate is in simulated time.
+
+**Its own ground station only.** A UDP vehicle sends to the address it was given (where the
+ground station listens) and hears only that address; it moves to another one only on a valid
+MAVLink frame from there that is a ground station's HEARTBEAT (``MAV_TYPE_GCS``), correctly
+signed when signing is on — a ground station restarted elsewhere. Anything else from another
+address (garbage, an unsigned frame, a vehicle's or a command) is dropped and counted
+(``strangers``); it neither diverts the telemetry nor reaches the autopilot. (Without signing
+anyone who can send a GCS heartbeat can take the vehicle over, as on the real firmware: sign.)
+
+**On time under load.** Each step reads at most :data:`RECEIVE_PER_STEP` datagrams (messages
+on TCP) per vehicle before it steps the physics and sends what is due, so a backlog or a flood
+of incoming datagrams delays what is read, not the simulation and its telemetry.
 """
 
 from __future__ import annotations
@@ -67,7 +79,7 @@ from btmission.backends.mavlink_setpoints import (
     AttitudeTarget,
     attitude_from_target,
 )
-from btmission.backends.mavlink_signing import enable_signing, signing_counters
+from btmission.backends.mavlink_signing import enable_signing, parser_like, signing_counters
 from btmission.backends.mavlink_url import MavlinkAddress
 from btmission.backends.sim import SimConfig, Simulator, SimVehicle
 from btmission.vehicles.base import Ack, Mode, VehicleKind
@@ -77,6 +89,9 @@ G = 9.81
 SPOOL_S = 1.0
 """An ArduCopter take-off spools its motors up this long before it leaves the ground (SITL shows
 the copter ON_GROUND for about a second after NAV_TAKEOFF)."""
+RECEIVE_PER_STEP = 32
+"""Datagrams (UDP) or messages (TCP) a vehicle reads per simulation step at most (module
+docstring): at 50 steps a second, far above what a ground station sends."""
 PX4_UDP_BASE = 14540
 ARDUPILOT_TCP_BASE = 5760
 BOOT_EPOCH_S = 0.0
@@ -165,6 +180,10 @@ class _SimulatedAutopilot:
         self.cfg = sim.config
         self.autopilot = sim.config.autopilot
         self.frame = LocalFrame(spec.start)
+        self.peer: tuple[str, int] | None = None
+        """The ground station's UDP address (where this vehicle sends; module docstring)."""
+        self.strangers = 0
+        """UDP datagrams from another address than the peer's, dropped."""
         self.conn = self._open(spec.address)
         self.intervals: dict[int, float] = {}
         self.next_send: dict[int, float] = {}
@@ -177,6 +196,8 @@ class _SimulatedAutopilot:
         self.guided = _Guided()
         self.failsafe_note = ""
         self.received = 0
+        self.setpoints = 0
+        """Setpoints received (SET_POSITION_TARGET_LOCAL_NED, SET_ATTITUDE_TARGET)."""
         self.last_setpoint_t = -math.inf
         self.stream_since = math.inf
         """Since when setpoints have come at least every 0.5 s (PX4's OFFBOARD entry rule)."""
@@ -197,10 +218,10 @@ class _SimulatedAutopilot:
             conn = mavutil.mavlink_connection(f"udpout:{address.host}:{address.port}", **src)
             try:
                 conn.port.bind((address.host, 0))  # its own address: loopback, any free port
+                self.peer = (socket.gethostbyname(address.host), address.port)
             except OSError:
                 conn.close()
                 raise
-            conn.recv = _answering_recv(conn)
         elif address.transport == "tcp":  # the client connects: listen (ArduPilot SITL)
             if address.port:  # a port in use fails here, before pymavlink would leak a socket
                 with socket.socket() as probe:
@@ -251,6 +272,7 @@ class _SimulatedAutopilot:
     def _streamed(self) -> None:
         """A setpoint arrived now: PX4 counts the stream whatever it is used for."""
         t = self.now()
+        self.setpoints += 1
         if t - self.last_setpoint_t > 1.0 / STREAM_MIN_HZ:
             self.stream_since = t
         self.last_setpoint_t = t
@@ -275,8 +297,12 @@ class _SimulatedAutopilot:
             return 0
 
     # ------------------------------------------------------------------ receive
-    def receive(self) -> None:
-        for _ in range(500):
+    def receive(self, budget: int = RECEIVE_PER_STEP) -> None:
+        """Read and handle at most ``budget`` datagrams (UDP) or messages (TCP)."""
+        if self.peer is not None:
+            self._receive_udp(budget)
+            return
+        for _ in range(budget):
             try:
                 msg = self.conn.recv_msg()
             except (OSError, ConnectionError):
@@ -289,6 +315,46 @@ class _SimulatedAutopilot:
                 continue
             self.received += 1
             self._handle(msg)
+
+    def _receive_udp(self, budget: int) -> None:
+        port = self.conn.port
+        for _ in range(budget):
+            try:
+                data, addr = port.recvfrom(65535)
+            except (BlockingIOError, InterruptedError, ConnectionRefusedError):
+                return
+            except OSError:
+                return
+            if self.now() < self.drop_until:
+                continue  # the link is down: nothing arrives
+            if addr == self.peer:
+                msgs = self.conn.mav.parse_buffer(data) or ()
+            else:
+                msgs = self._from_stranger(data, addr)
+            for msg in msgs:
+                if msg.get_type() == "BAD_DATA":
+                    continue
+                self.received += 1
+                self._handle(msg)
+
+    def _from_stranger(self, data: bytes, addr: tuple[str, int]) -> list[Any]:
+        """A datagram from another address than the peer's: the new peer if it is a ground
+        station's valid (and, with signing, correctly signed) HEARTBEAT, else dropped (module
+        docstring). Parsed on its own, so its bytes never mix with the peer's."""
+        if data[:1] in (b"\xfd", b"\xfe"):
+            msgs = parser_like(self.conn).parse_buffer(data) or []
+            first = msgs[0] if msgs else None
+            if (
+                first is not None
+                and first.get_type() == "HEARTBEAT"
+                and first.type == mavlink.MAV_TYPE_GCS
+            ):
+                self.peer = addr
+                self.conn.destination_addr = addr
+                self.conn.resolved_destination_addr = addr[0]
+                return msgs
+        self.strangers += 1
+        return []
 
     def _for_me(self, msg: Any) -> bool:
         target = getattr(msg, "target_system", 0)
@@ -812,6 +878,8 @@ class MavSim:
             "landed": tel.landed,
             "failsafe": ap.failsafe_note or ap.backend.failsafe,
             "received": ap.received,
+            "strangers": ap.strangers,
+            "setpoints": ap.setpoints,
             "ignored_frames": ap.ignored_frames,
         }
 
@@ -835,22 +903,6 @@ class MavSim:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
-
-
-def _answering_recv(conn: Any) -> Callable[[int | None], bytes]:
-    """A UDP vehicle sends to the port it was told until it hears from a ground station, then
-    answers wherever that one sends from (PX4 SITL's MAVLink instance does the same)."""
-
-    def recv(n: int | None = None) -> bytes:
-        try:
-            data, addr = conn.port.recvfrom(65535)
-        except (BlockingIOError, InterruptedError, ConnectionRefusedError):
-            return b""
-        conn.destination_addr = addr
-        conn.resolved_destination_addr = addr[0]
-        return data
-
-    return recv
 
 
 def _reaccepting_recv(conn: Any) -> Callable[[int | None], bytes]:

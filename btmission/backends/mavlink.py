@@ -14,6 +14,10 @@ vehicles may share one link (told apart by ``?sysid=``), and **one I/O thread** 
 * it sends a GCS HEARTBEAT on every link once a second (PX4's data-link-loss and ArduPilot's GCS
   failsafes watch it).
 
+Both streams are due on absolute deadlines and the thread sends before it reads, so a loaded
+machine delays a setpoint but does not lower the rate; a stream that still falls short becomes a
+``warning`` event (:meth:`MavlinkProvider.step`; :mod:`btmission.backends.mavlink_schedule`).
+
 Commands (arm, mode, take-off, land) are COMMAND_LONGs that wait for their COMMAND_ACK
 (``ack_timeout_s``), are sent again (with ``confirmation`` counting up) when no answer comes, are
 waited for while the autopilot says IN_PROGRESS and retried after a pause while it says
@@ -56,6 +60,7 @@ from btmission.backends.mavlink_frames import (
     mission_geodetic_origin,
     world_to_geodetic,
 )
+from btmission.backends.mavlink_schedule import StreamStats
 from btmission.backends.mavlink_signing import load_key, signing_counters
 from btmission.backends.mavlink_url import MavlinkAddress, parse_mavlink_url
 from btmission.spec.common import config_from
@@ -335,9 +340,34 @@ class MavlinkProvider(ProviderBase):
             raise MavlinkError(f"the MAVLink I/O thread stopped: {self._io.error!r}")
 
     def step(self, dt: float) -> list[VehicleEvent]:
-        """Nothing to integrate: real time passes on its own. Raises if the I/O thread died."""
+        """Nothing to integrate: real time passes on its own. Returns a ``warning`` for each
+        vehicle whose setpoint stream fell short since the last step (below 80 % of
+        ``setpoint_hz`` over a second, or a gap over 0.2 s, vehicle time: at most one per
+        vehicle per 10 s). Raises if the I/O thread died."""
         self._check_io()
-        return []
+        warnings = self._io.take_warnings()
+        if not warnings:
+            return []
+        by_state = {id(v.state): v for v in self.vehicles.values()}
+        now = self.clock.now()
+        out = []
+        for st, text in warnings:
+            vehicle = by_state.get(id(st))
+            if vehicle is None:
+                continue  # a vehicle being attached: its stream has not started
+            p = vehicle.telemetry().position  # the world's frame
+            out.append(
+                VehicleEvent(
+                    now, vehicle.id, "warning", "", (float(p[0]), float(p[1]), float(p[2])),
+                    message=f"{vehicle.id}: {text}",
+                )
+            )  # fmt: skip
+        return out
+
+    def stream_stats(self) -> dict[str, StreamStats]:
+        """Each vehicle's setpoint stream so far: sends, slots skipped after stalls, worst gap,
+        last and lowest rate over a second, and how often it fell short (vehicle time)."""
+        return {agent: v.state.health.stats(v.state.schedule) for agent, v in self.vehicles.items()}
 
     def rejected(self) -> dict[str, int]:
         """Messages refused on every link with signing on, by reason: unsigned, a bad
@@ -359,6 +389,15 @@ class MavlinkProvider(ProviderBase):
         self._closed = True
         try:
             self.stop_vehicles()
+            if self._progress is not None:
+                for agent, stats in self.stream_stats().items():
+                    if stats.warnings:
+                        self._progress(
+                            f"{agent}: setpoints fell short {stats.long_gaps + stats.low_windows} "
+                            f"time(s): worst gap {stats.worst_gap_s:.2f} s, lowest rate "
+                            f"{stats.lowest_rate_hz or 0.0:.1f} Hz of "
+                            f"{self.options.setpoint_hz:g}, {stats.sent} sent"
+                        )
             refused = self.rejected()
             if refused and self._progress is not None:
                 self._progress(

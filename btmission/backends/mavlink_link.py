@@ -6,6 +6,21 @@ told apart by their system id. :class:`_LinkIO` waits on every link at once, fil
 into each vehicle's :class:`_State`, streams each vehicle's latest setpoint at ``setpoint_hz`` while
 the mission renews it, and sends the GCS heartbeat. :class:`MavlinkOptions` are the provider's
 settings (``runtime.mavlink``), :class:`MavlinkError` what it raises when a vehicle cannot be had.
+
+What keeps the streams on time when the machine is busy (issue #36):
+
+* setpoints and heartbeats are due on absolute deadlines
+  (:class:`~btmission.backends.mavlink_schedule.Deadlines`): a late wake-up sends at once and the
+  schedule does not drift; after a stall one message goes out and the grid resumes;
+* each turn of the loop sends what is due *before* it reads, and reads at most
+  :data:`RECEIVE_BUDGET` messages per link, stopping early when a send falls due: a flood of
+  telemetry cannot hold a setpoint back, and what it left unread is read on the next turn;
+* nothing on the thread blocks: a TCP link that closed is reconnected by a helper thread;
+* each vehicle's stream is watched (:class:`~btmission.backends.mavlink_schedule.StreamHealth`):
+  a rate below 80 % of ``setpoint_hz`` over a second or a gap over 0.2 s (vehicle time) becomes
+  a warning the provider hands to the run (:meth:`_LinkIO.take_warnings`);
+* a UDP link sends only to addresses an autopilot's HEARTBEAT came from (valid, and signed when
+  signing is on): pymavlink would answer every address that ever sent it a datagram.
 """
 
 from __future__ import annotations
@@ -28,6 +43,7 @@ from btmission.backends.mavlink_modes import (
     Autopilot,
     autopilot_of,
 )
+from btmission.backends.mavlink_schedule import Deadlines, StreamHealth
 from btmission.backends.mavlink_setpoints import (
     PositionTarget,
 )
@@ -43,6 +59,9 @@ if TYPE_CHECKING:
     pass
 
 
+RECEIVE_BUDGET = 64
+"""Messages (UDP: datagrams) read from one link per turn of the I/O loop before the thread looks
+at its schedule again."""
 GCS_SYSID = 255
 GCS_COMPID = mavlink.MAV_COMP_ID_MISSIONPLANNER
 
@@ -182,9 +201,13 @@ class _State:
     velocity: ArduRover would keep a GUIDED speed 3 s)."""
     stopped: bool = True
     setpoint_wall: float = -math.inf
-    next_setpoint_wall: float = 0.0
+    schedule: Deadlines = field(default_factory=lambda: Deadlines(0.05))
+    """When the setpoint is due (the I/O thread's; the provider sets its period)."""
+    health: StreamHealth = field(default_factory=lambda: StreamHealth(20.0))
+    send_now_at: float | None = None
+    """A new setpoint the mission hands over at once: the wall time it asked (the I/O thread
+    re-anchors the schedule there, :meth:`Deadlines.restart`)."""
     last_sent_wall: float = -math.inf
-    setpoints_sent: int = 0
     send_times: list[float] | None = None
     """Wall time of every setpoint sent, when a benchmark asks (a list), else None."""
     messages: int = 0
@@ -199,11 +222,12 @@ class _Link:
     lock: threading.Lock = field(default_factory=threading.Lock)
     vehicles: dict[int, _State] = field(default_factory=dict)
     claimed: set[int] = field(default_factory=set)
-    next_heartbeat_wall: float = 0.0
+    heartbeat: Deadlines = field(default_factory=lambda: Deadlines(1.0))
     down: bool = False
     """A TCP link whose peer closed it (the vehicle or SITL restarted): reconnected every
     second."""
     next_reconnect_wall: float = 0.0
+    reconnecting: threading.Thread | None = None
 
     def __post_init__(self) -> None:
         if self.address.transport == "tcp":  # pymavlink would print and spin on a closed socket
@@ -221,17 +245,27 @@ class _Link:
         self.down = True
 
     def reconnect(self, wall: float) -> None:
-        """Try once to reconnect a closed TCP link (then again a second later)."""
-        if wall < self.next_reconnect_wall:
+        """Try to reconnect a closed TCP link, at most once a second, on a helper thread: a
+        connect to a host that does not answer can block for long, and the I/O thread must
+        keep every other vehicle's stream going meanwhile."""
+        if wall < self.next_reconnect_wall or self.reconnecting is not None:
             return
         self.next_reconnect_wall = wall + 1.0
+        self.reconnecting = threading.Thread(
+            target=self._reconnect, name="mavlink-reconnect", daemon=True
+        )
+        self.reconnecting.start()
+
+    def _reconnect(self) -> None:
         try:
             with self.lock:
                 self.conn.do_connect()
+                self.conn.fd = self.conn.port.fileno()
+                self.down = False
         except OSError:
-            return
-        self.conn.fd = self.conn.port.fileno()
-        self.down = False
+            pass
+        finally:
+            self.reconnecting = None
 
     def send(self, fn: Callable[[Any], None]) -> None:
         if self.down:
@@ -293,10 +327,14 @@ class _LinkIO:
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
         self.error: BaseException | None = None
+        self._period = 1.0 / (options.setpoint_hz * options.time_scale)
+        """Wall time between two setpoints (the rate is in the vehicle's time)."""
+        self._warnings: collections.deque[tuple[_State, str]] = collections.deque(maxlen=1000)
         self._thread = threading.Thread(target=self._run, name="mavlink-io", daemon=True)
         self._thread.start()
 
     def add(self, link: _Link) -> None:
+        link.heartbeat = Deadlines(1.0 / self.options.time_scale)
         with self._lock:
             self.links[link.address.device()] = link
         self.wake()
@@ -331,86 +369,146 @@ class _LinkIO:
             except OSError:
                 pass
 
+    def take_warnings(self) -> list[tuple[_State, str]]:
+        """The stream warnings since the last call (the vehicle's state, the text)."""
+        out = []
+        while self._warnings:
+            out.append(self._warnings.popleft())
+        return out
+
     # ------------------------------------------------------------------ loop
     def _run(self) -> None:
+        """Each turn: send what is due, wait for a socket or the next deadline, then read —
+        at most :data:`RECEIVE_BUDGET` messages per link, and no further link once a send is
+        due (the first link read is read anyway, so that reading is never starved). The links
+        are read round-robin, starting after the last one read."""
+        last_fd = -1
         try:
             while not self._stop.is_set():
                 with self._lock:
                     links = list(self.links.values())
-                timeout = self._periodic(links)
+                next_due = self._periodic(links)
                 fds: dict[int, _Link] = {}
                 for link in links:
-                    fd = _fileno(link.conn)
+                    fd = None if link.down else _fileno(link.conn)
                     if fd is not None:
                         fds[fd] = link
+                timeout = max(0.0, next_due - time.monotonic())
                 ready, _, _ = select.select([self._wake_r, *fds], [], [], timeout)
-                for fd in ready:
-                    if fd == self._wake_r:
-                        try:
-                            os.read(self._wake_r, 4096)
-                        except OSError:
-                            pass
-                        continue
-                    self._receive(fds[fd])
+                if self._wake_r in ready:
+                    try:
+                        os.read(self._wake_r, 4096)
+                    except OSError:
+                        pass
+                order = sorted((fd for fd in ready if fd in fds), key=lambda f: (f <= last_fd, f))
+                for i, fd in enumerate(order):
+                    if i and time.monotonic() >= next_due:
+                        break  # a send is due: it goes first, the rest is read next turn
+                    last_fd = fd
+                    self._receive(fds[fd], next_due)
         except BaseException as exc:
             self.error = exc
 
     def _periodic(self, links: list[_Link]) -> float:
-        """Send what is due; return how long select may wait."""
+        """Send what is due (each stream at most once); return the next deadline (wall)."""
         wall = time.monotonic()
         opts = self.options
-        period = 1.0 / (opts.setpoint_hz * opts.time_scale)  # the rate in the vehicle's time
+        stale = opts.setpoint_stale_s / opts.time_scale  # the vehicle's time
         next_due = wall + 0.05
+        warnings = self._warnings
         for link in links:
             if link.down:
                 link.reconnect(wall)
                 continue
-            if wall >= link.next_heartbeat_wall:
-                link.next_heartbeat_wall = wall + 1.0 / opts.time_scale
-                link.send(
-                    lambda mav: mav.heartbeat_send(
-                        mavlink.MAV_TYPE_GCS,
-                        mavlink.MAV_AUTOPILOT_INVALID,
-                        0,
-                        0,
-                        mavlink.MAV_STATE_ACTIVE,
-                    )
-                )
-            next_due = min(next_due, link.next_heartbeat_wall)
+            if link.heartbeat.due(wall):
+                link.send(_gcs_heartbeat)
+            next_due = min(next_due, link.heartbeat.next)
             for st in list(link.vehicles.values()):
                 sp = st.setpoint
-                if sp is None or wall - st.setpoint_wall > opts.setpoint_stale_s / opts.time_scale:
-                    if not st.stopped and st.stop is not None:
-                        link.send(st.stop)
+                if sp is None or wall - st.setpoint_wall > stale:
+                    if not st.stopped:
+                        if st.stop is not None:
+                            link.send(st.stop)
+                        st.health.pause()  # stopped on purpose: no gap
                     st.stopped = True
                     continue
-                if wall >= st.next_setpoint_wall:
+                schedule = st.schedule
+                at = st.send_now_at
+                if at is not None:
+                    st.send_now_at = None
+                    schedule.restart(at)
+                if schedule.due(wall):
                     link.send(sp)
-                    st.setpoints_sent += 1
-                    st.last_sent_wall = wall
+                    sent = time.monotonic()
+                    st.last_sent_wall = sent
                     if st.send_times is not None:
-                        st.send_times.append(time.monotonic())
-                    st.next_setpoint_wall = wall + period  # re-sent if not renewed meanwhile
-                next_due = min(next_due, st.next_setpoint_wall)
-        return max(0.0, next_due - time.monotonic())
+                        st.send_times.append(sent)
+                    warning = st.health.sent(sent)
+                    if warning is not None:
+                        warnings.append((st, warning))
+                next_due = min(next_due, schedule.next)
+        return next_due
 
-    def _receive(self, link: _Link) -> None:
+    def _receive(self, link: _Link, until: float) -> None:
+        """Read what ``link`` has, up to :data:`RECEIVE_BUDGET` messages (UDP: datagrams), and
+        stop early at ``until`` (a send falls due) once a few have been read."""
         conn = link.conn
-        for _ in range(1000):  # bounded: never starve the setpoint stream
+        transport = link.address.transport
+        n = 0
+        while n < RECEIVE_BUDGET:
             if link.down:
                 return
-            try:
-                msg = conn.recv_msg()
-            except (OSError, ConnectionError):
+            if n >= 8 and time.monotonic() >= until:
                 return
-            if msg is None:
-                return
-            self._file(link, msg)
+            if transport in ("udp", "udpout"):  # whole datagrams, each filed with its sender
+                try:
+                    data, addr = conn.port.recvfrom(65535)
+                except (BlockingIOError, InterruptedError):
+                    return
+                except ConnectionRefusedError:  # an ICMP error of an earlier send
+                    n += 1
+                    continue
+                except OSError:
+                    return
+                n += 1
+                sender = addr if transport == "udp" else None  # udpout: one fixed peer
+                for msg in conn.mav.parse_buffer(data) or ():
+                    self._file(link, msg, sender)
+            elif transport == "tcp":  # a chunk of the stream; a partial frame stays buffered
+                try:
+                    data = conn.recv(4096)
+                except (OSError, ConnectionError):
+                    return
+                if not data:
+                    return  # nothing more, or the peer closed it (_Link._closed)
+                msgs = conn.mav.parse_buffer(data) or ()
+                n += max(1, len(msgs))
+                for msg in msgs:
+                    self._file(link, msg)
+            else:
+                try:
+                    msg = conn.recv_msg()
+                except (OSError, ConnectionError):
+                    return
+                if msg is None:
+                    return
+                n += 1
+                self._file(link, msg)
 
-    def _file(self, link: _Link, msg: Any) -> None:
+    def _file(self, link: _Link, msg: Any, addr: tuple[str, int] | None = None) -> None:
+        """File one message into its vehicle's state. ``addr``: the UDP address it came from;
+        only an address an autopilot's HEARTBEAT came from is answered (and heard)."""
         kind = msg.get_type()
         if kind == "BAD_DATA":  # signing refusals are counted by pymavlink's signing state;
             return  # other bytes (a SITL's boot banner on its serial port) are not messages
+        if addr is not None and addr not in link.conn.clients:
+            if kind != "HEARTBEAT" or msg.type == mavlink.MAV_TYPE_GCS:
+                return  # a stranger: not heard, not answered
+            if autopilot_of(msg.autopilot) is None:
+                return
+            with link.lock:  # the mission's sends iterate the clients under the lock
+                link.conn.clients.add(addr)
+                link.conn.clients_last_alive[addr] = time.time()
         src = msg.get_srcSystem()
         st = link.vehicles.get(src)
         now = self.clock.now()
@@ -419,7 +517,14 @@ class _LinkIO:
                 ap = autopilot_of(msg.autopilot)
                 if ap is None or msg.type == mavlink.MAV_TYPE_GCS:
                     return
-                st = _State(src, msg.get_srcComponent(), ap, msg.type)
+                st = _State(
+                    src,
+                    msg.get_srcComponent(),
+                    ap,
+                    msg.type,
+                    schedule=Deadlines(self._period),
+                    health=StreamHealth(self.options.setpoint_hz, self.options.time_scale),
+                )
                 link.vehicles[src] = st
             elif msg.get_srcComponent() != st.compid:
                 return  # a camera, a gimbal... of the same system
@@ -472,6 +577,12 @@ class _LinkIO:
                 pending.event.set()
 
 
+def _gcs_heartbeat(mav: Any) -> None:
+    mav.heartbeat_send(
+        mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE
+    )
+
+
 def _fileno(conn: Any) -> int | None:
     port = getattr(conn, "port", None)
     if port is None:
@@ -495,5 +606,3 @@ def _send_position_target(st: _State, target: PositionTarget) -> Callable[[Any],
         )  # fmt: skip
 
     return send
-
-

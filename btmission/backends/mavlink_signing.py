@@ -108,6 +108,19 @@ def enable_signing(conn: Any, key: bytes, *, link_id: int | None = None) -> None
     conn.mav.check_signature = types.MethodType(_check_signature, conn.mav)
 
 
+def parser_like(conn: Any) -> Any:
+    """A fresh MAVLink parser that accepts what ``conn`` accepts: the same signing state (key,
+    replay window, counters) when signing is on. For reading a datagram from an unknown sender
+    on its own, without mixing its bytes into ``conn``'s buffer."""
+    mav = conn.mav
+    parser = type(mav)(None, srcSystem=mav.srcSystem, srcComponent=mav.srcComponent)
+    parser.robust_parsing = True
+    parser.signing = mav.signing
+    if mav.signing.secret_key is not None:
+        parser.check_signature = types.MethodType(_check_signature, parser)
+    return parser
+
+
 def _refuse(mav: Any, msg_id: int) -> bool:
     """No unsigned message is accepted (given as pymavlink's callback so that it counts them)."""
     return False

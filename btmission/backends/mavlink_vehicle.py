@@ -341,10 +341,12 @@ class MavlinkVehicle:
             self._ground_ready(now)
         st.setpoint_wall = wall
         if wall - st.last_sent_wall >= 0.75 * self._period():
-            st.next_setpoint_wall = wall  # a new setpoint goes out now
+            # a new setpoint goes out now, and the stream's grid is re-anchored at the time the
+            # mission asked (not at the I/O thread's wake-up, which may be late)
+            st.send_now_at = wall
             self._wake()
-        else:  # sent moments ago: this one goes out one period after it (the rate is capped)
-            st.next_setpoint_wall = st.last_sent_wall + self._period()
+        # else: sent moments ago: this one goes out at the stream's next deadline (the rate is
+        # capped at 1 / (0.75 period))
 
     def _ardupilot_takeoff(self, climb_to: float) -> bool:
         """ArduCopter does not leave the ground on GUIDED targets: it needs NAV_TAKEOFF. When

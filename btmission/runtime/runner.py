@@ -98,6 +98,7 @@ from btmission.runtime.eventkinds import (
     CollisionEvent,
     PoseEvent,
     ResumedEvent,
+    WarningEvent,
 )
 from btmission.runtime.events import (
     EventStream,
@@ -416,6 +417,9 @@ class MissionRun:
                 self.emit_event(PoseEvent.of(side.id, self.vehicles[side.id]))
         self.steps += 1
         for ev in self.provider.step(self.dt):
+            if ev.kind == "warning":
+                self.emit_event(WarningEvent(agent=ev.vehicle, message=ev.message))
+                continue
             self.collisions += 1
             self.emit_event(CollisionEvent(agent=ev.vehicle, other=ev.other, p=list(ev.position)))
         if time.perf_counter() - self._published_wall >= SNAPSHOT_PERIOD_S:

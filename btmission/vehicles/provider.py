@@ -69,13 +69,15 @@ ENTRY_POINT_GROUP = "btmission.providers"
 @dataclass(frozen=True)
 class VehicleEvent:
     """Something the provider detected while stepping: a ``collision`` of ``vehicle`` with
-    ``other`` (``rock`` or another vehicle's id) at ``position``."""
+    ``other`` (``rock`` or another vehicle's id) at ``position``, or a ``warning`` about
+    ``vehicle`` (``message``: e.g. its setpoint stream fell short; ``other`` empty)."""
 
     time_s: float
     vehicle: str
     kind: str
     other: str
     position: tuple[float, float, float]
+    message: str = ""
 
 
 @dataclass(frozen=True)
@@ -165,7 +167,8 @@ class VehicleProvider(Protocol):
 
     def step(self, dt: float) -> Sequence[VehicleEvent]:
         """Advance by ``dt`` seconds: the simulator integrates its physics; a real provider
-        pumps its inbox or does nothing. Returns what happened meanwhile (collisions)."""
+        pumps its inbox or does nothing. Returns what happened meanwhile (collisions,
+        warnings)."""
         ...
 
     def close(self) -> None:

@@ -1,13 +1,15 @@
-"""``btmission bench mavlink``: a tiny fleet end to end, and its bad options."""
+"""``btmission bench mavlink``: a tiny fleet end to end, its bad options, its CPU burners."""
 
 from __future__ import annotations
 
 import csv
+import os
 from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
 
+from btmission.bench.stress import cpu_burners
 from btmission.cli.main import cli
 
 
@@ -35,8 +37,23 @@ def test_bad_options_exit_2_naming_the_option(tmp_path: Path) -> None:
         (["--vehicles", "101"], "fleet sizes must be 1-100"),
         (["--setpoint-hz", "1"], "PX4's minimum"),
         (["--seconds", "nan"], "--seconds"),
+        (["--stress", "-1"], "--stress"),
+        (["--stress", "65"], "--stress"),
     ):
         result = CliRunner().invoke(cli, ["bench", "mavlink", *args, "--out", str(tmp_path)])
         assert result.exit_code == 2, (args, result.output)
         assert want in result.output, (args, result.output)
     assert not (tmp_path / "mavlink.md").exists()
+
+
+def test_cpu_burners_run_and_end_with_the_block() -> None:
+    with cpu_burners(2) as pids:
+        assert len(pids) == 2
+        for pid in pids:
+            os.kill(pid, 0)  # alive
+    for pid in pids:
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)  # ended and reaped
+    with pytest.raises(ValueError, match="CPU burners must be 0-64"):
+        with cpu_burners(-1):
+            pass

@@ -290,8 +290,10 @@ def test_one_shot_messages_and_unsupported_commands() -> None:
         )
 
 
-def test_px4_answers_whatever_address_the_ground_station_sends_from() -> None:
-    with px4() as (_sim, [g]):
+def test_px4_moves_to_a_ground_station_that_sends_its_heartbeat_from_elsewhere() -> None:
+    """A stranger's command gets no answer; once it sends a ground station's HEARTBEAT, the
+    vehicle answers there (a ground station restarted at another address)."""
+    with px4() as (sim, [g]):
         other = mavutil.mavlink_connection("udpout:127.0.0.1:9", source_system=255)
         try:
             other.port.bind(("127.0.0.1", 0))
@@ -299,12 +301,20 @@ def test_px4_answers_whatever_address_the_ground_station_sends_from() -> None:
             g.heartbeat()  # the vehicle learns nothing new from the listening station yet
             assert vehicle is not None
             other.destination_addr = vehicle
-            other.mav.command_long_send(1, 1, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0,
-                                        1, 0, 0, 0, 0, 0, 0)  # fmt: skip
-            end = time.monotonic() + 2
-            ack = None
-            while ack is None and time.monotonic() < end:
-                ack = other.recv_match(type="COMMAND_ACK", blocking=True, timeout=0.1)
+
+            def arm() -> Any:
+                other.mav.command_long_send(1, 1, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0,
+                                            1, 0, 0, 0, 0, 0, 0)  # fmt: skip
+                end = time.monotonic() + 1.0
+                ack = None
+                while ack is None and time.monotonic() < end:
+                    ack = other.recv_match(type="COMMAND_ACK", blocking=True, timeout=0.1)
+                return ack
+
+            assert arm() is None and not sim.vehicle_state("V1")["armed"]
+            assert sim.vehicle_state("V1")["strangers"] >= 1
+            other.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+            ack = arm()
             assert ack is not None and ack.result == ACCEPTED
             assert ack.target_system == 255
         finally:
