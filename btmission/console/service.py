@@ -183,10 +183,7 @@ class Console:
 
     def _ground_fleet(self) -> bool:
         """Whether every agent drives (a task picked on a floor then stays on it)."""
-        from btmission.vehicles.base import VehicleKind
-
-        kinds = {v.kind for v in self.run.vehicles.values()}
-        return kinds == {VehicleKind.GROUND}
+        return {a.vehicle for a in self.run.snapshot.agents} == {"ground"}
 
     def next_task_id(self, task_type: str | None = None) -> str:
         """The next free id in the mission's own pattern (T1..T7 → T8), that of the tasks of
@@ -292,7 +289,7 @@ class Console:
 
     def set_link(self, agent: str, up: bool, by: str) -> Result:
         with self._audit("set_link", by, {"agent": agent, "up": up}):
-            if agent in self.run.agents and agent not in self.drill_agents:
+            if self._agent(agent) is not None and agent not in self.drill_agents:
                 raise ConsoleError(
                     409,
                     f"{agent} flies a real vehicle: link drills are for the simulator only "

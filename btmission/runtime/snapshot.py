@@ -63,6 +63,9 @@ class AgentSnapshot:
     :attr:`tree`, for a reader that did not see the agent's first ``tree`` event."""
     recalled: bool = False
     """The operator recalled it (it bids no more; its default behaviour runs)."""
+    vehicle: str = "multirotor"
+    """Its vehicle's kind (:class:`~btmission.vehicles.base.VehicleKind`: ``multirotor`` or
+    ``ground``)."""
 
 
 @dataclass(frozen=True)
@@ -159,6 +162,7 @@ class SnapshotTaker:
                     tree,
                     self._tree_nodes(a),
                     a.recalled,
+                    run.vehicles[aid].kind.value,
                 )
             )
         state = run.coordinator.state

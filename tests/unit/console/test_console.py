@@ -1031,9 +1031,8 @@ def test_the_form_gets_the_fields_in_the_goals_order_and_a_ground_fleets_offset(
 
     def info(kind: VehicleKind) -> dict[str, Any]:
         tasks = TaskCheck(mission, lambda: pool_from_mission(mission))
-        run = SimpleNamespace(
-            vehicles={"G1": SimpleNamespace(kind=kind)}, port=SimpleNamespace(tasks=tasks)
-        )
+        snapshot = SimpleNamespace(agents=(SimpleNamespace(id="G1", vehicle=kind.value),))
+        run = SimpleNamespace(snapshot=snapshot, port=SimpleNamespace(tasks=tasks))
         return Console(SimpleNamespace(mission=mission), run).info()
 
     ground = info(VehicleKind.GROUND)
