@@ -59,6 +59,7 @@ bench: install
 # CONTRIBUTING.md says which layer new code goes in).
 lint: install
 	$(VENV)/bin/ruff check btmission cli library tests benchmarks
+	$(VENV)/bin/ruff format --check btmission cli library tests benchmarks
 	$(VENV)/bin/mypy btmission cli library
 	$(VENV)/bin/lint-imports --no-cache
 

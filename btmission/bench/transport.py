@@ -828,7 +828,9 @@ def with_earlier_runs(new: str, previous: str | None) -> str:
     main, _, kept = previous.partition(EARLIER)
     date = re.search(r"^- date: (.*)$", main, re.M)
     load = re.search(r"^- load: (.*)$", main, re.M)
-    version = re.search(r"`btmission\.(?:runtime|links)\.wire`, v(\d+)", main)  # (pages before 2026-12)
+    version = re.search(
+        r"`btmission\.(?:runtime|links)\.wire`, v(\d+)", main
+    )  # (pages before 2026-12)
     lines = main.splitlines()
     start = next(i for i, line in enumerate(lines) if line.startswith("| transport |"))
     table = []

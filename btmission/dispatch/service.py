@@ -230,9 +230,7 @@ class FleetDispatcher:
             return
         target = self.park_target(name) if goal == PARK else goal
         taken = self.planner.targets(k)
-        if target is None or (
-            target in taken and self.planner.pause_for(target, taken) is None
-        ):
+        if target is None or (target in taken and self.planner.pause_for(target, taken) is None):
             # nowhere to go (every place is targeted): wait until a truck moves on, without
             # spending an optimisation that cannot succeed
             self.queue.append((k, goal))
@@ -271,9 +269,7 @@ def mission_record(tmap: TopoMap, m: Mission) -> dict[str, Any]:
     }
 
 
-def missions_from_records(
-    tmap: TopoMap, records: Sequence[Mapping[str, Any]]
-) -> list[Mission]:
+def missions_from_records(tmap: TopoMap, records: Sequence[Mapping[str, Any]]) -> list[Mission]:
     """A truck's successive missions from its ``adopted`` records, in log order (a record with
     ``head`` > 0 replaces the mission it continues)."""
     out: list[Mission] = []

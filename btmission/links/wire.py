@@ -63,14 +63,7 @@ VERSIONS = (1, 2)
 MAX_EPOCH = 2**64 - 1
 
 Message: TypeAlias = (
-    Announcement
-    | Bid
-    | Assignment
-    | AgentStatus
-    | Progress
-    | ProgressAck
-    | Prediction
-    | MissionEnd
+    Announcement | Bid | Assignment | AgentStatus | Progress | ProgressAck | Prediction | MissionEnd
 )
 
 PROGRESS_EVENTS = ("committed", "done", "failed", "gave_up")
@@ -587,7 +580,12 @@ def _prediction(f: _Fields) -> Prediction:
 
 
 def _end(f: _Fields) -> MissionEnd:
-    t, reason, done, still = f.number("time_s"), f.text("reason"), f.texts("done"), f.mapping("open")
+    t, reason, done, still = (
+        f.number("time_s"),
+        f.text("reason"),
+        f.texts("done"),
+        f.mapping("open"),
+    )
     if not all(isinstance(v, str) for v in still.values()):
         raise f.fail("open", "an object of task id → text", dict(still))
     return MissionEnd(t, reason, tuple(done), dict(still))

@@ -133,7 +133,9 @@ def settings_problems(
     return out
 
 
-def implementation_problems(mission: LoadedMission, *, abstract_ok: bool = False) -> list[Diagnostic]:
+def implementation_problems(
+    mission: LoadedMission, *, abstract_ok: bool = False
+) -> list[Diagnostic]:
     """Libraries that cannot run: no implementation module, missing or unusable leaves.
 
     ``abstract_ok``: a library without ``module:`` (abstract: it synthesises and exports, by
@@ -211,7 +213,9 @@ def library_problems(mission: LoadedMission) -> list[Diagnostic]:
     return out
 
 
-def backend_problems(mission: LoadedMission, agents: Collection[str] | None = None) -> list[Diagnostic]:
+def backend_problems(
+    mission: LoadedMission, agents: Collection[str] | None = None
+) -> list[Diagnostic]:
     """Agents whose ``backend:`` no installed vehicle provider serves (its URL scheme is not in
     the ``btmission.providers`` entry-point group), and fleets that mix providers: a run has one
     clock, and simulated time cannot be mixed with the wall clock; and references whose address

@@ -161,7 +161,7 @@ def test_python_m_btmission_version(tmp_path: Path) -> None:
     assert proc.stdout.startswith("btmission, version ")
 
 
-BUGGY_PLUGIN = '''
+BUGGY_PLUGIN = """
 from btmission.plugins import Implementations
 
 
@@ -171,7 +171,7 @@ class Buggy(Implementations):
 
 
 IMPLEMENTATIONS = Buggy("buggy")
-'''
+"""
 
 BUGGY_LIBRARY = """\
 library: buggy
@@ -209,9 +209,7 @@ def test_internal_error_in_a_real_process(tmp_path: Path) -> None:
 
 def test_closed_pipe_and_full_disk_on_stdout(tmp_path: Path) -> None:
     cmd = [sys.executable, "-m", "btmission", "schema", "mission"]
-    proc = subprocess.Popen(
-        cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env(tmp_path)
-    )
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env(tmp_path))
     assert proc.stdout is not None and proc.stderr is not None
     proc.stdout.close()  # the reader is gone before anything is written (like `| head -0`)
     err = proc.stderr.read().decode()
@@ -224,7 +222,9 @@ def test_closed_pipe_and_full_disk_on_stdout(tmp_path: Path) -> None:
                 cmd, stdout=full, stderr=subprocess.PIPE, text=True, timeout=120, env=_env(tmp_path)
             )
         assert done.returncode == 2
-        assert done.stderr.strip() == "Error: cannot write to standard output: No space left on device"
+        assert (
+            done.stderr.strip() == "Error: cannot write to standard output: No space left on device"
+        )
 
 
 # ---------------------------------------------------------------- a 1,000-action chain
@@ -295,7 +295,9 @@ def test_chain_dry_run_ticks_the_whole_depth(chain: Path) -> None:
     lines = r.stdout.splitlines()
     assert lines[0].endswith("✓ c0  ▶ a1 [1/2]")  # tick 1 went all the way down
     assert lines[1].endswith("● a1 [2/2]  ▶ a2 [1/2]")
-    assert lines[-1] == "goal NOT reached (root RUNNING) after 3 tick(s); 0 precondition violation(s)"
+    assert (
+        lines[-1] == "goal NOT reached (root RUNNING) after 3 tick(s); 0 precondition violation(s)"
+    )
     assert sys.getrecursionlimit() == before  # raised for the ticks only
 
 
@@ -386,7 +388,10 @@ def test_refuses_a_device() -> None:
 def test_refuses_a_parent_that_is_a_file(targets: Path) -> None:
     r = synth_to(targets / "plain" / "t.txt")
     assert r.exit_code == 2
-    assert f"cannot write {targets / 'plain' / 't.txt'}: {targets / 'plain'} is not a directory" in r.stderr
+    assert (
+        f"cannot write {targets / 'plain' / 't.txt'}: {targets / 'plain'} is not a directory"
+        in r.stderr
+    )
 
 
 def test_refuses_an_unwritable_directory(targets: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -427,7 +432,11 @@ def test_disk_full_while_writing_is_a_clear_message(
     assert f"cannot write {targets / 'real.txt'}: No space left on device" in r.stderr
     assert (targets / "real.txt").read_text() == "keep me"
     assert sorted(p.name for p in targets.iterdir()) == [
-        "dir.txt", "fifo.txt", "link.txt", "plain", "real.txt"
+        "dir.txt",
+        "fifo.txt",
+        "link.txt",
+        "plain",
+        "real.txt",
     ]  # fmt: skip  (no temporary file left behind)
 
 
@@ -574,7 +583,10 @@ def test_with_implementations_reports_what_is_implemented(marked: Path) -> None:
     )
     r = invoke("library", "check", str(marked / "marked.yaml"), "--with-implementations")
     assert r.exit_code == 1
-    assert "module marker_impl implements condition 'bogus', which the library does not declare" in r.stderr
+    assert (
+        "module marker_impl implements condition 'bogus', which the library does not declare"
+        in r.stderr
+    )
     r = invoke("library", "show", str(marked / "marked.yaml"), "--with-implementations")
     assert " *ready " in r.stdout and "(* = implemented)" in r.stdout
 
@@ -618,6 +630,7 @@ def test_quiet_composites_tick_exactly_like_py_trees(monkeypatch: pytest.MonkeyP
         return out
 
     quiet = traces()
+
     def plain(tree: Node, leaf: LeafFactory, quiet: bool = False) -> object:
         return build_behaviour_tree(tree, leaf)
 
@@ -635,7 +648,10 @@ def test_a_module_that_does_not_exist_is_found_missing_without_importing(
     (marked / "marked.yaml").write_text(lib.replace("module: marker_impl", "module: no_such_mod"))
     r = invoke("validate", str(marked / "mission.yaml"))
     assert r.exit_code == 2, r.output
-    assert "library 'marked.yaml' cannot run: ModuleNotFoundError: No module named 'no_such_mod'" in r.output
+    assert (
+        "library 'marked.yaml' cannot run: ModuleNotFoundError: No module named 'no_such_mod'"
+        in r.output
+    )
     # a module inside a package is found without running the package's __init__ either
     pkg = marked / "markpkg"
     pkg.mkdir()

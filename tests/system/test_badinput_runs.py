@@ -631,12 +631,16 @@ def test_an_internal_error_mid_run_ends_the_log_with_its_traceback(
 
     monkeypatch.setattr(MissionRun, "step", failing_step)
     log_dir = tmp_path / "logs"
-    r = run_cli(["run", str(mission), "--until", "30", "--quiet", "--no-png", "--log", str(log_dir)])
+    r = run_cli(
+        ["run", str(mission), "--until", "30", "--quiet", "--no-png", "--log", str(log_dir)]
+    )
     assert r.exit_code == 70, r.output
     log = only_log(log_dir)
     assert "Traceback" not in r.output
-    assert r.stderr.strip().splitlines()[-1].startswith(
-        "internal error: ZeroDivisionError: a bug in the loop; details in "
+    assert (
+        r.stderr.strip()
+        .splitlines()[-1]
+        .startswith("internal error: ZeroDivisionError: a bug in the loop; details in ")
     )
     assert r.stderr.rstrip().endswith(f" and {log}")
     evs = events(log)
@@ -742,7 +746,9 @@ def chain_mission(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, n: int) -> Pa
 def test_a_1000_action_chain_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """py_trees ticks recurse once per level: the agent raises the limit its tree needs."""
     mission = chain_mission(tmp_path, monkeypatch, 1000)
-    r = run_cli(["run", str(mission), "--until", "5", "--quiet", "--no-png", "--log", str(tmp_path)])
+    r = run_cli(
+        ["run", str(mission), "--until", "5", "--quiet", "--no-png", "--log", str(tmp_path)]
+    )
     assert r.exit_code == 0, r.output
     assert "Tasks done              1 of 1" in r.stdout
     assert sys.getrecursionlimit() < 5000  # raised around the ticks only
