@@ -97,18 +97,75 @@ def shape(raw, prev, att, fmax, frate, out):  # pragma: no cover - jit
 
 
 @njit(cache=True)
+def separation_bound(
+    vx, vy, vz, cx, cy, cz, rel, vel, stand_off, decel, reaction, share, lead_decel, passes, out
+):  # fmt: skip  # pragma: no cover - jit
+    """The velocity (vx, vy, vz) with its approach to each other agent at ``rel[i]`` (relative
+    positions, the velocity's frame), moving at ``vel[i]`` (NaN: unknown), bounded
+    (:func:`btmission.control.apf.separation_bound`)::
+
+        v·u_i ≤ A_i − max(0, c·u_i − A_i),
+        A_i = v_stop(max(0, share·(‖ρ_i‖ − s) + max(0, v_i·u_i)² / (2·a_j))),
+        v_stop(x) = −a·t_r + √((a·t_r)² + 2·a·x)
+
+    with (cx, cy, cz) = c the vehicle's current velocity: while it approaches faster than A_i
+    (its velocity loop lags the lowered command), the command is lowered by the excess again.
+
+    each pass removing the largest excess along its u_i, at most ``passes`` times (the most
+    constraining neighbours first); into ``out[0:3]``. Returns the passes that changed it."""
+    at = decel * reaction
+    k = rel.shape[0]
+    changed = 0
+    for _ in range(passes):
+        worst = 1e-12
+        best = -1
+        bx = by = bz = 0.0
+        for i in range(k):
+            x, y, z = rel[i, 0], rel[i, 1], rel[i, 2]
+            d = _norm3(x, y, z)
+            if not d > 0.0:  # (NaN or on top of it: no direction)
+                continue
+            ux, uy, uz = x / d, y / d, z / d
+            room = share * (d - stand_off)
+            away = ux * vel[i, 0] + uy * vel[i, 1] + uz * vel[i, 2]
+            if away > 0.0:  # (NaN: not shared, no credit)
+                room += away * away / (2.0 * lead_decel)
+            if room < 0.0:
+                room = 0.0
+            allowed = -at + math.sqrt(at * at + 2.0 * decel * room)
+            late = ux * cx + uy * cy + uz * cz - allowed
+            if late > 0.0:
+                allowed -= late
+            excess = ux * vx + uy * vy + uz * vz - allowed
+            if excess > worst:
+                worst, best = excess, i
+                bx, by, bz = ux, uy, uz
+        if best < 0:
+            break
+        vx -= worst * bx
+        vy -= worst * by
+        vz -= worst * bz
+        changed += 1
+    out[0], out[1], out[2] = vx, vy, vz
+    return changed
+
+
+@njit(cache=True)
 def navigator_force(
-    points, others, px, py, pz, goal, yaw, prev, flat, speed, position_gain, field, agents
-):  # pragma: no cover - jit
+    points, others, px, py, pz, vx, vy, vz, goal, yaw, prev, flat, speed, position_gain, field,
+    agents, separation, others_vel,
+):  # fmt: skip  # pragma: no cover - jit
     """One APF control step of the navigator (its ``_apf_reference``), everything in one call:
 
     - F^r (eq. 3) on the LiDAR ``points`` (yaw frame) with ``field`` = (r_F, r_c, L_x, L_y, L_z,
       L_c, n), plus the other agents' repulsion: eq. 3 on their positions ``others`` (world,
       rotated here into the yaw frame, z dropped when ``flat``) with ``agents``' parameters and,
       when that push opposes the way ahead, a sidestep to the right of half its size; the
-      vehicle is at (px, py, pz);
+      vehicle is at (px, py, pz), moving at (vx, vy, vz);
     - Alg. 1 against ``prev`` = F^r_{k−1}, with F^a = the goal in the yaw frame;
-    - the world-frame force F, the reference p + F·max(1, speed·‖F‖/K_p) and the velocity F·speed.
+    - the world-frame force F, its velocity F·speed with the approach to every neighbour bounded
+      (:func:`separation_bound`, with their velocities ``others_vel`` (k, 3) and ``separation``
+      = (s, a, t_r, share, a_j, passes); none when s ≤ 0), then the reference p + F·max(1, speed·‖F‖/K_p) and the velocity F·speed.
 
     Returns a (10,) array: reference (0:3), velocity (3:6), the shaped F^r_k (6:9) and ‖F^r‖
     before shaping (9), for eq. 4."""
@@ -156,6 +213,18 @@ def navigator_force(
     fx = cw * shaped[0] - sw * shaped[1]
     fy = sw * shaped[0] + cw * shaped[1]
     fz = shaped[2]
+    if k and separation[0] > 0.0 and speed > 0.0:  # the approach to every neighbour bounded
+        wrel = np.empty((k, 3))
+        for i in range(k):
+            wrel[i, 0] = others[i, 0] - px
+            wrel[i, 1] = others[i, 1] - py
+            wrel[i, 2] = 0.0 if flat else others[i, 2] - pz
+        v = np.empty(3)
+        if separation_bound(
+            fx * speed, fy * speed, fz * speed, vx, vy, vz, wrel, others_vel, separation[0], separation[1],
+            separation[2], separation[3], separation[4], int(separation[5]), v,
+        ):  # fmt: skip
+            fx, fy, fz = v[0] / speed, v[1] / speed, v[2] / speed
     norm = math.sqrt(fx * fx + fy * fy + fz * fz)
     stretch = max(1.0, speed * norm / position_gain)
     out = np.empty(10)

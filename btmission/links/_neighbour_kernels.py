@@ -52,3 +52,16 @@ def near_points(starts, n, x, y, within, own):  # pragma: no cover - jit
         out[i, 1] = starts[r, 1]
         out[i, 2] = starts[r, 2]
     return out
+
+
+@njit(cache=True)
+def near_states(starts, vel, n, x, y, within, own):  # pragma: no cover - jit
+    """The points of :func:`near_rows`' rows beside their velocities ``vel``, (k, 6)."""
+    rows = near_rows(starts, n, x, y, within, own)
+    out = np.empty((len(rows), 6))
+    for i in range(len(rows)):
+        r = rows[i]
+        for c in range(3):
+            out[i, c] = starts[r, c]
+            out[i, 3 + c] = vel[r, c]
+    return out

@@ -116,6 +116,10 @@ class Prediction:
     agent: str
     time_s: float
     positions: FloatArray
+    velocity: FloatArray | None = None
+    """The agent's velocity (3,) when it shared, if it says (a drone sharing where it is): what
+    the separation rule credits a neighbour moving away with
+    (:func:`~btmission.control.apf.separation_bound`). None: unknown."""
 
 
 @dataclass
@@ -169,8 +173,12 @@ class AgentLink(Protocol):
 
     def send_status(self, status: AgentStatus) -> None: ...
 
-    def share_prediction(self, time_s: float, positions: FloatArray) -> None:
-        """Publish this agent's predicted positions to the other agents."""
+    def share_prediction(
+        self, time_s: float, positions: FloatArray, velocity: FloatArray | None = None
+    ) -> None:
+        """Publish this agent's predicted positions to the other agents (and its velocity,
+        when it knows it; a transport that cannot carry it drops it: the others then take the
+        agent's velocity as unknown)."""
 
     def predictions(
         self,
@@ -206,6 +214,8 @@ class InMemoryBus:
         self._row_names: list[str] = []
         self._starts = np.full((8, 3), np.nan)
         """Each row's first predicted position (z NaN for a 2D prediction)."""
+        self._vel = np.full((8, 3), np.nan)
+        """Each row's shared velocity (NaN: not shared)."""
         self._multi = np.zeros(8, dtype=bool)
         """Each row's prediction has more than one point (its first moves with time)."""
         self._trajectories = 0
@@ -233,6 +243,7 @@ class InMemoryBus:
         row = self._rows.pop(agent, None)
         if row is not None:
             self._starts[row] = np.nan
+            self._vel[row] = np.nan
             self._set_multi(row, False)
 
     def set_link(self, agent: str, up: bool) -> None:
@@ -291,9 +302,13 @@ class InMemoryBus:
         return inbox
 
     # ---------------------------------------------------------------- agent ↔ agent
-    def share_prediction(self, agent: str, time_s: float, positions: FloatArray) -> None:
-        """Publish an agent's predicted (N+1, 2) positions (seed 003 §VI)."""
-        pred = Prediction(agent, time_s, np.asarray(positions, dtype=float))
+    def share_prediction(
+        self, agent: str, time_s: float, positions: FloatArray, velocity: FloatArray | None = None
+    ) -> None:
+        """Publish an agent's predicted (N+1, 2) positions (seed 003 §VI), with its velocity
+        when it gives it."""
+        vel = None if velocity is None else np.asarray(velocity, dtype=float).reshape(3)
+        pred = Prediction(agent, time_s, np.asarray(positions, dtype=float), vel)
         self._predictions[agent] = pred
         row = self._rows.get(agent)
         if row is None:
@@ -303,10 +318,14 @@ class InMemoryBus:
                 grown = np.full((2 * len(self._starts), 3), np.nan)
                 grown[:row] = self._starts
                 self._starts = grown
+                vels = np.full((2 * len(self._vel), 3), np.nan)
+                vels[:row] = self._vel
+                self._vel = vels
                 multi = np.zeros(2 * len(self._multi), dtype=bool)
                 multi[:row] = self._multi
                 self._multi = multi
         pts = pred.positions
+        self._vel[row] = np.nan if vel is None else vel
         if pts.shape == (1, 3):  # where it is now (every drone, every control step)
             self._starts[row] = pts[0]
             if self._trajectories:
@@ -321,24 +340,31 @@ class InMemoryBus:
         time_s: float,
         shares: Sequence[tuple[str, FloatArray]],
         at: tuple[NDArray[np.int64], FloatArray] | None = None,
+        velocities: FloatArray | None = None,
     ) -> None:
         """:meth:`share_prediction` of each ``(agent, positions)``, every ``positions`` (1, 3) —
         where the agent is — at once (a fleet's drones, every control step): the same state as
         sharing them one by one, in order. ``at``: the agents' rows of the bus and their
-        positions stacked ((n,), (n, 3)), when the caller has them (the fleet step)."""
+        positions stacked ((n,), (n, 3)), when the caller has them (the fleet step);
+        ``velocities``: the agents' velocities stacked (n, 3), None when they do not give them."""
         rows = self._rows
         if self._trajectories or (at is None and any(a not in rows for a, _ in shares)):
-            for agent, pts in shares:
-                self.share_prediction(agent, time_s, pts)
+            for i, (agent, pts) in enumerate(shares):
+                self.share_prediction(
+                    agent, time_s, pts, None if velocities is None else velocities[i]
+                )
             return
         preds = self._predictions
         new = recorder(Prediction)
-        for agent, pts in shares:
-            preds[agent] = new(agent=agent, time_s=time_s, positions=pts)
+        for i, (agent, pts) in enumerate(shares):
+            v = None if velocities is None else velocities[i]
+            preds[agent] = new(agent=agent, time_s=time_s, positions=pts, velocity=v)
+        where = at[0] if at is not None else [rows[a] for a, _ in shares]
         if at is not None:
-            self._starts[at[0]] = at[1]
+            self._starts[where] = at[1]
         else:
-            self._starts[[rows[a] for a, _ in shares]] = np.concatenate([p for _, p in shares])
+            self._starts[where] = np.concatenate([p for _, p in shares])
+        self._vel[where] = np.nan if velocities is None else velocities
 
     def _set_multi(self, row: int, multi: bool) -> None:
         """Mark ``row``'s prediction as a trajectory (or not), keeping :attr:`_trajectories`."""
@@ -391,6 +417,35 @@ class InMemoryBus:
         )  # fmt: skip
         return points
 
+    def neighbour_states(
+        self, agent: str, time_s: float, step_s: float, near: FloatArray, within_m: float
+    ) -> FloatArray:
+        """:meth:`neighbour_positions` (columns 0:3) beside each neighbour's shared velocity
+        (3:6, NaN where it gave none), (k, 6): what the separation rule reads."""
+        n = len(self._row_names)
+        if not math.isfinite(within_m) or n <= SMALL_FLEET:
+            near_ones = _near_predictions(self._predictions, agent, near, within_m)
+            out = np.full((len(near_ones), 6), np.nan)
+            out[:, :3] = first_points([_advanced(p, time_s, step_s) for p in near_ones])
+            for i, p in enumerate(near_ones):
+                if p.velocity is not None:
+                    out[i, 3:] = p.velocity
+            return out
+        if self._trajectories:
+            rows = self._near_rows(agent, near, within_m)
+            assert rows is not None
+            out = np.empty((len(rows), 6))
+            out[:, :3] = self.neighbour_positions(agent, time_s, step_s, near, within_m)
+            out[:, 3:] = self._vel[rows]
+            return out
+        from btmission.links._neighbour_kernels import near_states
+
+        states: FloatArray = near_states(
+            self._starts, self._vel, n, float(near[0]), float(near[1]), float(within_m),
+            self._rows.get(agent, -1),
+        )  # fmt: skip
+        return states
+
     def _near_rows(self, agent: str, near: FloatArray | None, within_m: float) -> list[int] | None:
         """The rows of the agents other than ``agent`` whose prediction starts within
         ``within_m`` of ``near``, nearest first (equal distances in row order): one vectorised
@@ -431,7 +486,14 @@ def advance_predictions(
     Pure: every transport's :meth:`AgentLink.predictions` gives the same answer (the distance is
     √(dx² + dy²) from ``near`` to each prediction's first point; equal ones keep ``shared``'s
     order)."""
-    out: list[tuple[float, FloatArray]] = []
+    return [_advanced(p, time_s, step_s) for p in _near_predictions(shared, agent, near, within_m)]
+
+
+def _near_predictions(
+    shared: Mapping[str, Prediction], agent: str, near: FloatArray | None, within_m: float
+) -> list[Prediction]:
+    """The predictions of :func:`advance_predictions`, in its order, not yet advanced."""
+    out: list[tuple[float, Prediction]] = []
     for other, pred in shared.items():
         if other == agent:
             continue
@@ -442,7 +504,7 @@ def advance_predictions(
             d = math.sqrt(dx * dx + dy * dy)
             if d > within_m:
                 continue
-        out.append((d, _advanced(pred, time_s, step_s)))
+        out.append((d, pred))
     out.sort(key=lambda x: x[0])
     return [p for _, p in out]
 
@@ -494,8 +556,10 @@ class InMemoryAgentLink:
     def send_status(self, status: AgentStatus) -> None:
         self._bus.send_status(status)
 
-    def share_prediction(self, time_s: float, positions: FloatArray) -> None:
-        self._bus.share_prediction(self._agent, time_s, positions)
+    def share_prediction(
+        self, time_s: float, positions: FloatArray, velocity: FloatArray | None = None
+    ) -> None:
+        self._bus.share_prediction(self._agent, time_s, positions, velocity)
 
     def predictions(
         self,
@@ -511,6 +575,12 @@ class InMemoryAgentLink:
     ) -> FloatArray:
         """:meth:`InMemoryBus.neighbour_positions` (:func:`neighbour_positions`)."""
         return self._bus.neighbour_positions(self._agent, time_s, step_s, near, within_m)
+
+    def neighbour_states(
+        self, time_s: float, step_s: float, near: FloatArray, within_m: float
+    ) -> FloatArray:
+        """:meth:`InMemoryBus.neighbour_states` (:func:`neighbour_states`)."""
+        return self._bus.neighbour_states(self._agent, time_s, step_s, near, within_m)
 
 
 class ForwardingAgentLink:
@@ -545,8 +615,10 @@ class ForwardingAgentLink:
     def send_status(self, status: AgentStatus) -> None:
         self.inner.send_status(status)
 
-    def share_prediction(self, time_s: float, positions: FloatArray) -> None:
-        self.inner.share_prediction(time_s, positions)
+    def share_prediction(
+        self, time_s: float, positions: FloatArray, velocity: FloatArray | None = None
+    ) -> None:
+        self.inner.share_prediction(time_s, positions, velocity)
 
     def predictions(
         self,
@@ -570,3 +642,19 @@ def neighbour_positions(
         out: FloatArray = fast(time_s, step_s, near, within_m)
         return out
     return first_points(link.predictions(time_s, step_s, near, within_m))
+
+
+def neighbour_states(
+    link: AgentLink, time_s: float, step_s: float, near: FloatArray, within_m: float
+) -> FloatArray:
+    """:func:`neighbour_positions` (columns 0:3) with each neighbour's shared velocity (3:6),
+    (k, 6) — from the link's own ``neighbour_states`` when it has one (the in-memory bus); a
+    link without it gives the positions with the velocities unknown (NaN)."""
+    fast = getattr(link, "neighbour_states", None)
+    if fast is not None:
+        out: FloatArray = fast(time_s, step_s, near, within_m)
+        return out
+    pos = neighbour_positions(link, time_s, step_s, near, within_m)
+    states = np.full((len(pos), 6), np.nan)
+    states[:, :3] = pos
+    return states

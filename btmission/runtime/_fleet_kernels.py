@@ -13,7 +13,8 @@ forked child).
 The neighbours each drone sees are what the per-drone path would show it: the agents share where
 they are during the control loop, in its order, so those before the drone are where they are
 now (``cur``) and those after it where they were one step ago (``prev``) — row ``r`` is taken
-from ``cur`` when its rank in the loop is below the drone's.
+from ``cur`` when its rank in the loop is below the drone's; so are the velocities they share
+with it (``vcur``, ``vprev``: the separation rule's).
 
 numba in nopython mode (typed by numba, not annotated, like the planner's kernels); ``cache=True``
 stores the machine code next to this file, keyed on this file and the files of the kernels it
@@ -31,7 +32,7 @@ from btmission.control import _apf_kernels
 from btmission.control._apf_kernels import navigator_force
 from btmission.kernelcache import key_on_callees
 from btmission.links import _neighbour_kernels
-from btmission.links._neighbour_kernels import near_points
+from btmission.links._neighbour_kernels import near_rows
 from btmission.runtime import _route_kernels
 from btmission.runtime._route_kernels import carrots
 from btmission.world import _surface_kernels
@@ -47,8 +48,8 @@ point twice the lookahead along (13:15, x and y)."""
 def fleet_follow(
     routes, route_off, seg0, tel, pose, body, target, ground_goal, apf_prev,
     spts, sstarts, slo, scell, sdims, radius, centres, radii, sphere,
-    prev, cur, rank, own_row, own_rank, within,
-    window, look, tol, settled, speed, gain, field, agents,
+    prev, cur, vprev, vcur, rank, own_row, own_rank, within,
+    window, look, tol, settled, speed, gain, field, agents, separation,
 ):  # fmt: skip  # pragma: no cover - jit
     """One control step of ``m`` drones following routes (rows of the per-drone arrays):
 
@@ -58,8 +59,9 @@ def fleet_follow(
       table (``centres``, ``radii``); ``target`` (m, 3) the route's target, ``ground_goal`` whether
       it lies on the ground; ``apf_prev`` (m, 3) F^r_{k−1};
     - the rock surface cells (``spts`` … ``sdims``), the LiDAR ``radius`` and unit ``sphere``;
-    - the bus's start rows ``prev`` / ``cur`` with each row's ``rank`` in the control loop, and
-      each drone's ``own_row`` and ``own_rank`` (module docstring); ``within`` the neighbour range.
+    - the bus's start rows ``prev`` / ``cur`` and shared velocities ``vprev`` / ``vcur`` with
+      each row's ``rank`` in the control loop, and each drone's ``own_row`` and ``own_rank``
+      (module docstring); ``within`` the neighbour range.
 
     A drone that may have arrived (within ``tol`` of its target horizontally and about settled),
     or whose carrot is the raised target of a ground goal, gets code 1: the per-drone path,
@@ -93,15 +95,22 @@ def fleet_follow(
         for r in range(n):
             src = cur if rank[r] < own_rank[i] else prev
             seen[r, 0], seen[r, 1], seen[r, 2] = src[r, 0], src[r, 1], src[r, 2]
-        others = near_points(seen, n, px, py, within, own_row[i])
-        for k in range(others.shape[0]):
+        rows = near_rows(seen, n, px, py, within, own_row[i])
+        others = np.empty((len(rows), 3))
+        others_vel = np.empty((len(rows), 3))
+        for k in range(len(rows)):
+            r = rows[k]
+            vsrc = vcur if rank[r] < own_rank[i] else vprev
+            for col in range(3):
+                others[k, col] = seen[r, col]
+                others_vel[k, col] = vsrc[r, col]
             if others[k, 2] != others[k, 2]:  # a 2D share: at this drone's height
                 others[k, 2] = pz
         goal = np.empty(3)
         goal[0], goal[1], goal[2] = c[2], c[3], c[4]
         f = navigator_force(
-            scan, others, px, py, pz, goal, tel[i, 6], apf_prev[i], False, speed, gain, field,
-            agents,
+            scan, others, px, py, pz, vx, vy, vz, goal, tel[i, 6], apf_prev[i], False, speed,
+            gain, field, agents, separation, others_vel,
         )  # fmt: skip
         out[i, 3:13] = f
     return out

@@ -601,8 +601,9 @@ class Agent:
     def control_step(self, now: float) -> None:
         if self.alive:
             self.navigator.step(now)
-            if self.navigator.prediction is not None:
-                self.link.share_prediction(now, self.navigator.prediction)
+            nav = self.navigator
+            if nav.prediction is not None:
+                self.link.share_prediction(now, nav.prediction, nav.shared_velocity)
 
     def status(self, now: float) -> AgentStatus:
         tel = self.ctx.telemetry()

@@ -22,7 +22,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from btmission.diagnostics import Diagnostic, Location, Severity, SpecError
-from btmission.links.bus import AgentLink, neighbour_positions
+from btmission.links.bus import AgentLink, neighbour_states
 from btmission.runtime.agent import Agent
 from btmission.runtime.distribution import ClockFollower, NoVehicles, remote_bid_window
 from btmission.runtime.eventkinds import (
@@ -186,7 +186,7 @@ def build_agents(run: MissionRun) -> None:
             return _link.predictions(run.now(), 0.1, pos, NEIGHBOUR_RANGE_M)
 
         def neighbours(agent: str, pos: FloatArray, _link: AgentLink = link) -> FloatArray:
-            return neighbour_positions(_link, run.now(), 0.1, pos, NEIGHBOUR_RANGE_M)
+            return neighbour_states(_link, run.now(), 0.1, pos, NEIGHBOUR_RANGE_M)
 
         nav = Navigator(
             spec.id,

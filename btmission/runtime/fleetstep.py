@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 
 from btmission.links.bus import InMemoryAgentLink, InMemoryBus
 from btmission.runtime.navcommands import _Follow
-from btmission.runtime.navcontrol import AGENT_APF, CARROT_WINDOW
+from btmission.runtime.navcontrol import AGENT_APF, AGENT_SEPARATION, CARROT_WINDOW
 from btmission.runtime.navigation import POSITION_GAIN, SETTLED_M_S, Navigator
 from btmission.types import FloatArray
 from btmission.vehicles.base import Backend, VehicleKind
@@ -90,6 +90,7 @@ class FleetFollow:
         assert nav._apf is not None
         self._field = nav._apf.config.packed
         self._agents = AGENT_APF[VehicleKind.MULTIROTOR].packed
+        self._separation = AGENT_SEPARATION[VehicleKind.MULTIROTOR].packed
         self._table = np.zeros((0, 9))
         self._offsets = np.zeros(1, dtype=np.int64)
         self.batched = 0
@@ -142,6 +143,7 @@ class FleetFollow:
         if len(batch) < MIN_BATCH:
             return self._each(now)
         prev = bus._starts[:n]  # (a killed agent's row is NaN: never a neighbour, as on the bus)
+        vprev = bus._vel[:n]
         if self._own_row is None:  # (rows never change once the bus has them all)
             rows = {name: r for r, name in enumerate(bus._row_names)}
             self._own_row = np.array([rows[a.id] for a in self._agent_list], dtype=np.int64)
@@ -151,15 +153,19 @@ class FleetFollow:
         pos.flags.writeable = False  # (its rows are the drones' shared positions: (1, 3) views)
         where = pos.reshape(-1, 1, 3)
         xy = pos[:, :2].tolist()
+        vel = np.array([t.velocity for t in tels])  # (shared with the positions)
         rank = np.full(n, len(members), dtype=np.int64)
         cur = prev.copy()
+        vcur = vprev.copy()
         if all(alive):
             rank[own_row] = self._ranks
             cur[own_row] = pos
+            vcur[own_row] = vel
         else:
             live = np.array(alive, dtype=bool)
             rank[own_row[live]] = self._ranks[live]
             cur[own_row[live]] = pos[live]
+            vcur[own_row[live]] = vel[live]
         table = self.sensing.bodies()
         if table.key[1] != self._bodies_for:
             index = table.index
@@ -178,13 +184,13 @@ class FleetFollow:
         sel = np.array(batch, dtype=np.int64)
         states = np.empty((len(batch), 7))
         states[:, 0:3] = pos[sel]
-        states[:, 3:6] = [tels[k].velocity for k in batch]
+        states[:, 3:6] = vel[sel]
         states[:, 6] = [tels[k].yaw for k in batch]
         poses = self.sensing.true_poses([self._backends[k] for k in batch])
         out = self._follow(
             np.array([c.seg for c in cmds], dtype=np.int64), states, poses, self._body[sel],
             np.array([navs[k]._apf_previous for k in batch], dtype=float),
-            table, prev, cur, rank, own_row[sel], sel,
+            table, prev, cur, vprev, vcur, rank, own_row[sel], sel,
         )  # fmt: skip
         rows = out.tolist()  # (Python floats: the per-row reads cost less, same values)
         apf = out[:, 9:12]
@@ -193,7 +199,7 @@ class FleetFollow:
         j = 0
         for k, (side, a, nav, _) in enumerate(members):
             if j < len(batch) and batch[j] == k:
-                done = nav.finish_batch(now, rows[j], apf[j], where[k], xy[k])
+                done = nav.finish_batch(now, rows[j], apf[j], where[k], xy[k], vel[k])
                 j += 1
                 if done:
                     if not shares:
@@ -201,11 +207,11 @@ class FleetFollow:
                     shares.append((a.id, where[k]))
                     continue
             if shares:  # the agents before this one have shared where they are
-                self._share(now, shares, first, pos)
+                self._share(now, shares, first, pos, vel)
                 shares = []
             side.control(now)
         if shares:
-            self._share(now, shares, first, pos)
+            self._share(now, shares, first, pos, vel)
         return None
 
     def _follow(
@@ -218,6 +224,8 @@ class FleetFollow:
         table: BodyTable,
         prev: FloatArray,
         cur: FloatArray,
+        vprev: FloatArray,
+        vcur: FloatArray,
         rank: NDArray[np.int64],
         own_row: NDArray[np.int64],
         own_rank: NDArray[np.int64],
@@ -229,9 +237,9 @@ class FleetFollow:
         out: FloatArray = fleet_follow(
             self._table, self._offsets, seg0, states, poses, body, self._targets, self._ground,
             apf_prev, *self._cells, self._radius, table.centres, table.radii, self._sphere,
-            prev, cur, rank, own_row, own_rank,
+            prev, cur, vprev, vcur, rank, own_row, own_rank,
             self.within_m, CARROT_WINDOW, self._look, self._tol, SETTLED_M_S, self._speed,
-            POSITION_GAIN, self._field, self._agents,
+            POSITION_GAIN, self._field, self._agents, self._separation,
         )  # fmt: skip
         return out
 
@@ -243,19 +251,29 @@ class FleetFollow:
         none = np.zeros(0, dtype=np.int64)
         n = len(self.bus._row_names)
         prev = self.bus._starts[:n]
+        vprev = self.bus._vel[:n]
         self._follow(
             none, np.empty((0, 7)), np.empty((0, 4)), none, np.zeros((0, 3)),
-            self.sensing.bodies(), prev, prev.copy(), np.zeros(n, dtype=np.int64), none, none,
+            self.sensing.bodies(), prev, prev.copy(), vprev, vprev.copy(),
+            np.zeros(n, dtype=np.int64), none, none,
         )  # fmt: skip
 
     def _share(
-        self, now: float, shares: list[tuple[str, FloatArray]], first: int, pos: FloatArray
+        self,
+        now: float,
+        shares: list[tuple[str, FloatArray]],
+        first: int,
+        pos: FloatArray,
+        vel: FloatArray,
     ) -> None:
-        """Share the positions of the consecutive members ``first``, ``first + 1``, ... of
-        ``shares`` on the bus, their rows and positions as blocks."""
+        """Share the positions and velocities of the consecutive members ``first``,
+        ``first + 1``, ... of ``shares`` on the bus, their rows, positions and velocities as
+        blocks."""
         end = first + len(shares)
         assert self._own_row is not None
-        self.bus.share_positions(now, shares, (self._own_row[first:end], pos[first:end]))
+        self.bus.share_positions(
+            now, shares, (self._own_row[first:end], pos[first:end]), vel[first:end]
+        )
         self.batched += len(shares)
 
     def _each(self, now: float) -> None:

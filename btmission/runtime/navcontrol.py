@@ -8,7 +8,8 @@ arguments (no navigator state):
 * multirotors: the APF sized for the cruise speed (:func:`multirotor_apf_config`, with
   :func:`braking_decel` and :data:`BRAKE_REACTION_S`), seed 002's eq. 4 as a speed factor
   (:func:`adaptive_speed_scale`), the approach-speed bound's constants (``APPROACH_*``), and the
-  APF on the other agents' shared positions (:data:`AGENT_APF`);
+  APF on the other agents' shared positions (:data:`AGENT_APF`) and the separation rule on its
+  velocity (:data:`AGENT_SEPARATION`);
 * ground robots: the unicycle tracker of a moving reference (:func:`track_unicycle`) and the
   LiDAR points that bound the NMPC's safe corridor (:func:`ground_obstacle_points`).
 """
@@ -21,7 +22,7 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 
-from btmission.control.apf import ApfConfig, influence_radius_for_speed
+from btmission.control.apf import ApfConfig, SeparationConfig, influence_radius_for_speed
 from btmission.control.mav_model import wrap_angle, yaw_frame_to_world
 from btmission.types import FloatArray
 from btmission.vehicles.base import VehicleKind
@@ -152,8 +153,8 @@ AGENT_APF = {
     VehicleKind.MULTIROTOR: ApfConfig(
         r_influence_m=2.5,
         r_critical_m=0.9,
-        gain=(4.0, 4.0, 4.0),
-        gain_critical=2.0,
+        gain=(2.0, 2.0, 2.0),
+        gain_critical=1.0,
         dust_points=0,
     ),
     VehicleKind.GROUND: ApfConfig(
@@ -164,8 +165,36 @@ AGENT_APF = {
         dust_points=0,
     ),
 }
-"""Eq. 3 for the other agents' shared positions: one point per agent, so a larger radius and
-gain than for LiDAR points on rock (smaller for TurtleBot-sized ground robots in 2 m aisles)."""
+"""Seed 002 eq. 3 for the other agents' shared positions ρ_j (one point per agent)::
+
+    F^r_agents = Σ_{‖ρ_j‖ ≤ r_F} L (1 − ‖ρ_j‖/r_F)² (−ρ_j/‖ρ_j‖) + Σ_{‖ρ_j‖ ≤ r_c} L_c (−ρ_j/‖ρ_j‖)
+
+so a larger radius and gain than for LiDAR points on rock (smaller for TurtleBot-sized ground
+robots in 2 m aisles). It steers (the sidestep of two drones meeting head-on); the separation
+itself is :data:`AGENT_SEPARATION`'s. A multirotor's L = 2, L_c = 1: at L = 4, L_c = 2 the push
+between two drones outweighed the LiDAR's repulsion from the rock beside them (shaped by Alg. 1
+to the same F_max), and drove a drone into a wall at 30 drones in ``btmission bench fleet``."""
+
+AGENT_SEPARATION = {
+    VehicleKind.MULTIROTOR: SeparationConfig(
+        stand_off_m=1.0, decel_m_s2=3.6, reaction_s=0.85, share=0.5, lead_decel_m_s2=0.8
+    ),
+    VehicleKind.GROUND: SeparationConfig(stand_off_m=0.0),
+}
+"""The separation rule between agents (:func:`~btmission.control.apf.separation_bound`) on
+the APF's velocity: a multirotor approaches another no faster than it can stop within half the
+gap beyond s = 1 m (two 0.25 m bodies and 0.5 m), plus what a neighbour moving away still covers.
+
+Its own stop v·t_r + v²/(2a) with t_r = 0.85 s (the autopilot's velocity loop, 1/1.2 s) and
+a = 3.6 m/s² (the tilt limit): 0.46 m from 0.5 m/s and 1.59 m from 1.5 m/s, where the embedded
+simulator's autopilot, its velocity setpoint dropped to zero, stops in 0.47 m and 1.40 m. A
+neighbour moving away at w covers w²/(2·0.8 m/s²): 1.41 m from 1.5 m/s, the simulator's 1.40 m,
+and less than it below cruise. (With the tilt limit for a_j too, drones following one another
+out of the start area kept ~3.6 m apart and 100 drones did 64 tasks in 70 s instead of 74.)
+t_r = 1.1 s would keep two drones meeting head-on at 1.5 m/s 1.09 m apart instead of 0.72 m,
+for 68 tasks. Off
+for ground robots: their NMPC keeps eq. 12 itself, and their pure pursuit steers at the APF's
+point, not at a velocity."""
 
 
 TRACK_LOOKAHEAD_S = 1.0

@@ -49,6 +49,7 @@ from btmission.control.mav_model import world_to_yaw_frame, wrap_angle, yaw_fram
 from btmission.runtime.navcommands import _Command, _Follow, _Goto, _Hold, _Land, _Takeoff, _Track
 from btmission.runtime.navcontrol import (
     AGENT_APF,
+    AGENT_SEPARATION,
     APPROACH_CORRIDOR_M,
     APPROACH_DECEL_M_S2,
     APPROACH_MARGIN_M,
@@ -155,7 +156,7 @@ SETTINGS_DOC: Mapping[str, str] = MappingProxyType(
 """The navigator's settings and what each does, for users: the fields' docs (read-only)."""
 
 
-_NO_POSITIONS = np.zeros((0, 3))
+_NO_STATES = np.zeros((0, 6))
 
 
 def route_points(points: ArrayLike, max_points: int = ROUTE_EVENT_POINTS) -> list[list[float]]:
@@ -211,8 +212,10 @@ class Navigator:
         self._predictions = predictions
         self._neighbours = neighbours
         """``neighbours(agent, position)``: where the other agents near ``position`` (this
-        vehicle's, from its telemetry) are, (k, 3) (z NaN: at this vehicle's height), nearest
-        first: the first points of ``predictions`` without the list (None: taken from those)."""
+        vehicle's, from its telemetry) are and how they move, (k, 6): position (z NaN: at this
+        vehicle's height) and shared velocity (NaN: not shared), nearest first — the first
+        points of ``predictions`` without the list (None: taken from those, velocities
+        unknown)."""
         self._ground_at = ground_at
         self._cmd: _Command = _Hold(np.asarray(backend.telemetry().position, dtype=float))
         self._status = NavStatus(NavState.IDLE, "", "hold")
@@ -222,6 +225,9 @@ class Navigator:
         self._uni = None
         self.prediction: FloatArray | None = None
         """This agent's predicted (N+1, 2) positions, shared with the others (ground NMPC)."""
+        self.shared_velocity: FloatArray | None = None
+        """This agent's velocity, shared with :attr:`prediction` (a drone's, from its
+        telemetry: the others' separation rule credits it when it moves away from them)."""
         self._last_uni_t = -math.inf
         self._uni_u = np.zeros(2)
         self.solve_times: list[float] = []
@@ -390,6 +396,7 @@ class Navigator:
         cmd = self._cmd
         p = tel.position
         self.prediction = p[None, :].copy()  # shared with the others: where this vehicle is
+        self.shared_velocity = tel.velocity  # ... and how it moves
         if isinstance(cmd, _Follow):  # (most steps of a mission: first, nothing allocated)
             f_ref, f_vel, f_yaw, f_repulsion = self._follow_reference(now, tel, cmd)
             self._command_multirotor(tel, f_ref, f_vel, f_yaw, 0.0, f_repulsion)
@@ -417,9 +424,9 @@ class Navigator:
             self._stream_hold(tel, p)
             return
         if isinstance(cmd, _Hold):
-            ref = cmd.point
+            ref = self._separated_setpoint(tel, cmd.point)
         elif isinstance(cmd, _Takeoff):
-            ref = cmd.point
+            ref = self._separated_setpoint(tel, cmd.point)
             vel = np.array([0.0, 0.0, 0.0])
             if abs(p[2] - cmd.point[2]) < 0.2 and not tel.landed:
                 self._finish(True)
@@ -452,7 +459,7 @@ class Navigator:
         self, tel: Telemetry, goal: FloatArray, speed: float, points: FloatArray | None = None
     ) -> tuple[FloatArray, FloatArray, float | None, float]:
         """APF (seed 002 eq. 3, Alg. 1) on the LiDAR scan (``points``, or this step's), plus
-        the other agents' shared positions (:meth:`_agent_positions`): reference point and
+        the other agents' shared positions and velocities (:meth:`_agent_states`): reference point and
         velocity, and ‖F^r‖ before shaping (for eq. 4). One compiled call
         (:func:`~btmission.control._apf_kernels.navigator_force`): p_ref = F + p̂ (seed 002),
         stretched at cruise so that the autopilot's position loop (v = K_p·(p_ref − p̂)) flies
@@ -462,12 +469,16 @@ class Navigator:
         assert self._apf is not None
         if points is None:
             points = self._lidar()
+        others = self._agent_states(tel)
         out = navigator_force(
             np.ascontiguousarray(points, dtype=float),
-            self._agent_positions(tel),
+            np.ascontiguousarray(others[:, :3]),
             float(tel.position[0]),
             float(tel.position[1]),
             float(tel.position[2]),
+            float(tel.velocity[0]),
+            float(tel.velocity[1]),
+            float(tel.velocity[2]),
             np.array(goal, dtype=float),
             float(tel.yaw),
             self._apf_previous,
@@ -476,9 +487,35 @@ class Navigator:
             POSITION_GAIN,
             self._apf.config.packed,
             AGENT_APF[self.kind].packed,
+            AGENT_SEPARATION[self.kind].packed,
+            np.ascontiguousarray(others[:, 3:]),
         )
         self._apf_previous = out[6:9]
         return out[0:3], out[3:6], None, float(out[9])
+
+    def _separated_setpoint(self, tel: Telemetry, point: FloatArray) -> FloatArray:
+        """A take-off's or a hold's setpoint ``point`` held back by the separation rule: the
+        move the autopilot's position loop makes of it (v = K_p·(p_sp − p̂)) with its approach
+        to every other agent bounded (:data:`AGENT_SEPARATION`,
+        :func:`~btmission.control.apf.separation_bound`), as a setpoint again. A drone whose
+        pad lies under another (hovering, or flying over the start area) climbs no closer than
+        the stand-off and goes on when the other has moved away; one holding where another now
+        is waits beside it. Climbing beside the neighbours' pads (a vertical climb does not
+        approach them) or holding still, nothing changes."""
+        sep = AGENT_SEPARATION[self.kind]
+        if sep.stand_off_m <= 0:
+            return point
+        others = self._agent_states(tel)
+        if not len(others):
+            return point
+        from btmission.control.apf import separation_bound
+
+        p = tel.position
+        v = POSITION_GAIN * (point - p)
+        bounded = separation_bound(v, others[:, :3] - p, sep, others[:, 3:], tel.velocity)
+        if np.array_equal(bounded, v):
+            return point
+        return p + bounded / POSITION_GAIN
 
     def _stopping_limit(self, tel: Telemetry, vel: FloatArray, points: FloatArray) -> FloatArray:
         """``vel`` (world) with its approach to the rock bounded by the stopping distance: towards
@@ -499,21 +536,26 @@ class Navigator:
         )
         return yaw_frame_to_world(limited, tel.yaw)
 
-    def _agent_positions(self, tel: Telemetry) -> FloatArray:
-        """The other agents' shared positions (k, 3), nearest first, for their repulsion in
-        :meth:`_apf_reference`: eq. 3 with one point per agent and its own radii
-        (:data:`AGENT_APF`), so that vehicles keep apart before their LiDARs would push them.
-        When it opposes the way ahead the vehicle also sidesteps to its right, so two vehicles
-        meeting head-on in a tunnel pass each other. A vehicle that shares a 2D position is
-        taken at this vehicle's height."""
+    def _agent_states(self, tel: Telemetry) -> FloatArray:
+        """The other agents' shared positions and velocities (k, 6), nearest first, for
+        :meth:`_apf_reference`: their repulsion is eq. 3 with one point per agent and its own
+        radii (:data:`AGENT_APF`), so that vehicles keep apart before their LiDARs would push
+        them; when it opposes the way ahead the vehicle also sidesteps to its right, so two
+        vehicles meeting head-on in a tunnel pass each other; and the separation rule
+        (:data:`AGENT_SEPARATION`) bounds the approach to each. A vehicle that shares a 2D
+        position is taken at this vehicle's height; a velocity not shared is NaN."""
         if self._neighbours is not None:
             out = self._neighbours(self.agent, tel.position)
         elif self._predictions is not None:
             from btmission.links.bus import first_points
 
-            out = first_points(self._predictions(self.agent))
+            out = np.full((0, 6), np.nan)
+            pos = first_points(self._predictions(self.agent))
+            if len(pos):
+                out = np.full((len(pos), 6), np.nan)
+                out[:, :3] = pos
         else:
-            return _NO_POSITIONS
+            return _NO_STATES
         zs = out[:, 2]
         if any(z != z for z in zs.tolist()):  # a NaN (a few rows: cheaper than numpy's any)
             zs[np.isnan(zs)] = tel.position[2]
@@ -570,6 +612,7 @@ class Navigator:
         apf_previous: FloatArray,
         where: FloatArray,
         xy: Sequence[float],
+        velocity: FloatArray,
     ) -> bool:
         """Apply this step's row of :func:`~btmission.runtime._fleet_kernels.fleet_follow` for
         the route this navigator follows (a multirotor's under the tracking controller:
@@ -582,7 +625,8 @@ class Navigator:
 
         ``row`` is the kernel's row as floats, ``apf_previous`` its APF memory (a view of the
         kernel's output), ``where`` the vehicle's position as shared on the bus ((1, 3),
-        read-only) and ``xy`` its horizontal position, all from this step's telemetry."""
+        read-only), ``xy`` its horizontal position and ``velocity`` its velocity as shared,
+        all from this step's telemetry."""
         if row[0]:
             return False
         cmd = self._cmd
@@ -595,6 +639,7 @@ class Navigator:
             return False
         cmd.seg, cmd.best_left, cmd.progress_t = int(row[1]), best, since
         self.prediction = where
+        self.shared_velocity = velocity
         self._apf_previous = apf_previous
         hx, hy = row[13] - xy[0], row[14] - xy[1]
         yaw = math.atan2(hy, hx) if math.hypot(hx, hy) > 0.3 else None

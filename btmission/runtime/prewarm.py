@@ -72,23 +72,26 @@ def warm_navigator() -> None:
     (:func:`~btmission.runtime.assembly.build_agents`), following a route for one step: the
     carrot (:mod:`btmission.runtime._route_kernels`), the neighbours past
     :data:`~btmission.links.bus.SMALL_FLEET` agents (:mod:`btmission.links._neighbour_kernels`)
-    and the APF on its LiDAR with their push (:mod:`btmission.control._apf_kernels`) — on a
+    and the APF on its LiDAR with their push and the separation rule
+    (:mod:`btmission.control._apf_kernels`), then a take-off under that rule — on a
     stand-in vehicle (:class:`StandInDrone`), the runtime having none of its own."""
-    from btmission.links.bus import SMALL_FLEET, InMemoryBus, neighbour_positions
+    from btmission.links.bus import SMALL_FLEET, InMemoryBus, neighbour_states
     from btmission.runtime.assembly import NEIGHBOUR_RANGE_M
     from btmission.runtime.navigation import Navigator
 
     bus = InMemoryBus()
     for i in range(SMALL_FLEET + 1):  # a fleet: the neighbours' compiled query
-        bus.share_prediction(f"V{i}", 0.0, np.array([[1.0 + 0.5 * i, 1.5, 1.0]]))
+        bus.share_prediction(f"V{i}", 0.0, np.array([[1.0 + 0.5 * i, 1.5, 1.0]]), np.zeros(3))
     link = bus.agent_link("V0")
 
     def neighbours(agent: str, pos: FloatArray) -> FloatArray:
-        return neighbour_positions(link, 0.0, 0.1, pos, NEIGHBOUR_RANGE_M)
+        return neighbour_states(link, 0.0, 0.1, pos, NEIGHBOUR_RANGE_M)
 
     drone = StandInDrone()
     nav = Navigator("V0", drone, drone, "track", neighbours=neighbours)
     nav.follow(np.array([[1.0, 1.0, 1.0], [3.0, 3.0, 1.0]]), np.array([3.0, 3.0, 1.0]), 0.0)
+    nav.step(0.0)
+    nav.takeoff()  # a take-off's and a hold's setpoint under the separation rule
     nav.step(0.0)
 
 

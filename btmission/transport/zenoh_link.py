@@ -421,8 +421,12 @@ class ZenohAgentLink:
     def send_status(self, status: AgentStatus) -> None:
         self._put(self._status, status)
 
-    def share_prediction(self, time_s: float, positions: FloatArray) -> None:
-        """Publish this agent's predicted positions (to every agent of the mission)."""
+    def share_prediction(
+        self, time_s: float, positions: FloatArray, velocity: FloatArray | None = None
+    ) -> None:
+        """Publish this agent's predicted positions (to every agent of the mission). The wire's
+        ``prediction`` message has no velocity yet: ``velocity`` is dropped, and the other
+        agents' separation rule takes this one's as unknown (no credit for moving away)."""
         pred = Prediction(self._agent, time_s, np.asarray(positions, dtype=float))
         self._put(self._predict, pred)
 

@@ -230,3 +230,54 @@ def test_adaptive_speed_scale_is_eq4_normalised() -> None:
         q = adaptive_position_weight(f, cfg.q_position_min[0], cfg.q_position[0], cfg.force_gain)
         assert adaptive_speed_scale(f) == pytest.approx(float(q) / cfg.q_position[0])
     assert adaptive_speed_scale(0.5) > adaptive_speed_scale(1.0) > cfg.q_position_min[0] / 4.0
+
+
+def test_separation_bound_keeps_each_agent_to_half_the_gap() -> None:
+    """Towards another agent a vehicle goes no faster than it can stop within its half of the
+    gap beyond the stand-off (its stop: reaction, then deceleration); along it and away from it
+    nothing changes; inside the stand-off it does not approach at all."""
+    from btmission.control.apf import SeparationConfig, separation_bound, stopping_speed
+
+    cfg = SeparationConfig(stand_off_m=1.0, decel_m_s2=3.6, reaction_s=0.85)
+    ahead = np.array([[3.0, 0.0, 0.0]])
+    v = separation_bound([1.5, 0.0, 0.0], ahead, cfg)
+    assert v[0] == pytest.approx(stopping_speed(0.5 * (3.0 - 1.0), 3.6, 0.85))
+    assert v[0] < 1.5
+    # passing beside it and moving away are kept; an approach at an angle loses only its approach
+    np.testing.assert_allclose(separation_bound([0.0, 1.5, 0.0], ahead, cfg), [0.0, 1.5, 0.0])
+    np.testing.assert_allclose(separation_bound([-1.5, 0.0, 0.0], ahead, cfg), [-1.5, 0.0, 0.0])
+    oblique = separation_bound([1.5, 1.5, 0.0], ahead, cfg)
+    assert oblique[1] == pytest.approx(1.5) and oblique[0] == pytest.approx(v[0])
+    # inside the stand-off: no approach; far away: untouched
+    assert separation_bound([1.0, 0.0, 0.0], [[0.8, 0.0, 0.0]], cfg)[0] == pytest.approx(0.0)
+    np.testing.assert_allclose(separation_bound([1.5, 0, 0], [[20.0, 0, 0]], cfg), [1.5, 0, 0])
+    # the most constraining of several neighbours rules
+    two = separation_bound([1.5, 0.0, 0.0], [[3.0, 0.0, 0.0], [2.0, 0.0, 0.0]], cfg)
+    assert two[0] == pytest.approx(stopping_speed(0.5, 3.6, 0.85))
+    # stopping from the bounded speed (v·t_r + v²/2a) never takes it past its half of the gap
+    for d in (1.2, 2.0, 3.0, 5.0):
+        s = separation_bound([3.0, 0.0, 0.0], [[d, 0.0, 0.0]], cfg)[0]
+        assert s * 0.85 + s * s / 7.2 <= 0.5 * (d - 1.0) + 1e-9
+
+
+def test_a_neighbour_moving_away_gives_back_the_room_it_covers_when_it_brakes() -> None:
+    """A leader moving away at w adds w²/(2·a_j) to the follower's room; one moving towards it
+    or one whose velocity is not shared (NaN) adds nothing."""
+    from btmission.control.apf import SeparationConfig, separation_bound, stopping_speed
+
+    cfg = SeparationConfig(stand_off_m=1.0, decel_m_s2=3.6, reaction_s=0.85, lead_decel_m_s2=0.8)
+    ahead = [[3.0, 0.0, 0.0]]
+    alone = separation_bound([3.0, 0.0, 0.0], ahead, cfg)[0]
+    away = separation_bound([3.0, 0.0, 0.0], ahead, cfg, [[1.0, 0.0, 0.0]])[0]
+    assert away == pytest.approx(stopping_speed(1.0 + 1.0 / 1.6, 3.6, 0.85)) and away > alone
+    towards = separation_bound([3.0, 0.0, 0.0], ahead, cfg, [[-1.0, 0.0, 0.0]])[0]
+    unknown = separation_bound([3.0, 0.0, 0.0], ahead, cfg, [[np.nan] * 3])[0]
+    assert towards == pytest.approx(alone) and unknown == pytest.approx(alone)
+    # still approaching faster than allowed (the velocity loop lags): the command drops by the
+    # excess again, to bring the approach down to the bound sooner
+    late = separation_bound([3.0, 0.0, 0.0], ahead, cfg, current=[alone + 0.4, 0.0, 0.0])[0]
+    assert late == pytest.approx(alone - 0.4)
+    with pytest.raises(ValueError, match="velocities"):
+        separation_bound([1.0, 0, 0], ahead, cfg, np.zeros((2, 3)))
+    with pytest.raises(ValueError):
+        SeparationConfig(share=0.0)

@@ -81,7 +81,7 @@ def test_a_run_loads_its_loop_kernels_while_it_builds(tmp_path: Path, mode: str)
     assert out["scipy_at_build"]
     used = {"_apf_kernels.navigator_force", "_route_kernels.carrots"}
     used |= {"_surface_kernels.scan_points", "_surface_kernels.nearest_distances"}
-    used |= {"_neighbour_kernels.near_points"}  # a fleet's neighbour query (past SMALL_FLEET)
+    used |= {"_neighbour_kernels.near_states"}  # a fleet's neighbour query (past SMALL_FLEET)
     used |= {"_multirotor_kernels.step_all", "_bid_kernels.first_bad_cost"}  # bids' check
     used |= {"_multirotor_kernels.rock_rows", "_multirotor_kernels.near_pairs"}  # contacts
     used |= {"_kernels.search"} | ({"_fleet_kernels.fleet_follow"} if mode == "fleet" else set())
