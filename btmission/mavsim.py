@@ -13,7 +13,8 @@ firmware's SITL:
   ``custom_mode`` (:mod:`btmission.backends.mavlink_modes`); other messages only when asked
   (``MAV_CMD_SET_MESSAGE_INTERVAL``, ``MAV_CMD_REQUEST_MESSAGE``): LOCAL_POSITION_NED (in the
   vehicle's NED frame, origin where it was spawned), ATTITUDE, EXTENDED_SYS_STATE, SYS_STATUS,
-  BATTERY_STATUS, DISTANCE_SENSOR (downward), HOME_POSITION, EKF_STATUS_REPORT /
+  BATTERY_STATUS, DISTANCE_SENSOR (downward; a PX4 vehicle on the ground reads 65533 cm, above
+  its declared 10000 cm maximum, as PX4 SIH does), HOME_POSITION, EKF_STATUS_REPORT /
   ESTIMATOR_STATUS;
 * every COMMAND_LONG answered by a COMMAND_ACK, a refusal preceded by a STATUSTEXT saying why;
 * **PX4 rules**: OFFBOARD only after setpoints have streamed at more than 2 Hz for a second
@@ -92,6 +93,11 @@ the copter ON_GROUND for about a second after NAV_TAKEOFF)."""
 RECEIVE_PER_STEP = 32
 """Datagrams (UDP) or messages (TCP) a vehicle reads per simulation step at most (module
 docstring): at 50 steps a second, far above what a ground station sends."""
+PX4_RANGE_MAX_CM = 10000
+"""The maximum PX4 SIH's downward range finder declares (DISTANCE_SENSOR ``max_distance``)."""
+PX4_RANGE_ON_GROUND_CM = 65533
+"""What it reads on the ground (the vehicle a few cm below its origin): out of its declared
+range, i.e. no reading — a ground station that takes it as real puts the ground 655 m down."""
 PX4_UDP_BASE = 14540
 ARDUPILOT_TCP_BASE = 5760
 BOOT_EPOCH_S = 0.0
@@ -739,13 +745,16 @@ class _SimulatedAutopilot:
         elif msg_id == mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR:
             if self.spec.kind is VehicleKind.GROUND:
                 return False
-            cm = round(100 * max(0.0, tel.height_above_ground))
+            most = PX4_RANGE_MAX_CM if px4 else 4000
+            cm = min(round(100 * max(0.0, tel.height_above_ground)), most)
+            if px4 and tel.landed:
+                cm = PX4_RANGE_ON_GROUND_CM  # SIH's reading a few cm below its origin
             self.send(
                 lambda mav: mav.distance_sensor_send(
                     ms,
                     1,
-                    4000,
-                    min(cm, 4000),
+                    most,
+                    cm,
                     mavlink.MAV_DISTANCE_SENSOR_LASER,
                     0,
                     mavlink.MAV_SENSOR_ROTATION_PITCH_270,

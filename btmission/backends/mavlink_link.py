@@ -183,6 +183,10 @@ class _State:
     landed_state: int = mavlink.MAV_LANDED_STATE_UNDEFINED
     battery: float = 1.0
     range_m: float | None = None
+    """The downward range finder's last reading within its declared range (m); None: its
+    last message had no reading (:func:`range_reading`)."""
+    range_below_min: bool = False
+    """Its last message read below its minimum distance (on or just above the ground)."""
     range_at: float = -math.inf
     home_alt_m: float | None = None
     global_origin: tuple[float, float, float] | None = None
@@ -557,7 +561,9 @@ class _LinkIO:
                 st.battery = msg.battery_remaining / 100.0
         elif kind == "DISTANCE_SENSOR":
             if msg.orientation == mavlink.MAV_SENSOR_ROTATION_PITCH_270:
-                st.range_m = msg.current_distance / 100.0
+                st.range_m, st.range_below_min = range_reading(
+                    msg.current_distance, msg.min_distance, msg.max_distance
+                )
                 st.range_at = now
         elif kind == "GPS_GLOBAL_ORIGIN":
             st.global_origin = (msg.latitude / 1e7, msg.longitude / 1e7, msg.altitude / 1000.0)
@@ -575,6 +581,22 @@ class _LinkIO:
             if pending is not None:
                 pending.result = msg.result
                 pending.event.set()
+
+
+def range_reading(current_cm: int, min_cm: int, max_cm: int) -> tuple[float | None, bool]:
+    """A DISTANCE_SENSOR's ``current_distance`` (cm) as (metres, below its minimum): metres
+    only within the sensor's declared [``min_distance``, ``max_distance``]; outside, no
+    reading — PX4 SIH sends 65533 cm (above its 10000 cm maximum) while the vehicle sits a few
+    cm below its origin on the ground, which taken as real put the ground 655 m below the
+    drone and kept it from taking off. UINT16_MAX is MAVLink's "unknown"; a maximum of 0 says
+    none was declared. Below the minimum is no distance either, but says the ground is closer
+    than the sensor can measure (the vehicle decides what that means: on the ground when its
+    autopilot says it has landed)."""
+    if current_cm >= 0xFFFF or (max_cm > 0 and current_cm > max_cm):
+        return None, False
+    if current_cm < min_cm:
+        return None, True
+    return current_cm / 100.0, False
 
 
 def _gcs_heartbeat(mav: Any) -> None:

@@ -434,8 +434,12 @@ class MavlinkVehicle:
         here = self._position()
         if self.kind is VehicleKind.GROUND:
             return float(here[2])
-        if st.range_m is not None and self.clock.now() - st.range_at < 1.0:
-            return float(here[2] - st.range_m)
+        if self.clock.now() - st.range_at < 1.0:  # a fresh range-finder message
+            if st.range_m is not None:
+                return float(here[2] - st.range_m)
+            if st.range_below_min and self._landed():
+                return float(here[2])  # closer than it measures, and landed: on the ground
+        # out of the sensor's range (or none): the map, else the vehicle's origin
         if self._ground_at is not None:
             return float(self._ground_at(here))
         return float(self.frame.origin[2])

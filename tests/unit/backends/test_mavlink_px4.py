@@ -1,0 +1,70 @@
+"""What real PX4 v1.16 SITL did that broke runs (issue #36 item 7), each as a mavsim rule and the
+provider's answer to it: a range finder's out-of-range reading is no reading."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from btmission.backends.mavlink_link import range_reading
+from btmission.backends.mavlink_modes import Autopilot
+from btmission.mavsim import PX4_RANGE_ON_GROUND_CM
+from btmission.runtime.navigation import NavConfig, Navigator, NavState
+from btmission.spec.vehicleref import VehicleRef
+from btmission.vehicles.base import Mode, VehicleKind
+from tests.mavlink_helpers import SPEED, mavsim, provider
+
+PX4 = Autopilot.PX4
+START = (5.0, 5.0, 0.0)
+
+
+# ------------------------------------------------------------------------------ range finder
+def test_a_range_reading_counts_only_within_the_sensors_declared_range() -> None:
+    assert range_reading(250, 10, 10000) == (2.5, False)
+    assert range_reading(10, 10, 10000) == (0.1, False)  # the bounds are in range
+    assert range_reading(10000, 10, 10000) == (100.0, False)
+    assert range_reading(65533, 10, 10000) == (None, False)  # PX4 SIH on the ground
+    assert range_reading(65535, 0, 0) == (None, False)  # UINT16_MAX: unknown
+    assert range_reading(700, 0, 0) == (7.0, False)  # no maximum declared
+    assert range_reading(0, 1, 4000) == (None, True)  # closer than it measures
+
+
+@pytest.mark.serial  # paced by mavsim's clock
+def test_a_px4_drone_whose_range_finder_reads_out_of_range_on_the_ground_takes_off() -> None:
+    """mavsim's PX4 sends 65533 cm on the ground (above the declared 10000 cm), as SIH does: the
+    ground stays under the drone (not 655 m below it) and the navigator's take-off climbs to
+    its altitude above that ground."""
+    with mavsim(PX4) as sim, provider() as p:
+        ep = sim.endpoints[0]
+        b = p.attach("R1", VehicleKind.MULTIROTOR, START, VehicleRef.parse(ep.url)).backend
+        st = b.state  # type: ignore[attr-defined]
+        end = time.monotonic() + 5.0
+        while st.range_at == -np.inf and time.monotonic() < end:
+            time.sleep(0.01)
+        assert st.range_at > -np.inf, "no DISTANCE_SENSOR came"
+        assert st.range_m is None and not st.range_below_min  # 65533 cm: no reading
+        assert b.telemetry().ground_z == pytest.approx(0.0, abs=0.05)
+        assert PX4_RANGE_ON_GROUND_CM > 10000
+        nav = Navigator("R1", b, None, "track", NavConfig(altitude_m=2.0))
+        t0 = time.monotonic()
+
+        def step_for(seconds: float, until: object = None) -> None:
+            end = time.monotonic() + seconds / SPEED
+            while time.monotonic() < end:
+                nav.step(time.monotonic() - t0)
+                if until is not None and until():  # type: ignore[operator]
+                    return
+                time.sleep(0.05 / SPEED)
+
+        nav.hold()
+        step_for(1.5)  # the stream has run a second: OFFBOARD is accepted
+        assert b.arm() and b.set_mode(Mode.OFFBOARD)
+        nav.takeoff()
+        step_for(10.0, lambda: nav.status.state is not NavState.RUNNING)
+        assert nav.status.command == "takeoff" and nav.status.state is NavState.ARRIVED
+        tel = b.telemetry()
+        assert tel.position[2] == pytest.approx(2.0, abs=0.25)
+        assert tel.ground_z == pytest.approx(0.0, abs=0.1)  # the range finder's, in the air
+        assert st.range_m == pytest.approx(tel.position[2], abs=0.1)
