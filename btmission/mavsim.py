@@ -83,7 +83,7 @@ from btmission.backends.mavlink_setpoints import (
 from btmission.backends.mavlink_signing import enable_signing, parser_like, signing_counters
 from btmission.backends.mavlink_url import MavlinkAddress
 from btmission.backends.sim import SimConfig, Simulator, SimVehicle
-from btmission.vehicles.base import Ack, Mode, VehicleKind
+from btmission.vehicles.base import Ack, LandedState, Mode, VehicleKind
 from btmission.world.voxel import VoxelMap
 
 G = 9.81
@@ -98,6 +98,17 @@ PX4_RANGE_MAX_CM = 10000
 PX4_RANGE_ON_GROUND_CM = 65533
 """What it reads on the ground (the vehicle a few cm below its origin): out of its declared
 range, i.e. no reading — a ground station that takes it as real puts the ground 655 m down."""
+PX4_LAND_SPEED_M_S = 0.8
+"""How fast a PX4 vehicle descends in AUTO.LAND near the ground (SIH: ~0.8 m/s, faster than the
+0.5 m/s a goal's arrival once asked for; the landed state says it is landing)."""
+MAV_LANDED_STATE = {
+    LandedState.UNDEFINED: mavlink.MAV_LANDED_STATE_UNDEFINED,
+    LandedState.ON_GROUND: mavlink.MAV_LANDED_STATE_ON_GROUND,
+    LandedState.IN_AIR: mavlink.MAV_LANDED_STATE_IN_AIR,
+    LandedState.TAKEOFF: mavlink.MAV_LANDED_STATE_TAKEOFF,
+    LandedState.LANDING: mavlink.MAV_LANDED_STATE_LANDING,
+}
+"""The simulator's landed state as EXTENDED_SYS_STATE says it."""
 PX4_UDP_BASE = 14540
 ARDUPILOT_TCP_BASE = 5760
 BOOT_EPOCH_S = 0.0
@@ -725,14 +736,7 @@ class _SimulatedAutopilot:
             rate = fr.yaw_rate_to_local(tel.yaw_rate)
             self.send(lambda mav: mav.attitude_send(ms, tel.roll, -tel.pitch, yaw, 0.0, 0.0, rate))
         elif msg_id == mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
-            if tel.landed:
-                landed = mavlink.MAV_LANDED_STATE_ON_GROUND
-            elif tel.mode is Mode.LAND:
-                landed = mavlink.MAV_LANDED_STATE_LANDING
-            elif tel.mode is Mode.TAKEOFF:
-                landed = mavlink.MAV_LANDED_STATE_TAKEOFF
-            else:
-                landed = mavlink.MAV_LANDED_STATE_IN_AIR
+            landed = MAV_LANDED_STATE[tel.landed_state]
             self.send(lambda mav: mav.extended_sys_state_send(0, landed))
         elif msg_id == mavlink.MAVLINK_MSG_ID_SYS_STATUS:
             pct = round(100 * tel.battery)
@@ -811,9 +815,10 @@ class MavSim:
 
     def __init__(self, config: MavSimConfig) -> None:
         self.config = config
-        self.simulator = Simulator(
-            config.voxel_map, SimConfig(step_s=config.step_s), seed=config.seed
-        )
+        sim_config = SimConfig(step_s=config.step_s)
+        if config.autopilot is Autopilot.PX4:
+            sim_config = SimConfig(step_s=config.step_s, land_speed_m_s=PX4_LAND_SPEED_M_S)
+        self.simulator = Simulator(config.voxel_map, sim_config, seed=config.seed)
         self.autopilots: dict[str, _SimulatedAutopilot] = {}
         try:
             for spec in config.vehicles:

@@ -19,6 +19,7 @@ from py_trees.common import Status
 from btmission.plugins import Implementations
 from btmission.runtime import actions as A
 from btmission.runtime.leaves import AgentContext, StatefulAction
+from btmission.runtime.navigation import LANDING_DRIFT_M
 
 SPEC = files(__package__).joinpath("aerial.yaml")
 """The library file; the ``btmission.libraries`` entry point ``aerial`` points here."""
@@ -33,12 +34,19 @@ def has_home(ctx: AgentContext) -> bool:
 
 @IMPLEMENTATIONS.condition("landed_at_home")
 def landed_at_home(ctx: AgentContext) -> bool:
-    """On the ground with the motors off, at home (or where it started, if it never set one)."""
+    """On the ground with the motors off, at home (or where it started, if it never set one).
+
+    "At home" has a hysteresis: the tree lands only within ``tolerance_m`` of home
+    (``at_goal(home)``), and a landed vehicle counts as there up to
+    :data:`~btmission.runtime.navigation.LANDING_DRIFT_M` further. The descent can end a few decimetres off the spot, and a landed vehicle's
+    estimate drifts (PX4's by decimetres): either, past the tolerance, made the tree arm the
+    drone again to fly back the few decimetres home, and land, and again."""
     if not A.landed(ctx):
         return False
     home = ctx.blackboard.get("home", ctx.start)
     p = ctx.telemetry().position
-    return math.hypot(p[0] - home[0], p[1] - home[1]) <= ctx.navigator.config.tolerance_m
+    reach = ctx.navigator.config.tolerance_m + LANDING_DRIFT_M
+    return math.hypot(p[0] - home[0], p[1] - home[1]) <= reach
 
 
 @IMPLEMENTATIONS.action("set_home")

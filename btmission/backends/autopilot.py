@@ -32,7 +32,7 @@ from typing import Protocol
 import numpy as np
 
 from btmission.types import FloatArray, Vec3
-from btmission.vehicles.base import ACCEPTED, Ack, Mode, VehicleKind
+from btmission.vehicles.base import ACCEPTED, Ack, LandedState, Mode, VehicleKind
 
 STREAM_MIN_HZ = 2.0
 STREAM_MIN_S = 1.0
@@ -45,6 +45,28 @@ G = 9.81
 
 _OFFBOARD = Mode.OFFBOARD
 """(read every step for every vehicle: a global costs a fifth of an Enum member on Python 3.11)"""
+
+_ON_GROUND, _IN_AIR, _LANDING, _TAKING_OFF = (
+    LandedState.ON_GROUND,
+    LandedState.IN_AIR,
+    LandedState.LANDING,
+    LandedState.TAKEOFF,
+)
+_LAND, _TAKEOFF = Mode.LAND, Mode.TAKEOFF
+
+
+def landed_state_of(landed: bool, mode: Mode) -> LandedState:
+    """A simulated vehicle's landed state as PX4's land detector reports it
+    (EXTENDED_SYS_STATE): on the ground, else landing in LAND, taking off in TAKEOFF, else in
+    the air."""
+    if landed:
+        return _ON_GROUND
+    if mode is _LAND:
+        return _LANDING
+    if mode is _TAKEOFF:
+        return _TAKING_OFF
+    return _IN_AIR
+
 
 _NO_VELOCITY = np.zeros(3)
 _NO_VELOCITY.flags.writeable = False

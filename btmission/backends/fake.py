@@ -38,7 +38,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from btmission.backends.autopilot import AutopilotFields, G, OffboardCommands, autopilot_rules
+from btmission.backends.autopilot import (
+    AutopilotFields,
+    G,
+    OffboardCommands,
+    autopilot_rules,
+    landed_state_of,
+)
 from btmission.backends.sim import (
     CMD_VEL_TIMEOUT_S,
     HEADING_P,
@@ -207,6 +213,7 @@ class FakeVehicle(OffboardCommands):
             mode=s.mode,
             armed=s.armed,
             landed=s.landed,
+            landed_state=landed_state_of(s.landed, s.mode),
             battery=s.battery,
             ground_z=s.ground,
         )

@@ -33,7 +33,7 @@ from btmission.backends.mavlink_setpoints import (
     velocity_target,
 )
 from btmission.types import FloatArray, Vec3
-from btmission.vehicles.base import ACCEPTED, Ack, Mode, Telemetry, VehicleKind
+from btmission.vehicles.base import ACCEPTED, Ack, LandedState, Mode, Telemetry, VehicleKind
 from btmission.vehicles.clock import ScaledWallClock
 
 if TYPE_CHECKING:
@@ -47,6 +47,14 @@ from btmission.backends.mavlink_link import (
     _send_position_target,
     _State,
 )
+
+_LANDED_STATES = {
+    mavlink.MAV_LANDED_STATE_ON_GROUND: LandedState.ON_GROUND,
+    mavlink.MAV_LANDED_STATE_IN_AIR: LandedState.IN_AIR,
+    mavlink.MAV_LANDED_STATE_TAKEOFF: LandedState.TAKEOFF,
+    mavlink.MAV_LANDED_STATE_LANDING: LandedState.LANDING,
+}
+"""MAV_LANDED_STATE → :class:`LandedState` (UNDEFINED otherwise)."""
 
 
 class MavlinkVehicle:
@@ -425,6 +433,13 @@ class MavlinkVehicle:
             return not self._armed()
         return bool(st.landed_state == mavlink.MAV_LANDED_STATE_ON_GROUND)
 
+    def _landed_state(self) -> LandedState:
+        """EXTENDED_SYS_STATE's landed state (UNDEFINED when the vehicle does not send it; a
+        ground robot is always on the ground)."""
+        if self.kind is VehicleKind.GROUND:
+            return LandedState.ON_GROUND
+        return _LANDED_STATES.get(self.state.landed_state, LandedState.UNDEFINED)
+
     def _position(self) -> FloatArray:
         p = self.state.position
         return np.asarray(self.frame.origin, dtype=float) if p is None else self.frame.to_world(p)
@@ -481,6 +496,7 @@ class MavlinkVehicle:
             mode=self._mode(),
             armed=self._armed(),
             landed=self._landed(),
+            landed_state=self._landed_state(),
             battery=float(st.battery),
             ground_z=self._ground_z(),
         )

@@ -80,6 +80,7 @@ from btmission.backends.autopilot import (
     G,
     OffboardCommands,
     autopilot_rules,
+    landed_state_of,
 )
 from btmission.backends.mapsensors import Bodies, MapSensors, SensorPose
 from btmission.backends.simworld import Artifact, SimWorld
@@ -137,6 +138,9 @@ class SimConfig:
     max_speed_m_s: float = 3.0
     """Horizontal speed limit of the on-board position controller (PX4 MPC_XY_VEL_MAX)."""
     max_climb_m_s: float = 1.5
+    land_speed_m_s: float = LAND_SPEED
+    """AUTO.LAND's descent speed (PX4 MPC_LAND_SPEED; mavsim's PX4 vehicles land at PX4 SIH's
+    ~0.8 m/s)."""
     ground_v_max: float = 0.4
     ground_v_min: float = -0.1
     ground_omega_max: float = 1.5
@@ -165,6 +169,8 @@ class SimConfig:
                 "velocity_noise must be in [0, 0.5] and velocity_noise_tau_s positive, got "
                 f"{self.velocity_noise}, {self.velocity_noise_tau_s}"
             )
+        if not (math.isfinite(self.land_speed_m_s) and self.land_speed_m_s > 0):
+            raise ValueError(f"land_speed_m_s must be positive, got {self.land_speed_m_s}")
         if self.pose_noise_m < 0 or self.heading_noise_rad < 0:
             raise ValueError("pose_noise_m and heading_noise_rad must be >= 0")
 
@@ -378,7 +384,7 @@ class Simulator:
             TILT_MAX,
             HEADING_P,
             YAW_RATE_MAX,
-            LAND_SPEED,
+            cfg.land_speed_m_s,
             IMPACT_SPEED,
             POSITION_GAIN,
             VELOCITY_GAIN,
@@ -700,6 +706,7 @@ class SimVehicle(OffboardCommands):
             mode=v.mode,
             armed=v.armed,
             landed=v.landed,
+            landed_state=landed_state_of(v.landed, v.mode),
             battery=v.battery,
             ground_z=v.ground if v.kind is _MULTIROTOR else v.z,
         )

@@ -62,7 +62,7 @@ from btmission.runtime.navcontrol import (
 )
 from btmission.settings import declared_settings
 from btmission.types import FloatArray
-from btmission.vehicles.base import Backend, Mode, Sensors, Telemetry, VehicleKind
+from btmission.vehicles.base import Backend, LandedState, Mode, Sensors, Telemetry, VehicleKind
 
 if TYPE_CHECKING:  # the NMPC (CasADi) is imported when a navigator first needs it
     from btmission.control.nmpc import NmpcResult, PendingSolve
@@ -75,6 +75,13 @@ PROGRESS_M = 0.1
 """Progress along a route counts when the distance left shrinks by this much."""
 SETTLED_M_S = 0.5
 """A vehicle slower than this counts as stopped at its goal."""
+LANDING_DRIFT_M = 1.0
+"""How much further than ``tolerance_m`` from a ground-level goal a multirotor that is landing
+there, or has landed, still counts as at it (:meth:`Navigator.at`; ``aerial``'s
+``landed_at_home``): a hysteresis — the landing starts within the tolerance, and the descent
+(AUTO.LAND holds where it was commanded, from a vehicle still creeping) or a landed vehicle's
+drifting estimate (PX4's: decimetres) moves it a few decimetres. Past the tolerance the tree
+abandoned the landing, or armed the landed drone again, to fly those decimetres back."""
 HEADING_GAIN = 1.0
 """Gain of the autopilot's heading loop (rad/s per rad), to turn a yaw rate into a heading."""
 POSITION_GAIN = 1.0
@@ -88,6 +95,9 @@ closed loop then cruises at the commanded speed (0.7 s: measured, see
 2.3 m/s run instead). Up to 1.43 m/s the 1 m floor rules and nothing changes."""
 ROUTE_EVENT_POINTS = 200
 """A ``route`` event carries at most this many points of the path (:func:`route_points`)."""
+
+
+_LANDING, _ON_GROUND = LandedState.LANDING, LandedState.ON_GROUND
 
 
 class NavState(str, Enum):
@@ -359,23 +369,39 @@ class Navigator:
         any height up to the flight altitude, so a vehicle landing there still is at it).
 
         "Stopped" (slower than ``SETTLED_M_S``): a vehicle that passes through the tolerance
-        sphere at speed has not reached the goal — it could not inspect it, nor land there."""
+        sphere at speed has not reached the goal — it could not inspect it, nor land there. A
+        multirotor over a ground-level goal whose autopilot says it is landing (or has landed)
+        is at it whatever its speed, and up to ``LANDING_DRIFT_M`` further than the tolerance:
+        AUTO.LAND descends faster than ``SETTLED_M_S`` (PX4 at ~0.8 m/s) and drifts a little,
+        and a landing judged by speed and the tolerance alone was abandoned mid-descent to fly
+        the route to the goal again."""
         tel = tel or self.backend.telemetry()
         tol = self.config.tolerance_m
         p = tel.position
         px, py, _ = p.tolist()  # (floats: numpy's scalar arithmetic costs more, same result)
         gx, gy = float(goal[0]), float(goal[1])  # type: ignore[index,arg-type]
-        if math.hypot(px - gx, py - gy) > tol:
-            return False  # (most calls: far from it)
+        off = math.hypot(px - gx, py - gy)
+        if off > tol:  # (most calls: far from it)
+            if off > tol + LANDING_DRIFT_M or self.kind is VehicleKind.GROUND:
+                return False
+            if not (tel.landed_state is _LANDING or tel.landed_state is _ON_GROUND):
+                return False
+            # landing near a ground-level goal: within the hysteresis (LANDING_DRIFT_M)
+            g = np.asarray(goal, dtype=float)
+            return bool(self.flight_target(g)[2] != g[2])
         g = np.asarray(goal, dtype=float)
         v = tel.velocity
-        if math.sqrt(float(v @ v)) > SETTLED_M_S:
-            return False
+        settled = math.sqrt(float(v @ v)) <= SETTLED_M_S
         if self.kind is VehicleKind.GROUND:
-            return True
+            return settled
+        landing = tel.landed_state is _LANDING or tel.landed_state is _ON_GROUND
+        if not (settled or landing):
+            return False
         target = self.flight_target(g)
         if target[2] != g[2]:  # a ground-level goal
-            return bool(p[2] <= target[2] + tol)
+            return landing or bool(p[2] <= target[2] + tol)
+        if not settled:
+            return False
         return bool(abs(p[2] - target[2]) <= tol)
 
     # ---------------------------------------------------------------- control step

@@ -26,6 +26,7 @@ from btmission.vehicles.base import (
     ACCEPTED,
     Ack,
     CameraFrame,
+    LandedState,
     LidarScan,
     Mode,
     Telemetry,
@@ -117,6 +118,7 @@ class StandInDrone:
             mode=Mode.OFFBOARD,
             armed=True,
             landed=False,
+            landed_state=LandedState.IN_AIR,
             battery=1.0,
             ground_z=0.0,
         )

@@ -39,6 +39,18 @@ class Mode(str, Enum):
     LAND = "LAND"  # PX4 AUTO.LAND: descend, touch down, disarm
 
 
+class LandedState(str, Enum):
+    """Where the autopilot says the vehicle is (MAVLink's MAV_LANDED_STATE, PX4's land
+    detector, ArduPilot's EXTENDED_SYS_STATE): a descent is told from a flight by LANDING,
+    which no speed threshold can (PX4 lands at ~0.8 m/s)."""
+
+    UNDEFINED = "undefined"  # the vehicle does not say (then ``landed`` follows its arming)
+    ON_GROUND = "on_ground"
+    IN_AIR = "in_air"
+    TAKEOFF = "takeoff"
+    LANDING = "landing"
+
+
 class VehicleKind(str, Enum):
     MULTIROTOR = "multirotor"
     GROUND = "ground"
@@ -98,6 +110,9 @@ class Telemetry:
     armed: bool
     landed: bool
     """On the ground (PX4's land detector)."""
+    landed_state: LandedState
+    """The autopilot's landed state (:class:`LandedState`): ``ON_GROUND`` when ``landed``;
+    ``LANDING`` while it descends to land."""
     battery: float
     """Remaining charge, 1.0 = full."""
     ground_z: float

@@ -1,5 +1,6 @@
 """What real PX4 v1.16 SITL did that broke runs (issue #36 item 7), each as a mavsim rule and the
-provider's answer to it: a range finder's out-of-range reading is no reading."""
+provider's answer to it: a range finder's out-of-range reading is no reading; a landing is told
+by the autopilot's landed state (EXTENDED_SYS_STATE), PX4 landing at ~0.8 m/s."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from btmission.backends.mavlink_modes import Autopilot
 from btmission.mavsim import PX4_RANGE_ON_GROUND_CM
 from btmission.runtime.navigation import NavConfig, Navigator, NavState
 from btmission.spec.vehicleref import VehicleRef
-from btmission.vehicles.base import Mode, VehicleKind
+from btmission.vehicles.base import LandedState, Mode, VehicleKind
 from tests.mavlink_helpers import SPEED, mavsim, provider
 
 PX4 = Autopilot.PX4
@@ -68,3 +69,39 @@ def test_a_px4_drone_whose_range_finder_reads_out_of_range_on_the_ground_takes_o
         assert tel.position[2] == pytest.approx(2.0, abs=0.25)
         assert tel.ground_z == pytest.approx(0.0, abs=0.1)  # the range finder's, in the air
         assert st.range_m == pytest.approx(tel.position[2], abs=0.1)
+
+
+@pytest.mark.serial  # paced by mavsim's clock
+def test_a_px4_landing_is_told_by_its_landed_state_and_lands_at_px4s_speed() -> None:
+    """mavsim's PX4 descends at ~0.8 m/s in LAND and says so in EXTENDED_SYS_STATE (LANDING,
+    then ON_GROUND): the provider's telemetry carries it, and the navigator's arrival over home
+    holds through the whole descent."""
+    with mavsim(PX4) as sim, provider(telemetry_hz=50.0) as p:
+        ep = sim.endpoints[0]
+        b = p.attach("R1", VehicleKind.MULTIROTOR, START, VehicleRef.parse(ep.url)).backend
+        nav = Navigator("R1", b, None, "track", NavConfig(altitude_m=2.0))
+        end = time.monotonic() + 1.5 / SPEED
+        while time.monotonic() < end:
+            b.set_position_setpoint(np.array([5.0, 5.0, 2.0]))
+            time.sleep(0.05 / SPEED)
+        assert b.arm() and b.set_mode(Mode.OFFBOARD)
+        end = time.monotonic() + 8.0 / SPEED
+        while abs(b.telemetry().position[2] - 2.0) > 0.1 and time.monotonic() < end:
+            b.set_position_setpoint(np.array([5.0, 5.0, 2.0]))
+            time.sleep(0.05 / SPEED)
+        assert b.telemetry().landed_state is LandedState.IN_AIR
+        assert b.land()
+        states, fastest, at_home = set(), 0.0, True
+        end = time.monotonic() + 10.0 / SPEED
+        while time.monotonic() < end:
+            tel = b.telemetry()
+            states.add(tel.landed_state)
+            fastest = max(fastest, -float(tel.velocity[2]))
+            at_home = at_home and nav.at(START, tel)
+            if tel.landed and not tel.armed:
+                break
+            time.sleep(0.02 / SPEED)
+        assert b.telemetry().landed and not b.telemetry().armed
+        assert LandedState.LANDING in states and LandedState.ON_GROUND in states
+        assert fastest == pytest.approx(0.8, abs=0.1)
+        assert at_home

@@ -656,11 +656,11 @@ def test_a_fast_built_telemetry_record_is_the_dataclass_it_stands_for() -> None:
     import dataclasses
 
     from btmission.types import record
-    from btmission.vehicles.base import Mode, Telemetry
+    from btmission.vehicles.base import LandedState, Mode, Telemetry
 
     fields = dict(time_s=1.5, position=np.array([1.0, 2.0, 3.0]), velocity=np.zeros(3), yaw=0.1,
                   roll=0.0, pitch=0.0, yaw_rate=0.2, mode=Mode.HOLD, armed=True, landed=False,
-                  battery=0.9, ground_z=0.5)  # fmt: skip
+                  landed_state=LandedState.IN_AIR, battery=0.9, ground_z=0.5)  # fmt: skip
     fast, slow = record(Telemetry, **fields), Telemetry(**fields)  # type: ignore[arg-type]
     assert type(fast) is Telemetry and dataclasses.asdict(fast).keys() == fields.keys()
     assert fast.height_above_ground == slow.height_above_ground == 2.5
