@@ -237,9 +237,10 @@ class UpdatePath(StatefulAction):
         nav = self.ctx.navigator
         target = nav.flight_target(goal)
         p = self.ctx.telemetry().position
-        route = self.ctx.paths.route((float(p[0]), float(p[1]), float(p[2])), point(target))
+        start = (float(p[0]), float(p[1]), float(p[2]))
+        route = self.ctx.paths.route(start, point(target))
         if route is None:
-            why = self.ctx.paths.problem(point(target))
+            why = self.ctx.paths.problem(point(target)) or self.ctx.paths.start_problem(start)
             self.reason = f"no path to {_fmt(goal)}" + (f" ({why})" if why else "")
             return Status.FAILURE
         self.ctx.blackboard.set("path", PlannedPath(goal, route))

@@ -55,6 +55,15 @@ copy of the rows in use: 0.2 s for 8 fields of the 2 M-voxel mine, a stall in th
 run)."""
 
 
+START_ESCAPE_M = 5.0
+"""How far from a start in rock (deeper than ``snap_m``) or outside the map a path may begin:
+the nearest voxel the planner may enter within it (:meth:`PathCosts._escape`)."""
+
+
+def _fmt_point(p: Sequence[float]) -> str:
+    return "[" + ", ".join(f"{float(v):.2f}" for v in p[:3]) + "]"
+
+
 def field_bytes(shape: Sequence[int]) -> int:
     """Memory of one cost-to-goal field of :class:`PathCosts` on a map of ``shape`` voxels:
     float32 over the map padded by a voxel on every side."""
@@ -143,6 +152,7 @@ class PathCosts:
             OrderedDict()
         )
         self._snapped: dict[int, int] = {}
+        self._escaped: dict[tuple[int, int], int] = {}
         self._goal_voxel: dict[Point, int] = {}
         self._last_start: tuple[Point, int] | None = None
         self.version += 1
@@ -171,21 +181,44 @@ class PathCosts:
         hit = self._snapped.get(flat)
         if hit is not None:
             return hit
-        vm = self.map
         idx = self.cost_map.unpad_index(np.array([flat]))[0]
-        k = math.ceil(self.snap_m / vm.resolution)
+        best = self._nearest_open(idx, self.snap_m)
+        self._snapped[flat] = best
+        return best
+
+    def _nearest_open(self, idx: npt.NDArray[np.intp], radius_m: float) -> int:
+        """The padded index of the voxel the planner may enter nearest to voxel ``idx``, within
+        ``radius_m`` (-1: none). Searches the cube around it only: bounded."""
+        vm = self.map
+        k = math.ceil(radius_m / vm.resolution)
         lo = np.maximum(idx - k, 0)
         hi = np.minimum(idx + k + 1, vm.shape)
         window = self.cost_map.voxel_cost[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
         cand = np.argwhere(np.isfinite(window))
-        best = -1
         if len(cand):
             d2 = np.sum((cand + lo - idx) ** 2, axis=1)
             j = int(np.argmin(d2))
-            if math.sqrt(float(d2[j])) * vm.resolution <= self.snap_m:
-                best = int(self.cost_map.padded_index(cand[j] + lo))
-        self._snapped[flat] = best
-        return best
+            if math.sqrt(float(d2[j])) * vm.resolution <= radius_m:
+                return int(self.cost_map.padded_index(cand[j] + lo))
+        return -1
+
+    def _escape(self, start: Sequence[float]) -> int:
+        """Where a vehicle the map puts in rock (or just outside the map) plans from: the
+        nearest voxel the planner may enter within :data:`START_ESCAPE_M` (-1: none). A failsafe
+        descent on a real autopilot left a drone where the map has rock (the autopilot's ground
+        is not the map's); planning from nowhere failed on every tick, 1,471 times in one run."""
+        ox, oy, oz, res = self._grid
+        u = np.array([(float(c) - o) / res for c, o in zip(start[:3], (ox, oy, oz), strict=True)])
+        idx = np.clip(np.floor(u), 0, np.array(self._shape) - 1).astype(np.intp)
+        outside_m = float(np.linalg.norm(u - np.clip(u, 0, self._shape))) * res
+        radius = START_ESCAPE_M - outside_m  # from the start itself, not the map's edge
+        if radius < 0:
+            return -1
+        key = (int(self.cost_map.padded_index(idx)), round(radius / res))
+        hit = self._escaped.get(key)
+        if hit is None:
+            hit = self._escaped[key] = self._nearest_open(idx, radius)
+        return hit
 
     def start_key(self, start: Point) -> tuple[int, int]:
         """What :meth:`path_costs` from ``start`` depends on: the open voxel it starts from and
@@ -209,6 +242,8 @@ class PathCosts:
             f = flat if math.isfinite(self._cost_flat[flat]) else self._open(flat)
         else:
             f = self._open(self._flat(key))
+        if f < 0:  # deep in rock, or outside the map: out to the nearest free voxel
+            f = self._escape(key)
         self._last_start = (key, f)
         return f
 
@@ -325,6 +360,17 @@ class PathCosts:
             return None
         pts = thin_path(self.cost_map, pts)  # waypoints where a straight line would be worse
         return Route((float(goal[0]), float(goal[1]), float(goal[2])), pts, length)
+
+    def start_problem(self, start: Sequence[float]) -> str | None:
+        """Why no path can begin at ``start`` (in rock or outside the map with no voxel the
+        planner may enter within :data:`START_ESCAPE_M`), or None."""
+        if self._start(start) >= 0:
+            return None
+        where = self.problem(start) or "in the clearance margin of rock"
+        return (
+            f"the vehicle is {where} at {_fmt_point(start)} and no free voxel is within "
+            f"{START_ESCAPE_M:g} m to plan from"
+        )
 
     def problem(self, point: Sequence[float]) -> str | None:
         """Why ``point`` cannot be a goal (outside the map, inside rock), or None."""
