@@ -410,14 +410,25 @@ class MavlinkProvider(ProviderBase):
             self._io.close()
 
     def stop_vehicles(self) -> dict[str, list[Ack]]:
-        """HOLD (then LAND) every vehicle that is armed and off the ground (:meth:`close`)."""
+        """HOLD (then LAND) every vehicle that is armed and off the ground, and disarm every
+        drone armed on the ground (:meth:`close`): a run that stops leaves no motors armed (on
+        real PX4 stopping left drones that were about to take off armed)."""
         out: dict[str, list[Ack]] = {}
         for vehicle in self.vehicles.values():
             vehicle.state.setpoint = None  # nothing more is streamed
             if self._io.error is not None or not vehicle.link_ok():
                 continue
             tel = vehicle.telemetry()
-            if not tel.armed or (tel.landed and vehicle.kind is VehicleKind.MULTIROTOR):
+            if not tel.armed:
+                continue
+            if tel.landed and vehicle.kind is VehicleKind.MULTIROTOR:
+                ack = vehicle.disarm()
+                out[vehicle.id] = [ack]
+                if self._progress is not None:
+                    said = "accepted" if ack else "refused: " + ack.reason
+                    self._progress(
+                        f"{vehicle.id}: the run stopped: armed on the ground, DISARM {said}"
+                    )
                 continue
             acks = [vehicle.set_mode(Mode.HOLD)]
             if self.options.on_stop == "land" and vehicle.kind is VehicleKind.MULTIROTOR:

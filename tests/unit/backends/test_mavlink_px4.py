@@ -1,6 +1,7 @@
 """What real PX4 v1.16 SITL did that broke runs (issue #36 item 7), each as a mavsim rule and the
 provider's answer to it: a range finder's out-of-range reading is no reading; a landing is told
-by the autopilot's landed state (EXTENDED_SYS_STATE), PX4 landing at ~0.8 m/s."""
+by the autopilot's landed state (EXTENDED_SYS_STATE), PX4 landing at ~0.8 m/s; a run that stops
+disarms the drones armed on the ground."""
 
 from __future__ import annotations
 
@@ -105,3 +106,19 @@ def test_a_px4_landing_is_told_by_its_landed_state_and_lands_at_px4s_speed() -> 
         assert LandedState.LANDING in states and LandedState.ON_GROUND in states
         assert fastest == pytest.approx(0.8, abs=0.1)
         assert at_home
+
+
+@pytest.mark.serial  # paced by mavsim's clock
+def test_stopping_disarms_a_drone_armed_on_the_ground() -> None:
+    """Armed, not yet taken off (PX4 would disarm it by itself only after 10 s): the provider's
+    stop disarms it, and says so."""
+    said: list[str] = []
+    with mavsim(PX4) as sim, provider() as p:
+        p._progress = said.append
+        ep = sim.endpoints[0]
+        b = p.attach("R1", VehicleKind.MULTIROTOR, START, VehicleRef.parse(ep.url)).backend
+        assert b.arm() and sim.vehicle_state("R1")["armed"]
+        acks = p.stop_vehicles()
+        assert [bool(a) for a in acks["R1"]] == [True]
+        assert not sim.vehicle_state("R1")["armed"]
+        assert said[-1] == "R1: the run stopped: armed on the ground, DISARM accepted"
