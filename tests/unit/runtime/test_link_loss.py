@@ -146,13 +146,15 @@ def test_pick_and_deliver_commit_point_passed_during_an_outage(tmp_path: Path) -
 @pytest.mark.slow
 def test_mine_inspection_r2_finishes_t3_while_cut_off() -> None:
     """Issue #13 §5, with the tracking controller: R2's link is down from 40 s; R2 finishes T3 at
-    83.4 s, R1 (which got T3 at 43 s) would at 83.7 s. R2's completion arrives when its link
-    returns at 83.5 s: T3 is done once, for R2, and R1 stops flying T3 in the same round."""
+    87.6 s, while R1 (which got T3 at 43 s) is still on its way (at 95 s too). R2's completion
+    arrives when its link returns at 87.7 s: T3 is done once, for R2, and R1 stops flying T3 in
+    the same round. (Since the separation rule of #36 item 9, R2 leaves its pad more slowly: it
+    finished at 83.4 s before, and the link returned at 83.5 s.)"""
     m = load_mission(MISSIONS / "mine_inspection.yaml")
-    _, rec = outage(m, "R2", 40.0, 83.5, until=86, controller="track")
+    _, rec = outage(m, "R2", 40.0, 87.7, until=90, controller="track")
     (done,) = done_events(rec, "T3")
-    assert done.get("agent") == "R2" and done.t == pytest.approx(83.5)
-    assert done.get("reported_s") == pytest.approx(83.4)
+    assert done.get("agent") == "R2" and done.t == pytest.approx(87.7)
+    assert done.get("reported_s") == pytest.approx(87.6)
     holders = {a for _, s, a in task_states(rec, "T3") if s == "assigned"}
     assert holders == {"R2", "R1"}
     (w,) = rec.of("withdrawn")
@@ -160,7 +162,7 @@ def test_mine_inspection_r2_finishes_t3_while_cut_off() -> None:
     r1 = executing(rec, "R1")
     t3_start = next(t for t, task in r1 if task == "T3")
     after = [(t, task) for t, task in r1 if t > t3_start]
-    assert after and after[0][0] == pytest.approx(83.5) and after[0][1] != "T3"
+    assert after and after[0][0] == pytest.approx(87.7) and after[0][1] != "T3"
     assert not [e for e in rec.of("progress") if e.get("task") == "T3" and e.get("agent") == "R1"]
 
 
