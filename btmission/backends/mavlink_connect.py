@@ -489,6 +489,7 @@ class _Connect:
         st = self.state
         if self.link is None:
             error = self.fleet.open_error(self.address)
+            error = error.removeprefix(f"cannot open {self.address.url()}: ")  # (said: its URL)
             return f"its link ({error})" if error else "its link to open"
         if st is None:
             return "a heartbeat"

@@ -17,6 +17,7 @@ import pytest
 
 from btmission.backends._pymavlink import mavlink
 from btmission.backends.mavlink import MavlinkError, MavlinkProvider
+from btmission.backends.mavlink_connect import NOTE_AFTER_S
 from btmission.backends.mavlink_modes import Autopilot
 from btmission.mavsim import MavSim, MavSimConfig, VehicleSpec, _SimulatedAutopilot
 from btmission.spec.vehicleref import VehicleRef
@@ -212,8 +213,10 @@ def test_vehicles_switched_on_after_the_ground_station_are_waited_for(
     autopilot: Autopilot,
 ) -> None:
     # PX4: the run listens and the vehicles send once they run; ArduPilot: the run's TCP
-    # connects are refused until the vehicles listen, and are tried again meanwhile.
+    # connects are refused until the vehicles listen, and are tried again meanwhile. The
+    # vehicles come after the connect has said who waits for what.
     specs = fleet(autopilot, 2)
+    said: list[str] = []
     started: list[MavSim] = []
 
     def switch_on() -> None:
@@ -223,9 +226,10 @@ def test_vehicles_switched_on_after_the_ground_station_are_waited_for(
     reqs = [
         AttachRequest(s.agent_id, s.kind, s.start, VehicleRef.parse(s.address.url())) for s in specs
     ]
-    later = threading.Timer(1.5, switch_on)
+    later = threading.Timer(NOTE_AFTER_S + 0.5 * margin(), switch_on)
     try:
         with provider(connect_timeout_s=20.0 * margin()) as p:
+            p._progress = said.append
             p.prepare([r.ref for r in reqs])
             later.start()
             vehicles = p.attach_all(reqs)
@@ -238,6 +242,12 @@ def test_vehicles_switched_on_after_the_ground_station_are_waited_for(
         later.join()
         for sim in started:
             sim.stop()
+    waited = [line for line in said if line.startswith("connecting: 0 of 2 vehicle(s) connected")]
+    assert waited, said
+    if autopilot is PX4:  # heard nothing yet
+        assert waited[0].endswith("; waiting: R1, R2 for a heartbeat")
+    else:  # its TCP connects refused
+        assert waited[0].endswith("; waiting: R1, R2 for its link (Connection refused)")
 
 
 @pytest.fixture(autouse=True)
