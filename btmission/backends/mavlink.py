@@ -18,6 +18,10 @@ Both streams are due on absolute deadlines and the thread sends before it reads,
 machine delays a setpoint but does not lower the rate; a stream that still falls short becomes a
 ``warning`` event (:meth:`MavlinkProvider.step`; :mod:`btmission.backends.mavlink_schedule`).
 
+The vehicles of a run connect concurrently (:meth:`MavlinkProvider.attach_all`,
+:mod:`btmission.backends.mavlink_connect`): every link opens at once, every vehicle's requests go
+out as soon as it is heard, and the run waits about as long as its slowest vehicle needs.
+
 Commands (arm, mode, take-off, land) are COMMAND_LONGs that wait for their COMMAND_ACK
 (``ack_timeout_s``), are sent again (with ``confirmation`` counting up) when no answer comes, are
 waited for while the autopilot says IN_PROGRESS and retried after a pause while it says
@@ -46,23 +50,21 @@ from __future__ import annotations
 
 import collections
 import sys
-import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from btmission.backends._pymavlink import mavlink
+from btmission.backends.mavlink_connect import ConnectTimes, FleetConnect
 from btmission.backends.mavlink_frames import (
     GeodeticOrigin,
     LocalFrame,
     agent_frame,
     mission_geodetic_origin,
-    world_to_geodetic,
 )
 from btmission.backends.mavlink_schedule import StreamStats
 from btmission.backends.mavlink_signing import load_key, signing_counters
-from btmission.backends.mavlink_url import MavlinkAddress, parse_mavlink_url
+from btmission.backends.mavlink_url import parse_mavlink_url
 from btmission.spec.common import config_from
 from btmission.spec.vehicleref import SIM, VehicleRef
 from btmission.types import FloatArray, Vec3
@@ -70,6 +72,7 @@ from btmission.vehicles.base import Ack, Mode, Sensors, VehicleKind
 from btmission.vehicles.clock import ScaledWallClock
 from btmission.vehicles.provider import (
     AttachOptions,
+    AttachRequest,
     ProviderBase,
     Vehicle,
     VehicleEvent,
@@ -82,16 +85,9 @@ if TYPE_CHECKING:
     from btmission.world.voxel import VoxelMap
 
 from btmission.backends.mavlink_link import (
-    ESTIMATOR_STREAM,
-    GROUND_TYPES,
-    MULTIROTOR_TYPES,
-    STREAMS,
     MavlinkError,
     MavlinkOptions,
-    _Link,
     _LinkIO,
-    _open,
-    _State,
 )
 from btmission.backends.mavlink_vehicle import MavlinkVehicle
 
@@ -118,7 +114,6 @@ class MavlinkProvider(ProviderBase):
         has its start as origin, north along world +y."""
         self.options = options or MavlinkOptions()
         self._frames = dict(frames or {})
-        self._geodetic = geodetic
         self._sensors = sensors
         self.clock = ScaledWallClock(self.options.time_scale)
         self._io = _LinkIO(self.clock, self.options)
@@ -126,14 +121,14 @@ class MavlinkProvider(ProviderBase):
         self._progress = progress
         self.vehicles: dict[str, MavlinkVehicle] = {}
         self._closed = False
+        self._connect = FleetConnect(
+            self._io, self.clock, self.options, frames=self._frames, geodetic=geodetic,
+            ground_at=ground_at, progress=self._note,
+        )  # fmt: skip
 
-    def _link(self, address: MavlinkAddress, deadline: float) -> _Link:
-        key = address.device()
-        link = self._io.links.get(key)
-        if link is None:
-            link = _Link(address, _open(address, self.options, deadline))
-            self._io.add(link)
-        return link
+    def _note(self, text: str) -> None:
+        if self._progress is not None:  # (read when said: a test may set it later)
+            self._progress(text)
 
     def warm_up(self) -> None:
         """The map sensors' kernels, if the vehicles have them
@@ -142,14 +137,14 @@ class MavlinkProvider(ProviderBase):
             self._sensors.warm_up()
 
     def prepare(self, vehicles: Sequence[VehicleRef]) -> None:
-        """Open every link before the vehicles are attached one by one, so that vehicles that
-        start on a connection (ArduPilot SITL waits for its TCP client) boot and warm up their
-        estimators together. A link that cannot be opened now is left to :meth:`attach`."""
-        deadline = time.monotonic() + 1.0
+        """Start opening every link (each on a helper thread; a TCP one retried until its
+        vehicle listens), so that vehicles that start on a connection (ArduPilot SITL waits for
+        its TCP client) boot and warm up their estimators together. A link that cannot be
+        opened is reported by :meth:`attach_all`, naming its agent."""
         for url in dict.fromkeys(v.url for v in vehicles):
             try:
-                self._link(parse_mavlink_url(url), deadline)
-            except (MavlinkError, ValueError):
+                self._connect.open(parse_mavlink_url(url))
+            except ValueError:
                 continue
 
     def start(self) -> None:
@@ -171,169 +166,30 @@ class MavlinkProvider(ProviderBase):
         ref: VehicleRef = SIM,
         options: AttachOptions = AttachOptions(),
     ) -> Vehicle:
-        """Connect ``agent_id``'s vehicle at ``ref``'s URL: wait for an autopilot's
-        heartbeat (the ``?sysid=`` one, else the first not taken), check its type, ask for its
-        telemetry streams and wait for a position estimate. Its frame is the one the provider
-        was given for ``agent_id`` (``frames``), else its origin is ``start``, north along
-        world +y."""
-        address = parse_mavlink_url(ref.url)
-        opts = self.options
-        deadline = time.monotonic() + opts.connect_timeout_s
-        if self._progress is not None:
-            self._progress(f"{agent_id}: connecting to {address.url()}")
-        link = self._link(address, deadline)
-        state = self._wait_heartbeat(agent_id, link, address, deadline)
-        link.claimed.add(state.sysid)
-        if kind is VehicleKind.MULTIROTOR and state.mav_type not in MULTIROTOR_TYPES:
-            raise MavlinkError(
-                f"{agent_id}: the vehicle at {address.url()} (sysid {state.sysid}) is a "
-                f"{_type_name(state.mav_type)}, but the agent's library flies a multirotor"
-            )
-        if kind is VehicleKind.GROUND and state.mav_type not in GROUND_TYPES:
-            raise MavlinkError(
-                f"{agent_id}: the vehicle at {address.url()} (sysid {state.sysid}) is a "
-                f"{_type_name(state.mav_type)}, but the agent's library drives a ground robot"
-            )
-        frame = self._frames.get(agent_id) or LocalFrame(
-            (float(start[0]), float(start[1]), float(start[2]))
-        )
-        vehicle = MavlinkVehicle(
-            agent_id, kind, link, state, frame, self.clock, opts, self._ground_at, self._io.wake
-        )
-        self._request_streams(vehicle)
-        if self._geodetic is not None:
-            self._set_global_origin(vehicle, deadline)
-        if state.position is None and self._progress is not None:
-            self._progress(f"{agent_id}: waiting for its position estimate (LOCAL_POSITION_NED)")
-        while state.position is None:
-            if time.monotonic() > deadline:
-                raise MavlinkError(
-                    f"{agent_id}: the vehicle at {address.url()} (sysid {state.sysid}) sends no "
-                    f"LOCAL_POSITION_NED within {opts.connect_timeout_s:g} s: it has no local "
-                    "position estimate (an EKF origin and a position source are needed)"
-                )
-            time.sleep(0.02)
-        self._wait_estimator(vehicle, deadline)
-        self.vehicles[agent_id] = vehicle
-        if self._progress is not None:
-            self._progress(
-                f"{agent_id}: {state.autopilot.value} sysid {state.sysid} "
-                f"({_type_name(state.mav_type)}) at {address.url()}"
-            )
-        sensors = self._sensors(vehicle) if self._sensors is not None else None
-        return Vehicle(agent_id, kind, vehicle, sensors, link_ok=vehicle.link_ok)
+        """Connect ``agent_id``'s vehicle at ``ref``'s URL (:meth:`attach_all` for one)."""
+        return self.attach_all([AttachRequest(agent_id, kind, start, ref, options)])[0]
 
-    def _wait_heartbeat(
-        self, agent_id: str, link: _Link, address: MavlinkAddress, deadline: float
-    ) -> _State:
-        while True:
-            self._check_io()
-            if address.sysid is not None:
-                st = link.vehicles.get(address.sysid)
-                if st is not None and address.sysid in link.claimed:
-                    raise MavlinkError(
-                        f"{agent_id}: sysid {address.sysid} at {address.url()} is already "
-                        "another agent's vehicle"
-                    )
-                if st is not None and (address.compid is None or st.compid == address.compid):
-                    return st
-            else:
-                free = [s for sid, s in sorted(link.vehicles.items()) if sid not in link.claimed]
-                if free:
-                    return free[0]
-            if time.monotonic() > deadline:
-                who = f"sysid {address.sysid}" if address.sysid is not None else "an autopilot"
-                seen = sorted(link.vehicles)
-                hint = (
-                    f" (heard sysids {', '.join(map(str, seen))}, all taken)"
-                    if seen
-                    else " (is the vehicle on, and is its MAVLink output sent here?)"
-                )
-                raise MavlinkError(
-                    f"{agent_id}: no heartbeat from {who} at {address.url()} within "
-                    f"{self.options.connect_timeout_s:g} s{hint}"
-                )
-            time.sleep(0.02)
+    def attach_all(self, requests: Sequence[AttachRequest]) -> list[Vehicle]:
+        """Connect every requested vehicle at once (:mod:`btmission.backends.mavlink_connect`),
+        within one ``connect_timeout_s``: for each, an autopilot's heartbeat (the ``?sysid=``
+        one, else the first not taken), of the right type, its telemetry streams asked, a
+        position estimate. Its frame is the one the provider was given for its agent
+        (``frames``), else its origin is its start, north along world +y. Raises
+        :class:`MavlinkError` naming every vehicle that could not be connected and what it
+        lacked (:attr:`~btmission.vehicles.provider.VehicleUnavailable.failures`)."""
+        connected = self._connect.connect(requests, self._check_io)
+        out = []
+        for vehicle in connected:
+            self.vehicles[vehicle.id] = vehicle
+            sensors = self._sensors(vehicle) if self._sensors is not None else None
+            out.append(Vehicle(vehicle.id, vehicle.kind, vehicle, sensors, link_ok=vehicle.link_ok))
+        return out
 
-    def _request_streams(self, vehicle: MavlinkVehicle) -> None:
-        interval_us = 1e6 / self.options.telemetry_hz
-        requests = [(msg, interval_us) for msg in STREAMS]
-        requests.append((ESTIMATOR_STREAM[vehicle.autopilot], 5e5))
-        requests.append((mavlink.MAVLINK_MSG_ID_HEARTBEAT, 2e5))  # modes seen within 0.2 s
-        for i, (msg_id, interval) in enumerate(requests):
-            ack = vehicle.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, float(msg_id), interval)
-            if i == 0 and not ack.accepted and "no COMMAND_ACK" in ack.reason:
-                signing = (
-                    "the key may differ from the vehicle's"
-                    if self.options.signing_key is not None
-                    else "if it requires MAVLink 2 signing, give its key (--mavlink-key-file)"
-                )
-                raise MavlinkError(
-                    f"{vehicle.id}: sysid {vehicle.state.sysid} is heard but does not answer "
-                    f"commands ({signing})"
-                )
-            if not ack.accepted and self._progress is not None:
-                self._progress(f"{vehicle.id}: stream {msg_id} not available ({ack.reason})")
-        vehicle.command(
-            mavlink.MAV_CMD_REQUEST_MESSAGE, float(mavlink.MAVLINK_MSG_ID_HOME_POSITION)
-        )
-
-    def _wait_estimator(self, vehicle: MavlinkVehicle, deadline: float) -> None:
-        """Wait (until ``deadline``) for the estimator to report a usable position: ArduPilot's
-        EKF_STATUS_REPORT with attitude, horizontal velocity and relative position OK, PX4's
-        ESTIMATOR_STATUS with a relative position. A vehicle that sends neither within two
-        seconds is taken as it is; one still not ready at the deadline is attached anyway, and
-        its arming refusals will say why."""
-        st = vehicle.state
-        said = False
-        quiet_until = time.monotonic() + 2.0
-        while time.monotonic() < deadline:
-            if vehicle.estimator_ready():
-                return
-            if st.ekf_flags is None and st.estimator_ok is None and time.monotonic() > quiet_until:
-                return  # it does not report its estimator
-            if (
-                not said
-                and self._progress is not None
-                and (st.ekf_flags is not None or st.estimator_ok is not None)
-            ):
-                self._progress(f"{vehicle.id}: waiting for its estimator (EKF) to have a position")
-                said = True
-            time.sleep(0.05)
-        if self._progress is not None:
-            self._progress(
-                f"{vehicle.id}: the estimator has no usable position yet; arming will be refused "
-                "until it has"
-            )
-
-    def _set_global_origin(self, vehicle: MavlinkVehicle, deadline: float) -> None:
-        """Give a vehicle without a global origin (no GPS: underground) the geodetic position of
-        its local origin, and wait until it confirms (GPS_GLOBAL_ORIGIN)."""
-        assert self._geodetic is not None
-        st = vehicle.state
-        ack = vehicle.command(
-            mavlink.MAV_CMD_REQUEST_MESSAGE, float(mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
-        )
-        if ack.accepted:
-            end = min(deadline, time.monotonic() + 1.0)
-            while st.global_origin is None and time.monotonic() < end:
-                time.sleep(0.02)
-        if st.global_origin is not None:
-            return  # it has one (its GPS, or set before)
-        lat, lon, alt = world_to_geodetic(vehicle.frame.origin, self._geodetic)
-        vehicle.link.send(
-            lambda mav: mav.set_gps_global_origin_send(
-                st.sysid, round(lat * 1e7), round(lon * 1e7), round(alt * 1000), 0
-            )
-        )
-        end = min(deadline, time.monotonic() + 2.0)
-        while st.global_origin is None and time.monotonic() < end:
-            time.sleep(0.02)
-        if self._progress is not None:
-            said = "confirmed" if st.global_origin is not None else "not confirmed"
-            self._progress(
-                f"{vehicle.id}: global origin set to {lat:.7f}, {lon:.7f}, {alt:.1f} m ({said})"
-            )
+    @property
+    def connect_times(self) -> dict[str, ConnectTimes]:
+        """When each vehicle was heard, first asked, and connected (wall seconds after its
+        :meth:`attach_all` began): what ``btmission bench mavlink`` reports."""
+        return dict(self._connect.times)
 
     def _check_io(self) -> None:
         if self._io.error is not None:
@@ -387,6 +243,7 @@ class MavlinkProvider(ProviderBase):
         if self._closed:
             return
         self._closed = True
+        self._connect.cancel()
         try:
             self.stop_vehicles()
             if self._progress is not None:
@@ -441,11 +298,6 @@ class MavlinkProvider(ProviderBase):
                 )
                 self._progress(f"{vehicle.id}: the run stopped: {said}")
         return out
-
-
-def _type_name(mav_type: int) -> str:
-    entry = mavlink.enums["MAV_TYPE"].get(mav_type)
-    return entry.name if entry is not None else f"MAV_TYPE {mav_type}"
 
 
 class MapSensorsAtReports:

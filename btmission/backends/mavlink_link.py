@@ -158,6 +158,9 @@ class _Pending:
     event: threading.Event = field(default_factory=threading.Event)
     result: int | None = None
     text: str = ""
+    answers: list[int] = field(default_factory=list)
+    """Every COMMAND_ACK result for ``command``, in order: a connect sends several requests of
+    one command at once (:mod:`btmission.backends.mavlink_connect`) and counts their answers."""
 
 
 @dataclass
@@ -580,6 +583,7 @@ class _LinkIO:
             pending = st.pending.get(msg.command)
             if pending is not None:
                 pending.result = msg.result
+                pending.answers.append(msg.result)
                 pending.event.set()
 
 

@@ -46,6 +46,7 @@ from btmission.vehicles.clock import ScaledWallClock
 from btmission.vehicles.provider import (
     PHASES,
     AttachOptions,
+    AttachRequest,
     ProviderError,
     VehicleProvider,
     VehicleUnavailable,
@@ -89,8 +90,8 @@ def make_provider(run: MissionRun) -> VehicleProvider:
         raise ProviderError(
             f"the '{scheme}' vehicle provider ({type(provider).__name__}) has no "
             f"{', '.join(missing)}(): every provider has the phases {', '.join(PHASES)} "
-            "(btmission.vehicles.provider.ProviderBase gives warm_up, prepare, start and "
-            "fleet_sensing)"
+            "(btmission.vehicles.provider.ProviderBase gives warm_up, prepare, attach_all, "
+            "start and fleet_sensing)"
         )
     return provider
 
@@ -154,25 +155,38 @@ def build_services(run: MissionRun) -> dict[str, dict[str, Any]]:
 
 
 def build_agents(run: MissionRun) -> None:
+    """Every agent of this process: the provider opens its links, attaches all their vehicles
+    at once (a real provider connects them concurrently), then each agent gets its navigator
+    and tree."""
     blind: list[str] = []
     here = agents_here(run)
     run.provider.prepare([spec.vehicle for spec in here])  # (links open together)
+    kinds = {}
     for spec in here:
+        impl = run.mission.library_of(spec.id).implementations
+        assert impl is not None  # run_problems() checked it
+        kinds[spec.id] = VehicleKind.of(impl.vehicle)
+    requests = [
+        AttachRequest(
+            spec.id,
+            kinds[spec.id],
+            spec.start,
+            spec.vehicle,
+            AttachOptions(
+                v_max=run.nav_config.speed_m_s if kinds[spec.id] is VehicleKind.GROUND else None
+            ),
+        )
+        for spec in here
+    ]
+    try:
+        vehicles = run.provider.attach_all(requests)
+    except VehicleUnavailable as exc:
+        raise VehicleUnavailable(unavailable(run, exc), exc.failures) from None
+    for spec, vehicle in zip(here, vehicles, strict=True):
         loaded = run.mission.library_of(spec.id)
         impl = loaded.implementations
-        assert impl is not None  # run_problems() checked it
-        kind = VehicleKind.of(impl.vehicle)
-        ground = kind is VehicleKind.GROUND
-        options = AttachOptions(v_max=run.nav_config.speed_m_s if ground else None)
-        try:
-            vehicle = run.provider.attach(spec.id, kind, spec.start, spec.vehicle, options)
-        except VehicleUnavailable as exc:
-            path = ("agents", run.mission.agents.index(spec), "backend")
-            where = run.mission.locate(path)
-            problem = Diagnostic(
-                Severity.ERROR, "vehicle-unavailable", str(exc), format_path(path), where
-            )
-            raise VehicleUnavailable(problem.format()) from None
+        assert impl is not None
+        ground = kinds[spec.id] is VehicleKind.GROUND
         run.vehicles[spec.id] = vehicle
         if vehicle.sensors is None:
             blind.append(spec.id)
@@ -228,6 +242,25 @@ def build_agents(run: MissionRun) -> None:
                 "the LiDAR) is off",
             )
         )
+
+
+def unavailable(run: MissionRun, exc: VehicleUnavailable) -> str:
+    """The error of a fleet that could not be had: each failing agent's reason at its
+    ``backend:`` line (one line each), or the provider's message at ``agents`` when it named
+    no agent."""
+    index = {a.id: i for i, a in enumerate(run.mission.agents)}
+    problems = []
+    for agent, why in exc.failures.items():
+        if agent in index:
+            path = ("agents", index[agent], "backend")
+            where = run.mission.locate(path)
+            problems.append(
+                Diagnostic(Severity.ERROR, "vehicle-unavailable", why, format_path(path), where)
+            )
+    if not problems:
+        where = run.mission.locate(("agents",))
+        problems = [Diagnostic(Severity.ERROR, "vehicle-unavailable", str(exc), "agents", where)]
+    return "\n".join(p.format() for p in problems)
 
 
 def agents_here(run: MissionRun) -> list[Any]:

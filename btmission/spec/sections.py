@@ -208,8 +208,9 @@ class MavlinkSpec(_Strict):
         120.0,
         gt=0,
         le=600,
-        description="Wall time to wait for each vehicle's first heartbeat and position estimate "
-        "(ArduPilot SITL's EKF takes about 40 s with simulated GPS).",
+        description="Wall time to wait for the vehicles, all connected at once: each one's "
+        "heartbeat, answers and position estimate (ArduPilot SITL's EKF takes about 40 s with "
+        "simulated GPS).",
     )
     setpoint_hz: FiniteFloat = Field(
         20.0,

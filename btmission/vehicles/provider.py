@@ -22,7 +22,10 @@ what is wrong with one before anything runs. The provider then
 * :meth:`~VehicleProvider.attach`\\ es one :class:`Vehicle` per agent: its
   :class:`~btmission.vehicles.base.Backend` (commands, setpoints, telemetry), its
   :class:`~btmission.vehicles.base.Sensors` if it has any, and — in a simulator only — ground
-  truth the report uses (odometer, clearance to the rock);
+  truth the report uses (odometer, clearance to the rock). A run asks for them all at once
+  (:meth:`~VehicleProvider.attach_all`, one :class:`AttachRequest` per agent): a real provider
+  connects every vehicle concurrently, so that a fleet connects in the time of its slowest
+  vehicle, not of the sum (:class:`ProviderBase`'s attaches them one after the other);
 * owns the run's :attr:`~VehicleProvider.clock`: simulated time for the simulator, the wall clock
   (with :attr:`~VehicleProvider.realtime` True) for real vehicles;
 * is :meth:`~VehicleProvider.start`\\ ed once every vehicle is attached (the mission's time
@@ -33,7 +36,7 @@ what is wrong with one before anything runs. The provider then
   real time passes on its own);
 * is :meth:`~VehicleProvider.close`\\ d at the end (sockets, threads).
 
-Every provider has all six phases and the capability query (:data:`PHASES`);
+Every provider has all these phases and the capability query (:data:`PHASES`);
 :class:`ProviderBase` gives the ones a simulator need not write.
 
 One run has one clock, so every agent of a mission uses the same provider (scheme): simulated
@@ -109,7 +112,21 @@ class AttachOptions:
     """A ground robot's top speed (m/s): the navigator's ``speed_m_s``. None: the model's."""
 
 
-PHASES = ("warm_up", "prepare", "attach", "start", "step", "close", "fleet_sensing")
+@dataclass(frozen=True)
+class AttachRequest:
+    """One agent's vehicle, as :meth:`VehicleProvider.attach_all` is asked for it (the arguments
+    of :meth:`VehicleProvider.attach`)."""
+
+    agent_id: str
+    kind: VehicleKind
+    start: Vec3
+    ref: VehicleRef = SIM
+    options: AttachOptions = AttachOptions()
+
+
+PHASES = (
+    "warm_up", "prepare", "attach", "attach_all", "start", "step", "close", "fleet_sensing",
+)  # fmt: skip
 """The provider's phases, in the order a run calls them, and its one capability query (every
 provider has them all; :class:`ProviderBase` gives the ones most need not write)."""
 
@@ -117,9 +134,10 @@ provider has them all; :class:`ProviderBase` gives the ones most need not write)
 @runtime_checkable
 class VehicleProvider(Protocol):
     """Creates or connects the vehicles of a run, owns its clock and advances it (module
-    docstring). A run calls :meth:`warm_up` and :meth:`prepare` once, :meth:`attach` for each
-    agent, :meth:`start` once, :meth:`step` every step and :meth:`close` at the end
-    (:data:`PHASES`); :class:`ProviderBase` has the phases most providers need not write."""
+    docstring). A run calls :meth:`warm_up` and :meth:`prepare` once, :meth:`attach_all` once
+    with every agent (which :class:`ProviderBase` answers by calling :meth:`attach` for each),
+    :meth:`start` once, :meth:`step` every step and :meth:`close` at the end (:data:`PHASES`);
+    :class:`ProviderBase` has the phases most providers need not write."""
 
     @property
     def clock(self) -> Clock:
@@ -157,6 +175,14 @@ class VehicleProvider(Protocol):
     ) -> Vehicle:
         """The vehicle of ``agent_id``: spawned at ``start`` (a simulator) or connected where
         ``ref`` (the agent's ``backend:``) says (a real vehicle is where it is)."""
+        ...
+
+    def attach_all(self, requests: Sequence[AttachRequest]) -> list[Vehicle]:
+        """Every agent's vehicle, in the order asked: what :meth:`attach` gives one agent, for
+        the whole fleet at once, so that a real provider connects its vehicles concurrently
+        (:class:`ProviderBase`: one :meth:`attach` after the other). Raises
+        :class:`VehicleUnavailable` naming each vehicle that could not be had (its
+        :attr:`~VehicleUnavailable.failures`)."""
         ...
 
     def start(self) -> None:
@@ -230,14 +256,39 @@ class FleetSensing(Protocol):
 
 class ProviderBase:
     """The phases a provider without kernels, links or a clock of its own to restart need not
-    write: :meth:`warm_up`, :meth:`prepare` and :meth:`start` do nothing, and it offers no
-    :class:`FleetSensing`."""
+    write: :meth:`warm_up`, :meth:`prepare` and :meth:`start` do nothing, :meth:`attach_all`
+    attaches the vehicles one after the other, and it offers no :class:`FleetSensing`."""
+
+    if TYPE_CHECKING:  # every provider writes its own (:class:`VehicleProvider`)
+
+        def attach(
+            self,
+            agent_id: str,
+            kind: VehicleKind,
+            start: Vec3,
+            ref: VehicleRef = SIM,
+            options: AttachOptions = AttachOptions(),
+        ) -> Vehicle: ...
 
     def warm_up(self) -> None:
         """No compiled kernels of its own to load."""
 
     def prepare(self, vehicles: Sequence[VehicleRef]) -> None:
         """Nothing to open ahead of the vehicles."""
+
+    def attach_all(self, requests: Sequence[AttachRequest]) -> list[Vehicle]:
+        """:meth:`attach` for each request in turn (a simulator's vehicles are spawned at once;
+        nothing to wait for concurrently). A vehicle that cannot be had stops it, named in the
+        error's :attr:`~VehicleUnavailable.failures`."""
+        out = []
+        for r in requests:
+            try:
+                out.append(self.attach(r.agent_id, r.kind, r.start, r.ref, r.options))
+            except VehicleUnavailable as exc:
+                if exc.failures:
+                    raise
+                raise VehicleUnavailable(str(exc), {r.agent_id: str(exc)}) from exc
+        return out
 
     def start(self) -> None:
         """The clock is the provider's own and starts with it."""
@@ -295,7 +346,14 @@ def installed_providers() -> dict[str, metadata.EntryPoint]:
 
 class VehicleUnavailable(BtmissionError, RuntimeError):
     """A provider could not give an agent its vehicle (nothing answers at its URL, a vehicle of
-    the wrong type ...). ``run`` reports it at the agent's ``backend:`` line (exit 2)."""
+    the wrong type ...). ``run`` reports it at the agent's ``backend:`` line (exit 2) — at each
+    failing agent's line when :attr:`failures` names several."""
+
+    def __init__(self, message: str, failures: Mapping[str, str] | None = None) -> None:
+        super().__init__(message)
+        self.failures: dict[str, str] = dict(failures or {})
+        """Agent id → why its vehicle could not be had (each message names its agent), in
+        the mission's order; empty when the provider did not say which agent."""
 
 
 class ProviderError(BtmissionError, LookupError):

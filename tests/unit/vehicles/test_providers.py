@@ -27,10 +27,12 @@ from btmission.vehicles.base import VehicleKind
 from btmission.vehicles.provider import (
     ENTRY_POINT_GROUP,
     AttachOptions,
+    AttachRequest,
     ProviderError,
     ProviderPlugin,
     Vehicle,
     VehicleEvent,
+    VehicleUnavailable,
     installed_providers,
     provider_factory,
 )
@@ -359,3 +361,71 @@ def test_a_provider_lacking_a_phase_is_refused_by_name(
         ProviderError, match=r"'nostart' vehicle provider \(NoStart\) has no start\(\)"
     ):
         MissionRun(load_mission_text(text, str(tmp_path / "m.yaml")))
+
+
+# ------------------------------------------------------------------------------ attaching the fleet
+class Refusing(SimProvider):
+    """A provider whose vehicles at ``refusing://gone...`` are not there (from ``attach``)."""
+
+    def attach(
+        self,
+        agent_id: str,
+        kind: VehicleKind,
+        start: Vec3,
+        ref: VehicleRef = SIM,
+        options: AttachOptions = AttachOptions(),
+    ) -> Vehicle:
+        if ref.address.startswith("gone"):
+            raise VehicleUnavailable(f"{agent_id}: nothing answers at {ref.url}")
+        return super().attach(agent_id, kind, start, ref, options)
+
+
+def refusing_provider(mission: Mission, voxel_map: VoxelMap, seed: int) -> Refusing:
+    return Refusing(sim_provider(mission, voxel_map, seed).sim)
+
+
+class Unnamed(Refusing):
+    """A provider whose whole fleet fails at once, naming no agent."""
+
+    def attach_all(self, requests: Sequence[AttachRequest]) -> list[Vehicle]:
+        raise VehicleUnavailable("the fleet's radio is off")
+
+
+def unnamed_provider(mission: Mission, voxel_map: VoxelMap, seed: int) -> Unnamed:
+    return Unnamed(sim_provider(mission, voxel_map, seed).sim)
+
+
+def test_the_base_attaches_the_fleet_in_order_naming_the_vehicle_that_failed(
+    tmp_path: Path,
+) -> None:
+    provider = refusing_provider(
+        load_mission_text(MISSION.format(first="sim", second="sim"), str(tmp_path / "m.yaml")),
+        VoxelMap.empty((20, 20, 4), 0.5),
+        0,
+    )
+    fine = [
+        AttachRequest("G1", VehicleKind.GROUND, (2.0, 2.0, 0.0)),
+        AttachRequest("D1", VehicleKind.MULTIROTOR, (4.0, 2.0, 0.0)),
+    ]
+    assert [v.id for v in provider.attach_all(fine)] == ["G1", "D1"]
+    gone = VehicleRef.parse("refusing://gone-1")
+    with pytest.raises(VehicleUnavailable) as info:
+        provider.attach_all([AttachRequest("G3", VehicleKind.GROUND, (6.0, 2.0, 0.0), gone)])
+    assert info.value.failures == {"G3": "G3: nothing answers at refusing://gone-1"}
+
+
+def test_a_run_names_each_vehicle_that_could_not_be_had_at_its_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    _install(monkeypatch, "refusing", f"{__name__}:refusing_provider")
+    path = write(tmp_path, "'refusing://here'", "'refusing://gone-2'")
+    with pytest.raises(VehicleUnavailable) as info:
+        MissionRun(load_mission_text(path.read_text(), str(path)))
+    assert str(info.value) == (
+        f"{path}:7:58: agents[1].backend: G2: nothing answers at refusing://gone-2"
+    )
+    assert info.value.failures == {"G2": "G2: nothing answers at refusing://gone-2"}
+    _install(monkeypatch, "refusing", f"{__name__}:unnamed_provider")
+    with pytest.raises(VehicleUnavailable) as info:
+        MissionRun(load_mission_text(path.read_text(), str(path)))
+    assert str(info.value) == f"{path}:6:3: agents: the fleet's radio is off"
