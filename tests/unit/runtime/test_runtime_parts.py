@@ -16,7 +16,7 @@ from btmission.planning.dstar import Planner
 from btmission.planning.risk import CostMap, RiskParams
 from btmission.runtime.events import Recorder
 from btmission.runtime.navcontrol import Polyline, ground_obstacle_points
-from btmission.runtime.paths import PathCosts, inflate
+from btmission.runtime.paths import START_ESCAPE_M, PathCosts, inflate
 from btmission.runtime.runner import MissionRun
 from btmission.world.minegen import warehouse_world
 from btmission.world.voxel import OCCUPIED, MapError, VoxelMap
@@ -57,8 +57,8 @@ def test_goals_in_rock_or_outside_have_no_path() -> None:
 
 def test_a_start_a_hair_outside_the_map_counts_as_its_edge_voxel() -> None:
     """A real vehicle resting on a map whose floor is the map's edge reports z a few mm below
-    it (estimator noise, seen on ArduCopter SITL): it still has a path; half a voxel is the
-    limit."""
+    it (estimator noise, seen on ArduCopter SITL): it still has a path from its edge voxel; a
+    start further out plans from the nearest voxel within START_ESCAPE_M, and none beyond."""
     pc = PathCosts(corridor())
     goal = (10.25, 2.25, 1.25)
     on_floor = pc.path_cost((1.25, 1.25, 0.0), goal)
@@ -67,8 +67,12 @@ def test_a_start_a_hair_outside_the_map_counts_as_its_edge_voxel() -> None:
     assert pc.path_cost((1.25, 1.25, 3.1), goal) == pytest.approx(
         pc.path_cost((1.25, 1.25, 2.9), goal)
     )
-    assert math.isinf(pc.path_cost((1.25, 1.25, -0.3), goal))  # more than half a voxel out
-    assert math.isinf(pc.path_cost((-0.3, 1.25, 0.25), goal))
+    # more than half a voxel out: planned from the nearest voxel it may enter (a drone pushed
+    # out of the map by a failsafe, #36 item 7), within START_ESCAPE_M of the start, not beyond
+    assert math.isfinite(pc.path_cost((1.25, 1.25, -0.3), goal))
+    assert math.isfinite(pc.path_cost((-0.3, 1.25, 0.25), goal))
+    assert math.isinf(pc.path_cost((1.25, 1.25, -START_ESCAPE_M - 0.5), goal))
+    assert math.isinf(pc.path_cost((-START_ESCAPE_M - 0.5, 1.25, 0.25), goal))
 
 
 def test_inflation_keeps_paths_off_the_rock() -> None:
