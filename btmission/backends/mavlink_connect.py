@@ -69,9 +69,11 @@ from btmission.vehicles.base import VehicleKind
 from btmission.vehicles.clock import ScaledWallClock
 from btmission.vehicles.provider import AttachRequest
 
-POLL_S = 0.005
+POLL_S = (0.005, 0.02)
 """How often the connect loop looks at every vehicle (wall seconds): the I/O thread files what
-arrives meanwhile, so this only bounds how late a step of a connect follows its cause."""
+arrives meanwhile, so this only bounds how late a step of a connect follows its cause — the
+first, then (a connect still going after :data:`NOTE_AFTER_S` waits for something slow: an EKF,
+a vehicle being switched on) the second."""
 NOTE_AFTER_S = 2.0
 NOTE_EVERY_S = 5.0
 """A connect still going after :data:`NOTE_AFTER_S` says who waits for what, then every
@@ -669,7 +671,7 @@ class FleetConnect:
                 if wall >= next_note:
                     self._summary(jobs, wall - began)
                     next_note = wall + NOTE_EVERY_S
-                time.sleep(POLL_S)
+                time.sleep(POLL_S[0] if wall - began < NOTE_AFTER_S else POLL_S[1])
         finally:
             for job in jobs:
                 job.finish()
