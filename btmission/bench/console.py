@@ -38,7 +38,7 @@ answer) and count the answers by status. Each run is checked, and the benchmark 
 
 * every add answered 201 is a ``task_added`` event of the run's log, by the flood's client,
   and the log has no flood add that was not answered 201 or 202 (or lost on the way);
-* no request was answered 5xx, and the adds of R were all refused (422, or 429 before any work);
+* no request was answered 5xx, and the adds of R were all refused (422; 409 when the pool is full; or 429 before any work);
 * the stream reader received every record of the log other than poses and routes, in order
   (:func:`btmission.bench.viewer.check_run`);
 * the runs that add nothing (I, R) did the same tasks as V of the same repeat.
@@ -632,7 +632,7 @@ def check_adds(point: RunPoint, logged: Sequence[str]) -> None:
             f"{', '.join(sorted(extra)[:5])}"
         )
     if point.variant == "refused":
-        wrong = Counter(r.status for r in adds if r.status not in (422, 429, 0))
+        wrong = Counter(r.status for r in adds if r.status not in (409, 422, 429, 0))
         if wrong or logged:
             raise ConsoleBenchError(
                 f"refused: adds the console should refuse were answered {dict(wrong)}, "
