@@ -322,13 +322,16 @@ class _StderrNotes:
     has every occurrence's details, the traceback of a leaf error too)."""
 
     def __init__(self) -> None:
-        self._seen: set[str] = set()
-
-    def on_event(self, ev: Event) -> None:
         from btmission.runtime.eventkinds import LeafErrorEvent, WarningEvent
 
-        if ev.kind not in (LeafErrorEvent.KIND, WarningEvent.KIND):
-            return  # (the cheap test first: this observer sees every event of the run)
+        self._seen: set[str] = set()
+        self._kinds = (LeafErrorEvent.KIND, WarningEvent.KIND)
+
+    def on_event(self, ev: Event) -> None:
+        if ev.kind not in self._kinds:
+            return  # (first: this observer sees every event of the run, poses too)
+        from btmission.runtime.eventkinds import LeafErrorEvent, WarningEvent
+
         typed = ev.typed_or_none()
         if isinstance(typed, LeafErrorEvent):
             line = (
