@@ -78,11 +78,6 @@ def declared_run_settings(mission: LoadedMission) -> dict[str, Setting]:
     return declared
 
 
-def known_settings(mission: LoadedMission) -> dict[str, Any]:
-    """Every setting a run of ``mission`` reads → its default (:func:`declared_run_settings`)."""
-    return {name: s.default for name, s in declared_run_settings(mission).items()}
-
-
 def setting_problem(name: str, value: Any, declared: Setting | Any) -> str | None:
     """Why ``value`` cannot be used for the setting ``name``: not of its declared type (a
     :class:`~btmission.settings.Setting`; a bare default stands for a setting of its type), or
