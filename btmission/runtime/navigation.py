@@ -374,7 +374,11 @@ class Navigator:
         is at it whatever its speed, and up to ``LANDING_DRIFT_M`` further than the tolerance:
         AUTO.LAND descends faster than ``SETTLED_M_S`` (PX4 at ~0.8 m/s) and drifts a little,
         and a landing judged by speed and the tolerance alone was abandoned mid-descent to fly
-        the route to the goal again."""
+        the route to the goal again. A landing this navigator has begun (braking over the
+        spot, or waiting for the autopilot's landed state to say LANDING) counts the same: a
+        vehicle that swung through the tolerance at walking pace (ArduCopter's GUIDED overshoots)
+        and was braked there to land was otherwise called away from it in the next tick, then
+        sent back."""
         tel = tel or self.backend.telemetry()
         tol = self.config.tolerance_m
         p = tel.position
@@ -384,7 +388,11 @@ class Navigator:
         if off > tol:  # (most calls: far from it)
             if off > tol + LANDING_DRIFT_M or self.kind is VehicleKind.GROUND:
                 return False
-            if not (tel.landed_state is _LANDING or tel.landed_state is _ON_GROUND):
+            if not (
+                tel.landed_state is _LANDING
+                or tel.landed_state is _ON_GROUND
+                or self._landing_begun()
+            ):
                 return False
             # landing near a ground-level goal: within the hysteresis (LANDING_DRIFT_M)
             g = np.asarray(goal, dtype=float)
@@ -394,7 +402,9 @@ class Navigator:
         settled = math.sqrt(float(v @ v)) <= SETTLED_M_S
         if self.kind is VehicleKind.GROUND:
             return settled
-        landing = tel.landed_state is _LANDING or tel.landed_state is _ON_GROUND
+        landing = (
+            tel.landed_state is _LANDING or tel.landed_state is _ON_GROUND or self._landing_begun()
+        )
         if not (settled or landing):
             return False
         target = self.flight_target(g)
@@ -403,6 +413,15 @@ class Navigator:
         if not settled:
             return False
         return bool(abs(p[2] - target[2]) <= tol)
+
+    def _landing_begun(self) -> bool:
+        """This navigator is landing the vehicle where it is (:meth:`land` was asked and has
+        not failed)."""
+        return (
+            isinstance(self._cmd, _Land)
+            and self._cmd.hold is not None
+            and (self._status.state is not NavState.FAILED)
+        )
 
     # ---------------------------------------------------------------- control step
     def step(self, now: float) -> None:

@@ -19,6 +19,18 @@ from btmission_library.aerial import landed_at_home
 HOME = (5.0, 5.0, 0.0)
 
 
+def hover(sim: Simulator, drone: Any) -> None:
+    """Arm ``drone``, switch to OFFBOARD and hover it 2 m over home (PX4: setpoints stream a
+    second before OFFBOARD)."""
+    for _ in range(30):
+        drone.set_position_setpoint(np.array([5.0, 5.0, 2.0]))
+        sim.step()
+    assert drone.arm() and drone.set_mode(Mode.OFFBOARD)
+    for _ in range(200):
+        drone.set_position_setpoint(np.array([5.0, 5.0, 2.0]))
+        sim.step()
+
+
 def test_a_landing_faster_than_settled_stays_at_its_ground_goal_until_it_is_down() -> None:
     """A drone landing at 0.8 m/s over home is at home at every step of its descent (the
     simulator says LANDING, then ON_GROUND) although it is never slower than SETTLED_M_S
@@ -27,13 +39,7 @@ def test_a_landing_faster_than_settled_stays_at_its_ground_goal_until_it_is_down
     drone = sim.add_multirotor("R1", HOME)
     nav = Navigator("R1", drone, drone, "track", NavConfig())
     t = 0.0
-    for _ in range(30):  # PX4: setpoints stream a second before OFFBOARD
-        drone.set_position_setpoint(np.array([5.0, 5.0, 2.0]))
-        sim.step()
-    assert drone.arm() and drone.set_mode(Mode.OFFBOARD)
-    for _ in range(200):
-        drone.set_position_setpoint(np.array([5.0, 5.0, 2.0]))
-        sim.step()
+    hover(sim, drone)
     assert drone.telemetry().landed_state is LandedState.IN_AIR
     assert nav.at(HOME)
     nav.land()
@@ -52,6 +58,8 @@ def test_a_landing_faster_than_settled_stays_at_its_ground_goal_until_it_is_down
     assert fastest > SETTLED_M_S  # the speed rule alone would have said "not at home"
     assert LandedState.LANDING in states and states[-1] is LandedState.ON_GROUND
     # the landed state counts only for ground-level goals: in the air, speed still decides
+    # (a navigator that is not landing the drone: the autopilot's word alone)
+    nav = Navigator("R1", drone, drone, "track", NavConfig())
     tel = drone.telemetry()
     moving = replace(tel, velocity=np.array([0.0, 0.0, -0.8]), landed_state=LandedState.LANDING)
     assert nav.at((5.0, 5.0, 0.3), moving)  # ground level (< 0.5 m above the ground)
@@ -101,3 +109,36 @@ def test_landed_at_home_does_not_flip_with_the_estimate_of_a_landed_drone() -> N
     assert not landed_at_home(Ctx(telemetry(5.0 + reach + 0.05)))  # type: ignore[arg-type]
     assert not landed_at_home(Ctx(telemetry(5.3, armed=True)))  # type: ignore[arg-type]
     assert not landed_at_home(Ctx(telemetry(5.3, landed=False)))  # type: ignore[arg-type]
+
+
+def test_a_landing_begun_over_the_spot_is_not_called_away_while_the_drone_brakes() -> None:
+    """ArduCopter's GUIDED overshoots: the drone swings through home at walking pace, is
+    slower than SETTLED_M_S within the tolerance for a tick, and the tree starts ``land``. The
+    navigator brakes over the spot before it asks for LAND, and the autopilot still says
+    IN_AIR: the drone, braking a few decimetres past the tolerance, is at home for the
+    navigator that is landing it (the flaky CI run flew ``follow_path(home)`` again), and not
+    for one that is not, nor once the landing failed."""
+    sim = Simulator(empty_world((10.0, 10.0, 5.0), 0.5), seed=0)
+    drone = sim.add_multirotor("R1", HOME)
+    nav = Navigator("R1", drone, drone, "track", NavConfig())
+    idle = Navigator("R1", drone, drone, "track", NavConfig())
+    hover(sim, drone)
+    tol = NavConfig().tolerance_m
+    swinging = replace(
+        drone.telemetry(),
+        position=np.array([5.0 + tol + 0.3, 5.0, 2.0]),
+        velocity=np.array([0.45, 0.0, 0.0]),
+        landed_state=LandedState.IN_AIR,
+    )
+    assert not nav.at(HOME, swinging) and not idle.at(HOME, swinging)
+    nav.land()
+    assert not nav.at(HOME, swinging)  # asked, not begun: nothing is braking it yet
+    nav.step(0.0)  # the navigator holds the spot where the landing began
+    assert nav.at(HOME, swinging)
+    assert not idle.at(HOME, swinging)  # the same drone, nobody landing it
+    assert not nav.at(
+        HOME, replace(swinging, position=np.array([5.0 + tol + LANDING_DRIFT_M + 0.1, 5.0, 2.0]))
+    )
+    assert not nav.at((5.0, 5.0, 2.0), swinging)  # a goal in the air: speed still decides
+    nav.hold(np.array([5.0, 5.0, 2.0]))  # the landing given up (another command)
+    assert not nav.at(HOME, swinging)
