@@ -725,6 +725,8 @@ class _SimulatedAutopilot:
             if armed:
                 base |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
             status = mavlink.MAV_STATE_ACTIVE if armed else mavlink.MAV_STATE_STANDBY
+            if armed and self.failsafe_note and self.backend.telemetry().mode is Mode.LAND:
+                status = mavlink.MAV_STATE_CRITICAL  # as PX4 and ArduCopter, in a failsafe
             custom = self.custom_mode()
             self.send(lambda mav: mav.heartbeat_send(mav_type, ap, base, custom, status))
         elif msg_id == mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED:

@@ -14,7 +14,9 @@ them all to it):
   ``STREAM_MIN_S``; TAKEOFF and LAND need the vehicle armed; a ground robot takes any mode and
   cannot take off or land;
 * in OFFBOARD, setpoints that stop for more than ``OFFBOARD_LOSS_S`` switch to HOLD (the
-  failsafe); an armed vehicle that does not take off within ``DISARM_PREFLIGHT_S`` disarms, and
+  failsafe), and back to OFFBOARD once they have streamed again for ``STREAM_MIN_S`` (PX4's
+  failsafe ends when its condition clears), unless another mode was asked for meanwhile; an
+  armed vehicle that does not take off within ``DISARM_PREFLIGHT_S`` disarms, and
   one that has landed disarms after ``DISARM_LAND_S``.
 
 :class:`OffboardCommands` is the command and setpoint half of the
@@ -99,6 +101,8 @@ class AutopilotFields:
     landed_at: float = -math.inf
     took_off: bool = False
     failsafe: str = ""
+    offboard_lost: bool = False
+    """In HOLD by the offboard-loss failsafe: OFFBOARD comes back with the stream."""
 
 
 class AutopilotState(Protocol):
@@ -123,6 +127,7 @@ class AutopilotState(Protocol):
     landed_at: float
     took_off: bool
     failsafe: str
+    offboard_lost: bool
 
 
 class OffboardCommands:
@@ -170,6 +175,7 @@ class OffboardCommands:
     def set_mode(self, mode: Mode) -> Ack:
         v = self._ap
         t = self._ap_time()
+        v.offboard_lost = False  # a mode asked for ends the failsafe's
         if v.kind is VehicleKind.GROUND:
             v.mode = mode
             return ACCEPTED
@@ -201,6 +207,7 @@ class OffboardCommands:
         v.hold = self._ap_here()
         v.hold[2] = v.ground + altitude_m
         v.mode = Mode.TAKEOFF
+        v.offboard_lost = False
         return ACCEPTED
 
     def land(self) -> Ack:
@@ -211,6 +218,7 @@ class OffboardCommands:
             return Ack.refused("land refused: not armed", transient=True)
         v.hold = self._ap_here()
         v.mode = Mode.LAND
+        v.offboard_lost = False
         return ACCEPTED
 
     # ------------------------------------------------------------------ setpoints
@@ -258,6 +266,16 @@ def autopilot_rules(v: AutopilotState, t: float, here: Callable[[], FloatArray])
         v.mode = Mode.HOLD if not v.landed else Mode.MANUAL
         v.hold = here()
         v.failsafe = f"offboard setpoints lost for more than {OFFBOARD_LOSS_S:g} s"
+        v.offboard_lost = v.mode is Mode.HOLD
+    elif v.offboard_lost:
+        # as PX4's failsafe framework (seen on PX4 v1.16 SITL): the offboard-loss HOLD ends
+        # when its condition clears — setpoints stream again for STREAM_MIN_S — and the vehicle
+        # returns to the mode the user asked for, OFFBOARD; any mode asked for meanwhile ends it
+        if v.mode is not Mode.HOLD or not v.armed:
+            v.offboard_lost = False
+        elif t - v.sp_time <= 1.0 / STREAM_MIN_HZ and t - v.stream_since >= STREAM_MIN_S:
+            v.mode = _OFFBOARD
+            v.offboard_lost = False
     if v.armed and v.landed:
         if not v.took_off and t - v.armed_at > DISARM_PREFLIGHT_S:
             v.armed = False

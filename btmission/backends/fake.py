@@ -88,6 +88,8 @@ class _State(AutopilotFields):
     """When arming was last asked for."""
     refusing: bool = False
     """The arming request being asked for now is refused."""
+    failsafe_active: bool = False
+    """A failsafe of :meth:`FakeVehicle.take_over` is under way (until the vehicle disarms)."""
 
 
 class FakeProvider(ProviderBase):
@@ -216,7 +218,18 @@ class FakeVehicle(OffboardCommands):
             landed_state=landed_state_of(s.landed, s.mode),
             battery=s.battery,
             ground_z=s.ground,
+            failsafe=s.failsafe_active and s.armed,
         )
+
+    def take_over(self, mode: Mode = Mode.LAND, reason: str = "data link lost: landing") -> None:
+        """The autopilot's own failsafe switches the vehicle to ``mode`` where it is (a test's
+        fault: PX4's data-link-loss landing); the telemetry says ``failsafe`` until it
+        disarms."""
+        s = self._s
+        s.mode = mode
+        s.hold = s.p.copy()
+        s.failsafe = reason
+        s.failsafe_active = True
 
     @property
     def failsafe(self) -> str:

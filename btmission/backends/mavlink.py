@@ -278,6 +278,10 @@ class MavlinkProvider(ProviderBase):
             tel = vehicle.telemetry()
             if not tel.armed:
                 continue
+            if tel.mode is Mode.LAND and not tel.landed:
+                if self._progress is not None:  # (a HOLD would stop the descent)
+                    self._progress(f"{vehicle.id}: the run stopped: landing (LAND), left to it")
+                continue
             if tel.landed and vehicle.kind is VehicleKind.MULTIROTOR:
                 ack = vehicle.disarm()
                 out[vehicle.id] = [ack]

@@ -55,6 +55,9 @@ _LANDED_STATES = {
     mavlink.MAV_LANDED_STATE_LANDING: LandedState.LANDING,
 }
 """MAV_LANDED_STATE → :class:`LandedState` (UNDEFINED otherwise)."""
+_FAILSAFE_STATES = frozenset({mavlink.MAV_STATE_CRITICAL, mavlink.MAV_STATE_EMERGENCY})
+"""HEARTBEAT system_status while a failsafe is active (PX4: ``failsafe`` set; ArduCopter:
+``any_failsafe_triggered()``)."""
 
 
 class MavlinkVehicle:
@@ -499,6 +502,7 @@ class MavlinkVehicle:
             landed_state=self._landed_state(),
             battery=float(st.battery),
             ground_z=self._ground_z(),
+            failsafe=self.state.system_status in _FAILSAFE_STATES,
         )
 
 

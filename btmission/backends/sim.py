@@ -709,6 +709,7 @@ class SimVehicle(OffboardCommands):
             landed_state=landed_state_of(v.landed, v.mode),
             battery=v.battery,
             ground_z=v.ground if v.kind is _MULTIROTOR else v.z,
+            failsafe=False,  # (its offboard-loss HOLD is one the agent takes back)
         )
 
     @property

@@ -73,6 +73,7 @@ from btmission.runtime.eventkinds import (
     ProgressEvent,
     RouteEvent,
     StageEvent,
+    TakenOverEvent,
     TreeEvent,
     VehicleLinkEvent,
     WarningEvent,
@@ -111,7 +112,7 @@ from btmission.synthesis.mission_tree import build_mission_tree
 from btmission.synthesis.pytrees import behaviour_depth, build_behaviour_tree
 from btmission.synthesis.tree import Kind, Node, Role
 from btmission.types import recorder
-from btmission.vehicles.base import Backend, Mode, Sensors
+from btmission.vehicles.base import Backend, Mode, Sensors, VehicleKind
 
 PROGRESS_RESEND_S = 1.0
 """A progress report the coordinator has not acknowledged after this long is sent again (the
@@ -285,6 +286,11 @@ class Agent:
         """Tasks given up whose report the coordinator has not acknowledged yet."""
         self.alive = True
         self.recalled = False
+        self.stood_down: str | None = None
+        """Why the agent stands down (its vehicle was taken over: :meth:`_taken_over`), or
+        None; the operator's include clears it."""
+        self._seen: tuple[Mode, bool] | None = None
+        """The vehicle's mode and whether it flew, at the last tick that heard it."""
         self.ticks = 0
         self.last_announcement: Announcement | None = None
         self.freshness = Freshness()
@@ -350,7 +356,7 @@ class Agent:
     # ---------------------------------------------------------------- messages
     def on_announcement(self, ann: Announcement) -> None:
         """Bid on the announced tasks (stage 2 of the auction)."""
-        if not self.alive or self.recalled:
+        if not self.alive or self.recalled or self.stood_down is not None:
             return
         if not self.freshness.accept("announcement", ann.epoch, ann.serial, strict=False):
             return  # an older announcement delivered late: its bid would be stale
@@ -427,6 +433,10 @@ class Agent:
         self._send_progress(now)
         if not self._vehicle_heard(now):
             return Status.RUNNING  # paused: nothing the tree does can reach the vehicle
+        if self._taken_over(now):
+            return Status.RUNNING  # stood down: the autopilot or the pilot has the vehicle
+        if self._resume_offboard_until is not None:
+            self._resume_offboard(now)
         self._deep(self.tree.tick)
         self.ticks += 1
         task = self.task
@@ -591,14 +601,84 @@ class Agent:
             else:
                 self._mode_before_loss = tel.mode
                 self._emit(VehicleLinkEvent(agent=self.id, up=False))
-        if up and self._resume_offboard_until is not None:
-            if now > self._resume_offboard_until or self.ctx.telemetry().mode is not Mode.HOLD:
-                self._resume_offboard_until = None
-            else:
-                self.ctx.backend.set_mode(Mode.OFFBOARD)
         return up
 
+    def _resume_offboard(self, now: float) -> None:
+        """Ask for OFFBOARD again while the autopilot's offboard-loss HOLD lasts (for
+        ``RESUME_OFFBOARD_S`` from when it was seen)."""
+        until = self._resume_offboard_until
+        if until is None or now > until or self.ctx.telemetry().mode is not Mode.HOLD:
+            self._resume_offboard_until = None
+        else:
+            self.ctx.backend.set_mode(Mode.OFFBOARD)
+
+    _FLOWN = frozenset({Mode.OFFBOARD, Mode.TAKEOFF})
+    """The modes the tree flies a multirotor in (HOLD too: the offboard-loss failsafe, which
+    :meth:`_vehicle_heard` takes back)."""
+
+    def _taken_over(self, now: float) -> bool:
+        """Stand down (:attr:`stood_down`) when the vehicle, flying in a mode of the tree's
+        at the last tick that heard it, is now in another one that the tree did not ask for
+        (LAND without the navigator's landing; MANUAL: RTL, a pilot's mode): the autopilot's
+        failsafe or the pilot took it over. What they decided is final — the tree would
+        otherwise arm and launch it again after a failsafe landing — until the operator's
+        include. The task goes back to the pool; no bid, setpoint or command follows."""
+        if self.stood_down is not None:
+            return True
+        if self.navigator.kind is not VehicleKind.MULTIROTOR:
+            return False
+        tel = self.ctx.telemetry()
+        seen, self._seen = self._seen, (tel.mode, not tel.landed)
+        if seen is None or seen[0] not in self._FLOWN or not seen[1]:
+            return False
+        mode = tel.mode
+        if mode is Mode.HOLD:  # the offboard-loss failsafe (setpoints were late): fly on
+            if self._resume_offboard_until is None:
+                self._resume_offboard_until = now + self.RESUME_OFFBOARD_S
+                self._emit(
+                    WarningEvent(
+                        agent=self.id,
+                        message=(
+                            f"{self.id}: its autopilot fell back to HOLD in flight (its "
+                            "offboard-loss failsafe: the setpoints came late); taking OFFBOARD "
+                            "back"
+                        ),
+                    )
+                )
+            return False
+        if mode in self._FLOWN or (mode is Mode.LAND and self.navigator.landing):
+            return False
+        who = "its autopilot's failsafe" if tel.failsafe else "its autopilot or its pilot"
+        self.stood_down = f"{who} switched the vehicle to {mode.value}"
+        task = self.task
+        self._emit(
+            TakenOverEvent(
+                agent=self.id, mode=mode.value, failsafe=tel.failsafe,
+                task=task.id if task is not None else None,
+            )
+        )  # fmt: skip
+        if task is not None:
+            self._given_back.add(task.id)
+            self._progress(task.id, "gave_up", now, self.stood_down)
+            self.task = None
+            self.committed = False
+            self.idle_since = now
+            self._emit(AgentTaskEvent(agent=self.id, task=None))
+        self._deep(lambda: self.root.stop(Status.INVALID))
+        return True
+
+    def include(self) -> None:
+        """The operator includes the agent again: it no longer stands down (its tree runs and
+        bids from the vehicle's state now)."""
+        self.recalled = False
+        self.stood_down = None
+        self._seen = None
+
     def control_step(self, now: float) -> None:
+        if self.alive and self.stood_down is not None:
+            tel = self.ctx.telemetry()  # no setpoint: the others still keep clear of it
+            self.link.share_prediction(now, tel.position[None, :].copy(), tel.velocity)
+            return
         if self.alive:
             self.navigator.step(now)
             nav = self.navigator
@@ -627,6 +707,9 @@ class Agent:
         (root SUCCESS), or there is no default behaviour and the agent waits."""
         if not self.alive:
             return True
+        if self.stood_down is not None:  # at rest once its autopilot has landed and disarmed it
+            tel = self.ctx.telemetry()
+            return tel.landed and not tel.armed
         if self.task is not None:
             return False
         default = self._default

@@ -261,7 +261,7 @@ class CommandPort:
         if not a.alive:
             raise CommandError(f"include_agent: agent {command.agent} is not running")
         self.run.coordinator.exclude(command.agent, False)
-        a.recalled = False
+        a.include()
 
     def _set_allocation(self, command: SetAllocation, now: float) -> None:
         self.run.coordinator.pause(bool(command.paused))

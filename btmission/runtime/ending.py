@@ -55,7 +55,7 @@ def why_finished(run: MissionRun) -> str | None:
     agents = run.agents.values()
     pool = run.coordinator.state.pool
     if not _settled(run, run.now()):
-        if any(a.alive and not a.recalled for a in agents):  # (every step, mostly)
+        if any(a.alive and not a.recalled and a.stood_down is None for a in agents):
             return None  # someone can still take the open tasks
         live = [a for a in agents if a.alive]  # killed or recalled: nobody can any more
         if any(not t.state.terminal for t in pool) and all(a.at_rest for a in live):

@@ -303,6 +303,24 @@ class VehicleLinkEvent(TypedEvent):
 
 @register_event
 @dataclass(frozen=True, kw_only=True)
+class TakenOverEvent(TypedEvent):
+    """The vehicle's autopilot (a failsafe) or its pilot took it over: it left the flight the
+    tree was flying for a mode nobody in the mission asked for. The agent stands down — its
+    task goes back to the pool, it bids no more and sends no setpoints or commands — until
+    the operator includes it again (``include_agent``)."""
+
+    KIND = "taken_over"
+    agent: str
+    mode: str
+    """The mode the vehicle is in (``MANUAL`` for a mode of the pilot's: RTL, ALTCTL ...)."""
+    failsafe: bool
+    """The autopilot reports a failsafe (HEARTBEAT's system status CRITICAL/EMERGENCY)."""
+    task: str | None = optional()
+    """The task handed back to the pool."""
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
 class ObjectsEvent(TypedEvent):
     KIND = "objects"
     agent: str

@@ -414,6 +414,11 @@ class Navigator:
             return False
         return bool(abs(p[2] - target[2]) <= tol)
 
+    @property
+    def landing(self) -> bool:
+        """The mission asked this navigator to land the vehicle (until its next command)."""
+        return isinstance(self._cmd, _Land)
+
     def _landing_begun(self) -> bool:
         """This navigator is landing the vehicle where it is (:meth:`land` was asked and has
         not failed)."""

@@ -117,6 +117,10 @@ class Telemetry:
     """Remaining charge, 1.0 = full."""
     ground_z: float
     """Height of the ground under the vehicle (its range-finder reading, world z)."""
+    failsafe: bool = False
+    """The autopilot has taken a failsafe action of its own (MAVLink: HEARTBEAT's
+    ``system_status`` CRITICAL or EMERGENCY, which PX4 and ArduPilot report while a failsafe is
+    active). The agent stands down on it (docs/mavlink.md, "When the autopilot takes over")."""
 
     @property
     def height_above_ground(self) -> float:

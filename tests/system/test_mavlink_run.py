@@ -22,6 +22,7 @@ import pytest
 from click.testing import CliRunner
 
 from btmission.backends.mavlink_modes import Autopilot
+from btmission.bench.stress import cpu_burners
 from btmission.cli.main import cli
 from btmission.mavsim import MavSim
 from btmission.missions import load_mission
@@ -111,29 +112,36 @@ def test_a_small_mission_flies_and_lands(tmp_path: Path, autopilot: Autopilot) -
         assert all(lag < 2.0 for lag in lags), lags  # reports the next round took, no more
 
 
+def fly_with_link_drop(tmp_path: Path, sim: MavSim, seconds: float) -> tuple[Any, Recorder]:
+    """The small mission, its vehicle's link dropped for ``seconds`` of the vehicle's time
+    once it flies (the link is lost after 0.3 s of wall time: 3 s of the vehicle's)."""
+    mission = load_mission(small_mission(tmp_path, sim, ", heartbeat_timeout_s: 0.3"))
+    rec = Recorder()
+    run = MissionRun(mission, observers=[rec])
+    try:
+        flying = [False]
+
+        def drop_when_flying(r: MissionRun) -> None:
+            tel = r.vehicles["R1"].backend.telemetry()
+            if tel.height_above_ground > 1.5 and not flying[0]:
+                flying[0] = True
+                sim.drop_link("R1", seconds)
+            elif not flying[0]:
+                r.at(r.now() + 0.5, drop_when_flying)
+
+        run.at(1.0, drop_when_flying)
+        result = run.run()
+    finally:
+        run.close()
+    assert flying[0]
+    return result, rec
+
+
 def test_a_vehicle_link_drop_mid_task_pauses_the_agent_and_it_resumes(tmp_path: Path) -> None:
     with mavsim(Autopilot.PX4) as sim:
-        # heartbeats are missed for 0.8 s of wall time (8 s of the vehicle's: PX4 would land
-        # after 10 s), so the link is lost after 0.3 s of wall time here (3 s of the vehicle's)
-        mission = load_mission(small_mission(tmp_path, sim, ", heartbeat_timeout_s: 0.3"))
-        rec = Recorder()
-        run = MissionRun(mission, observers=[rec])
-        try:
-            flying = [False]
-
-            def drop_when_flying(r: MissionRun) -> None:
-                tel = r.vehicles["R1"].backend.telemetry()
-                if tel.height_above_ground > 1.5 and not flying[0]:
-                    flying[0] = True
-                    sim.drop_link("R1", 8.0)  # > COM_OF_LOSS_T: the vehicle falls back to HOLD
-                elif not flying[0]:
-                    r.at(r.now() + 0.5, drop_when_flying)
-
-            run.at(1.0, drop_when_flying)
-            result = run.run()
-        finally:
-            run.close()
-        assert flying[0]
+        # heartbeats are missed for 0.8 s of wall time (8 s of the vehicle's: > COM_OF_LOSS_T,
+        # the vehicle falls back to HOLD; PX4 would land after 10 s)
+        result, rec = fly_with_link_drop(tmp_path, sim, 8.0)
         links = [(e.get("up"), e.get("mode")) for e in rec.of("vehicle_link")]
         assert links[0] == (False, None) and links[1][0] is True
         assert links[1][1] == Mode.HOLD.value  # PX4's offboard-loss failsafe held it meanwhile
@@ -141,6 +149,22 @@ def test_a_vehicle_link_drop_mid_task_pauses_the_agent_and_it_resumes(tmp_path: 
         assert [(e.get("agent"), e.get("task")) for e in done] == [("R1", "T1")]
         assert not [e for e in rec.of("progress") if e.get("event") == "failed"]
         assert result.done == ["T1"]
+
+
+def test_after_px4s_own_failsafe_landing_the_drone_is_left_alone(tmp_path: Path) -> None:
+    """The link is lost for 11 s of the vehicle's time: PX4's data-link failsafe (10 s) lands
+    the drone. When the link returns, the agent sees its autopilot landing on its own (LAND,
+    HEARTBEAT's status CRITICAL) and stands down: it hands T1 back and never arms or launches
+    the drone again (on real PX4 the tree re-armed it); with nobody left, the run ends."""
+    with mavsim(Autopilot.PX4) as sim:
+        result, rec = fly_with_link_drop(tmp_path, sim, 11.0)  # > COM_DL_LOSS_T: PX4 lands
+        (ev,) = rec.of("taken_over")
+        assert (ev.get("agent"), ev.get("mode"), ev.get("task")) == ("R1", "LAND", "T1")
+        assert ev.get("failsafe") is True  # PX4 says so in its heartbeat
+        assert result.reason == "no agents left" and result.done == []
+        assert not [e for e in rec.of("stage") if e.t > ev.t]  # nothing asked of it after
+        state = sim.vehicle_state("R1")
+        assert state["landed"] and not state["armed"] and state["failsafe"]
 
 
 def test_a_refused_arming_is_retried_with_the_autopilots_reason(tmp_path: Path) -> None:
@@ -261,13 +285,26 @@ def test_vehicles_that_may_be_real_need_yes(tmp_path: Path) -> None:
 
 # ------------------------------------------------------------------------------ seed 000, slow
 @pytest.mark.slow
-@pytest.mark.parametrize("autopilot", ["px4", "ardupilot"])
-def test_mine_inspection_on_three_mavlink_vehicles(tmp_path: Path, autopilot: str) -> None:
+@pytest.mark.parametrize(
+    ("autopilot", "burners"), [("px4", 8), ("ardupilot", 0)], ids=["px4-8-burners", "ardupilot"]
+)
+def test_mine_inspection_on_three_mavlink_vehicles(
+    tmp_path: Path, autopilot: str, burners: int
+) -> None:
+    """The shipped seed 000 mission on three mavsim drones does 7 of 7 tasks, each once; on
+    PX4 beside eight CPU-burning processes (issue #36: on a busy 2-core machine the setpoint
+    streams fell below PX4's 2 Hz and every task was lost), in real time."""
     shipped = ROOT / "missions" / f"mine_inspection_{autopilot}.yaml"
     assert "mavlink: {time_scale: 4}" in shipped.read_text()
-    # at half the shipped speed (margin on a busy CI machine), on free ports
-    mission = mission_on_free_ports(shipped, tmp_path, time_scale=2)
+    # on free ports; at half the shipped speed (margin on a busy CI machine), in real time
+    # beside the burners (time_scale is the run's promise to keep up with the vehicles)
+    mission = mission_on_free_ports(shipped, tmp_path, time_scale=1 if burners else 2)
     exe = [sys.executable, "-m", "btmission"]
+    with cpu_burners(burners):
+        _fly_three(mission, exe, tmp_path)
+
+
+def _fly_three(mission: Path, exe: list[str], tmp_path: Path) -> None:
     sim = subprocess.Popen(
         [*exe, "mavsim", "--mission", str(mission)],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT,
@@ -278,7 +315,7 @@ def test_mine_inspection_on_three_mavlink_vehicles(tmp_path: Path, autopilot: st
         assert lines[-1].startswith("ready (3 vehicle(s)"), lines
         run = subprocess.run(
             [*exe, "run", str(mission), "--no-png", "--quiet", "--log", str(tmp_path / "logs")],
-            capture_output=True, text=True, timeout=600, cwd=ROOT, check=False,
+            capture_output=True, text=True, timeout=1200, cwd=ROOT, check=False,
         )  # fmt: skip
         assert run.returncode == 0, run.stdout + run.stderr
         assert "Tasks done              7 of 7" in run.stdout

@@ -150,8 +150,8 @@ def test_two_vehicles_meeting_collide_once() -> None:
         flying(sim, vid)
     events = []
     for _ in range(200):
-        a.set_position_setpoint((7.0, 5.0, 2.0))
-        b.set_position_setpoint((6.0, 5.0, 2.0))
+        a.set_position_setpoint((5.0, 5.0, 2.0))  # A hovers (it has been since it took off)
+        b.set_position_setpoint((6.0, 5.0, 2.0))  # B flies into it
         events += sim.step()
     pairs = {(e.vehicle, e.other) for e in events}
     assert pairs == {("A", "B"), ("B", "A")} and len(events) == 2
@@ -660,7 +660,8 @@ def test_a_fast_built_telemetry_record_is_the_dataclass_it_stands_for() -> None:
 
     fields = dict(time_s=1.5, position=np.array([1.0, 2.0, 3.0]), velocity=np.zeros(3), yaw=0.1,
                   roll=0.0, pitch=0.0, yaw_rate=0.2, mode=Mode.HOLD, armed=True, landed=False,
-                  landed_state=LandedState.IN_AIR, battery=0.9, ground_z=0.5)  # fmt: skip
+                  landed_state=LandedState.IN_AIR, battery=0.9, ground_z=0.5,
+                  failsafe=False)  # fmt: skip
     fast, slow = record(Telemetry, **fields), Telemetry(**fields)  # type: ignore[arg-type]
     assert type(fast) is Telemetry and dataclasses.asdict(fast).keys() == fields.keys()
     assert fast.height_above_ground == slow.height_above_ground == 2.5
@@ -746,3 +747,28 @@ def test_the_fleet_step_is_the_single_drone_step_row_by_row() -> None:
                      bool(landed[i]), 0.05, *args, one)  # fmt: skip
         assert one.tobytes() == out[i].tobytes(), i
     assert {kernels.CMD_NONE, kernels.CMD_POSITION, kernels.CMD_LAND} <= set(commands.tolist())
+
+
+def test_the_offboard_loss_hold_ends_when_the_setpoints_stream_again() -> None:
+    """PX4's failsafe framework (seen on PX4 v1.16 SITL, issue #36): setpoints late for more
+    than COM_OF_LOSS_T put the drone in HOLD; once they have streamed again for a second it
+    returns to OFFBOARD by itself — unless a mode was asked for meanwhile."""
+    sim = Simulator(room())
+    veh = sim.add_multirotor("R1", (5, 5, 0))
+    flying(sim)
+    for _ in range(round(1.5 / sim.config.step_s)):  # no setpoint for 1.5 s
+        sim.step()
+    assert veh.telemetry().mode is Mode.HOLD and veh.failsafe.startswith("offboard")
+    modes = []
+    for _ in range(round(1.5 / sim.config.step_s)):
+        veh.set_position_setpoint((5.0, 5.0, 2.0))
+        sim.step()
+        modes.append(veh.telemetry().mode)
+    assert modes[0] is Mode.HOLD and modes[-1] is Mode.OFFBOARD  # back, after the stream's second
+    assert modes.index(Mode.OFFBOARD) * sim.config.step_s == pytest.approx(1.0, abs=0.15)
+    # a HOLD asked for is not the failsafe's: the stream does not end it
+    assert veh.set_mode(Mode.HOLD)
+    for _ in range(round(1.5 / sim.config.step_s)):
+        veh.set_position_setpoint((5.0, 5.0, 2.0))
+        sim.step()
+    assert veh.telemetry().mode is Mode.HOLD
