@@ -199,6 +199,35 @@ def test_ardupilot_takeoff_shows_as_takeoff_then_hold() -> None:
         assert b.telemetry().height_above_ground == pytest.approx(2.0, abs=0.2)
 
 
+def test_an_arducopter_that_landed_in_land_is_armed_from_guided_and_flies_again() -> None:
+    with mavsim(ARDUPILOT) as sim, provider() as p:
+        b = attach(p, sim)
+        assert b.arm() and b.takeoff(2.0)
+        assert wait_for(p, 8.0, lambda: b.telemetry().mode is Mode.HOLD)
+        assert b.land()
+        assert wait_for(p, 15.0, lambda: not b.telemetry().armed)  # landed, then disarmed
+        assert sim.vehicle_state("R1")["mode"] is Mode.LAND  # ArduCopter stays in LAND
+        assert wait_for(p, 1.0, lambda: b.telemetry().mode is Mode.LAND)
+        ack = b.arm()  # (LAND is not armable: the provider asks for GUIDED first)
+        assert ack, ack.reason
+        assert sim.vehicle_state("R1")["armed"]
+        assert sim.vehicle_state("R1")["mode"] is Mode.OFFBOARD  # GUIDED
+        assert b.takeoff(2.0)
+        assert wait_for(p, 8.0, lambda: b.telemetry().height_above_ground > 1.8)
+
+
+def test_arducopter_hold_is_brake_and_holds_its_altitude() -> None:
+    with mavsim(ARDUPILOT) as sim, provider() as p:
+        b = attach(p, sim)
+        assert b.arm() and b.takeoff(3.0)
+        assert wait_for(p, 8.0, lambda: b.telemetry().mode is Mode.HOLD)
+        assert b.set_mode(Mode.HOLD)
+        assert sim.autopilots["R1"].custom_mode() == 17  # BRAKE, not LOITER
+        wait_for(p, 10.0, lambda: False)
+        assert b.telemetry().mode is Mode.HOLD
+        assert b.telemetry().height_above_ground == pytest.approx(3.0, abs=0.2)
+
+
 def test_arming_waits_for_the_ekf_with_the_autopilots_reason_and_a_back_off() -> None:
     with mavsim(ARDUPILOT, ekf_delay_s=20.0) as sim, provider(connect_timeout_s=1.0) as p:
         b = attach(p, sim)  # waits for the EKF as long as it may (1 s, 10 s at 10x), then goes on
