@@ -27,6 +27,13 @@ firmware's SITL:
   or stop after 3 s (velocity) or 1 s (attitude, ``GUID_TIMEOUT``); a landed copter leaves the
   ground only with NAV_TAKEOFF (altitude above home, in GUIDED, armed); arming needs the EKF;
   the GCS failsafe (``FS_GCS_ENABLE``: no GCS heartbeat for 5 s while flying) lands;
+* **ArduCopter's modes** (:mod:`btmission.backends.mavlink_modes`): a copter keeps its mode when
+  it disarms — one that landed in LAND stays in LAND, one in GUIDED stays in GUIDED — and
+  refuses to arm in LAND, BRAKE and the other modes that do not allow it ("Arm: Mode not
+  armable", :data:`~btmission.backends.mavlink_modes.COPTER_NOT_ARMABLE`); BRAKE holds its
+  position and altitude; LOITER takes its climb rate from the throttle stick, and with no RC
+  (SITL's default throttle is 1000 µs, the stick at the bottom) it sinks at
+  :data:`LOITER_SINK_M_S` until it lands;
 * ground robots (PX4 rover, ArduRover) are armed over MAVLink and drive on velocity targets
   only when armed and in OFFBOARD / GUIDED;
 * only ``MAV_FRAME_LOCAL_NED`` position targets are simulated (others are ignored and counted);
@@ -68,6 +75,7 @@ from btmission.backends.autopilot import STREAM_MIN_HZ, STREAM_MIN_S
 from btmission.backends.mavlink_frames import LocalFrame
 from btmission.backends.mavlink_modes import (
     Autopilot,
+    armable,
     custom_mode_of_command,
     mode_of,
     mode_request,
@@ -109,6 +117,12 @@ MAV_LANDED_STATE = {
     LandedState.LANDING: mavlink.MAV_LANDED_STATE_LANDING,
 }
 """The simulator's landed state as EXTENDED_SYS_STATE says it."""
+LOITER_SINK_M_S = 2.5
+"""How fast an ArduCopter in LOITER descends with no RC input (throttle at 1000 µs, full down:
+``PILOT_SPEED_DN``, whose default 0 means ``PILOT_SPEED_UP``, 250 cm/s)."""
+COPTER_LOITER = 5
+"""ArduCopter's LOITER (``custom_mode``): none of the backend's modes, simulated here on the
+simulator's HOLD (module docstring)."""
 PX4_UDP_BASE = 14540
 ARDUPILOT_TCP_BASE = 5760
 BOOT_EPOCH_S = 0.0
@@ -228,6 +242,14 @@ class _SimulatedAutopilot:
         self.gps_origin: tuple[int, int, int] | None = None
         """GPS_GLOBAL_ORIGIN (degE7, degE7, mm) once SET_GPS_GLOBAL_ORIGIN gave one (the vehicles
         have no GPS: until then they know no global origin and do not answer a request)."""
+        self.copter = self.autopilot is Autopilot.ARDUPILOT and spec.kind is VehicleKind.MULTIROTOR
+        """An ArduCopter: its modes are tracked beyond the simulator's (:meth:`_track_mode`)."""
+        self.loiter = False
+        """The copter's HOLD is LOITER (asked for as such), not BRAKE: it sinks without RC."""
+        self.kept_land = False
+        """The copter disarmed in LAND and stays in LAND (the simulator shows MANUAL)."""
+        self.seen_mode = backend.telemetry().mode
+        """The simulator's mode when :meth:`_track_mode` last looked."""
 
     def _open(self, address: MavlinkAddress) -> Any:
         src = {"source_system": self.spec.sysid, "source_component": 1}
@@ -306,12 +328,37 @@ class _SimulatedAutopilot:
 
     def custom_mode(self) -> int:
         mode = self.backend.telemetry().mode
+        if self.copter:
+            if self.kept_land and mode is Mode.MANUAL:
+                mode = Mode.LAND
+            if self.loiter and mode is Mode.HOLD:
+                return COPTER_LOITER
         if self.autopilot is Autopilot.ARDUPILOT and mode in (Mode.TAKEOFF, Mode.OFFBOARD):
             mode = Mode.OFFBOARD  # GUIDED
         try:
             return mode_request(self.autopilot, self.spec.kind, mode).custom_mode
         except Exception:
             return 0
+
+    def _track_mode(self) -> None:
+        """ArduCopter keeps its mode when it disarms, where the simulator (PX4's rules) goes to
+        MANUAL: a copter that landed in LAND stays in LAND (and refuses to arm there), one
+        disarmed in BRAKE or LOITER stays there. Called before each step and each send."""
+        if not self.copter:
+            return
+        tel = self.backend.telemetry()
+        mode = tel.mode
+        if mode is Mode.MANUAL and not tel.armed and self.seen_mode is not Mode.MANUAL:
+            if self.seen_mode is Mode.LAND:
+                self.kept_land = True
+            elif self.seen_mode is Mode.HOLD:
+                self.backend.set_mode(Mode.HOLD)  # (BRAKE or LOITER, on the ground)
+                mode = Mode.HOLD
+        if mode is not Mode.MANUAL:
+            self.kept_land = False
+        if mode is not Mode.HOLD:
+            self.loiter = False
+        self.seen_mode = mode
 
     # ------------------------------------------------------------------ receive
     def receive(self, budget: int = RECEIVE_PER_STEP) -> None:
@@ -477,16 +524,36 @@ class _SimulatedAutopilot:
             return self._refuse(
                 "PreArm: EKF3 waiting for GPS config data", mavlink.MAV_RESULT_FAILED
             )
-        if not px4:
-            mode = mode_of(self.autopilot, self.spec.kind, self.custom_mode())
-            if mode is Mode.LAND:
-                return self._refuse("Arm: Mode not armable", mavlink.MAV_RESULT_FAILED)
+        if not armable(self.autopilot, self.spec.kind, self.custom_mode()):
+            return self._refuse("Arm: Mode not armable", mavlink.MAV_RESULT_FAILED)
         if self.ground:
             self.rover_armed = True
             return mavlink.MAV_RESULT_ACCEPTED
         return self._result(self.backend.arm())
 
     def _set_mode(self, custom: int) -> int:
+        if custom == self.custom_mode():
+            return mavlink.MAV_RESULT_ACCEPTED  # already in that mode
+        if self.copter:
+            result = self._set_copter_mode(custom)
+            self.seen_mode = self.backend.telemetry().mode
+            return result
+        return self._set_mode_of_backend(custom)
+
+    def _set_copter_mode(self, custom: int) -> int:
+        """An ArduCopter's mode change: LOITER on the simulator's HOLD, any other through
+        :meth:`_set_mode_of_backend`; the modes kept on disarming are left."""
+        self.kept_land = False
+        self.loiter = False
+        if custom != COPTER_LOITER:
+            return self._set_mode_of_backend(custom)
+        if not self.ekf_ready():
+            return self._refuse("Mode change failed: requires position", mavlink.MAV_RESULT_FAILED)
+        result = self._result(self.backend.set_mode(Mode.HOLD))
+        self.loiter = result == mavlink.MAV_RESULT_ACCEPTED
+        return result
+
+    def _set_mode_of_backend(self, custom: int) -> int:
         mode = mode_of(self.autopilot, self.spec.kind, custom)
         if not isinstance(mode, Mode):
             return self._refuse(
@@ -634,6 +701,7 @@ class _SimulatedAutopilot:
     # ------------------------------------------------------------------ per step
     def step(self) -> None:
         """The firmware's own logic this step (failsafes, GUIDED targets)."""
+        self._track_mode()
         t = self.now()
         tel = self.backend.telemetry()
         flying = tel.armed and not tel.landed
@@ -672,6 +740,11 @@ class _SimulatedAutopilot:
             self.failsafe_note = "GCS failsafe: landing"
             self.text(mavlink.MAV_SEVERITY_CRITICAL, "GCS Failsafe On: LAND")
             return
+        if self.loiter and flying and tel.mode is Mode.HOLD:  # no RC: the throttle stick is down
+            v = self.state
+            v.hold[2] = max(v.hold[2] - LOITER_SINK_M_S * self.cfg.step_s, v.ground - 1.0)
+        if self.copter and tel.mode is Mode.OFFBOARD and not self.armed():
+            self.state.sp_time = t  # GUIDED has no target timeout on the ground: it stays
         if tel.mode is not Mode.OFFBOARD or not self.armed():
             return
         g = self.guided
@@ -698,6 +771,7 @@ class _SimulatedAutopilot:
 
     # ------------------------------------------------------------------ telemetry
     def send_due(self) -> None:
+        self._track_mode()  # (a disarm in this step shows in this step's heartbeat)
         t = self.now()
         if t >= self.next_heartbeat:
             self.next_heartbeat = t + self.heartbeat_s

@@ -15,7 +15,10 @@ Each vehicle, concurrently with the others:
    retried, 0.1 s doubling to 1 s, until the vehicle listens; a host that does not answer
    blocks no other vehicle);
 2. **heartbeat** — its autopilot's HEARTBEAT (the ``?sysid=`` one, else the first not taken, in
-   the mission's order), of the type the agent's library flies or drives;
+   the mission's order), of the type the agent's library flies or drives. With a signing key,
+   a vehicle whose messages all fail the signature check (or come unsigned) is never heard:
+   once :data:`SIGNING_VERDICT_MIN` of them have been refused over :data:`SIGNING_VERDICT_S`
+   with none passing, its connect stops, saying so (a wrong key, not a vehicle that is off);
 3. **requests** — every telemetry stream (SET_MESSAGE_INTERVAL) and HOME_POSITION
    (REQUEST_MESSAGE) sent at once rather than one round trip after another. COMMAND_ACK names
    the command, not the request: the answers to one batch are told apart by their order (a
@@ -62,6 +65,7 @@ from btmission.backends.mavlink_link import (
     _State,
 )
 from btmission.backends.mavlink_modes import ack_of
+from btmission.backends.mavlink_signing import rejections
 from btmission.backends.mavlink_url import MavlinkAddress, parse_mavlink_url
 from btmission.backends.mavlink_vehicle import MavlinkVehicle
 from btmission.types import FloatArray
@@ -87,6 +91,13 @@ ORIGIN_WAIT_S = 1.0
 """How long a vehicle that accepted the request has to send its GPS_GLOBAL_ORIGIN."""
 ORIGIN_CONFIRM_S = 2.0
 """How long SET_GPS_GLOBAL_ORIGIN is waited for (sent again after half of it)."""
+SIGNING_VERDICT_S = 3.0
+SIGNING_VERDICT_MIN = 3
+"""A vehicle not heard whose messages the link refused (signed with another key, or unsigned
+when a key is given), at least :data:`SIGNING_VERDICT_MIN` of them over
+:data:`SIGNING_VERDICT_S` wall seconds with none passing, fails its connect then, naming the
+cause, instead of waiting out ``connect_timeout_s`` for a heartbeat (a heartbeat once a second
+gives three in three seconds)."""
 OPEN_RETRY_S = (0.1, 1.0)
 """A TCP link that refuses is tried again after the first, doubling up to the second."""
 
@@ -272,6 +283,10 @@ class _Connect:
     origin_sends: int = 0
     origin_settled: bool = False
     heard_wall: float = math.inf
+    signing_base: tuple[dict[int, int], int] = ({}, 0)
+    """The link's signing refusals when this connect got it (:func:`rejections`)."""
+    refused_since: float = math.inf
+    """When this connect first saw its vehicle's messages refused by the signing check."""
     requested_wall: float = math.inf
     done_wall: float = math.inf
     announced: bool = False
@@ -297,9 +312,11 @@ class _Connect:
                 raise MavlinkError(f"{self.agent}: {exc}") from None
             if self.link is None:
                 return
+            self.signing_base = rejections(self.link.conn)
         if self.state is None:
             self.state = self._heard()
             if self.state is None:
+                self._signing_verdict(wall)
                 return
             self.heard_wall = wall
             self._claim(self.state)
@@ -314,6 +331,54 @@ class _Connect:
         self._origin(wall)
         if self._ready(wall, final=False):
             self.done_wall = wall
+
+    def _signing_refused(self) -> tuple[int, bool]:
+        """How many of this vehicle's messages the signing check refused since the connect got
+        the link, and whether they were unsigned (else signed with another key). Bad signatures
+        count per sender: the ``?sysid=`` one, else any not heard on the link. Unsigned ones
+        name no sender: they count only on a link where no vehicle is heard at all."""
+        link = self.link
+        if link is None or self.fleet.options.signing_key is None:
+            return 0, False
+        bad, unsigned = rejections(link.conn)
+        base_bad, base_unsigned = self.signing_base
+        sysid = self.address.sysid
+        senders = [sysid] if sysid is not None else [s for s in bad if s not in link.vehicles]
+        n_bad = sum(bad.get(s, 0) - base_bad.get(s, 0) for s in senders)
+        n_unsigned = unsigned - base_unsigned if not link.vehicles else 0
+        return (n_unsigned, True) if n_unsigned > n_bad else (n_bad, False)
+
+    def _signing_verdict(self, wall: float) -> None:
+        """Stop the connect of a vehicle whose messages are all refused by the signing check
+        (:data:`SIGNING_VERDICT_S`): raises :class:`MavlinkError` naming the cause."""
+        n, _ = self._signing_refused()
+        if n == 0:
+            return
+        self.refused_since = min(self.refused_since, wall)
+        if n >= SIGNING_VERDICT_MIN and wall - self.refused_since >= SIGNING_VERDICT_S:
+            raise MavlinkError(self._signing_failure(wall - self.refused_since))
+
+    def _signing_failure(self, seconds: float | None = None) -> str:
+        """The signing check refused this vehicle's messages: which way, and what to check
+        (``seconds``: over how long, when the verdict came before the connect's deadline)."""
+        n, unsigned = self._signing_refused()
+        where = f"{self.agent} ({self.address.url()})"
+        sysid = f" from sysid {self.address.sysid}" if self.address.sysid is not None else ""
+        during = (
+            f"within {self.fleet.options.connect_timeout_s:g} s"
+            if seconds is None
+            else f"in {seconds:.0f} s"
+        )
+        if unsigned:
+            return (
+                f"{where}: its messages are not signed ({n}{sysid} refused {during}), "
+                "and a signing key is given (--mavlink-key-file): set the same key up on the "
+                "vehicle (SETUP_SIGNING), or run without a key"
+            )
+        return (
+            f"{where}: its messages are signed with another key ({n}{sysid} rejected "
+            f"{during}); check --mavlink-key-file / the vehicle's key"
+        )
 
     def _heard(self) -> _State | None:
         """The autopilot this agent gets on its link, once heard (claimed in the mission's
@@ -513,6 +578,8 @@ class _Connect:
             error = self.fleet.open_error(address) or f"cannot open {address.url()}"
             return f"{self.agent}: {error} (tried for {timeout})"
         if st is None:
+            if self._signing_refused()[0] > 0:  # not silent: refused by the signing check
+                return self._signing_failure()
             link = self.link
             who = f"sysid {address.sysid}" if address.sysid is not None else "an autopilot"
             seen = sorted(link.vehicles)

@@ -11,11 +11,22 @@ ArduPilot, on the vehicle type:
             sub << 24)
 ==========  =====================================  ==========================  =================
 MANUAL      MANUAL (1)                             STABILIZE (0)               MANUAL (0)
-HOLD        AUTO.LOITER (4, 3)                     LOITER (5)                  HOLD (4)
+HOLD        AUTO.LOITER (4, 3)                     BRAKE (17)                  HOLD (4)
 TAKEOFF     AUTO.TAKEOFF (4, 2)                    GUIDED (4) + NAV_TAKEOFF    —
 OFFBOARD    OFFBOARD (6)                           GUIDED (4)                  GUIDED (15)
 LAND        AUTO.LAND (4, 6)                       LAND (9)                    —
 ==========  =====================================  ==========================  =================
+
+**HOLD on ArduCopter is BRAKE**, not LOITER. LOITER is a pilot's mode: it takes its climb rate
+from the throttle stick, and with no RC (a companion computer, SITL, whose default RC throttle is
+1000 µs: the stick at the bottom) that is full descent at ``PILOT_SPEED_DN`` (0: then
+``PILOT_SPEED_UP``, 2.5 m/s) — the drone the mission told to hold sinks to the ground. BRAKE
+ignores the pilot's sticks: it stops as fast as it can and holds that position and altitude for
+as long as it is left there (no timeout when a ground station asks for it), and its number in the
+HEARTBEAT says "holding" to the ground station and to an operator, where GUIDED at the current
+position (the other way to hold without RC) would read as OFFBOARD and hold only as long as the
+provider keeps track of why it sent that target. Like LAND and RTL, BRAKE refuses to arm
+(:func:`armable`), which the provider handles by switching to GUIDED before it arms.
 
 A COMMAND_ACK's ``MAV_RESULT`` becomes an :class:`~btmission.vehicles.base.Ack`: accepted, or
 refused with the result's name and the autopilot's last STATUSTEXT (the reason a pre-arm check
@@ -58,7 +69,7 @@ _PX4_NAMES = {
 }
 _COPTER_NAMES = {
     Mode.MANUAL: "STABILIZE",
-    Mode.HOLD: "LOITER",
+    Mode.HOLD: "BRAKE",  # not LOITER: it sinks without RC throttle (module docstring)
     Mode.TAKEOFF: "GUIDED",
     Mode.OFFBOARD: "GUIDED",
     Mode.LAND: "LAND",
@@ -150,6 +161,31 @@ def mode_of(autopilot: Autopilot, kind: VehicleKind, custom_mode: int) -> Mode |
     names, table, _ = _ardupilot(kind)
     name = table.get(custom_mode)
     return f"custom mode {custom_mode}" if name is None else _mode_by_name(names, str(name))
+
+
+COPTER_NOT_ARMABLE = frozenset(
+    number
+    for number, name in mavutil.mode_mapping_acm.items()
+    if name
+    in (
+        "AUTO", "RTL", "CIRCLE", "LAND", "FLIP", "AUTOTUNE", "BRAKE", "AVOID_ADSB", "SMART_RTL",
+        "FOLLOW", "SYSTEMID", "AUTOROTATE", "AUTO_RTL",
+    )
+)  # fmt: skip
+"""ArduCopter's modes that refuse to arm ("Arm: Mode not armable"): their ``allows_arming`` is
+false in ArduCopter's ``mode.h`` (AUTO unless ``AUTO_OPTIONS`` allows it; TURTLE, which arms on
+its own terms, is left out). A copter that landed in LAND or RTL stays in that mode."""
+
+
+def armable(autopilot: Autopilot, kind: VehicleKind, custom_mode: int) -> bool:
+    """Whether the autopilot accepts an arming command in the mode of HEARTBEAT ``custom_mode``
+    (False only for an ArduCopter in a mode of :data:`COPTER_NOT_ARMABLE`; PX4 and ArduRover
+    check their own conditions, which the refusal names)."""
+    return not (
+        autopilot is Autopilot.ARDUPILOT
+        and kind is VehicleKind.MULTIROTOR
+        and custom_mode in COPTER_NOT_ARMABLE
+    )
 
 
 def result_name(result: int) -> str:

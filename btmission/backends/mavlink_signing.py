@@ -84,6 +84,10 @@ def _check_signature(self: Any, msgbuf: bytearray, src_system: int, src_componen
     digest = hashlib.sha256(signing.secret_key + bytes(msgbuf[:-6])).digest()[:6]
     if digest != bytes(msgbuf[-6:]):
         signing.bad_signature_count = getattr(signing, "bad_signature_count", 0) + 1
+        by_system = getattr(signing, "bad_by_system", None)
+        if by_system is None:
+            by_system = signing.bad_by_system = {}
+        by_system[src_system] = by_system.get(src_system, 0) + 1
         return False
     low, high = _UNPACK_TS.unpack(bytes(msgbuf[-12:-6]))
     timestamp = low + (high << 32)
@@ -135,3 +139,14 @@ def signing_counters(conn: Any) -> dict[str, int]:
         "bad_signature": int(getattr(s, "bad_signature_count", 0)),
         "replay": int(getattr(s, "replay_count", 0)),
     }
+
+
+def rejections(conn: Any) -> tuple[dict[int, int], int]:
+    """What a signed link refused so far, for telling a wrong key from a silent vehicle: the
+    messages whose signature failed, per source system id, and the unsigned messages (whose
+    sender pymavlink does not say)."""
+    s = conn.mav.signing
+    if s.secret_key is None:
+        return {}, 0
+    unsigned = int(s.reject_count) - int(s.badsig_count)
+    return dict(getattr(s, "bad_by_system", {})), unsigned

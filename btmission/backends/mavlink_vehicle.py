@@ -23,6 +23,7 @@ from btmission.backends.mavlink_modes import (
     Autopilot,
     UnsupportedMode,
     ack_of,
+    armable,
     mode_of,
     mode_request,
     set_mode_params,
@@ -206,12 +207,30 @@ class MavlinkVehicle:
             return ACCEPTED  # already armed counts as success
 
         def send() -> Ack:
+            ready = self._to_armable_mode()
+            if not ready.accepted:
+                return ready
             ack = self.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
             if ack.accepted:
                 self._set_override(armed=True)
             return ack
 
         return self._with_backoff(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, send)
+
+    def _to_armable_mode(self) -> Ack:
+        """Put an ArduCopter that is in a mode it refuses to arm in (LAND, RTL, AUTO, BRAKE
+        ..., :data:`~btmission.backends.mavlink_modes.COPTER_NOT_ARMABLE`: "Arm: Mode not
+        armable") in GUIDED, the mode it flies the mission in, before it is armed. A copter that
+        landed stays in LAND, so without this the next task of a drone that landed could never
+        arm it. ACCEPTED when nothing had to change; else the mode change's answer."""
+        if armable(self.autopilot, self.kind, self._custom_mode()):
+            return ACCEPTED
+        guided = mode_request(self.autopilot, self.kind, Mode.OFFBOARD)
+        ack = self.command(mavlink.MAV_CMD_DO_SET_MODE, *set_mode_params(self.autopilot, guided))
+        if ack.accepted:
+            self._set_override(mode=guided.custom_mode)
+            self._takeoff_target = None
+        return ack
 
     def disarm(self) -> Ack:
         if not self._armed():

@@ -9,6 +9,7 @@ from btmission.backends.mavlink_modes import (
     Autopilot,
     UnsupportedMode,
     ack_of,
+    armable,
     autopilot_of,
     custom_mode_of_command,
     mode_of,
@@ -48,7 +49,7 @@ def test_px4_modes_are_main_and_sub_modes(mode: Mode, custom: int, name: str) ->
     ("mode", "custom", "name", "takeoff"),
     [
         (Mode.MANUAL, 0, "STABILIZE", False),
-        (Mode.HOLD, 5, "LOITER", False),
+        (Mode.HOLD, 17, "BRAKE", False),  # LOITER would sink without RC throttle
         (Mode.TAKEOFF, 4, "GUIDED", True),  # GUIDED, then MAV_CMD_NAV_TAKEOFF
         (Mode.OFFBOARD, 4, "GUIDED", False),  # GUIDED = custom mode 4
         (Mode.LAND, 9, "LAND", False),
@@ -68,6 +69,17 @@ def test_ardurover_modes_and_what_a_rover_cannot_do() -> None:
     for mode in (Mode.TAKEOFF, Mode.LAND):
         with pytest.raises(UnsupportedMode, match=f"ArduRover has no {mode.value} mode"):
             mode_request(Autopilot.ARDUPILOT, GROUND, mode)
+
+
+def test_arducopter_refuses_to_arm_in_land_rtl_auto_and_brake() -> None:
+    ap = Autopilot.ARDUPILOT
+    for custom in (3, 6, 9, 17, 21):  # AUTO, RTL, LAND, BRAKE, SMART_RTL
+        assert not armable(ap, MULTI, custom)
+    for custom in (0, 2, 4, 5, 16):  # STABILIZE, ALT_HOLD, GUIDED, LOITER, POSHOLD
+        assert armable(ap, MULTI, custom)
+    assert armable(ap, GROUND, 9)  # (a rover's mode 9 is not LAND)
+    land = mode_request(Autopilot.PX4, MULTI, Mode.LAND).custom_mode
+    assert armable(Autopilot.PX4, MULTI, land)  # PX4 names its own reasons
 
 
 def test_other_modes_read_as_the_autopilots_names() -> None:

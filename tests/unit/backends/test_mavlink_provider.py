@@ -6,6 +6,7 @@ takes off on NAV_TAKEOFF, the link's health is seen, signing keeps strangers out
 
 from __future__ import annotations
 
+import re
 import socket
 import time
 from collections.abc import Callable
@@ -199,6 +200,35 @@ def test_ardupilot_takeoff_shows_as_takeoff_then_hold() -> None:
         assert b.telemetry().height_above_ground == pytest.approx(2.0, abs=0.2)
 
 
+def test_an_arducopter_that_landed_in_land_is_armed_from_guided_and_flies_again() -> None:
+    with mavsim(ARDUPILOT) as sim, provider() as p:
+        b = attach(p, sim)
+        assert b.arm() and b.takeoff(2.0)
+        assert wait_for(p, 8.0, lambda: b.telemetry().mode is Mode.HOLD)
+        assert b.land()
+        assert wait_for(p, 15.0, lambda: not b.telemetry().armed)  # landed, then disarmed
+        assert sim.vehicle_state("R1")["mode"] is Mode.LAND  # ArduCopter stays in LAND
+        assert wait_for(p, 1.0, lambda: b.telemetry().mode is Mode.LAND)
+        ack = b.arm()  # (LAND is not armable: the provider asks for GUIDED first)
+        assert ack, ack.reason
+        assert sim.vehicle_state("R1")["armed"]
+        assert sim.vehicle_state("R1")["mode"] is Mode.OFFBOARD  # GUIDED
+        assert b.takeoff(2.0)
+        assert wait_for(p, 8.0, lambda: b.telemetry().height_above_ground > 1.8)
+
+
+def test_arducopter_hold_is_brake_and_holds_its_altitude() -> None:
+    with mavsim(ARDUPILOT) as sim, provider() as p:
+        b = attach(p, sim)
+        assert b.arm() and b.takeoff(3.0)
+        assert wait_for(p, 8.0, lambda: b.telemetry().mode is Mode.HOLD)
+        assert b.set_mode(Mode.HOLD)
+        assert sim.autopilots["R1"].custom_mode() == 17  # BRAKE, not LOITER
+        wait_for(p, 10.0, lambda: False)
+        assert b.telemetry().mode is Mode.HOLD
+        assert b.telemetry().height_above_ground == pytest.approx(3.0, abs=0.2)
+
+
 def test_arming_waits_for_the_ekf_with_the_autopilots_reason_and_a_back_off() -> None:
     with mavsim(ARDUPILOT, ekf_delay_s=20.0) as sim, provider(connect_timeout_s=1.0) as p:
         b = attach(p, sim)  # waits for the EKF as long as it may (1 s, 10 s at 10x), then goes on
@@ -259,8 +289,8 @@ def test_signed_links_fly_and_a_wrong_key_is_refused_and_counted() -> None:
             assert b.arm()
             assert p.rejected() == {}
         with provider(signing_key=bytes(32), connect_timeout_s=1.0, ack_timeout_s=0.3) as p:
-            with pytest.raises(MavlinkError, match="no heartbeat"):
-                attach(p, sim)
+            with pytest.raises(MavlinkError, match="its messages are signed with another key"):
+                attach(p, sim)  # (at the 1 s deadline: not "no heartbeat")
             assert p.rejected().get("bad_signature", 0) > 0
             said: list[str] = []
             p._progress = said.append  # type: ignore[assignment]
@@ -273,6 +303,28 @@ def test_signed_links_fly_and_a_wrong_key_is_refused_and_counted() -> None:
                 attach(p, sim)
         counts = sim.counters()["R1"]
         assert counts["bad_signature"] + counts["unsigned_refused"] > 0
+
+
+@pytest.mark.parametrize("vehicle_key", [bytes(32), None], ids=["another-key", "unsigned"])
+def test_a_wrong_signing_key_is_named_within_seconds(vehicle_key: bytes | None) -> None:
+    # the connect timeout is far longer than the few seconds the verdict takes: waiting it out
+    # ended in "no heartbeat ... (is the vehicle on ...?)"
+    with (
+        mavsim(ARDUPILOT, signing_key=vehicle_key) as sim,
+        provider(signing_key=KEY, connect_timeout_s=30.0) as p,
+    ):
+        url = sim.endpoints[0].url
+        with pytest.raises(MavlinkError) as caught:
+            attach(p, sim)
+    said = str(caught.value)
+    assert said.startswith(f"R1 ({url}): its messages are ")
+    if vehicle_key is None:
+        assert re.search(r"are not signed \(\d+ refused in \d+ s\), and a signing key is "
+                         r"given \(--mavlink-key-file\)", said)  # fmt: skip
+    else:
+        assert re.search(r"are signed with another key \(\d+ rejected in \d+ s\); "
+                         r"check --mavlink-key-file / the vehicle's key", said)  # fmt: skip
+    # "in N s": the verdict, seconds in (at the deadline it would say "within 30 s")
 
 
 @pytest.mark.slow  # the conformance suite covers it too (slow selection)
