@@ -178,8 +178,8 @@ def test_btmission_and_mavsdk_drive_the_same_vehicles_side_by_side(tmp_path: Pat
     assert rows.keys() == {"btmission", "mavsdk"}
     for row in rows.values():
         assert row["vehicles"] == "2"
-        assert 15.0 < float(row["setpoint_rate"]) < 45.0  # 20 Hz renewed (MAVSDK re-sends too)
-        assert 30.0 < float(row["telemetry_rate"]) < 70.0  # 50 Hz asked
+        assert 12.0 < float(row["setpoint_rate"]) < 45.0  # 20 Hz renewed (MAVSDK re-sends too)
+        assert 20.0 < float(row["telemetry_rate"]) < 100.0  # 50 Hz asked (a late mavsim catches up)
         assert float(row["worst_gap_ms"]) >= 0 and float(row["cpu_ms_per_vehicle"]) > 0
         assert 0.0 < float(row["heard_s"]) <= float(row["connect_s"])
     page = (tmp_path / "mavlink.md").read_text()
