@@ -53,6 +53,11 @@ address (garbage, an unsigned frame, a vehicle's or a command) is dropped and co
 (``strangers``); it neither diverts the telemetry nor reaches the autopilot. (Without signing
 anyone who can send a GCS heartbeat can take the vehicle over, as on the real firmware: sign.)
 
+**Setpoint arrivals** (for ``btmission bench mavlink``): :meth:`MavSim.stamp_arrivals` notes
+when each setpoint addressed to a vehicle reached its socket, from the kernel's receive stamp
+(``SO_TIMESTAMPNS``; on TCP, or where the kernel gives none, when it was read), so a stream is
+measured where the autopilot gets it, not when the simulator's loop got round to reading it.
+
 **On time under load.** Each step reads at most :data:`RECEIVE_PER_STEP` datagrams (messages
 on TCP) per vehicle before it steps the physics and sends what is due, so a backlog or a flood
 of incoming datagrams delays what is read, not the simulation and its telemetry.
@@ -62,6 +67,7 @@ from __future__ import annotations
 
 import math
 import socket
+import struct
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -123,6 +129,10 @@ LOITER_SINK_M_S = 2.5
 COPTER_LOITER = 5
 """ArduCopter's LOITER (``custom_mode``): none of the backend's modes, simulated here on the
 simulator's HOLD (module docstring)."""
+SO_TIMESTAMPNS = 35
+"""Linux's socket option for the kernel's receive time of each datagram (a ``struct timespec``
+in the ancillary data; Python's socket module does not name it)."""
+_TIMESPEC = struct.Struct("@qq")
 PX4_UDP_BASE = 14540
 ARDUPILOT_TCP_BASE = 5760
 BOOT_EPOCH_S = 0.0
@@ -230,6 +240,11 @@ class _SimulatedAutopilot:
         self.setpoints = 0
         """Setpoints received (SET_POSITION_TARGET_LOCAL_NED, SET_ATTITUDE_TARGET)."""
         self.last_setpoint_t = -math.inf
+        self.arrivals: list[float] | None = None
+        """Wall times (``time.time()``) the setpoints arrived, once :meth:`MavSim.stamp_arrivals`
+        asked for them."""
+        self._received_at = 0.0
+        self._kernel_stamps = False
         self.stream_since = math.inf
         """Since when setpoints have come at least every 0.5 s (PX4's OFFBOARD entry rule)."""
         self.ground = spec.kind is VehicleKind.GROUND
@@ -312,6 +327,8 @@ class _SimulatedAutopilot:
         """A setpoint arrived now: PX4 counts the stream whatever it is used for."""
         t = self.now()
         self.setpoints += 1
+        if self.arrivals is not None:
+            self.arrivals.append(self._received_at)
         if t - self.last_setpoint_t > 1.0 / STREAM_MIN_HZ:
             self.stream_since = t
         self.last_setpoint_t = t
@@ -373,6 +390,7 @@ class _SimulatedAutopilot:
                 return
             if msg is None:
                 return
+            self._received_at = time.time()
             if self.now() < self.drop_until:
                 continue  # the link is down: nothing arrives
             if msg.get_type() == "BAD_DATA":
@@ -384,7 +402,11 @@ class _SimulatedAutopilot:
         port = self.conn.port
         for _ in range(budget):
             try:
-                data, addr = port.recvfrom(65535)
+                if self._kernel_stamps:
+                    data, addr = self._recv_stamped(port)
+                else:
+                    data, addr = port.recvfrom(65535)
+                    self._received_at = time.time()
             except (BlockingIOError, InterruptedError, ConnectionRefusedError):
                 return
             except OSError:
@@ -400,6 +422,26 @@ class _SimulatedAutopilot:
                     continue
                 self.received += 1
                 self._handle(msg)
+
+    def stamp_arrivals(self) -> list[float]:
+        """Start noting setpoint arrivals (:meth:`MavSim.stamp_arrivals`); returns the list."""
+        if self.peer is not None:
+            try:
+                self.conn.port.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+                self._kernel_stamps = True
+            except OSError:
+                self._kernel_stamps = False
+        self.arrivals = []
+        return self.arrivals
+
+    def _recv_stamped(self, port: socket.socket) -> tuple[bytes, Any]:
+        data, ancillary, _flags, addr = port.recvmsg(65535, 64)
+        self._received_at = time.time()
+        for level, kind, payload in ancillary:
+            if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
+                sec, nsec = _TIMESPEC.unpack_from(payload)
+                self._received_at = sec + nsec * 1e-9
+        return data, addr
 
     def _from_stranger(self, data: bytes, addr: tuple[str, int]) -> list[Any]:
         """A datagram from another address than the peer's: the new peer if it is a ground
@@ -972,6 +1014,12 @@ class MavSim:
             "setpoints": ap.setpoints,
             "ignored_frames": ap.ignored_frames,
         }
+
+    def stamp_arrivals(self) -> dict[str, list[float]]:
+        """From now on, note when each setpoint (SET_POSITION_TARGET_LOCAL_NED or
+        SET_ATTITUDE_TARGET addressed to the vehicle) arrived, as ``time.time()`` seconds (module
+        docstring); returns each vehicle's list, which the simulator's thread appends to."""
+        return {aid: ap.stamp_arrivals() for aid, ap in self.autopilots.items()}
 
     def counters(self) -> dict[str, dict[str, int]]:
         if self.config.signing_key is None:

@@ -94,6 +94,14 @@ from btmission.cli.common import BadInput, FiniteFloat, handle_spec_errors
     "backend (repeatable); how an agent of a simulator mission gets a vehicle another process "
     "can fly (run --processes uses it).",
 )
+@click.option(
+    "--arrivals",
+    is_flag=True,
+    hidden=True,
+    help="For btmission bench mavlink: note when each setpoint arrives; a line "
+    "'arrivals T0 T1' on standard input prints those between T0 and T1 (time.time() seconds) "
+    "as one JSON line {agent: [times]}; the end of standard input stops the simulator.",
+)
 @handle_spec_errors
 def mavsim(
     mission_path: Path | None,
@@ -112,6 +120,7 @@ def mavsim(
     quiet: bool,
     duration: float | None,
     backends: tuple[str, ...],
+    arrivals: bool,
 ) -> None:
     """Simulated MAVLink vehicles for flying missions without hardware.
 
@@ -201,6 +210,11 @@ def mavsim(
         stop.set()
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    if arrivals:
+        stamps = sim.stamp_arrivals()
+        threading.Thread(
+            target=_answer_arrivals, args=(stamps, stop), name="arrivals", daemon=True
+        ).start()
     sim.start()
     click.echo(f"ready ({len(sim.endpoints)} vehicle(s), {ap.value}, speed {speed:g}x)")
     sys.stdout.flush()
@@ -221,6 +235,20 @@ def mavsim(
     click.echo(f"stopped after {sim.simulator.time_s:.1f} simulated s ({sim.steps} steps{late})")
     for agent, counts in sim.counters().items():
         click.echo(f"{agent} signing: " + ", ".join(f"{k} {v}" for k, v in counts.items()))
+
+
+def _answer_arrivals(stamps: dict[str, list[float]], stop: threading.Event) -> None:
+    """``--arrivals``: answer 'arrivals T0 T1' lines on standard input until it ends."""
+    import json
+
+    for line in sys.stdin:
+        words = line.split()
+        if len(words) == 3 and words[0] == "arrivals":
+            t0, t1 = float(words[1]), float(words[2])
+            window = {aid: [t for t in list(ts) if t0 <= t <= t1] for aid, ts in stamps.items()}
+            click.echo(json.dumps(window))
+            sys.stdout.flush()
+    stop.set()
 
 
 def _with_backends(mission: Any, backends: tuple[str, ...]) -> Any:

@@ -1,7 +1,7 @@
 """MAVLink vehicles as a :class:`~btmission.vehicles.provider.VehicleProvider` (scheme ``mavlink``).
 
-One process drives every MAVLink vehicle of a mission (MAVSDK needs a server per drone; this does
-not): the agents' ``backend:`` URLs (:mod:`btmission.backends.mavlink_url`) name the links, several
+One process drives every MAVLink vehicle of a mission (as MAVSDK-Python 4 does too; up to 3.x it
+started a ``mavsdk_server`` per drone): the agents' ``backend:`` URLs (:mod:`btmission.backends.mavlink_url`) name the links, several
 vehicles may share one link (told apart by ``?sysid=``), and **one I/O thread** serves them all:
 
 * it waits on every link's socket at once (``select``), parses what arrives with pymavlink and
