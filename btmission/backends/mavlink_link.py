@@ -87,7 +87,8 @@ STREAMS = (
     mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR,
 )
 """Messages requested with SET_MESSAGE_INTERVAL at ``telemetry_hz`` (HEARTBEAT comes at 1 Hz
-anyway; the estimator report at 2 Hz)."""
+anyway and is asked for at 5 Hz, CURRENT_MODE at ``telemetry_hz``: the mode is read from whichever
+came last, :mod:`btmission.backends.mavlink_connect`; the estimator report at 2 Hz)."""
 ESTIMATOR_STREAM = {
     Autopilot.ARDUPILOT: mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT,
     Autopilot.PX4: mavlink.MAVLINK_MSG_ID_ESTIMATOR_STATUS,
@@ -177,6 +178,8 @@ class _State:
     heartbeat_at: float = -math.inf
     heartbeat_wall: float = -math.inf
     heartbeats: int = 0
+    mode_wall: float = -math.inf
+    """When ``custom_mode`` was last told (HEARTBEAT or CURRENT_MODE, whichever came last)."""
     position: FloatArray | None = None
     """Local NED (m)."""
     velocity: FloatArray = field(default_factory=lambda: np.zeros(3))
@@ -537,6 +540,7 @@ class _LinkIO:
                 return  # a camera, a gimbal... of the same system
             st.base_mode = msg.base_mode
             st.custom_mode = msg.custom_mode
+            st.mode_wall = time.monotonic()
             st.system_status = msg.system_status
             st.heartbeat_at = now
             st.heartbeat_wall = time.monotonic()
@@ -552,6 +556,9 @@ class _LinkIO:
             st.position = np.array([msg.x, msg.y, msg.z], dtype=float)
             st.velocity = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
             st.position_at = now
+        elif kind == "CURRENT_MODE":  # the mode between two 1 Hz heartbeats (PX4)
+            st.custom_mode = msg.custom_mode
+            st.mode_wall = time.monotonic()
         elif kind == "ATTITUDE":
             st.attitude = (msg.roll, msg.pitch, msg.yaw, msg.yawspeed)
         elif kind == "EXTENDED_SYS_STATE":
