@@ -174,12 +174,11 @@ class _State:
     mav_type: int
     base_mode: int = 0
     custom_mode: int = 0
+    """The mode, from HEARTBEAT or CURRENT_MODE, whichever came last."""
     system_status: int = 0
     heartbeat_at: float = -math.inf
     heartbeat_wall: float = -math.inf
     heartbeats: int = 0
-    mode_wall: float = -math.inf
-    """When ``custom_mode`` was last told (HEARTBEAT or CURRENT_MODE, whichever came last)."""
     position: FloatArray | None = None
     """Local NED (m)."""
     velocity: FloatArray = field(default_factory=lambda: np.zeros(3))
@@ -540,7 +539,6 @@ class _LinkIO:
                 return  # a camera, a gimbal... of the same system
             st.base_mode = msg.base_mode
             st.custom_mode = msg.custom_mode
-            st.mode_wall = time.monotonic()
             st.system_status = msg.system_status
             st.heartbeat_at = now
             st.heartbeat_wall = time.monotonic()
@@ -558,7 +556,6 @@ class _LinkIO:
             st.position_at = now
         elif kind == "CURRENT_MODE":  # the mode between two 1 Hz heartbeats (PX4)
             st.custom_mode = msg.custom_mode
-            st.mode_wall = time.monotonic()
         elif kind == "ATTITUDE":
             st.attitude = (msg.roll, msg.pitch, msg.yaw, msg.yawspeed)
         elif kind == "EXTENDED_SYS_STATE":

@@ -15,7 +15,7 @@ within ``ack_timeout_s`` → sent again (``command_retries`` times, then a trans
 TEMPORARILY_REJECTED → sent again after 0.5 s, 1 s …; IN_PROGRESS → its final answer waited for
 ``in_progress_timeout_s``. An answer is kept: a refusal for a back-off (0.5 s of vehicle time,
 doubling; arming up to 4 s, other commands up to 1 s), an acceptance for
-:data:`ACCEPTED_HOLD_S` — meanwhile calls return it, and answers that still come are collected:
+:data:`ACCEPTED_HOLD_S` (at least ``ack_timeout_s``) — meanwhile calls return it, and answers that still come are collected:
 a later refusal overrides an earlier ACCEPTED (PX4 acknowledges a mode change twice, ACCEPTED at
 once from its MAVLink module, then the commander's real result). A mode counts as set only when
 the telemetry shows it (HEARTBEAT or CURRENT_MODE); an accepted arming or disarming shows at
@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -80,7 +80,9 @@ _LANDED_STATES = {
 ACCEPTED_HOLD_S = 1.5
 """Vehicle time an accepted command's answer is kept (later calls return it, a later refusal
 overrides it) before the command is sent again when its effect does not show: more than a
-HEARTBEAT period, so that a mode change is seen even without CURRENT_MODE."""
+HEARTBEAT period, so that a mode change is seen even without CURRENT_MODE — and never less than
+``ack_timeout_s`` of wall time (a busy machine's telemetry may lag: sent again too soon, a LAND
+reached a drone that had landed and disarmed meanwhile, and was refused)."""
 REFUSAL_HOLD_S = (0.5, 1.0, 4.0)
 """A refused command's answer is kept this long (vehicle time) before it is sent again: the
 first, doubling after each refusal up to the second (arming: the third)."""
@@ -111,7 +113,7 @@ class _Asked:
     """A TEMPORARILY_REJECTED being sent again: said while it waits."""
     renew_at: float = math.inf
     """Wall time after which a new call sends it anew (the answer is no longer kept)."""
-    accepted_once: bool = field(default=False)
+    accepted_once: bool = False
 
 
 def _same(a: tuple[float, ...], b: tuple[float, ...]) -> bool:
@@ -209,9 +211,10 @@ class MavlinkVehicle:
         the answer's hold, sends it anew. ``on_accept`` runs once, when it is accepted."""
         wall = time.monotonic()
         asked = self._asked.get(command)
-        if asked is None or not _same(asked.params, params) or wall >= asked.renew_at:
+        same = asked is not None and _same(asked.params, params)
+        if asked is None or not same or wall >= asked.renew_at:
             hold = REFUSAL_HOLD_S[0]
-            if asked is not None and asked.answer is not None and not asked.answer.accepted:
+            if same and asked is not None and asked.answer is not None and not asked.answer:
                 cap = REFUSAL_HOLD_S[2 if command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM else 1]
                 hold = min(cap, 2 * asked.hold_s)  # refused again: wait longer
             asked = _Asked(command, params, _Pending(command), wall, hold, on_accept)
@@ -263,10 +266,11 @@ class MavlinkVehicle:
 
     def _settle(self, asked: _Asked, ack: Ack, wall: float) -> None:
         """``ack`` is the command's answer now (it replaces an earlier one)."""
-        scale = self.options.time_scale
+        opts = self.options
+        scale = opts.time_scale
         asked.answer, asked.rejected, asked.send_at = ack, None, math.inf
         if ack.accepted:
-            asked.renew_at = wall + ACCEPTED_HOLD_S / scale
+            asked.renew_at = wall + max(ACCEPTED_HOLD_S / scale, opts.ack_timeout_s)
             if not asked.accepted_once:
                 asked.accepted_once = True
                 if asked.on_accept is not None:
