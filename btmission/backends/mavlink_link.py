@@ -175,6 +175,8 @@ class _State:
     base_mode: int = 0
     custom_mode: int = 0
     """The mode, from HEARTBEAT or CURRENT_MODE, whichever came last."""
+    changes: int = 0
+    """How many times the telemetry told another mode or arming state."""
     system_status: int = 0
     heartbeat_at: float = -math.inf
     heartbeat_wall: float = -math.inf
@@ -537,6 +539,9 @@ class _LinkIO:
                 link.vehicles[src] = st
             elif msg.get_srcComponent() != st.compid:
                 return  # a camera, a gimbal... of the same system
+            armed = mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+            if msg.custom_mode != st.custom_mode or (msg.base_mode ^ st.base_mode) & armed:
+                st.changes += 1
             st.base_mode = msg.base_mode
             st.custom_mode = msg.custom_mode
             st.system_status = msg.system_status
@@ -555,6 +560,8 @@ class _LinkIO:
             st.velocity = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
             st.position_at = now
         elif kind == "CURRENT_MODE":  # the mode between two 1 Hz heartbeats (PX4)
+            if msg.custom_mode != st.custom_mode:
+                st.changes += 1
             st.custom_mode = msg.custom_mode
         elif kind == "ATTITUDE":
             st.attitude = (msg.roll, msg.pitch, msg.yaw, msg.yawspeed)

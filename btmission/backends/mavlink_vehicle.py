@@ -15,7 +15,8 @@ within ``ack_timeout_s`` → sent again (``command_retries`` times, then a trans
 TEMPORARILY_REJECTED → sent again after 0.5 s, 1 s …; IN_PROGRESS → its final answer waited for
 ``in_progress_timeout_s``. An answer is kept: a refusal for a back-off (0.5 s of vehicle time,
 doubling; arming up to 4 s, other commands up to 1 s), an acceptance for
-:data:`ACCEPTED_HOLD_S` (at least ``ack_timeout_s``) — meanwhile calls return it, and answers that still come are collected:
+:data:`ACCEPTED_HOLD_S` (at least ``ack_timeout_s``, and only until the telemetry tells another mode or arming
+state) — meanwhile calls return it, and answers that still come are collected:
 a later refusal overrides an earlier ACCEPTED (PX4 acknowledges a mode change twice, ACCEPTED at
 once from its MAVLink module, then the commander's real result). A mode counts as set only when
 the telemetry shows it (HEARTBEAT or CURRENT_MODE); an accepted arming or disarming shows at
@@ -114,6 +115,9 @@ class _Asked:
     renew_at: float = math.inf
     """Wall time after which a new call sends it anew (the answer is no longer kept)."""
     accepted_once: bool = False
+    changes: int = 0
+    """The vehicle's :attr:`_State.changes` when it was last sent (an answer may be read long
+    after it came: what the telemetry told since counts)."""
 
 
 def _same(a: tuple[float, ...], b: tuple[float, ...]) -> bool:
@@ -212,7 +216,7 @@ class MavlinkVehicle:
         wall = time.monotonic()
         asked = self._asked.get(command)
         same = asked is not None and _same(asked.params, params)
-        if asked is None or not same or wall >= asked.renew_at:
+        if asked is None or not same or wall >= asked.renew_at or self._outdated(asked):
             hold = REFUSAL_HOLD_S[0]
             if same and asked is not None and asked.answer is not None and not asked.answer:
                 cap = REFUSAL_HOLD_S[2 if command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM else 1]
@@ -226,6 +230,12 @@ class MavlinkVehicle:
         if asked.rejected is not None:
             return Ack.waiting(f"{asked.rejected.reason}: sending it again")
         return Ack.waiting(f"waiting for COMMAND_ACK of {command_name(command)}")
+
+    def _outdated(self, asked: _Asked) -> bool:
+        """An accepted answer whose time is over: the vehicle's mode or arming changed since it
+        was sent (its effect came and went — a failsafe HOLD after an accepted OFFBOARD — or something
+        else happened), so a new call asks anew."""
+        return bool(asked.answer) and self.state.changes != asked.changes
 
     def _advance(self, asked: _Asked, wall: float) -> None:
         """Read the answers that came, send again what is due (never waits)."""
@@ -261,6 +271,7 @@ class MavlinkVehicle:
             )
             return
         self._send_command(asked.command, asked.params, asked.sends)
+        asked.changes = self.state.changes
         asked.sends += 1
         asked.send_at = wall + opts.ack_timeout_s
 

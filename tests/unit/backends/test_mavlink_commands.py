@@ -203,6 +203,21 @@ def test_an_accepted_mode_that_does_not_show_is_asked_again(px4: Px4, wall: Wall
     assert v.set_mode(Mode.OFFBOARD).pending and px4.wire.sent(SET_MODE) == 2
 
 
+def test_an_accepted_mode_the_vehicle_left_is_asked_again_at_once(px4: Px4) -> None:
+    """OFFBOARD accepted and shown, then PX4's offboard-loss failsafe holds (a link drop): the
+    agent's next OFFBOARD is sent, not answered with the old ACCEPTED (at time_scale 10 the
+    answer's hold, at least ``ack_timeout_s`` of wall time, outlasted the agent's 5 s of trying
+    to take OFFBOARD back)."""
+    v = px4.vehicle
+    v.set_mode(Mode.OFFBOARD)
+    px4.tell(ack(SET_MODE, mavlink.MAV_RESULT_ACCEPTED))
+    assert v.set_mode(Mode.OFFBOARD).accepted
+    px4.tell(_packed(CurrentMode(0, OFFBOARD, OFFBOARD)))
+    assert v.telemetry().mode is Mode.OFFBOARD
+    px4.tell(_packed(CurrentMode(0, LOITER, LOITER)))  # the failsafe (no wall time passed)
+    assert v.set_mode(Mode.OFFBOARD).pending and px4.wire.sent(SET_MODE) == 2
+
+
 def test_the_mode_is_read_from_current_mode_before_the_next_heartbeat(px4: Px4) -> None:
     v = px4.vehicle
     v.set_mode(Mode.OFFBOARD)
