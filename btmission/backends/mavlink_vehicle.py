@@ -399,6 +399,11 @@ class MavlinkVehicle:
             return self.takeoff(self.options.takeoff_alt_m)
         if mode is Mode.LAND and self.kind is VehicleKind.GROUND:
             return Ack.refused("a ground robot cannot land", transient=False)
+        if mode is Mode.LAND and self._landed_state() is LandedState.ON_GROUND:
+            # landed: nothing to ask (PX4's HEARTBEAT, the only message with the armed flag,
+            # comes at 1 Hz, CURRENT_MODE faster: a drone that has landed, disarmed and left
+            # LAND may look armed a moment longer, and a LAND sent then is refused)
+            return ACCEPTED
         try:
             request = mode_request(self.autopilot, self.kind, mode)
         except UnsupportedMode as exc:

@@ -218,6 +218,19 @@ def test_an_accepted_mode_the_vehicle_left_is_asked_again_at_once(px4: Px4) -> N
     assert v.set_mode(Mode.OFFBOARD).pending and px4.wire.sent(SET_MODE) == 2
 
 
+def test_land_on_the_ground_asks_nothing(px4: Px4) -> None:
+    """Landed, disarmed and out of LAND, seen from CURRENT_MODE and EXTENDED_SYS_STATE before
+    the next 1 Hz HEARTBEAT says disarmed: no LAND is sent (mavsim's PX4 refused it, and the
+    navigator abandoned the landing it had finished)."""
+    v = px4.vehicle
+    px4.tell(heartbeat(custom_mode=LAND_MODE, armed=True))
+    on_ground = mavlink.MAVLink_extended_sys_state_message(0, mavlink.MAV_LANDED_STATE_ON_GROUND)
+    px4.tell(_packed(on_ground), _packed(CurrentMode(0, 0, 0)))
+    tel = v.telemetry()
+    assert tel.armed and tel.landed and tel.mode is not Mode.LAND
+    assert v.land() and px4.wire.sent(SET_MODE) == 0
+
+
 def test_the_mode_is_read_from_current_mode_before_the_next_heartbeat(px4: Px4) -> None:
     v = px4.vehicle
     v.set_mode(Mode.OFFBOARD)
@@ -255,3 +268,4 @@ def test_wait_calls_until_the_answer_and_the_telemetry_are_in(
 
 
 LOITER = mode_request(Autopilot.PX4, VehicleKind.MULTIROTOR, Mode.HOLD).custom_mode
+LAND_MODE = mode_request(Autopilot.PX4, VehicleKind.MULTIROTOR, Mode.LAND).custom_mode
