@@ -103,6 +103,8 @@ class _Asked:
     """How long a refusal is kept (vehicle time; :data:`REFUSAL_HOLD_S`)."""
     on_accept: Callable[[], None] | None = None
     """Run once when it is accepted (what the acceptance shows before the telemetry does)."""
+    before: Ack | None = None
+    """The refusal of the same request before this one (said while this one waits)."""
     sends: int = 0
     send_at: float = -math.inf
     """Wall time it is sent (again) unless an answer came."""
@@ -217,11 +219,12 @@ class MavlinkVehicle:
         asked = self._asked.get(command)
         same = asked is not None and _same(asked.params, params)
         if asked is None or not same or wall >= asked.renew_at or self._outdated(asked):
-            hold = REFUSAL_HOLD_S[0]
+            hold, before = REFUSAL_HOLD_S[0], None
             if same and asked is not None and asked.answer is not None and not asked.answer:
                 cap = REFUSAL_HOLD_S[2 if command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM else 1]
                 hold = min(cap, 2 * asked.hold_s)  # refused again: wait longer
-            asked = _Asked(command, params, _Pending(command), wall, hold, on_accept)
+                before = asked.answer
+            asked = _Asked(command, params, _Pending(command), wall, hold, on_accept, before)
             self._asked[command] = asked
             self.state.pending[command] = asked.pending
         self._advance(asked, wall)
@@ -229,6 +232,8 @@ class MavlinkVehicle:
             return asked.answer
         if asked.rejected is not None:
             return Ack.waiting(f"{asked.rejected.reason}: sending it again")
+        if asked.before is not None:  # what it said last time, while it is asked again
+            return Ack.waiting(f"{asked.before.reason}; asked again")
         return Ack.waiting(f"waiting for COMMAND_ACK of {command_name(command)}")
 
     def _outdated(self, asked: _Asked) -> bool:

@@ -171,8 +171,10 @@ def test_an_unanswered_command_is_sent_again_after_its_deadline_then_refused_tra
         "the vehicle's link is lost"
     )
     assert v.set_mode(Mode.HOLD) == gave_up and px4.wire.sent(SET_MODE) == 3  # kept a while
-    wall.t += 0.5  # its back-off (0.5 s): asked anew
-    assert v.set_mode(Mode.HOLD).pending and px4.wire.sent(SET_MODE) == 4
+    wall.t += 0.5  # its back-off (0.5 s): asked anew, saying what it said last time
+    again = v.set_mode(Mode.HOLD)
+    assert again.pending and px4.wire.sent(SET_MODE) == 4
+    assert again.reason == gave_up.reason + "; asked again"
 
 
 def test_px4s_second_answer_to_a_mode_change_overrides_its_first(px4: Px4) -> None:
