@@ -10,13 +10,17 @@ firmware's SITL:
 * **transports** as the SITLs have them: PX4 sends to a client that listens on UDP
   (``mavlink+udp://127.0.0.1:14540`` + i), ArduPilot listens on TCP (5760 + 10 i);
 * **HEARTBEAT** at 1 Hz with the firmware's ``autopilot``, ``type``, armed flag and
-  ``custom_mode`` (:mod:`btmission.backends.mavlink_modes`); other messages only when asked
-  (``MAV_CMD_SET_MESSAGE_INTERVAL``, ``MAV_CMD_REQUEST_MESSAGE``): LOCAL_POSITION_NED (in the
+  ``custom_mode`` (:mod:`btmission.backends.mavlink_modes`) — faster when asked on ArduPilot;
+  PX4 refuses (MAV_RESULT_FAILED) as the firmware does — other messages only when asked
+  (``MAV_CMD_SET_MESSAGE_INTERVAL``, ``MAV_CMD_REQUEST_MESSAGE``): CURRENT_MODE (the mode
+  between heartbeats), LOCAL_POSITION_NED (in the
   vehicle's NED frame, origin where it was spawned), ATTITUDE, EXTENDED_SYS_STATE, SYS_STATUS,
   BATTERY_STATUS, DISTANCE_SENSOR (downward; a PX4 vehicle on the ground reads 65533 cm, above
   its declared 10000 cm maximum, as PX4 SIH does), HOME_POSITION, EKF_STATUS_REPORT /
   ESTIMATOR_STATUS;
 * every COMMAND_LONG answered by a COMMAND_ACK, a refusal preceded by a STATUSTEXT saying why;
+  PX4 answers a DO_SET_MODE twice, as the firmware does: ACCEPTED at once (its MAVLink module),
+  then on the next step the real result (its commander), which may be a refusal;
 * **PX4 rules**: OFFBOARD only after setpoints have streamed at more than 2 Hz for a second
   (DENIED otherwise), HOLD when they stop for ``COM_OF_LOSS_T`` (1 s), LAND when the ground
   station's heartbeats stop for ``COM_DL_LOSS_T`` (10 s) while flying (``NAV_DLL_ACT`` = land;
@@ -76,7 +80,7 @@ from typing import Any
 
 import numpy as np
 
-from btmission.backends._pymavlink import mavlink, mavutil
+from btmission.backends._pymavlink import CURRENT_MODE_ID, CurrentMode, mavlink, mavutil
 from btmission.backends.autopilot import STREAM_MIN_HZ, STREAM_MIN_S
 from btmission.backends.mavlink_frames import LocalFrame
 from btmission.backends.mavlink_modes import (
@@ -254,6 +258,9 @@ class _SimulatedAutopilot:
         """A ground robot's arming (the embedded simulator's robots drive whenever told)."""
         self.arm_refusals_left = self.cfg.refuse_arm_times
         """Arming commands still to refuse (:attr:`MavSimConfig.refuse_arm_times`)."""
+        self.later: list[Any] = []
+        """COMMAND_LONGs acknowledged at once whose real answer comes on the next step (PX4's
+        DO_SET_MODE: module docstring)."""
         self.gps_origin: tuple[int, int, int] | None = None
         """GPS_GLOBAL_ORIGIN (degE7, degE7, mm) once SET_GPS_GLOBAL_ORIGIN gave one (the vehicles
         have no GPS: until then they know no global origin and do not answer a request)."""
@@ -379,7 +386,9 @@ class _SimulatedAutopilot:
 
     # ------------------------------------------------------------------ receive
     def receive(self, budget: int = RECEIVE_PER_STEP) -> None:
-        """Read and handle at most ``budget`` datagrams (UDP) or messages (TCP)."""
+        """Decide the commands held from the last step, then read and handle at most
+        ``budget`` datagrams (UDP) or messages (TCP)."""
+        self._decide_later()
         if self.peer is not None:
             self._receive_udp(budget)
             return
@@ -475,11 +484,13 @@ class _SimulatedAutopilot:
         if not self._for_me(msg):
             return
         if kind == "COMMAND_LONG":
-            result = self._command(msg)
-            src_sys, src_comp = msg.get_srcSystem(), msg.get_srcComponent()
-            self.send(
-                lambda mav: mav.command_ack_send(msg.command, result, 0, 0, src_sys, src_comp)
-            )
+            if msg.command == mavlink.MAV_CMD_DO_SET_MODE and self.autopilot is Autopilot.PX4:
+                # PX4's MAVLink module acknowledges a mode change at once; its commander
+                # decides on its next cycle and answers again (which may be a refusal)
+                self._ack(msg, mavlink.MAV_RESULT_ACCEPTED)
+                self.later.append(msg)
+                return
+            self._ack(msg, self._command(msg))
         elif kind == "SET_POSITION_TARGET_LOCAL_NED":
             self._position_target(msg)
         elif kind == "SET_ATTITUDE_TARGET":
@@ -487,6 +498,16 @@ class _SimulatedAutopilot:
         elif kind == "SET_GPS_GLOBAL_ORIGIN":
             self.gps_origin = (msg.latitude, msg.longitude, msg.altitude)
             self._send_message(mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
+
+    def _ack(self, msg: Any, result: int) -> None:
+        src_sys, src_comp = msg.get_srcSystem(), msg.get_srcComponent()
+        self.send(lambda mav: mav.command_ack_send(msg.command, result, 0, 0, src_sys, src_comp))
+
+    def _decide_later(self) -> None:
+        """The commands whose real answer comes a step after their first (PX4's mode changes)."""
+        later, self.later = self.later, []
+        for msg in later:
+            self._ack(msg, self._command(msg))
 
     # ------------------------------------------------------------------ commands
     def _refuse(self, text: str, result: int = mavlink.MAV_RESULT_DENIED) -> int:
@@ -498,6 +519,8 @@ class _SimulatedAutopilot:
         if c == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             msg_id, interval_us = int(msg.param1), msg.param2
             if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:  # always sent; only its rate changes
+                if self.autopilot is Autopilot.PX4:  # PX4 keeps it at 1 Hz ("stream not found")
+                    return mavlink.MAV_RESULT_FAILED
                 self.heartbeat_s = 1.0 if interval_us <= 0 else interval_us / 1e6
                 return mavlink.MAV_RESULT_ACCEPTED
             if interval_us < 0:
@@ -845,6 +868,9 @@ class _SimulatedAutopilot:
                 status = mavlink.MAV_STATE_CRITICAL  # as PX4 and ArduCopter, in a failsafe
             custom = self.custom_mode()
             self.send(lambda mav: mav.heartbeat_send(mav_type, ap, base, custom, status))
+        elif msg_id == CURRENT_MODE_ID:
+            custom = self.custom_mode()
+            self.send(lambda mav: mav.send(CurrentMode(0, custom, custom)))
         elif msg_id == mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
             p = fr.to_local(tel.position)
             v = fr.vector_to_local(tel.velocity)

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import re
 import socket
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -13,7 +14,7 @@ from btmission.backends.mavlink import MavlinkOptions, MavlinkProvider
 from btmission.backends.mavlink_modes import Autopilot
 from btmission.backends.mavlink_url import MavlinkAddress
 from btmission.mavsim import MavSim, MavSimConfig, VehicleSpec
-from btmission.vehicles.base import VehicleKind
+from btmission.vehicles.base import Ack, VehicleKind
 from btmission.world.minegen import empty_world
 from tests.load import margin
 
@@ -101,3 +102,25 @@ def mission_on_free_ports(shipped: Path, into: Path, time_scale: float | None = 
     out = into / shipped.name
     out.write_text(text)
     return out
+
+
+def answer(
+    call: Callable[[], Ack],
+    shown: Callable[[], bool] | None = None,
+    every: Callable[[], object] | None = None,
+    timeout_s: float = 5.0,
+) -> Ack:
+    """Call a MAVLink vehicle's command until its answer is in (its commands never wait: the
+    first call sends and returns a pending Ack, later calls return the answer) and, when
+    accepted, until ``shown()`` (its effect in the telemetry); ``every`` is called between the
+    calls (setpoints to keep streaming). Wall time, up to ``timeout_s`` × the load margin."""
+    end = time.monotonic() + timeout_s * margin()
+    while True:
+        if every is not None:
+            every()
+        ack = call()
+        if not ack.pending and (not ack.accepted or shown is None or shown()):
+            return ack
+        if time.monotonic() > end:
+            return ack
+        time.sleep(0.05 / SPEED)

@@ -238,8 +238,8 @@ class MavlinkProvider(ProviderBase):
 
     def close(self) -> None:
         """Leave every vehicle safe, then close the links: a vehicle still flying is told to
-        HOLD and then (``on_stop: land``, the default) to LAND, each command confirmed by its
-        COMMAND_ACK; setpoints stop. Idempotent."""
+        HOLD and then (``on_stop: land``, the default) to LAND, each waited for until its
+        COMMAND_ACK refuses it or the telemetry shows the mode; setpoints stop. Idempotent."""
         if self._closed:
             return
         self._closed = True
@@ -283,7 +283,7 @@ class MavlinkProvider(ProviderBase):
                     self._progress(f"{vehicle.id}: the run stopped: landing (LAND), left to it")
                 continue
             if tel.landed and vehicle.kind is VehicleKind.MULTIROTOR:
-                ack = vehicle.disarm()
+                ack = vehicle.wait(vehicle.disarm)
                 out[vehicle.id] = [ack]
                 if self._progress is not None:
                     said = "accepted" if ack else "refused: " + ack.reason
@@ -291,9 +291,9 @@ class MavlinkProvider(ProviderBase):
                         f"{vehicle.id}: the run stopped: armed on the ground, DISARM {said}"
                     )
                 continue
-            acks = [vehicle.set_mode(Mode.HOLD)]
+            acks = [vehicle.set_mode_and_wait(Mode.HOLD)]
             if self.options.on_stop == "land" and vehicle.kind is VehicleKind.MULTIROTOR:
-                acks.append(vehicle.land())
+                acks.append(vehicle.set_mode_and_wait(Mode.LAND))
             out[vehicle.id] = acks
             if self._progress is not None:
                 said = ", then ".join(

@@ -49,7 +49,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from btmission.backends._pymavlink import mavlink
+from btmission.backends._pymavlink import CURRENT_MODE_ID, mavlink
 from btmission.backends.mavlink_frames import GeodeticOrigin, LocalFrame, world_to_geodetic
 from btmission.backends.mavlink_link import (
     ESTIMATOR_STREAM,
@@ -279,6 +279,8 @@ class _Connect:
     position_ask_wait: float = RETRY_STREAM_S[0]
     estimator_request: _Request | None = None
     origin_request: _Request | None = None
+    mode_requests: list[_Request] = field(default_factory=list)
+    """A faster HEARTBEAT and CURRENT_MODE: how its mode changes are seen sooner."""
     origin_sent_wall: float = -math.inf
     origin_sends: int = 0
     origin_settled: bool = False
@@ -432,7 +434,12 @@ class _Connect:
             if msg_id == mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
                 self.position_request = r
         self.estimator_request = self._stream(ESTIMATOR_STREAM[st.autopilot], 5e5)
-        self._stream(mavlink.MAVLINK_MSG_ID_HEARTBEAT, 2e5)  # modes seen within 0.2 s
+        # modes seen within a telemetry period: CURRENT_MODE where the autopilot has it (PX4
+        # refuses a faster HEARTBEAT), else a 5 Hz HEARTBEAT (ArduPilot)
+        self.mode_requests = [
+            self._stream(mavlink.MAVLINK_MSG_ID_HEARTBEAT, 2e5),
+            self._stream(CURRENT_MODE_ID, interval_us),
+        ]
         self._add(self._message(mavlink.MAVLINK_MSG_ID_HOME_POSITION))
         if fleet.geodetic is not None:
             self.origin_request = self._message(mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
@@ -458,6 +465,15 @@ class _Connect:
         return any(c.answered for c in self.commands.values())
 
     def _refused(self, r: _Request, result: int) -> None:
+        if r in self.mode_requests:  # one of the two is enough: said only when both fail
+            if all(
+                m.settled and m.result != mavlink.MAV_RESULT_ACCEPTED for m in self.mode_requests
+            ):
+                self.fleet.note(
+                    f"{self.agent}: modes are seen at the autopilot's own HEARTBEAT rate (neither "
+                    "a faster HEARTBEAT nor CURRENT_MODE is available)"
+                )
+            return
         if r is not self.origin_request:  # (a vehicle without an origin: it gets one)
             self.fleet.note(
                 f"{self.agent}: {r.what} not available ({ack_of(r.command, result).reason})"

@@ -87,7 +87,8 @@ STREAMS = (
     mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR,
 )
 """Messages requested with SET_MESSAGE_INTERVAL at ``telemetry_hz`` (HEARTBEAT comes at 1 Hz
-anyway; the estimator report at 2 Hz)."""
+anyway and is asked for at 5 Hz, CURRENT_MODE at ``telemetry_hz``: the mode is read from whichever
+came last, :mod:`btmission.backends.mavlink_connect`; the estimator report at 2 Hz)."""
 ESTIMATOR_STREAM = {
     Autopilot.ARDUPILOT: mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT,
     Autopilot.PX4: mavlink.MAVLINK_MSG_ID_ESTIMATOR_STATUS,
@@ -173,6 +174,9 @@ class _State:
     mav_type: int
     base_mode: int = 0
     custom_mode: int = 0
+    """The mode, from HEARTBEAT or CURRENT_MODE, whichever came last."""
+    changes: int = 0
+    """How many times the telemetry told another mode or arming state."""
     system_status: int = 0
     heartbeat_at: float = -math.inf
     heartbeat_wall: float = -math.inf
@@ -535,6 +539,9 @@ class _LinkIO:
                 link.vehicles[src] = st
             elif msg.get_srcComponent() != st.compid:
                 return  # a camera, a gimbal... of the same system
+            armed = mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+            if msg.custom_mode != st.custom_mode or (msg.base_mode ^ st.base_mode) & armed:
+                st.changes += 1
             st.base_mode = msg.base_mode
             st.custom_mode = msg.custom_mode
             st.system_status = msg.system_status
@@ -552,6 +559,10 @@ class _LinkIO:
             st.position = np.array([msg.x, msg.y, msg.z], dtype=float)
             st.velocity = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
             st.position_at = now
+        elif kind == "CURRENT_MODE":  # the mode between two 1 Hz heartbeats (PX4)
+            if msg.custom_mode != st.custom_mode:
+                st.changes += 1
+            st.custom_mode = msg.custom_mode
         elif kind == "ATTITUDE":
             st.attitude = (msg.roll, msg.pitch, msg.yaw, msg.yawspeed)
         elif kind == "EXTENDED_SYS_STATE":

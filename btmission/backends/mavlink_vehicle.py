@@ -1,8 +1,27 @@
 """One MAVLink vehicle as the run sees it: :class:`MavlinkVehicle`, a
 :class:`~btmission.vehicles.base.Backend` over a link of :mod:`btmission.backends.mavlink_link`
-(commands that wait for their COMMAND_ACK, setpoints streamed by the link's I/O thread, telemetry
+(commands answered by their COMMAND_ACK, setpoints streamed by the link's I/O thread, telemetry
 in the mission's world frame). The ``mavlink`` provider (:mod:`btmission.backends.mavlink`)
 connects and hands them out.
+
+**Commands never wait.** ``arm``, ``disarm``, ``set_mode``, ``takeoff`` and ``land`` are called
+from the mission loop, which streams every vehicle's setpoints: a command that slept until its
+answer came (on real PX4 a TEMPORARILY_REJECTED stalled every vehicle 1.2 s) would stall them all.
+The first call sends COMMAND_LONG and returns at once a pending :class:`Ack`
+(:meth:`Ack.waiting <btmission.vehicles.base.Ack.waiting>`, "waiting for COMMAND_ACK of …"); each
+later call of the same command looks at what came meanwhile (:class:`_Asked`) and returns the
+latest answer. What used to be waited for happens on deadlines those calls check: no answer
+within ``ack_timeout_s`` → sent again (``command_retries`` times, then a transient refusal);
+TEMPORARILY_REJECTED → sent again after 0.5 s, 1 s …; IN_PROGRESS → its final answer waited for
+``in_progress_timeout_s``. An answer is kept: a refusal for a back-off (0.5 s of vehicle time,
+doubling; arming up to 4 s, other commands up to 1 s), an acceptance for
+:data:`ACCEPTED_HOLD_S` (at least ``ack_timeout_s``, and only until the telemetry tells another mode or arming
+state) — meanwhile calls return it, and answers that still come are collected:
+a later refusal overrides an earlier ACCEPTED (PX4 acknowledges a mode change twice, ACCEPTED at
+once from its MAVLink module, then the commander's real result). A mode counts as set only when
+the telemetry shows it (HEARTBEAT or CURRENT_MODE); an accepted arming or disarming shows at
+once, until the next heartbeat says otherwise. Where the mission loop does not run (the stop
+sequence, tests) :meth:`MavlinkVehicle.wait` calls a command until its answer is in.
 """
 
 from __future__ import annotations
@@ -10,6 +29,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -24,6 +44,7 @@ from btmission.backends.mavlink_modes import (
     UnsupportedMode,
     ack_of,
     armable,
+    command_name,
     mode_of,
     mode_request,
     set_mode_params,
@@ -61,6 +82,55 @@ _FAILSAFE_STATES = frozenset({mavlink.MAV_STATE_CRITICAL, mavlink.MAV_STATE_EMER
 ``any_failsafe_triggered()``)."""
 
 
+ACCEPTED_HOLD_S = 1.5
+"""Vehicle time an accepted command's answer is kept (later calls return it, a later refusal
+overrides it) before the command is sent again when its effect does not show: more than a
+HEARTBEAT period, so that a mode change is seen even without CURRENT_MODE — and never less than
+``ack_timeout_s`` of wall time (a busy machine's telemetry may lag: sent again too soon, a LAND
+reached a drone that had landed and disarmed meanwhile, and was refused)."""
+REFUSAL_HOLD_S = (0.5, 1.0, 4.0)
+"""A refused command's answer is kept this long (vehicle time) before it is sent again: the
+first, doubling after each refusal up to the second (arming: the third)."""
+
+
+@dataclass
+class _Asked:
+    """One command sent to the vehicle and what came back (module docstring)."""
+
+    command: int
+    params: tuple[float, ...]
+    pending: _Pending
+    """Where the I/O thread files its COMMAND_ACKs (:attr:`_State.pending`)."""
+    since: float
+    """Wall time of its first send (the reason of a refusal is the STATUSTEXTs since)."""
+    hold_s: float
+    """How long a refusal is kept (vehicle time; :data:`REFUSAL_HOLD_S`)."""
+    on_accept: Callable[[], None] | None = None
+    """Run once when it is accepted (what the acceptance shows before the telemetry does)."""
+    before: Ack | None = None
+    """The refusal of the same request before this one (said while this one waits)."""
+    sends: int = 0
+    send_at: float = -math.inf
+    """Wall time it is sent (again) unless an answer came."""
+    seen: int = 0
+    """Answers read so far."""
+    answer: Ack | None = None
+    """Its latest final answer (None: none yet)."""
+    rejected: Ack | None = None
+    """A TEMPORARILY_REJECTED being sent again: said while it waits."""
+    renew_at: float = math.inf
+    """Wall time after which a new call sends it anew (the answer is no longer kept)."""
+    accepted_once: bool = False
+    changes: int = 0
+    """The vehicle's :attr:`_State.changes` when it was last sent (an answer may be read long
+    after it came: what the telemetry told since counts)."""
+
+
+def _same(a: tuple[float, ...], b: tuple[float, ...]) -> bool:
+    """Equal parameters (NaN, "unset", equals NaN)."""
+    return len(a) == len(b) and all(x == y or (x != x and y != y) for x, y in zip(a, b))
+
+
 class MavlinkVehicle:
     """One MAVLink vehicle as a :class:`~btmission.vehicles.base.Backend` (module docstring)."""
 
@@ -85,8 +155,8 @@ class MavlinkVehicle:
         self.clock = clock
         self.options = options
         self._ground_at = ground_at
-        self._backoff: dict[int, tuple[float, float, Ack]] = {}
-        """command → (wall time it may be sent again, back-off, the refusal meanwhile)."""
+        self._asked: dict[int, _Asked] = {}
+        """command → its latest request (module docstring)."""
         self._takeoff_target: float | None = None
         self._takeoff_sent_wall = -math.inf
         self.commands_sent = 0
@@ -142,45 +212,129 @@ class MavlinkVehicle:
         )
         self.commands_sent += 1
 
-    def command(self, command: int, *params: float) -> Ack:
-        """Send COMMAND_LONG ``command`` and wait for its COMMAND_ACK (module docstring)."""
+    def command(
+        self, command: int, *params: float, on_accept: Callable[[], None] | None = None
+    ) -> Ack:
+        """Ask for COMMAND_LONG ``command`` without waiting (module docstring): the first call
+        sends it and returns a pending Ack; later calls send it again when due and return the
+        latest answer. Another request of the same command (other parameters), or a call after
+        the answer's hold, sends it anew. ``on_accept`` runs once, when it is accepted."""
+        wall = time.monotonic()
+        asked = self._asked.get(command)
+        same = asked is not None and _same(asked.params, params)
+        if asked is None or not same or wall >= asked.renew_at or self._outdated(asked):
+            hold, before = REFUSAL_HOLD_S[0], None
+            if same and asked is not None and asked.answer is not None and not asked.answer:
+                cap = REFUSAL_HOLD_S[2 if command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM else 1]
+                hold = min(cap, 2 * asked.hold_s)  # refused again: wait longer
+                before = asked.answer
+            asked = _Asked(command, params, _Pending(command), wall, hold, on_accept, before)
+            self._asked[command] = asked
+            self.state.pending[command] = asked.pending
+        self._advance(asked, wall)
+        if asked.answer is not None:
+            return asked.answer
+        if asked.rejected is not None:
+            return Ack.waiting(f"{asked.rejected.reason}: sending it again")
+        if asked.before is not None:  # what it said last time, while it is asked again
+            return Ack.waiting(f"{asked.before.reason}; asked again")
+        return Ack.waiting(f"waiting for COMMAND_ACK of {command_name(command)}")
+
+    def _outdated(self, asked: _Asked) -> bool:
+        """An accepted answer whose time is over: the vehicle's mode or arming changed since it
+        was sent (its effect came and went — a failsafe HOLD after an accepted OFFBOARD — or something
+        else happened), so a new call asks anew."""
+        return bool(asked.answer) and self.state.changes != asked.changes
+
+    def _advance(self, asked: _Asked, wall: float) -> None:
+        """Read the answers that came, send again what is due (never waits)."""
         opts = self.options
-        st = self.state
-        pending = _Pending(command)
-        st.pending[command] = pending
-        since = time.monotonic()
-        try:
-            for attempt in range(opts.command_retries + 1):
-                pending.event.clear()
-                self._send_command(command, params, attempt)
-                deadline = time.monotonic() + opts.ack_timeout_s
-                while True:
-                    if not pending.event.wait(max(0.0, deadline - time.monotonic())):
-                        break  # no answer: send it again
-                    pending.event.clear()
-                    result = pending.result
-                    if result == mavlink.MAV_RESULT_IN_PROGRESS:
-                        deadline = time.monotonic() + opts.in_progress_timeout_s
-                        continue
-                    if (
-                        result == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-                        and attempt < opts.command_retries
-                    ):
-                        time.sleep(min(0.5, opts.ack_timeout_s) * (attempt + 1))
-                        break
-                    assert result is not None
-                    if result == mavlink.MAV_RESULT_ACCEPTED:
-                        return ACCEPTED
-                    return ack_of(command, result, self._reason_since(since))
-            return Ack.refused(  # nobody answered: asking again later may work
-                f"{mavlink.enums['MAV_CMD'][command].name}: no COMMAND_ACK from sysid "
-                f"{st.sysid} within {opts.ack_timeout_s:g} s "
-                f"({opts.command_retries + 1} tries)"
-                + ("" if self.link_ok() else "; the vehicle's link is lost"),
-                transient=True,
+        answers = asked.pending.answers[asked.seen :]
+        asked.seen += len(answers)
+        for result in answers:
+            if result == mavlink.MAV_RESULT_IN_PROGRESS:  # its final answer will follow
+                asked.send_at = max(asked.send_at, wall + opts.in_progress_timeout_s)
+                continue
+            ack = ack_of(asked.command, result, self._reason_since(asked.since))
+            if (
+                result == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+                and asked.sends <= opts.command_retries
+            ):  # busy or not ready yet: asked again after a pause
+                asked.answer, asked.rejected, asked.renew_at = None, ack, math.inf
+                asked.send_at = wall + min(0.5, opts.ack_timeout_s) * asked.sends
+                continue
+            self._settle(asked, ack, wall)
+        if asked.answer is not None or wall < asked.send_at:
+            return
+        if asked.sends > opts.command_retries:  # nobody answered: asking again later may work
+            self._settle(
+                asked,
+                Ack.refused(
+                    f"{command_name(asked.command)}: no COMMAND_ACK from sysid "
+                    f"{self.state.sysid} within {opts.ack_timeout_s:g} s "
+                    f"({opts.command_retries + 1} tries)"
+                    + ("" if self.link_ok() else "; the vehicle's link is lost"),
+                    transient=True,
+                ),
+                wall,
             )
-        finally:
-            st.pending.pop(command, None)
+            return
+        self._send_command(asked.command, asked.params, asked.sends)
+        asked.changes = self.state.changes
+        asked.sends += 1
+        asked.send_at = wall + opts.ack_timeout_s
+
+    def _settle(self, asked: _Asked, ack: Ack, wall: float) -> None:
+        """``ack`` is the command's answer now (it replaces an earlier one)."""
+        opts = self.options
+        scale = opts.time_scale
+        asked.answer, asked.rejected, asked.send_at = ack, None, math.inf
+        if ack.accepted:
+            asked.renew_at = wall + max(ACCEPTED_HOLD_S / scale, opts.ack_timeout_s)
+            if not asked.accepted_once:
+                asked.accepted_once = True
+                if asked.on_accept is not None:
+                    asked.on_accept()
+            return
+        asked.renew_at = wall + asked.hold_s / scale
+        if asked.accepted_once:  # refused after all (PX4's second answer): nothing shows it
+            self.state.override = None
+
+    def wait(
+        self,
+        call: Callable[[], Ack],
+        shown: Callable[[], bool] | None = None,
+        timeout_s: float | None = None,
+    ) -> Ack:
+        """Call ``call`` (a command of this vehicle) until its answer is in — and, when
+        accepted, until ``shown()`` (its effect in the telemetry) — or ``timeout_s`` (wall; by
+        default as long as its retries may take). Blocks: only where the mission loop does not
+        run (the stop sequence, tests)."""
+        opts = self.options
+        if timeout_s is None:
+            timeout_s = (opts.ack_timeout_s + 0.5) * (opts.command_retries + 1) + (
+                ACCEPTED_HOLD_S / opts.time_scale
+            )
+        end = time.monotonic() + timeout_s
+        while True:
+            ack = call()
+            done = not ack.pending and (not ack.accepted or shown is None or shown())
+            if done or time.monotonic() >= end:
+                break
+            time.sleep(0.005)
+        if ack.accepted and shown is not None and not shown():
+            return Ack.refused(
+                f"accepted, but not seen in the telemetry within {timeout_s:.1f} s", transient=True
+            )
+        return ack
+
+    def set_mode_and_wait(self, mode: Mode) -> Ack:
+        """:meth:`set_mode`, waited for until the telemetry shows ``mode`` (:meth:`wait`)."""
+        try:
+            wanted = mode_request(self.autopilot, self.kind, mode).custom_mode
+        except UnsupportedMode:
+            return self.set_mode(mode)
+        return self.wait(lambda: self.set_mode(mode), lambda: self._custom_mode() == wanted)
 
     def _reason_since(self, since: float) -> str:
         """The autopilot's STATUSTEXTs since ``since`` (a refusal's reason), warnings first."""
@@ -189,33 +343,17 @@ class MavlinkVehicle:
         unique = list(dict.fromkeys(text for _, text in texts))  # a retried refusal says it again
         return "; ".join(unique[:2])
 
-    def _with_backoff(self, command: int, send: Callable[[], Ack]) -> Ack:
-        wall = time.monotonic()
-        held = self._backoff.get(command)
-        if held is not None and wall < held[0]:
-            return held[2]
-        ack = send()
-        if ack.accepted:
-            self._backoff.pop(command, None)
-        else:  # 0.5 s, doubling to 4 s, of the vehicle's time
-            delay = 0.5 if held is None else min(4.0, held[1] * 2)
-            self._backoff[command] = (wall + delay / self.options.time_scale, delay, ack)
-        return ack
-
     def arm(self) -> Ack:
         if self._armed():
             return ACCEPTED  # already armed counts as success
-
-        def send() -> Ack:
-            ready = self._to_armable_mode()
-            if not ready.accepted:
-                return ready
-            ack = self.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
-            if ack.accepted:
-                self._set_override(armed=True)
-            return ack
-
-        return self._with_backoff(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, send)
+        ready = self._to_armable_mode()
+        if not ready.accepted:
+            return ready  # (pending while the mode change waits for its answer)
+        return self.command(
+            mavlink.MAV_CMD_COMPONENT_ARM_DISARM,
+            1.0,
+            on_accept=lambda: self._set_override(armed=True),
+        )
 
     def _to_armable_mode(self) -> Ack:
         """Put an ArduCopter that is in a mode it refuses to arm in (LAND, RTL, AUTO, BRAKE
@@ -226,21 +364,25 @@ class MavlinkVehicle:
         if armable(self.autopilot, self.kind, self._custom_mode()):
             return ACCEPTED
         guided = mode_request(self.autopilot, self.kind, Mode.OFFBOARD)
-        ack = self.command(mavlink.MAV_CMD_DO_SET_MODE, *set_mode_params(self.autopilot, guided))
-        if ack.accepted:
-            self._set_override(mode=guided.custom_mode)
-            self._takeoff_target = None
-        return ack
+        return self.command(
+            mavlink.MAV_CMD_DO_SET_MODE,
+            *set_mode_params(self.autopilot, guided),
+            on_accept=self._forget_takeoff,
+        )
+
+    def _forget_takeoff(self) -> None:
+        self._takeoff_target = None
 
     def disarm(self) -> Ack:
         if not self._armed():
             return ACCEPTED
         if not self._landed():
             return Ack.refused("cannot disarm in the air", transient=True)
-        ack = self.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0.0)
-        if ack.accepted:
-            self._set_override(armed=False)
-        return ack
+        return self.command(
+            mavlink.MAV_CMD_COMPONENT_ARM_DISARM,
+            0.0,
+            on_accept=lambda: self._set_override(armed=False),
+        )
 
     def _set_override(self, *, mode: int | None = None, armed: bool | None = None) -> None:
         prev = self.state.override
@@ -287,6 +429,11 @@ class MavlinkVehicle:
             return self.takeoff(self.options.takeoff_alt_m)
         if mode is Mode.LAND and self.kind is VehicleKind.GROUND:
             return Ack.refused("a ground robot cannot land", transient=False)
+        if mode is Mode.LAND and self._landed_state() is LandedState.ON_GROUND:
+            # landed: nothing to ask (PX4's HEARTBEAT, the only message with the armed flag,
+            # comes at 1 Hz, CURRENT_MODE faster: a drone that has landed, disarmed and left
+            # LAND may look armed a moment longer, and a LAND sent then is refused)
+            return ACCEPTED
         try:
             request = mode_request(self.autopilot, self.kind, mode)
         except UnsupportedMode as exc:
@@ -302,12 +449,15 @@ class MavlinkVehicle:
                 f"{STREAM_MIN_S:g} s first (the backend's rule on every autopilot)",
                 transient=True,
             )
-        ack = self.command(mavlink.MAV_CMD_DO_SET_MODE, *set_mode_params(self.autopilot, request))
-        if ack.accepted:
-            self._set_override(mode=request.custom_mode)
-            if mode is not Mode.OFFBOARD:
-                self._takeoff_target = None
-        return ack
+        # (a mode counts as set when the telemetry shows it, not on its first ACCEPTED)
+        return self.command(
+            mavlink.MAV_CMD_DO_SET_MODE,
+            *set_mode_params(self.autopilot, request),
+            on_accept=None if mode is Mode.OFFBOARD else self._no_takeoff,
+        )
+
+    def _no_takeoff(self) -> None:
+        self._takeoff_target = None
 
     def takeoff(self, altitude_m: float) -> Ack:
         if self.kind is VehicleKind.GROUND:
@@ -316,7 +466,11 @@ class MavlinkVehicle:
             return Ack.refused("takeoff refused: not armed", transient=True)
         if not altitude_m > 0:
             return Ack.refused(f"takeoff altitude must be > 0, got {altitude_m:g}", transient=False)
+        if self._takeoff_target is not None and self._mode() is Mode.TAKEOFF:
+            return ACCEPTED  # taking off: not asked again
         if self.autopilot is Autopilot.ARDUPILOT:
+            # two steps, one per call: GUIDED, and once it is accepted (ArduPilot answers after
+            # switching), NAV_TAKEOFF
             guided = mode_request(self.autopilot, self.kind, Mode.OFFBOARD)
             if self._custom_mode() != guided.custom_mode:
                 ack = self.command(
@@ -324,18 +478,19 @@ class MavlinkVehicle:
                 )
                 if not ack.accepted:
                     return ack
-                self._set_override(mode=guided.custom_mode)
             param7 = float(altitude_m)  # ArduPilot: metres above home
         else:
             home = self.state.home_alt_m
             param7 = math.nan if home is None else home + float(altitude_m)  # PX4: AMSL
-        ack = self.command(
-            mavlink.MAV_CMD_NAV_TAKEOFF, 0.0, 0.0, 0.0, math.nan, math.nan, math.nan, param7
-        )
-        if ack.accepted:
+
+        def taking_off() -> None:
             self._takeoff_target = self._ground_z() + float(altitude_m)
             self.state.setpoint = None  # a take-off flies on its own
-        return ack
+
+        return self.command(
+            mavlink.MAV_CMD_NAV_TAKEOFF, 0.0, 0.0, 0.0, math.nan, math.nan, math.nan, param7,
+            on_accept=taking_off,
+        )  # fmt: skip
 
     def land(self) -> Ack:
         return self.set_mode(Mode.LAND)

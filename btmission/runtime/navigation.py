@@ -466,7 +466,7 @@ class Navigator:
                 return  # brake over the landing spot first: AUTO.LAND lands where it is
             if tel.mode is not Mode.LAND and tel.armed:
                 ack = self.backend.land()
-                if not ack.accepted:
+                if not ack.accepted and not ack.pending:  # (pending: asked again next step)
                     self._finish(False, ack.reason)
             if tel.landed and not tel.armed:
                 self._finish(True)

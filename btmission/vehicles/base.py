@@ -75,12 +75,19 @@ class Ack:
     task back. A **final** one (``transient`` false: a command or mode the vehicle does not
     have, a value out of range, a battery too low to fly) is not retried: the leaf fails at
     once and the task goes to another agent. ``transient`` is meaningless on an accepted Ack.
+
+    A provider whose commands travel (MAVLink) does not wait for the answer: the first call
+    sends the command and returns a **pending** Ack (not accepted, transient, ``pending``: the
+    answer is not in yet); the caller calls again on a later tick and gets the answer once it
+    came (:meth:`waiting`).
     """
 
     accepted: bool
     reason: str = ""
     transient: bool = False
     """The refusal may be taken back later (class docstring); False: final."""
+    pending: bool = False
+    """Sent, its answer not in yet: ask again later (class docstring)."""
 
     def __bool__(self) -> bool:
         return self.accepted
@@ -89,6 +96,11 @@ class Ack:
     def refused(cls, reason: str, *, transient: bool) -> Ack:
         """A refusal, typed: ``transient`` (asking again later may work) or final."""
         return cls(False, reason, transient)
+
+    @classmethod
+    def waiting(cls, reason: str) -> Ack:
+        """Not answered yet (``reason``: what it waits for): transient and pending."""
+        return cls(False, reason, True, True)
 
 
 ACCEPTED = Ack(True)

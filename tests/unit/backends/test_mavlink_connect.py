@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from btmission.backends._pymavlink import mavlink
+from btmission.backends._pymavlink import CURRENT_MODE_ID, mavlink
 from btmission.backends.mavlink import MavlinkError, MavlinkProvider
 from btmission.backends.mavlink_connect import NOTE_AFTER_S
 from btmission.backends.mavlink_modes import Autopilot
@@ -151,11 +151,13 @@ def test_a_vehicle_of_the_wrong_type_stops_the_connect_at_once() -> None:
 
 @pytest.mark.parametrize("lose", [False, True], ids=["all answered", "one lost"])
 def test_answers_sent_together_are_told_apart(monkeypatch: pytest.MonkeyPatch, lose: bool) -> None:
-    # Like PX4, the vehicles refuse a faster HEARTBEAT. All seven stream requests go out at once
-    # and their answers are told apart by their order: the refusal is the HEARTBEAT's and each
-    # stream was asked once. When each vehicle loses the first request for its ATTITUDE stream,
-    # six answers come back and which one was lost is unknown: the seven are asked again one at
-    # a time, the refusal is still the HEARTBEAT's, and ATTITUDE streams.
+    # Like PX4, the vehicles refuse a faster HEARTBEAT; unlike PX4 v1.16, they have no
+    # CURRENT_MODE either. All eight stream requests go out at once and their answers are told
+    # apart by their order: the refusals are the HEARTBEAT's and CURRENT_MODE's (one note says
+    # how modes are seen) and each stream was asked once. When each vehicle loses the first
+    # request for its ATTITUDE stream, seven answers come back and which one was lost is
+    # unknown: the eight are asked again one at a time, the refusals are still those two, and
+    # ATTITUDE streams.
     heard: dict[tuple[int, int], int] = {}
     real = _SimulatedAutopilot._command
 
@@ -163,7 +165,7 @@ def test_answers_sent_together_are_told_apart(monkeypatch: pytest.MonkeyPatch, l
         if msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             key = (self.spec.sysid, int(msg.param1))
             heard[key] = heard.get(key, 0) + 1
-            if key[1] == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
+            if key[1] in (mavlink.MAVLINK_MSG_ID_HEARTBEAT, CURRENT_MODE_ID):
                 return mavlink.MAV_RESULT_DENIED
             if lose and key[1] == mavlink.MAVLINK_MSG_ID_ATTITUDE and heard[key] == 1:
                 return None  # lost: no answer
@@ -182,9 +184,10 @@ def test_answers_sent_together_are_told_apart(monkeypatch: pytest.MonkeyPatch, l
                 mavlink.MAVLINK_MSG_ID_ATTITUDE,
                 mavlink.MAVLINK_MSG_ID_ESTIMATOR_STATUS,
             }
-    refused = sorted(line for line in said if "not available" in line)
+    refused = sorted(line for line in said if "available" in line)
     assert refused == [
-        f"R{i}: stream HEARTBEAT not available (MAV_CMD_SET_MESSAGE_INTERVAL: MAV_RESULT_DENIED)"
+        f"R{i}: modes are seen at the autopilot's own HEARTBEAT rate (neither a faster HEARTBEAT "
+        "nor CURRENT_MODE is available)"
         for i in (1, 2, 3)
     ]
     sends = 2 if lose else 1

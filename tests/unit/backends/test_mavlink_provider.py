@@ -22,7 +22,7 @@ from btmission.backends.mavlink_url import MavlinkAddress
 from btmission.mavsim import MavSim
 from btmission.spec.vehicleref import VehicleRef
 from btmission.vehicles.base import Backend, Mode, VehicleKind
-from tests.mavlink_helpers import SIMS, SPEED, free_port, mavsim, provider, spec
+from tests.mavlink_helpers import SIMS, SPEED, answer, free_port, mavsim, provider, spec
 
 # Timed against mavsim's clock (scaled real time): `make test` runs these alone, after the tests
 # it spreads over the CPUs, so that no other test's load decides an arming or a link timeout.
@@ -131,13 +131,15 @@ def test_a_udp_port_another_ground_station_holds_is_refused() -> None:
 def test_px4_offboard_rules_and_a_flight() -> None:
     with mavsim(PX4) as sim, provider() as p:
         b = attach(p, sim)
-        ack = b.set_mode(Mode.OFFBOARD)  # nothing streamed yet
+        offboard = lambda: b.telemetry().mode is Mode.OFFBOARD  # noqa: E731
+        ack = answer(lambda: b.set_mode(Mode.OFFBOARD), offboard)  # nothing streamed yet
         assert not ack and ack.reason == (
             "MAV_CMD_DO_SET_MODE: MAV_RESULT_DENIED (Switching to Offboard is currently not available)"
         )
-        wait_for(p, 1.3, lambda: False, hold_here(b))
-        assert b.arm() and b.telemetry().armed
-        ack = b.set_mode(Mode.OFFBOARD)
+        keep = hold_here(b)
+        wait_for(p, 1.3, lambda: False, keep)
+        assert answer(b.arm, every=keep) and b.telemetry().armed
+        ack = answer(lambda: b.set_mode(Mode.OFFBOARD), offboard, keep)
         assert ack, ack.reason
         assert b.telemetry().mode is Mode.OFFBOARD
         goal = np.array([7.0, 5.0, 2.0])
@@ -146,7 +148,7 @@ def test_px4_offboard_rules_and_a_flight() -> None:
         assert not b.telemetry().landed and sim.vehicle_state("R1")["mode"] is Mode.OFFBOARD
         ack = b.disarm()
         assert not ack and "air" in ack.reason
-        assert b.land()
+        assert answer(b.land)
         assert wait_for(p, 10.0, lambda: b.telemetry().landed and not b.telemetry().armed)
 
 
@@ -154,8 +156,10 @@ def test_px4_offboard_rules_and_a_flight() -> None:
 def test_px4_offboard_loss_holds_where_it_was() -> None:
     with mavsim(PX4) as sim, provider() as p:
         b = attach(p, sim)
-        wait_for(p, 1.3, lambda: False, hold_here(b))
-        assert b.arm() and b.set_mode(Mode.OFFBOARD)
+        keep = hold_here(b)
+        wait_for(p, 1.3, lambda: False, keep)
+        assert answer(b.arm, every=keep)
+        assert answer(lambda: b.set_mode(Mode.OFFBOARD), every=keep)
         goal = np.array([5.0, 5.0, 2.0])
         assert wait_for(p, 6.0, lambda: abs(b.telemetry().position[2] - 2.0) < 0.15,
                         lambda: b.set_position_setpoint(goal))  # fmt: skip
@@ -170,12 +174,14 @@ def test_px4_offboard_loss_holds_where_it_was() -> None:
 def test_ardupilot_guided_climbs_on_nav_takeoff_sent_by_the_provider() -> None:
     with mavsim(ARDUPILOT) as sim, provider() as p:
         b = attach(p, sim)
-        assert b.arm()
+        assert answer(b.arm)
         ack = b.set_mode(Mode.OFFBOARD)  # GUIDED would take it: the backend keeps PX4's rule
         assert not ack and ack.reason.startswith("offboard refused: stream setpoints")
-        wait_for(p, 1.3, lambda: False, hold_here(b))
-        assert b.set_mode(Mode.OFFBOARD)
-        assert b.telemetry().mode is Mode.OFFBOARD
+        keep = hold_here(b)
+        wait_for(p, 1.3, lambda: False, keep)
+        assert answer(
+            lambda: b.set_mode(Mode.OFFBOARD), lambda: b.telemetry().mode is Mode.OFFBOARD, keep
+        )
         assert sim.vehicle_state("R1")["mode"] is Mode.OFFBOARD  # GUIDED
         goal = np.array([5.0, 5.0, 2.5])
         assert wait_for(
@@ -194,7 +200,7 @@ def test_ardupilot_takeoff_shows_as_takeoff_then_hold() -> None:
         b = attach(p, sim)
         ack = b.takeoff(2.0)
         assert not ack and ack.reason == "takeoff refused: not armed"
-        assert b.arm() and b.takeoff(2.0)
+        assert answer(b.arm) and answer(lambda: b.takeoff(2.0))
         assert wait_for(p, 1.0, lambda: b.telemetry().mode is Mode.TAKEOFF)
         assert wait_for(p, 8.0, lambda: b.telemetry().mode is Mode.HOLD)
         assert b.telemetry().height_above_ground == pytest.approx(2.0, abs=0.2)
@@ -232,7 +238,7 @@ def test_arducopter_hold_is_brake_and_holds_its_altitude() -> None:
 def test_arming_waits_for_the_ekf_with_the_autopilots_reason_and_a_back_off() -> None:
     with mavsim(ARDUPILOT, ekf_delay_s=20.0) as sim, provider(connect_timeout_s=1.0) as p:
         b = attach(p, sim)  # waits for the EKF as long as it may (1 s, 10 s at 10x), then goes on
-        ack = b.arm()
+        ack = answer(b.arm)
         assert not ack
         assert ack.reason == (
             "MAV_CMD_COMPONENT_ARM_DISARM: MAV_RESULT_FAILED (PreArm: EKF3 waiting for GPS config data)"
@@ -249,13 +255,13 @@ def test_attaching_waits_for_a_usable_estimate(autopilot: Autopilot) -> None:
         b = attach(p, sim)
         assert b.estimator_ready()  # type: ignore[attr-defined]
         assert sim.simulator.time_s >= 10.0
-        assert b.arm()  # at once: nothing left to refuse
+        assert answer(b.arm)  # at once: nothing left to refuse
 
 
 def test_a_failing_pre_arm_check_is_reported_by_px4() -> None:
     with mavsim(PX4, refuse_arm="Accel #0 inconsistent") as sim, provider() as p:
         b = attach(p, sim)
-        ack = b.arm()
+        ack = answer(b.arm)
         assert ack.reason == (
             "MAV_CMD_COMPONENT_ARM_DISARM: MAV_RESULT_DENIED (Preflight Fail: Accel #0 inconsistent)"
         )
@@ -286,7 +292,7 @@ def test_signed_links_fly_and_a_wrong_key_is_refused_and_counted() -> None:
     with mavsim(PX4, signing_key=KEY) as sim:
         with provider(signing_key=KEY) as p:
             b = attach(p, sim)
-            assert b.arm()
+            assert answer(b.arm)
             assert p.rejected() == {}
         with provider(signing_key=bytes(32), connect_timeout_s=1.0, ack_timeout_s=0.3) as p:
             with pytest.raises(MavlinkError, match="its messages are signed with another key"):
@@ -341,7 +347,8 @@ def test_two_vehicles_on_two_links_fly_independently() -> None:
             hold2()
 
         wait_for(p, 1.3, lambda: False, both)
-        assert r1.arm() and r1.set_mode(Mode.OFFBOARD)
+        assert answer(r1.arm, every=both)
+        assert answer(lambda: r1.set_mode(Mode.OFFBOARD), every=both)
         goal = np.array([5.0, 5.0, 1.5])
 
         def climb() -> None:

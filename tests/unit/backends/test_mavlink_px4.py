@@ -16,7 +16,7 @@ from btmission.mavsim import PX4_RANGE_ON_GROUND_CM
 from btmission.runtime.navigation import NavConfig, Navigator, NavState
 from btmission.spec.vehicleref import VehicleRef
 from btmission.vehicles.base import LandedState, Mode, VehicleKind
-from tests.mavlink_helpers import SPEED, mavsim, provider
+from tests.mavlink_helpers import SPEED, answer, mavsim, provider
 
 PX4 = Autopilot.PX4
 START = (5.0, 5.0, 0.0)
@@ -62,7 +62,9 @@ def test_a_px4_drone_whose_range_finder_reads_out_of_range_on_the_ground_takes_o
 
         nav.hold()
         step_for(1.5)  # the stream has run a second: OFFBOARD is accepted
-        assert b.arm() and b.set_mode(Mode.OFFBOARD)
+        keep = lambda: nav.step(time.monotonic() - t0)  # noqa: E731
+        assert answer(b.arm, every=keep)
+        assert answer(lambda: b.set_mode(Mode.OFFBOARD), every=keep)
         nav.takeoff()
         step_for(10.0, lambda: nav.status.state is not NavState.RUNNING)
         assert nav.status.command == "takeoff" and nav.status.state is NavState.ARRIVED
@@ -85,13 +87,15 @@ def test_a_px4_landing_is_told_by_its_landed_state_and_lands_at_px4s_speed() -> 
         while time.monotonic() < end:
             b.set_position_setpoint(np.array([5.0, 5.0, 2.0]))
             time.sleep(0.05 / SPEED)
-        assert b.arm() and b.set_mode(Mode.OFFBOARD)
+        keep = lambda: b.set_position_setpoint(np.array([5.0, 5.0, 2.0]))  # noqa: E731
+        assert answer(b.arm, every=keep)
+        assert answer(lambda: b.set_mode(Mode.OFFBOARD), every=keep)
         end = time.monotonic() + 8.0 / SPEED
         while abs(b.telemetry().position[2] - 2.0) > 0.1 and time.monotonic() < end:
             b.set_position_setpoint(np.array([5.0, 5.0, 2.0]))
             time.sleep(0.05 / SPEED)
         assert b.telemetry().landed_state is LandedState.IN_AIR
-        assert b.land()
+        assert answer(b.land)
         states, fastest, at_home = set(), 0.0, True
         end = time.monotonic() + 10.0 / SPEED
         while time.monotonic() < end:
@@ -117,7 +121,7 @@ def test_stopping_disarms_a_drone_armed_on_the_ground() -> None:
         p._progress = said.append
         ep = sim.endpoints[0]
         b = p.attach("R1", VehicleKind.MULTIROTOR, START, VehicleRef.parse(ep.url)).backend
-        assert b.arm() and sim.vehicle_state("R1")["armed"]
+        assert answer(b.arm) and sim.vehicle_state("R1")["armed"]
         acks = p.stop_vehicles()
         assert [bool(a) for a in acks["R1"]] == [True]
         assert not sim.vehicle_state("R1")["armed"]

@@ -49,7 +49,12 @@ class Client:
     def command(self, command: int, *params: float) -> Any:
         p = list(params) + [0.0] * (7 - len(params))
         self.conn.mav.command_long_send(1, 1, command, 0, *p)
-        return self.wait("COMMAND_ACK", command=command)
+        ack = self.wait("COMMAND_ACK", command=command)
+        if ack is not None and command == mavlink.MAV_CMD_DO_SET_MODE and self.ap is Autopilot.PX4:
+            # PX4 answers a mode change twice: ACCEPTED at once, then the real result
+            assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+            ack = self.wait("COMMAND_ACK", command=command)
+        return ack
 
     def set_mode(self, mode: Mode) -> Any:
         req = mode_request(self.ap, VehicleKind.MULTIROTOR, mode)

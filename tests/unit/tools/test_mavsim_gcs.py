@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from btmission.backends._pymavlink import mavlink, mavutil
+from btmission.backends._pymavlink import CURRENT_MODE_ID, mavlink, mavutil
 from btmission.backends.mavlink_frames import LocalFrame
 from btmission.backends.mavlink_modes import Autopilot, mode_of, mode_request, set_mode_params
 from btmission.backends.mavlink_setpoints import (
@@ -108,6 +108,10 @@ class Gcs:
         p = list(params) + [0.0] * (7 - len(params))
         self.mav.command_long_send(self.sysid if target is None else target, 1, command, 0, *p)
         ack = self.wait("COMMAND_ACK", timeout, lambda m: m.command == command)
+        if ack is not None and command == mavlink.MAV_CMD_DO_SET_MODE and self.autopilot is PX4:
+            # PX4 answers a mode change twice: ACCEPTED at once, then the real result
+            assert ack.result == ACCEPTED
+            ack = self.wait("COMMAND_ACK", timeout, lambda m: m.command == command)
         return None if ack is None else int(ack.result)
 
     def arm(self, force: bool = False) -> int | None:
@@ -239,6 +243,40 @@ def test_ardupilot_heartbeat_over_tcp() -> None:
         assert g.set_mode(Mode.OFFBOARD) == ACCEPTED
         assert g.wait("HEARTBEAT", cond=lambda m: m.custom_mode == 4) is not None  # GUIDED
         assert g.set_mode(Mode.OFFBOARD) == ACCEPTED  # already in GUIDED
+
+
+def test_px4_answers_a_mode_change_twice_the_second_answer_is_the_real_one() -> None:
+    """As PX4's MAVLink module and commander: ACCEPTED at once, then the refusal (with its
+    STATUSTEXT before it) — a ground station that takes the first answer reads a refused
+    OFFBOARD as accepted."""
+    with px4() as (_sim, [g]):
+        req = mode_request(PX4, VehicleKind.MULTIROTOR, Mode.OFFBOARD)
+        g.mav.command_long_send(1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0,
+                                *set_mode_params(PX4, req), 0, 0, 0, 0)  # fmt: skip
+        got = [m for m in g.pump(0.5) if m.get_type() in ("COMMAND_ACK", "STATUSTEXT")]
+        assert [(m.get_type(), getattr(m, "result", None)) for m in got] == [
+            ("COMMAND_ACK", ACCEPTED),
+            ("STATUSTEXT", None),
+            ("COMMAND_ACK", mavlink.MAV_RESULT_DENIED),
+        ]
+        assert got[1].text == "Switching to Offboard is currently not available"
+        assert g.mode() is Mode.MANUAL
+
+
+@pytest.mark.parametrize("autopilot", [PX4, APM], ids=lambda a: a.value)
+def test_heartbeat_cannot_be_sped_up_on_px4_and_current_mode_streams(autopilot: Autopilot) -> None:
+    """PX4 refuses SET_MESSAGE_INTERVAL for HEARTBEAT (it stays at 1 Hz); CURRENT_MODE comes at
+    the rate asked, with the heartbeat's ``custom_mode``."""
+    with px4() if autopilot is PX4 else ardupilot() as (_sim, [g]):
+        result = g.interval(mavlink.MAVLINK_MSG_ID_HEARTBEAT, 10)
+        assert result == (mavlink.MAV_RESULT_FAILED if autopilot is PX4 else ACCEPTED)
+        assert g.interval(CURRENT_MODE_ID, 20) == ACCEPTED
+        got = g.pump(1.0)
+        modes = [m for m in got if m.get_type() == "CURRENT_MODE"]
+        beats = [m for m in got if m.get_type() == "HEARTBEAT"]
+        assert len(modes) >= 10, len(modes)  # (20 Hz asked; a loaded machine may lag)
+        assert len(beats) <= 2 if autopilot is PX4 else len(beats) >= 5
+        assert {m.custom_mode for m in modes} == {beats[-1].custom_mode}
 
 
 def test_streams_only_when_asked_at_the_asked_rate() -> None:

@@ -28,7 +28,7 @@ import pytest
 
 from btmission.missions import load_mission_text
 from btmission.spec.vehicleref import VehicleRef
-from btmission.vehicles.base import Backend, Mode, Sensors, VehicleKind
+from btmission.vehicles.base import Ack, Backend, Mode, Sensors, VehicleKind
 from btmission.vehicles.provider import (
     Vehicle,
     VehicleEvent,
@@ -133,6 +133,30 @@ def advance(
     return events
 
 
+def answered(
+    provider: VehicleProvider,
+    call: Callable[[], Ack],
+    shown: Callable[[], bool] | None = None,
+    every_step: Callable[[], object] | None = None,
+    seconds: float = 30.0,
+) -> Ack:
+    """A command's answer. A provider whose commands travel (MAVLink) answers on a later call
+    (the first returns a pending Ack): the provider's time is let pass until the answer is in
+    and, when accepted, until ``shown()`` (the telemetry shows its effect), up to ``seconds``."""
+    end = provider.clock.now() + seconds
+    ack = call()
+    while ack.pending or (ack.accepted and shown is not None and not shown()):
+        if provider.clock.now() >= end:
+            break
+        advance(provider, STEP_S, every_step)
+        ack = call()
+    return ack
+
+
+def in_mode(backend: Backend, mode: Mode) -> Callable[[], bool]:
+    return lambda: backend.telemetry().mode is mode
+
+
 def streaming(backend: Backend, hz: float = 20.0) -> Callable[[], None]:
     """Hold-position setpoints at ``hz`` (called every step)."""
     every = max(1, round(1.0 / (hz * STEP_S)))
@@ -149,9 +173,12 @@ def streaming(backend: Backend, hz: float = 20.0) -> Callable[[], None]:
 
 def airborne(provider: VehicleProvider, backend: Backend, altitude_m: float = 2.0) -> None:
     """Stream, arm, switch to OFFBOARD and climb to ``altitude_m`` with position setpoints."""
-    advance(provider, 1.3, streaming(backend))
-    assert backend.arm(), "arm refused on the ground with setpoints streaming"
-    ack = backend.set_mode(Mode.OFFBOARD)
+    stream = streaming(backend)
+    advance(provider, 1.3, stream)
+    assert answered(provider, backend.arm, None, stream), "arm refused on the ground"
+    ack = answered(
+        provider, lambda: backend.set_mode(Mode.OFFBOARD), in_mode(backend, Mode.OFFBOARD), stream
+    )
     assert ack, ack.reason
     p = backend.telemetry().position
     goal = (float(p[0]), float(p[1]), float(p[2]) + altitude_m)
@@ -218,11 +245,13 @@ def test_offboard_is_refused_before_setpoints_stream(
     provider: VehicleProvider, attach: Callable[..., Vehicle]
 ) -> None:
     backend = attach().backend
-    ack = backend.set_mode(Mode.OFFBOARD)
+    offboard = in_mode(backend, Mode.OFFBOARD)
+    ack = answered(provider, lambda: backend.set_mode(Mode.OFFBOARD), offboard)
     assert not ack and ack.reason
     assert ack.transient  # once the setpoints stream, it is accepted: worth asking again
-    advance(provider, 0.5, streaming(backend))  # streaming, but not for a second yet
-    assert not backend.set_mode(Mode.OFFBOARD)
+    stream = streaming(backend)
+    advance(provider, 0.5, stream)  # streaming, but not for a second yet
+    assert not answered(provider, lambda: backend.set_mode(Mode.OFFBOARD), offboard, stream)
     assert backend.telemetry().mode is not Mode.OFFBOARD
 
 
@@ -230,16 +259,22 @@ def test_offboard_is_refused_below_2_hz(
     provider: VehicleProvider, attach: Callable[..., Vehicle]
 ) -> None:
     backend = attach().backend
-    advance(provider, 2.0, streaming(backend, hz=1.0))
-    assert not backend.set_mode(Mode.OFFBOARD)
+    stream = streaming(backend, hz=1.0)
+    advance(provider, 2.0, stream)
+    assert not answered(
+        provider, lambda: backend.set_mode(Mode.OFFBOARD), in_mode(backend, Mode.OFFBOARD), stream
+    )
 
 
 def test_offboard_is_accepted_after_a_second_of_setpoints(
     provider: VehicleProvider, attach: Callable[..., Vehicle]
 ) -> None:
     backend = attach().backend
-    advance(provider, 1.2, streaming(backend, hz=5.0))
-    ack = backend.set_mode(Mode.OFFBOARD)
+    stream = streaming(backend, hz=5.0)
+    advance(provider, 1.2, stream)
+    ack = answered(
+        provider, lambda: backend.set_mode(Mode.OFFBOARD), in_mode(backend, Mode.OFFBOARD), stream
+    )
     assert ack, ack.reason
     assert backend.telemetry().mode is Mode.OFFBOARD
 
@@ -278,8 +313,8 @@ def test_takeoff_is_refused_unless_armed(
     ack = backend.takeoff(2.0)
     assert not ack and "armed" in ack.reason and ack.transient
     assert backend.telemetry().mode is not Mode.TAKEOFF
-    assert backend.arm()
-    assert backend.takeoff(2.0)
+    assert answered(provider, backend.arm)
+    assert answered(provider, lambda: backend.takeoff(2.0))
     advance(provider, 8.0)
     tel = backend.telemetry()
     assert tel.mode is Mode.HOLD and not tel.landed
@@ -291,7 +326,7 @@ def test_land_descends_and_disarms(
 ) -> None:
     backend = attach().backend
     airborne(provider, backend)
-    assert backend.land()
+    assert answered(provider, backend.land)
     advance(provider, 1.0)
     tel = backend.telemetry()
     assert tel.mode is Mode.LAND and tel.velocity[2] < -0.2  # descending
@@ -305,7 +340,7 @@ def test_an_armed_vehicle_that_never_takes_off_disarms(
     provider: VehicleProvider, attach: Callable[..., Vehicle]
 ) -> None:
     backend = attach().backend
-    assert backend.arm()
+    assert answered(provider, backend.arm)
     advance(provider, 5.0)
     assert backend.telemetry().armed
     advance(provider, 6.0)  # > 10 s armed on the ground
