@@ -346,6 +346,7 @@ class MavlinkVehicle:
     def arm(self) -> Ack:
         if self._armed():
             return ACCEPTED  # already armed counts as success
+        self._takeoff_target = None  # disarmed: a take-off asked before is over
         ready = self._to_armable_mode()
         if not ready.accepted:
             return ready  # (pending while the mode change waits for its answer)
@@ -364,14 +365,7 @@ class MavlinkVehicle:
         if armable(self.autopilot, self.kind, self._custom_mode()):
             return ACCEPTED
         guided = mode_request(self.autopilot, self.kind, Mode.OFFBOARD)
-        return self.command(
-            mavlink.MAV_CMD_DO_SET_MODE,
-            *set_mode_params(self.autopilot, guided),
-            on_accept=self._forget_takeoff,
-        )
-
-    def _forget_takeoff(self) -> None:
-        self._takeoff_target = None
+        return self.command(mavlink.MAV_CMD_DO_SET_MODE, *set_mode_params(self.autopilot, guided))
 
     def disarm(self) -> Ack:
         if not self._armed():

@@ -209,26 +209,26 @@ def test_ardupilot_takeoff_shows_as_takeoff_then_hold() -> None:
 def test_an_arducopter_that_landed_in_land_is_armed_from_guided_and_flies_again() -> None:
     with mavsim(ARDUPILOT) as sim, provider() as p:
         b = attach(p, sim)
-        assert b.arm() and b.takeoff(2.0)
+        assert answer(b.arm) and answer(lambda: b.takeoff(2.0))
         assert wait_for(p, 8.0, lambda: b.telemetry().mode is Mode.HOLD)
-        assert b.land()
+        assert answer(b.land, lambda: b.telemetry().mode is Mode.LAND)
         assert wait_for(p, 15.0, lambda: not b.telemetry().armed)  # landed, then disarmed
         assert sim.vehicle_state("R1")["mode"] is Mode.LAND  # ArduCopter stays in LAND
         assert wait_for(p, 1.0, lambda: b.telemetry().mode is Mode.LAND)
-        ack = b.arm()  # (LAND is not armable: the provider asks for GUIDED first)
+        ack = answer(b.arm)  # (LAND is not armable: the provider asks for GUIDED first)
         assert ack, ack.reason
-        assert sim.vehicle_state("R1")["armed"]
+        assert wait_for(p, 1.0, lambda: sim.vehicle_state("R1")["armed"])  # (mavsim's next step)
         assert sim.vehicle_state("R1")["mode"] is Mode.OFFBOARD  # GUIDED
-        assert b.takeoff(2.0)
+        assert answer(lambda: b.takeoff(2.0))
         assert wait_for(p, 8.0, lambda: b.telemetry().height_above_ground > 1.8)
 
 
 def test_arducopter_hold_is_brake_and_holds_its_altitude() -> None:
     with mavsim(ARDUPILOT) as sim, provider() as p:
         b = attach(p, sim)
-        assert b.arm() and b.takeoff(3.0)
+        assert answer(b.arm) and answer(lambda: b.takeoff(3.0))
         assert wait_for(p, 8.0, lambda: b.telemetry().mode is Mode.HOLD)
-        assert b.set_mode(Mode.HOLD)
+        assert answer(lambda: b.set_mode(Mode.HOLD))
         assert sim.autopilots["R1"].custom_mode() == 17  # BRAKE, not LOITER
         wait_for(p, 10.0, lambda: False)
         assert b.telemetry().mode is Mode.HOLD
