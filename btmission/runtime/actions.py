@@ -47,6 +47,10 @@ class CommandRetrySettings:
     no retry)."""
     refusal_backoff_s: float = 2.0
     """The back-off before the first retry (s of mission time); it doubles after each one."""
+    takeover_is_final: bool = True
+    """A vehicle its autopilot's failsafe (or its pilot) took over makes its agent stand down
+    until the operator includes it again (false: a ``taken_over`` event, then the tree flies on
+    from the vehicle's state: it arms and launches a drone its failsafe landed)."""
 
 
 def point(value: Any) -> Point:

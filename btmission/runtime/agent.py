@@ -66,6 +66,7 @@ from btmission.links.bus import (
 )
 from btmission.plugins import Implementations
 from btmission.recursion import main_thread_limit, recursion_for_depth, recursion_limit
+from btmission.runtime.actions import CommandRetrySettings
 from btmission.runtime.eventkinds import (
     AgentTaskEvent,
     CommittedEvent,
@@ -649,14 +650,17 @@ class Agent:
         if mode in self._FLOWN or (mode is Mode.LAND and self.navigator.landing):
             return False
         who = "its autopilot's failsafe" if tel.failsafe else "its autopilot or its pilot"
-        self.stood_down = f"{who} switched the vehicle to {mode.value}"
         task = self.task
+        final = self.ctx.settings_of(CommandRetrySettings).takeover_is_final
         self._emit(
             TakenOverEvent(
-                agent=self.id, mode=mode.value, failsafe=tel.failsafe,
-                task=task.id if task is not None else None,
+                agent=self.id, mode=mode.value, failsafe=tel.failsafe, final=final,
+                task=task.id if task is not None and final else None,
             )
         )  # fmt: skip
+        if not final:
+            return False  # the mission says the tree flies on (runtime.settings)
+        self.stood_down = f"{who} switched the vehicle to {mode.value}"
         if task is not None:
             self._given_back.add(task.id)
             self._progress(task.id, "gave_up", now, self.stood_down)

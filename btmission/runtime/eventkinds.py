@@ -315,8 +315,11 @@ class TakenOverEvent(TypedEvent):
     """The mode the vehicle is in (``MANUAL`` for a mode of the pilot's: RTL, ALTCTL ...)."""
     failsafe: bool
     """The autopilot reports a failsafe (HEARTBEAT's system status CRITICAL/EMERGENCY)."""
+    final: bool
+    """The agent stood down (``runtime.settings.takeover_is_final``, the default); false: its
+    tree flies on."""
     task: str | None = optional()
-    """The task handed back to the pool."""
+    """The task handed back to the pool (when ``final``)."""
 
 
 @register_event

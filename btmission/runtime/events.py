@@ -68,8 +68,8 @@ and consumers read (``Event.typed()``: the report, the viewer's feed, a restarte
 ``vehicle_link``     an agent lost or heard again its vehicle's autopilot: ``agent``, ``up``,
                      ``mode`` (when it came back)
 ``taken_over``       an agent's vehicle was taken over by its autopilot's failsafe or its
-                     pilot, and the agent stands down: ``agent``, ``mode``, ``failsafe``,
-                     ``task`` (handed back)
+                     pilot: ``agent``, ``mode``, ``failsafe``, ``final`` (the agent stands
+                     down), ``task`` (handed back)
 ``clock``            an agent process set its clock to its coordinator's: ``agent``,
                      ``was_s``, ``now_s``
 ``signal``           a supervisor signal was set on an agent: ``agent``, ``name``, ``value``

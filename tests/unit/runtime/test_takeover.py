@@ -71,6 +71,7 @@ def test_a_failsafe_landing_is_final_and_the_task_goes_to_another() -> None:
     assert (ev.get("agent"), ev.get("mode"), ev.get("failsafe"), ev.get("task")) == (
         "R1", "LAND", True, "T1",
     )  # fmt: skip
+    assert ev.get("final") is True  # (runtime.settings.takeover_is_final: the default)
     (gave_up,) = [e for e in rec.of("progress") if e.get("event") == "gave_up"]
     assert gave_up.get("agent") == "R1" and "failsafe" in str(gave_up.get("reason"))
     done = [(e.get("agent"), e.get("task")) for e in rec.of("progress") if e.get("event") == "done"]
@@ -124,3 +125,24 @@ def test_an_offboard_loss_hold_in_flight_is_taken_back_with_a_warning() -> None:
     assert warning.get("agent") == "R1" and warning.t >= when[0]
     done = [(e.get("agent"), e.get("task")) for e in rec.of("progress") if e.get("event") == "done"]
     assert done == [("R1", "T1")]
+
+
+def test_a_mission_may_say_its_tree_flies_on_after_a_takeover() -> None:
+    """``runtime.settings.takeover_is_final: false``: the takeover is logged (``final`` false)
+    and the agent does not stand down — its tree flies on from the vehicle's state, and the
+    task is done (by whoever the auction gives it)."""
+    rec = Recorder()
+    text = textwrap.dedent(MISSION).replace(
+        "runtime: {controller: track, max_duration_s: 300}",
+        "runtime: {controller: track, max_duration_s: 300, settings: {takeover_is_final: false}}",
+    )
+    run = MissionRun(load_mission_text(text, "m.yaml"), observers=[rec])
+    when = take_over_in_flight(run, rec)
+    result = run.run()
+    assert when and result.reason == "completed" and result.done == ["T1"]
+    (ev,) = rec.of("taken_over")
+    assert (ev.get("agent"), ev.get("final"), ev.get("task")) == ("R1", False, None)
+    assert run.agents["R1"].stood_down is None
+    assert not [e for e in rec.of("progress") if e.get("event") == "gave_up"]
+    later = [e.get("action") for e in rec.of("stage") if e.get("agent") == "R1" and e.t > ev.t]
+    assert later  # its tree went on
