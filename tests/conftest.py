@@ -12,6 +12,7 @@ from click.testing import CliRunner
 
 from btmission.plugins import load_library
 from btmission.spec.library import Library, load_library_text
+from tests.wallclock import WallClock
 
 if TYPE_CHECKING:
     from playwright.sync_api import Browser, Page
@@ -99,3 +100,11 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) ->
 
 
 _LOAD_AT_START = pytest.StashKey[float]()
+
+
+@pytest.fixture()
+def wall(monkeypatch: pytest.MonkeyPatch) -> WallClock:
+    """A wall clock the test moves by hand: ``time.monotonic`` reads ``wall.t``."""
+    clock = WallClock()
+    monkeypatch.setattr("time.monotonic", clock)
+    return clock

@@ -24,21 +24,12 @@ from btmission.backends.mavlink_modes import Autopilot, mode_request
 from btmission.backends.mavlink_url import MavlinkAddress
 from btmission.backends.mavlink_vehicle import ACCEPTED_HOLD_S, MavlinkVehicle
 from btmission.vehicles.base import Mode, VehicleKind
+from tests.wallclock import WallClock
 
 SCALE = 1.0
 ARM = mavlink.MAV_CMD_COMPONENT_ARM_DISARM
 SET_MODE = mavlink.MAV_CMD_DO_SET_MODE
 OFFBOARD = mode_request(Autopilot.PX4, VehicleKind.MULTIROTOR, Mode.OFFBOARD).custom_mode
-
-
-class WallClock:
-    """``time.monotonic`` as the test sets it."""
-
-    def __init__(self) -> None:
-        self.t = 1000.0
-
-    def __call__(self) -> float:
-        return self.t
 
 
 class Wire:
@@ -59,13 +50,6 @@ class Wire:
 class Conn:
     def __init__(self) -> None:
         self.mav = Wire()
-
-
-@pytest.fixture
-def wall(monkeypatch: pytest.MonkeyPatch) -> WallClock:
-    clock = WallClock()
-    monkeypatch.setattr("time.monotonic", clock)
-    return clock
 
 
 @pytest.fixture

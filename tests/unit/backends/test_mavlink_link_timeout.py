@@ -20,26 +20,10 @@ from btmission.backends.mavlink_link import MavlinkOptions, _Link
 from btmission.backends.mavlink_url import MavlinkAddress
 from btmission.backends.mavlink_vehicle import MavlinkVehicle
 from btmission.vehicles.base import VehicleKind
+from tests.wallclock import WallClock
 
 SCALE = 4.0
 """The vehicles run four times faster than real time (a simulator's speed-up)."""
-
-
-class WallClock:
-    """``time.monotonic`` as the test sets it."""
-
-    def __init__(self) -> None:
-        self.t = 1000.0
-
-    def __call__(self) -> float:
-        return self.t
-
-
-@pytest.fixture
-def wall(monkeypatch: pytest.MonkeyPatch) -> WallClock:
-    clock = WallClock()
-    monkeypatch.setattr("time.monotonic", clock)
-    return clock
 
 
 @pytest.fixture
