@@ -11,6 +11,7 @@ The vehicles are the ``fake`` provider's, taken over with
 from __future__ import annotations
 
 import textwrap
+from pathlib import Path
 
 from btmission.backends.fake import FakeVehicle
 from btmission.missions import load_mission_text
@@ -146,3 +147,22 @@ def test_a_mission_may_say_its_tree_flies_on_after_a_takeover() -> None:
     assert not [e for e in rec.of("progress") if e.get("event") == "gave_up"]
     later = [e.get("action") for e in rec.of("stage") if e.get("agent") == "R1" and e.t > ev.t]
     assert later  # its tree went on
+
+
+def test_takeover_is_final_takes_only_true_or_false(tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from btmission.cli.main import cli
+
+    path = tmp_path / "m.yaml"
+    path.write_text(
+        textwrap.dedent(MISSION).replace(
+            "max_duration_s: 300}", "max_duration_s: 300, settings: {takeover_is_final: maybe}}"
+        )
+    )
+    result = CliRunner().invoke(cli, ["validate", str(path)])
+    assert result.exit_code == 2, result.output
+    assert (
+        "runtime.settings.takeover_is_final: expected true or false (got 'maybe')" in result.output
+    )
+    assert "Traceback" not in result.output
