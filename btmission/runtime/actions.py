@@ -21,7 +21,7 @@ from btmission.fastpaths.ticks import RUNNING as _RUNNING
 from btmission.fastpaths.ticks import SUCCESS as _SUCCESS
 from btmission.runtime.eventkinds import RetryEvent
 from btmission.runtime.leaves import AgentContext, StatefulAction
-from btmission.runtime.navigation import NavState
+from btmission.runtime.navconfig import NavState
 from btmission.runtime.paths import Route
 from btmission.vehicles.base import Ack, Mode
 

@@ -97,7 +97,8 @@ from btmission.runtime.leaves import (
     setup_failed,
 )
 from btmission.runtime.mission_auction import bidder_for_agent
-from btmission.runtime.navigation import Navigator, route_points
+from btmission.runtime.navconfig import route_points
+from btmission.runtime.navigation import Navigator
 from btmission.runtime.paths import PathCosts
 from btmission.runtime.substitution import Substitutions
 from btmission.runtime.treestatus import (

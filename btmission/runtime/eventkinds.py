@@ -453,7 +453,7 @@ class DispatchEvent(TypedEvent):
 @dataclass(frozen=True, kw_only=True)
 class RouteEvent(TypedEvent):
     """An agent adopted a new planned path (D*+), decimated to at most
-    :data:`~btmission.runtime.navigation.ROUTE_EVENT_POINTS` points."""
+    :data:`~btmission.runtime.navconfig.ROUTE_EVENT_POINTS` points."""
 
     KIND = "route"
     agent: str

@@ -2,7 +2,7 @@
 
 One record per command (hold, take off, follow a route, go to a local waypoint, track a moving
 reference, land), holding what the navigator needs to carry it out; ``name`` is what
-:attr:`NavStatus.command <btmission.runtime.navigation.NavStatus>` reports. Private to the
+:attr:`NavStatus.command <btmission.runtime.navconfig.NavStatus>` reports. Private to the
 navigator (and the fleet control step, :mod:`btmission.runtime.fleetstep`, which steps the
 drones following a route together).
 """

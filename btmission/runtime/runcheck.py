@@ -9,7 +9,7 @@ and what each library's own ``check_mission`` finds (:func:`library_problems`). 
 get a did-you-mean.
 
 Settings are declared (:mod:`btmission.settings`: a name, a type, a default, a doc) in two
-places: the run's own (the navigator's :class:`~btmission.runtime.navigation.NavConfig`, the
+places: the run's own (the navigator's :class:`~btmission.runtime.navconfig.NavConfig`, the
 tree events' :class:`~btmission.runtime.treestatus.TreeEventSettings` and the refused commands'
 :class:`~btmission.runtime.actions.CommandRetrySettings`: every run has them) and
 each library's implementations (``Implementations(settings=...)``: a frozen dataclass, or a
@@ -63,7 +63,7 @@ def declared_run_settings(mission: LoadedMission) -> dict[str, Setting]:
     type: a library may give a navigator setting its own default (``ground``: ``speed_m_s`` 0.4),
     not another type."""
     from btmission.runtime.actions import CommandRetrySettings
-    from btmission.runtime.navigation import NavConfig
+    from btmission.runtime.navconfig import NavConfig
     from btmission.runtime.treestatus import TreeEventSettings
 
     declared: dict[str, Setting] = {}

@@ -94,25 +94,12 @@ from btmission.runtime.ending import (
     result_of,
     why_finished,
 )
-from btmission.runtime.eventkinds import (
-    CollisionEvent,
-    PoseEvent,
-    ResumedEvent,
-    WarningEvent,
-)
-from btmission.runtime.events import (
-    EventStream,
-    GenericEvent,
-    Observer,
-    TypedEvent,
-    event_of,
-)
+from btmission.runtime.eventkinds import CollisionEvent, PoseEvent, ResumedEvent, WarningEvent
+from btmission.runtime.events import EventStream, GenericEvent, Observer, TypedEvent, event_of
 from btmission.runtime.fleetstep import FleetFollow
-from btmission.runtime.leaves import (
-    ErrorReporter,
-)
+from btmission.runtime.leaves import ErrorReporter
 from btmission.runtime.loops import AgentRuntime, CoordinatorRuntime
-from btmission.runtime.navigation import NavConfig
+from btmission.runtime.navconfig import NavConfig
 from btmission.runtime.pacing import Pacer
 from btmission.runtime.paths import PathCosts
 from btmission.runtime.prewarm import prewarm_run
@@ -121,10 +108,7 @@ from btmission.runtime.snapshot import RunSnapshot, SnapshotTaker
 from btmission.runtime.substitution import SubstitutionRules, Substitutions
 from btmission.settings import RunSettings
 from btmission.vehicles.clock import Clock, ManualClock
-from btmission.vehicles.provider import (
-    Vehicle,
-    VehicleProvider,
-)
+from btmission.vehicles.provider import Vehicle, VehicleProvider
 from btmission.world.voxel import VoxelMap
 
 SNAPSHOT_PERIOD_S = 0.04

@@ -99,3 +99,28 @@ def test_unit_tests_sit_under_their_package_and_system_tests_apart() -> None:
         assert (tests / "unit" / group / "__init__.py").is_file(), group
         assert list((tests / "unit" / group).glob("test_*.py")), f"tests/unit/{group} is empty"
     assert len(list((tests / "system").glob("test_*.py"))) > 0
+
+
+# --------------------------------------------------------------------------- module sizes
+MAX_MODULE_LINES = 800
+"""A module of btmission/ outside the tools layer stays under this many lines (issue #35): past
+it, split it where its parts separate (navigation → navconfig, mavlink_connect → mavlink_requests)."""
+MAX_LOOP_LINES = 500
+"""The run loop's module (runtime/runner.py) stays under this: building a run, commands, pacing,
+snapshots and the end live beside it."""
+TOOLS = ("btmission/bench/", "btmission/warmup.py", "btmission/scaffold", "btmission/mavsim.py")
+
+
+def module_sizes() -> dict[str, int]:
+    return {
+        p.relative_to(ROOT).as_posix(): len(p.read_text(encoding="utf-8").splitlines())
+        for p in sorted((ROOT / "btmission").rglob("*.py"))
+    }
+
+
+def test_no_module_below_the_tools_outgrows_its_budget() -> None:
+    sizes = module_sizes()
+    too_long = {f: n for f, n in sizes.items() if n > MAX_MODULE_LINES and not f.startswith(TOOLS)}
+    assert too_long == {}
+    assert sizes["btmission/runtime/runner.py"] < MAX_LOOP_LINES
+    assert any(f.startswith(TOOLS) and n > MAX_MODULE_LINES for f, n in sizes.items())  # sees them

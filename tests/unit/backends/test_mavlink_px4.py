@@ -13,7 +13,8 @@ import pytest
 from btmission.backends.mavlink_link import range_reading
 from btmission.backends.mavlink_modes import Autopilot
 from btmission.mavsim import PX4_RANGE_ON_GROUND_CM
-from btmission.runtime.navigation import NavConfig, Navigator, NavState
+from btmission.runtime.navconfig import NavConfig, NavState
+from btmission.runtime.navigation import Navigator
 from btmission.spec.vehicleref import VehicleRef
 from btmission.vehicles.base import LandedState, Mode, VehicleKind
 from tests.mavlink_helpers import SPEED, answer, mavsim, provider

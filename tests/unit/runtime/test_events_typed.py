@@ -59,7 +59,7 @@ from btmission.runtime.events import (
     register_event,
     world_reference,
 )
-from btmission.runtime.navigation import ROUTE_EVENT_POINTS, route_points
+from btmission.runtime.navconfig import ROUTE_EVENT_POINTS, route_points
 from btmission.runtime.observers import QueuedObserver
 from btmission.runtime.report import build_report, format_report, report_from_log, report_json
 from btmission.runtime.runner import MissionRun

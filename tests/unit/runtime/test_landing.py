@@ -11,7 +11,8 @@ from typing import Any
 import numpy as np
 
 from btmission.backends.sim import SimConfig, Simulator
-from btmission.runtime.navigation import LANDING_DRIFT_M, SETTLED_M_S, NavConfig, Navigator
+from btmission.runtime.navconfig import NavConfig
+from btmission.runtime.navigation import LANDING_DRIFT_M, SETTLED_M_S, Navigator
 from btmission.vehicles.base import LandedState, Mode, Telemetry
 from btmission.world.minegen import empty_world
 from btmission_library.aerial import landed_at_home

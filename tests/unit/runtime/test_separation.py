@@ -11,7 +11,8 @@ import numpy as np
 
 from btmission.backends.sim import Simulator
 from btmission.links.bus import InMemoryAgentLink, InMemoryBus, neighbour_states
-from btmission.runtime.navigation import Navigator, NavState
+from btmission.runtime.navconfig import NavState
+from btmission.runtime.navigation import Navigator
 from btmission.vehicles.base import Mode
 from btmission.world.voxel import OCCUPIED, VoxelMap
 

@@ -17,7 +17,7 @@ from click.testing import CliRunner
 
 from btmission.cli.main import cli
 from btmission.plugins import Implementations
-from btmission.runtime.navigation import SETTINGS_DOC, NavConfig
+from btmission.runtime.navconfig import SETTINGS_DOC, NavConfig
 from btmission.settings import (
     RunSettings,
     Setting,
