@@ -319,18 +319,39 @@ class LiveView:
 
 class _StderrNotes:
     """An observer printing a run's warnings and leaf errors on stderr, each once (the log
-    has every occurrence's details, the traceback of a leaf error too)."""
+    has every occurrence's details, the traceback of a leaf error too); and what happens to a
+    vehicle that the operator must see at once: its link lost and back, its autopilot taking it
+    over (up to :data:`LINK_NOTES` link changes per agent, then only in the log)."""
+
+    LINK_NOTES = 10
 
     def __init__(self) -> None:
-        from btmission.runtime.eventkinds import LeafErrorEvent, WarningEvent
+        from btmission.runtime.eventkinds import (
+            LeafErrorEvent,
+            TakenOverEvent,
+            VehicleLinkEvent,
+            WarningEvent,
+        )
 
         self._seen: set[str] = set()
-        self._kinds = (LeafErrorEvent.KIND, WarningEvent.KIND)
+        self._kinds = (
+            LeafErrorEvent.KIND,
+            WarningEvent.KIND,
+            VehicleLinkEvent.KIND,
+            TakenOverEvent.KIND,
+        )
+        self._lost_at: dict[str, float] = {}
+        self._link_notes: dict[str, int] = {}
 
     def on_event(self, ev: Event) -> None:
         if ev.kind not in self._kinds:
             return  # (first: this observer sees every event of the run, poses too)
-        from btmission.runtime.eventkinds import LeafErrorEvent, WarningEvent
+        from btmission.runtime.eventkinds import (
+            LeafErrorEvent,
+            TakenOverEvent,
+            VehicleLinkEvent,
+            WarningEvent,
+        )
 
         typed = ev.typed_or_none()
         if isinstance(typed, LeafErrorEvent):
@@ -342,11 +363,50 @@ class _StderrNotes:
         elif isinstance(typed, WarningEvent):
             line = f"warning: {typed.message}"
             key = line
+        elif isinstance(typed, VehicleLinkEvent):
+            self._link(typed, ev.t)
+            return
+        elif isinstance(typed, TakenOverEvent):
+            who = "its autopilot's failsafe" if typed.failsafe else "its autopilot or pilot"
+            then = (
+                "it stands down"
+                + (f" and {typed.task} goes back to the pool" if typed.task else "")
+                + " (the console's include brings it back)"
+                if typed.final
+                else "its tree flies on (takeover_is_final: false)"
+            )
+            click.echo(
+                f"warning: {typed.agent}: {who} switched the vehicle to {typed.mode} at "
+                f"t={ev.t:.1f} s: {then}",
+                err=True,
+            )
+            return
         else:
             return
         if key not in self._seen:
             self._seen.add(key)
             click.echo(line, err=True)
+
+    def _link(self, ev: Any, t: float) -> None:
+        agent = ev.agent
+        n = self._link_notes[agent] = self._link_notes.get(agent, 0) + 1
+        if not ev.up:
+            self._lost_at[agent] = t
+        if n > self.LINK_NOTES:
+            return
+        if ev.up:
+            lost = self._lost_at.pop(agent, None)
+            after = f" after {t - lost:.1f} s" if lost is not None else ""
+            mode = f" in {ev.mode}" if ev.mode else ""
+            line = f"{agent}: vehicle link back at t={t:.1f} s{after}{mode}"
+        else:
+            line = (
+                f"warning: {agent}: vehicle link lost at t={t:.1f} s (its autopilot is not "
+                "heard): its tree waits for it"
+            )
+        if n == self.LINK_NOTES:
+            line += f" (further link changes of {agent} only in the log)"
+        click.echo(line, err=True)
 
 
 def _confirm_real_vehicles(mission: Any, yes: bool) -> None:

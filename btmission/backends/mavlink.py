@@ -62,6 +62,7 @@ from btmission.backends.mavlink_frames import (
     agent_frame,
     mission_geodetic_origin,
 )
+from btmission.backends.mavlink_pauses import VehicleClockWatch
 from btmission.backends.mavlink_schedule import StreamStats
 from btmission.backends.mavlink_signing import load_key, signing_counters
 from btmission.backends.mavlink_url import parse_mavlink_url
@@ -120,6 +121,7 @@ class MavlinkProvider(ProviderBase):
         self._ground_at = ground_at
         self._progress = progress
         self.vehicles: dict[str, MavlinkVehicle] = {}
+        self._clock_watch = VehicleClockWatch(self.options.time_scale)
         self._closed = False
         self._connect = FleetConnect(
             self._io, self.clock, self.options, frames=self._frames, geodetic=geodetic,
@@ -199,18 +201,26 @@ class MavlinkProvider(ProviderBase):
         """Nothing to integrate: real time passes on its own. Returns a ``warning`` for each
         vehicle whose setpoint stream fell short since the last step (below 80 % of
         ``setpoint_hz`` over a second, or a gap over 0.2 s, vehicle time: at most one per
-        vehicle per 10 s). Raises if the I/O thread died."""
+        vehicle per 10 s), and for one heard again after a link loss whose own clock stood
+        still or went back meanwhile (:class:`~btmission.backends.mavlink_pauses.
+        VehicleClockWatch`). Raises if the I/O thread died."""
         self._check_io()
+        said: list[tuple[MavlinkVehicle, str]] = []
+        watch = self._clock_watch
+        for vehicle in self.vehicles.values():
+            text = watch.check(vehicle.id, vehicle.link_ok(), vehicle.state.boot)
+            if text is not None:
+                said.append((vehicle, text))
         warnings = self._io.take_warnings()
-        if not warnings:
-            return []
-        by_state = {id(v.state): v for v in self.vehicles.values()}
+        if warnings:
+            by_state = {id(v.state): v for v in self.vehicles.values()}
+            for st, text in warnings:
+                heard = by_state.get(id(st))
+                if heard is not None:  # (not: a vehicle being attached, its stream not begun)
+                    said.append((heard, text))
         now = self.clock.now()
         out = []
-        for st, text in warnings:
-            vehicle = by_state.get(id(st))
-            if vehicle is None:
-                continue  # a vehicle being attached: its stream has not started
+        for vehicle, text in said:
             p = vehicle.telemetry().position  # the world's frame
             out.append(
                 VehicleEvent(

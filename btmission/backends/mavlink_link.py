@@ -195,6 +195,9 @@ class _State:
     range_below_min: bool = False
     """Its last message read below its minimum distance (on or just above the ground)."""
     range_at: float = -math.inf
+    boot: tuple[float, float] | None = None
+    """The vehicle's own clock (LOCAL_POSITION_NED's ``time_boot_ms``, s) and the wall time it
+    was read: what tells a paused vehicle from a lost link (:class:`VehicleClockWatch`)."""
     home_alt_m: float | None = None
     global_origin: tuple[float, float, float] | None = None
     """The vehicle's EKF global origin (lat, lon, alt m), when it has told one."""
@@ -239,6 +242,12 @@ class _Link:
     second."""
     next_reconnect_wall: float = 0.0
     reconnecting: threading.Thread | None = None
+    read_wall: float = -math.inf
+    """When the I/O thread last found nothing more to read on this link (wall): a vehicle's
+    silence counts only up to then. A process that was itself stopped (``kill -STOP``, a long
+    pause of a busy machine) has not read what came meanwhile, and must not take the gap for a
+    lost link (:meth:`MavlinkVehicle.link_ok <btmission.backends.mavlink_vehicle.MavlinkVehicle.
+    link_ok>`)."""
 
     def __post_init__(self) -> None:
         if self.address.transport == "tcp":  # pymavlink would print and spin on a closed socket
@@ -406,6 +415,10 @@ class _LinkIO:
                         fds[fd] = link
                 timeout = max(0.0, next_due - time.monotonic())
                 ready, _, _ = select.select([self._wake_r, *fds], [], [], timeout)
+                looked = time.monotonic()
+                for fd, link in fds.items():
+                    if fd not in ready:
+                        link.read_wall = looked  # nothing came on it up to now
                 if self._wake_r in ready:
                     try:
                         os.read(self._wake_r, 4096)
@@ -475,6 +488,7 @@ class _LinkIO:
                 try:
                     data, addr = conn.port.recvfrom(65535)
                 except (BlockingIOError, InterruptedError):
+                    link.read_wall = time.monotonic()  # read to the end
                     return
                 except ConnectionRefusedError:  # an ICMP error of an earlier send
                     n += 1
@@ -491,6 +505,7 @@ class _LinkIO:
                 except (OSError, ConnectionError):
                     return
                 if not data:
+                    link.read_wall = time.monotonic()
                     return  # nothing more, or the peer closed it (_Link._closed)
                 msgs = conn.mav.parse_buffer(data) or ()
                 n += max(1, len(msgs))
@@ -502,6 +517,7 @@ class _LinkIO:
                 except (OSError, ConnectionError):
                     return
                 if msg is None:
+                    link.read_wall = time.monotonic()
                     return
                 n += 1
                 self._file(link, msg)
@@ -559,6 +575,7 @@ class _LinkIO:
             st.position = np.array([msg.x, msg.y, msg.z], dtype=float)
             st.velocity = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
             st.position_at = now
+            st.boot = (msg.time_boot_ms / 1000.0, time.monotonic())
         elif kind == "CURRENT_MODE":  # the mode between two 1 Hz heartbeats (PX4)
             if msg.custom_mode != st.custom_mode:
                 st.changes += 1

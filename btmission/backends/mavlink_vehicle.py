@@ -172,10 +172,17 @@ class MavlinkVehicle:
         return self.state.autopilot
 
     def link_ok(self) -> bool:
-        """A heartbeat came within the last ``heartbeat_timeout_s`` of wall time (not of the
-        vehicles' time: at ``time_scale`` 4, a 0.75 s pause of a busy machine is 3 s of theirs,
-        and the link did not fail)."""
-        return time.monotonic() - self.state.heartbeat_wall <= self.options.heartbeat_timeout_s
+        """A heartbeat came within ``heartbeat_timeout_s`` of wall time (not of the vehicles'
+        time: at ``time_scale`` 4, a 0.75 s pause of a busy machine is 3 s of theirs, and the
+        link did not fail) before the I/O thread last read the link to its end
+        (:attr:`_Link.read_wall <btmission.backends.mavlink_link._Link.read_wall>`). Silence is
+        counted up to then, not up to now: after btmission itself was stopped for 8 s, the
+        heartbeats of those 8 s wait unread in the socket, and the link was never lost (which
+        was logged as a loss and a recovery 0.025 s apart). A closed TCP link is silent up to
+        now."""
+        link = self.link
+        read = time.monotonic() if link.down else link.read_wall
+        return read - self.state.heartbeat_wall <= self.options.heartbeat_timeout_s
 
     def _armed(self) -> bool:
         st = self.state

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 from click.testing import CliRunner
 
 from btmission.cli.main import cli
@@ -132,3 +133,40 @@ def test_bad_noise_settings_exit_2_with_where_and_why(runner: CliRunner, tmp_pat
     assert "runtime.sim.pose_noise_m: Input should be greater than or equal to 0 (got -0.01)" in out
     assert "runtime.sim.heading_noise_rad: expected a finite number (got inf)" in out
     assert "nothing was run" in out and not (tmp_path / "logs").exists()
+
+
+def test_the_terminal_shows_a_vehicle_link_lost_and_back_and_a_takeover(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A field engineer watching ``btmission run`` sees at once what only the log had: a
+    vehicle's link lost and back (with how long), its autopilot taking it over, and a flapping
+    link is not allowed to flood the terminal."""
+    from btmission.cli.run_cmds import _StderrNotes
+    from btmission.runtime.events import Event
+
+    notes = _StderrNotes()
+    lines = [
+        '{"t":25.0178,"ev":"vehicle_link","agent":"R1","up":false}',
+        '{"t":35.2176,"ev":"vehicle_link","agent":"R1","up":true,"mode":"HOLD"}',
+        '{"t":35.4191,"ev":"taken_over","agent":"R1","mode":"LAND","failsafe":true,'
+        '"final":true,"task":"T1"}',
+        '{"t":36.0,"ev":"taken_over","agent":"R2","mode":"MANUAL","failsafe":false,"final":false}',
+        '{"t":36.5,"ev":"pose","agent":"R2","p":[0,0,0],"v":[0,0,0],"yaw":0,"mode":"HOLD",'
+        '"armed":true,"flying":true,"odometer_m":null,"clearance_m":null}',
+    ]
+    for line in lines:
+        notes.on_event(Event.from_json(line))
+    assert capsys.readouterr().err.splitlines() == [
+        "warning: R1: vehicle link lost at t=25.0 s (its autopilot is not heard): its tree "
+        "waits for it",
+        "R1: vehicle link back at t=35.2 s after 10.2 s in HOLD",
+        "warning: R1: its autopilot's failsafe switched the vehicle to LAND at t=35.4 s: it "
+        "stands down and T1 goes back to the pool (the console's include brings it back)",
+        "warning: R2: its autopilot or pilot switched the vehicle to MANUAL at t=36.0 s: its "
+        "tree flies on (takeover_is_final: false)",
+    ]
+    for i in range(30):  # a flapping link: 10 lines (the 9 before + this one), then the log only
+        notes.on_event(Event.from_json(f'{{"t":{40 + i},"ev":"vehicle_link","agent":"R1",'
+                                       f'"up":{"true" if i % 2 else "false"}}}'))  # fmt: skip
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 8 and err[-1].endswith("(further link changes of R1 only in the log)")

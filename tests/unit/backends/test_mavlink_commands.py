@@ -88,9 +88,9 @@ class Px4:
     """R1, a PX4 drone on the ground, as the provider sees it once connected; ``tell`` files
     what it sends as the I/O thread would."""
 
-    def __init__(self, p: MavlinkProvider) -> None:
+    def __init__(self, p: MavlinkProvider, wall: WallClock) -> None:
         self.p = p
-        self.link = _Link(MavlinkAddress("udp", "127.0.0.1", 14540), conn=Conn())
+        self.link = wall.read_on(_Link(MavlinkAddress("udp", "127.0.0.1", 14540), conn=Conn()))
         self.tell(heartbeat())
         self.vehicle = MavlinkVehicle(
             "R1", VehicleKind.MULTIROTOR, self.link, self.link.vehicles[1],
@@ -104,8 +104,8 @@ class Px4:
 
 
 @pytest.fixture
-def px4(provider: MavlinkProvider) -> Px4:
-    return Px4(provider)
+def px4(provider: MavlinkProvider, wall: WallClock) -> Px4:
+    return Px4(provider, wall)
 
 
 def test_a_temporarily_rejected_command_returns_at_once_and_is_sent_again_on_a_later_call(

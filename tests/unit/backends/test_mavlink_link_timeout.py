@@ -76,6 +76,7 @@ def test_a_wall_pause_shorter_than_the_timeout_keeps_the_link_whatever_time_scal
     provider: MavlinkProvider, wall: WallClock
 ) -> None:
     vehicle, link = connected(provider)
+    wall.read_on(link)  # (the I/O thread reads the link to its end all along)
     provider.start()
     for _ in range(8):  # heartbeats at 1 Hz of the vehicle's time: every 0.25 s of wall time
         wall.t += 0.25
@@ -91,6 +92,29 @@ def test_a_wall_pause_shorter_than_the_timeout_keeps_the_link_whatever_time_scal
     assert not vehicle.link_ok()
     provider._io._file(link, heartbeat())
     assert vehicle.link_ok()
+
+
+def test_btmission_stopped_itself_is_no_lost_link(
+    provider: MavlinkProvider, wall: WallClock
+) -> None:
+    """btmission stopped 8 s (``kill -STOP``, or a machine too busy to run it): the vehicle's
+    heartbeats of those 8 s wait in the socket. Until the I/O thread has read them the silence
+    is unknown, not a loss: before, the first step after the stall logged a loss and the next
+    one, 0.025 s later, its recovery."""
+    vehicle, link = connected(provider)
+    provider.start()
+    link.read_wall = wall.t
+    wall.t += 8.0  # stopped: nothing was read
+    assert vehicle.link_ok()
+    provider._io._file(link, heartbeat())  # the backlog read: heartbeats came all along
+    link.read_wall = wall.t
+    assert vehicle.link_ok()
+    wall.t += 3.1  # read to its end since, and nothing came: a vehicle that went silent
+    link.read_wall = wall.t
+    assert not vehicle.link_ok()
+    link.down = True  # a closed TCP link is silent up to now, read or not
+    link.read_wall = -1.0
+    assert not vehicle.link_ok()
 
 
 def test_what_came_while_connecting_is_stamped_at_the_start(
@@ -109,3 +133,49 @@ def test_what_came_while_connecting_is_stamped_at_the_start(
     wall.t += 0.5
     provider._io._file(link, position())
     assert vehicle.telemetry().time_s == pytest.approx(2.0)  # the mission's time from then on
+
+
+def position_at(boot_s: float) -> Any:
+    return _packed(
+        mavlink.MAVLink_local_position_ned_message(
+            int(boot_s * 1000), 1.0, 2.0, -3.0, 0.0, 0.0, 0.0
+        )
+    )
+
+
+def test_a_vehicle_that_stood_still_while_its_link_was_down_is_told_apart(
+    provider: MavlinkProvider, wall: WallClock
+) -> None:
+    """A SITL stopped 8 s of wall time (``kill -STOP``): its clock stopped too (lockstep) while
+    the mission's ran on 32 s (×4). Heard again, its clock says so, and the run warns that its
+    times include it; a vehicle whose link was lost but which flew on gets no such warning."""
+    _, link = connected(provider)
+    wall.read_on(link)
+    provider.start()
+
+    def heard(boot_s: float) -> None:
+        provider._io._file(link, heartbeat())
+        provider._io._file(link, position_at(boot_s))
+
+    heard(100.0)
+    assert provider.step(0.02) == []
+    wall.t += 8.0  # stopped: nothing came, the I/O thread read on
+    assert provider.step(0.02) == []  # (the loss: the agent logs it)
+    heard(100.1)  # its clock went on 0.1 s in 8 s of wall time (32 s of the mission's)
+    (event,) = provider.step(0.02)
+    assert event.kind == "warning" and event.vehicle == "R1"
+    assert event.message == (
+        "R1: its autopilot's clock stood still for 31.9 s of the 32.0 s its link was down (a "
+        "stopped or paused vehicle: a frozen SITL, a debugger); the mission's clock ran on, so "
+        "this run's times include 31.9 s of it standing still"
+    )
+    assert provider.step(0.02) == []  # said once
+    wall.t += 8.0  # lost again, and this time it flew on: its clock went on 32 s
+    assert provider.step(0.02) == []
+    heard(100.1 + 32.0)
+    assert provider.step(0.02) == []
+    wall.t += 5.0
+    provider.step(0.02)
+    heard(3.0)  # back with its clock at 3 s: it restarted
+    (event,) = provider.step(0.02)
+    assert "clock went back from 132.1 s to 3.0 s" in event.message
