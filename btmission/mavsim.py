@@ -22,15 +22,20 @@ firmware's SITL:
   PX4 answers a DO_SET_MODE twice, as the firmware does: ACCEPTED at once (its MAVLink module),
   then on the next step the real result (its commander), which may be a refusal;
 * **PX4 rules**: OFFBOARD only after setpoints have streamed at more than 2 Hz for a second
-  (DENIED otherwise), HOLD when they stop for ``COM_OF_LOSS_T`` (1 s), LAND when the ground
-  station's heartbeats stop for ``COM_DL_LOSS_T`` (10 s) while flying (``NAV_DLL_ACT`` = land;
-  like the firmware, only once a ground station has been heard),
+  (DENIED otherwise), HOLD when they stop for ``COM_OF_LOSS_T`` (1 s),
   NAV_TAKEOFF to an AMSL altitude, automatic disarming (the embedded simulator's rules,
   :mod:`btmission.backends.autopilot`);
 * **ArduPilot rules**: GUIDED (copter 4, rover 15) takes targets that do not time out (position)
   or stop after 3 s (velocity) or 1 s (attitude, ``GUID_TIMEOUT``); a landed copter leaves the
   ground only with NAV_TAKEOFF (altitude above home, in GUIDED, armed); arming needs the EKF;
-  the GCS failsafe (``FS_GCS_ENABLE``: no GCS heartbeat for 5 s while flying) lands;
+* **link-loss failsafes off, as the firmwares ship them**: PX4's ``NAV_DLL_ACT`` defaults to 0
+  (no data-link-loss action; read on PX4 v1.16 SITL's parameters) and ArduCopter's
+  ``FS_GCS_ENABLE`` to 0 (ArduCopter's source; on ArduCopter 4.7.0-dev SITL a copter whose
+  ground station froze for 8 s braked and flew on), so a vehicle that stops hearing its ground
+  station flies on. :attr:`MavSimConfig.datalink_loss_s` (``--datalink-loss``: PX4 lands after
+  ``COM_DL_LOSS_T``) and :attr:`MavSimConfig.gcs_failsafe_s` (``--gcs-failsafe``: ArduPilot
+  lands after ``FS_GCS_TIMEOUT``) turn them on; like the firmwares', they start once a ground
+  station has been heard, and only while flying;
 * **ArduCopter's modes** (:mod:`btmission.backends.mavlink_modes`): a copter keeps its mode when
   it disarms — one that landed in LAND stays in LAND, one in GUIDED stays in GUIDED — and
   refuses to arm in LAND, BRAKE and the other modes that do not allow it ("Arm: Mode not
@@ -172,10 +177,14 @@ class MavSimConfig:
     hover_thrust: float = 0.5
     home_amsl_m: float = 0.0
     offboard_loss_s: float = 1.0
-    datalink_loss_s: float = 10.0
-    """PX4 COM_DL_LOSS_T."""
-    gcs_failsafe_s: float = 5.0
-    """ArduPilot FS_GCS_TIMEOUT."""
+    datalink_loss_s: float | None = None
+    """PX4's data-link-loss failsafe: land after this many seconds without the ground station's
+    heartbeat (``NAV_DLL_ACT`` = land after ``COM_DL_LOSS_T``); None, the firmware's default
+    (``NAV_DLL_ACT`` 0), takes no action."""
+    gcs_failsafe_s: float | None = None
+    """ArduPilot's GCS failsafe: land after this many seconds without the ground station's
+    heartbeat (``FS_GCS_ENABLE`` = land after ``FS_GCS_TIMEOUT``); None, the firmware's default
+    (``FS_GCS_ENABLE`` 0), takes no action."""
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -183,6 +192,10 @@ class MavSimConfig:
             raise ValueError(f"speed must be in (0, 50], got {self.speed}")
         if self.refuse_arm_times < 0:
             raise ValueError(f"refuse_arm_times must be ≥ 0, got {self.refuse_arm_times}")
+        for name in ("datalink_loss_s", "gcs_failsafe_s"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be positive or None (off), got {value}")
         if not self.vehicles:
             raise ValueError("no vehicles to simulate")
 
@@ -787,18 +800,22 @@ class _SimulatedAutopilot:
             self.backend.set_velocity_setpoint(np.zeros(3), 0.0)
             return
         if self.autopilot is Autopilot.PX4:
+            dll = self.cfg.datalink_loss_s
             if (
                 flying
-                and self.gcs_heartbeat_at < t - self.cfg.datalink_loss_s
+                and dll is not None
+                and self.gcs_heartbeat_at < t - dll
                 and tel.mode is not Mode.LAND
             ):
                 self.backend.land()
                 self.failsafe_note = "data link lost: landing"
                 self.text(mavlink.MAV_SEVERITY_CRITICAL, "Failsafe: no GCS link, landing")
             return
+        gcs = self.cfg.gcs_failsafe_s
         if (
             flying
-            and self.gcs_heartbeat_at < t - self.cfg.gcs_failsafe_s
+            and gcs is not None
+            and self.gcs_heartbeat_at < t - gcs
             and tel.mode is not Mode.LAND
         ):
             self.backend.land()

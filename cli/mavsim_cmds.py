@@ -61,6 +61,16 @@ from btmission.cli.common import BadInput, FiniteFloat, handle_spec_errors
     "--ekf-delay", type=FiniteFloat(0, 3600), default=0.0, show_default=True,
     help="Seconds before the estimator is ready (arming and GUIDED refused until then).",
 )  # fmt: skip
+@click.option(
+    "--datalink-loss", type=FiniteFloat(0, 3600, min_open=True), metavar="SECONDS",
+    help="PX4: land after SECONDS without the ground station's heartbeat while flying "
+    "(NAV_DLL_ACT = land after COM_DL_LOSS_T) [default: off, as the firmware ships it].",
+)  # fmt: skip
+@click.option(
+    "--gcs-failsafe", type=FiniteFloat(0, 3600, min_open=True), metavar="SECONDS",
+    help="ArduPilot: land after SECONDS without the ground station's heartbeat while flying "
+    "(FS_GCS_ENABLE = land after FS_GCS_TIMEOUT) [default: off, as the firmware ships it].",
+)  # fmt: skip
 @click.option("--refuse-arm", default="", help="A pre-arm check that always fails with this text.")
 @click.option(
     "--refuse-arm-times", type=click.IntRange(0), default=0, show_default=True,
@@ -112,6 +122,8 @@ def mavsim(
     host: str,
     speed: float | None,
     ekf_delay: float,
+    datalink_loss: float | None,
+    gcs_failsafe: float | None,
     refuse_arm: str,
     refuse_arm_times: int,
     signing_key_file: Path | None,
@@ -194,7 +206,8 @@ def mavsim(
     config = MavSimConfig(
         specs, voxel_map, autopilot=ap, speed=speed, ekf_delay_s=ekf_delay,
         refuse_arm=refuse_arm, refuse_arm_times=refuse_arm_times, signing_key=key,
-        hover_thrust=hover_thrust, seed=seed,
+        hover_thrust=hover_thrust, seed=seed, datalink_loss_s=datalink_loss,
+        gcs_failsafe_s=gcs_failsafe,
     )  # fmt: skip
     try:
         sim = MavSim(config)

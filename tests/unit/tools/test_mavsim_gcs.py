@@ -411,7 +411,7 @@ def test_px4_offboard_after_a_second_of_streaming_then_hold_when_it_stops() -> N
 
 @pytest.mark.slow
 def test_px4_data_link_loss_lands() -> None:
-    with px4(speed=8.0) as (sim, [g]):
+    with px4(speed=8.0, datalink_loss_s=10.0) as (sim, [g]):  # NAV_DLL_ACT = land
         _takeoff_px4(sim, g)
         assert g.interval(mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 5) == ACCEPTED
         g.pump(0.6, g.heartbeat)  # 4.8 s simulated with a ground station: still flying
@@ -498,7 +498,7 @@ def test_ardupilot_position_targets_hold_and_velocity_targets_stop_after_3_s() -
 
 @pytest.mark.slow
 def test_ardupilot_gcs_failsafe_lands() -> None:
-    with ardupilot(speed=8.0) as (_sim, [g]):
+    with ardupilot(speed=8.0, gcs_failsafe_s=5.0) as (_sim, [g]):  # FS_GCS_ENABLE = land
         assert g.set_mode(Mode.OFFBOARD) == ACCEPTED
         assert g.arm() == ACCEPTED
         assert g.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 2.0) == ACCEPTED
@@ -871,7 +871,7 @@ def test_cli_prints_the_signing_counters_on_exit(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_no_link_loss_failsafe_before_a_ground_station_was_heard() -> None:
-    with ardupilot(speed=8.0) as (sim, [g]):
+    with ardupilot(speed=8.0, gcs_failsafe_s=5.0) as (sim, [g]):
         assert g.set_mode(Mode.OFFBOARD) == ACCEPTED
         assert g.arm() == ACCEPTED
         assert g.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 2.0) == ACCEPTED

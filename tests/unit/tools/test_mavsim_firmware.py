@@ -1,0 +1,142 @@
+"""mavsim rules taken from real SITL (issue #36 item 8: every difference between real SITL and
+mavsim becomes a mavsim rule with a test), stepped by hand where they can be (no thread, no
+wall clock): the link-loss failsafes are off unless asked for, as the firmwares ship them."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import pytest
+from click.testing import CliRunner
+
+from btmission.backends.mavlink_modes import Autopilot, mode_request
+from btmission.backends.mavlink_url import MavlinkAddress
+from btmission.cli.main import cli
+from btmission.mavsim import MavSim, MavSimConfig, VehicleSpec, _SimulatedAutopilot
+from btmission.vehicles.base import Mode, VehicleKind
+from btmission.world.minegen import empty_world
+from tests.mavlink_helpers import free_port
+
+PX4, APM = Autopilot.PX4, Autopilot.ARDUPILOT
+MULTI = VehicleKind.MULTIROTOR
+
+
+def _address(autopilot: Autopilot) -> MavlinkAddress:
+    if autopilot is PX4:  # (nobody listens there: what it sends is dropped)
+        return MavlinkAddress("udp", "127.0.0.1", free_port())
+    return MavlinkAddress("tcp", "127.0.0.1", 0)
+
+
+@contextmanager
+def stepped(autopilot: Autopilot, **config: Any) -> Iterator[MavSim]:
+    """One drone R1 at (5, 5, 0), not started: the test steps it with :func:`run`."""
+    spec = VehicleSpec("R1", MULTI, (5.0, 5.0, 0.0), _address(autopilot), 1)
+    sim = MavSim(MavSimConfig((spec,), empty_world((30, 30, 12), 0.5), autopilot=autopilot,
+                              **config))  # fmt: skip
+    try:
+        yield sim
+    finally:
+        sim.close()
+
+
+def run(sim: MavSim, seconds: float, gcs: bool = False) -> None:
+    """``seconds`` of simulated time, each step as ``MavSim.run_forever`` does it (``gcs``: a
+    ground station's heartbeat heard on every step)."""
+    end = sim.simulator.time_s + seconds
+    while sim.simulator.time_s < end - 1e-9:
+        for ap in sim.autopilots.values():
+            ap.receive()
+            if gcs:
+                ap.gcs_heartbeat_at = ap.now()
+        for ap in sim.autopilots.values():
+            ap.step()
+        sim.simulator.step()
+        for ap in sim.autopilots.values():
+            ap.send_due()
+
+
+def airborne(sim: MavSim, altitude: float = 3.0) -> _SimulatedAutopilot:
+    """R1 armed and hovering at ``altitude`` m (GUIDED on ArduPilot, HOLD after a take-off on
+    PX4), its ground station's last heartbeat heard just now."""
+    ap = sim.autopilots["R1"]
+    if ap.autopilot is APM:
+        assert ap._set_mode(mode_request(APM, MULTI, Mode.OFFBOARD).custom_mode) == 0
+        assert ap._arm_disarm(True, False) == 0
+        assert ap._takeoff(altitude) == 0
+    else:
+        assert ap._arm_disarm(True, False) == 0
+        assert ap._takeoff(ap.cfg.home_amsl_m + altitude) == 0
+    run(sim, 8.0, gcs=True)
+    assert ap.backend.telemetry().position[2] == pytest.approx(altitude, abs=0.2)
+    return ap
+
+
+# ---------------------------------------------------------------- 1. link-loss failsafes off
+@pytest.mark.parametrize("autopilot", [PX4, APM])
+def test_link_loss_failsafes_are_off_by_default_as_the_firmwares_ship_them(
+    autopilot: Autopilot,
+) -> None:
+    """PX4's NAV_DLL_ACT and ArduCopter's FS_GCS_ENABLE default to 0: a drone whose ground
+    station fell silent flies on (on ArduCopter SITL it braked in GUIDED and resumed)."""
+    with stepped(autopilot) as sim:
+        ap = airborne(sim)
+        mode = ap.backend.telemetry().mode
+        run(sim, 30.0)  # 3 × COM_DL_LOSS_T, 6 × FS_GCS_TIMEOUT without a heartbeat
+        state = sim.vehicle_state("R1")
+        assert state["armed"] and not state["landed"]
+        assert ap.backend.telemetry().mode is mode and not ap.failsafe_note
+
+
+@pytest.mark.parametrize(
+    ("autopilot", "option", "seconds", "note"),
+    [
+        (PX4, "datalink_loss_s", 10.0, "data link lost: landing"),
+        (APM, "gcs_failsafe_s", 5.0, "GCS failsafe: landing"),
+    ],
+)
+def test_a_link_loss_failsafe_asked_for_lands_after_its_timeout(
+    autopilot: Autopilot, option: str, seconds: float, note: str
+) -> None:
+    with stepped(autopilot, **{option: seconds}) as sim:
+        ap = airborne(sim)
+        run(sim, seconds - 0.5)
+        assert ap.backend.telemetry().mode is not Mode.LAND
+        run(sim, 1.0)
+        assert ap.backend.telemetry().mode is Mode.LAND and ap.failsafe_note == note
+
+
+def test_failsafe_timeouts_must_be_positive() -> None:
+    spec = VehicleSpec("R1", MULTI, (5.0, 5.0, 0.0), _address(APM), 1)
+    for bad in (0.0, -1.0, math.nan):
+        with pytest.raises(ValueError, match="gcs_failsafe_s must be positive or None"):
+            MavSimConfig((spec,), empty_world((10, 10, 5), 0.5), gcs_failsafe_s=bad)
+
+
+def _config_of(monkeypatch: pytest.MonkeyPatch, *args: str) -> MavSimConfig:
+    """The configuration ``btmission mavsim ARGS`` would serve (nothing is served)."""
+    import btmission.mavsim
+
+    seen: list[MavSimConfig] = []
+
+    def capture(config: MavSimConfig) -> None:
+        seen.append(config)
+        raise OSError("captured")
+
+    monkeypatch.setattr(btmission.mavsim, "MavSim", capture)
+    r = CliRunner().invoke(cli, ["mavsim", "--count", "1", *args])
+    assert r.exit_code == 2 and "captured" in r.output, r.output
+    return seen[0]
+
+
+def test_the_cli_turns_a_link_loss_failsafe_on_only_when_asked(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    config = _config_of(monkeypatch)
+    assert config.datalink_loss_s is None and config.gcs_failsafe_s is None
+    config = _config_of(monkeypatch, "--datalink-loss", "10", "--gcs-failsafe", "5")
+    assert (config.datalink_loss_s, config.gcs_failsafe_s) == (10.0, 5.0)
+    help_text = CliRunner().invoke(cli, ["mavsim", "--help"]).output
+    assert "NAV_DLL_ACT" in help_text and "FS_GCS_ENABLE" in help_text
