@@ -36,6 +36,10 @@ firmware's SITL:
   ``COM_DL_LOSS_T``) and :attr:`MavSimConfig.gcs_failsafe_s` (``--gcs-failsafe``: ArduPilot
   lands after ``FS_GCS_TIMEOUT``) turn them on; like the firmwares', they start once a ground
   station has been heard, and only while flying;
+* **landing as the firmwares land**: PX4 descends in AUTO.LAND at ~0.8 m/s near the ground,
+  says ON_GROUND and disarms 2 s later (``COM_DISARM_LAND``; PX4 v1.16 SIH); ArduCopter
+  descends in LAND at 0.5 m/s (``LAND_SPEED``) and disarms about 0.5 s after touchdown
+  (ArduCopter 4.7.0-dev SITL) — the embedded simulator's own 0.7 m/s and 2 s are neither;
 * **ArduCopter's modes** (:mod:`btmission.backends.mavlink_modes`): a copter keeps its mode when
   it disarms — one that landed in LAND stays in LAND, one in GUIDED stays in GUIDED — and
   refuses to arm in LAND, BRAKE and the other modes that do not allow it ("Arm: Mode not
@@ -124,6 +128,15 @@ range, i.e. no reading — a ground station that takes it as real puts the groun
 PX4_LAND_SPEED_M_S = 0.8
 """How fast a PX4 vehicle descends in AUTO.LAND near the ground (SIH: ~0.8 m/s, faster than the
 0.5 m/s a goal's arrival once asked for; the landed state says it is landing)."""
+PX4_DISARM_LAND_S = 2.0
+"""A landed PX4 vehicle disarms this long after touching down (``COM_DISARM_LAND``; PX4 v1.16
+SIH: landed state ON_GROUND, then disarmed 2 s later)."""
+COPTER_LAND_SPEED_M_S = 0.5
+"""How fast an ArduCopter descends in LAND near the ground (``LAND_SPEED``, 50 cm/s; ArduCopter
+4.7.0-dev SITL: 0.5 m/s)."""
+COPTER_DISARM_LAND_S = 0.5
+"""A landed ArduCopter disarms this long after touching down (ArduCopter 4.7.0-dev SITL: about
+0.5 s after touchdown, where PX4 waits 2 s)."""
 MAV_LANDED_STATE = {
     LandedState.UNDEFINED: mavlink.MAV_LANDED_STATE_UNDEFINED,
     LandedState.ON_GROUND: mavlink.MAV_LANDED_STATE_ON_GROUND,
@@ -976,9 +989,12 @@ class MavSim:
 
     def __init__(self, config: MavSimConfig) -> None:
         self.config = config
-        sim_config = SimConfig(step_s=config.step_s)
-        if config.autopilot is Autopilot.PX4:
-            sim_config = SimConfig(step_s=config.step_s, land_speed_m_s=PX4_LAND_SPEED_M_S)
+        px4 = config.autopilot is Autopilot.PX4
+        sim_config = SimConfig(
+            step_s=config.step_s,
+            land_speed_m_s=PX4_LAND_SPEED_M_S if px4 else COPTER_LAND_SPEED_M_S,
+            disarm_land_s=PX4_DISARM_LAND_S if px4 else COPTER_DISARM_LAND_S,
+        )
         self.simulator = Simulator(config.voxel_map, sim_config, seed=config.seed)
         self.autopilots: dict[str, _SimulatedAutopilot] = {}
         try:

@@ -12,11 +12,12 @@ from typing import Any
 import pytest
 from click.testing import CliRunner
 
+from btmission.backends._pymavlink import mavlink
 from btmission.backends.mavlink_modes import Autopilot, mode_request
 from btmission.backends.mavlink_url import MavlinkAddress
 from btmission.cli.main import cli
 from btmission.mavsim import MavSim, MavSimConfig, VehicleSpec, _SimulatedAutopilot
-from btmission.vehicles.base import Mode, VehicleKind
+from btmission.vehicles.base import LandedState, Mode, VehicleKind
 from btmission.world.minegen import empty_world
 from tests.mavlink_helpers import free_port
 
@@ -72,6 +73,11 @@ def airborne(sim: MavSim, altitude: float = 3.0) -> _SimulatedAutopilot:
     run(sim, 8.0, gcs=True)
     assert ap.backend.telemetry().position[2] == pytest.approx(altitude, abs=0.2)
     return ap
+
+
+def _command_long(command: int, *params: float) -> Any:
+    p = [*params, *[0.0] * (7 - len(params))]
+    return mavlink.MAVLink_command_long_message(1, 1, command, 0, *p)
 
 
 # ---------------------------------------------------------------- 1. link-loss failsafes off
@@ -140,3 +146,39 @@ def test_the_cli_turns_a_link_loss_failsafe_on_only_when_asked(
     assert (config.datalink_loss_s, config.gcs_failsafe_s) == (10.0, 5.0)
     help_text = CliRunner().invoke(cli, ["mavsim", "--help"]).output
     assert "NAV_DLL_ACT" in help_text and "FS_GCS_ENABLE" in help_text
+
+
+# ---------------------------------------------------------------- 3. landing and disarming
+def _land_timing(sim: MavSim) -> tuple[float, float, float]:
+    """From 2 m up, a LAND: the fastest descent speed, the vehicle seconds until ON_GROUND, then
+    until disarmed."""
+    ap = airborne(sim, 2.0)
+    assert ap._command(_command_long(mavlink.MAV_CMD_NAV_LAND)) == mavlink.MAV_RESULT_ACCEPTED
+    t0 = ap.now()
+    on_ground = disarmed = math.nan
+    sink = 0.0
+    while math.isnan(disarmed) and ap.now() < t0 + 20.0:
+        run(sim, sim.config.step_s, gcs=True)
+        tel = ap.backend.telemetry()
+        sink = max(sink, -float(tel.velocity[2]))
+        if math.isnan(on_ground) and tel.landed_state is LandedState.ON_GROUND:
+            on_ground = ap.now()
+        if not math.isnan(on_ground) and not ap.armed():
+            disarmed = ap.now()
+    return sink, on_ground - t0, disarmed - on_ground
+
+
+@pytest.mark.parametrize(
+    ("autopilot", "speed", "disarm_s"),
+    [(APM, 0.5, 0.5), (PX4, 0.8, 2.0)],
+)
+def test_a_land_from_2_m_descends_and_disarms_as_the_firmware_does(
+    autopilot: Autopilot, speed: float, disarm_s: float
+) -> None:
+    """ArduCopter SITL descends at 0.5 m/s (LAND_SPEED) and disarms ~0.5 s after touchdown; PX4
+    SIH descends at ~0.8 m/s, says ON_GROUND and disarms 2 s later (COM_DISARM_LAND)."""
+    with stepped(autopilot) as sim:
+        sink, down, off = _land_timing(sim)
+        assert sink == pytest.approx(speed, abs=0.05)
+        assert 2.0 / speed <= down <= 2.0 / speed + 1.0  # (ArduPilot: ~4 s; 4.7 s here)
+        assert off == pytest.approx(disarm_s, abs=2.5 * sim.config.step_s)
