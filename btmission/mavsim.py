@@ -43,7 +43,9 @@ firmware's SITL:
 * **ArduCopter's modes** (:mod:`btmission.backends.mavlink_modes`): a copter keeps its mode when
   it disarms — one that landed in LAND stays in LAND, one in GUIDED stays in GUIDED — and
   refuses to arm in LAND, BRAKE and the other modes that do not allow it ("Arm: Mode not
-  armable", :data:`~btmission.backends.mavlink_modes.COPTER_NOT_ARMABLE`); BRAKE holds its
+  armable", :data:`~btmission.backends.mavlink_modes.COPTER_NOT_ARMABLE`); it accepts LAND
+  (DO_SET_MODE or NAV_LAND) while disarmed on the ground, as ArduCopter's ModeLand allows
+  entry there (ArduCopter's source); BRAKE holds its
   position and altitude; LOITER takes its climb rate from the throttle stick, and with no RC
   (SITL's default throttle is 1000 µs, the stick at the bottom) it sinks at
   :data:`LOITER_SINK_M_S` until it lands;
@@ -151,6 +153,8 @@ LOITER_SINK_M_S = 2.5
 COPTER_LOITER = 5
 """ArduCopter's LOITER (``custom_mode``): none of the backend's modes, simulated here on the
 simulator's HOLD (module docstring)."""
+COPTER_LAND = 9
+"""ArduCopter's LAND (``custom_mode``)."""
 SO_TIMESTAMPNS = 35
 """Linux's socket option for the kernel's receive time of each datagram (a ``struct timespec``
 in the ancillary data; Python's socket module does not name it)."""
@@ -566,6 +570,8 @@ class _SimulatedAutopilot:
         if c == mavlink.MAV_CMD_NAV_TAKEOFF:
             return self._takeoff(msg.param7)
         if c == mavlink.MAV_CMD_NAV_LAND:
+            if self.copter and not self.armed():  # LAND on the ground (_set_copter_mode)
+                return self._set_mode(COPTER_LAND)
             return self._result(self.backend.land())
         return mavlink.MAV_RESULT_UNSUPPORTED
 
@@ -636,6 +642,12 @@ class _SimulatedAutopilot:
         :meth:`_set_mode_of_backend`; the modes kept on disarming are left."""
         self.kept_land = False
         self.loiter = False
+        if custom == COPTER_LAND and not self.armed():
+            # ModeLand allows entry on the ground: a disarmed copter shows LAND (and refuses
+            # to arm there), on the simulator's MANUAL as a copter that landed in LAND does
+            self.backend.set_mode(Mode.MANUAL)
+            self.kept_land = True
+            return mavlink.MAV_RESULT_ACCEPTED
         if custom != COPTER_LOITER:
             return self._set_mode_of_backend(custom)
         if not self.ekf_ready():

@@ -182,3 +182,26 @@ def test_a_land_from_2_m_descends_and_disarms_as_the_firmware_does(
         assert sink == pytest.approx(speed, abs=0.05)
         assert 2.0 / speed <= down <= 2.0 / speed + 1.0  # (ArduPilot: ~4 s; 4.7 s here)
         assert off == pytest.approx(disarm_s, abs=2.5 * sim.config.step_s)
+
+
+# ---------------------------------------------------------------- 6. LAND on the ground
+def test_a_disarmed_arducopter_accepts_land_and_then_refuses_to_arm_in_it() -> None:
+    """ArduCopter's ModeLand allows entry on the ground: DO_SET_MODE LAND and NAV_LAND are
+    accepted while disarmed; the copter shows LAND (heartbeat) and, as in any LAND, refuses to
+    arm until it is put in another mode."""
+    land = mode_request(APM, MULTI, Mode.LAND).custom_mode
+    guided = mode_request(APM, MULTI, Mode.OFFBOARD).custom_mode
+    with stepped(APM) as sim:
+        ap = sim.autopilots["R1"]
+        assert ap._set_mode(land) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 1.0)
+        assert ap.custom_mode() == land and sim.vehicle_state("R1")["mode"] is Mode.LAND
+        assert ap._arm_disarm(True, False) == mavlink.MAV_RESULT_FAILED  # Mode not armable
+        assert ap._set_mode(guided) == mavlink.MAV_RESULT_ACCEPTED
+        nav_land = _command_long(mavlink.MAV_CMD_NAV_LAND)
+        assert ap._command(nav_land) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 1.0)
+        state = sim.vehicle_state("R1")
+        assert state["mode"] is Mode.LAND and state["landed"] and not state["armed"]
+        assert ap._set_mode(guided) == mavlink.MAV_RESULT_ACCEPTED
+        assert ap._arm_disarm(True, False) == mavlink.MAV_RESULT_ACCEPTED
