@@ -13,7 +13,9 @@ firmware's SITL:
   ``custom_mode`` (:mod:`btmission.backends.mavlink_modes`) — faster when asked on ArduPilot;
   PX4 refuses (MAV_RESULT_FAILED) as the firmware does — other messages only when asked
   (``MAV_CMD_SET_MESSAGE_INTERVAL``, ``MAV_CMD_REQUEST_MESSAGE``): CURRENT_MODE (the mode
-  between heartbeats), LOCAL_POSITION_NED (in the
+  between heartbeats; PX4 only: ArduCopter 4.7.0-dev SITL refused its stream, DENIED with "No
+  ap_message for mavlink id (436)", and so does mavsim's ArduPilot,
+  :data:`ARDUPILOT_UNKNOWN_MESSAGES`), LOCAL_POSITION_NED (in the
   vehicle's NED frame, origin where it was spawned), ATTITUDE, EXTENDED_SYS_STATE, SYS_STATUS,
   BATTERY_STATUS, DISTANCE_SENSOR (downward; a PX4 vehicle on the ground reads 65533 cm, above
   its declared 10000 cm maximum, as PX4 SIH does), HOME_POSITION, EKF_STATUS_REPORT /
@@ -159,6 +161,10 @@ SO_TIMESTAMPNS = 35
 """Linux's socket option for the kernel's receive time of each datagram (a ``struct timespec``
 in the ancillary data; Python's socket module does not name it)."""
 _TIMESPEC = struct.Struct("@qq")
+ARDUPILOT_UNKNOWN_MESSAGES = frozenset({CURRENT_MODE_ID})
+"""Messages ArduCopter does not have (4.7.0-dev SITL answered SET_MESSAGE_INTERVAL for
+CURRENT_MODE, 436, with MAV_RESULT_DENIED and the STATUSTEXT "No ap_message for mavlink id
+(436)", and never sent it): asked for, they are refused likewise."""
 PX4_UDP_BASE = 14540
 ARDUPILOT_TCP_BASE = 5760
 BOOT_EPOCH_S = 0.0
@@ -302,6 +308,10 @@ class _SimulatedAutopilot:
         """The copter disarmed in LAND and stays in LAND (the simulator shows MANUAL)."""
         self.seen_mode = backend.telemetry().mode
         """The simulator's mode when :meth:`_track_mode` last looked."""
+        self.unknown_messages = (
+            ARDUPILOT_UNKNOWN_MESSAGES if self.autopilot is Autopilot.ARDUPILOT else frozenset()
+        )
+        """Messages the firmware does not have: a stream or a request of one is refused."""
 
     def _open(self, address: MavlinkAddress) -> Any:
         src = {"source_system": self.spec.sysid, "source_component": 1}
@@ -552,7 +562,11 @@ class _SimulatedAutopilot:
                 if self.autopilot is Autopilot.PX4:  # PX4 keeps it at 1 Hz ("stream not found")
                     return mavlink.MAV_RESULT_FAILED
                 self.heartbeat_s = 1.0 if interval_us <= 0 else interval_us / 1e6
+                self.next_heartbeat = min(self.next_heartbeat, self.now() + self.heartbeat_s)
                 return mavlink.MAV_RESULT_ACCEPTED
+            if msg_id in self.unknown_messages:  # ArduPilot: no ap_message for it
+                self.text(mavlink.MAV_SEVERITY_INFO, f"No ap_message for mavlink id ({msg_id})")
+                return mavlink.MAV_RESULT_DENIED
             if interval_us < 0:
                 self.intervals.pop(msg_id, None)
             else:
@@ -560,6 +574,8 @@ class _SimulatedAutopilot:
                 self.next_send[msg_id] = self.now()
             return mavlink.MAV_RESULT_ACCEPTED
         if c == mavlink.MAV_CMD_REQUEST_MESSAGE:
+            if int(msg.param1) in self.unknown_messages:
+                return mavlink.MAV_RESULT_FAILED  # (ArduPilot's answer, without a text)
             if not self._send_message(int(msg.param1)):
                 return mavlink.MAV_RESULT_UNSUPPORTED
             return mavlink.MAV_RESULT_ACCEPTED

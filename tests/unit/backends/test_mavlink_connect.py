@@ -21,11 +21,11 @@ from btmission.backends.mavlink_connect import NOTE_AFTER_S
 from btmission.backends.mavlink_modes import Autopilot
 from btmission.mavsim import MavSim, MavSimConfig, VehicleSpec, _SimulatedAutopilot
 from btmission.spec.vehicleref import VehicleRef
-from btmission.vehicles.base import VehicleKind
+from btmission.vehicles.base import Mode, VehicleKind
 from btmission.vehicles.provider import AttachRequest
 from btmission.world.minegen import empty_world
 from tests.load import margin
-from tests.mavlink_helpers import SPEED, address, free_port, mavsim, provider
+from tests.mavlink_helpers import SPEED, address, answer, free_port, mavsim, provider
 
 # Paced by the wall clock (mavsim's scaled real time, the connect's deadline): run alone.
 pytestmark = pytest.mark.serial
@@ -268,3 +268,35 @@ def test_an_unused_provider_closes_the_links_it_was_opening() -> None:
     p = MavlinkProvider()
     p.prepare([VehicleRef.parse(f"mavlink+tcp://127.0.0.1:{port}")])  # nothing listens there
     p.close()  # the retrying stops (the fixture checks)
+
+
+def test_an_arducopter_refusing_current_mode_connects_and_reads_modes_from_heartbeat(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # ArduCopter SITL answers SET_MESSAGE_INTERVAL for CURRENT_MODE with DENIED ("No ap_message
+    # for mavlink id (436)") and sends HEARTBEAT at 5 Hz when asked: the refusal is taken once,
+    # silently, and modes come from HEARTBEAT.
+    heard: dict[int, int] = {}
+    real = _SimulatedAutopilot._command
+
+    def command(self: _SimulatedAutopilot, msg: Any) -> int | None:
+        if msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+            heard[int(msg.param1)] = heard.get(int(msg.param1), 0) + 1
+        return real(self, msg)
+
+    monkeypatch.setattr(_SimulatedAutopilot, "_command", command)
+    said: list[str] = []
+    with mavsim(ARDUPILOT) as sim, provider() as p:
+        p._progress = said.append
+        [v] = p.attach_all(requests(sim))
+        b = v.backend
+        assert b.telemetry().mode is Mode.MANUAL  # STABILIZE
+        ack = answer(lambda: b.set_mode(Mode.HOLD), lambda: b.telemetry().mode is Mode.HOLD)
+        assert ack.accepted and b.telemetry().mode is Mode.HOLD  # (BRAKE, from HEARTBEAT)
+        assert sim.autopilots["R1"].heartbeat_s == pytest.approx(0.2)
+        assert CURRENT_MODE_ID not in sim.autopilots["R1"].intervals
+        requested = sim.simulator.time_s
+        while sim.simulator.time_s < requested + 3.0:  # time for any retry to show
+            threading.Event().wait(0.05)
+    assert heard[CURRENT_MODE_ID] == 1  # asked once, refused, not asked again
+    assert not [line for line in said if "CURRENT_MODE" in line or "not available" in line]
