@@ -8,7 +8,10 @@ Each vehicle is a :class:`~btmission.backends.sim.Simulator` vehicle (the same p
 firmware's SITL:
 
 * **transports** as the SITLs have them: PX4 sends to a client that listens on UDP
-  (``mavlink+udp://127.0.0.1:14540`` + i), ArduPilot listens on TCP (5760 + 10 i);
+  (``mavlink+udp://127.0.0.1:14540`` + i), ArduPilot listens on TCP (5760 + 10 i); system ids
+  too: PX4 instance i is sysid i + 1 (``MAV_SYS_ID``), every ArduPilot TCP vehicle sysid 1, as
+  each ArduCopter SITL instance was (4.7.0-dev, three instances) (:func:`sitl_sysid`; a URL's
+  ``?sysid=`` wins);
 * **HEARTBEAT** at 1 Hz with the firmware's ``autopilot``, ``type``, armed flag and
   ``custom_mode`` (:mod:`btmission.backends.mavlink_modes`) — faster when asked on ArduPilot;
   PX4 refuses (MAV_RESULT_FAILED) as the firmware does — other messages only when asked
@@ -1189,23 +1192,34 @@ def vehicles_in_a_row(
     kind: VehicleKind = VehicleKind.MULTIROTOR,
     origin: Sequence[float] = (5.0, 5.0, 0.0),
 ) -> tuple[VehicleSpec, ...]:
-    """``count`` vehicles 3 m apart along +x (``--count N``)."""
-    return tuple(
-        VehicleSpec(
-            f"V{i + 1}",
-            kind,
-            (float(origin[0]) + spacing_m * i, float(origin[1]), float(origin[2])),
-            default_address(autopilot, i, base_port, transport=transport, host=host),
-            i + 1,
+    """``count`` vehicles 3 m apart along +x (``--count N``), numbered as the SITLs number
+    them (:func:`sitl_sysid`)."""
+    out = []
+    for i in range(count):
+        address = default_address(autopilot, i, base_port, transport=transport, host=host)
+        start = (float(origin[0]) + spacing_m * i, float(origin[1]), float(origin[2]))
+        out.append(
+            VehicleSpec(f"V{i + 1}", kind, start, address, sitl_sysid(autopilot, address, i))
         )
-        for i in range(count)
-    )
+    return tuple(out)
 
 
-def mission_vehicles(mission: Any) -> tuple[VehicleSpec, ...]:
+def sitl_sysid(autopilot: Autopilot | None, address: MavlinkAddress, index: int) -> int:
+    """Vehicle ``index``'s system id as the SITLs give it: every ArduCopter SITL instance is
+    sysid 1, each on its own TCP port (ArduCopter 4.7.0-dev SITL, three instances), where PX4
+    SITL instance i is ``MAV_SYS_ID`` = i + 1. Vehicles sharing a UDP port need distinct ones,
+    so a UDP vehicle is i + 1 whatever the firmware."""
+    if autopilot is Autopilot.ARDUPILOT and address.transport == "tcp":
+        return 1
+    return index + 1
+
+
+def mission_vehicles(mission: Any, autopilot: Autopilot | None = None) -> tuple[VehicleSpec, ...]:
     """One vehicle per agent of ``mission`` whose backend is a ``mavlink+udp`` or
     ``mavlink+tcp`` URL, served at that URL (``--mission``): spawned at the agent's start, a
-    ground robot if its library drives one, sysid from the URL's ``?sysid=`` or 1."""
+    ground robot if its library drives one, sysid from the URL's ``?sysid=``, else as
+    ``autopilot``'s SITL numbers it (:func:`sitl_sysid`; the i-th such agent i + 1 when no
+    autopilot is given)."""
     from btmission.backends.mavlink_url import parse_mavlink_url
 
     out: list[VehicleSpec] = []
@@ -1218,7 +1232,8 @@ def mission_vehicles(mission: Any) -> tuple[VehicleSpec, ...]:
         impl = mission.library_of(agent.id).implementations
         kind = VehicleKind.of(impl.vehicle if impl is not None else None)
         start = (float(agent.start[0]), float(agent.start[1]), float(agent.start[2]))
-        out.append(VehicleSpec(agent.id, kind, start, address, address.sysid or len(out) + 1))
+        sysid = address.sysid or sitl_sysid(autopilot, address, len(out))
+        out.append(VehicleSpec(agent.id, kind, start, address, sysid))
     return tuple(out)
 
 

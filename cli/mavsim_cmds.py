@@ -183,6 +183,7 @@ def mavsim(
             )
         if autopilot is None and all(s.address.transport == "tcp" for s in specs):
             ap = Autopilot.ARDUPILOT
+        specs = mission_vehicles(mission, ap)  # (numbered as ap's SITLs number them)
         elsewhere = [s for s in specs if s.address.host != host]
         if elsewhere:
             far = elsewhere[0]

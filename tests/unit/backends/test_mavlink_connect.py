@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -19,17 +20,32 @@ from btmission.backends._pymavlink import CURRENT_MODE_ID, mavlink
 from btmission.backends.mavlink import MavlinkError, MavlinkProvider
 from btmission.backends.mavlink_connect import NOTE_AFTER_S
 from btmission.backends.mavlink_modes import Autopilot
-from btmission.mavsim import MavSim, MavSimConfig, VehicleSpec, _SimulatedAutopilot
+from btmission.mavsim import (
+    MavSim,
+    MavSimConfig,
+    VehicleSpec,
+    _SimulatedAutopilot,
+    mission_vehicles,
+)
 from btmission.spec.vehicleref import VehicleRef
 from btmission.vehicles.base import Mode, VehicleKind
 from btmission.vehicles.provider import AttachRequest
 from btmission.world.minegen import empty_world
 from tests.load import margin
-from tests.mavlink_helpers import SPEED, address, answer, free_port, mavsim, provider
+from tests.mavlink_helpers import (
+    SPEED,
+    address,
+    answer,
+    free_port,
+    mavsim,
+    mission_on_free_ports,
+    provider,
+)
 
 # Paced by the wall clock (mavsim's scaled real time, the connect's deadline): run alone.
 pytestmark = pytest.mark.serial
 
+ROOT = Path(__file__).resolve().parents[3]
 PX4, ARDUPILOT = Autopilot.PX4, Autopilot.ARDUPILOT
 
 
@@ -300,3 +316,25 @@ def test_an_arducopter_refusing_current_mode_connects_and_reads_modes_from_heart
             threading.Event().wait(0.05)
     assert heard[CURRENT_MODE_ID] == 1  # asked once, refused, not asked again
     assert not [line for line in said if "CURRENT_MODE" in line or "not available" in line]
+
+
+def test_three_arducopters_all_sysid_1_each_agent_gets_its_own(tmp_path: Path) -> None:
+    # As three ArduCopter SITLs (every instance is sysid 1, each on its own TCP port):
+    # missions/mine_inspection_ardupilot.yaml's three agents, on free ports.
+    from btmission.missions import load_mission
+
+    shipped = ROOT / "missions" / "mine_inspection_ardupilot.yaml"
+    specs = mission_vehicles(load_mission(mission_on_free_ports(shipped, tmp_path)), ARDUPILOT)
+    assert [s.sysid for s in specs] == [1, 1, 1]
+    with mavsim(ARDUPILOT, *specs) as sim, provider() as p:
+        vehicles = p.attach_all(requests(sim))
+        assert [v.id for v in vehicles] == ["R1", "R2", "R3"]
+        for v, s in zip(vehicles, specs, strict=True):
+            assert v.backend.state.sysid == 1  # type: ignore[attr-defined]
+            np.testing.assert_allclose(v.backend.telemetry().position, s.start, atol=0.05)
+        # each agent commands its own vehicle: R2's BRAKE reaches R2 alone
+        b = vehicles[1].backend
+        assert answer(lambda: b.set_mode(Mode.HOLD), lambda: b.telemetry().mode is Mode.HOLD)
+        assert [sim.vehicle_state(a)["mode"] for a in ("R1", "R2", "R3")] == [
+            Mode.MANUAL, Mode.HOLD, Mode.MANUAL,
+        ]  # fmt: skip

@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -16,11 +17,20 @@ from btmission.backends._pymavlink import mavlink
 from btmission.backends.mavlink_modes import Autopilot, mode_request
 from btmission.backends.mavlink_url import MavlinkAddress
 from btmission.cli.main import cli
-from btmission.mavsim import MavSim, MavSimConfig, VehicleSpec, _SimulatedAutopilot
+from btmission.mavsim import (
+    MavSim,
+    MavSimConfig,
+    VehicleSpec,
+    _SimulatedAutopilot,
+    mission_vehicles,
+    vehicles_in_a_row,
+)
+from btmission.missions import load_mission
 from btmission.vehicles.base import LandedState, Mode, VehicleKind
 from btmission.world.minegen import empty_world
 from tests.mavlink_helpers import free_port
 
+ROOT = Path(__file__).resolve().parents[3]
 PX4, APM = Autopilot.PX4, Autopilot.ARDUPILOT
 MULTI = VehicleKind.MULTIROTOR
 
@@ -121,7 +131,7 @@ def test_failsafe_timeouts_must_be_positive() -> None:
             MavSimConfig((spec,), empty_world((10, 10, 5), 0.5), gcs_failsafe_s=bad)
 
 
-def _config_of(monkeypatch: pytest.MonkeyPatch, *args: str) -> MavSimConfig:
+def _config_of(monkeypatch: pytest.MonkeyPatch, *args: str, count: bool = True) -> MavSimConfig:
     """The configuration ``btmission mavsim ARGS`` would serve (nothing is served)."""
     import btmission.mavsim
 
@@ -132,7 +142,7 @@ def _config_of(monkeypatch: pytest.MonkeyPatch, *args: str) -> MavSimConfig:
         raise OSError("captured")
 
     monkeypatch.setattr(btmission.mavsim, "MavSim", capture)
-    r = CliRunner().invoke(cli, ["mavsim", "--count", "1", *args])
+    r = CliRunner().invoke(cli, ["mavsim", *(["--count", "1"] if count else []), *args])
     assert r.exit_code == 2 and "captured" in r.output, r.output
     return seen[0]
 
@@ -205,3 +215,26 @@ def test_a_disarmed_arducopter_accepts_land_and_then_refuses_to_arm_in_it() -> N
         assert state["mode"] is Mode.LAND and state["landed"] and not state["armed"]
         assert ap._set_mode(guided) == mavlink.MAV_RESULT_ACCEPTED
         assert ap._arm_disarm(True, False) == mavlink.MAV_RESULT_ACCEPTED
+
+
+# ---------------------------------------------------------------- 5. system ids as the SITLs'
+def test_every_ardupilot_tcp_vehicle_is_sysid_1_and_px4_instance_i_is_i_plus_1(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """Every ArduCopter SITL instance is sysid 1, each on its own TCP port; PX4 SITL instance i
+    is MAV_SYS_ID i + 1. Vehicles sharing a UDP port still need distinct ones; a URL's
+    ``?sysid=`` wins."""
+    assert [s.sysid for s in vehicles_in_a_row(3, APM)] == [1, 1, 1]
+    assert [s.sysid for s in vehicles_in_a_row(3, PX4)] == [1, 2, 3]
+    assert [s.sysid for s in vehicles_in_a_row(3, APM, transport="udp")] == [1, 2, 3]
+    assert [s.sysid for s in vehicles_in_a_row(3, PX4, transport="tcp")] == [1, 2, 3]
+    shipped = ROOT / "missions" / "mine_inspection_ardupilot.yaml"
+    mission = load_mission(shipped)
+    assert [s.sysid for s in mission_vehicles(mission, APM)] == [1, 1, 1]
+    assert [s.sysid for s in mission_vehicles(mission, PX4)] == [1, 2, 3]
+    config = _config_of(monkeypatch, "--mission", str(shipped), count=False)
+    assert config.autopilot is APM and [s.sysid for s in config.vehicles] == [1, 1, 1]
+    text = shipped.read_text().replace("127.0.0.1:5770'", "127.0.0.1:5770?sysid=7'")
+    (tmp_path / "m.yaml").write_text(text)
+    config = _config_of(monkeypatch, "--mission", str(tmp_path / "m.yaml"), count=False)
+    assert [s.sysid for s in config.vehicles] == [1, 7, 1]
