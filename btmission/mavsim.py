@@ -57,8 +57,13 @@ firmware's SITL:
 * ground robots (PX4 rover, ArduRover) are armed over MAVLink and drive on velocity targets
   only when armed and in OFFBOARD / GUIDED;
 * only ``MAV_FRAME_LOCAL_NED`` position targets are simulated (others are ignored and counted);
-* faults for tests: an EKF that is not ready for a while (arming refused with the pre-arm
-  message, TEMPORARILY_REJECTED on PX4), a pre-arm check that always fails or fails the first N
+* **an estimator that starts as the SITLs' do, when asked**: for ``ekf_delay_s`` after start
+  (0 by default, for fast tests; :data:`SITL_EKF_DELAY_S`, ``--ekf-delay sitl``, is what the
+  SITLs took: 42 s ArduCopter, 30 s PX4) arming is refused with the pre-arm message
+  (TEMPORARILY_REJECTED on PX4), and no LOCAL_POSITION_NED is sent, asked for or not, as
+  ArduCopter sends none before EKF3 has an origin and PX4 none before its local position is
+  valid (``xy_valid``; its MAVLink stream's source);
+* faults for tests: a pre-arm check that always fails or fails the first N
   arming commands, a link that drops,
   MAVLink 2 signing (unsigned or badly signed messages dropped and counted).
 
@@ -164,6 +169,11 @@ SO_TIMESTAMPNS = 35
 """Linux's socket option for the kernel's receive time of each datagram (a ``struct timespec``
 in the ancillary data; Python's socket module does not name it)."""
 _TIMESPEC = struct.Struct("@qq")
+SITL_EKF_DELAY_S = {Autopilot.ARDUPILOT: 42.0, Autopilot.PX4: 30.0}
+"""How long each firmware's SITL took to have a position estimate (``--ekf-delay sitl``):
+ArduCopter 4.7.0-dev SITL, default parameters, took about 42 s of vehicle time before EKF3 used
+its simulated GPS (LOCAL_POSITION_NED only then: 10.4 s wall at ``--speedup 4``); PX4 v1.16 SIH
+was ready, in Hold with a position estimate, about 30 s after start (issue #36)."""
 ARDUPILOT_UNKNOWN_MESSAGES = frozenset({CURRENT_MODE_ID})
 """Messages ArduCopter does not have (4.7.0-dev SITL answered SET_MESSAGE_INTERVAL for
 CURRENT_MODE, 436, with MAV_RESULT_DENIED and the STATUSTEXT "No ap_message for mavlink id
@@ -192,7 +202,8 @@ class MavSimConfig:
     speed: float = 1.0
     step_s: float = 0.02
     ekf_delay_s: float = 0.0
-    """The estimator is not ready for this long after start (simulated seconds)."""
+    """The estimator is not ready for this long after start (simulated seconds; module
+    docstring; :data:`SITL_EKF_DELAY_S` what the SITLs took)."""
     refuse_arm: str = ""
     """A pre-arm check that always fails with this text (see :attr:`refuse_arm_times`)."""
     refuse_arm_times: int = 0
@@ -392,6 +403,11 @@ class _SimulatedAutopilot:
 
     def ekf_ready(self) -> bool:
         return self.now() >= self.cfg.ekf_delay_s
+
+    def position_known(self) -> bool:
+        """Whether it has a local position to send (LOCAL_POSITION_NED): once the estimator is
+        ready; before, neither firmware sends one (module docstring)."""
+        return self.ekf_ready()
 
     def custom_mode(self) -> int:
         mode = self.backend.telemetry().mode
@@ -933,6 +949,8 @@ class _SimulatedAutopilot:
             custom = self.custom_mode()
             self.send(lambda mav: mav.send(CurrentMode(0, custom, custom)))
         elif msg_id == mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
+            if not self.position_known():
+                return False
             p = fr.to_local(tel.position)
             v = fr.vector_to_local(tel.velocity)
             self.send(lambda mav: mav.local_position_ned_send(ms, *map(float, p), *map(float, v)))

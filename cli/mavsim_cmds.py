@@ -15,6 +15,18 @@ import click
 from btmission.cli.common import BadInput, FiniteFloat, handle_spec_errors
 
 
+class _EkfDelay(FiniteFloat):
+    """``--ekf-delay``: seconds in [0, 3600], or ``sitl`` (the firmware's SITL's)."""
+
+    def __init__(self) -> None:
+        super().__init__(0, 3600)
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        if isinstance(value, str) and value.strip().lower() == "sitl":
+            return "sitl"
+        return float(super().convert(value, param, ctx))
+
+
 @click.command("mavsim")
 @click.option(
     "--mission",
@@ -58,8 +70,10 @@ from btmission.cli.common import BadInput, FiniteFloat, handle_spec_errors
     "else 1]; the run's time_scale must match.",
 )
 @click.option(
-    "--ekf-delay", type=FiniteFloat(0, 3600), default=0.0, show_default=True,
-    help="Seconds before the estimator is ready (arming and GUIDED refused until then).",
+    "--ekf-delay", type=_EkfDelay(), default="0", show_default=True, metavar="SECONDS|sitl",
+    help="Seconds before the estimator is ready: arming and GUIDED refused, no "
+    "LOCAL_POSITION_NED until then. 'sitl': as long as the firmware's SITL took (ArduCopter "
+    "42 s, PX4 30 s of vehicle time).",
 )  # fmt: skip
 @click.option(
     "--datalink-loss", type=FiniteFloat(0, 3600, min_open=True), metavar="SECONDS",
@@ -121,7 +135,7 @@ def mavsim(
     port: int | None,
     host: str,
     speed: float | None,
-    ekf_delay: float,
+    ekf_delay: float | str,
     datalink_loss: float | None,
     gcs_failsafe: float | None,
     refuse_arm: str,
@@ -150,6 +164,7 @@ def mavsim(
     from btmission.backends.mavlink_modes import Autopilot
     from btmission.backends.mavlink_signing import SigningKeyError, load_key
     from btmission.mavsim import (
+        SITL_EKF_DELAY_S,
         MavSim,
         MavSimConfig,
         shared_endpoints,
@@ -204,6 +219,9 @@ def mavsim(
     if clashes:
         raise BadInput(f"{mission_path}: " + "; ".join(clashes))
     speed = 1.0 if speed is None else speed
+    if ekf_delay == "sitl":
+        ekf_delay = SITL_EKF_DELAY_S[ap]
+    assert isinstance(ekf_delay, float)
     config = MavSimConfig(
         specs, voxel_map, autopilot=ap, speed=speed, ekf_delay_s=ekf_delay,
         refuse_arm=refuse_arm, refuse_arm_times=refuse_arm_times, signing_key=key,

@@ -21,6 +21,7 @@ from btmission.backends.mavlink import MavlinkError, MavlinkProvider
 from btmission.backends.mavlink_connect import NOTE_AFTER_S
 from btmission.backends.mavlink_modes import Autopilot
 from btmission.mavsim import (
+    SITL_EKF_DELAY_S,
     MavSim,
     MavSimConfig,
     VehicleSpec,
@@ -338,3 +339,20 @@ def test_three_arducopters_all_sysid_1_each_agent_gets_its_own(tmp_path: Path) -
         assert [sim.vehicle_state(a)["mode"] for a in ("R1", "R2", "R3")] == [
             Mode.MANUAL, Mode.HOLD, Mode.MANUAL,
         ]  # fmt: skip
+
+
+@pytest.mark.parametrize("autopilot", [PX4, ARDUPILOT], ids=lambda a: a.value)
+def test_a_vehicle_whose_estimator_starts_as_sitls_does_connects_once_it_has_a_position(
+    autopilot: Autopilot,
+) -> None:
+    # --ekf-delay sitl at speed 50: no LOCAL_POSITION_NED for the first 42 s (ArduCopter) or
+    # 30 s (PX4) of vehicle time; the provider keeps waiting, then connects
+    delay = SITL_EKF_DELAY_S[autopilot]
+    with (
+        mavsim(autopilot, speed=50.0, ekf_delay_s=delay) as sim,
+        provider(speed=50.0, connect_timeout_s=10.0 * margin()) as p,
+    ):
+        [v] = p.attach_all(requests(sim))
+        assert sim.simulator.time_s >= delay
+        assert v.backend.estimator_ready()  # type: ignore[attr-defined]
+        np.testing.assert_allclose(v.backend.telemetry().position, (5.0, 5.0, 0.0), atol=0.05)

@@ -18,6 +18,7 @@ from btmission.backends.mavlink_modes import Autopilot, mode_request
 from btmission.backends.mavlink_url import MavlinkAddress
 from btmission.cli.main import cli
 from btmission.mavsim import (
+    SITL_EKF_DELAY_S,
     MavSim,
     MavSimConfig,
     VehicleSpec,
@@ -238,3 +239,46 @@ def test_every_ardupilot_tcp_vehicle_is_sysid_1_and_px4_instance_i_is_i_plus_1(
     (tmp_path / "m.yaml").write_text(text)
     config = _config_of(monkeypatch, "--mission", str(tmp_path / "m.yaml"), count=False)
     assert [s.sysid for s in config.vehicles] == [1, 7, 1]
+
+
+# ---------------------------------------------------------------- 7. estimator start-up
+@pytest.mark.parametrize("autopilot", [PX4, APM])
+def test_no_local_position_before_the_estimator_is_ready(autopilot: Autopilot) -> None:
+    """ArduCopter sends no LOCAL_POSITION_NED before EKF3 has an origin (SITL: ~42 s), PX4
+    none before its local position is valid (SIH: ready ~30 s after start): asked for at once,
+    the stream starts when the estimator is ready (``--ekf-delay sitl``)."""
+    delay = SITL_EKF_DELAY_S[autopilot]
+    with stepped(autopilot, ekf_delay_s=delay) as sim:
+        ap = sim.autopilots["R1"]
+        sent: list[float] = []
+        real = ap._send_message
+
+        def send(msg_id: int) -> bool:
+            done = real(msg_id)
+            if done and msg_id == mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
+                sent.append(ap.now())
+            return done
+
+        ap._send_message = send  # type: ignore[method-assign]
+        interval = _command_long(
+            mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 1e5
+        )
+        assert ap._command(interval) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, delay - 1.0)
+        assert sent == []
+        assert ap._arm_disarm(True, False) != mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 2.0)
+        assert sent and delay <= sent[0] < delay + 0.1
+        assert len(sent) == pytest.approx(10, abs=2)  # then at the 10 Hz asked
+
+
+@pytest.mark.parametrize(("autopilot", "seconds"), [("ardupilot", 42.0), ("px4", 30.0)])
+def test_the_cli_asks_for_the_sitls_estimator_start_up_by_name(
+    monkeypatch: pytest.MonkeyPatch, autopilot: str, seconds: float
+) -> None:
+    config = _config_of(monkeypatch, "--autopilot", autopilot, "--ekf-delay", "sitl")
+    assert config.ekf_delay_s == seconds == SITL_EKF_DELAY_S[Autopilot(autopilot)]
+    assert _config_of(monkeypatch, "--autopilot", autopilot).ekf_delay_s == 0.0  # (tests: fast)
+    assert _config_of(monkeypatch, "--ekf-delay", "2.5").ekf_delay_s == 2.5
+    r = CliRunner().invoke(cli, ["mavsim", "--count", "1", "--ekf-delay", "soon"])
+    assert r.exit_code == 2 and "--ekf-delay" in r.output
