@@ -70,6 +70,13 @@ firmware's SITL:
 Time runs ``speed`` times faster than the wall clock (``--speed``; PX4_SIM_SPEED_FACTOR and
 ArduPilot's ``--speedup`` do the same); every timeout and message rate is in simulated time.
 
+**A frozen simulator pauses its clock.** The SITLs are lockstep: frozen with ``kill -STOP`` and
+resumed with ``kill -CONT``, their clock resumes where it stopped, so the vehicle sees no link
+loss and takes no failsafe (ArduCopter 4.7.0-dev SITL frozen 8 s wall flew on; PX4 v1.16 SITL
+likewise). A step that finds the loop more than :data:`FREEZE_S` behind the wall clock drops the
+missed time (``paused_s``, printed at exit) instead of running the missed steps in a burst;
+smaller lateness (a busy machine) is still caught up, so the simulator keeps time under load.
+
 **Its own ground station only.** A UDP vehicle sends to the address it was given (where the
 ground station listens) and hears only that address; it moves to another one only on a valid
 MAVLink frame from there that is a ground station's HEARTBEAT (``MAV_TYPE_GCS``), correctly
@@ -181,6 +188,9 @@ CURRENT_MODE, 436, with MAV_RESULT_DENIED and the STATUSTEXT "No ap_message for 
 PX4_UDP_BASE = 14540
 ARDUPILOT_TCP_BASE = 5760
 BOOT_EPOCH_S = 0.0
+FREEZE_S = 1.0
+"""A simulator loop this many wall seconds behind was frozen (a ``kill -STOP``, a suspended
+machine, a debugger): it drops the missed time instead of catching up (module docstring)."""
 
 
 @dataclass(frozen=True)
@@ -1061,6 +1071,11 @@ class MavSim:
         self.error: BaseException | None = None
         self.steps = 0
         self.late_steps = 0
+        self.paused_s = 0.0
+        """Wall seconds the simulator was frozen and did not catch up (:meth:`run_forever`)."""
+        self.pauses = 0
+        self._wait: Callable[[float], object] = self._stop.wait
+        """How the loop waits for its next step (a test's hand-moved clock replaces it)."""
 
     @property
     def endpoints(self) -> list[Endpoint]:
@@ -1081,7 +1096,11 @@ class MavSim:
             self.error = exc
 
     def run_forever(self) -> None:
-        """Step the vehicles in (scaled) real time until :meth:`stop`."""
+        """Step the vehicles in (scaled) real time until :meth:`stop`. A step that finds the
+        loop less than :data:`FREEZE_S` behind the wall clock is late and the next ones catch
+        up; more, and the simulator was frozen (stopped, suspended): the missed wall time is
+        dropped (counted in :attr:`paused_s`) and the clock resumes where it stopped, as a
+        lockstep SITL's does (module docstring)."""
         cfg = self.config
         wall0 = time.monotonic()
         while not self._stop.is_set():
@@ -1096,7 +1115,11 @@ class MavSim:
             due = wall0 + self.simulator.time_s / cfg.speed
             delay = due - time.monotonic()
             if delay > 0:
-                self._stop.wait(delay)
+                self._wait(delay)
+            elif -delay > FREEZE_S:  # frozen: resume where it stopped
+                wall0 -= delay
+                self.paused_s -= delay
+                self.pauses += 1
             else:
                 self.late_steps += 1
 

@@ -262,6 +262,8 @@ def mavsim(
         for s, handler in previous.items():
             signal.signal(s, handler)
     late = f", {sim.late_steps} late step(s)" if sim.late_steps else ""
+    if sim.pauses:
+        late += f", paused {sim.paused_s:.1f} s wall in {sim.pauses} freeze(s)"
     if quiet:
         return
     click.echo(f"stopped after {sim.simulator.time_s:.1f} simulated s ({sim.steps} steps{late})")

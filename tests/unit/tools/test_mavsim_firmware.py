@@ -30,6 +30,7 @@ from btmission.missions import load_mission
 from btmission.vehicles.base import LandedState, Mode, VehicleKind
 from btmission.world.minegen import empty_world
 from tests.mavlink_helpers import free_port
+from tests.wallclock import WallClock
 
 ROOT = Path(__file__).resolve().parents[3]
 PX4, APM = Autopilot.PX4, Autopilot.ARDUPILOT
@@ -282,3 +283,59 @@ def test_the_cli_asks_for_the_sitls_estimator_start_up_by_name(
     assert _config_of(monkeypatch, "--ekf-delay", "2.5").ekf_delay_s == 2.5
     r = CliRunner().invoke(cli, ["mavsim", "--count", "1", "--ekf-delay", "soon"])
     assert r.exit_code == 2 and "--ekf-delay" in r.output
+
+
+# ---------------------------------------------------------------- 2. a frozen simulator
+def test_a_frozen_simulator_resumes_its_clock_where_it_stopped(wall: WallClock) -> None:
+    """A lockstep SITL frozen with kill -STOP resumes its clock where it stopped (ArduCopter
+    SITL frozen 8 s flew on, no failsafe). mavsim's loop, frozen 8 s of wall time, drops them
+    instead of running 400 late steps in a burst; frozen 0.5 s (a busy machine), it catches up.
+    The loop runs on a hand-moved wall clock: its waits move it, as do the freezes."""
+    with stepped(APM) as sim:
+        assert sim.paused_s == 0.0 and sim.pauses == 0  # (counted)
+        freezes = {2.0: 8.0, 4.0: 0.5}  # at this simulated time, frozen this many wall s
+        t0 = wall.t
+
+        def wait(delay: float) -> bool:
+            wall.t += delay
+            for at in [at for at in freezes if sim.simulator.time_s >= at]:
+                wall.t += freezes.pop(at)
+            if sim.simulator.time_s >= 6.0:
+                sim._stop.set()
+            return sim._stop.is_set()
+
+        sim._wait = wait
+        sim.run_forever()
+        assert sim.pauses == 1 and sim.paused_s == pytest.approx(8.0, abs=0.05)
+        assert sim.late_steps == pytest.approx(0.5 / sim.config.step_s, abs=2)  # caught up
+        # the wall time passed is the simulated time plus the freeze it dropped
+        assert wall.t - t0 == pytest.approx(sim.simulator.time_s + sim.paused_s, abs=0.05)
+
+
+def test_the_cli_says_how_long_the_simulator_was_frozen(monkeypatch: pytest.MonkeyPatch) -> None:
+    import btmission.mavsim
+
+    class Frozen:
+        """What a MavSim that was frozen once for 8.2 s reports when it stops."""
+
+        error = None
+        steps, late_steps, paused_s, pauses = 300, 3, 8.2, 1
+
+        def __init__(self, config: MavSimConfig) -> None:
+            self.endpoints: list[Any] = []
+            self.simulator = type("S", (), {"time_s": 6.0})()
+
+        def start(self) -> None: ...
+
+        def stop(self) -> None: ...
+
+        def counters(self) -> dict[str, Any]:
+            return {}
+
+    monkeypatch.setattr(btmission.mavsim, "MavSim", Frozen)
+    r = CliRunner().invoke(cli, ["mavsim", "--count", "1", "--duration", "0.01"])
+    assert r.exit_code == 0, r.output
+    assert r.output.splitlines()[-1] == (
+        "stopped after 6.0 simulated s (300 steps, 3 late step(s), paused 8.2 s wall in "
+        "1 freeze(s))"
+    )
