@@ -687,7 +687,7 @@ def test_cli_serves_until_sigterm(tmp_path: Path) -> None:
         c = mavutil.mavlink_connection(f"tcp:127.0.0.1:{port + 10}", source_system=255)
         try:
             hb = c.recv_match(type="HEARTBEAT", blocking=True, timeout=3)
-            assert hb is not None and hb.get_srcSystem() == 2
+            assert hb is not None and hb.get_srcSystem() == 1  # as every ArduCopter SITL
         finally:
             c.close()
         proc.send_signal(signal.SIGTERM)
