@@ -8,12 +8,17 @@ Each vehicle is a :class:`~btmission.backends.sim.Simulator` vehicle (the same p
 firmware's SITL:
 
 * **transports** as the SITLs have them: PX4 sends to a client that listens on UDP
-  (``mavlink+udp://127.0.0.1:14540`` + i), ArduPilot listens on TCP (5760 + 10 i);
+  (``mavlink+udp://127.0.0.1:14540`` + i), ArduPilot listens on TCP (5760 + 10 i); system ids
+  too: PX4 instance i is sysid i + 1 (``MAV_SYS_ID``), every ArduPilot TCP vehicle sysid 1, as
+  each ArduCopter SITL instance was (4.7.0-dev, three instances) (:func:`sitl_sysid`; a URL's
+  ``?sysid=`` wins);
 * **HEARTBEAT** at 1 Hz with the firmware's ``autopilot``, ``type``, armed flag and
   ``custom_mode`` (:mod:`btmission.backends.mavlink_modes`) — faster when asked on ArduPilot;
   PX4 refuses (MAV_RESULT_FAILED) as the firmware does — other messages only when asked
   (``MAV_CMD_SET_MESSAGE_INTERVAL``, ``MAV_CMD_REQUEST_MESSAGE``): CURRENT_MODE (the mode
-  between heartbeats), LOCAL_POSITION_NED (in the
+  between heartbeats; PX4 only: ArduCopter 4.7.0-dev SITL refused its stream, DENIED with "No
+  ap_message for mavlink id (436)", and so does mavsim's ArduPilot,
+  :data:`ARDUPILOT_UNKNOWN_MESSAGES`), LOCAL_POSITION_NED (in the
   vehicle's NED frame, origin where it was spawned), ATTITUDE, EXTENDED_SYS_STATE, SYS_STATUS,
   BATTERY_STATUS, DISTANCE_SENSOR (downward; a PX4 vehicle on the ground reads 65533 cm, above
   its declared 10000 cm maximum, as PX4 SIH does), HOME_POSITION, EKF_STATUS_REPORT /
@@ -22,32 +27,55 @@ firmware's SITL:
   PX4 answers a DO_SET_MODE twice, as the firmware does: ACCEPTED at once (its MAVLink module),
   then on the next step the real result (its commander), which may be a refusal;
 * **PX4 rules**: OFFBOARD only after setpoints have streamed at more than 2 Hz for a second
-  (DENIED otherwise), HOLD when they stop for ``COM_OF_LOSS_T`` (1 s), LAND when the ground
-  station's heartbeats stop for ``COM_DL_LOSS_T`` (10 s) while flying (``NAV_DLL_ACT`` = land;
-  like the firmware, only once a ground station has been heard),
+  (DENIED otherwise), HOLD when they stop for ``COM_OF_LOSS_T`` (1 s),
   NAV_TAKEOFF to an AMSL altitude, automatic disarming (the embedded simulator's rules,
   :mod:`btmission.backends.autopilot`);
 * **ArduPilot rules**: GUIDED (copter 4, rover 15) takes targets that do not time out (position)
   or stop after 3 s (velocity) or 1 s (attitude, ``GUID_TIMEOUT``); a landed copter leaves the
   ground only with NAV_TAKEOFF (altitude above home, in GUIDED, armed); arming needs the EKF;
-  the GCS failsafe (``FS_GCS_ENABLE``: no GCS heartbeat for 5 s while flying) lands;
+* **link-loss failsafes off, as the firmwares ship them**: PX4's ``NAV_DLL_ACT`` defaults to 0
+  (no data-link-loss action; read on PX4 v1.16 SITL's parameters) and ArduCopter's
+  ``FS_GCS_ENABLE`` to 0 (ArduCopter's source; on ArduCopter 4.7.0-dev SITL a copter whose
+  ground station froze for 8 s braked and flew on), so a vehicle that stops hearing its ground
+  station flies on. :attr:`MavSimConfig.datalink_loss_s` (``--datalink-loss``: PX4 lands after
+  ``COM_DL_LOSS_T``) and :attr:`MavSimConfig.gcs_failsafe_s` (``--gcs-failsafe``: ArduPilot
+  lands after ``FS_GCS_TIMEOUT``) turn them on; like the firmwares', they start once a ground
+  station has been heard, and only while flying;
+* **landing as the firmwares land**: PX4 descends in AUTO.LAND at ~0.8 m/s near the ground,
+  says ON_GROUND and disarms 2 s later (``COM_DISARM_LAND``; PX4 v1.16 SIH); ArduCopter
+  descends in LAND at 0.5 m/s (``LAND_SPEED``) and disarms about 0.5 s after touchdown
+  (ArduCopter 4.7.0-dev SITL) — the embedded simulator's own 0.7 m/s and 2 s are neither;
 * **ArduCopter's modes** (:mod:`btmission.backends.mavlink_modes`): a copter keeps its mode when
   it disarms — one that landed in LAND stays in LAND, one in GUIDED stays in GUIDED — and
   refuses to arm in LAND, BRAKE and the other modes that do not allow it ("Arm: Mode not
-  armable", :data:`~btmission.backends.mavlink_modes.COPTER_NOT_ARMABLE`); BRAKE holds its
+  armable", :data:`~btmission.backends.mavlink_modes.COPTER_NOT_ARMABLE`); it accepts LAND
+  (DO_SET_MODE or NAV_LAND) while disarmed on the ground, as ArduCopter's ModeLand allows
+  entry there (ArduCopter's source); BRAKE holds its
   position and altitude; LOITER takes its climb rate from the throttle stick, and with no RC
   (SITL's default throttle is 1000 µs, the stick at the bottom) it sinks at
   :data:`LOITER_SINK_M_S` until it lands;
 * ground robots (PX4 rover, ArduRover) are armed over MAVLink and drive on velocity targets
   only when armed and in OFFBOARD / GUIDED;
 * only ``MAV_FRAME_LOCAL_NED`` position targets are simulated (others are ignored and counted);
-* faults for tests: an EKF that is not ready for a while (arming refused with the pre-arm
-  message, TEMPORARILY_REJECTED on PX4), a pre-arm check that always fails or fails the first N
+* **an estimator that starts as the SITLs' do, when asked**: for ``ekf_delay_s`` after start
+  (0 by default, for fast tests; :data:`SITL_EKF_DELAY_S`, ``--ekf-delay sitl``, is what the
+  SITLs took: 42 s ArduCopter, 30 s PX4) arming is refused with the pre-arm message
+  (TEMPORARILY_REJECTED on PX4), and no LOCAL_POSITION_NED is sent, asked for or not, as
+  ArduCopter sends none before EKF3 has an origin and PX4 none before its local position is
+  valid (``xy_valid``; its MAVLink stream's source);
+* faults for tests: a pre-arm check that always fails or fails the first N
   arming commands, a link that drops,
   MAVLink 2 signing (unsigned or badly signed messages dropped and counted).
 
 Time runs ``speed`` times faster than the wall clock (``--speed``; PX4_SIM_SPEED_FACTOR and
 ArduPilot's ``--speedup`` do the same); every timeout and message rate is in simulated time.
+
+**A frozen simulator pauses its clock.** The SITLs are lockstep: frozen with ``kill -STOP`` and
+resumed with ``kill -CONT``, their clock resumes where it stopped, so the vehicle sees no link
+loss and takes no failsafe (ArduCopter 4.7.0-dev SITL frozen 8 s wall flew on; PX4 v1.16 SITL
+likewise). A step that finds the loop more than :data:`FREEZE_S` behind the wall clock drops the
+missed time (``paused_s``, printed at exit) instead of running the missed steps in a burst;
+smaller lateness (a busy machine) is still caught up, so the simulator keeps time under load.
 
 **Its own ground station only.** A UDP vehicle sends to the address it was given (where the
 ground station listens) and hears only that address; it moves to another one only on a valid
@@ -119,6 +147,15 @@ range, i.e. no reading — a ground station that takes it as real puts the groun
 PX4_LAND_SPEED_M_S = 0.8
 """How fast a PX4 vehicle descends in AUTO.LAND near the ground (SIH: ~0.8 m/s, faster than the
 0.5 m/s a goal's arrival once asked for; the landed state says it is landing)."""
+PX4_DISARM_LAND_S = 2.0
+"""A landed PX4 vehicle disarms this long after touching down (``COM_DISARM_LAND``; PX4 v1.16
+SIH: landed state ON_GROUND, then disarmed 2 s later)."""
+COPTER_LAND_SPEED_M_S = 0.5
+"""How fast an ArduCopter descends in LAND near the ground (``LAND_SPEED``, 50 cm/s; ArduCopter
+4.7.0-dev SITL: 0.5 m/s)."""
+COPTER_DISARM_LAND_S = 0.5
+"""A landed ArduCopter disarms this long after touching down (ArduCopter 4.7.0-dev SITL: about
+0.5 s after touchdown, where PX4 waits 2 s)."""
 MAV_LANDED_STATE = {
     LandedState.UNDEFINED: mavlink.MAV_LANDED_STATE_UNDEFINED,
     LandedState.ON_GROUND: mavlink.MAV_LANDED_STATE_ON_GROUND,
@@ -133,13 +170,27 @@ LOITER_SINK_M_S = 2.5
 COPTER_LOITER = 5
 """ArduCopter's LOITER (``custom_mode``): none of the backend's modes, simulated here on the
 simulator's HOLD (module docstring)."""
+COPTER_LAND = 9
+"""ArduCopter's LAND (``custom_mode``)."""
 SO_TIMESTAMPNS = 35
 """Linux's socket option for the kernel's receive time of each datagram (a ``struct timespec``
 in the ancillary data; Python's socket module does not name it)."""
 _TIMESPEC = struct.Struct("@qq")
+SITL_EKF_DELAY_S = {Autopilot.ARDUPILOT: 42.0, Autopilot.PX4: 30.0}
+"""How long each firmware's SITL took to have a position estimate (``--ekf-delay sitl``):
+ArduCopter 4.7.0-dev SITL, default parameters, took about 42 s of vehicle time before EKF3 used
+its simulated GPS (LOCAL_POSITION_NED only then: 10.4 s wall at ``--speedup 4``); PX4 v1.16 SIH
+was ready, in Hold with a position estimate, about 30 s after start (issue #36)."""
+ARDUPILOT_UNKNOWN_MESSAGES = frozenset({CURRENT_MODE_ID})
+"""Messages ArduCopter does not have (4.7.0-dev SITL answered SET_MESSAGE_INTERVAL for
+CURRENT_MODE, 436, with MAV_RESULT_DENIED and the STATUSTEXT "No ap_message for mavlink id
+(436)", and never sent it): asked for, they are refused likewise."""
 PX4_UDP_BASE = 14540
 ARDUPILOT_TCP_BASE = 5760
 BOOT_EPOCH_S = 0.0
+FREEZE_S = 1.0
+"""A simulator loop this many wall seconds behind was frozen (a ``kill -STOP``, a suspended
+machine, a debugger): it drops the missed time instead of catching up (module docstring)."""
 
 
 @dataclass(frozen=True)
@@ -161,7 +212,8 @@ class MavSimConfig:
     speed: float = 1.0
     step_s: float = 0.02
     ekf_delay_s: float = 0.0
-    """The estimator is not ready for this long after start (simulated seconds)."""
+    """The estimator is not ready for this long after start (simulated seconds; module
+    docstring; :data:`SITL_EKF_DELAY_S` what the SITLs took)."""
     refuse_arm: str = ""
     """A pre-arm check that always fails with this text (see :attr:`refuse_arm_times`)."""
     refuse_arm_times: int = 0
@@ -172,10 +224,14 @@ class MavSimConfig:
     hover_thrust: float = 0.5
     home_amsl_m: float = 0.0
     offboard_loss_s: float = 1.0
-    datalink_loss_s: float = 10.0
-    """PX4 COM_DL_LOSS_T."""
-    gcs_failsafe_s: float = 5.0
-    """ArduPilot FS_GCS_TIMEOUT."""
+    datalink_loss_s: float | None = None
+    """PX4's data-link-loss failsafe: land after this many seconds without the ground station's
+    heartbeat (``NAV_DLL_ACT`` = land after ``COM_DL_LOSS_T``); None, the firmware's default
+    (``NAV_DLL_ACT`` 0), takes no action."""
+    gcs_failsafe_s: float | None = None
+    """ArduPilot's GCS failsafe: land after this many seconds without the ground station's
+    heartbeat (``FS_GCS_ENABLE`` = land after ``FS_GCS_TIMEOUT``); None, the firmware's default
+    (``FS_GCS_ENABLE`` 0), takes no action."""
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -183,6 +239,10 @@ class MavSimConfig:
             raise ValueError(f"speed must be in (0, 50], got {self.speed}")
         if self.refuse_arm_times < 0:
             raise ValueError(f"refuse_arm_times must be ≥ 0, got {self.refuse_arm_times}")
+        for name in ("datalink_loss_s", "gcs_failsafe_s"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be positive or None (off), got {value}")
         if not self.vehicles:
             raise ValueError("no vehicles to simulate")
 
@@ -272,6 +332,10 @@ class _SimulatedAutopilot:
         """The copter disarmed in LAND and stays in LAND (the simulator shows MANUAL)."""
         self.seen_mode = backend.telemetry().mode
         """The simulator's mode when :meth:`_track_mode` last looked."""
+        self.unknown_messages = (
+            ARDUPILOT_UNKNOWN_MESSAGES if self.autopilot is Autopilot.ARDUPILOT else frozenset()
+        )
+        """Messages the firmware does not have: a stream or a request of one is refused."""
 
     def _open(self, address: MavlinkAddress) -> Any:
         src = {"source_system": self.spec.sysid, "source_component": 1}
@@ -349,6 +413,11 @@ class _SimulatedAutopilot:
 
     def ekf_ready(self) -> bool:
         return self.now() >= self.cfg.ekf_delay_s
+
+    def position_known(self) -> bool:
+        """Whether it has a local position to send (LOCAL_POSITION_NED): once the estimator is
+        ready; before, neither firmware sends one (module docstring)."""
+        return self.ekf_ready()
 
     def custom_mode(self) -> int:
         mode = self.backend.telemetry().mode
@@ -522,7 +591,11 @@ class _SimulatedAutopilot:
                 if self.autopilot is Autopilot.PX4:  # PX4 keeps it at 1 Hz ("stream not found")
                     return mavlink.MAV_RESULT_FAILED
                 self.heartbeat_s = 1.0 if interval_us <= 0 else interval_us / 1e6
+                self.next_heartbeat = min(self.next_heartbeat, self.now() + self.heartbeat_s)
                 return mavlink.MAV_RESULT_ACCEPTED
+            if msg_id in self.unknown_messages:  # ArduPilot: no ap_message for it
+                self.text(mavlink.MAV_SEVERITY_INFO, f"No ap_message for mavlink id ({msg_id})")
+                return mavlink.MAV_RESULT_DENIED
             if interval_us < 0:
                 self.intervals.pop(msg_id, None)
             else:
@@ -530,6 +603,8 @@ class _SimulatedAutopilot:
                 self.next_send[msg_id] = self.now()
             return mavlink.MAV_RESULT_ACCEPTED
         if c == mavlink.MAV_CMD_REQUEST_MESSAGE:
+            if int(msg.param1) in self.unknown_messages:
+                return mavlink.MAV_RESULT_FAILED  # (ArduPilot's answer, without a text)
             if not self._send_message(int(msg.param1)):
                 return mavlink.MAV_RESULT_UNSUPPORTED
             return mavlink.MAV_RESULT_ACCEPTED
@@ -540,6 +615,8 @@ class _SimulatedAutopilot:
         if c == mavlink.MAV_CMD_NAV_TAKEOFF:
             return self._takeoff(msg.param7)
         if c == mavlink.MAV_CMD_NAV_LAND:
+            if self.copter and not self.armed():  # LAND on the ground (_set_copter_mode)
+                return self._set_mode(COPTER_LAND)
             return self._result(self.backend.land())
         return mavlink.MAV_RESULT_UNSUPPORTED
 
@@ -610,6 +687,12 @@ class _SimulatedAutopilot:
         :meth:`_set_mode_of_backend`; the modes kept on disarming are left."""
         self.kept_land = False
         self.loiter = False
+        if custom == COPTER_LAND and not self.armed():
+            # ModeLand allows entry on the ground: a disarmed copter shows LAND (and refuses
+            # to arm there), on the simulator's MANUAL as a copter that landed in LAND does
+            self.backend.set_mode(Mode.MANUAL)
+            self.kept_land = True
+            return mavlink.MAV_RESULT_ACCEPTED
         if custom != COPTER_LOITER:
             return self._set_mode_of_backend(custom)
         if not self.ekf_ready():
@@ -787,18 +870,22 @@ class _SimulatedAutopilot:
             self.backend.set_velocity_setpoint(np.zeros(3), 0.0)
             return
         if self.autopilot is Autopilot.PX4:
+            dll = self.cfg.datalink_loss_s
             if (
                 flying
-                and self.gcs_heartbeat_at < t - self.cfg.datalink_loss_s
+                and dll is not None
+                and self.gcs_heartbeat_at < t - dll
                 and tel.mode is not Mode.LAND
             ):
                 self.backend.land()
                 self.failsafe_note = "data link lost: landing"
                 self.text(mavlink.MAV_SEVERITY_CRITICAL, "Failsafe: no GCS link, landing")
             return
+        gcs = self.cfg.gcs_failsafe_s
         if (
             flying
-            and self.gcs_heartbeat_at < t - self.cfg.gcs_failsafe_s
+            and gcs is not None
+            and self.gcs_heartbeat_at < t - gcs
             and tel.mode is not Mode.LAND
         ):
             self.backend.land()
@@ -872,6 +959,8 @@ class _SimulatedAutopilot:
             custom = self.custom_mode()
             self.send(lambda mav: mav.send(CurrentMode(0, custom, custom)))
         elif msg_id == mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
+            if not self.position_known():
+                return False
             p = fr.to_local(tel.position)
             v = fr.vector_to_local(tel.velocity)
             self.send(lambda mav: mav.local_position_ned_send(ms, *map(float, p), *map(float, v)))
@@ -959,9 +1048,12 @@ class MavSim:
 
     def __init__(self, config: MavSimConfig) -> None:
         self.config = config
-        sim_config = SimConfig(step_s=config.step_s)
-        if config.autopilot is Autopilot.PX4:
-            sim_config = SimConfig(step_s=config.step_s, land_speed_m_s=PX4_LAND_SPEED_M_S)
+        px4 = config.autopilot is Autopilot.PX4
+        sim_config = SimConfig(
+            step_s=config.step_s,
+            land_speed_m_s=PX4_LAND_SPEED_M_S if px4 else COPTER_LAND_SPEED_M_S,
+            disarm_land_s=PX4_DISARM_LAND_S if px4 else COPTER_DISARM_LAND_S,
+        )
         self.simulator = Simulator(config.voxel_map, sim_config, seed=config.seed)
         self.autopilots: dict[str, _SimulatedAutopilot] = {}
         try:
@@ -979,6 +1071,11 @@ class MavSim:
         self.error: BaseException | None = None
         self.steps = 0
         self.late_steps = 0
+        self.paused_s = 0.0
+        """Wall seconds the simulator was frozen and did not catch up (:meth:`run_forever`)."""
+        self.pauses = 0
+        self._wait: Callable[[float], object] = self._stop.wait
+        """How the loop waits for its next step (a test's hand-moved clock replaces it)."""
 
     @property
     def endpoints(self) -> list[Endpoint]:
@@ -999,7 +1096,11 @@ class MavSim:
             self.error = exc
 
     def run_forever(self) -> None:
-        """Step the vehicles in (scaled) real time until :meth:`stop`."""
+        """Step the vehicles in (scaled) real time until :meth:`stop`. A step that finds the
+        loop less than :data:`FREEZE_S` behind the wall clock is late and the next ones catch
+        up; more, and the simulator was frozen (stopped, suspended): the missed wall time is
+        dropped (counted in :attr:`paused_s`) and the clock resumes where it stopped, as a
+        lockstep SITL's does (module docstring)."""
         cfg = self.config
         wall0 = time.monotonic()
         while not self._stop.is_set():
@@ -1014,7 +1115,11 @@ class MavSim:
             due = wall0 + self.simulator.time_s / cfg.speed
             delay = due - time.monotonic()
             if delay > 0:
-                self._stop.wait(delay)
+                self._wait(delay)
+            elif -delay > FREEZE_S:  # frozen: resume where it stopped
+                wall0 -= delay
+                self.paused_s -= delay
+                self.pauses += 1
             else:
                 self.late_steps += 1
 
@@ -1128,23 +1233,34 @@ def vehicles_in_a_row(
     kind: VehicleKind = VehicleKind.MULTIROTOR,
     origin: Sequence[float] = (5.0, 5.0, 0.0),
 ) -> tuple[VehicleSpec, ...]:
-    """``count`` vehicles 3 m apart along +x (``--count N``)."""
-    return tuple(
-        VehicleSpec(
-            f"V{i + 1}",
-            kind,
-            (float(origin[0]) + spacing_m * i, float(origin[1]), float(origin[2])),
-            default_address(autopilot, i, base_port, transport=transport, host=host),
-            i + 1,
+    """``count`` vehicles 3 m apart along +x (``--count N``), numbered as the SITLs number
+    them (:func:`sitl_sysid`)."""
+    out = []
+    for i in range(count):
+        address = default_address(autopilot, i, base_port, transport=transport, host=host)
+        start = (float(origin[0]) + spacing_m * i, float(origin[1]), float(origin[2]))
+        out.append(
+            VehicleSpec(f"V{i + 1}", kind, start, address, sitl_sysid(autopilot, address, i))
         )
-        for i in range(count)
-    )
+    return tuple(out)
 
 
-def mission_vehicles(mission: Any) -> tuple[VehicleSpec, ...]:
+def sitl_sysid(autopilot: Autopilot | None, address: MavlinkAddress, index: int) -> int:
+    """Vehicle ``index``'s system id as the SITLs give it: every ArduCopter SITL instance is
+    sysid 1, each on its own TCP port (ArduCopter 4.7.0-dev SITL, three instances), where PX4
+    SITL instance i is ``MAV_SYS_ID`` = i + 1. Vehicles sharing a UDP port need distinct ones,
+    so a UDP vehicle is i + 1 whatever the firmware."""
+    if autopilot is Autopilot.ARDUPILOT and address.transport == "tcp":
+        return 1
+    return index + 1
+
+
+def mission_vehicles(mission: Any, autopilot: Autopilot | None = None) -> tuple[VehicleSpec, ...]:
     """One vehicle per agent of ``mission`` whose backend is a ``mavlink+udp`` or
     ``mavlink+tcp`` URL, served at that URL (``--mission``): spawned at the agent's start, a
-    ground robot if its library drives one, sysid from the URL's ``?sysid=`` or 1."""
+    ground robot if its library drives one, sysid from the URL's ``?sysid=``, else as
+    ``autopilot``'s SITL numbers it (:func:`sitl_sysid`; the i-th such agent i + 1 when no
+    autopilot is given)."""
     from btmission.backends.mavlink_url import parse_mavlink_url
 
     out: list[VehicleSpec] = []
@@ -1157,7 +1273,8 @@ def mission_vehicles(mission: Any) -> tuple[VehicleSpec, ...]:
         impl = mission.library_of(agent.id).implementations
         kind = VehicleKind.of(impl.vehicle if impl is not None else None)
         start = (float(agent.start[0]), float(agent.start[1]), float(agent.start[2]))
-        out.append(VehicleSpec(agent.id, kind, start, address, address.sysid or len(out) + 1))
+        sysid = address.sysid or sitl_sysid(autopilot, address, len(out))
+        out.append(VehicleSpec(agent.id, kind, start, address, sysid))
     return tuple(out)
 
 

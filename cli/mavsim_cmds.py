@@ -15,6 +15,18 @@ import click
 from btmission.cli.common import BadInput, FiniteFloat, handle_spec_errors
 
 
+class _EkfDelay(FiniteFloat):
+    """``--ekf-delay``: seconds in [0, 3600], or ``sitl`` (the firmware's SITL's)."""
+
+    def __init__(self) -> None:
+        super().__init__(0, 3600)
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        if isinstance(value, str) and value.strip().lower() == "sitl":
+            return "sitl"
+        return float(super().convert(value, param, ctx))
+
+
 @click.command("mavsim")
 @click.option(
     "--mission",
@@ -58,8 +70,20 @@ from btmission.cli.common import BadInput, FiniteFloat, handle_spec_errors
     "else 1]; the run's time_scale must match.",
 )
 @click.option(
-    "--ekf-delay", type=FiniteFloat(0, 3600), default=0.0, show_default=True,
-    help="Seconds before the estimator is ready (arming and GUIDED refused until then).",
+    "--ekf-delay", type=_EkfDelay(), default="0", show_default=True, metavar="SECONDS|sitl",
+    help="Seconds before the estimator is ready: arming and GUIDED refused, no "
+    "LOCAL_POSITION_NED until then. 'sitl': as long as the firmware's SITL took (ArduCopter "
+    "42 s, PX4 30 s of vehicle time).",
+)  # fmt: skip
+@click.option(
+    "--datalink-loss", type=FiniteFloat(0, 3600, min_open=True), metavar="SECONDS",
+    help="PX4: land after SECONDS without the ground station's heartbeat while flying "
+    "(NAV_DLL_ACT = land after COM_DL_LOSS_T) [default: off, as the firmware ships it].",
+)  # fmt: skip
+@click.option(
+    "--gcs-failsafe", type=FiniteFloat(0, 3600, min_open=True), metavar="SECONDS",
+    help="ArduPilot: land after SECONDS without the ground station's heartbeat while flying "
+    "(FS_GCS_ENABLE = land after FS_GCS_TIMEOUT) [default: off, as the firmware ships it].",
 )  # fmt: skip
 @click.option("--refuse-arm", default="", help="A pre-arm check that always fails with this text.")
 @click.option(
@@ -111,7 +135,9 @@ def mavsim(
     port: int | None,
     host: str,
     speed: float | None,
-    ekf_delay: float,
+    ekf_delay: float | str,
+    datalink_loss: float | None,
+    gcs_failsafe: float | None,
     refuse_arm: str,
     refuse_arm_times: int,
     signing_key_file: Path | None,
@@ -138,6 +164,7 @@ def mavsim(
     from btmission.backends.mavlink_modes import Autopilot
     from btmission.backends.mavlink_signing import SigningKeyError, load_key
     from btmission.mavsim import (
+        SITL_EKF_DELAY_S,
         MavSim,
         MavSimConfig,
         shared_endpoints,
@@ -171,6 +198,7 @@ def mavsim(
             )
         if autopilot is None and all(s.address.transport == "tcp" for s in specs):
             ap = Autopilot.ARDUPILOT
+        specs = mission_vehicles(mission, ap)  # (numbered as ap's SITLs number them)
         elsewhere = [s for s in specs if s.address.host != host]
         if elsewhere:
             far = elsewhere[0]
@@ -191,10 +219,14 @@ def mavsim(
     if clashes:
         raise BadInput(f"{mission_path}: " + "; ".join(clashes))
     speed = 1.0 if speed is None else speed
+    if ekf_delay == "sitl":
+        ekf_delay = SITL_EKF_DELAY_S[ap]
+    assert isinstance(ekf_delay, float)
     config = MavSimConfig(
         specs, voxel_map, autopilot=ap, speed=speed, ekf_delay_s=ekf_delay,
         refuse_arm=refuse_arm, refuse_arm_times=refuse_arm_times, signing_key=key,
-        hover_thrust=hover_thrust, seed=seed,
+        hover_thrust=hover_thrust, seed=seed, datalink_loss_s=datalink_loss,
+        gcs_failsafe_s=gcs_failsafe,
     )  # fmt: skip
     try:
         sim = MavSim(config)
@@ -230,6 +262,8 @@ def mavsim(
         for s, handler in previous.items():
             signal.signal(s, handler)
     late = f", {sim.late_steps} late step(s)" if sim.late_steps else ""
+    if sim.pauses:
+        late += f", paused {sim.paused_s:.1f} s wall in {sim.pauses} freeze(s)"
     if quiet:
         return
     click.echo(f"stopped after {sim.simulator.time_s:.1f} simulated s ({sim.steps} steps{late})")

@@ -259,9 +259,15 @@ class OffboardCommands:
         v.sp_yaw_rate = float(yaw_rate)
 
 
-def autopilot_rules(v: AutopilotState, t: float, here: Callable[[], FloatArray]) -> None:
+def autopilot_rules(
+    v: AutopilotState,
+    t: float,
+    here: Callable[[], FloatArray],
+    disarm_land_s: float = DISARM_LAND_S,
+) -> None:
     """One step of the mode logic at time ``t``: the offboard-loss failsafe (HOLD at ``here()``)
-    and automatic disarming (module docstring)."""
+    and automatic disarming (module docstring; a landed vehicle disarms ``disarm_land_s`` after
+    touching down)."""
     if v.mode is _OFFBOARD and t - v.sp_time > OFFBOARD_LOSS_S:
         v.mode = Mode.HOLD if not v.landed else Mode.MANUAL
         v.hold = here()
@@ -280,7 +286,7 @@ def autopilot_rules(v: AutopilotState, t: float, here: Callable[[], FloatArray])
         if not v.took_off and t - v.armed_at > DISARM_PREFLIGHT_S:
             v.armed = False
             v.failsafe = f"disarmed: no take-off within {DISARM_PREFLIGHT_S:g} s of arming"
-        elif v.took_off and t - v.landed_at > DISARM_LAND_S:
+        elif v.took_off and t - v.landed_at > disarm_land_s:
             v.armed = False
             v.took_off = False
             if v.mode in (Mode.LAND, Mode.HOLD, Mode.TAKEOFF):

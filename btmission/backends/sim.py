@@ -76,6 +76,7 @@ import numpy as np
 
 from btmission.backends.autopilot import (
     _OFFBOARD,
+    DISARM_LAND_S,
     AutopilotFields,
     G,
     OffboardCommands,
@@ -140,7 +141,10 @@ class SimConfig:
     max_climb_m_s: float = 1.5
     land_speed_m_s: float = LAND_SPEED
     """AUTO.LAND's descent speed (PX4 MPC_LAND_SPEED; mavsim's PX4 vehicles land at PX4 SIH's
-    ~0.8 m/s)."""
+    ~0.8 m/s, its ArduCopters at LAND_SPEED's 0.5 m/s)."""
+    disarm_land_s: float = DISARM_LAND_S
+    """A vehicle that has landed disarms this long after touching down (PX4 COM_DISARM_LAND,
+    2 s; mavsim's ArduCopters disarm 0.5 s after, as ArduCopter SITL did)."""
     ground_v_max: float = 0.4
     ground_v_min: float = -0.1
     ground_omega_max: float = 1.5
@@ -171,6 +175,8 @@ class SimConfig:
             )
         if not (math.isfinite(self.land_speed_m_s) and self.land_speed_m_s > 0):
             raise ValueError(f"land_speed_m_s must be positive, got {self.land_speed_m_s}")
+        if not (math.isfinite(self.disarm_land_s) and self.disarm_land_s >= 0):
+            raise ValueError(f"disarm_land_s must be >= 0, got {self.disarm_land_s}")
         if self.pose_noise_m < 0 or self.heading_noise_rad < 0:
             raise ValueError("pose_noise_m and heading_noise_rad must be >= 0")
 
@@ -364,7 +370,7 @@ class Simulator:
     # ---- multirotor
     def _autopilot(self, v: _Vehicle, t: float) -> None:
         """PX4-like mode logic: failsafes and automatic disarming."""
-        autopilot_rules(v, t, lambda: v.x[:3].copy())
+        autopilot_rules(v, t, lambda: v.x[:3].copy(), self.config.disarm_land_s)
 
     def _pack(self) -> FloatArray:
         """The model's, autopilot's and simulator's parameters for the compiled step."""

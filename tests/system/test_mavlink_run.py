@@ -156,7 +156,7 @@ def test_after_px4s_own_failsafe_landing_the_drone_is_left_alone(tmp_path: Path)
     the drone. When the link returns, the agent sees its autopilot landing on its own (LAND,
     HEARTBEAT's status CRITICAL) and stands down: it hands T1 back and never arms or launches
     the drone again (on real PX4 the tree re-armed it); with nobody left, the run ends."""
-    with mavsim(Autopilot.PX4) as sim:
+    with mavsim(Autopilot.PX4, datalink_loss_s=10.0) as sim:  # NAV_DLL_ACT = land after 10 s
         result, rec = fly_with_link_drop(tmp_path, sim, 11.0)  # > COM_DL_LOSS_T: PX4 lands
         (ev,) = rec.of("taken_over")
         assert (ev.get("agent"), ev.get("mode"), ev.get("task")) == ("R1", "LAND", "T1")

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -19,17 +20,33 @@ from btmission.backends._pymavlink import CURRENT_MODE_ID, mavlink
 from btmission.backends.mavlink import MavlinkError, MavlinkProvider
 from btmission.backends.mavlink_connect import NOTE_AFTER_S
 from btmission.backends.mavlink_modes import Autopilot
-from btmission.mavsim import MavSim, MavSimConfig, VehicleSpec, _SimulatedAutopilot
+from btmission.mavsim import (
+    SITL_EKF_DELAY_S,
+    MavSim,
+    MavSimConfig,
+    VehicleSpec,
+    _SimulatedAutopilot,
+    mission_vehicles,
+)
 from btmission.spec.vehicleref import VehicleRef
-from btmission.vehicles.base import VehicleKind
+from btmission.vehicles.base import Mode, VehicleKind
 from btmission.vehicles.provider import AttachRequest
 from btmission.world.minegen import empty_world
 from tests.load import margin
-from tests.mavlink_helpers import SPEED, address, free_port, mavsim, provider
+from tests.mavlink_helpers import (
+    SPEED,
+    address,
+    answer,
+    free_port,
+    mavsim,
+    mission_on_free_ports,
+    provider,
+)
 
 # Paced by the wall clock (mavsim's scaled real time, the connect's deadline): run alone.
 pytestmark = pytest.mark.serial
 
+ROOT = Path(__file__).resolve().parents[3]
 PX4, ARDUPILOT = Autopilot.PX4, Autopilot.ARDUPILOT
 
 
@@ -268,3 +285,74 @@ def test_an_unused_provider_closes_the_links_it_was_opening() -> None:
     p = MavlinkProvider()
     p.prepare([VehicleRef.parse(f"mavlink+tcp://127.0.0.1:{port}")])  # nothing listens there
     p.close()  # the retrying stops (the fixture checks)
+
+
+def test_an_arducopter_refusing_current_mode_connects_and_reads_modes_from_heartbeat(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # ArduCopter SITL answers SET_MESSAGE_INTERVAL for CURRENT_MODE with DENIED ("No ap_message
+    # for mavlink id (436)") and sends HEARTBEAT at 5 Hz when asked: the refusal is taken once,
+    # silently, and modes come from HEARTBEAT.
+    heard: dict[int, int] = {}
+    real = _SimulatedAutopilot._command
+
+    def command(self: _SimulatedAutopilot, msg: Any) -> int | None:
+        if msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+            heard[int(msg.param1)] = heard.get(int(msg.param1), 0) + 1
+        return real(self, msg)
+
+    monkeypatch.setattr(_SimulatedAutopilot, "_command", command)
+    said: list[str] = []
+    with mavsim(ARDUPILOT) as sim, provider() as p:
+        p._progress = said.append
+        [v] = p.attach_all(requests(sim))
+        b = v.backend
+        assert b.telemetry().mode is Mode.MANUAL  # STABILIZE
+        ack = answer(lambda: b.set_mode(Mode.HOLD), lambda: b.telemetry().mode is Mode.HOLD)
+        assert ack.accepted and b.telemetry().mode is Mode.HOLD  # (BRAKE, from HEARTBEAT)
+        assert sim.autopilots["R1"].heartbeat_s == pytest.approx(0.2)
+        assert CURRENT_MODE_ID not in sim.autopilots["R1"].intervals
+        requested = sim.simulator.time_s
+        while sim.simulator.time_s < requested + 3.0:  # time for any retry to show
+            threading.Event().wait(0.05)
+    assert heard[CURRENT_MODE_ID] == 1  # asked once, refused, not asked again
+    assert not [line for line in said if "CURRENT_MODE" in line or "not available" in line]
+
+
+def test_three_arducopters_all_sysid_1_each_agent_gets_its_own(tmp_path: Path) -> None:
+    # As three ArduCopter SITLs (every instance is sysid 1, each on its own TCP port):
+    # missions/mine_inspection_ardupilot.yaml's three agents, on free ports.
+    from btmission.missions import load_mission
+
+    shipped = ROOT / "missions" / "mine_inspection_ardupilot.yaml"
+    specs = mission_vehicles(load_mission(mission_on_free_ports(shipped, tmp_path)), ARDUPILOT)
+    assert [s.sysid for s in specs] == [1, 1, 1]
+    with mavsim(ARDUPILOT, *specs) as sim, provider() as p:
+        vehicles = p.attach_all(requests(sim))
+        assert [v.id for v in vehicles] == ["R1", "R2", "R3"]
+        for v, s in zip(vehicles, specs, strict=True):
+            assert v.backend.state.sysid == 1  # type: ignore[attr-defined]
+            np.testing.assert_allclose(v.backend.telemetry().position, s.start, atol=0.05)
+        # each agent commands its own vehicle: R2's BRAKE reaches R2 alone
+        b = vehicles[1].backend
+        assert answer(lambda: b.set_mode(Mode.HOLD), lambda: b.telemetry().mode is Mode.HOLD)
+        assert [sim.vehicle_state(a)["mode"] for a in ("R1", "R2", "R3")] == [
+            Mode.MANUAL, Mode.HOLD, Mode.MANUAL,
+        ]  # fmt: skip
+
+
+@pytest.mark.parametrize("autopilot", [PX4, ARDUPILOT], ids=lambda a: a.value)
+def test_a_vehicle_whose_estimator_starts_as_sitls_does_connects_once_it_has_a_position(
+    autopilot: Autopilot,
+) -> None:
+    # --ekf-delay sitl at speed 50: no LOCAL_POSITION_NED for the first 42 s (ArduCopter) or
+    # 30 s (PX4) of vehicle time; the provider keeps waiting, then connects
+    delay = SITL_EKF_DELAY_S[autopilot]
+    with (
+        mavsim(autopilot, speed=50.0, ekf_delay_s=delay) as sim,
+        provider(speed=50.0, connect_timeout_s=10.0 * margin()) as p,
+    ):
+        [v] = p.attach_all(requests(sim))
+        assert sim.simulator.time_s >= delay
+        assert v.backend.estimator_ready()  # type: ignore[attr-defined]
+        np.testing.assert_allclose(v.backend.telemetry().position, (5.0, 5.0, 0.0), atol=0.05)

@@ -237,6 +237,9 @@ def test_arducopter_hold_is_brake_and_holds_its_altitude() -> None:
 
 def test_arming_waits_for_the_ekf_with_the_autopilots_reason_and_a_back_off() -> None:
     with mavsim(ARDUPILOT, ekf_delay_s=20.0) as sim, provider(connect_timeout_s=1.0) as p:
+        # a local position already (an EKF origin), its estimator not yet ready to arm (mavsim
+        # sends no LOCAL_POSITION_NED before the estimator is ready, as the firmwares do)
+        sim.autopilots["R1"].position_known = lambda: True  # type: ignore[method-assign]
         b = attach(p, sim)  # waits for the EKF as long as it may (1 s, 10 s at 10x), then goes on
         ack = answer(b.arm)
         assert not ack

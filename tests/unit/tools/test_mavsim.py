@@ -133,7 +133,7 @@ def test_px4_refuses_offboard_below_2_hz_and_accepts_it_above() -> None:
 
 @pytest.mark.slow
 def test_px4_lands_when_the_ground_station_goes_silent() -> None:
-    with client(Autopilot.PX4) as c:
+    with client(Autopilot.PX4, datalink_loss_s=10.0) as c:  # NAV_DLL_ACT = land (default off)
         c.stream(1.2, hz=10)
         assert c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1).result == 0
         assert c.set_mode(Mode.OFFBOARD).result == 0
@@ -145,7 +145,7 @@ def test_px4_lands_when_the_ground_station_goes_silent() -> None:
 
 @pytest.mark.slow
 def test_ardupilot_velocity_targets_stop_after_3_s_and_gcs_loss_lands() -> None:
-    with client(Autopilot.ARDUPILOT) as c:
+    with client(Autopilot.ARDUPILOT, gcs_failsafe_s=5.0) as c:  # FS_GCS_ENABLE = land
         c.heartbeat()
         assert c.set_mode(Mode.OFFBOARD).result == 0  # GUIDED, no stream needed
         assert c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1).result == 0

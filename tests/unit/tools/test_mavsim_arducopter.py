@@ -60,7 +60,7 @@ def flying(sim: MavSim, altitude: float = 5.0) -> _SimulatedAutopilot:
 def test_a_copter_that_landed_stays_in_land_and_arms_only_from_another_mode(sim: MavSim) -> None:
     ap = flying(sim, 3.0)
     assert ap._set_mode(LAND) == ACCEPTED
-    run(sim, 15.0)  # down, then disarmed 2 s after touching the ground
+    run(sim, 15.0)  # down, then disarmed 0.5 s after touching the ground
     state = sim.vehicle_state("R1")
     assert state["landed"] and not state["armed"]
     assert state["mode"] is Mode.LAND and ap.custom_mode() == LAND  # not STABILIZE

@@ -1,0 +1,341 @@
+"""mavsim rules taken from real SITL (issue #36 item 8: every difference between real SITL and
+mavsim becomes a mavsim rule with a test), stepped by hand where they can be (no thread, no
+wall clock): the link-loss failsafes are off unless asked for, as the firmwares ship them."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import pytest
+from click.testing import CliRunner
+
+from btmission.backends._pymavlink import mavlink
+from btmission.backends.mavlink_modes import Autopilot, mode_request
+from btmission.backends.mavlink_url import MavlinkAddress
+from btmission.cli.main import cli
+from btmission.mavsim import (
+    SITL_EKF_DELAY_S,
+    MavSim,
+    MavSimConfig,
+    VehicleSpec,
+    _SimulatedAutopilot,
+    mission_vehicles,
+    vehicles_in_a_row,
+)
+from btmission.missions import load_mission
+from btmission.vehicles.base import LandedState, Mode, VehicleKind
+from btmission.world.minegen import empty_world
+from tests.mavlink_helpers import free_port
+from tests.wallclock import WallClock
+
+ROOT = Path(__file__).resolve().parents[3]
+PX4, APM = Autopilot.PX4, Autopilot.ARDUPILOT
+MULTI = VehicleKind.MULTIROTOR
+
+
+def _address(autopilot: Autopilot) -> MavlinkAddress:
+    if autopilot is PX4:  # (nobody listens there: what it sends is dropped)
+        return MavlinkAddress("udp", "127.0.0.1", free_port())
+    return MavlinkAddress("tcp", "127.0.0.1", 0)
+
+
+@contextmanager
+def stepped(autopilot: Autopilot, **config: Any) -> Iterator[MavSim]:
+    """One drone R1 at (5, 5, 0), not started: the test steps it with :func:`run`."""
+    spec = VehicleSpec("R1", MULTI, (5.0, 5.0, 0.0), _address(autopilot), 1)
+    sim = MavSim(MavSimConfig((spec,), empty_world((30, 30, 12), 0.5), autopilot=autopilot,
+                              **config))  # fmt: skip
+    try:
+        yield sim
+    finally:
+        sim.close()
+
+
+def run(sim: MavSim, seconds: float, gcs: bool = False) -> None:
+    """``seconds`` of simulated time, each step as ``MavSim.run_forever`` does it (``gcs``: a
+    ground station's heartbeat heard on every step)."""
+    end = sim.simulator.time_s + seconds
+    while sim.simulator.time_s < end - 1e-9:
+        for ap in sim.autopilots.values():
+            ap.receive()
+            if gcs:
+                ap.gcs_heartbeat_at = ap.now()
+        for ap in sim.autopilots.values():
+            ap.step()
+        sim.simulator.step()
+        for ap in sim.autopilots.values():
+            ap.send_due()
+
+
+def airborne(sim: MavSim, altitude: float = 3.0) -> _SimulatedAutopilot:
+    """R1 armed and hovering at ``altitude`` m (GUIDED on ArduPilot, HOLD after a take-off on
+    PX4), its ground station's last heartbeat heard just now."""
+    ap = sim.autopilots["R1"]
+    if ap.autopilot is APM:
+        assert ap._set_mode(mode_request(APM, MULTI, Mode.OFFBOARD).custom_mode) == 0
+        assert ap._arm_disarm(True, False) == 0
+        assert ap._takeoff(altitude) == 0
+    else:
+        assert ap._arm_disarm(True, False) == 0
+        assert ap._takeoff(ap.cfg.home_amsl_m + altitude) == 0
+    run(sim, 8.0, gcs=True)
+    assert ap.backend.telemetry().position[2] == pytest.approx(altitude, abs=0.2)
+    return ap
+
+
+def _command_long(command: int, *params: float) -> Any:
+    p = [*params, *[0.0] * (7 - len(params))]
+    return mavlink.MAVLink_command_long_message(1, 1, command, 0, *p)
+
+
+# ---------------------------------------------------------------- 1. link-loss failsafes off
+@pytest.mark.parametrize("autopilot", [PX4, APM])
+def test_link_loss_failsafes_are_off_by_default_as_the_firmwares_ship_them(
+    autopilot: Autopilot,
+) -> None:
+    """PX4's NAV_DLL_ACT and ArduCopter's FS_GCS_ENABLE default to 0: a drone whose ground
+    station fell silent flies on (on ArduCopter SITL it braked in GUIDED and resumed)."""
+    with stepped(autopilot) as sim:
+        ap = airborne(sim)
+        mode = ap.backend.telemetry().mode
+        run(sim, 30.0)  # 3 × COM_DL_LOSS_T, 6 × FS_GCS_TIMEOUT without a heartbeat
+        state = sim.vehicle_state("R1")
+        assert state["armed"] and not state["landed"]
+        assert ap.backend.telemetry().mode is mode and not ap.failsafe_note
+
+
+@pytest.mark.parametrize(
+    ("autopilot", "option", "seconds", "note"),
+    [
+        (PX4, "datalink_loss_s", 10.0, "data link lost: landing"),
+        (APM, "gcs_failsafe_s", 5.0, "GCS failsafe: landing"),
+    ],
+)
+def test_a_link_loss_failsafe_asked_for_lands_after_its_timeout(
+    autopilot: Autopilot, option: str, seconds: float, note: str
+) -> None:
+    with stepped(autopilot, **{option: seconds}) as sim:
+        ap = airborne(sim)
+        run(sim, seconds - 0.5)
+        assert ap.backend.telemetry().mode is not Mode.LAND
+        run(sim, 1.0)
+        assert ap.backend.telemetry().mode is Mode.LAND and ap.failsafe_note == note
+
+
+def test_failsafe_timeouts_must_be_positive() -> None:
+    spec = VehicleSpec("R1", MULTI, (5.0, 5.0, 0.0), _address(APM), 1)
+    for bad in (0.0, -1.0, math.nan):
+        with pytest.raises(ValueError, match="gcs_failsafe_s must be positive or None"):
+            MavSimConfig((spec,), empty_world((10, 10, 5), 0.5), gcs_failsafe_s=bad)
+
+
+def _config_of(monkeypatch: pytest.MonkeyPatch, *args: str, count: bool = True) -> MavSimConfig:
+    """The configuration ``btmission mavsim ARGS`` would serve (nothing is served)."""
+    import btmission.mavsim
+
+    seen: list[MavSimConfig] = []
+
+    def capture(config: MavSimConfig) -> None:
+        seen.append(config)
+        raise OSError("captured")
+
+    monkeypatch.setattr(btmission.mavsim, "MavSim", capture)
+    r = CliRunner().invoke(cli, ["mavsim", *(["--count", "1"] if count else []), *args])
+    assert r.exit_code == 2 and "captured" in r.output, r.output
+    return seen[0]
+
+
+def test_the_cli_turns_a_link_loss_failsafe_on_only_when_asked(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    config = _config_of(monkeypatch)
+    assert config.datalink_loss_s is None and config.gcs_failsafe_s is None
+    config = _config_of(monkeypatch, "--datalink-loss", "10", "--gcs-failsafe", "5")
+    assert (config.datalink_loss_s, config.gcs_failsafe_s) == (10.0, 5.0)
+    help_text = CliRunner().invoke(cli, ["mavsim", "--help"]).output
+    assert "NAV_DLL_ACT" in help_text and "FS_GCS_ENABLE" in help_text
+
+
+# ---------------------------------------------------------------- 3. landing and disarming
+def _land_timing(sim: MavSim) -> tuple[float, float, float]:
+    """From 2 m up, a LAND: the fastest descent speed, the vehicle seconds until ON_GROUND, then
+    until disarmed."""
+    ap = airborne(sim, 2.0)
+    assert ap._command(_command_long(mavlink.MAV_CMD_NAV_LAND)) == mavlink.MAV_RESULT_ACCEPTED
+    t0 = ap.now()
+    on_ground = disarmed = math.nan
+    sink = 0.0
+    while math.isnan(disarmed) and ap.now() < t0 + 20.0:
+        run(sim, sim.config.step_s, gcs=True)
+        tel = ap.backend.telemetry()
+        sink = max(sink, -float(tel.velocity[2]))
+        if math.isnan(on_ground) and tel.landed_state is LandedState.ON_GROUND:
+            on_ground = ap.now()
+        if not math.isnan(on_ground) and not ap.armed():
+            disarmed = ap.now()
+    return sink, on_ground - t0, disarmed - on_ground
+
+
+@pytest.mark.parametrize(
+    ("autopilot", "speed", "disarm_s"),
+    [(APM, 0.5, 0.5), (PX4, 0.8, 2.0)],
+)
+def test_a_land_from_2_m_descends_and_disarms_as_the_firmware_does(
+    autopilot: Autopilot, speed: float, disarm_s: float
+) -> None:
+    """ArduCopter SITL descends at 0.5 m/s (LAND_SPEED) and disarms ~0.5 s after touchdown; PX4
+    SIH descends at ~0.8 m/s, says ON_GROUND and disarms 2 s later (COM_DISARM_LAND)."""
+    with stepped(autopilot) as sim:
+        sink, down, off = _land_timing(sim)
+        assert sink == pytest.approx(speed, abs=0.05)
+        assert 2.0 / speed <= down <= 2.0 / speed + 1.0  # (ArduPilot: ~4 s; 4.7 s here)
+        assert off == pytest.approx(disarm_s, abs=2.5 * sim.config.step_s)
+
+
+# ---------------------------------------------------------------- 6. LAND on the ground
+def test_a_disarmed_arducopter_accepts_land_and_then_refuses_to_arm_in_it() -> None:
+    """ArduCopter's ModeLand allows entry on the ground: DO_SET_MODE LAND and NAV_LAND are
+    accepted while disarmed; the copter shows LAND (heartbeat) and, as in any LAND, refuses to
+    arm until it is put in another mode."""
+    land = mode_request(APM, MULTI, Mode.LAND).custom_mode
+    guided = mode_request(APM, MULTI, Mode.OFFBOARD).custom_mode
+    with stepped(APM) as sim:
+        ap = sim.autopilots["R1"]
+        assert ap._set_mode(land) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 1.0)
+        assert ap.custom_mode() == land and sim.vehicle_state("R1")["mode"] is Mode.LAND
+        assert ap._arm_disarm(True, False) == mavlink.MAV_RESULT_FAILED  # Mode not armable
+        assert ap._set_mode(guided) == mavlink.MAV_RESULT_ACCEPTED
+        nav_land = _command_long(mavlink.MAV_CMD_NAV_LAND)
+        assert ap._command(nav_land) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 1.0)
+        state = sim.vehicle_state("R1")
+        assert state["mode"] is Mode.LAND and state["landed"] and not state["armed"]
+        assert ap._set_mode(guided) == mavlink.MAV_RESULT_ACCEPTED
+        assert ap._arm_disarm(True, False) == mavlink.MAV_RESULT_ACCEPTED
+
+
+# ---------------------------------------------------------------- 5. system ids as the SITLs'
+def test_every_ardupilot_tcp_vehicle_is_sysid_1_and_px4_instance_i_is_i_plus_1(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """Every ArduCopter SITL instance is sysid 1, each on its own TCP port; PX4 SITL instance i
+    is MAV_SYS_ID i + 1. Vehicles sharing a UDP port still need distinct ones; a URL's
+    ``?sysid=`` wins."""
+    assert [s.sysid for s in vehicles_in_a_row(3, APM)] == [1, 1, 1]
+    assert [s.sysid for s in vehicles_in_a_row(3, PX4)] == [1, 2, 3]
+    assert [s.sysid for s in vehicles_in_a_row(3, APM, transport="udp")] == [1, 2, 3]
+    assert [s.sysid for s in vehicles_in_a_row(3, PX4, transport="tcp")] == [1, 2, 3]
+    shipped = ROOT / "missions" / "mine_inspection_ardupilot.yaml"
+    mission = load_mission(shipped)
+    assert [s.sysid for s in mission_vehicles(mission, APM)] == [1, 1, 1]
+    assert [s.sysid for s in mission_vehicles(mission, PX4)] == [1, 2, 3]
+    config = _config_of(monkeypatch, "--mission", str(shipped), count=False)
+    assert config.autopilot is APM and [s.sysid for s in config.vehicles] == [1, 1, 1]
+    text = shipped.read_text().replace("127.0.0.1:5770'", "127.0.0.1:5770?sysid=7'")
+    (tmp_path / "m.yaml").write_text(text)
+    config = _config_of(monkeypatch, "--mission", str(tmp_path / "m.yaml"), count=False)
+    assert [s.sysid for s in config.vehicles] == [1, 7, 1]
+
+
+# ---------------------------------------------------------------- 7. estimator start-up
+@pytest.mark.parametrize("autopilot", [PX4, APM])
+def test_no_local_position_before_the_estimator_is_ready(autopilot: Autopilot) -> None:
+    """ArduCopter sends no LOCAL_POSITION_NED before EKF3 has an origin (SITL: ~42 s), PX4
+    none before its local position is valid (SIH: ready ~30 s after start): asked for at once,
+    the stream starts when the estimator is ready (``--ekf-delay sitl``)."""
+    delay = SITL_EKF_DELAY_S[autopilot]
+    with stepped(autopilot, ekf_delay_s=delay) as sim:
+        ap = sim.autopilots["R1"]
+        sent: list[float] = []
+        real = ap._send_message
+
+        def send(msg_id: int) -> bool:
+            done = real(msg_id)
+            if done and msg_id == mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
+                sent.append(ap.now())
+            return done
+
+        ap._send_message = send  # type: ignore[method-assign]
+        interval = _command_long(
+            mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 1e5
+        )
+        assert ap._command(interval) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, delay - 1.0)
+        assert sent == []
+        assert ap._arm_disarm(True, False) != mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 2.0)
+        assert sent and delay <= sent[0] < delay + 0.1
+        assert len(sent) == pytest.approx(10, abs=2)  # then at the 10 Hz asked
+
+
+@pytest.mark.parametrize(("autopilot", "seconds"), [("ardupilot", 42.0), ("px4", 30.0)])
+def test_the_cli_asks_for_the_sitls_estimator_start_up_by_name(
+    monkeypatch: pytest.MonkeyPatch, autopilot: str, seconds: float
+) -> None:
+    config = _config_of(monkeypatch, "--autopilot", autopilot, "--ekf-delay", "sitl")
+    assert config.ekf_delay_s == seconds == SITL_EKF_DELAY_S[Autopilot(autopilot)]
+    assert _config_of(monkeypatch, "--autopilot", autopilot).ekf_delay_s == 0.0  # (tests: fast)
+    assert _config_of(monkeypatch, "--ekf-delay", "2.5").ekf_delay_s == 2.5
+    r = CliRunner().invoke(cli, ["mavsim", "--count", "1", "--ekf-delay", "soon"])
+    assert r.exit_code == 2 and "--ekf-delay" in r.output
+
+
+# ---------------------------------------------------------------- 2. a frozen simulator
+def test_a_frozen_simulator_resumes_its_clock_where_it_stopped(wall: WallClock) -> None:
+    """A lockstep SITL frozen with kill -STOP resumes its clock where it stopped (ArduCopter
+    SITL frozen 8 s flew on, no failsafe). mavsim's loop, frozen 8 s of wall time, drops them
+    instead of running 400 late steps in a burst; frozen 0.5 s (a busy machine), it catches up.
+    The loop runs on a hand-moved wall clock: its waits move it, as do the freezes."""
+    with stepped(APM) as sim:
+        assert sim.paused_s == 0.0 and sim.pauses == 0  # (counted)
+        freezes = {2.0: 8.0, 4.0: 0.5}  # at this simulated time, frozen this many wall s
+        t0 = wall.t
+
+        def wait(delay: float) -> bool:
+            wall.t += delay
+            for at in [at for at in freezes if sim.simulator.time_s >= at]:
+                wall.t += freezes.pop(at)
+            if sim.simulator.time_s >= 6.0:
+                sim._stop.set()
+            return sim._stop.is_set()
+
+        sim._wait = wait
+        sim.run_forever()
+        assert sim.pauses == 1 and sim.paused_s == pytest.approx(8.0, abs=0.05)
+        assert sim.late_steps == pytest.approx(0.5 / sim.config.step_s, abs=2)  # caught up
+        # the wall time passed is the simulated time plus the freeze it dropped
+        assert wall.t - t0 == pytest.approx(sim.simulator.time_s + sim.paused_s, abs=0.05)
+
+
+def test_the_cli_says_how_long_the_simulator_was_frozen(monkeypatch: pytest.MonkeyPatch) -> None:
+    import btmission.mavsim
+
+    class Frozen:
+        """What a MavSim that was frozen once for 8.2 s reports when it stops."""
+
+        error = None
+        steps, late_steps, paused_s, pauses = 300, 3, 8.2, 1
+
+        def __init__(self, config: MavSimConfig) -> None:
+            self.endpoints: list[Any] = []
+            self.simulator = type("S", (), {"time_s": 6.0})()
+
+        def start(self) -> None: ...
+
+        def stop(self) -> None: ...
+
+        def counters(self) -> dict[str, Any]:
+            return {}
+
+    monkeypatch.setattr(btmission.mavsim, "MavSim", Frozen)
+    r = CliRunner().invoke(cli, ["mavsim", "--count", "1", "--duration", "0.01"])
+    assert r.exit_code == 0, r.output
+    assert r.output.splitlines()[-1] == (
+        "stopped after 6.0 simulated s (300 steps, 3 late step(s), paused 8.2 s wall in "
+        "1 freeze(s))"
+    )
