@@ -350,9 +350,21 @@ class MavlinkVehicle:
         unique = list(dict.fromkeys(text for _, text in texts))  # a retried refusal says it again
         return "; ".join(unique[:2])
 
+    def _shown(self, command: int) -> Ack:
+        """ACCEPTED: the telemetry already shows what ``command`` would do. A request of it still
+        waiting for its answer is over: its answer, read later, must not be taken for a later
+        request's (an arming shown by the HEARTBEAT before its COMMAND_ACK was read; landed and
+        disarmed, the next ``arm()`` took that old ACCEPTED and sent nothing)."""
+        asked = self._asked.get(command)
+        if asked is not None and asked.answer is None:
+            del self._asked[command]
+            if self.state.pending.get(command) is asked.pending:
+                del self.state.pending[command]
+        return ACCEPTED
+
     def arm(self) -> Ack:
         if self._armed():
-            return ACCEPTED  # already armed counts as success
+            return self._shown(mavlink.MAV_CMD_COMPONENT_ARM_DISARM)  # already armed: success
         self._takeoff_target = None  # disarmed: a take-off asked before is over
         ready = self._to_armable_mode()
         if not ready.accepted:
@@ -370,13 +382,13 @@ class MavlinkVehicle:
         landed stays in LAND, so without this the next task of a drone that landed could never
         arm it. ACCEPTED when nothing had to change; else the mode change's answer."""
         if armable(self.autopilot, self.kind, self._custom_mode()):
-            return ACCEPTED
+            return self._shown(mavlink.MAV_CMD_DO_SET_MODE)
         guided = mode_request(self.autopilot, self.kind, Mode.OFFBOARD)
         return self.command(mavlink.MAV_CMD_DO_SET_MODE, *set_mode_params(self.autopilot, guided))
 
     def disarm(self) -> Ack:
         if not self._armed():
-            return ACCEPTED
+            return self._shown(mavlink.MAV_CMD_COMPONENT_ARM_DISARM)
         if not self._landed():
             return Ack.refused("cannot disarm in the air", transient=True)
         return self.command(
@@ -442,7 +454,7 @@ class MavlinkVehicle:
         if self._custom_mode() == request.custom_mode and (
             mode is not Mode.OFFBOARD or self._takeoff_target is None
         ):
-            return ACCEPTED  # already in that mode
+            return self._shown(mavlink.MAV_CMD_DO_SET_MODE)  # already in that mode
         if mode is Mode.OFFBOARD and self.autopilot is Autopilot.ARDUPILOT and not self.streaming():
             # GUIDED would take it; the backend keeps PX4's rule so trees behave the same
             return Ack.refused(

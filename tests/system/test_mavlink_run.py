@@ -10,10 +10,12 @@ three PX4 and on three ArduPilot vehicles runs in the slow one too
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -29,7 +31,7 @@ from btmission.missions import load_mission
 from btmission.runtime.events import Recorder
 from btmission.runtime.runner import MissionRun
 from btmission.vehicles.base import Mode
-from tests.mavlink_helpers import SPEED, mavsim, mission_on_free_ports, spec
+from tests.mavlink_helpers import SPEED, free_port, mavsim, mission_on_free_ports, spec
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -370,3 +372,60 @@ def test_a_missing_signing_key_file_is_refused_before_anything_runs(tmp_path: Pa
     assert result.exit_code == 2
     assert f"{missing}: no such file (the MAVLink signing key)" in result.output
     assert not (tmp_path / "logs").exists()
+
+
+def test_a_vehicle_frozen_like_a_sitl_is_told_apart_from_a_lost_link(tmp_path: Path) -> None:
+    """``kill -STOP`` on a SITL stops its lockstep clock: it sees no link loss, takes no
+    failsafe and flies on where it was (ArduCopter SITL, issue #36). mavsim in its own process,
+    stopped 2 s of wall time (20 s of its time), does the same now: it drops the missed time
+    instead of catching it up. The run loses the link, gets it back in OFFBOARD, warns that the
+    vehicle's clock stood still while the mission's ran on, and the task is done once."""
+    url = f"mavlink+udp://127.0.0.1:{free_port()}"
+    path = tmp_path / "small.yaml"
+    text = MISSION.format(url=url, speed=SPEED).replace(
+        "telemetry_hz: 20}", "telemetry_hz: 20, heartbeat_timeout_s: 0.3}"
+    )
+    path.write_text(textwrap.dedent(text).lstrip())
+    sim = subprocess.Popen(
+        [sys.executable, "-m", "btmission", "mavsim", "--mission", str(path)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT,
+    )  # fmt: skip
+    thawed: list[threading.Timer] = []
+    try:
+        assert sim.stdout is not None
+        lines = [sim.stdout.readline() for _ in range(2)]
+        assert lines[-1].startswith("ready (1 vehicle(s)"), lines
+        rec = Recorder()
+        run = MissionRun(load_mission(path), observers=[rec])
+
+        def freeze_when_flying(r: MissionRun) -> None:
+            if r.vehicles["R1"].backend.telemetry().height_above_ground > 1.5:
+                os.kill(sim.pid, signal.SIGSTOP)
+                thaw = threading.Timer(2.0, os.kill, (sim.pid, signal.SIGCONT))
+                thawed.append(thaw)
+                thaw.start()
+            else:
+                r.at(r.now() + 0.5, freeze_when_flying)
+
+        run.at(1.0, freeze_when_flying)
+        try:
+            result = run.run()
+        finally:
+            run.close()
+    finally:
+        for thaw in thawed:
+            thaw.join()
+        os.kill(sim.pid, signal.SIGCONT)
+        sim.send_signal(signal.SIGTERM)
+        out, _ = sim.communicate(timeout=20)
+    assert thawed, "the drone never flew"
+    assert "paused 2." in out and "in 1 freeze(s)" in out, out  # its clock stood still
+    links = [(e.get("up"), e.get("mode")) for e in rec.of("vehicle_link")]
+    assert links == [(False, None), (True, Mode.OFFBOARD.value)]  # no failsafe: flying on
+    (stood,) = [e for e in rec.of("warning") if "clock stood still" in e.get("message")]
+    seconds = float(stood.get("message").split("stood still for ")[1].split(" s")[0])
+    assert 15.0 < seconds < 25.0  # 2 s of wall time at ×10
+    assert rec.of("taken_over") == []
+    done = [e for e in rec.of("progress") if e.get("event") == "done"]
+    assert [(e.get("agent"), e.get("task")) for e in done] == [("R1", "T1")]
+    assert result.done == ["T1"]

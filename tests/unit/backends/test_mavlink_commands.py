@@ -136,6 +136,27 @@ def test_a_temporarily_rejected_command_returns_at_once_and_is_sent_again_on_a_l
     assert px4.wire.sent(ARM) == 2
 
 
+def test_an_answer_read_after_its_effect_showed_is_not_taken_for_a_later_request(
+    px4: Px4, wall: WallClock
+) -> None:
+    """The HEARTBEAT showed the drone armed before the arming's COMMAND_ACK was read, so arm()
+    was done without it. The drone flew, landed and was disarmed; the next arm() took that
+    old ACCEPTED, still unread, for its own answer and sent nothing (seen on mavsim: the tree
+    then waited for a drone that never armed)."""
+    v = px4.vehicle
+    assert v.arm().pending and px4.wire.sent(ARM) == 1
+    px4.tell(heartbeat(armed=True))  # its effect shows first
+    assert v.arm() and px4.wire.sent(ARM) == 1
+    px4.tell(ack(ARM, mavlink.MAV_RESULT_ACCEPTED))  # then its answer, which nobody reads
+    wall.t += 30.0
+    px4.tell(heartbeat(armed=False))  # landed and disarmed by the autopilot
+    again = v.arm()
+    assert again.pending and px4.wire.sent(ARM) == 2  # asked anew
+    assert not v.telemetry().armed
+    px4.tell(ack(ARM, mavlink.MAV_RESULT_DENIED))
+    assert not v.arm().accepted  # the answer to this request, not the old one
+
+
 def test_an_unanswered_command_is_sent_again_after_its_deadline_then_refused_transiently(
     px4: Px4, wall: WallClock
 ) -> None:
