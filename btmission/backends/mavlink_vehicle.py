@@ -80,6 +80,14 @@ _LANDED_STATES = {
 _FAILSAFE_STATES = frozenset({mavlink.MAV_STATE_CRITICAL, mavlink.MAV_STATE_EMERGENCY})
 """HEARTBEAT system_status while a failsafe is active (PX4: ``failsafe`` set; ArduCopter:
 ``any_failsafe_triggered()``)."""
+PX4_OFFBOARD_LOSS_MODES = frozenset({"POSCTL", "ALTCTL"})
+"""PX4 modes that, entered in a failsafe (system status CRITICAL), are its offboard-loss action
+(``COM_OBL_RC_ACT`` 0 = Position, the default, or 1 = Altitude): read as HOLD, the offboard-loss
+failsafe the agent takes back (docs/mavlink.md, "When the autopilot takes over"). PX4 returns to
+OFFBOARD by itself once the setpoints stream again; seen on PX4 v1.16 SITL after btmission was
+stopped 2 s and 8 s ("Failsafe activated", custom mode 196608, CRITICAL). Without RC, Position
+mode descends: the agent asks for OFFBOARD back at once rather than standing down, which a
+pilot's Position mode (not CRITICAL) still makes it do."""
 
 
 ACCEPTED_HOLD_S = 1.5
@@ -652,6 +660,8 @@ class MavlinkVehicle:
     def _mode(self) -> Mode:
         mode = self.mode_name()
         if not isinstance(mode, Mode):
+            if mode in PX4_OFFBOARD_LOSS_MODES and self.state.system_status in _FAILSAFE_STATES:
+                return Mode.HOLD  # PX4's offboard-loss failsafe, the default action's way
             return Mode.MANUAL  # a mode of the pilot's (ALTCTL, RTL ...): not ours
         if self.autopilot is Autopilot.ARDUPILOT and mode is Mode.OFFBOARD:
             return self._guided_mode()

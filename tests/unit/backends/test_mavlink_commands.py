@@ -64,14 +64,15 @@ def _packed(msg: Any) -> Any:
     return msg
 
 
-def heartbeat(custom_mode: int = 0, armed: bool = False) -> Any:
+def heartbeat(
+    custom_mode: int = 0, armed: bool = False, status: int = mavlink.MAV_STATE_STANDBY
+) -> Any:
     base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
     if armed:
         base |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
     return _packed(
         mavlink.MAVLink_heartbeat_message(
-            mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base, custom_mode,
-            mavlink.MAV_STATE_STANDBY, 3,
+            mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base, custom_mode, status, 3,
         )
     )  # fmt: skip
 
@@ -276,3 +277,26 @@ def test_wait_calls_until_the_answer_and_the_telemetry_are_in(
 
 LOITER = mode_request(Autopilot.PX4, VehicleKind.MULTIROTOR, Mode.HOLD).custom_mode
 LAND_MODE = mode_request(Autopilot.PX4, VehicleKind.MULTIROTOR, Mode.LAND).custom_mode
+
+
+def test_px4s_default_offboard_loss_action_reads_as_the_hold_the_agent_takes_back(
+    px4: Px4,
+) -> None:
+    """PX4's offboard-loss failsafe with its default action (COM_OBL_RC_ACT 0) is Position mode,
+    reported with system status CRITICAL (PX4 v1.16 SITL after btmission was stopped 2 s: custom
+    mode 196608); PX4 returns to OFFBOARD by itself once the setpoints stream. Read as MANUAL,
+    the agent stood down for good: it is the offboard-loss HOLD, which the agent takes back. A
+    pilot's Position mode (no failsafe) and a failsafe's RTL stay MANUAL: taken over."""
+    v = px4.vehicle
+    posctl, altctl, rtl = 3 << 16, 2 << 16, (4 << 16) | (5 << 24)
+    critical = mavlink.MAV_STATE_CRITICAL
+    px4.tell(heartbeat(posctl, armed=True, status=critical))
+    tel = v.telemetry()
+    assert tel.mode is Mode.HOLD and tel.failsafe
+    px4.tell(heartbeat(altctl, armed=True, status=critical))
+    assert v.telemetry().mode is Mode.HOLD
+    px4.tell(heartbeat(posctl, armed=True, status=mavlink.MAV_STATE_ACTIVE))  # the pilot's
+    assert v.telemetry().mode is Mode.MANUAL
+    px4.tell(heartbeat(rtl, armed=True, status=critical))  # e.g. a battery failsafe's return
+    tel = v.telemetry()
+    assert tel.mode is Mode.MANUAL and tel.failsafe
