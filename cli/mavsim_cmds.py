@@ -73,7 +73,7 @@ class _EkfDelay(FiniteFloat):
     "--ekf-delay", type=_EkfDelay(), default="0", show_default=True, metavar="SECONDS|sitl",
     help="Seconds before the estimator is ready: arming and GUIDED refused, no "
     "LOCAL_POSITION_NED until then. 'sitl': as long as the firmware's SITL took (ArduCopter "
-    "42 s, PX4 30 s of vehicle time).",
+    "42 s, PX4 4 s of vehicle time).",
 )  # fmt: skip
 @click.option(
     "--datalink-loss", type=FiniteFloat(0, 3600, min_open=True), metavar="SECONDS",

@@ -273,7 +273,7 @@ def test_no_local_position_before_the_estimator_is_ready(autopilot: Autopilot) -
         assert len(sent) == pytest.approx(10, abs=2)  # then at the 10 Hz asked
 
 
-@pytest.mark.parametrize(("autopilot", "seconds"), [("ardupilot", 42.0), ("px4", 30.0)])
+@pytest.mark.parametrize(("autopilot", "seconds"), [("ardupilot", 42.0), ("px4", 4.0)])
 def test_the_cli_asks_for_the_sitls_estimator_start_up_by_name(
     monkeypatch: pytest.MonkeyPatch, autopilot: str, seconds: float
 ) -> None:
