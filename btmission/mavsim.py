@@ -27,7 +27,10 @@ firmware's SITL:
   PX4 answers a DO_SET_MODE twice, as the firmware does: ACCEPTED at once (its MAVLink module),
   then on the next step the real result (its commander), which may be a refusal;
 * **PX4 rules**: OFFBOARD only after setpoints have streamed at more than 2 Hz for a second
-  (DENIED otherwise), HOLD when they stop for ``COM_OF_LOSS_T`` (1 s),
+  (DENIED otherwise); when they stop for ``COM_OF_LOSS_T`` (1 s), the firmware's default
+  offboard-loss action, Position mode, which without RC sinks and says CRITICAL (PX4 v1.16 SITL:
+  5.2 m to 0.1 m, custom mode 196608), or HOLD (:attr:`MavSimConfig.offboard_loss_action`);
+  OFFBOARD again by itself once they stream for a second,
   NAV_TAKEOFF to an AMSL altitude, automatic disarming (the embedded simulator's rules,
   :mod:`btmission.backends.autopilot`);
 * **ArduPilot rules**: GUIDED (copter 4, rover 15) takes targets that do not time out (position)
@@ -164,6 +167,12 @@ MAV_LANDED_STATE = {
     LandedState.LANDING: mavlink.MAV_LANDED_STATE_LANDING,
 }
 """The simulator's landed state as EXTENDED_SYS_STATE says it."""
+PX4_POSITION_SINK_M_S = 0.8
+"""How fast PX4's Position mode sank without RC after an offboard loss (PX4 v1.16 SITL with
+default parameters, ``COM_OBL_RC_ACT`` 0: 5.2 m to 0.1 m, at up to 0.8 m/s)."""
+PX4_POSCTL = 3 << 16
+"""PX4's Position mode (``custom_mode``: main mode 3), as its HEARTBEAT shows it (196608)."""
+OFFBOARD_LOSS_ACTIONS = ("position", "hold")
 LOITER_SINK_M_S = 2.5
 """How fast an ArduCopter in LOITER descends with no RC input (throttle at 1000 µs, full down:
 ``PILOT_SPEED_DN``, whose default 0 means ``PILOT_SPEED_UP``, 250 cm/s)."""
@@ -225,6 +234,10 @@ class MavSimConfig:
     hover_thrust: float = 0.5
     home_amsl_m: float = 0.0
     offboard_loss_s: float = 1.0
+    offboard_loss_action: str = "position"
+    """PX4's offboard-loss action (``COM_OBL_RC_ACT``): ``position``, the firmware's default
+    (0), flies Position mode, which without RC sinks (:data:`PX4_POSITION_SINK_M_S`) and says
+    CRITICAL, until the setpoints return and PX4 goes back to OFFBOARD; ``hold`` (5) holds."""
     datalink_loss_s: float | None = None
     """PX4's data-link-loss failsafe: land after this many seconds without the ground station's
     heartbeat (``NAV_DLL_ACT`` = land after ``COM_DL_LOSS_T``); None, the firmware's default
@@ -244,6 +257,11 @@ class MavSimConfig:
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be positive or None (off), got {value}")
+        if self.offboard_loss_action not in OFFBOARD_LOSS_ACTIONS:
+            raise ValueError(
+                f"offboard_loss_action must be one of {', '.join(OFFBOARD_LOSS_ACTIONS)}, "
+                f"got {self.offboard_loss_action!r}"
+            )
         if not self.vehicles:
             raise ValueError("no vehicles to simulate")
 
@@ -420,7 +438,20 @@ class _SimulatedAutopilot:
         ready; before, neither firmware sends one (module docstring)."""
         return self.ekf_ready()
 
+    def position_fallback(self) -> bool:
+        """PX4's offboard-loss failsafe is on, with its default action: Position mode
+        (:attr:`MavSimConfig.offboard_loss_action`)."""
+        return (
+            self.autopilot is Autopilot.PX4
+            and not self.ground
+            and self.cfg.offboard_loss_action == "position"
+            and bool(self.state.offboard_lost)
+            and self.backend.telemetry().mode is Mode.HOLD
+        )
+
     def custom_mode(self) -> int:
+        if self.position_fallback():
+            return PX4_POSCTL
         mode = self.backend.telemetry().mode
         if self.copter:
             if self.kept_land and mode is Mode.MANUAL:
@@ -871,6 +902,9 @@ class _SimulatedAutopilot:
             self.backend.set_velocity_setpoint(np.zeros(3), 0.0)
             return
         if self.autopilot is Autopilot.PX4:
+            if self.position_fallback():  # no RC: Position mode sinks (seen 5.2 m -> 0.1 m)
+                v = self.state
+                v.hold[2] = max(v.hold[2] - PX4_POSITION_SINK_M_S * self.cfg.step_s, v.ground + 0.1)
             dll = self.cfg.datalink_loss_s
             if (
                 flying
@@ -954,6 +988,8 @@ class _SimulatedAutopilot:
             status = mavlink.MAV_STATE_ACTIVE if armed else mavlink.MAV_STATE_STANDBY
             if armed and self.failsafe_note and self.backend.telemetry().mode is Mode.LAND:
                 status = mavlink.MAV_STATE_CRITICAL  # as PX4 and ArduCopter, in a failsafe
+            if self.position_fallback():
+                status = mavlink.MAV_STATE_CRITICAL
             custom = self.custom_mode()
             self.send(lambda mav: mav.heartbeat_send(mav_type, ap, base, custom, status))
         elif msg_id == CURRENT_MODE_ID:

@@ -81,6 +81,13 @@ class _EkfDelay(FiniteFloat):
     "(NAV_DLL_ACT = land after COM_DL_LOSS_T) [default: off, as the firmware ships it].",
 )  # fmt: skip
 @click.option(
+    "--offboard-loss", type=click.Choice(["position", "hold"]), default="position",
+    show_default=True,
+    help="PX4's offboard-loss action (COM_OBL_RC_ACT): 'position', the firmware's default, "
+    "flies Position mode, which without RC sinks and says CRITICAL until the setpoints "
+    "return; 'hold' holds.",
+)  # fmt: skip
+@click.option(
     "--gcs-failsafe", type=FiniteFloat(0, 3600, min_open=True), metavar="SECONDS",
     help="ArduPilot: land after SECONDS without the ground station's heartbeat while flying "
     "(FS_GCS_ENABLE = land after FS_GCS_TIMEOUT) [default: off, as the firmware ships it].",
@@ -137,6 +144,7 @@ def mavsim(
     speed: float | None,
     ekf_delay: float | str,
     datalink_loss: float | None,
+    offboard_loss: str,
     gcs_failsafe: float | None,
     refuse_arm: str,
     refuse_arm_times: int,
@@ -226,7 +234,7 @@ def mavsim(
         specs, voxel_map, autopilot=ap, speed=speed, ekf_delay_s=ekf_delay,
         refuse_arm=refuse_arm, refuse_arm_times=refuse_arm_times, signing_key=key,
         hover_thrust=hover_thrust, seed=seed, datalink_loss_s=datalink_loss,
-        gcs_failsafe_s=gcs_failsafe,
+        gcs_failsafe_s=gcs_failsafe, offboard_loss_action=offboard_loss,
     )  # fmt: skip
     try:
         sim = MavSim(config)

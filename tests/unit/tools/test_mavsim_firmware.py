@@ -339,3 +339,57 @@ def test_the_cli_says_how_long_the_simulator_was_frozen(monkeypatch: pytest.Monk
         "stopped after 6.0 simulated s (300 steps, 3 late step(s), paused 8.2 s wall in "
         "1 freeze(s))"
     )
+
+
+# ------------------------------------------------------- PX4's offboard loss: Position mode
+def _offboard_then_silent(sim: MavSim) -> _SimulatedAutopilot:
+    """R1 flying OFFBOARD at 3 m on its setpoints, which then stop."""
+    ap = airborne(sim)
+    here = ap.backend.telemetry().position.copy()
+    for _ in range(60):  # 1.2 s of setpoints, then OFFBOARD
+        ap.backend.set_position_setpoint(here, None, 0.0)
+        ap.last_setpoint_t = ap.now()
+        run(sim, sim.config.step_s, gcs=True)
+    ap.backend.set_mode(Mode.OFFBOARD)
+    run(sim, 0.2, gcs=True)
+    assert ap.backend.telemetry().mode is Mode.OFFBOARD
+    return ap
+
+
+@pytest.mark.parametrize("action", ["position", "hold"])
+def test_px4s_offboard_loss_flies_position_mode_by_default_which_sinks_without_rc(
+    action: str,
+) -> None:
+    """PX4 v1.16 SITL with default parameters (COM_OBL_RC_ACT 0): 1.1 s after its setpoints
+    stopped, "Failsafe activated", Position mode (custom mode 196608) with system status
+    CRITICAL, sinking without RC (5.2 m to 0.1 m seen); back to OFFBOARD by itself once they
+    stream again. ``--offboard-loss hold`` holds instead (COM_OBL_RC_ACT 5)."""
+    with stepped(PX4, offboard_loss_action=action) as sim:
+        ap = _offboard_then_silent(sim)
+        run(sim, 1.5, gcs=True)  # the setpoints stopped 1.7 s ago
+        assert ap.backend.telemetry().mode is Mode.HOLD  # (the simulator's failsafe)
+        assert ap.position_fallback() is (action == "position")
+        custom = ap.custom_mode()
+        z0 = ap.backend.telemetry().position[2]
+        run(sim, 3.0, gcs=True)
+        sunk = z0 - ap.backend.telemetry().position[2]
+        if action == "position":
+            assert custom == 196608
+            assert sunk == pytest.approx(3 * 0.8, abs=0.4)  # without RC, Position mode sinks
+        else:
+            assert custom == mode_request(PX4, MULTI, Mode.HOLD).custom_mode
+            assert abs(sunk) < 0.1
+        here = ap.backend.telemetry().position.copy()
+        for _ in range(75):  # the setpoints stream again: OFFBOARD by itself
+            ap.backend.set_position_setpoint(here, None, 0.0)
+            ap.last_setpoint_t = ap.now()
+            run(sim, sim.config.step_s, gcs=True)
+        assert ap.backend.telemetry().mode is Mode.OFFBOARD and not ap.position_fallback()
+
+
+def test_the_cli_takes_the_offboard_loss_action(monkeypatch: pytest.MonkeyPatch) -> None:
+    assert _config_of(monkeypatch).offboard_loss_action == "position"
+    config = _config_of(monkeypatch, "--offboard-loss", "hold")
+    assert config.offboard_loss_action == "hold"
+    r = CliRunner().invoke(cli, ["mavsim", "--count", "1", "--offboard-loss", "rtl"])
+    assert r.exit_code == 2 and "--offboard-loss" in r.output

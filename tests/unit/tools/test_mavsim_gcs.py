@@ -399,7 +399,8 @@ def test_px4_offboard_is_refused_for_a_slow_stream() -> None:
 
 @pytest.mark.slow  # covered in the fast selection by test_mavlink_provider / test_mavsim
 def test_px4_offboard_after_a_second_of_streaming_then_hold_when_it_stops() -> None:
-    with px4(speed=4.0) as (sim, [g]):
+    # (COM_OBL_RC_ACT = Hold; the default, Position mode: test_mavsim_firmware.py)
+    with px4(speed=4.0, offboard_loss_action="hold") as (sim, [g]):
         _takeoff_px4(sim, g)
 
         def stream() -> None:
