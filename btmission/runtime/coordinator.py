@@ -10,8 +10,9 @@ Around that it
   announced from their arrival), and tasks added while the mission runs (:meth:`Coordinator.
   add_task`, called by the run's command port with a task it checked,
   :mod:`btmission.runtime.taskcheck`);
-* drops agents that stop bidding for ``coordination.agent_timeout_s`` and returns their task to
-  the pool (the auction's stale-bid rule: a bid is also the agent's heartbeat);
+* drops agents that stop bidding for ``coordination.agent_timeout_s`` from the auction and
+  returns their task to the pool when their lease ends, ``coordination.lease_s`` after their last
+  bid (the auction's stale-bid rule: a bid is also the agent's heartbeat and renews its lease);
 * leaves tasks no agent can reach open (state ``unreachable``) with the reason, and says at once
   when an added task's location is outside the map or inside rock;
 * publishes every change of a task's state as an event (``task``), every round (``round``) and
