@@ -327,6 +327,7 @@ class _StderrNotes:
 
     def __init__(self) -> None:
         from btmission.runtime.eventkinds import (
+            CoordinatorLinkEvent,
             LeafErrorEvent,
             TakenOverEvent,
             VehicleLinkEvent,
@@ -339,6 +340,7 @@ class _StderrNotes:
             WarningEvent.KIND,
             VehicleLinkEvent.KIND,
             TakenOverEvent.KIND,
+            CoordinatorLinkEvent.KIND,
         )
         self._lost_at: dict[str, float] = {}
         self._link_notes: dict[str, int] = {}
@@ -347,6 +349,7 @@ class _StderrNotes:
         if ev.kind not in self._kinds:
             return  # (first: this observer sees every event of the run, poses too)
         from btmission.runtime.eventkinds import (
+            CoordinatorLinkEvent,
             LeafErrorEvent,
             TakenOverEvent,
             VehicleLinkEvent,
@@ -365,6 +368,9 @@ class _StderrNotes:
             key = line
         elif isinstance(typed, VehicleLinkEvent):
             self._link(typed, ev.t)
+            return
+        elif isinstance(typed, CoordinatorLinkEvent):
+            self._coordinator(typed, ev.t)
             return
         elif isinstance(typed, TakenOverEvent):
             who = "its autopilot's failsafe" if typed.failsafe else "its autopilot or pilot"
@@ -386,6 +392,24 @@ class _StderrNotes:
         if key not in self._seen:
             self._seen.add(key)
             click.echo(line, err=True)
+
+    def _coordinator(self, ev: Any, t: float) -> None:
+        """``coordinator lost`` / ``regained``, counted with the vehicle link's notes."""
+        agent = ev.agent
+        key = f"coordinator:{agent}"
+        n = self._link_notes[key] = self._link_notes.get(key, 0) + 1
+        if n > self.LINK_NOTES:
+            return
+        if ev.up:
+            line = f"{agent}: coordinator regained at t={t:.1f} s after {ev.silent_s:.1f} s"
+        else:
+            line = (
+                f"warning: {agent}: coordinator lost at t={t:.1f} s (not heard for "
+                f"{ev.silent_s:.1f} s): it keeps its task within its lease"
+            )
+        if n == self.LINK_NOTES:
+            line += f" (further coordinator link changes of {agent} only in the log)"
+        click.echo(line, err=True)
 
     def _link(self, ev: Any, t: float) -> None:
         agent = ev.agent

@@ -9,7 +9,9 @@ A round has the paper's three stages (seed 003 Fig. 3):
    f_cost(task, state) · k_bt`` (eq. 8-10; see :mod:`btmission.allocation.bidder`), NaN for a
    task it does not bid on (participation) and ``inf`` for one it cannot reach. The auctioneer
    keeps each agent's latest bid on a board; a bid older than ``agent_timeout_s`` is stale and
-   its agent is dropped (its task returns to the pool).
+   its agent is dropped (it wins nothing new). The task it holds is leased to it: it stays
+   with it until ``lease_s`` after its last bid, so an agent cut off for less than that keeps
+   its task (and its late report of it counts); then the task returns to the pool.
 3. **Allocation** — :func:`auction_round`: the board becomes a cost matrix, priorities become
    profit bonuses, and an exact solver (:mod:`btmission.allocation.solvers`) finds the matching
    that assigns the most tasks, then maximizes ``Σ (priority_scale · priority_j − c_kj)``
@@ -61,7 +63,12 @@ class AuctionConfig:
     """Profit bonus per unit of task priority (seed 003 scenario 3)."""
     solver: str = "assignment"
     agent_timeout_s: float = 3.0
-    """A bid older than this is stale: its agent is dropped and its task returns to the pool."""
+    """A bid older than this is stale: its agent is dropped from the auction (it wins nothing
+    new); the task it holds stays with it for the lease (``lease_s``)."""
+    lease_s: float = 30.0
+    """How long after an agent's last bid the task it holds stays with it: past this (and at
+    least ``agent_timeout_s``) the task returns to the pool. A dead agent's task waits this
+    long; a partition shorter than this costs nothing (the cut-off agent keeps its task)."""
     rate_hz: float = 10.0
     """Rounds per second of the fixed-rate loop (the paper ran at 9 Hz)."""
     cooldown_s: float = 30.0
@@ -81,6 +88,8 @@ class AuctionConfig:
             )
         if not self.agent_timeout_s > 0:
             raise ValueError(f"agent_timeout_s must be > 0, got {self.agent_timeout_s}")
+        if not self.lease_s > 0:
+            raise ValueError(f"lease_s must be > 0, got {self.lease_s}")
         if not self.rate_hz > 0:
             raise ValueError(f"rate_hz must be > 0, got {self.rate_hz}")
         if not (self.cooldown_s >= 0 and math.isfinite(self.cooldown_s)):
@@ -101,6 +110,7 @@ class AuctionConfig:
             priority_scale=spec.priority_scale,
             solver=spec.solver,
             agent_timeout_s=spec.agent_timeout_s,
+            lease_s=spec.lease_s,
             rate_hz=spec.auction_rate_hz,
             cooldown_s=spec.cooldown_s,
             exclude_after=spec.exclude_after,
@@ -383,6 +393,9 @@ class AuctionState:
     streaks: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
     """Agent → the different tasks it gave up since it last finished one (or was taken out
     of the auction for it)."""
+    silent: Mapping[str, float] = field(default_factory=dict)
+    """Agents dropped for silence that still hold a task → the time of their last bid: each
+    keeps its task until ``config.lease_s`` after it (its lease), then the task is re-offered."""
 
     # -- progress reported by the agents (between rounds) ----------------------------------
     def add_task(self, info: TaskInfo, now: float | None = None) -> AuctionState:
@@ -530,16 +543,36 @@ def auction_round(
         if agent != t.agent:
             changes.append(Change(t.id, t.agent, agent, reason))
 
-    # stale agents: dropped, their task back to the pool
+    # stale agents: dropped from the auction (they win nothing new); a silent holder keeps its
+    # task until its lease (lease_s after its last bid) runs out, then the task is re-offered
     stale = sorted(a for a, b in board.items() if now - b.time_s > cfg.agent_timeout_s)
     holders = state.holders()
-    for a in stale:
-        age = now - board.pop(a).time_s
-        held = holders.pop(a, None)
-        if held is not None:
-            move(pool[held], TaskState.OPEN, None, f"agent {a} stopped reporting ({age:.1f} s)")
-    for a in sorted(set(holders) - set(board)):  # holds a task but never bid
-        move(pool[holders.pop(a)], TaskState.OPEN, None, f"agent {a} is not bidding")
+    silent = state.silent
+    if stale or silent:
+        silent = {a: t for a, t in silent.items() if a not in board}  # (heard again: renewed)
+        for a in stale:
+            silent[a] = board.pop(a).time_s
+    leased: dict[int, str] = {}
+    """Announced task → the silent agent holding it within its lease (out of the matching)."""
+    leasing: set[str] = set()
+    for a in sorted(set(holders) - set(board)):  # silent, or holds a task but never bid
+        tid = holders.pop(a)
+        last = silent.get(a)
+        if last is None:
+            move(pool[tid], TaskState.OPEN, None, f"agent {a} is not bidding")
+        elif now - last <= max(cfg.lease_s, cfg.agent_timeout_s):
+            leasing.add(a)
+            if tid in ann.index:
+                leased[ann.index[tid]] = a
+        else:
+            move(
+                pool[tid],
+                TaskState.OPEN,
+                None,
+                f"lease of {a} ran out (no word for {now - last:.1f} s)",
+            )
+    if silent:
+        silent = {a: t for a, t in silent.items() if a in leasing}
     agents = sorted(board)
     rows = [board[a] for a in agents]
     row_of = {a: i for i, a in enumerate(agents)}
@@ -618,9 +651,11 @@ def auction_round(
 
     # solve without the pinned agents and tasks
     winner: dict[int, str] = {index[t]: a for a, t in pinned.items()}
-    if pinned:
+    if pinned or leased:
         free_rows = np.array([i for i, a in enumerate(agents) if a not in pinned], dtype=np.intp)
-        free_cols = np.array([j for j in range(nt) if j not in winner], dtype=np.intp)
+        free_cols = np.array(
+            [j for j in range(nt) if j not in winner and j not in leased], dtype=np.intp
+        )
         sub = costs[np.ix_(free_rows, free_cols)]
         col_pos = np.full(nt + 1, -1, dtype=np.intp)
         col_pos[free_cols] = np.arange(len(free_cols))
@@ -690,6 +725,8 @@ def auction_round(
     unassigned: dict[str, str] = {}
     for j, t in enumerate(cur):
         who = won_by[j]
+        if who is None and j in leased:  # its silent holder keeps it (within the lease)
+            continue
         if who is not None:
             if t.agent == who and t.state in HELD:
                 continue
@@ -725,6 +762,8 @@ def auction_round(
     new_state = replace(state, pool=new_pool, round=state.round + 1, board=board)
     if cooldown is not state.cooldown:
         new_state = replace(new_state, cooldown=cooldown)
+    if silent is not state.silent:
+        new_state = replace(new_state, silent=silent)
     report = RoundReport(
         round=new_state.round,
         time_s=now,

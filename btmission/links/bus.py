@@ -27,7 +27,8 @@ connected agent at once and their bids are back in the coordinator's inbox befor
 allocates (a bid window of 0). :meth:`InMemoryBus.set_link` cuts an agent off (messages both
 ways are dropped), which is how tests and the operator simulate a lost link: the agent keeps
 executing its current task (seed 000 §I, §V-C) while the coordinator, hearing nothing, drops it
-after ``coordination.agent_timeout_s``. The agent keeps its progress reports until the
+from the auction after ``coordination.agent_timeout_s`` and re-offers its task when its lease
+(``coordination.lease_s`` after its last bid) ends; the agent stops the task before that. The agent keeps its progress reports until the
 coordinator acknowledges them (:class:`ProgressAck`), so a completion made while it was cut off
 is delivered when the link returns.
 """

@@ -70,6 +70,7 @@ from btmission.runtime.actions import CommandRetrySettings
 from btmission.runtime.eventkinds import (
     AgentTaskEvent,
     CommittedEvent,
+    CoordinatorLinkEvent,
     LeafErrorEvent,
     ProgressEvent,
     RouteEvent,
@@ -309,6 +310,13 @@ class Agent:
                     f"agents.{agent_id}",
                     mission.file,
                 ) from exc
+        coord = mission.spec.coordination
+        self._timeout_s = float(coord.agent_timeout_s)
+        self._lease_s = float(coord.lease_s)
+        self._heard_s: float | None = None
+        """When the coordinator was last heard (any message), None before the first tick."""
+        self.coordinator_up = True
+        """The coordinator was heard within ``agent_timeout_s`` (:meth:`_coordinator_heard`)."""
         self._outbox: dict[ProgressKey, _Outgoing] = {}
         """Progress reports not acknowledged yet, oldest first."""
         link.connect(self.on_announcement, self.on_assignment, self.on_ack)
@@ -358,7 +366,10 @@ class Agent:
     # ---------------------------------------------------------------- messages
     def on_announcement(self, ann: Announcement) -> None:
         """Bid on the announced tasks (stage 2 of the auction)."""
-        if not self.alive or self.recalled or self.stood_down is not None:
+        if not self.alive:
+            return
+        self._heard(self.clock())
+        if self.recalled or self.stood_down is not None:
             return
         if not self.freshness.accept("announcement", ann.epoch, ann.serial, strict=False):
             return  # an older announcement delivered late: its bid would be stale
@@ -380,6 +391,7 @@ class Agent:
         an older one delivered late would undo it) and names this agent."""
         if not self.alive:
             return
+        self._heard(self.clock())
         if not self.freshness.accept("assignment", msg.announcement.epoch, msg.round, True):
             return
         if self.id not in msg.tasks:
@@ -433,6 +445,7 @@ class Agent:
         self._failure = ""
         self._refused = False
         self._send_progress(now)
+        self._coordinator_heard(now)
         if not self._vehicle_heard(now):
             return Status.RUNNING  # paused: nothing the tree does can reach the vehicle
         if self._taken_over(now):
@@ -491,6 +504,8 @@ class Agent:
     def on_ack(self, ack: ProgressAck) -> None:
         """The coordinator took these reports: forget them (a task given up may be followed
         again when the coordinator assigns it anew)."""
+        if self.alive:
+            self._heard(self.clock())
         for key in ack.keys:
             if self._outbox.pop(key, None) is not None and key[1] == "gave_up":
                 self._given_back.discard(key[0])
@@ -577,6 +592,52 @@ class Agent:
     def flush_tree_events(self) -> None:
         """Publish the tree's status changes not published yet (the run ends)."""
         self._tree_log.flush()
+
+    # ------------------------------------------------------------ coordinator link, lease
+    def _heard(self, now: float) -> None:
+        """A message from the coordinator arrived: it renews the lease on the agent's task;
+        after a loss, the agent says it has its coordinator back."""
+        if not self.coordinator_up:
+            silent = now - (self._heard_s if self._heard_s is not None else now)
+            self.coordinator_up = True
+            self._emit(CoordinatorLinkEvent(agent=self.id, up=True, silent_s=round(silent, 3)))
+        if self._heard_s is None or now > self._heard_s:
+            self._heard_s = now
+
+    @property
+    def lease_guard_s(self) -> float:
+        """How long before its lease ends a cut-off agent stops its task: ``agent_timeout_s``
+        (the coordinator's clock for the lease starts at the agent's last bid, which the agent
+        sends when it hears an announcement; the guard covers a link lost one way only for up
+        to that long)."""
+        return self._timeout_s
+
+    def _coordinator_heard(self, now: float) -> None:
+        """Follow the coordinator link: after ``agent_timeout_s`` without a message, say the
+        coordinator is lost (the task goes on: the lease covers it); past ``lease_s −``
+        :attr:`lease_guard_s`, stop the task (the default behaviour takes over, e.g. return
+        home and land) and report that it was let go, so the coordinator, which re-offers it
+        when the lease ends, never has two agents flying it."""
+        if self._heard_s is None:
+            self._heard_s = now  # (the first tick: the coordinator's first round is due)
+            return
+        silent = now - self._heard_s
+        if silent <= self._timeout_s:
+            return
+        if self.coordinator_up:
+            self.coordinator_up = False
+            self._emit(CoordinatorLinkEvent(agent=self.id, up=False, silent_s=round(silent, 3)))
+        task = self.task
+        if task is None or silent <= self._lease_s - self.lease_guard_s:
+            return
+        reason = (
+            f"its lease on {task.id} ran out (coordinator not heard for {silent:.1f} s, lease "
+            f"{self._lease_s:g} s)"
+        )
+        self._emit(WarningEvent(agent=self.id, message=f"{self.id}: {reason}: {task.id} stopped"))
+        self._given_back.add(task.id)
+        self._progress(task.id, "gave_up", now, reason)
+        self._switch(None, now)
 
     # ------------------------------------------------------------------ vehicle link
     RESUME_OFFBOARD_S = 5.0

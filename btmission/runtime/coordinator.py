@@ -10,8 +10,9 @@ Around that it
   announced from their arrival), and tasks added while the mission runs (:meth:`Coordinator.
   add_task`, called by the run's command port with a task it checked,
   :mod:`btmission.runtime.taskcheck`);
-* drops agents that stop bidding for ``coordination.agent_timeout_s`` and returns their task to
-  the pool (the auction's stale-bid rule: a bid is also the agent's heartbeat);
+* drops agents that stop bidding for ``coordination.agent_timeout_s`` from the auction and
+  returns their task to the pool when their lease ends, ``coordination.lease_s`` after their last
+  bid (the auction's stale-bid rule: a bid is also the agent's heartbeat and renews its lease);
 * leaves tasks no agent can reach open (state ``unreachable``) with the reason, and says at once
   when an added task's location is outside the map or inside rock;
 * publishes every change of a task's state as an event (``task``), every round (``round``) and
@@ -211,7 +212,8 @@ class Coordinator:
         """Continue from a predecessor's log (:func:`~btmission.runtime.recovery.recover`):
         its pool, round count (the next round is numbered after the last), assignments, the
         operator's recalls, exclusions and pause, and the progress reports it took (resent
-        copies are ignored). Nothing the log has is logged again; what it lacks (bids,
+        copies are ignored). Each holder keeps its task until its lease ends, ``lease_s``
+        after the last round logged, unless it bids again before. Nothing the log has is logged again; what it lacks (bids,
         statuses, unacknowledged progress) comes from the agents. Call it on a coordinator that
         has not stepped yet."""
         if self.state.round or self._added or self._open is not None:
@@ -233,7 +235,13 @@ class Coordinator:
                 for a in t.attempts:
                     if a.gave_up:
                         cooldown[(a.agent, t.id)] = a.time_s + cool  # (the latest)
-        self.loop.state = replace(self.state, cooldown=cooldown, streaks=dict(recovered.streaks))
+        # every holder keeps its task for its lease, counted from the last round logged: an
+        # agent cut off from the old coordinator as well is not stripped of it at once
+        since = recovered.round_s if recovered.round_s is not None else 0.0
+        silent = dict.fromkeys(recovered.pool.holders(), since)
+        self.loop.state = replace(
+            self.state, cooldown=cooldown, streaks=dict(recovered.streaks), silent=silent
+        )
         self.recalled = set(recovered.recalled)
         self._added = set(recovered.added)
         self._history_len = dict(recovered.logged)

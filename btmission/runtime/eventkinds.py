@@ -303,6 +303,20 @@ class VehicleLinkEvent(TypedEvent):
 
 @register_event
 @dataclass(frozen=True, kw_only=True)
+class CoordinatorLinkEvent(TypedEvent):
+    """The agent lost (``up`` false: nothing heard from it for ``coordination.agent_timeout_s``)
+    or heard again its coordinator. While it is lost the agent keeps its task within its lease
+    (``coordination.lease_s``) and stops it ``agent_timeout_s`` before the lease ends."""
+
+    KIND = "coordinator_link"
+    agent: str
+    up: bool
+    silent_s: float
+    """How long nothing had been heard from the coordinator."""
+
+
+@register_event
+@dataclass(frozen=True, kw_only=True)
 class TakenOverEvent(TypedEvent):
     """The vehicle's autopilot (a failsafe) or its pilot took it over: it left the flight the
     tree was flying for a mode nobody in the mission asked for. The agent stands down — its

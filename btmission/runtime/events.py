@@ -67,6 +67,8 @@ and consumers read (``Event.typed()``: the report, the viewer's feed, a restarte
                      ``up``
 ``vehicle_link``     an agent lost or heard again its vehicle's autopilot: ``agent``, ``up``,
                      ``mode`` (when it came back)
+``coordinator_link`` an agent lost (nothing heard for ``agent_timeout_s``) or heard again its
+                     coordinator: ``agent``, ``up``, ``silent_s``
 ``taken_over``       an agent's vehicle was taken over by its autopilot's failsafe or its
                      pilot: ``agent``, ``mode``, ``failsafe``, ``final`` (the agent stands
                      down), ``task`` (handed back)

@@ -211,6 +211,14 @@ class CoordinationSpec(_Strict):
     agent_timeout_s: FiniteFloat = Field(
         3.0, gt=0, description="Silence after which an agent is dropped."
     )
+    lease_s: FiniteFloat = Field(
+        30.0,
+        gt=0,
+        description="How long a silent agent keeps the task it holds (s, after its last word): "
+        "the coordinator re-offers the task only then, and the agent, if it cannot reach the "
+        "coordinator, stops the task agent_timeout_s before that. Long enough to ride out "
+        "Wi-Fi drop-outs; a dead agent's task waits this long.",
+    )
     bid_window_s: FiniteFloat = Field(
         0.0,
         ge=0,
@@ -236,6 +244,17 @@ class CoordinationSpec(_Strict):
         "it is taken out of the auction, as the operator's exclude does (0: never); the last "
         "agent bidding is never taken out.",
     )
+
+    @field_validator("lease_s")
+    @classmethod
+    def _lease_past_timeout(cls, v: float, info: ValidationInfo) -> float:
+        timeout = info.data.get("agent_timeout_s")
+        if isinstance(timeout, float) and v <= timeout:
+            raise ValueError(
+                f"must be longer than agent_timeout_s ({timeout:g} s): a silent agent keeps "
+                "its task for the lease and stops it agent_timeout_s before the lease ends"
+            )
+        return v
 
     @field_validator("bid_window_s")
     @classmethod

@@ -170,3 +170,24 @@ def test_the_terminal_shows_a_vehicle_link_lost_and_back_and_a_takeover(
                                        f'"up":{"true" if i % 2 else "false"}}}'))  # fmt: skip
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 8 and err[-1].endswith("(further link changes of R1 only in the log)")
+
+
+def test_run_prints_when_an_agent_loses_and_regains_its_coordinator(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """Issue #37: the agent says when it stops hearing its coordinator and when it hears it
+    again (it keeps its task within its lease meanwhile); its lease running out is a warning."""
+    from btmission.cli.run_cmds import _StderrNotes
+    from btmission.runtime.events import Event
+
+    notes = _StderrNotes()
+    for line in (
+        '{"t":4.0,"ev":"coordinator_link","agent":"R1","up":false,"silent_s":1.1}',
+        '{"t":8.0,"ev":"coordinator_link","agent":"R1","up":true,"silent_s":5.1}',
+    ):
+        notes.on_event(Event.from_json(line))
+    assert capsys.readouterr().err.splitlines() == [
+        "warning: R1: coordinator lost at t=4.0 s (not heard for 1.1 s): it keeps its task "
+        "within its lease",
+        "R1: coordinator regained at t=8.0 s after 5.1 s",
+    ]

@@ -159,32 +159,82 @@ def test_new_task_is_assigned_in_the_first_round_after_it_arrives() -> None:
 # --------------------------------------------------------------------------------------------
 # Agents that stop reporting, stale and invalid bids
 # --------------------------------------------------------------------------------------------
-def test_agent_that_stops_bidding_loses_its_task_at_the_next_round() -> None:
-    s = state(info("T1"), info("T2"), agent_timeout_s=1.0)
+def test_a_silent_holder_keeps_its_task_for_its_lease_then_loses_it() -> None:
+    s = state(info("T1"), info("T2"), agent_timeout_s=1.0, lease_s=5.0)
     a, s, _ = step(s, 0.0, A={"T1": 1.0, "T2": 5.0}, B={"T1": 2.0, "T2": 3.0})
     assert a == {"A": "T1", "B": "T2"}
     # A goes silent; its last bid (t = 0) stays valid until the timeout
     for now in (0.5, 1.0):
         a, s, r = step(s, now, B={"T1": 2.0, "T2": 3.0})
         assert a == {"A": "T1", "B": "T2"} and r.dropped == ()
-    # first round past the timeout: A is dropped, T1 is released and re-auctioned
+    # past the timeout A is dropped from the auction but keeps T1 (its lease): B, which
+    # would take T1 at a lower total, is not offered it
     a, s, r = step(s, 1.1, B={"T1": 2.0, "T2": 3.0})
-    assert r.dropped == ("A",) and a == {"B": "T1"}
+    assert r.dropped == ("A",) and a == {"B": "T2"} and r.agents == ("B",)
+    assert s.pool["T1"].agent == "A" and s.pool["T1"].state is TaskState.ASSIGNED
+    assert s.silent == {"A": 0.0}
+    for now in (2.0, 3.0, 5.0):  # up to the end of the lease (5 s after its last bid)
+        a, s, r = step(s, now, B={"T1": 2.0, "T2": 3.0})
+        assert a == {"B": "T2"} and r.dropped == ()
+        assert s.pool["T1"].agent == "A" and "T1" not in r.unassigned
+    # the lease has run out: T1 goes back to the pool and is re-offered
+    a, s, r = step(s, 5.1, B={"T1": 2.0, "T2": 3.0})
+    assert a == {"B": "T1"} and s.silent == {}
     hist = [(e.state.value, e.agent, e.reason) for e in s.pool["T1"].history]
-    assert ("open", None, "agent A stopped reporting (1.1 s)") in hist
+    assert ("open", None, "lease of A ran out (no word for 5.1 s)") in hist
     assert s.pool["T1"].agent == "B" and s.pool["T2"].state is TaskState.OPEN
     # A comes back with a fresh bid and takes part again
-    a, s, r = step(s, 1.2, A={"T1": 1.0, "T2": 5.0}, B={"T1": 2.0, "T2": 3.0})
+    a, s, r = step(s, 5.2, A={"T1": 1.0, "T2": 5.0}, B={"T1": 2.0, "T2": 3.0})
     assert a == {"A": "T1", "B": "T2"} and r.agents == ("A", "B")
 
 
-def test_stale_committed_agent_releases_its_task() -> None:
-    s = state(info("P", multi_stage=True), agent_timeout_s=1.0)
+def test_a_silent_holder_heard_again_within_its_lease_keeps_its_task() -> None:
+    s = state(info("T1"), info("T2"), agent_timeout_s=1.0, lease_s=5.0)
+    _, s, _ = step(s, 0.0, A={"T1": 1.0, "T2": 5.0}, B={"T1": 2.0, "T2": 3.0})
+    for now in (1.5, 3.0):
+        _, s, _ = step(s, now, B={"T1": 2.0, "T2": 3.0})
+    a, s, _ = step(s, 4.0, A={"T1": 1.0, "T2": 5.0}, B={"T1": 2.0, "T2": 3.0})
+    assert a == {"A": "T1", "B": "T2"} and s.silent == {}
+    assert [e.agent for e in s.pool["T1"].history if e.agent is not None] == ["A"]
+    # a new silence starts a new lease (from the bid at t = 4)
+    for now in (6.0, 9.0):
+        a, s, _ = step(s, now, B={"T1": 2.0, "T2": 3.0})
+        assert s.pool["T1"].agent == "A"
+    a, s, _ = step(s, 9.1, B={"T1": 2.0, "T2": 3.0})
+    assert a == {"B": "T1"}
+
+
+def test_a_silent_agent_without_a_task_gets_nothing_new() -> None:
+    s = state(info("T1"), agent_timeout_s=1.0, lease_s=5.0)
+    _, s, _ = step(s, 0.0, A={"T1": 9.0}, B={"T1": 1.0})
+    assert s.pool["T1"].agent == "B"
+    s = s.complete("T1", "B", 0.5).add_task(info("T2"), 1.0)
+    a, s, r = step(s, 1.5, B={})  # A silent (last bid at t = 0): T2 is not for it
+    assert r.dropped == ("A",) and a == {"B": None} and s.silent == {}
+    assert s.pool["T2"].state is TaskState.OPEN
+
+
+def test_a_late_completion_within_the_lease_is_the_only_one() -> None:
+    s = state(info("T1"), agent_timeout_s=1.0, lease_s=5.0)
+    _, s, _ = step(s, 0.0, A={"T1": 1.0}, B={"T1": 2.0})
+    for now in (1.5, 3.0):  # A cut off: B bids, T1 stays A's
+        a, s, _ = step(s, now, B={"T1": 2.0})
+        assert a == {"B": None}
+    s = s.complete("T1", "A", 2.5)  # its report, made at 2.5 s, arrives with the link
+    a, s, _ = step(s, 4.0, A={}, B={})
+    assert s.pool["T1"].state is TaskState.DONE and s.pool["T1"].agent == "A"
+    assert all(e.agent in (None, "A") for e in s.pool["T1"].history) and s.silent == {}
+
+
+def test_stale_committed_agent_keeps_its_task_for_its_lease() -> None:
+    s = state(info("P", multi_stage=True), agent_timeout_s=1.0, lease_s=4.0)
     _, s, _ = step(s, 0.0, A={"P": 3.0})
     s = s.commit("P", "A", 0.5)
     a, s, r = step(s, 2.0, B={"P": 7.0})
-    assert r.dropped == ("A",) and a == {"B": "P"}
-    assert s.pool["P"].state is TaskState.ASSIGNED
+    assert r.dropped == ("A",) and a == {"B": None}
+    assert s.pool["P"].state is TaskState.COMMITTED and s.pool["P"].agent == "A"
+    a, s, r = step(s, 4.5, B={"P": 7.0})
+    assert a == {"B": "P"} and s.pool["P"].state is TaskState.ASSIGNED
 
 
 def test_invalid_and_out_of_order_bids_are_ignored_with_reasons() -> None:
@@ -472,8 +522,8 @@ def scripts(draw: st.DrawFn) -> list[tuple[str, object]]:
 @given(script=scripts())
 def test_no_task_is_ever_held_twice(script: list[tuple[str, object]]) -> None:
     """Whatever the bids, commits and completions: each agent holds at most one task, each task
-    has at most one agent, the published assignment matches the pool, committed tasks never
-    change agent while their agent is live."""
+    has at most one agent, the published assignment matches the pool (but for silent holders
+    within their lease), committed tasks never change agent while their agent is live."""
     s = state(
         info("T1"),
         info("T2"),
@@ -492,8 +542,11 @@ def test_no_task_is_ever_held_twice(script: list[tuple[str, object]]) -> None:
             held = [t for t in s.pool if t.state in (TaskState.ASSIGNED, TaskState.COMMITTED)]
             agents = [t.agent for t in held]
             assert len(agents) == len(set(agents))
-            assert {k: v for k, v in a.items() if v} == {t.agent: t.id for t in held}
-            assert r.assignments == {t.agent: t.id for t in held}
+            live = {t.agent: t.id for t in held if t.agent not in s.silent}
+            assert {k: v for k, v in a.items() if v} == live
+            assert r.assignments == live
+            for ag, last in s.silent.items():  # a silent holder: within its lease, no new task
+                assert ag not in a and ag in agents and now - last <= 30.0
             for ag, tid in committed.items():
                 if ag in r.agents:
                     assert a[ag] == tid

@@ -295,6 +295,7 @@ SAMPLES: dict[str, dict[str, Any]] = {
     "signal": {"agent": "D1", "name": "stop", "value": True},
     "link": {"agent": "G1", "up": False},
     "vehicle_link": {"agent": "R1", "up": True, "mode": "HOLD"},
+    "coordinator_link": {"agent": "R1", "up": False, "silent_s": 3.1},
     "taken_over": {"agent": "R1", "mode": "LAND", "failsafe": True, "final": True, "task": "T1"},
     "objects": {"agent": "D1", "objects": [{"label": "survivor", "p": [1.0, 2.0, 0.5],
                                             "observations": 4}], "rejected": {"far": 2}},

@@ -1,6 +1,8 @@
-"""Link loss without lost work (issue #13 §5): progress and completions made while an agent's link
-is down are queued on the agent and delivered when it returns; the first completion wins, the
-other holder is withdrawn in the same round; a dead agent never delivers."""
+"""Link loss without lost work (issue #13 §5) and leases (issue #37): progress and completions made
+while an agent's link is down are queued on the agent and delivered when it returns; within its
+lease the cut-off agent keeps its task (nobody else flies it); past it the task is re-offered,
+the agent having stopped it first; the first completion wins, the other holder is withdrawn in
+the same round; a dead agent never delivers, its task waits for its lease."""
 
 from __future__ import annotations
 
@@ -55,60 +57,98 @@ def executing(rec: Recorder, agent: str) -> list[tuple[float, str | None]]:
     return [(e.t, e.get("task")) for e in rec.of("agent_task") if e.get("agent") == agent]
 
 
-def test_outage_during_a_task_the_agent_gets_it_back(tmp_path: Path) -> None:
+def coordinator_link(rec: Recorder, agent: str) -> list[tuple[float, bool]]:
+    return [(e.t, e.get("up")) for e in rec.of("coordinator_link") if e.get("agent") == agent]
+
+
+def test_outage_during_a_task_the_agent_keeps_it_within_its_lease(tmp_path: Path) -> None:
     run, rec = outage(robots(tmp_path), "G1", 3.0, 8.0, until=28)
-    states = task_states(rec, "A")
-    # silent for agent_timeout_s: A goes to G2; back at 8 s, G1 (closer) wins it again
-    assert [(s, a) for _, s, a in states] == [
-        ("assigned", "G1"), ("open", None), ("assigned", "G2"), ("assigned", "G1"), ("done", "G1"),
-    ]  # fmt: skip
-    assert executing(rec, "G2") == [(pytest.approx(4.0), "A"), (pytest.approx(8.0), None)]
+    # silent for agent_timeout_s (1 s), then 5 s in all: far within its lease (30 s), so A stays
+    # G1's; G2 is never offered it
+    assert [(s, a) for _, s, a in task_states(rec, "A")] == [("assigned", "G1"), ("done", "G1")]
+    assert executing(rec, "G2") == []
     assert [e.get("agent") for e in rec.of("progress") if e.get("event") == "done"] == ["G1"]
+    # G1 said it lost its coordinator (1 s after the last word) and when it had it back
+    (lost, _), (back, _) = coordinator_link(rec, "G1")
+    assert [up for _, up in coordinator_link(rec, "G1")] == [False, True]
+    assert 3.0 + 1.0 <= lost <= 3.0 + 1.2 and back == pytest.approx(8.0)
     assert rec.of("warning") == [] and rec.of("withdrawn") == []
     assert run.agents["G1"].unacknowledged == []
 
 
-def test_outage_across_a_completion_the_first_completion_wins(tmp_path: Path) -> None:
+def test_a_partition_within_the_lease_the_task_is_flown_once(tmp_path: Path) -> None:
+    """The drill of issue #37: cut off 3-30 s, G1 finishes A at 27.6 s during the cut; the
+    coordinator kept A with it (lease 30 s), so nobody flies A again and the completion,
+    delivered on return, is the only one."""
     run, rec = outage(robots(tmp_path), "G1", 3.0, 30.0, until=31)
-    # G1 finished A at 27.6 s while cut off (G2, which got A at 4 s, still on its way)
     g1_done = next(e for e in rec.of("progress") if e.get("agent") == "G1")
     assert g1_done.get("event") == "done" and 27 < g1_done.t < 30
     (done,) = done_events(rec, "A")
     assert done.get("agent") == "G1" and done.t == pytest.approx(30.0)  # delivered on return
-    assert done.get("reported_s") == g1_done.t
-    assert "reported late by G1" in done.get("reason") and "G2 withdrawn" in done.get("reason")
-    (w,) = rec.of("withdrawn")
-    assert (w.t, w.get("agent"), w.get("task"), w.get("by")) == (done.t, "G2", "A", "G1")
-    assert w.get("reason") == "G1 completed 'A' first (reported after its link returned)"
-    # G2 stopped executing A in that same round, and never reported it done
-    assert executing(rec, "G2") == [(pytest.approx(4.0), "A"), (pytest.approx(30.0), None)]
+    assert [(s, a) for _, s, a in task_states(rec, "A")] == [("assigned", "G1"), ("done", "G1")]
+    assert executing(rec, "G2") == [] and rec.of("withdrawn") == []
     assert not [e for e in rec.of("progress") if e.get("agent") == "G2"]
     assert rec.of("warning") == []
     assert run.agents["G1"].unacknowledged == [] and run.coordinator.open_tasks() == []
 
 
-def test_long_silence_the_completion_arrives_late_and_is_counted_once(tmp_path: Path) -> None:
-    # G1 stays silent until 50 s: G2 finishes A at ~34 s and gets the credit; G1's completion
-    # (27.6 s) arrives at 50 s and is counted once, for G2, with a warning that says so
+def test_a_partition_past_the_lease_the_first_completion_wins(tmp_path: Path) -> None:
+    # G1 stays silent until 50 s: it finishes A at 27.6 s, within its lease; the coordinator
+    # re-offers A when the lease ends (30 s after G1's last bid) and G2 starts on it; G1's
+    # completion arrives at 50 s and wins (counted once), G2 is withdrawn
     run, rec = outage(robots(tmp_path), "G1", 3.0, 50.0, until=52)
+    released = next(e for e in rec.of("task") if e.get("state") == "open")
+    assert 3.0 + 30.0 <= released.t <= 3.0 + 30.2
+    assert released.get("reason").startswith("lease of G1 ran out (no word for 30.")
     (done,) = done_events(rec, "A")
-    assert done.get("agent") == "G2" and 30 < done.t < 40
+    assert done.get("agent") == "G1" and done.t == pytest.approx(50.0)
+    assert "reported late by G1" in done.get("reason") and "G2 withdrawn" in done.get("reason")
+    (w,) = rec.of("withdrawn")
+    assert (w.t, w.get("agent"), w.get("task"), w.get("by")) == (done.t, "G2", "A", "G1")
+    assert executing(rec, "G2") == [(released.t, "A"), (pytest.approx(50.0), None)]
+    assert not [e for e in rec.of("progress") if e.get("agent") == "G2"]
     assert run.agents["G1"].unacknowledged == []  # delivered and acknowledged at 50 s
-    (warning,) = rec.of("warning")
-    assert warning.t == pytest.approx(50.0)
-    assert warning.get("message").startswith(
-        "G1 reports 'A' done (finished at t=27.6s), but G2's completion (finished at t=34.4s) "
-        "reached the coordinator first"
+
+
+def test_cut_off_past_its_lease_the_agent_stops_before_the_task_is_re_offered(
+    tmp_path: Path,
+) -> None:
+    """Lease 10 s, G1 cut off 3-40 s (it would reach A at 27.6 s): it stops A
+    agent_timeout_s before its lease ends, says so, and only then does the coordinator offer
+    A to G2: never two agents on A at once; A is done once, by G2."""
+    m = mission_text(
+        ROBOTS.replace("agent_timeout_s: 1.0}", "agent_timeout_s: 1.0, lease_s: 10}"), tmp_path
     )
-    assert warning.get("message").endswith("counted once, for G2")
+    run, rec = outage(m, "G1", 3.0, 40.0, until=50)
+    g1, g2 = executing(rec, "G1"), executing(rec, "G2")
+    assert g1[0] == (0.0, "A") and g1[1][1] is None
+    stopped = g1[1][0]
+    assert 3.0 + 9.0 <= stopped <= 3.0 + 9.2  # lease − guard (agent_timeout_s) after its last word
+    (warning,) = rec.of("warning")
+    assert warning.t == stopped and warning.get("message").startswith(
+        "G1: its lease on A ran out (coordinator not heard for 9."
+    )
+    released = next(e for e in rec.of("task") if e.get("state") == "open")
+    assert released.get("reason").startswith("lease of G1 ran out (no word for 10.")
+    assert stopped < released.t and g2[0] == (released.t, "A")
+    (done,) = done_events(rec, "A")
+    assert done.get("agent") == "G2"
+    assert [e.get("event") for e in rec.of("progress") if e.get("agent") == "G1"] == ["gave_up"]
+    assert run.agents["G1"].unacknowledged == []  # its give-up delivered when the link returned
 
 
-def test_a_dead_agent_never_delivers_its_task_is_redone(tmp_path: Path) -> None:
+def test_a_dead_agent_never_delivers_its_task_is_redone_when_its_lease_ends(
+    tmp_path: Path,
+) -> None:
     rec = Recorder()
     run = MissionRun(robots(tmp_path), observers=[rec])
     run.at(8.0, lambda r: r.kill_agent("G1"))
-    result = run.run(until=40)
+    result = run.run(until=80)
     assert result.done == ["A"]
+    released = next(e for e in rec.of("task") if e.get("state") == "open")
+    assert 8.0 + 30.0 <= released.t <= 8.0 + 30.2  # its lease, not agent_timeout_s (1 s)
+    assert released.get("reason").startswith("lease of G1 ran out")
+    assert executing(rec, "G2")[0] == (released.t, "A")
     assert [e.get("agent") for e in done_events(rec, "A")] == ["G2"]
     assert not [e for e in rec.of("progress") if e.get("agent") == "G1"]
     assert rec.of("withdrawn") == [] and rec.of("warning") == []
@@ -116,11 +156,12 @@ def test_a_dead_agent_never_delivers_its_task_is_redone(tmp_path: Path) -> None:
 
 def test_pick_and_deliver_delivery_during_an_outage_ends_done(tmp_path: Path) -> None:
     """The only robot is cut off 30-55 s: committed to P1 at ~25 s, it delivers at ~49 s; the
-    delivery reaches the coordinator when the link returns (before: P1 stayed open forever)."""
+    delivery reaches the coordinator when the link returns (before: P1 stayed open forever).
+    The cut is within its lease: P1 stays with it throughout."""
     m = load_mission(MISSIONS / "pick_and_deliver.yaml")
     run, rec = outage(m, "G1", 30.0, 55.0, until=56, controller="track")
     p1 = task_states(rec, "P1")
-    assert ("open", None) in [(s, a) for _, s, a in p1]  # released when G1 went silent
+    assert [(s, a) for t, s, a in p1 if t >= 25.0] == [("committed", "G1"), ("done", "G1")]
     (done,) = done_events(rec, "P1")
     assert done.get("agent") == "G1" and done.t == pytest.approx(55.0)
     assert 30 < done.get("reported_s") < 55
@@ -129,41 +170,36 @@ def test_pick_and_deliver_delivery_during_an_outage_ends_done(tmp_path: Path) ->
 
 
 def test_pick_and_deliver_commit_point_passed_during_an_outage(tmp_path: Path) -> None:
-    """Cut off 20-35 s, the robot passes P1's commit point (picks the item) at ~25 s: on its
-    return the task is committed to it again, and it delivers."""
+    """Cut off 20-35 s, the robot passes P1's commit point (picks the item) at ~25 s: its
+    report arrives on its return (P1 stayed with it: the cut is within its lease), and it
+    delivers."""
     m = load_mission(MISSIONS / "pick_and_deliver.yaml")
     _, rec = outage(m, "G1", 20.0, 35.0, until=50, controller="track")
-    p1 = [(s, a) for _, s, a in task_states(rec, "P1")]
-    assert p1[-3:] == [("open", None), ("committed", "G1"), ("done", "G1")]
+    p1 = [(s, a) for t, s, a in task_states(rec, "P1") if t >= 20.0]
+    assert p1 == [("committed", "G1"), ("done", "G1")]
     committed = [
         e for e in rec.of("task") if e.get("task") == "P1" and e.get("state") == "committed"
     ]
     assert committed[-1].t == pytest.approx(35.0) and 20 < committed[-1].get("reported_s") < 35
-    assert "reported late by G1" in committed[-1].get("reason")
     assert rec.of("warning") == []
 
 
 @pytest.mark.slow
-def test_mine_inspection_r2_finishes_t3_while_cut_off() -> None:
-    """Issue #13 §5, with the tracking controller: R2's link is down from 40 s; R2 finishes T3 at
-    87.6 s, while R1 (which got T3 at 43 s) is still on its way (at 95 s too). R2's completion
-    arrives when its link returns at 87.7 s: T3 is done once, for R2, and R1 stops flying T3 in
-    the same round. (Since the separation rule of #36 item 9, R2 leaves its pad more slowly: it
-    finished at 83.4 s before, and the link returned at 83.5 s.)"""
+def test_mine_inspection_a_20_s_partition_t3_is_flown_once() -> None:
+    """The drill of issue #37 on the shipped mission (tracking controller): R2's link is down
+    20 s (67.7-87.7 s) while it flies T3 and finishes it (85.6 s). Before leases, the
+    coordinator released T3 after agent_timeout_s of silence and R1 flew it again; now T3
+    stays R2's (lease 30 s), nobody else flies it, and R2's completion, delivered on return,
+    is the only one."""
     m = load_mission(MISSIONS / "mine_inspection.yaml")
-    _, rec = outage(m, "R2", 40.0, 87.7, until=90, controller="track")
+    _, rec = outage(m, "R2", 67.7, 87.7, until=90, controller="track")
+    assert [(s, a) for _, s, a in task_states(rec, "T3")] == [("assigned", "R2"), ("done", "R2")]
     (done,) = done_events(rec, "T3")
-    assert done.get("agent") == "R2" and done.t == pytest.approx(87.7)
-    assert done.get("reported_s") == pytest.approx(87.6)
-    holders = {a for _, s, a in task_states(rec, "T3") if s == "assigned"}
-    assert holders == {"R2", "R1"}
-    (w,) = rec.of("withdrawn")
-    assert (w.get("agent"), w.get("task"), w.get("by")) == ("R1", "T3", "R2")
-    r1 = executing(rec, "R1")
-    t3_start = next(t for t, task in r1 if task == "T3")
-    after = [(t, task) for t, task in r1 if t > t3_start]
-    assert after and after[0][0] == pytest.approx(87.7) and after[0][1] != "T3"
-    assert not [e for e in rec.of("progress") if e.get("task") == "T3" and e.get("agent") == "R1"]
+    assert done.t == pytest.approx(87.7) and 67.7 < done.get("reported_s") < 87.7
+    assert not [e for e in rec.of("agent_task") if e.get("task") == "T3" and e.get("agent") != "R2"]
+    assert [e.get("agent") for e in rec.of("progress") if e.get("task") == "T3"] == ["R2"]
+    assert [e.get("up") for e in rec.of("coordinator_link")] == [False, True]
+    assert rec.of("withdrawn") == [] and rec.of("warning") == []
 
 
 def test_lost_acknowledgements_the_agent_resends_and_copies_are_ignored(
@@ -200,7 +236,7 @@ def test_lost_acknowledgements_the_agent_resends_and_copies_are_ignored(
 def two_holders() -> AuctionState:
     """G1 held A and G3 held P (multi-stage) until they went silent; now G2 holds A, G4 P."""
     tasks = [TaskInfo("A", "inspect", {}), TaskInfo("P", "pick", {}, multi_stage=True)]
-    s = AuctionState(AuctionConfig(agent_timeout_s=3.0), TaskPool().add_all(tasks))
+    s = AuctionState(AuctionConfig(agent_timeout_s=3.0, lease_s=4.0), TaskPool().add_all(tasks))
     _, s, _ = auction_round(s, [Bid.of("G1", 0, {"A": 1.0}), Bid.of("G3", 0, {"P": 1.0})], 0)
     assert s.holders() == {"G1": "A", "G3": "P"}
     _, s, r = auction_round(s, [Bid.of("G2", 5, {"A": 3.0}), Bid.of("G4", 5, {"P": 2.0})], 5)
@@ -246,3 +282,18 @@ def test_a_late_commit_point_takes_the_task_back_unless_another_committed() -> N
         [Progress("G4", "P", "committed", 5.5), Progress("G3", "P", "committed", 4.5)],
     )
     assert problems == ["agent 'G3' cannot commit to task 'P': it is held by G4"]
+
+
+def test_a_lease_no_longer_than_the_agent_timeout_is_refused(tmp_path: Path) -> None:
+    """The agent stops its task agent_timeout_s before its lease ends: validate says a lease
+    that leaves no time for that is wrong, at the line."""
+    from btmission.diagnostics import SpecError
+
+    body = ROBOTS.replace("agent_timeout_s: 1.0}", "agent_timeout_s: 1.0, lease_s: 1.0}")
+    assert body != ROBOTS
+    with pytest.raises(SpecError) as err:
+        mission_text(body, tmp_path)
+    (diag,) = err.value.diagnostics
+    assert diag.item == "coordination.lease_s" and diag.where.line == 13
+    assert "must be longer than agent_timeout_s (1 s)" in diag.message
+    assert mission_text(ROBOTS, tmp_path).spec.coordination.lease_s == 30.0  # the default

@@ -381,3 +381,30 @@ def test_a_resent_report_is_a_copy_whatever_the_digits_the_log_dropped() -> None
     assert [k for k, _ in emitted] == ["round"] and emitted[0][1]["round"] == 3
     assert coord.state.pool["P1"].history == history
     assert acks == [ProgressAck("G1", (("P1", "done", exact),))]
+
+
+def test_a_restarted_coordinator_leaves_a_silent_holder_its_task_for_its_lease(
+    tmp_path: Path,
+) -> None:
+    """Issue #37: the coordinator is restarted at 10 s while G1, holding a task, is cut off:
+    the new coordinator does not take the task from it at its first round (G1 has not bid
+    yet) but when its lease ends, 30 s after the last round the old one logged."""
+    log = tmp_path / "run.jsonl"
+    with RunSession(PICK, controller="track", log_path=log) as s:
+        run = s.start()
+        assert run is not None
+        run.run(until=10.0)
+        (held,) = run.coordinator.state.holders().values()
+        last_round = run.coordinator.state.board["G1"].time_s
+        run.set_link("G1", False)
+        later = len(read_events(log).events)
+        restart(run, read_events(log).events)
+        run.run(until=30.0)
+        assert run.coordinator.state.holders() == {"G1": held}
+        run.run(until=45.0)
+    after = read_events(log).events[later:]
+    released = [e for e in after if e.kind == "task" and e.get("state") == "open"]
+    assert released[0].get("task") == held
+    assert released[0].get("reason").startswith("lease of G1 ran out")
+    assert last_round + 30.0 < released[0].t <= last_round + 30.0 + 0.2
+    assert not [e for e in after if "is not bidding" in (e.get("reason") or "")]
