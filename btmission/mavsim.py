@@ -27,7 +27,11 @@ firmware's SITL:
   PX4 answers a DO_SET_MODE twice, as the firmware does: ACCEPTED at once (its MAVLink module),
   then on the next step the real result (its commander), which may be a refusal;
 * **PX4 rules**: OFFBOARD only after setpoints have streamed at more than 2 Hz for a second
-  (DENIED otherwise), HOLD when they stop for ``COM_OF_LOSS_T`` (1 s),
+  (TEMPORARILY_REJECTED otherwise, "Switching to Offboard is currently not available", as PX4
+  v1.16 SITL answered), except that a disarmed drone takes it without setpoints (ACCEPTED,
+  shown as OFFBOARD) and then refuses to arm (TEMPORARILY_REJECTED, "Arming denied: Resolve
+  system health failures first") until they stream, as the SITL did; HOLD when they stop for
+  ``COM_OF_LOSS_T`` (1 s),
   NAV_TAKEOFF to an AMSL altitude, automatic disarming (the embedded simulator's rules,
   :mod:`btmission.backends.autopilot`);
 * **ArduPilot rules**: GUIDED (copter 4, rover 15) takes targets that do not time out (position)
@@ -330,6 +334,10 @@ class _SimulatedAutopilot:
         """The copter's HOLD is LOITER (asked for as such), not BRAKE: it sinks without RC."""
         self.kept_land = False
         """The copter disarmed in LAND and stays in LAND (the simulator shows MANUAL)."""
+        self.offboard_asked = False
+        """A disarmed PX4 drone was put in OFFBOARD before setpoints streamed: it shows OFFBOARD
+        and refuses to arm until they do, then the simulator's OFFBOARD takes over
+        (:meth:`step`; module docstring)."""
         self.seen_mode = backend.telemetry().mode
         """The simulator's mode when :meth:`_track_mode` last looked."""
         self.unknown_messages = (
@@ -428,6 +436,8 @@ class _SimulatedAutopilot:
                 return COPTER_LOITER
         if self.autopilot is Autopilot.ARDUPILOT and mode in (Mode.TAKEOFF, Mode.OFFBOARD):
             mode = Mode.OFFBOARD  # GUIDED
+        if self.offboard_asked:
+            mode = Mode.OFFBOARD
         try:
             return mode_request(self.autopilot, self.spec.kind, mode).custom_mode
         except Exception:
@@ -666,6 +676,11 @@ class _SimulatedAutopilot:
             return self._refuse(
                 "PreArm: EKF3 waiting for GPS config data", mavlink.MAV_RESULT_FAILED
             )
+        if self.offboard_asked and not self.streaming() and not force:
+            return self._refuse(
+                "Arming denied: Resolve system health failures first",
+                mavlink.MAV_RESULT_TEMPORARILY_REJECTED,
+            )
         if not armable(self.autopilot, self.spec.kind, self.custom_mode()):
             return self._refuse("Arm: Mode not armable", mavlink.MAV_RESULT_FAILED)
         if self.ground:
@@ -712,14 +727,29 @@ class _SimulatedAutopilot:
         if self.autopilot is Autopilot.PX4:
             if mode in (Mode.OFFBOARD, Mode.HOLD, Mode.TAKEOFF) and not self.ekf_ready():
                 name = {Mode.OFFBOARD: "Offboard", Mode.HOLD: "Hold", Mode.TAKEOFF: "Takeoff"}
-                return self._refuse(f"Switching to {name[mode]} is currently not available")
+                return self._refuse(
+                    f"Switching to {name[mode]} is currently not available",
+                    mavlink.MAV_RESULT_TEMPORARILY_REJECTED,
+                )
+            self.offboard_asked = False  # (any mode asked for replaces it)
             if mode is Mode.OFFBOARD:
+                lost = self.state.offboard_lost
                 if self.ground and not self.streaming():  # the robots' own rule is laxer
                     ack = Ack(False, "not streaming")
                 else:
                     ack = self.backend.set_mode(Mode.OFFBOARD)
+                if not ack.accepted:  # a refused request leaves PX4's failsafe as it was: its
+                    self.state.offboard_lost = lost  # HOLD still ends when setpoints resume
+                if not ack.accepted and not self.ground and not self.armed():
+                    # PX4 v1.16 SITL: a disarmed drone takes OFFBOARD without setpoints (and
+                    # then refuses to arm until they stream: _arm_disarm)
+                    self.offboard_asked = True
+                    return mavlink.MAV_RESULT_ACCEPTED
                 if not ack.accepted:
-                    return self._refuse("Switching to Offboard is currently not available")
+                    return self._refuse(
+                        "Switching to Offboard is currently not available",
+                        mavlink.MAV_RESULT_TEMPORARILY_REJECTED,
+                    )
                 return mavlink.MAV_RESULT_ACCEPTED
             if mode is Mode.TAKEOFF:
                 return self._takeoff(math.nan)
@@ -870,6 +900,10 @@ class _SimulatedAutopilot:
             self.backend.set_velocity_setpoint(np.zeros(3), 0.0)
             return
         if self.autopilot is Autopilot.PX4:
+            if self.offboard_asked and (
+                self.backend.set_mode(Mode.OFFBOARD).accepted or tel.armed
+            ):  # the setpoints stream now: the simulator's OFFBOARD (armed by force: its mode)
+                self.offboard_asked = False
             dll = self.cfg.datalink_loss_s
             if (
                 flying

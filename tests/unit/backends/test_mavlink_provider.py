@@ -132,9 +132,12 @@ def test_px4_offboard_rules_and_a_flight() -> None:
     with mavsim(PX4) as sim, provider() as p:
         b = attach(p, sim)
         offboard = lambda: b.telemetry().mode is Mode.OFFBOARD  # noqa: E731
-        ack = answer(lambda: b.set_mode(Mode.OFFBOARD), offboard)  # nothing streamed yet
-        assert not ack and ack.reason == (
-            "MAV_CMD_DO_SET_MODE: MAV_RESULT_DENIED (Switching to Offboard is currently not available)"
+        # disarmed, nothing streamed yet: PX4 v1.16 takes OFFBOARD, then refuses to arm
+        assert answer(lambda: b.set_mode(Mode.OFFBOARD), offboard)
+        ack = answer(b.arm)  # (sent again twice after TEMPORARILY_REJECTED, then refused)
+        assert not ack and ack.reason.startswith(  # (STATUSTEXT holds 50 characters)
+            "MAV_CMD_COMPONENT_ARM_DISARM: MAV_RESULT_TEMPORARILY_REJECTED "
+            "(Arming denied: Resolve system health failures"
         )
         keep = hold_here(b)
         wait_for(p, 1.3, lambda: False, keep)

@@ -339,3 +339,65 @@ def test_the_cli_says_how_long_the_simulator_was_frozen(monkeypatch: pytest.Monk
         "stopped after 6.0 simulated s (300 steps, 3 late step(s), paused 8.2 s wall in "
         "1 freeze(s))"
     )
+
+
+# ---------------------------------------------------------------- PX4 SITL rules (issue #36)
+def _stream_here(sim: MavSim, seconds: float) -> None:
+    """``seconds`` of position setpoints at R1's place, at 10 Hz (as a ground station streams)."""
+    ap = sim.autopilots["R1"]
+    here = ap.frame.to_local(ap.backend.telemetry().position)
+    for _ in range(round(seconds / 0.1)):
+        ap._position_target(
+            mavlink.MAVLink_set_position_target_local_ned_message(
+                0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, 0b110111111000, *map(float, here),
+                0, 0, 0, 0, 0, 0, 0, 0,
+            )
+        )  # fmt: skip
+        run(sim, 0.1)
+
+
+def test_px4_takes_offboard_disarmed_without_setpoints_then_refuses_to_arm_until_they_stream() -> (
+    None
+):
+    """PX4 v1.16 SITL, OFFBOARD asked while disarmed with no setpoints: ACCEPTED (twice), then
+    arming TEMPORARILY_REJECTED, "Arming denied: Resolve system health failures first", until
+    setpoints stream; armed on the ground with no setpoints, OFFBOARD is TEMPORARILY_REJECTED
+    ("Switching to Offboard is currently not available"), not DENIED."""
+    offboard = mode_request(PX4, MULTI, Mode.OFFBOARD).custom_mode
+    with stepped(PX4) as sim:
+        ap = sim.autopilots["R1"]
+        texts: list[str] = []
+        ap.text = lambda severity, message: texts.append(message)  # type: ignore[method-assign]
+        assert ap._set_mode(offboard) == mavlink.MAV_RESULT_ACCEPTED
+        assert ap._set_mode(offboard) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 1.0)
+        assert sim.vehicle_state("R1")["mode"] is Mode.OFFBOARD and not ap.armed()
+        assert ap._arm_disarm(True, False) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        assert texts[-1] == "Arming denied: Resolve system health failures first"
+        _stream_here(sim, 1.5)
+        assert ap._arm_disarm(True, False) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 0.1)
+        assert ap.backend.telemetry().mode is Mode.OFFBOARD  # the simulator's own, now
+    with stepped(PX4) as sim:
+        ap = sim.autopilots["R1"]
+        ap.text = lambda severity, message: texts.append(message)  # type: ignore[method-assign]
+        assert ap._arm_disarm(True, False) == mavlink.MAV_RESULT_ACCEPTED  # (no OFFBOARD asked)
+        assert ap._set_mode(offboard) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        assert texts[-1] == "Switching to Offboard is currently not available"
+        assert sim.vehicle_state("R1")["mode"] is not Mode.OFFBOARD
+
+
+def test_a_refused_offboard_leaves_px4s_offboard_loss_hold_to_end_when_setpoints_resume() -> None:
+    """A refused request changes nothing on PX4: in the offboard-loss HOLD, an OFFBOARD asked
+    before the setpoints stream again is TEMPORARILY_REJECTED, and the failsafe still ends by
+    itself (back to OFFBOARD) once they have streamed a second."""
+    offboard = mode_request(PX4, MULTI, Mode.OFFBOARD).custom_mode
+    with stepped(PX4) as sim:
+        ap = airborne(sim)
+        _stream_here(sim, 1.5)
+        assert ap._set_mode(offboard) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 2.0)  # no setpoints: COM_OF_LOSS_T
+        assert ap.backend.telemetry().mode is Mode.HOLD
+        assert ap._set_mode(offboard) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        _stream_here(sim, 1.5)
+        assert ap.backend.telemetry().mode is Mode.OFFBOARD
