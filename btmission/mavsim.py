@@ -45,10 +45,14 @@ firmware's SITL:
   ``COM_DL_LOSS_T``) and :attr:`MavSimConfig.gcs_failsafe_s` (``--gcs-failsafe``: ArduPilot
   lands after ``FS_GCS_TIMEOUT``) turn them on; like the firmwares', they start once a ground
   station has been heard, and only while flying;
-* **landing as the firmwares land**: PX4 descends in AUTO.LAND at ~0.8 m/s near the ground,
-  says ON_GROUND and disarms 2 s later (``COM_DISARM_LAND``; PX4 v1.16 SIH); ArduCopter
+* **landing as the firmwares land**: PX4 descends in AUTO.LAND at 0.7 m/s (``MPC_LAND_SPEED``),
+  below 1 m at 0.3 m/s (``MPC_LAND_CRWL`` below ``MPC_LAND_ALT3``, as with SIH's distance
+  sensor), says LANDING until its land detector's ON_GROUND (:data:`PX4_LAND_DETECT_S` after
+  touchdown: 7.5 s from 2 m, where PX4 v1.16 SIH took 7.2-12.3 s) and disarms 2 s later
+  (``COM_DISARM_LAND``); ArduCopter
   descends in LAND at 0.5 m/s (``LAND_SPEED``) and disarms about 0.5 s after touchdown
-  (ArduCopter 4.7.0-dev SITL) — the embedded simulator's own 0.7 m/s and 2 s are neither;
+  (ArduCopter 4.7.0-dev SITL) — the embedded simulator's own (0.7 m/s all the way, disarmed
+  2 s after touchdown) is neither;
 * **ArduCopter's modes** (:mod:`btmission.backends.mavlink_modes`): a copter keeps its mode when
   it disarms — one that landed in LAND stays in LAND, one in GUIDED stays in GUIDED — and
   refuses to arm in LAND, BRAKE and the other modes that do not allow it ("Arm: Mode not
@@ -148,12 +152,22 @@ PX4_RANGE_MAX_CM = 10000
 PX4_RANGE_ON_GROUND_CM = 65533
 """What it reads on the ground (the vehicle a few cm below its origin): out of its declared
 range, i.e. no reading — a ground station that takes it as real puts the ground 655 m down."""
-PX4_LAND_SPEED_M_S = 0.8
-"""How fast a PX4 vehicle descends in AUTO.LAND near the ground (SIH: ~0.8 m/s, faster than the
-0.5 m/s a goal's arrival once asked for; the landed state says it is landing)."""
+PX4_LAND_SPEED_M_S = 0.7
+"""How fast a PX4 vehicle descends in AUTO.LAND (``MPC_LAND_SPEED``'s default; SIH: at most
+0.8 m/s; the landed state says it is landing)."""
+PX4_LAND_CRAWL_M_S = 0.3
+"""... and below :data:`PX4_LAND_CRAWL_ALT_M` above the ground (``MPC_LAND_CRWL``, used when a
+distance sensor gives the height, as SIH's does)."""
+PX4_LAND_CRAWL_ALT_M = 1.0
+"""``MPC_LAND_ALT3``'s default."""
+PX4_LAND_DETECT_S = 3.0
+"""A PX4 vehicle's land detector says ON_GROUND ("Landing detected") this long after touchdown
+(its ground-contact, maybe-landed and landed stages, ``LNDMC_TRIG_TIME`` 1 s the last), until
+then LANDING. Set so that a LAND from 2 m (4.5 s of descent here) takes 7.5 s, within the
+7.2-12.3 s PX4 v1.16 SIH took from about 2 m to "Landing detected"."""
 PX4_DISARM_LAND_S = 2.0
-"""A landed PX4 vehicle disarms this long after touching down (``COM_DISARM_LAND``; PX4 v1.16
-SIH: landed state ON_GROUND, then disarmed 2 s later)."""
+"""A landed PX4 vehicle disarms this long after its landing is detected (``COM_DISARM_LAND``;
+PX4 v1.16 SIH: "Landing detected", then "Disarmed by landing" 2.0 s later)."""
 COPTER_LAND_SPEED_M_S = 0.5
 """How fast an ArduCopter descends in LAND near the ground (``LAND_SPEED``, 50 cm/s; ArduCopter
 4.7.0-dev SITL: 0.5 m/s)."""
@@ -334,6 +348,8 @@ class _SimulatedAutopilot:
         """The copter's HOLD is LOITER (asked for as such), not BRAKE: it sinks without RC."""
         self.kept_land = False
         """The copter disarmed in LAND and stays in LAND (the simulator shows MANUAL)."""
+        self.touchdown_at = -math.inf
+        """When the simulator's vehicle last touched down (:meth:`landed_state`)."""
         self.offboard_asked = False
         """A disarmed PX4 drone was put in OFFBOARD before setpoints streamed: it shows OFFBOARD
         and refuses to arm until they do, then the simulator's OFFBOARD takes over
@@ -426,6 +442,21 @@ class _SimulatedAutopilot:
         """Whether it has a local position to send (LOCAL_POSITION_NED): once the estimator is
         ready; before, neither firmware sends one (module docstring)."""
         return self.ekf_ready()
+
+    def landed_state(self) -> LandedState:
+        """The landed state the firmware reports: PX4's land detector says ON_GROUND only
+        :data:`PX4_LAND_DETECT_S` after touchdown (LANDING until then)."""
+        tel = self.backend.telemetry()
+        state = tel.landed_state
+        if (
+            self.autopilot is Autopilot.PX4
+            and not self.ground
+            and state is LandedState.ON_GROUND
+            and tel.armed
+            and self.now() - self.touchdown_at < PX4_LAND_DETECT_S
+        ):
+            return LandedState.LANDING
+        return state
 
     def custom_mode(self) -> int:
         mode = self.backend.telemetry().mode
@@ -883,6 +914,10 @@ class _SimulatedAutopilot:
         t = self.now()
         tel = self.backend.telemetry()
         flying = tel.armed and not tel.landed
+        if not tel.landed:
+            self.touchdown_at = math.inf
+        elif self.touchdown_at == math.inf:
+            self.touchdown_at = t
         if (
             self.ground
             and tel.mode is Mode.OFFBOARD
@@ -1003,7 +1038,7 @@ class _SimulatedAutopilot:
             rate = fr.yaw_rate_to_local(tel.yaw_rate)
             self.send(lambda mav: mav.attitude_send(ms, tel.roll, -tel.pitch, yaw, 0.0, 0.0, rate))
         elif msg_id == mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
-            landed = MAV_LANDED_STATE[tel.landed_state]
+            landed = MAV_LANDED_STATE[self.landed_state()]
             self.send(lambda mav: mav.extended_sys_state_send(0, landed))
         elif msg_id == mavlink.MAVLINK_MSG_ID_SYS_STATUS:
             pct = round(100 * tel.battery)
@@ -1086,7 +1121,10 @@ class MavSim:
         sim_config = SimConfig(
             step_s=config.step_s,
             land_speed_m_s=PX4_LAND_SPEED_M_S if px4 else COPTER_LAND_SPEED_M_S,
-            disarm_land_s=PX4_DISARM_LAND_S if px4 else COPTER_DISARM_LAND_S,
+            land_crawl_m_s=PX4_LAND_CRAWL_M_S if px4 else None,
+            land_crawl_alt_m=PX4_LAND_CRAWL_ALT_M,
+            # (the simulator counts from touchdown, PX4 from its land detector's verdict)
+            disarm_land_s=PX4_DISARM_LAND_S + PX4_LAND_DETECT_S if px4 else COPTER_DISARM_LAND_S,
         )
         self.simulator = Simulator(config.voxel_map, sim_config, seed=config.seed)
         self.autopilots: dict[str, _SimulatedAutopilot] = {}

@@ -94,7 +94,7 @@ def test_a_small_mission_flies_and_lands(tmp_path: Path, autopilot: Autopilot) -
         assert [(e["agent"], e["task"]) for e in done] == [("R1", "T1")]
         state = sim.vehicle_state("R1")
         assert state["landed"] and not state["armed"]  # the default behaviour landed at home
-        # one landing, never abandoned: mavsim's PX4 lands at 0.8 m/s, faster than a goal's
+        # one landing, never abandoned: mavsim's PX4 lands at 0.7 m/s, faster than a goal's
         # "settled" speed, and the autopilot's landed state says it is landing at home
         stages = [e["action"] for e in evs if e["ev"] == "stage"]
         assert stages[stages.index("land") :] == ["land"], stages

@@ -151,8 +151,8 @@ def test_px4_offboard_rules_and_a_flight() -> None:
         assert not b.telemetry().landed and sim.vehicle_state("R1")["mode"] is Mode.OFFBOARD
         ack = b.disarm()
         assert not ack and "air" in ack.reason
-        assert answer(b.land)
-        assert wait_for(p, 10.0, lambda: b.telemetry().landed and not b.telemetry().armed)
+        assert answer(b.land)  # (from 2 m: ON_GROUND after 7.5 s, disarmed 2 s later)
+        assert wait_for(p, 15.0, lambda: b.telemetry().landed and not b.telemetry().armed)
 
 
 @pytest.mark.slow  # the conformance suite covers it too (slow selection)

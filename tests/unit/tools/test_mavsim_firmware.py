@@ -16,6 +16,7 @@ from click.testing import CliRunner
 from btmission.backends._pymavlink import mavlink
 from btmission.backends.mavlink_modes import Autopilot, mode_request
 from btmission.backends.mavlink_url import MavlinkAddress
+from btmission.backends.sim import SimConfig
 from btmission.cli.main import cli
 from btmission.mavsim import (
     SITL_EKF_DELAY_S,
@@ -162,8 +163,8 @@ def test_the_cli_turns_a_link_loss_failsafe_on_only_when_asked(
 
 # ---------------------------------------------------------------- 3. landing and disarming
 def _land_timing(sim: MavSim) -> tuple[float, float, float]:
-    """From 2 m up, a LAND: the fastest descent speed, the vehicle seconds until ON_GROUND, then
-    until disarmed."""
+    """From 2 m up, a LAND: the fastest descent speed, the vehicle seconds until the firmware
+    says ON_GROUND, then until disarmed."""
     ap = airborne(sim, 2.0)
     assert ap._command(_command_long(mavlink.MAV_CMD_NAV_LAND)) == mavlink.MAV_RESULT_ACCEPTED
     t0 = ap.now()
@@ -173,7 +174,7 @@ def _land_timing(sim: MavSim) -> tuple[float, float, float]:
         run(sim, sim.config.step_s, gcs=True)
         tel = ap.backend.telemetry()
         sink = max(sink, -float(tel.velocity[2]))
-        if math.isnan(on_ground) and tel.landed_state is LandedState.ON_GROUND:
+        if math.isnan(on_ground) and ap.landed_state() is LandedState.ON_GROUND:
             on_ground = ap.now()
         if not math.isnan(on_ground) and not ap.armed():
             disarmed = ap.now()
@@ -181,19 +182,42 @@ def _land_timing(sim: MavSim) -> tuple[float, float, float]:
 
 
 @pytest.mark.parametrize(
-    ("autopilot", "speed", "disarm_s"),
-    [(APM, 0.5, 0.5), (PX4, 0.8, 2.0)],
+    ("autopilot", "speed", "down_s", "disarm_s"),
+    [(APM, 0.5, (4.0, 5.0), 0.5), (PX4, 0.7, (7.2, 12.3), 2.0)],
 )
 def test_a_land_from_2_m_descends_and_disarms_as_the_firmware_does(
-    autopilot: Autopilot, speed: float, disarm_s: float
+    autopilot: Autopilot, speed: float, down_s: tuple[float, float], disarm_s: float
 ) -> None:
-    """ArduCopter SITL descends at 0.5 m/s (LAND_SPEED) and disarms ~0.5 s after touchdown; PX4
-    SIH descends at ~0.8 m/s, says ON_GROUND and disarms 2 s later (COM_DISARM_LAND)."""
+    """ArduCopter SITL descends at 0.5 m/s (LAND_SPEED) and disarms ~0.5 s after touchdown.
+    PX4 v1.16 SIH descends at MPC_LAND_SPEED (0.7 m/s), below 1 m (MPC_LAND_ALT3, its distance
+    sensor giving the height) at MPC_LAND_CRWL (0.3 m/s): 7.2-12.3 s from about 2 m to "Landing
+    detected" (ON_GROUND), then "Disarmed by landing" 2.0 s later (COM_DISARM_LAND)."""
     with stepped(autopilot) as sim:
         sink, down, off = _land_timing(sim)
         assert sink == pytest.approx(speed, abs=0.05)
-        assert 2.0 / speed <= down <= 2.0 / speed + 1.0  # (ArduPilot: ~4 s; 4.7 s here)
+        assert down_s[0] <= down <= down_s[1], down  # (ArduPilot: ~4 s; 4.7 s here)
         assert off == pytest.approx(disarm_s, abs=2.5 * sim.config.step_s)
+
+
+def test_px4_crawls_the_last_metre_of_a_landing() -> None:
+    """Below MPC_LAND_ALT3 (1 m) PX4 descends at MPC_LAND_CRWL (0.3 m/s), above it at
+    MPC_LAND_SPEED (0.7 m/s); the embedded simulator's own landing has no crawl."""
+    with stepped(PX4) as sim:
+        ap = airborne(sim, 2.0)
+        assert ap._command(_command_long(mavlink.MAV_CMD_NAV_LAND)) == mavlink.MAV_RESULT_ACCEPTED
+        sinks: dict[bool, float] = {True: 0.0, False: 0.0}  # below 1 m: the slowest sink
+        below = math.inf
+        while not ap.backend.telemetry().landed and ap.now() < 30.0:
+            run(sim, sim.config.step_s)
+            tel = ap.backend.telemetry()
+            low = tel.height_above_ground < 1.0
+            below = min(below, ap.now()) if low else below
+            sinks[low] = max(sinks[low], -float(tel.velocity[2]))
+            if 0.1 < tel.height_above_ground < 0.3:  # (slowed down from 0.7 m/s by then)
+                assert -float(tel.velocity[2]) == pytest.approx(0.3, abs=0.06)
+        assert sinks[False] == pytest.approx(0.7, abs=0.06)
+        assert 1.0 / 0.7 + 0.5 < ap.now() - below < 1.0 / 0.3  # 1 m at 0.7 m/s: 1.4 s
+    assert SimConfig().land_crawl_m_s is None
 
 
 # ---------------------------------------------------------------- 6. LAND on the ground
