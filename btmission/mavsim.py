@@ -49,7 +49,9 @@ firmware's SITL:
   below 1 m at 0.3 m/s (``MPC_LAND_CRWL`` below ``MPC_LAND_ALT3``, as with SIH's distance
   sensor), says LANDING until its land detector's ON_GROUND (:data:`PX4_LAND_DETECT_S` after
   touchdown: 7.5 s from 2 m, where PX4 v1.16 SIH took 7.2-12.3 s) and disarms 2 s later
-  (``COM_DISARM_LAND``); ArduCopter
+  (``COM_DISARM_LAND``), then shows the mode in use before LAND (OFFBOARD, or Hold after a
+  HOLD then LAND; MANUAL if neither), as PX4 v1.16 SITL did after "Disarmed by landing" — a
+  drone disarmed in OFFBOARD stays there and refuses to arm until setpoints stream; ArduCopter
   descends in LAND at 0.5 m/s (``LAND_SPEED``) and disarms about 0.5 s after touchdown
   (ArduCopter 4.7.0-dev SITL) — the embedded simulator's own (0.7 m/s all the way, disarmed
   2 s after touchdown) is neither;
@@ -348,6 +350,8 @@ class _SimulatedAutopilot:
         """The copter's HOLD is LOITER (asked for as such), not BRAKE: it sinks without RC."""
         self.kept_land = False
         """The copter disarmed in LAND and stays in LAND (the simulator shows MANUAL)."""
+        self.before_land = Mode.MANUAL
+        """The PX4 drone's mode before a LAND (:meth:`_track_px4_mode`)."""
         self.touchdown_at = -math.inf
         """When the simulator's vehicle last touched down (:meth:`landed_state`)."""
         self.offboard_asked = False
@@ -478,6 +482,9 @@ class _SimulatedAutopilot:
         """ArduCopter keeps its mode when it disarms, where the simulator (PX4's rules) goes to
         MANUAL: a copter that landed in LAND stays in LAND (and refuses to arm there), one
         disarmed in BRAKE or LOITER stays there. Called before each step and each send."""
+        if self.autopilot is Autopilot.PX4 and not self.ground:
+            self._track_px4_mode()
+            return
         if not self.copter:
             return
         tel = self.backend.telemetry()
@@ -492,6 +499,30 @@ class _SimulatedAutopilot:
             self.kept_land = False
         if mode is not Mode.HOLD:
             self.loiter = False
+        self.seen_mode = mode
+
+    def _track_px4_mode(self) -> None:
+        """PX4 keeps the mode last asked that allows arming where the simulator goes to
+        MANUAL: a drone disarmed by landing shows the mode in use before LAND (OFFBOARD when
+        LAND was asked from OFFBOARD, Hold after a HOLD then LAND; PX4 v1.16 SITL), and a
+        disarmed drone in OFFBOARD whose setpoints stopped stays in OFFBOARD (it refuses to
+        arm until they stream again, :attr:`offboard_asked`)."""
+        tel = self.backend.telemetry()
+        mode, seen = tel.mode, self.seen_mode
+        if mode is Mode.MANUAL and not tel.armed and seen is not Mode.MANUAL:
+            if seen is Mode.LAND and self.before_land is Mode.HOLD:  # disarmed by landing
+                self.backend.set_mode(Mode.HOLD)
+                mode = Mode.HOLD
+            elif seen is Mode.OFFBOARD or (seen is Mode.LAND and self.before_land is Mode.OFFBOARD):
+                self.offboard_asked = True
+        if self.offboard_asked:
+            self.before_land = Mode.OFFBOARD
+        elif mode is Mode.TAKEOFF:
+            self.before_land = Mode.HOLD  # (PX4 holds once a take-off is done)
+        elif mode in (Mode.OFFBOARD, Mode.MANUAL) or (
+            mode is Mode.HOLD and not self.state.offboard_lost  # (its failsafe's: not asked)
+        ):
+            self.before_land = mode
         self.seen_mode = mode
 
     # ------------------------------------------------------------------ receive

@@ -357,9 +357,9 @@ def test_sigterm_mid_flight_holds_then_lands_before_exiting(tmp_path: Path) -> N
         assert proc.returncode == 143, err
         assert "R1: the run stopped: HOLD accepted, then LAND accepted" in err
         state = sim.vehicle_state("R1")  # landing, or landed and disarmed already: PX4 then
-        assert state["mode"] is Mode.LAND or (  # shows MANUAL (the process may take that long
-            state["landed"] and not state["armed"] and state["mode"] is Mode.MANUAL  # to exit)
-        ), state
+        assert state["mode"] is Mode.LAND or (  # shows Hold, the mode before LAND (the process
+            state["landed"] and not state["armed"] and state["mode"] is Mode.HOLD  # may take
+        ), state  # that long to exit)
 
 
 def test_a_missing_signing_key_file_is_refused_before_anything_runs(tmp_path: Path) -> None:

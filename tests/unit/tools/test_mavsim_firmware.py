@@ -425,3 +425,44 @@ def test_a_refused_offboard_leaves_px4s_offboard_loss_hold_to_end_when_setpoints
         assert ap._set_mode(offboard) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         _stream_here(sim, 1.5)
         assert ap.backend.telemetry().mode is Mode.OFFBOARD
+
+
+def _land_and_disarm(sim: MavSim) -> None:
+    ap = sim.autopilots["R1"]
+    assert ap._command(_command_long(mavlink.MAV_CMD_NAV_LAND)) == mavlink.MAV_RESULT_ACCEPTED
+    assert sim.vehicle_state("R1")["mode"] is Mode.LAND
+    end = ap.now() + 20.0
+    while ap.armed() and ap.now() < end:
+        run(sim, 0.1)
+    assert not ap.armed() and sim.vehicle_state("R1")["landed"]
+    run(sim, 1.0)
+
+
+def test_px4_disarmed_by_landing_shows_the_mode_it_was_in_before_land() -> None:
+    """PX4 v1.16 SITL, after "Disarmed by landing", shows the last mode asked that allows arming:
+    OFFBOARD when LAND was asked from OFFBOARD (and, disarmed in OFFBOARD without setpoints,
+    refuses to arm until they stream), Hold after a HOLD then LAND — not MANUAL."""
+    offboard = mode_request(PX4, MULTI, Mode.OFFBOARD).custom_mode
+    hold = mode_request(PX4, MULTI, Mode.HOLD).custom_mode
+    with stepped(PX4) as sim:
+        ap = airborne(sim, 2.0)
+        _stream_here(sim, 1.5)
+        assert ap._set_mode(offboard) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 0.2)
+        _land_and_disarm(sim)
+        assert sim.vehicle_state("R1")["mode"] is Mode.OFFBOARD
+        assert ap._arm_disarm(True, False) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        _stream_here(sim, 1.5)  # the next task's setpoints: it arms, in OFFBOARD
+        assert ap._arm_disarm(True, False) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 0.1)
+        assert ap.backend.telemetry().mode is Mode.OFFBOARD
+    with stepped(PX4) as sim:
+        ap = airborne(sim, 2.0)
+        _stream_here(sim, 1.5)
+        assert ap._set_mode(offboard) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 0.2)
+        assert ap._set_mode(hold) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 0.2)
+        _land_and_disarm(sim)
+        assert sim.vehicle_state("R1")["mode"] is Mode.HOLD
+        assert ap._arm_disarm(True, False) == mavlink.MAV_RESULT_ACCEPTED
