@@ -16,8 +16,9 @@ firmware's SITL:
   ``custom_mode`` (:mod:`btmission.backends.mavlink_modes`) — faster when asked on ArduPilot;
   PX4 refuses (MAV_RESULT_FAILED) as the firmware does — other messages only when asked
   (``MAV_CMD_SET_MESSAGE_INTERVAL``, ``MAV_CMD_REQUEST_MESSAGE``): CURRENT_MODE (the mode
-  between heartbeats; PX4 only: ArduCopter 4.7.0-dev SITL refused its stream, DENIED with "No
-  ap_message for mavlink id (436)", and so does mavsim's ArduPilot,
+  between heartbeats; PX4 only, at most 2 Hz whatever rate is asked and once on each change,
+  :data:`PX4_CURRENT_MODE_S`, as PX4 v1.16 SITL sent it; ArduCopter 4.7.0-dev SITL refused
+  its stream, DENIED with "No ap_message for mavlink id (436)", and so does mavsim's ArduPilot,
   :data:`ARDUPILOT_UNKNOWN_MESSAGES`), LOCAL_POSITION_NED (in the
   vehicle's NED frame, origin where it was spawned), ATTITUDE, EXTENDED_SYS_STATE, SYS_STATUS,
   BATTERY_STATUS, DISTANCE_SENSOR (downward; a PX4 vehicle on the ground reads 65533 cm, above
@@ -32,7 +33,8 @@ firmware's SITL:
   shown as OFFBOARD) and then refuses to arm (TEMPORARILY_REJECTED, "Arming denied: Resolve
   system health failures first") until they stream, as the SITL did; HOLD when they stop for
   ``COM_OF_LOSS_T`` (1 s),
-  NAV_TAKEOFF to an AMSL altitude, automatic disarming (the embedded simulator's rules,
+  NAV_TAKEOFF to an AMSL altitude (accepted while disarmed, as PX4 v1.16 SITL did: the drone
+  shows Takeoff and leaves the ground only once armed), automatic disarming (the embedded simulator's rules,
   :mod:`btmission.backends.autopilot`);
 * **ArduPilot rules**: GUIDED (copter 4, rover 15) takes targets that do not time out (position)
   or stop after 3 s (velocity) or 1 s (attitude, ``GUID_TIMEOUT``); a landed copter leaves the
@@ -167,6 +169,10 @@ PX4_LAND_DETECT_S = 3.0
 (its ground-contact, maybe-landed and landed stages, ``LNDMC_TRIG_TIME`` 1 s the last), until
 then LANDING. Set so that a LAND from 2 m (4.5 s of descent here) takes 7.5 s, within the
 7.2-12.3 s PX4 v1.16 SIH took from about 2 m to "Landing detected"."""
+PX4_CURRENT_MODE_S = 0.5
+"""PX4 sends CURRENT_MODE at most this often, whatever rate was asked, and once on each mode
+change (PX4 v1.16 SITL, asked for 50 Hz: ACCEPTED, about 2 Hz; it sends it when its vehicle
+status is published)."""
 PX4_DISARM_LAND_S = 2.0
 """A landed PX4 vehicle disarms this long after its landing is detected (``COM_DISARM_LAND``;
 PX4 v1.16 SIH: "Landing detected", then "Disarmed by landing" 2.0 s later)."""
@@ -350,6 +356,11 @@ class _SimulatedAutopilot:
         """The copter's HOLD is LOITER (asked for as such), not BRAKE: it sinks without RC."""
         self.kept_land = False
         """The copter disarmed in LAND and stays in LAND (the simulator shows MANUAL)."""
+        self.takeoff_asked: float | None = None
+        """A disarmed PX4 drone was sent NAV_TAKEOFF (to this height above home): it shows
+        Takeoff and takes off once armed (:meth:`step`)."""
+        self.mode_sent = -1
+        """The ``custom_mode`` the last CURRENT_MODE carried (PX4 sends one on each change)."""
         self.before_land = Mode.MANUAL
         """The PX4 drone's mode before a LAND (:meth:`_track_px4_mode`)."""
         self.touchdown_at = -math.inf
@@ -473,6 +484,8 @@ class _SimulatedAutopilot:
             mode = Mode.OFFBOARD  # GUIDED
         if self.offboard_asked:
             mode = Mode.OFFBOARD
+        elif self.takeoff_asked is not None:
+            mode = Mode.TAKEOFF
         try:
             return mode_request(self.autopilot, self.spec.kind, mode).custom_mode
         except Exception:
@@ -793,7 +806,8 @@ class _SimulatedAutopilot:
                     f"Switching to {name[mode]} is currently not available",
                     mavlink.MAV_RESULT_TEMPORARILY_REJECTED,
                 )
-            self.offboard_asked = False  # (any mode asked for replaces it)
+            self.offboard_asked = False  # (any mode asked for replaces them)
+            self.takeoff_asked = None
             if mode is Mode.OFFBOARD:
                 lost = self.state.offboard_lost
                 if self.ground and not self.streaming():  # the robots' own rule is laxer
@@ -843,18 +857,17 @@ class _SimulatedAutopilot:
         tel = self.backend.telemetry()
         if self.spec.kind is VehicleKind.GROUND:
             return self._refuse("Takeoff denied: not a multicopter", mavlink.MAV_RESULT_UNSUPPORTED)
-        if not tel.armed:
-            return self._refuse(
-                "Takeoff refused: not armed",
-                mavlink.MAV_RESULT_DENIED
-                if self.autopilot is Autopilot.PX4
-                else mavlink.MAV_RESULT_FAILED,
-            )
         if self.autopilot is Autopilot.PX4:
             alt = 2.5 if math.isnan(param7) else param7 - self.cfg.home_amsl_m
             if not alt > 0:
                 return self._refuse(f"Takeoff denied: altitude {alt:.1f} m below home")
+            if not tel.armed:  # PX4 v1.16 SITL: ACCEPTED, in Takeoff; it leaves once armed
+                self.offboard_asked = False
+                self.takeoff_asked = alt
+                return mavlink.MAV_RESULT_ACCEPTED
             return self._result(self.backend.takeoff(alt))
+        if not tel.armed:
+            return self._refuse("Takeoff refused: not armed", mavlink.MAV_RESULT_FAILED)
         mode = mode_of(self.autopilot, self.spec.kind, self.custom_mode())
         if mode is not Mode.OFFBOARD:
             return self._refuse("Takeoff: not in GUIDED mode", mavlink.MAV_RESULT_FAILED)
@@ -970,6 +983,9 @@ class _SimulatedAutopilot:
                 self.backend.set_mode(Mode.OFFBOARD).accepted or tel.armed
             ):  # the setpoints stream now: the simulator's OFFBOARD (armed by force: its mode)
                 self.offboard_asked = False
+            if self.takeoff_asked is not None and tel.armed:  # armed in Takeoff: it takes off
+                self.backend.takeoff(self.takeoff_asked)
+                self.takeoff_asked = None
             dll = self.cfg.datalink_loss_s
             if (
                 flying
@@ -1028,7 +1044,12 @@ class _SimulatedAutopilot:
         if t >= self.next_heartbeat:
             self.next_heartbeat = t + self.heartbeat_s
             self._send_message(mavlink.MAVLINK_MSG_ID_HEARTBEAT)
+        px4 = self.autopilot is Autopilot.PX4
+        if px4 and CURRENT_MODE_ID in self.intervals and self.custom_mode() != self.mode_sent:
+            self.next_send[CURRENT_MODE_ID] = t  # (PX4 sends it on each change)
         for msg_id, interval in list(self.intervals.items()):
+            if px4 and msg_id == CURRENT_MODE_ID:
+                interval = max(interval, PX4_CURRENT_MODE_S)
             if t + 1e-9 >= self.next_send.get(msg_id, 0.0):
                 self.next_send[msg_id] = max(self.next_send.get(msg_id, t) + interval, t)
                 self._send_message(msg_id)
@@ -1056,7 +1077,7 @@ class _SimulatedAutopilot:
             custom = self.custom_mode()
             self.send(lambda mav: mav.heartbeat_send(mav_type, ap, base, custom, status))
         elif msg_id == CURRENT_MODE_ID:
-            custom = self.custom_mode()
+            custom = self.mode_sent = self.custom_mode()
             self.send(lambda mav: mav.send(CurrentMode(0, custom, custom)))
         elif msg_id == mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
             if not self.position_known():

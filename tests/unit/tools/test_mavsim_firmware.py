@@ -466,3 +466,47 @@ def test_px4_disarmed_by_landing_shows_the_mode_it_was_in_before_land() -> None:
         _land_and_disarm(sim)
         assert sim.vehicle_state("R1")["mode"] is Mode.HOLD
         assert ap._arm_disarm(True, False) == mavlink.MAV_RESULT_ACCEPTED
+
+
+def test_px4_accepts_nav_takeoff_while_disarmed_and_leaves_the_ground_only_once_armed() -> None:
+    """PX4 v1.16 SITL ACCEPTED NAV_TAKEOFF while disarmed (mavsim said DENIED): the drone shows
+    Takeoff and stays on the ground until it is armed, then climbs to the altitude asked."""
+    with stepped(PX4, home_amsl_m=100.0) as sim:
+        ap = sim.autopilots["R1"]
+        takeoff = _command_long(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, 0, 0, 103.0)
+        assert ap._command(takeoff) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 3.0)
+        state = sim.vehicle_state("R1")
+        assert state["mode"] is Mode.TAKEOFF and state["landed"] and not state["armed"]
+        assert state["position"][2] == pytest.approx(0.0, abs=0.05)  # nothing moved
+        assert ap._arm_disarm(True, False) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 6.0)
+        assert ap.backend.telemetry().position[2] == pytest.approx(3.0, abs=0.2)
+
+
+def test_px4_sends_current_mode_at_2_hz_whatever_was_asked_and_on_each_change() -> None:
+    """PX4 v1.16 SITL ACCEPTED a 50 Hz CURRENT_MODE stream but sent it at about 2 Hz, and
+    whenever its vehicle status changed: a new mode is told in the step it happens."""
+    from btmission.backends._pymavlink import CURRENT_MODE_ID
+
+    hold = mode_request(PX4, MULTI, Mode.HOLD).custom_mode
+    with stepped(PX4) as sim:
+        ap = sim.autopilots["R1"]
+        sent: list[tuple[float, int]] = []
+        real = ap._send_message
+
+        def send(msg_id: int) -> bool:
+            if msg_id == CURRENT_MODE_ID:
+                sent.append((ap.now(), ap.custom_mode()))
+            return real(msg_id)
+
+        ap._send_message = send  # type: ignore[method-assign]
+        interval = _command_long(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, CURRENT_MODE_ID, 2e4)
+        assert ap._command(interval) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 5.0)
+        assert len(sent) == pytest.approx(10, abs=1)  # 2 Hz, not the 50 Hz asked
+        assert ap._arm_disarm(True, False) == mavlink.MAV_RESULT_ACCEPTED
+        assert ap._set_mode(hold) == mavlink.MAV_RESULT_ACCEPTED
+        t, n = ap.now(), len(sent)
+        run(sim, sim.config.step_s)
+        assert sent[n:] == [(pytest.approx(t + sim.config.step_s), hold)]  # at once

@@ -267,8 +267,9 @@ def test_px4_answers_a_mode_change_twice_the_second_answer_is_the_real_one() -> 
 
 @pytest.mark.parametrize("autopilot", [PX4, APM], ids=lambda a: a.value)
 def test_heartbeat_cannot_be_sped_up_on_px4_and_current_mode_streams(autopilot: Autopilot) -> None:
-    """PX4 refuses SET_MESSAGE_INTERVAL for HEARTBEAT (it stays at 1 Hz); CURRENT_MODE comes at
-    the rate asked, with the heartbeat's ``custom_mode``. ArduCopter is the other way round: a
+    """PX4 refuses SET_MESSAGE_INTERVAL for HEARTBEAT (it stays at 1 Hz); CURRENT_MODE is
+    accepted at 20 Hz but comes at about 2 Hz (and on each change, test_mavsim_firmware), with
+    the heartbeat's ``custom_mode``. ArduCopter is the other way round: a
     faster HEARTBEAT (from now on, not after the next one), and CURRENT_MODE refused as
     ArduCopter SITL refused it (DENIED, "No ap_message for mavlink id (436)"), never sent."""
     with px4() if autopilot is PX4 else ardupilot() as (_sim, [g]):
@@ -288,7 +289,7 @@ def test_heartbeat_cannot_be_sped_up_on_px4_and_current_mode_streams(autopilot: 
             assert modes == []
             assert len(beats) >= 5, len(beats)  # (10 Hz asked; a loaded machine may lag)
             return
-        assert len(modes) >= 10, len(modes)  # (20 Hz asked; a loaded machine may lag)
+        assert 1 <= len(modes) <= 3, len(modes)  # (20 Hz asked: PX4 sends 2 Hz)
         assert len(beats) <= 2
         assert {m.custom_mode for m in modes} == {beats[-1].custom_mode}
 
@@ -439,12 +440,12 @@ def test_px4_data_link_loss_lands() -> None:
         assert "data link lost" in sim.vehicle_state("V1")["failsafe"]
 
 
-def test_px4_takeoff_needs_arming_and_climbs_to_the_amsl_altitude() -> None:
+def test_px4_takeoff_climbs_to_the_amsl_altitude_once_armed() -> None:
     with px4(speed=4.0, home_amsl_m=100.0) as (sim, [g]):
-        assert g.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, 0, 0, 103.0) == (
-            mavlink.MAV_RESULT_DENIED
-        )
-        assert g.texts and "not armed" in g.texts[-1]
+        # disarmed: accepted (as PX4 v1.16 SITL), nothing moves until armed
+        assert g.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, 0, 0, 103.0) == ACCEPTED
+        g.pump(0.2, g.heartbeat)
+        assert sim.vehicle_state("V1")["position"][2] == pytest.approx(0.0, abs=0.05)
         assert g.arm() == ACCEPTED
         assert g.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, 0, 0, 103.0) == ACCEPTED
         g.pump(1.5, g.heartbeat)
