@@ -16,8 +16,9 @@ firmware's SITL:
   ``custom_mode`` (:mod:`btmission.backends.mavlink_modes`) — faster when asked on ArduPilot;
   PX4 refuses (MAV_RESULT_FAILED) as the firmware does — other messages only when asked
   (``MAV_CMD_SET_MESSAGE_INTERVAL``, ``MAV_CMD_REQUEST_MESSAGE``): CURRENT_MODE (the mode
-  between heartbeats; PX4 only: ArduCopter 4.7.0-dev SITL refused its stream, DENIED with "No
-  ap_message for mavlink id (436)", and so does mavsim's ArduPilot,
+  between heartbeats; PX4 only, at most 2 Hz whatever rate is asked and once on each change,
+  :data:`PX4_CURRENT_MODE_S`, as PX4 v1.16 SITL sent it; ArduCopter 4.7.0-dev SITL refused
+  its stream, DENIED with "No ap_message for mavlink id (436)", and so does mavsim's ArduPilot,
   :data:`ARDUPILOT_UNKNOWN_MESSAGES`), LOCAL_POSITION_NED (in the
   vehicle's NED frame, origin where it was spawned), ATTITUDE, EXTENDED_SYS_STATE, SYS_STATUS,
   BATTERY_STATUS, DISTANCE_SENSOR (downward; a PX4 vehicle on the ground reads 65533 cm, above
@@ -27,11 +28,16 @@ firmware's SITL:
   PX4 answers a DO_SET_MODE twice, as the firmware does: ACCEPTED at once (its MAVLink module),
   then on the next step the real result (its commander), which may be a refusal;
 * **PX4 rules**: OFFBOARD only after setpoints have streamed at more than 2 Hz for a second
-  (DENIED otherwise); when they stop for ``COM_OF_LOSS_T`` (1 s), the firmware's default
-  offboard-loss action, Position mode, which without RC sinks and says CRITICAL (PX4 v1.16 SITL:
-  5.2 m to 0.1 m, custom mode 196608), or HOLD (:attr:`MavSimConfig.offboard_loss_action`);
-  OFFBOARD again by itself once they stream for a second,
-  NAV_TAKEOFF to an AMSL altitude, automatic disarming (the embedded simulator's rules,
+  (TEMPORARILY_REJECTED otherwise, "Switching to Offboard is currently not available", as PX4
+  v1.16 SITL answered), except that a disarmed drone takes it without setpoints (ACCEPTED,
+  shown as OFFBOARD) and then refuses to arm (TEMPORARILY_REJECTED, "Arming denied: Resolve
+  system health failures first") until they stream, as the SITL did; when they stop for
+  ``COM_OF_LOSS_T`` (1 s), the firmware's default offboard-loss action, Position mode, which
+  without RC sinks and says CRITICAL (PX4 v1.16 SITL: 5.2 m to 0.1 m, custom mode 196608), or
+  HOLD (:attr:`MavSimConfig.offboard_loss_action`); OFFBOARD again by itself once they stream
+  for a second,
+  NAV_TAKEOFF to an AMSL altitude (accepted while disarmed, as PX4 v1.16 SITL did: the drone
+  shows Takeoff and leaves the ground only once armed), automatic disarming (the embedded simulator's rules,
   :mod:`btmission.backends.autopilot`);
 * **ArduPilot rules**: GUIDED (copter 4, rover 15) takes targets that do not time out (position)
   or stop after 3 s (velocity) or 1 s (attitude, ``GUID_TIMEOUT``); a landed copter leaves the
@@ -44,10 +50,16 @@ firmware's SITL:
   ``COM_DL_LOSS_T``) and :attr:`MavSimConfig.gcs_failsafe_s` (``--gcs-failsafe``: ArduPilot
   lands after ``FS_GCS_TIMEOUT``) turn them on; like the firmwares', they start once a ground
   station has been heard, and only while flying;
-* **landing as the firmwares land**: PX4 descends in AUTO.LAND at ~0.8 m/s near the ground,
-  says ON_GROUND and disarms 2 s later (``COM_DISARM_LAND``; PX4 v1.16 SIH); ArduCopter
+* **landing as the firmwares land**: PX4 descends in AUTO.LAND at 0.7 m/s (``MPC_LAND_SPEED``),
+  below 1 m at 0.3 m/s (``MPC_LAND_CRWL`` below ``MPC_LAND_ALT3``, as with SIH's distance
+  sensor), says LANDING until its land detector's ON_GROUND (:data:`PX4_LAND_DETECT_S` after
+  touchdown: 7.5 s from 2 m, where PX4 v1.16 SIH took 7.2-12.3 s) and disarms 2 s later
+  (``COM_DISARM_LAND``), then shows the mode in use before LAND (OFFBOARD, or Hold after a
+  HOLD then LAND; MANUAL if neither), as PX4 v1.16 SITL did after "Disarmed by landing" — a
+  drone disarmed in OFFBOARD stays there and refuses to arm until setpoints stream; ArduCopter
   descends in LAND at 0.5 m/s (``LAND_SPEED``) and disarms about 0.5 s after touchdown
-  (ArduCopter 4.7.0-dev SITL) — the embedded simulator's own 0.7 m/s and 2 s are neither;
+  (ArduCopter 4.7.0-dev SITL) — the embedded simulator's own (0.7 m/s all the way, disarmed
+  2 s after touchdown) is neither;
 * **ArduCopter's modes** (:mod:`btmission.backends.mavlink_modes`): a copter keeps its mode when
   it disarms — one that landed in LAND stays in LAND, one in GUIDED stays in GUIDED — and
   refuses to arm in LAND, BRAKE and the other modes that do not allow it ("Arm: Mode not
@@ -147,12 +159,26 @@ PX4_RANGE_MAX_CM = 10000
 PX4_RANGE_ON_GROUND_CM = 65533
 """What it reads on the ground (the vehicle a few cm below its origin): out of its declared
 range, i.e. no reading — a ground station that takes it as real puts the ground 655 m down."""
-PX4_LAND_SPEED_M_S = 0.8
-"""How fast a PX4 vehicle descends in AUTO.LAND near the ground (SIH: ~0.8 m/s, faster than the
-0.5 m/s a goal's arrival once asked for; the landed state says it is landing)."""
+PX4_LAND_SPEED_M_S = 0.7
+"""How fast a PX4 vehicle descends in AUTO.LAND (``MPC_LAND_SPEED``'s default; SIH: at most
+0.8 m/s; the landed state says it is landing)."""
+PX4_LAND_CRAWL_M_S = 0.3
+"""... and below :data:`PX4_LAND_CRAWL_ALT_M` above the ground (``MPC_LAND_CRWL``, used when a
+distance sensor gives the height, as SIH's does)."""
+PX4_LAND_CRAWL_ALT_M = 1.0
+"""``MPC_LAND_ALT3``'s default."""
+PX4_LAND_DETECT_S = 3.0
+"""A PX4 vehicle's land detector says ON_GROUND ("Landing detected") this long after touchdown
+(its ground-contact, maybe-landed and landed stages, ``LNDMC_TRIG_TIME`` 1 s the last), until
+then LANDING. Set so that a LAND from 2 m (4.5 s of descent here) takes 7.5 s, within the
+7.2-12.3 s PX4 v1.16 SIH took from about 2 m to "Landing detected"."""
+PX4_CURRENT_MODE_S = 0.5
+"""PX4 sends CURRENT_MODE at most this often, whatever rate was asked, and once on each mode
+change (PX4 v1.16 SITL, asked for 50 Hz: ACCEPTED, about 2 Hz; it sends it when its vehicle
+status is published)."""
 PX4_DISARM_LAND_S = 2.0
-"""A landed PX4 vehicle disarms this long after touching down (``COM_DISARM_LAND``; PX4 v1.16
-SIH: landed state ON_GROUND, then disarmed 2 s later)."""
+"""A landed PX4 vehicle disarms this long after its landing is detected (``COM_DISARM_LAND``;
+PX4 v1.16 SIH: "Landing detected", then "Disarmed by landing" 2.0 s later)."""
 COPTER_LAND_SPEED_M_S = 0.5
 """How fast an ArduCopter descends in LAND near the ground (``LAND_SPEED``, 50 cm/s; ArduCopter
 4.7.0-dev SITL: 0.5 m/s)."""
@@ -349,6 +375,19 @@ class _SimulatedAutopilot:
         """The copter's HOLD is LOITER (asked for as such), not BRAKE: it sinks without RC."""
         self.kept_land = False
         """The copter disarmed in LAND and stays in LAND (the simulator shows MANUAL)."""
+        self.takeoff_asked: float | None = None
+        """A disarmed PX4 drone was sent NAV_TAKEOFF (to this height above home): it shows
+        Takeoff and takes off once armed (:meth:`step`)."""
+        self.mode_sent = -1
+        """The ``custom_mode`` the last CURRENT_MODE carried (PX4 sends one on each change)."""
+        self.before_land = Mode.MANUAL
+        """The PX4 drone's mode before a LAND (:meth:`_track_px4_mode`)."""
+        self.touchdown_at = -math.inf
+        """When the simulator's vehicle last touched down (:meth:`landed_state`)."""
+        self.offboard_asked = False
+        """A disarmed PX4 drone was put in OFFBOARD before setpoints streamed: it shows OFFBOARD
+        and refuses to arm until they do, then the simulator's OFFBOARD takes over
+        (:meth:`step`; module docstring)."""
         self.seen_mode = backend.telemetry().mode
         """The simulator's mode when :meth:`_track_mode` last looked."""
         self.unknown_messages = (
@@ -449,6 +488,21 @@ class _SimulatedAutopilot:
             and self.backend.telemetry().mode is Mode.HOLD
         )
 
+    def landed_state(self) -> LandedState:
+        """The landed state the firmware reports: PX4's land detector says ON_GROUND only
+        :data:`PX4_LAND_DETECT_S` after touchdown (LANDING until then)."""
+        tel = self.backend.telemetry()
+        state = tel.landed_state
+        if (
+            self.autopilot is Autopilot.PX4
+            and not self.ground
+            and state is LandedState.ON_GROUND
+            and tel.armed
+            and self.now() - self.touchdown_at < PX4_LAND_DETECT_S
+        ):
+            return LandedState.LANDING
+        return state
+
     def custom_mode(self) -> int:
         if self.position_fallback():
             return PX4_POSCTL
@@ -460,6 +514,10 @@ class _SimulatedAutopilot:
                 return COPTER_LOITER
         if self.autopilot is Autopilot.ARDUPILOT and mode in (Mode.TAKEOFF, Mode.OFFBOARD):
             mode = Mode.OFFBOARD  # GUIDED
+        if self.offboard_asked:
+            mode = Mode.OFFBOARD
+        elif self.takeoff_asked is not None:
+            mode = Mode.TAKEOFF
         try:
             return mode_request(self.autopilot, self.spec.kind, mode).custom_mode
         except Exception:
@@ -469,6 +527,9 @@ class _SimulatedAutopilot:
         """ArduCopter keeps its mode when it disarms, where the simulator (PX4's rules) goes to
         MANUAL: a copter that landed in LAND stays in LAND (and refuses to arm there), one
         disarmed in BRAKE or LOITER stays there. Called before each step and each send."""
+        if self.autopilot is Autopilot.PX4 and not self.ground:
+            self._track_px4_mode()
+            return
         if not self.copter:
             return
         tel = self.backend.telemetry()
@@ -483,6 +544,30 @@ class _SimulatedAutopilot:
             self.kept_land = False
         if mode is not Mode.HOLD:
             self.loiter = False
+        self.seen_mode = mode
+
+    def _track_px4_mode(self) -> None:
+        """PX4 keeps the mode last asked that allows arming where the simulator goes to
+        MANUAL: a drone disarmed by landing shows the mode in use before LAND (OFFBOARD when
+        LAND was asked from OFFBOARD, Hold after a HOLD then LAND; PX4 v1.16 SITL), and a
+        disarmed drone in OFFBOARD whose setpoints stopped stays in OFFBOARD (it refuses to
+        arm until they stream again, :attr:`offboard_asked`)."""
+        tel = self.backend.telemetry()
+        mode, seen = tel.mode, self.seen_mode
+        if mode is Mode.MANUAL and not tel.armed and seen is not Mode.MANUAL:
+            if seen is Mode.LAND and self.before_land is Mode.HOLD:  # disarmed by landing
+                self.backend.set_mode(Mode.HOLD)
+                mode = Mode.HOLD
+            elif seen is Mode.OFFBOARD or (seen is Mode.LAND and self.before_land is Mode.OFFBOARD):
+                self.offboard_asked = True
+        if self.offboard_asked:
+            self.before_land = Mode.OFFBOARD
+        elif mode is Mode.TAKEOFF:
+            self.before_land = Mode.HOLD  # (PX4 holds once a take-off is done)
+        elif mode in (Mode.OFFBOARD, Mode.MANUAL) or (
+            mode is Mode.HOLD and not self.state.offboard_lost  # (its failsafe's: not asked)
+        ):
+            self.before_land = mode
         self.seen_mode = mode
 
     # ------------------------------------------------------------------ receive
@@ -698,6 +783,11 @@ class _SimulatedAutopilot:
             return self._refuse(
                 "PreArm: EKF3 waiting for GPS config data", mavlink.MAV_RESULT_FAILED
             )
+        if self.offboard_asked and not self.streaming() and not force:
+            return self._refuse(
+                "Arming denied: Resolve system health failures first",
+                mavlink.MAV_RESULT_TEMPORARILY_REJECTED,
+            )
         if not armable(self.autopilot, self.spec.kind, self.custom_mode()):
             return self._refuse("Arm: Mode not armable", mavlink.MAV_RESULT_FAILED)
         if self.ground:
@@ -744,14 +834,30 @@ class _SimulatedAutopilot:
         if self.autopilot is Autopilot.PX4:
             if mode in (Mode.OFFBOARD, Mode.HOLD, Mode.TAKEOFF) and not self.ekf_ready():
                 name = {Mode.OFFBOARD: "Offboard", Mode.HOLD: "Hold", Mode.TAKEOFF: "Takeoff"}
-                return self._refuse(f"Switching to {name[mode]} is currently not available")
+                return self._refuse(
+                    f"Switching to {name[mode]} is currently not available",
+                    mavlink.MAV_RESULT_TEMPORARILY_REJECTED,
+                )
+            self.offboard_asked = False  # (any mode asked for replaces them)
+            self.takeoff_asked = None
             if mode is Mode.OFFBOARD:
+                lost = self.state.offboard_lost
                 if self.ground and not self.streaming():  # the robots' own rule is laxer
                     ack = Ack(False, "not streaming")
                 else:
                     ack = self.backend.set_mode(Mode.OFFBOARD)
+                if not ack.accepted:  # a refused request leaves PX4's failsafe as it was: its
+                    self.state.offboard_lost = lost  # HOLD still ends when setpoints resume
+                if not ack.accepted and not self.ground and not self.armed():
+                    # PX4 v1.16 SITL: a disarmed drone takes OFFBOARD without setpoints (and
+                    # then refuses to arm until they stream: _arm_disarm)
+                    self.offboard_asked = True
+                    return mavlink.MAV_RESULT_ACCEPTED
                 if not ack.accepted:
-                    return self._refuse("Switching to Offboard is currently not available")
+                    return self._refuse(
+                        "Switching to Offboard is currently not available",
+                        mavlink.MAV_RESULT_TEMPORARILY_REJECTED,
+                    )
                 return mavlink.MAV_RESULT_ACCEPTED
             if mode is Mode.TAKEOFF:
                 return self._takeoff(math.nan)
@@ -783,18 +889,17 @@ class _SimulatedAutopilot:
         tel = self.backend.telemetry()
         if self.spec.kind is VehicleKind.GROUND:
             return self._refuse("Takeoff denied: not a multicopter", mavlink.MAV_RESULT_UNSUPPORTED)
-        if not tel.armed:
-            return self._refuse(
-                "Takeoff refused: not armed",
-                mavlink.MAV_RESULT_DENIED
-                if self.autopilot is Autopilot.PX4
-                else mavlink.MAV_RESULT_FAILED,
-            )
         if self.autopilot is Autopilot.PX4:
             alt = 2.5 if math.isnan(param7) else param7 - self.cfg.home_amsl_m
             if not alt > 0:
                 return self._refuse(f"Takeoff denied: altitude {alt:.1f} m below home")
+            if not tel.armed:  # PX4 v1.16 SITL: ACCEPTED, in Takeoff; it leaves once armed
+                self.offboard_asked = False
+                self.takeoff_asked = alt
+                return mavlink.MAV_RESULT_ACCEPTED
             return self._result(self.backend.takeoff(alt))
+        if not tel.armed:
+            return self._refuse("Takeoff refused: not armed", mavlink.MAV_RESULT_FAILED)
         mode = mode_of(self.autopilot, self.spec.kind, self.custom_mode())
         if mode is not Mode.OFFBOARD:
             return self._refuse("Takeoff: not in GUIDED mode", mavlink.MAV_RESULT_FAILED)
@@ -885,6 +990,10 @@ class _SimulatedAutopilot:
         t = self.now()
         tel = self.backend.telemetry()
         flying = tel.armed and not tel.landed
+        if not tel.landed:
+            self.touchdown_at = math.inf
+        elif self.touchdown_at == math.inf:
+            self.touchdown_at = t
         if (
             self.ground
             and tel.mode is Mode.OFFBOARD
@@ -905,6 +1014,13 @@ class _SimulatedAutopilot:
             if self.position_fallback():  # no RC: Position mode sinks (seen 5.2 m -> 0.1 m)
                 v = self.state
                 v.hold[2] = max(v.hold[2] - PX4_POSITION_SINK_M_S * self.cfg.step_s, v.ground + 0.1)
+            if self.offboard_asked and (
+                self.backend.set_mode(Mode.OFFBOARD).accepted or tel.armed
+            ):  # the setpoints stream now: the simulator's OFFBOARD (armed by force: its mode)
+                self.offboard_asked = False
+            if self.takeoff_asked is not None and tel.armed:  # armed in Takeoff: it takes off
+                self.backend.takeoff(self.takeoff_asked)
+                self.takeoff_asked = None
             dll = self.cfg.datalink_loss_s
             if (
                 flying
@@ -963,7 +1079,12 @@ class _SimulatedAutopilot:
         if t >= self.next_heartbeat:
             self.next_heartbeat = t + self.heartbeat_s
             self._send_message(mavlink.MAVLINK_MSG_ID_HEARTBEAT)
+        px4 = self.autopilot is Autopilot.PX4
+        if px4 and CURRENT_MODE_ID in self.intervals and self.custom_mode() != self.mode_sent:
+            self.next_send[CURRENT_MODE_ID] = t  # (PX4 sends it on each change)
         for msg_id, interval in list(self.intervals.items()):
+            if px4 and msg_id == CURRENT_MODE_ID:
+                interval = max(interval, PX4_CURRENT_MODE_S)
             if t + 1e-9 >= self.next_send.get(msg_id, 0.0):
                 self.next_send[msg_id] = max(self.next_send.get(msg_id, t) + interval, t)
                 self._send_message(msg_id)
@@ -993,7 +1114,7 @@ class _SimulatedAutopilot:
             custom = self.custom_mode()
             self.send(lambda mav: mav.heartbeat_send(mav_type, ap, base, custom, status))
         elif msg_id == CURRENT_MODE_ID:
-            custom = self.custom_mode()
+            custom = self.mode_sent = self.custom_mode()
             self.send(lambda mav: mav.send(CurrentMode(0, custom, custom)))
         elif msg_id == mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
             if not self.position_known():
@@ -1006,7 +1127,7 @@ class _SimulatedAutopilot:
             rate = fr.yaw_rate_to_local(tel.yaw_rate)
             self.send(lambda mav: mav.attitude_send(ms, tel.roll, -tel.pitch, yaw, 0.0, 0.0, rate))
         elif msg_id == mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
-            landed = MAV_LANDED_STATE[tel.landed_state]
+            landed = MAV_LANDED_STATE[self.landed_state()]
             self.send(lambda mav: mav.extended_sys_state_send(0, landed))
         elif msg_id == mavlink.MAVLINK_MSG_ID_SYS_STATUS:
             pct = round(100 * tel.battery)
@@ -1089,7 +1210,10 @@ class MavSim:
         sim_config = SimConfig(
             step_s=config.step_s,
             land_speed_m_s=PX4_LAND_SPEED_M_S if px4 else COPTER_LAND_SPEED_M_S,
-            disarm_land_s=PX4_DISARM_LAND_S if px4 else COPTER_DISARM_LAND_S,
+            land_crawl_m_s=PX4_LAND_CRAWL_M_S if px4 else None,
+            land_crawl_alt_m=PX4_LAND_CRAWL_ALT_M,
+            # (the simulator counts from touchdown, PX4 from its land detector's verdict)
+            disarm_land_s=PX4_DISARM_LAND_S + PX4_LAND_DETECT_S if px4 else COPTER_DISARM_LAND_S,
         )
         self.simulator = Simulator(config.voxel_map, sim_config, seed=config.seed)
         self.autopilots: dict[str, _SimulatedAutopilot] = {}

@@ -12,7 +12,7 @@ The first call sends COMMAND_LONG and returns at once a pending :class:`Ack`
 later call of the same command looks at what came meanwhile (:class:`_Asked`) and returns the
 latest answer. What used to be waited for happens on deadlines those calls check: no answer
 within ``ack_timeout_s`` → sent again (``command_retries`` times, then a transient refusal);
-TEMPORARILY_REJECTED → sent again after 0.5 s, 1 s …; IN_PROGRESS → its final answer waited for
+TEMPORARILY_REJECTED → sent again after 0.5 s, 1 s … of the vehicle's time; IN_PROGRESS → its final answer waited for
 ``in_progress_timeout_s``. An answer is kept: a refusal for a back-off (0.5 s of vehicle time,
 doubling; arming up to 4 s, other commands up to 1 s), an acceptance for
 :data:`ACCEPTED_HOLD_S` (at least ``ack_timeout_s``, and only until the telemetry tells another mode or arming
@@ -274,9 +274,12 @@ class MavlinkVehicle:
             if (
                 result == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
                 and asked.sends <= opts.command_retries
-            ):  # busy or not ready yet: asked again after a pause
+            ):  # busy or not ready yet: asked again after a pause of the vehicle's time (a
+                # SITL at ×10 refusing OFFBOARD until the stream has run 1 s is asked 0.05 s
+                # wall later, not 0.5 s: 5 s of its time)
                 asked.answer, asked.rejected, asked.renew_at = None, ack, math.inf
-                asked.send_at = wall + min(0.5, opts.ack_timeout_s) * asked.sends
+                pause = min(0.5, opts.ack_timeout_s) * asked.sends / opts.time_scale
+                asked.send_at = wall + pause
                 continue
             self._settle(asked, ack, wall)
         if asked.answer is not None or wall < asked.send_at:

@@ -142,6 +142,11 @@ class SimConfig:
     land_speed_m_s: float = LAND_SPEED
     """AUTO.LAND's descent speed (PX4 MPC_LAND_SPEED; mavsim's PX4 vehicles land at PX4 SIH's
     ~0.8 m/s, its ArduCopters at LAND_SPEED's 0.5 m/s)."""
+    land_crawl_m_s: float | None = None
+    """Below :attr:`land_crawl_alt_m` above the ground AUTO.LAND descends this slowly (PX4
+    ``MPC_LAND_CRWL`` with a distance sensor, below ``MPC_LAND_ALT3``: mavsim's PX4 vehicles,
+    0.3 m/s); None, the embedded simulator's, lands at :attr:`land_speed_m_s` all the way."""
+    land_crawl_alt_m: float = 1.0
     disarm_land_s: float = DISARM_LAND_S
     """A vehicle that has landed disarms this long after touching down (PX4 COM_DISARM_LAND,
     2 s; mavsim's ArduCopters disarm 0.5 s after, as ArduCopter SITL did)."""
@@ -175,6 +180,9 @@ class SimConfig:
             )
         if not (math.isfinite(self.land_speed_m_s) and self.land_speed_m_s > 0):
             raise ValueError(f"land_speed_m_s must be positive, got {self.land_speed_m_s}")
+        crawl = self.land_crawl_m_s
+        if crawl is not None and not (math.isfinite(crawl) and crawl > 0):
+            raise ValueError(f"land_crawl_m_s must be positive or None, got {crawl}")
         if not (math.isfinite(self.disarm_land_s) and self.disarm_land_s >= 0):
             raise ValueError(f"disarm_land_s must be >= 0, got {self.disarm_land_s}")
         if self.pose_noise_m < 0 or self.heading_noise_rad < 0:
@@ -425,6 +433,19 @@ class Simulator:
             yaw_mode, yaw_sp = kernels.YAW_HEADING, float(v.sp_yaw)
         return command, target, yaw_mode, yaw_sp
 
+    def _crawl(
+        self, v: _Vehicle, command: tuple[int, FloatArray, int, float], kernels: Any
+    ) -> tuple[int, FloatArray, int, float]:
+        """AUTO.LAND below :attr:`SimConfig.land_crawl_alt_m`: the hold point's x, y and a
+        height the position loop descends to at :attr:`SimConfig.land_crawl_m_s` (only with a
+        crawl configured: mavsim's PX4)."""
+        cfg = self.config
+        if command[0] != kernels.CMD_LAND or v.x[2] - v.ground >= cfg.land_crawl_alt_m:
+            return command
+        crawl = float(cfg.land_crawl_m_s or 0.0)
+        target = np.array([v.hold[0], v.hold[1], v.x[2] - crawl / POSITION_GAIN])
+        return kernels.CMD_HOLD, target, command[2], command[3]
+
     def _step_multirotors(self, vs: list[_Vehicle], dt: float) -> None:
         """One step of the seed 002 model (RK4 in the yaw frame), the yaw loop, rock and
         ground contact and landing for every drone in one compiled call
@@ -436,6 +457,8 @@ class Simulator:
 
         command = self._command
         commands = [command(v, kernels) for v in vs]
+        if self.config.land_crawl_m_s is not None:
+            commands = [self._crawl(v, c, kernels) for v, c in zip(vs, commands)]
         out = kernels.step_all(
             np.array([v.x for v in vs]),
             np.array([v.yaw for v in vs], dtype=float),

@@ -94,7 +94,7 @@ def test_a_small_mission_flies_and_lands(tmp_path: Path, autopilot: Autopilot) -
         assert [(e["agent"], e["task"]) for e in done] == [("R1", "T1")]
         state = sim.vehicle_state("R1")
         assert state["landed"] and not state["armed"]  # the default behaviour landed at home
-        # one landing, never abandoned: mavsim's PX4 lands at 0.8 m/s, faster than a goal's
+        # one landing, never abandoned: mavsim's PX4 lands at 0.7 m/s, faster than a goal's
         # "settled" speed, and the autopilot's landed state says it is landing at home
         stages = [e["action"] for e in evs if e["ev"] == "stage"]
         assert stages[stages.index("land") :] == ["land"], stages
@@ -357,9 +357,9 @@ def test_sigterm_mid_flight_holds_then_lands_before_exiting(tmp_path: Path) -> N
         assert proc.returncode == 143, err
         assert "R1: the run stopped: HOLD accepted, then LAND accepted" in err
         state = sim.vehicle_state("R1")  # landing, or landed and disarmed already: PX4 then
-        assert state["mode"] is Mode.LAND or (  # shows MANUAL (the process may take that long
-            state["landed"] and not state["armed"] and state["mode"] is Mode.MANUAL  # to exit)
-        ), state
+        assert state["mode"] is Mode.LAND or (  # shows Hold, the mode before LAND (the process
+            state["landed"] and not state["armed"] and state["mode"] is Mode.HOLD  # may take
+        ), state  # that long to exit)
 
 
 def test_a_missing_signing_key_file_is_refused_before_anything_runs(tmp_path: Path) -> None:

@@ -77,7 +77,7 @@ def test_a_px4_drone_whose_range_finder_reads_out_of_range_on_the_ground_takes_o
 
 @pytest.mark.serial  # paced by mavsim's clock
 def test_a_px4_landing_is_told_by_its_landed_state_and_lands_at_px4s_speed() -> None:
-    """mavsim's PX4 descends at ~0.8 m/s in LAND and says so in EXTENDED_SYS_STATE (LANDING,
+    """mavsim's PX4 descends at 0.7 m/s in LAND (0.3 m/s the last metre) and says so in EXTENDED_SYS_STATE (LANDING,
     then ON_GROUND): the provider's telemetry carries it, and the navigator's arrival over home
     holds through the whole descent."""
     with mavsim(PX4) as sim, provider(telemetry_hz=50.0) as p:
@@ -98,7 +98,7 @@ def test_a_px4_landing_is_told_by_its_landed_state_and_lands_at_px4s_speed() -> 
         assert b.telemetry().landed_state is LandedState.IN_AIR
         assert answer(b.land)
         states, fastest, at_home = set(), 0.0, True
-        end = time.monotonic() + 10.0 / SPEED
+        end = time.monotonic() + 15.0 / SPEED  # (7.5 s, then disarmed 2 s later)
         while time.monotonic() < end:
             tel = b.telemetry()
             states.add(tel.landed_state)
@@ -109,7 +109,7 @@ def test_a_px4_landing_is_told_by_its_landed_state_and_lands_at_px4s_speed() -> 
             time.sleep(0.02 / SPEED)
         assert b.telemetry().landed and not b.telemetry().armed
         assert LandedState.LANDING in states and LandedState.ON_GROUND in states
-        assert fastest == pytest.approx(0.8, abs=0.1)
+        assert fastest == pytest.approx(0.7, abs=0.1)
         assert at_home
 
 

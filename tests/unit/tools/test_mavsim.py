@@ -124,9 +124,11 @@ def test_heartbeats_say_the_firmware_and_streams_come_only_when_asked() -> None:
 
 def test_px4_refuses_offboard_below_2_hz_and_accepts_it_above() -> None:
     with client(Autopilot.PX4) as c:
+        arm = c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)  # (disarmed, PX4 takes it)
+        assert arm.result == mavlink.MAV_RESULT_ACCEPTED
         c.stream(2.0, hz=1.5)
         ack = c.set_mode(Mode.OFFBOARD)
-        assert ack.result == mavlink.MAV_RESULT_DENIED
+        assert ack.result == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         c.stream(1.2, hz=10)
         assert c.set_mode(Mode.OFFBOARD).result == mavlink.MAV_RESULT_ACCEPTED
 

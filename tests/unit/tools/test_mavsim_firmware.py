@@ -16,6 +16,7 @@ from click.testing import CliRunner
 from btmission.backends._pymavlink import mavlink
 from btmission.backends.mavlink_modes import Autopilot, mode_request
 from btmission.backends.mavlink_url import MavlinkAddress
+from btmission.backends.sim import SimConfig
 from btmission.cli.main import cli
 from btmission.mavsim import (
     SITL_EKF_DELAY_S,
@@ -162,8 +163,8 @@ def test_the_cli_turns_a_link_loss_failsafe_on_only_when_asked(
 
 # ---------------------------------------------------------------- 3. landing and disarming
 def _land_timing(sim: MavSim) -> tuple[float, float, float]:
-    """From 2 m up, a LAND: the fastest descent speed, the vehicle seconds until ON_GROUND, then
-    until disarmed."""
+    """From 2 m up, a LAND: the fastest descent speed, the vehicle seconds until the firmware
+    says ON_GROUND, then until disarmed."""
     ap = airborne(sim, 2.0)
     assert ap._command(_command_long(mavlink.MAV_CMD_NAV_LAND)) == mavlink.MAV_RESULT_ACCEPTED
     t0 = ap.now()
@@ -173,7 +174,7 @@ def _land_timing(sim: MavSim) -> tuple[float, float, float]:
         run(sim, sim.config.step_s, gcs=True)
         tel = ap.backend.telemetry()
         sink = max(sink, -float(tel.velocity[2]))
-        if math.isnan(on_ground) and tel.landed_state is LandedState.ON_GROUND:
+        if math.isnan(on_ground) and ap.landed_state() is LandedState.ON_GROUND:
             on_ground = ap.now()
         if not math.isnan(on_ground) and not ap.armed():
             disarmed = ap.now()
@@ -181,19 +182,42 @@ def _land_timing(sim: MavSim) -> tuple[float, float, float]:
 
 
 @pytest.mark.parametrize(
-    ("autopilot", "speed", "disarm_s"),
-    [(APM, 0.5, 0.5), (PX4, 0.8, 2.0)],
+    ("autopilot", "speed", "down_s", "disarm_s"),
+    [(APM, 0.5, (4.0, 5.0), 0.5), (PX4, 0.7, (7.2, 12.3), 2.0)],
 )
 def test_a_land_from_2_m_descends_and_disarms_as_the_firmware_does(
-    autopilot: Autopilot, speed: float, disarm_s: float
+    autopilot: Autopilot, speed: float, down_s: tuple[float, float], disarm_s: float
 ) -> None:
-    """ArduCopter SITL descends at 0.5 m/s (LAND_SPEED) and disarms ~0.5 s after touchdown; PX4
-    SIH descends at ~0.8 m/s, says ON_GROUND and disarms 2 s later (COM_DISARM_LAND)."""
+    """ArduCopter SITL descends at 0.5 m/s (LAND_SPEED) and disarms ~0.5 s after touchdown.
+    PX4 v1.16 SIH descends at MPC_LAND_SPEED (0.7 m/s), below 1 m (MPC_LAND_ALT3, its distance
+    sensor giving the height) at MPC_LAND_CRWL (0.3 m/s): 7.2-12.3 s from about 2 m to "Landing
+    detected" (ON_GROUND), then "Disarmed by landing" 2.0 s later (COM_DISARM_LAND)."""
     with stepped(autopilot) as sim:
         sink, down, off = _land_timing(sim)
         assert sink == pytest.approx(speed, abs=0.05)
-        assert 2.0 / speed <= down <= 2.0 / speed + 1.0  # (ArduPilot: ~4 s; 4.7 s here)
+        assert down_s[0] <= down <= down_s[1], down  # (ArduPilot: ~4 s; 4.7 s here)
         assert off == pytest.approx(disarm_s, abs=2.5 * sim.config.step_s)
+
+
+def test_px4_crawls_the_last_metre_of_a_landing() -> None:
+    """Below MPC_LAND_ALT3 (1 m) PX4 descends at MPC_LAND_CRWL (0.3 m/s), above it at
+    MPC_LAND_SPEED (0.7 m/s); the embedded simulator's own landing has no crawl."""
+    with stepped(PX4) as sim:
+        ap = airborne(sim, 2.0)
+        assert ap._command(_command_long(mavlink.MAV_CMD_NAV_LAND)) == mavlink.MAV_RESULT_ACCEPTED
+        sinks: dict[bool, float] = {True: 0.0, False: 0.0}  # below 1 m: the slowest sink
+        below = math.inf
+        while not ap.backend.telemetry().landed and ap.now() < 30.0:
+            run(sim, sim.config.step_s)
+            tel = ap.backend.telemetry()
+            low = tel.height_above_ground < 1.0
+            below = min(below, ap.now()) if low else below
+            sinks[low] = max(sinks[low], -float(tel.velocity[2]))
+            if 0.1 < tel.height_above_ground < 0.3:  # (slowed down from 0.7 m/s by then)
+                assert -float(tel.velocity[2]) == pytest.approx(0.3, abs=0.06)
+        assert sinks[False] == pytest.approx(0.7, abs=0.06)
+        assert 1.0 / 0.7 + 0.5 < ap.now() - below < 1.0 / 0.3  # 1 m at 0.7 m/s: 1.4 s
+    assert SimConfig().land_crawl_m_s is None
 
 
 # ---------------------------------------------------------------- 6. LAND on the ground
@@ -393,3 +417,150 @@ def test_the_cli_takes_the_offboard_loss_action(monkeypatch: pytest.MonkeyPatch)
     assert config.offboard_loss_action == "hold"
     r = CliRunner().invoke(cli, ["mavsim", "--count", "1", "--offboard-loss", "rtl"])
     assert r.exit_code == 2 and "--offboard-loss" in r.output
+
+
+# ---------------------------------------------------------------- PX4 SITL rules (issue #36)
+def _stream_here(sim: MavSim, seconds: float) -> None:
+    """``seconds`` of position setpoints at R1's place, at 10 Hz (as a ground station streams)."""
+    ap = sim.autopilots["R1"]
+    here = ap.frame.to_local(ap.backend.telemetry().position)
+    for _ in range(round(seconds / 0.1)):
+        ap._position_target(
+            mavlink.MAVLink_set_position_target_local_ned_message(
+                0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, 0b110111111000, *map(float, here),
+                0, 0, 0, 0, 0, 0, 0, 0,
+            )
+        )  # fmt: skip
+        run(sim, 0.1)
+
+
+def test_px4_takes_offboard_disarmed_without_setpoints_then_refuses_to_arm_until_they_stream() -> (
+    None
+):
+    """PX4 v1.16 SITL, OFFBOARD asked while disarmed with no setpoints: ACCEPTED (twice), then
+    arming TEMPORARILY_REJECTED, "Arming denied: Resolve system health failures first", until
+    setpoints stream; armed on the ground with no setpoints, OFFBOARD is TEMPORARILY_REJECTED
+    ("Switching to Offboard is currently not available"), not DENIED."""
+    offboard = mode_request(PX4, MULTI, Mode.OFFBOARD).custom_mode
+    with stepped(PX4) as sim:
+        ap = sim.autopilots["R1"]
+        texts: list[str] = []
+        ap.text = lambda severity, message: texts.append(message)  # type: ignore[method-assign]
+        assert ap._set_mode(offboard) == mavlink.MAV_RESULT_ACCEPTED
+        assert ap._set_mode(offboard) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 1.0)
+        assert sim.vehicle_state("R1")["mode"] is Mode.OFFBOARD and not ap.armed()
+        assert ap._arm_disarm(True, False) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        assert texts[-1] == "Arming denied: Resolve system health failures first"
+        _stream_here(sim, 1.5)
+        assert ap._arm_disarm(True, False) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 0.1)
+        assert ap.backend.telemetry().mode is Mode.OFFBOARD  # the simulator's own, now
+    with stepped(PX4) as sim:
+        ap = sim.autopilots["R1"]
+        ap.text = lambda severity, message: texts.append(message)  # type: ignore[method-assign]
+        assert ap._arm_disarm(True, False) == mavlink.MAV_RESULT_ACCEPTED  # (no OFFBOARD asked)
+        assert ap._set_mode(offboard) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        assert texts[-1] == "Switching to Offboard is currently not available"
+        assert sim.vehicle_state("R1")["mode"] is not Mode.OFFBOARD
+
+
+def test_a_refused_offboard_leaves_px4s_offboard_loss_hold_to_end_when_setpoints_resume() -> None:
+    """A refused request changes nothing on PX4: in the offboard-loss HOLD, an OFFBOARD asked
+    before the setpoints stream again is TEMPORARILY_REJECTED, and the failsafe still ends by
+    itself (back to OFFBOARD) once they have streamed a second."""
+    offboard = mode_request(PX4, MULTI, Mode.OFFBOARD).custom_mode
+    with stepped(PX4) as sim:
+        ap = airborne(sim)
+        _stream_here(sim, 1.5)
+        assert ap._set_mode(offboard) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 2.0)  # no setpoints: COM_OF_LOSS_T
+        assert ap.backend.telemetry().mode is Mode.HOLD
+        assert ap._set_mode(offboard) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        _stream_here(sim, 1.5)
+        assert ap.backend.telemetry().mode is Mode.OFFBOARD
+
+
+def _land_and_disarm(sim: MavSim) -> None:
+    ap = sim.autopilots["R1"]
+    assert ap._command(_command_long(mavlink.MAV_CMD_NAV_LAND)) == mavlink.MAV_RESULT_ACCEPTED
+    assert sim.vehicle_state("R1")["mode"] is Mode.LAND
+    end = ap.now() + 20.0
+    while ap.armed() and ap.now() < end:
+        run(sim, 0.1)
+    assert not ap.armed() and sim.vehicle_state("R1")["landed"]
+    run(sim, 1.0)
+
+
+def test_px4_disarmed_by_landing_shows_the_mode_it_was_in_before_land() -> None:
+    """PX4 v1.16 SITL, after "Disarmed by landing", shows the last mode asked that allows arming:
+    OFFBOARD when LAND was asked from OFFBOARD (and, disarmed in OFFBOARD without setpoints,
+    refuses to arm until they stream), Hold after a HOLD then LAND — not MANUAL."""
+    offboard = mode_request(PX4, MULTI, Mode.OFFBOARD).custom_mode
+    hold = mode_request(PX4, MULTI, Mode.HOLD).custom_mode
+    with stepped(PX4) as sim:
+        ap = airborne(sim, 2.0)
+        _stream_here(sim, 1.5)
+        assert ap._set_mode(offboard) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 0.2)
+        _land_and_disarm(sim)
+        assert sim.vehicle_state("R1")["mode"] is Mode.OFFBOARD
+        assert ap._arm_disarm(True, False) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        _stream_here(sim, 1.5)  # the next task's setpoints: it arms, in OFFBOARD
+        assert ap._arm_disarm(True, False) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 0.1)
+        assert ap.backend.telemetry().mode is Mode.OFFBOARD
+    with stepped(PX4) as sim:
+        ap = airborne(sim, 2.0)
+        _stream_here(sim, 1.5)
+        assert ap._set_mode(offboard) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 0.2)
+        assert ap._set_mode(hold) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 0.2)
+        _land_and_disarm(sim)
+        assert sim.vehicle_state("R1")["mode"] is Mode.HOLD
+        assert ap._arm_disarm(True, False) == mavlink.MAV_RESULT_ACCEPTED
+
+
+def test_px4_accepts_nav_takeoff_while_disarmed_and_leaves_the_ground_only_once_armed() -> None:
+    """PX4 v1.16 SITL ACCEPTED NAV_TAKEOFF while disarmed (mavsim said DENIED): the drone shows
+    Takeoff and stays on the ground until it is armed, then climbs to the altitude asked."""
+    with stepped(PX4, home_amsl_m=100.0) as sim:
+        ap = sim.autopilots["R1"]
+        takeoff = _command_long(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, 0, 0, 103.0)
+        assert ap._command(takeoff) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 3.0)
+        state = sim.vehicle_state("R1")
+        assert state["mode"] is Mode.TAKEOFF and state["landed"] and not state["armed"]
+        assert state["position"][2] == pytest.approx(0.0, abs=0.05)  # nothing moved
+        assert ap._arm_disarm(True, False) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 6.0)
+        assert ap.backend.telemetry().position[2] == pytest.approx(3.0, abs=0.2)
+
+
+def test_px4_sends_current_mode_at_2_hz_whatever_was_asked_and_on_each_change() -> None:
+    """PX4 v1.16 SITL ACCEPTED a 50 Hz CURRENT_MODE stream but sent it at about 2 Hz, and
+    whenever its vehicle status changed: a new mode is told in the step it happens."""
+    from btmission.backends._pymavlink import CURRENT_MODE_ID
+
+    hold = mode_request(PX4, MULTI, Mode.HOLD).custom_mode
+    with stepped(PX4) as sim:
+        ap = sim.autopilots["R1"]
+        sent: list[tuple[float, int]] = []
+        real = ap._send_message
+
+        def send(msg_id: int) -> bool:
+            if msg_id == CURRENT_MODE_ID:
+                sent.append((ap.now(), ap.custom_mode()))
+            return real(msg_id)
+
+        ap._send_message = send  # type: ignore[method-assign]
+        interval = _command_long(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, CURRENT_MODE_ID, 2e4)
+        assert ap._command(interval) == mavlink.MAV_RESULT_ACCEPTED
+        run(sim, 5.0)
+        assert len(sent) == pytest.approx(10, abs=1)  # 2 Hz, not the 50 Hz asked
+        assert ap._arm_disarm(True, False) == mavlink.MAV_RESULT_ACCEPTED
+        assert ap._set_mode(hold) == mavlink.MAV_RESULT_ACCEPTED
+        t, n = ap.now(), len(sent)
+        run(sim, sim.config.step_s)
+        assert sent[n:] == [(pytest.approx(t + sim.config.step_s), hold)]  # at once
